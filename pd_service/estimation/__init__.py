@@ -1,0 +1,31 @@
+"""Observer-predictors for delayed, multi-rate, lossy measurements (pure numpy).
+
+No networking, no clocks: time is an integer step passed in by the caller.
+
+Public surface::
+
+    LinearModel, Sensor              model and sensor descriptions
+    ObserverPredictor                the exact re-organised-innovation observer-predictor
+    AugmentedStateKF                 classical augmented-state baseline (same API)
+    ConventionalPredictor            one-sensor, one-delay baseline (same API)
+    PredictedState                   what predict() returns
+    ReplayEstimator, Backend, Packet the timestamp window and replay, for other backends
+"""
+
+from .baselines import AugmentedStateKF, ConventionalPredictor
+from .model import LinearModel, Sensor
+from .observer import ObserverPredictor
+from .replay import COUNTER_NAMES, Backend, Packet, PredictedState, ReplayEstimator
+
+__all__ = [
+    "AugmentedStateKF",
+    "Backend",
+    "COUNTER_NAMES",
+    "ConventionalPredictor",
+    "LinearModel",
+    "ObserverPredictor",
+    "Packet",
+    "PredictedState",
+    "ReplayEstimator",
+    "Sensor",
+]

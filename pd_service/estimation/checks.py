@@ -1,0 +1,77 @@
+"""Input checks shared by every estimator: shapes, finite values, covariances.
+
+Every check raises ``ValueError`` whose message starts with the field name, so a caller
+(the daemon, a test) can tell the user exactly what was wrong.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Relative tolerance for symmetry and positive semi-definiteness of covariances:
+#: ``|M - M^T| <= PSD_RTOL * max(1, max|M|)`` and ``min eig(M) >= -PSD_RTOL * max(1, max|M|)``.
+PSD_RTOL = 1e-9
+
+
+def as_vector(value: object, field: str, size: int | None = None) -> np.ndarray:
+    """Return ``value`` as a finite float64 vector of shape (size,)."""
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{field}: not a numeric vector ({exc})") from None
+    if arr.ndim == 2 and 1 in arr.shape:
+        arr = arr.reshape(-1)
+    if arr.ndim != 1:
+        raise ValueError(f"{field}: expected a vector, got shape {arr.shape}")
+    if size is not None and arr.shape[0] != size:
+        raise ValueError(f"{field}: expected length {size}, got {arr.shape[0]}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{field}: contains NaN or infinity")
+    return arr
+
+
+def as_matrix(value: object, field: str, shape: tuple[int | None, int | None]) -> np.ndarray:
+    """Return ``value`` as a finite float64 matrix; ``None`` in ``shape`` means any size."""
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{field}: not a numeric matrix ({exc})") from None
+    if arr.ndim == 0 and shape == (1, 1):
+        arr = arr.reshape(1, 1)
+    if arr.ndim != 2:
+        raise ValueError(f"{field}: expected a matrix, got shape {arr.shape}")
+    for axis, want in enumerate(shape):
+        if want is not None and arr.shape[axis] != want:
+            raise ValueError(f"{field}: expected shape {_fmt(shape)}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{field}: contains NaN or infinity")
+    return arr
+
+
+def as_covariance(value: object, field: str, size: int | None = None) -> np.ndarray:
+    """Return ``value`` as a symmetric positive semi-definite (size, size) matrix.
+
+    The tolerance is :data:`PSD_RTOL` relative to the largest entry; the returned matrix is
+    exactly symmetrised, ``(M + M^T) / 2``.
+    """
+    arr = as_matrix(value, field, (size, size))
+    if arr.shape[0] != arr.shape[1]:
+        raise ValueError(f"{field}: covariance must be square, got shape {arr.shape}")
+    scale = max(1.0, float(np.max(np.abs(arr)))) if arr.size else 1.0
+    if np.max(np.abs(arr - arr.T), initial=0.0) > PSD_RTOL * scale:
+        raise ValueError(f"{field}: covariance is not symmetric")
+    sym = 0.5 * (arr + arr.T)
+    if sym.size and float(np.linalg.eigvalsh(sym)[0]) < -PSD_RTOL * scale:
+        raise ValueError(f"{field}: covariance is not positive semi-definite")
+    return sym
+
+
+def as_step(value: object, field: str) -> int:
+    """Return ``value`` as a Python int (numpy integers accepted, bools and floats refused)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{field}: expected an integer step, got {type(value).__name__}")
+    return int(value)
+
+
+def _fmt(shape: tuple[int | None, int | None]) -> str:
+    return "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"

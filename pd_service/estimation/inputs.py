@@ -1,0 +1,76 @@
+"""Per-step control inputs u(t) over a sliding window of steps.
+
+Commands arrive as "u applies from step j on". In ``hold`` mode u(t) is the newest command
+with step <= t (zero-order hold, zeros before the first command); in ``zero`` mode u(t) is
+the command for exactly step t, else zero. The buffer keeps u(t) materialised for
+``t in [origin, origin + capacity)`` so that a multi-step propagation reads its inputs as one
+contiguous (m, nu) slice, with no per-step Python work.
+"""
+
+from __future__ import annotations
+
+import bisect
+
+import numpy as np
+
+
+class InputBuffer:
+    """u(t) for t in [origin, origin + capacity). Shapes: each u is (nu,)."""
+
+    def __init__(self, nu: int, capacity: int, hold: bool) -> None:
+        self.nu = nu
+        self.capacity = capacity
+        self.hold = hold
+        self.origin = 0
+        self._buf = np.zeros((2 * capacity, nu))
+        self._off = 0
+        self._cmd_steps: list[int] = []  # explicit command steps >= origin, sorted
+
+    def has_command(self, step: int) -> bool:
+        i = bisect.bisect_left(self._cmd_steps, step)
+        return i < len(self._cmd_steps) and self._cmd_steps[i] == step
+
+    def set(self, step: int, u: np.ndarray) -> None:
+        """Record a command for ``step`` (origin <= step < origin + capacity)."""
+        i = step - self.origin
+        if not 0 <= i < self.capacity:
+            raise IndexError(f"step {step} outside the input window")
+        k = bisect.bisect_left(self._cmd_steps, step)
+        self._cmd_steps.insert(k, step)
+        start = self._off + i
+        if self.hold:
+            # u applies until the next explicit command (or the end of the window).
+            nxt = self._cmd_steps[k + 1] if k + 1 < len(self._cmd_steps) else None
+            end = self._off + (nxt - self.origin if nxt is not None else self.capacity)
+            self._buf[start:end] = u
+        else:
+            self._buf[start] = u
+
+    def slice(self, step: int, m: int) -> np.ndarray:
+        """Inputs u(step), ..., u(step + m - 1) as a read-only (m, nu) view."""
+        i = self._off + step - self.origin
+        view = self._buf[i : i + m]
+        if step < self.origin or step + m > self.origin + self.capacity:
+            raise IndexError(f"steps [{step}, {step + m}) outside the input window")
+        return view
+
+    def advance(self, origin: int) -> None:
+        """Forget steps before ``origin``; new steps at the end continue the hold."""
+        d = origin - self.origin
+        if d <= 0:
+            return
+        cap = self.capacity
+        tail = self._buf[self._off + cap - 1].copy() if self.hold else np.zeros(self.nu)
+        if d >= cap:
+            self._buf[:cap] = tail
+            self._off = 0
+        else:
+            if self._off + d + cap > self._buf.shape[0]:
+                self._buf[: cap - d] = self._buf[self._off + d : self._off + cap]
+                self._off = 0
+            else:
+                self._off += d
+            self._buf[self._off + cap - d : self._off + cap] = tail
+        self.origin = origin
+        k = bisect.bisect_left(self._cmd_steps, origin)
+        del self._cmd_steps[:k]

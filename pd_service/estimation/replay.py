@@ -1,0 +1,346 @@
+"""Timestamp window and exact replay, shared by every observer backend.
+
+This is the paper's re-organized innovation recursion generalised to time stamps
+(Liang et al. 2017, Sec. 3.2 and Remark 1). Measurements are placed at the step they were
+*sampled*; a stretch of steps is final once no accepted packet can land in it any more::
+
+        committed (final)            open window (may still change)          predicted
+    ... ----------------------| c = now - max_delay ....... now |---- now + lead ---->
+        base = x(b | stamps <= b)     checkpoints: posterior at every measured step
+
+* ``base`` is the estimate of x(b) given every packet stamped <= b, for some b < c; it can
+  never change again. Re-using it across calls is the paper's Remark 1.
+* For each measured step s in the open window the engine keeps a checkpoint: the estimate of
+  x(s) given all packets stamped <= s. A packet (or a command) that lands at step s
+  invalidates the checkpoints from s on; the next call re-runs only that stretch, starting
+  from the newest checkpoint before s. The paper's re-organised measurement M*_i(tau) is
+  exactly "all packets received so far that are stamped tau": the indicator functions
+  F_i(tau) are simply the presence or absence of a packet, so missing samples delete only
+  their own rows.
+* The output rolls the newest posterior forward to now + lead through the commands already
+  known (the predictor, eq. 34), covariance included.
+
+The result equals a Kalman filter run from step 0 over every accepted packet in stamp order,
+then predicted forward: the engine only chooses *which* steps to recompute.
+
+Work and memory per call are bounded by the window (max_delay + lead steps), never by the
+number of elapsed steps. A backend supplies two pure functions over its own state type:
+``propagate(state, step, m, U)`` (x(step) -> x(step + m) with inputs U (m, nu)) and
+``update(state, step, packets)``; see :class:`Backend`.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import Counter
+from dataclasses import dataclass
+from typing import Generic, Protocol, TypeVar
+
+import numpy as np
+
+from .checks import as_covariance, as_step, as_vector
+from .inputs import InputBuffer
+
+S = TypeVar("S")
+
+#: Counter names, by outcome. Measurements and commands are counted separately.
+COUNTER_NAMES = (
+    "accepted",
+    "late",
+    "future",
+    "duplicate",
+    "commands_accepted",
+    "commands_late",
+    "commands_future",
+    "commands_duplicate",
+)
+
+
+@dataclass(frozen=True, slots=True)
+class Packet:
+    """One accepted measurement. ``sensor`` indexes the estimator's sensor list;
+    ``z`` has shape (m,); ``R`` is a per-sample (m, m) override or None."""
+
+    sensor: int
+    z: np.ndarray
+    R: np.ndarray | None
+
+
+@dataclass(frozen=True, slots=True)
+class PredictedState:
+    """Estimate of x(step): mean ``x`` (n,), covariance ``P`` (n, n).
+
+    ``newest_step`` is the newest sample step whose packet contributed (None before any).
+    """
+
+    step: int
+    x: np.ndarray
+    P: np.ndarray
+    newest_step: int | None
+
+
+class Backend(Protocol[S]):
+    """What an observer backend supplies to :class:`ReplayEstimator`."""
+
+    def propagate(self, state: S, step: int, m: int, U: np.ndarray) -> S:
+        """Distribution of x(step) -> x(step + m), m >= 1, inputs U[j] = u(step + j), (m, nu)."""
+        ...
+
+    def update(self, state: S, step: int, packets: list[Packet]) -> S:
+        """Condition x(step) on ``packets`` (sorted by sensor index, at least one)."""
+        ...
+
+    def moments(self, state: S) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (n,) and covariance (n, n) of a state."""
+        ...
+
+
+class ReplayEstimator(Generic[S]):
+    """Accept window, counters, command buffer and replay around a :class:`Backend`.
+
+    Parameters
+    ----------
+    backend: the filter's propagate / update functions.
+    initial: backend state for x(0) before any measurement.
+    sensor_dims: name -> measurement dimension m, in sensor-index order.
+    nu: input dimension.
+    lead: steps from ``now`` to the predicted step (>= 0).
+    max_delay: a packet stamped s is accepted iff ``now - max_delay <= s <= now``.
+    command_hold: "hold" (u holds until the next command) or "zero" (u = 0 without a command).
+    """
+
+    def __init__(
+        self,
+        backend: Backend[S],
+        initial: S,
+        sensor_dims: dict[str, int],
+        nu: int,
+        lead: int,
+        max_delay: int,
+        command_hold: str = "hold",
+    ) -> None:
+        lead = as_step(lead, "lead")
+        max_delay = as_step(max_delay, "max_delay")
+        if lead < 0:
+            raise ValueError(f"lead: must be >= 0, got {lead}")
+        if max_delay < 0:
+            raise ValueError(f"max_delay: must be >= 0, got {max_delay}")
+        if command_hold not in ("hold", "zero"):
+            raise ValueError(f"command_hold: must be 'hold' or 'zero', got {command_hold!r}")
+        self.lead = lead
+        self.max_delay = max_delay
+        self.command_hold = command_hold
+        self._backend = backend
+        self._index = {name: i for i, name in enumerate(sensor_dims)}
+        self._dims = list(sensor_dims.values())
+        self._nu = nu
+        # Steps a base may lag behind the first open step before it is rolled forward.
+        self._base_lag = max_delay + 1
+        # Commands are accepted up to max_delay + 1 steps past the predicted step.
+        self._cmd_ahead = lead + max_delay + 1
+        capacity = self._base_lag + max_delay + 1 + self._cmd_ahead + 1
+        self._inputs = InputBuffer(nu, capacity, hold=command_hold == "hold")
+        self._base: S = initial
+        self._base_step = 0
+        self._c = 0  # first step that may still receive packets
+        self._now: int | None = None
+        self._packets: dict[int, list[Packet]] = {}
+        self._steps: list[int] = []  # measured steps >= c, sorted
+        self._chk: dict[int, S] = {}  # posterior at measured steps < dirty
+        self._dirty: int | None = None  # earliest step whose posterior is stale
+        self._counters: Counter[str] = Counter({k: 0 for k in COUNTER_NAMES})
+        self._cache: tuple[int, PredictedState] | None = None
+        self._newest_committed: int | None = None
+
+    # --- public API --------------------------------------------------------------------
+
+    @property
+    def sensor_names(self) -> list[str]:
+        return list(self._index)
+
+    @property
+    def counters(self) -> dict[str, int]:
+        """Counts of accepted and refused measurements and commands, by reason."""
+        return dict(self._counters)
+
+    @property
+    def now(self) -> int | None:
+        """Newest ``now`` seen (None before the first call that passed one)."""
+        return self._now
+
+    @property
+    def committed_step(self) -> int:
+        """First step that can still change; every step before it is final."""
+        return self._c
+
+    def add_measurement(
+        self, sensor: str, step: int, z: object, now: int, R: object | None = None
+    ) -> bool:
+        """Offer the sample of ``sensor`` taken at ``step``; True iff accepted.
+
+        Accepted iff ``now - max_delay <= step <= now``, step >= 0 and no packet of this
+        sensor is already stored for ``step``. A refusal is counted ("late", "future",
+        "duplicate") and changes nothing. Malformed input raises ValueError naming the field
+        and changes nothing.
+        """
+        idx = self._index.get(sensor) if isinstance(sensor, str) else None
+        if idx is None:
+            raise ValueError(f"sensor: unknown sensor {sensor!r} (known: {list(self._index)})")
+        m = self._dims[idx]
+        step = as_step(step, "step")
+        now = self._check_now(now)
+        zv = as_vector(z, "z", m)
+        Rm = None if R is None else as_covariance(R, "R", m)
+        self._advance(now)
+        if step > now:
+            self._counters["future"] += 1
+            return False
+        if step < now - self.max_delay or step < self._c:
+            self._counters["late"] += 1
+            return False
+        bucket = self._packets.get(step)
+        if bucket is not None and any(p.sensor == idx for p in bucket):
+            self._counters["duplicate"] += 1
+            return False
+        zv.setflags(write=False)
+        pkt = Packet(idx, zv, Rm)
+        if bucket is None:
+            self._packets[step] = [pkt]
+            bisect.insort(self._steps, step)
+        else:
+            bucket.append(pkt)
+            bucket.sort(key=lambda p: p.sensor)
+        self._invalidate(step)
+        self._counters["accepted"] += 1
+        return True
+
+    def add_command(self, step: int, u: object, now: int | None = None) -> bool:
+        """Offer the command u that applies from ``step`` on; True iff accepted.
+
+        Refused ("commands_late") if ``step`` is already final (before
+        :attr:`committed_step`), ("commands_future") if it lies more than ``max_delay + 1``
+        steps past the predicted step ``now + lead``, ("commands_duplicate") if a command
+        for ``step`` is already stored. ``now`` defaults to the newest one seen.
+        """
+        step = as_step(step, "step")
+        uv = as_vector(u, "u", self._nu)
+        if now is not None:
+            now = self._check_now(now)
+            self._advance(now)
+        ref = self._now if self._now is not None else 0
+        if step < self._c:
+            self._counters["commands_late"] += 1
+            return False
+        if step > ref + self._cmd_ahead:
+            self._counters["commands_future"] += 1
+            return False
+        if self._inputs.has_command(step):
+            self._counters["commands_duplicate"] += 1
+            return False
+        self._inputs.set(step, uv)
+        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        self._counters["commands_accepted"] += 1
+        return True
+
+    def predict(self, now: int) -> PredictedState:
+        """LMMSE estimate of x(now + lead) from x0, P0, the commands and accepted packets."""
+        now = self._check_now(now)
+        self._advance(now)
+        if self._cache is not None and self._cache[0] == now:
+            return self._cache[1]
+        self._replay(None)
+        step, state = self._newest()
+        target = now + self.lead
+        if target > step:
+            state = self._propagate(state, step, target - step)
+        x, P = self._backend.moments(state)
+        pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
+        self._cache = (now, pred)
+        return pred
+
+    # --- hooks for backends that learn on the committed horizon --------------------------
+
+    def _on_commit(self, committed: list[tuple[int, S, list[Packet]]]) -> None:
+        """Called with (step, posterior, packets) for each measured step that became final,
+        in step order. Default: nothing. Adaptive backends override it."""
+
+    def invalidate_from(self, step: int) -> None:
+        """Mark every open-window posterior from ``step`` on as stale (e.g. after adaptation)."""
+        self._invalidate(max(step, self._c))
+
+    # --- internals ---------------------------------------------------------------------
+
+    def _check_now(self, now: object) -> int:
+        now = as_step(now, "now")
+        if self._now is not None and now < self._now:
+            raise ValueError(f"now: went backwards ({now} < {self._now})")
+        return now
+
+    def _invalidate(self, step: int) -> None:
+        if self._dirty is None or step < self._dirty:
+            self._dirty = step
+        self._cache = None
+
+    def _propagate(self, state: S, step: int, m: int) -> S:
+        return self._backend.propagate(state, step, m, self._inputs.slice(step, m))
+
+    def _newest(self) -> tuple[int, S]:
+        """Newest clean posterior (step, state), or the base."""
+        if self._steps:
+            s = self._steps[-1]
+            return s, self._chk[s]
+        return self._base_step, self._base
+
+    def _replay(self, limit: int | None) -> None:
+        """Recompute the posteriors of measured steps in [dirty, limit)."""
+        dirty = self._dirty
+        if dirty is None or (limit is not None and dirty >= limit):
+            return
+        steps = self._steps
+        i = bisect.bisect_left(steps, dirty)
+        j = len(steps) if limit is None else bisect.bisect_left(steps, limit)
+        if i > 0:
+            a = steps[i - 1]
+            state = self._chk[a]
+        else:
+            a, state = self._base_step, self._base
+        backend = self._backend
+        for s in steps[i:j]:
+            if s > a:
+                state = self._propagate(state, a, s - a)
+            state = backend.update(state, s, self._packets[s])
+            self._chk[s] = state
+            a = s
+        self._dirty = None if limit is None or j == len(steps) else limit
+
+    def _advance(self, now: int) -> None:
+        """Take ``now`` as the current step; commit steps that can no longer change."""
+        if self._now is None or now > self._now:
+            self._now = now
+            self._cache = None
+        new_c = now - self.max_delay
+        if new_c <= self._c:
+            return
+        self._replay(new_c)
+        steps = self._steps
+        k = bisect.bisect_left(steps, new_c)
+        if k:
+            final = steps[:k]
+            committed = [(s, self._chk[s], self._packets[s]) for s in final]
+            self._base_step, self._base = final[-1], self._chk[final[-1]]
+            self._newest_committed = final[-1]
+            for s in final:
+                del self._chk[s], self._packets[s]
+            del steps[:k]
+            self._on_commit(committed)
+        self._c = new_c
+        self._inputs.advance(self._base_step)
+        if new_c - self._base_step > self._base_lag:
+            # A base that fell far behind (no packets for a while) is rolled up to the window,
+            # in chunks no longer than the input buffer, so tables and buffers stay bounded.
+            cap = self._inputs.capacity
+            while self._base_step < new_c:
+                m = min(new_c - self._base_step, cap)
+                self._base = self._propagate(self._base, self._base_step, m)
+                self._base_step += m
+                self._inputs.advance(self._base_step)
