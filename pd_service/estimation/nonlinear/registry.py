@@ -1,0 +1,84 @@
+"""Named nonlinear models, so a session can choose one over the wire (a function cannot be sent).
+
+A model is registered under a name with a factory taking keyword parameters (plain numbers
+and lists, as they arrive in a SessionSpec) and returning a :class:`NonlinearModel`::
+
+    @register_model("omni3")
+    def omni3(period_s: float = 0.01, mass: float = 10.0) -> NonlinearModel: ...
+
+    model = make_model("omni3", period_s=0.01)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: f(x (n,), u (nu,), k) -> x(k+1) without noise
+TransitionFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
+#: h(x (n,)) -> z (m,)
+MeasurementFn = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True, eq=False)
+class MeasurementModel:
+    """z = h(x) + v, v ~ N(0, R). ``angles``: indices of z that are angles (wrapped to [-pi, pi))."""
+
+    name: str
+    h: MeasurementFn
+    R: np.ndarray
+    angles: tuple[int, ...] = ()
+
+    @property
+    def m(self) -> int:
+        return self.R.shape[0]
+
+
+@dataclass(frozen=True, eq=False)
+class NonlinearModel:
+    """x(k+1) = f(x, u, k) + w, w ~ N(0, Q). ``angles``: state indices that are angles."""
+
+    name: str
+    n: int
+    nu: int
+    f: TransitionFn
+    Q: np.ndarray
+    sensors: dict[str, MeasurementModel] = field(default_factory=dict)
+    angles: tuple[int, ...] = ()
+
+
+_REGISTRY: dict[str, Callable[..., NonlinearModel]] = {}
+
+
+def register_model(name: str) -> Callable[[Callable[..., NonlinearModel]], Callable[..., NonlinearModel]]:
+    """Decorator: register a model factory under ``name`` (unique)."""
+
+    def deco(factory: Callable[..., NonlinearModel]) -> Callable[..., NonlinearModel]:
+        if name in _REGISTRY:
+            raise ValueError(f"model {name!r} is already registered")
+        _REGISTRY[name] = factory
+        return factory
+
+    return deco
+
+
+def make_model(name: str, **params: object) -> NonlinearModel:
+    """Build the registered model ``name``; ValueError names the model or parameter that is wrong."""
+    factory = _REGISTRY.get(name)
+    if factory is None:
+        raise ValueError(f"model: unknown model {name!r} (registered: {sorted(_REGISTRY)})")
+    try:
+        return factory(**params)
+    except TypeError as exc:
+        raise ValueError(f"model {name!r}: bad parameters ({exc})") from None
+
+
+def registered_models() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
