@@ -1,0 +1,74 @@
+"""The transport interface: what the daemon, link emulator and SDK need from Zenoh.
+
+Two implementations: :class:`~pd_service.transport.zenoh_transport.ZenohTransport` (real) and
+:class:`~pd_service.transport.memory.InMemoryTransport` (tests; no network, deterministic).
+Callbacks run on the transport's own thread and must not block: hand work to a queue.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """A received publication. ``recv_ns``: wall clock at receipt (time.time_ns());
+    ``recv_mono_ns``: monotonic clock at receipt (for latency)."""
+
+    key: str
+    payload: bytes
+    kind: Literal["put", "delete"]
+    recv_ns: int
+    recv_mono_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    """One answer to :meth:`Transport.get`: ``ok`` False for an error reply."""
+
+    key: str
+    payload: bytes
+    ok: bool
+
+
+class Query(Protocol):
+    """A query received by a queryable."""
+
+    key: str  # the key expression the query asked for
+    payload: bytes | None
+
+    def reply(self, key: str, payload: bytes) -> None: ...
+
+    def reply_err(self, payload: bytes) -> None: ...
+
+
+class Handle(Protocol):
+    def close(self) -> None: ...
+
+
+class Transport(Protocol):
+    def put(self, key: str, payload: bytes) -> None: ...
+
+    def delete(self, key: str) -> None: ...
+
+    def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle: ...
+
+    def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...
+
+    def get(self, selector: str, payload: bytes | None = None,
+            timeout: float = 2.0) -> list[Reply]: ...
+
+    def declare_token(self, key: str) -> Handle: ...
+
+    def subscribe_liveliness(self, keyexpr: str, callback: Callable[[str, bool], None],
+                             history: bool = True) -> Handle: ...
+
+    def get_liveliness(self, keyexpr: str, timeout: float = 1.0) -> list[str]: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Transport: ...
+
+    def __exit__(self, *exc: object) -> None: ...

@@ -1,0 +1,147 @@
+"""In-memory transport: several :class:`InMemoryTransport` on one :class:`InMemoryBus` behave
+like processes on one Zenoh network, with no sockets and synchronous delivery (deterministic
+tests). Delivery happens on the caller's thread, so a test sees the effect of ``put`` at once.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from .base import Reply, Sample
+from .keyexpr import intersects
+
+
+class _Handle:
+    def __init__(self, registry: list, entry: object) -> None:
+        self._registry, self._entry = registry, entry
+
+    def close(self) -> None:
+        try:
+            self._registry.remove(self._entry)
+        except ValueError:
+            pass
+
+
+@dataclass
+class _MemQuery:
+    key: str
+    payload: bytes | None
+    replies: list[Reply] = field(default_factory=list)
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self.replies.append(Reply(key, bytes(payload), True))
+
+    def reply_err(self, payload: bytes) -> None:
+        self.replies.append(Reply(self.key, bytes(payload), False))
+
+
+class InMemoryBus:
+    """Shared medium for in-memory transports."""
+
+    def __init__(self) -> None:
+        self.lock = threading.RLock()
+        self.subs: list[tuple[str, Callable[[Sample], None]]] = []
+        self.queryables: list[tuple[str, Callable]] = []
+        self.tokens: list[str] = []
+        self.live_subs: list[tuple[str, Callable[[str, bool], None]]] = []
+
+    def transport(self) -> InMemoryTransport:
+        return InMemoryTransport(self)
+
+
+class InMemoryTransport:
+    def __init__(self, bus: InMemoryBus) -> None:
+        self.bus = bus
+        self._handles: list[_Handle] = []
+        self._closed = False
+
+    # pub/sub
+    def put(self, key: str, payload: bytes) -> None:
+        self._deliver(key, bytes(payload), "put")
+
+    def delete(self, key: str) -> None:
+        self._deliver(key, b"", "delete")
+
+    def _deliver(self, key: str, payload: bytes, kind: str) -> None:
+        with self.bus.lock:
+            targets = [cb for ke, cb in self.bus.subs if intersects(ke, key)]
+        s = Sample(key, payload, kind, time.time_ns(), time.monotonic_ns())  # type: ignore[arg-type]
+        for cb in targets:
+            cb(s)
+
+    def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
+        return self._register(self.bus.subs, (keyexpr, callback))
+
+    # queries
+    def queryable(self, keyexpr: str, handler: Callable) -> _Handle:
+        return self._register(self.bus.queryables, (keyexpr, handler))
+
+    def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0) -> list[Reply]:
+        with self.bus.lock:
+            targets = [h for ke, h in self.bus.queryables if intersects(ke, selector)]
+        q = _MemQuery(selector, payload)
+        for h in targets:
+            h(q)
+        return q.replies
+
+    # liveliness
+    def declare_token(self, key: str) -> _Handle:
+        with self.bus.lock:
+            self.bus.tokens.append(key)
+            subs = [cb for ke, cb in self.bus.live_subs if intersects(ke, key)]
+        for cb in subs:
+            cb(key, True)
+        bus = self.bus
+
+        class _Token:
+            def close(self_inner) -> None:
+                with bus.lock:
+                    if key not in bus.tokens:
+                        return
+                    bus.tokens.remove(key)
+                    subs2 = [cb for ke, cb in bus.live_subs if intersects(ke, key)]
+                for cb in subs2:
+                    cb(key, False)
+
+        tok = _Token()
+        self._handles.append(tok)  # type: ignore[arg-type]
+        return tok  # type: ignore[return-value]
+
+    def subscribe_liveliness(self, keyexpr: str, callback: Callable[[str, bool], None],
+                             history: bool = True) -> _Handle:
+        h = self._register(self.bus.live_subs, (keyexpr, callback))
+        if history:
+            with self.bus.lock:
+                present = [k for k in self.bus.tokens if intersects(keyexpr, k)]
+            for k in present:
+                callback(k, True)
+        return h
+
+    def get_liveliness(self, keyexpr: str, timeout: float = 1.0) -> list[str]:
+        with self.bus.lock:
+            return [k for k in self.bus.tokens if intersects(keyexpr, k)]
+
+    # lifecycle
+    def _register(self, registry: list, entry: object) -> _Handle:
+        with self.bus.lock:
+            registry.append(entry)
+        h = _Handle(registry, entry)
+        self._handles.append(h)
+        return h
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for h in reversed(self._handles):
+            h.close()
+        self._handles.clear()
+
+    def __enter__(self) -> InMemoryTransport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

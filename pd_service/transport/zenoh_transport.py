@@ -1,0 +1,188 @@
+"""Zenoh implementation of the transport (zenoh-python 1.x).
+
+Zenoh calls subscriber and queryable callbacks on its own threads; an exception there is only
+logged by Zenoh, so every callback here is wrapped to log and swallow errors itself.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import zenoh
+
+from .base import Reply, Sample
+
+log = logging.getLogger("pd_service.transport")
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def zenoh_config(
+    mode: str | None = None,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    multicast: bool | None = None,
+    file: str | Path | None = None,
+    user: str | None = None,
+    password: str | None = None,
+) -> zenoh.Config:
+    """Build a zenoh.Config: ``file`` (JSON5) first, then the given arguments override it.
+
+    Without a file the defaults are peer mode and multicast scouting off (explicit endpoints
+    only, which is what loopback tests and a router deployment want).
+    """
+    conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
+    if mode is None and not file:
+        mode = "peer"
+    if multicast is None and not file:
+        multicast = False
+    if mode is not None:
+        conf.insert_json5("mode", json.dumps(mode))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if multicast is not None:
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
+    if user is not None and password is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    return conf
+
+
+class _Handle:
+    def __init__(self, obj: object) -> None:
+        self._obj = obj
+
+    def close(self) -> None:
+        obj, self._obj = self._obj, None
+        if obj is not None:
+            try:
+                obj.undeclare()  # type: ignore[attr-defined]
+            except Exception:  # already closed with the session
+                pass
+
+
+class _ZQuery:
+    __slots__ = ("_q", "key", "payload")
+
+    def __init__(self, q: zenoh.Query) -> None:
+        self._q = q
+        self.key = str(q.key_expr)
+        self.payload = q.payload.to_bytes() if q.payload is not None else None
+
+    def reply(self, key: str, payload: bytes) -> None:
+        self._q.reply(key, payload)
+
+    def reply_err(self, payload: bytes) -> None:
+        self._q.reply_err(payload)
+
+
+class ZenohTransport:
+    """A Zenoh session behind the :class:`~pd_service.transport.base.Transport` interface."""
+
+    def __init__(self, conf: zenoh.Config | None = None, publisher_cache: int = 4096) -> None:
+        self.session = zenoh.open(conf if conf is not None else zenoh_config())
+        self._handles: list[_Handle] = []
+        self._pubs: OrderedDict[str, zenoh.Publisher] = OrderedDict()
+        self._pub_cap = publisher_cache
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def put(self, key: str, payload: bytes) -> None:
+        with self._lock:
+            pub = self._pubs.get(key)
+            if pub is None:
+                pub = self.session.declare_publisher(key)
+                self._pubs[key] = pub
+                if len(self._pubs) > self._pub_cap:
+                    _, old = self._pubs.popitem(last=False)
+                    old.undeclare()
+            else:
+                self._pubs.move_to_end(key)
+        pub.put(payload)
+
+    def delete(self, key: str) -> None:
+        self.session.delete(key)
+
+    def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
+        def on_sample(s: zenoh.Sample) -> None:
+            try:
+                kind = "delete" if s.kind == zenoh.SampleKind.DELETE else "put"
+                callback(Sample(str(s.key_expr), s.payload.to_bytes(), kind,
+                                time.time_ns(), time.monotonic_ns()))
+            except Exception:
+                log.exception("subscriber callback failed for %s", keyexpr)
+
+        return self._keep(self.session.declare_subscriber(keyexpr, on_sample))
+
+    def queryable(self, keyexpr: str, handler: Callable) -> _Handle:
+        def on_query(q: zenoh.Query) -> None:
+            try:
+                handler(_ZQuery(q))
+            except Exception:
+                log.exception("queryable handler failed for %s", keyexpr)
+
+        return self._keep(self.session.declare_queryable(keyexpr, on_query))
+
+    def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0) -> list[Reply]:
+        out: list[Reply] = []
+        kwargs: dict = {"timeout": timeout}
+        if payload is not None:
+            kwargs["payload"] = payload
+        for r in self.session.get(selector, **kwargs):
+            if r.ok is not None:
+                out.append(Reply(str(r.ok.key_expr), r.ok.payload.to_bytes(), True))
+            else:
+                out.append(Reply(selector, r.err.payload.to_bytes(), False))
+        return out
+
+    def declare_token(self, key: str) -> _Handle:
+        return self._keep(self.session.liveliness().declare_token(key))
+
+    def subscribe_liveliness(self, keyexpr: str, callback: Callable[[str, bool], None],
+                             history: bool = True) -> _Handle:
+        def on_sample(s: zenoh.Sample) -> None:
+            try:
+                callback(str(s.key_expr), s.kind == zenoh.SampleKind.PUT)
+            except Exception:
+                log.exception("liveliness callback failed for %s", keyexpr)
+
+        return self._keep(
+            self.session.liveliness().declare_subscriber(keyexpr, on_sample, history=history))
+
+    def get_liveliness(self, keyexpr: str, timeout: float = 1.0) -> list[str]:
+        return [str(r.ok.key_expr) for r in self.session.liveliness().get(keyexpr, timeout=timeout)
+                if r.ok is not None]
+
+    def _keep(self, obj: object) -> _Handle:
+        h = _Handle(obj)
+        self._handles.append(h)
+        return h
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for h in reversed(self._handles):
+            h.close()
+        with self._lock:
+            for pub in self._pubs.values():
+                try:
+                    pub.undeclare()
+                except Exception:
+                    pass
+            self._pubs.clear()
+        self.session.close()
+
+    def __enter__(self) -> ZenohTransport:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
