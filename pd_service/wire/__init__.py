@@ -1,0 +1,57 @@
+"""Wire protocol of pd-service: message schemas, msgpack codec, key expressions.
+
+Imports numpy, pydantic and msgpack, never zenoh. The conversion to and from
+:mod:`pd_service.estimation` lives in :mod:`pd_service.wire.convert` (not imported here).
+
+```python
+from pd_service.wire import encode, decode, WireError, Measurement
+data = encode(msg)                 # bytes, <= 64 KiB
+msg = decode(data, Measurement)    # raises WireError, and nothing else, for any bad input
+```
+"""
+
+from . import keys
+from .arrays import MAX_DIM, PSD_RTOL, Matrix, Vector, psd_problem
+from .codec import MAX_MESSAGE_BYTES, decode, encode
+from .errors import WireError
+from .messages import (
+    MESSAGE_TYPES,
+    SCHEMA_VERSION,
+    Command,
+    ErrorReport,
+    LinearModelSpec,
+    Measurement,
+    Message,
+    ModelSpec,
+    Prediction,
+    SensorSpec,
+    ServiceStatus,
+    SessionSpec,
+    SessionStatus,
+)
+
+__all__ = [
+    "MAX_DIM",
+    "MAX_MESSAGE_BYTES",
+    "MESSAGE_TYPES",
+    "PSD_RTOL",
+    "SCHEMA_VERSION",
+    "Command",
+    "ErrorReport",
+    "LinearModelSpec",
+    "Matrix",
+    "Measurement",
+    "Message",
+    "ModelSpec",
+    "Prediction",
+    "SensorSpec",
+    "ServiceStatus",
+    "SessionSpec",
+    "SessionStatus",
+    "Vector",
+    "WireError",
+    "decode",
+    "encode",
+    "keys",
+    "psd_problem",
+]

@@ -1,0 +1,196 @@
+"""Wire <-> estimation conversion (pd_service.wire.convert)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
+from pd_service.estimation.checks import PSD_RTOL as ESTIMATION_PSD_RTOL
+from pd_service.wire import PSD_RTOL, Prediction, WireError, decode, encode
+from pd_service.wire.convert import (
+    check_command,
+    check_key,
+    check_measurement,
+    command_step,
+    encode_prediction,
+    measurement_step,
+    prediction_from,
+    spec_to_estimator,
+)
+from tests.wire.factories import PERIOD_NS, command, measurement, paper_spec
+
+EPOCH = 1_700_000_000_000_000_000
+
+
+def test_same_tolerance_as_the_estimator():
+    assert PSD_RTOL == ESTIMATION_PSD_RTOL
+
+
+@pytest.mark.parametrize("hold", ["hold", "zero"])
+def test_spec_to_estimator_matches_direct_construction(hold):
+    spec = paper_spec().model_copy(update={"command_hold": hold})
+    op = spec_to_estimator(spec)
+    direct = ObserverPredictor(
+        LinearModel(A=spec.model.A, B=spec.model.B, Q=spec.model.Q),
+        [Sensor(name=s.name, H=s.H, R=s.R) for s in spec.sensors],
+        x0=spec.x0, P0=spec.P0, lead=spec.lead, max_delay=spec.max_delay, command_hold=hold)
+    assert isinstance(op, ObserverPredictor)
+    for k in range(60):
+        for est in (op, direct):
+            if k % 7 == 0:
+                est.add_command(step=k + 10, u=np.array([0.5 if k < 40 else 0.0]))
+            if k >= 10 and k % 2 == 0:
+                est.add_measurement("camera", step=k - 10, z=np.array([0.1, 5.0]), now=k)
+            if k >= 12:
+                est.add_measurement("ranger", step=k - 12, z=np.array([4.9]), now=k)
+        a, b = op.predict(now=k), direct.predict(now=k)
+        assert a.step == b.step == k + spec.lead
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.P, b.P)
+    assert op.counters == direct.counters
+
+
+def test_measurement_step_from_step_or_time():
+    spec = paper_spec(epoch_ns=EPOCH)
+    assert measurement_step(measurement(step=42), spec) == 42
+    for k in [0, 1, 17, 10**9]:
+        t = EPOCH + k * PERIOD_NS
+        assert measurement_step(measurement(step=None, t_ns=t), spec) == k
+        assert measurement_step(measurement(step=None, t_ns=t + PERIOD_NS - 1), spec) == k
+        assert measurement_step(measurement(step=None, t_ns=t - 1), spec) == k - 1  # floor
+    assert measurement_step(measurement(step=None, t_ns=EPOCH - PERIOD_NS), spec) == -1
+
+
+def test_step_arithmetic_is_exact_for_large_int64():
+    spec = paper_spec(epoch_ns=-(2**62))
+    t = 2**62 + 3  # float64 could not hold the difference exactly
+    assert measurement_step(measurement(step=None, t_ns=t), spec) == (t + 2**62) // PERIOD_NS
+    assert spec.time_of(spec.step_of(t)) <= t < spec.time_of(spec.step_of(t) + 1)
+
+
+def test_command_step_adds_lead_to_issue_time():
+    spec = paper_spec(epoch_ns=EPOCH)
+    assert command_step(command(step=33), spec) == 33
+    issued = EPOCH + 25 * PERIOD_NS + 7
+    assert command_step(command(step=None, issued_ns=issued), spec) == 25 + spec.lead
+
+
+def test_check_measurement():
+    spec = paper_spec(epoch_ns=EPOCH)
+    check_measurement(measurement(step=3), spec)
+    check_measurement(measurement(sensor="ranger", z=np.array([1.0]), R=np.eye(1)), spec)
+    cases = [
+        (measurement(session="s2"), "Measurement.session: 's2' is not session 's1'"),
+        (measurement(sensor="lidar"),
+         "Measurement.sensor: unknown sensor 'lidar' (session 's1' has: camera, ranger)"),
+        (measurement(z=np.array([1.0])), "Measurement.z: expected 2 values for sensor 'camera', got 1"),
+        (measurement(sensor="ranger", z=np.array([1.0, 2.0]), R=np.eye(2)),
+         "Measurement.z: expected 1 values for sensor 'ranger', got 2"),
+        (measurement(step=None, t_ns=EPOCH - 1),
+         f"Measurement.t_ns: {EPOCH - 1} is before the session epoch {EPOCH} (step < 0)"),
+    ]
+    for msg, text in cases:
+        with pytest.raises(WireError) as info:
+            check_measurement(msg, spec)
+        assert info.value.reason == text
+
+
+def test_check_command():
+    spec = paper_spec(epoch_ns=EPOCH)
+    check_command(command(), spec)
+    # issued before the epoch, but lead moves the apply step to >= 0: fine
+    check_command(command(step=None, issued_ns=EPOCH - 3 * PERIOD_NS), spec)
+    cases = [
+        (command(session="s9"), "Command.session: 's9' is not session 's1'"),
+        (command(u=np.array([1.0, 2.0])),
+         "Command.u: expected 1 values (model.B has 1 columns), got 2"),
+        (command(step=None, issued_ns=EPOCH - 11 * PERIOD_NS),
+         f"Command.issued_ns: {EPOCH - 11 * PERIOD_NS} gives apply step -1 < 0"),
+    ]
+    for msg, text in cases:
+        with pytest.raises(WireError) as info:
+            check_command(msg, spec)
+        assert info.value.reason == text
+
+
+def _estimate():
+    spec = paper_spec(epoch_ns=EPOCH)
+    op = spec_to_estimator(spec)
+    op.add_command(step=0, u=np.array([0.5]))
+    op.add_measurement("camera", step=0, z=np.array([0.0, 5.0]), now=10)
+    return spec, op, op.predict(now=10)
+
+
+def test_prediction_from():
+    spec, op, pred = _estimate()
+    msg = prediction_from(pred, spec, "s1", seq=4, made_ns=EPOCH + 999, counters=op.counters)
+    assert isinstance(msg, Prediction)
+    assert msg.step == 20 and msg.t_ns == EPOCH + 20 * PERIOD_NS
+    assert msg.newest_step == 0 and msg.seq == 4 and msg.made_ns == EPOCH + 999
+    assert msg.counters == op.counters and msg.counters["accepted"] == 1
+    np.testing.assert_array_equal(msg.x, pred.x)
+    np.testing.assert_array_equal(msg.P, pred.P)
+    # the fast path builds the same message full validation would, and it decodes
+    full = Prediction(session="s1", seq=4, step=20, t_ns=EPOCH + 20 * PERIOD_NS, x=pred.x,
+                      P=pred.P, newest_step=0, made_ns=EPOCH + 999, counters=op.counters)
+    assert msg == full
+    assert encode(msg) == encode(full)
+    assert decode(encode(msg), Prediction) == msg
+    # the direct-to-bytes path gives the very same bytes
+    fast = encode_prediction(pred, spec, "s1", seq=4, made_ns=EPOCH + 999, counters=op.counters)
+    assert fast == encode(full)
+
+
+def test_prediction_from_copies_and_freezes():
+    spec, op, pred = _estimate()
+    x_src = np.array(pred.x)
+    counters = {"accepted": 1}
+    fake = type("P", (), {"step": np.int64(20), "x": x_src, "P": np.array(pred.P),
+                          "newest_step": np.int64(3)})()
+    msg = prediction_from(fake, spec, "s1", 0, 0, counters)
+    x_src[0] = 123.0
+    counters["accepted"] = 99
+    assert msg.x[0] != 123.0 and msg.counters == {"accepted": 1}
+    assert not msg.x.flags.writeable and not msg.P.flags.writeable
+    assert type(msg.step) is int and type(msg.newest_step) is int
+    assert decode(encode(msg), Prediction) == msg
+
+
+def test_prediction_from_refuses_bad_estimates():
+    spec, op, pred = _estimate()
+    bad_x = np.array(pred.x)
+    bad_x[1] = np.nan
+    fake = type("P", (), {"step": 1, "x": bad_x, "P": pred.P, "newest_step": None})()
+    with pytest.raises(WireError, match="not finite"):
+        prediction_from(fake, spec, "s1", 0, 0, {})
+    with pytest.raises(WireError, match="not finite"):
+        encode_prediction(fake, spec, "s1", 0, 0, {})
+    big = type("P", (), {"step": 1, "x": np.full(4, 1e308), "P": np.diag(np.full(4, 1e308)),
+                         "newest_step": None})()  # fsum overflows, values are finite
+    assert decode(encode_prediction(big, spec, "s1", 0, 0, {}), Prediction) == \
+        prediction_from(big, spec, "s1", 0, 0, {})
+    fake = type("P", (), {"step": 1, "x": pred.x[:3], "P": pred.P, "newest_step": None})()
+    with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\)"):
+        prediction_from(fake, spec, "s1", 0, 0, {})
+    with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\)"):
+        encode_prediction(fake, spec, "s1", 0, 0, {})
+
+
+def test_check_key():
+    assert check_key(measurement(), "pd/s1/sensor/camera").sensor == "camera"
+    assert check_key(measurement(), "robot/s1/sensor/camera").side == "robot"
+    assert check_key(command(), "pd/s1/cmd").kind == "cmd"
+    cases = [
+        (measurement(), "pd/s1/sensor/ranger",
+         "Measurement.sensor: 'camera' does not match the key 'pd/s1/sensor/ranger'"),
+        (measurement(), "pd/s2/sensor/camera",
+         "Measurement.session: 's1' does not match the key 'pd/s2/sensor/camera'"),
+        (command(), "pd/s2/cmd", "Command.session: 's1' does not match the key 'pd/s2/cmd'"),
+        (command(), "pd/s1/bogus",
+         "Command: key 'pd/s1/bogus': unknown stream 'bogus' for the operator side"),
+    ]
+    for msg, key, text in cases:
+        with pytest.raises(WireError) as info:
+            check_key(msg, key)
+        assert info.value.reason == text

@@ -1,0 +1,85 @@
+"""Every message survives encode -> decode unchanged (hypothesis)."""
+
+from __future__ import annotations
+
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pd_service.wire import MESSAGE_TYPES, Measurement, WireError, decode, encode
+from tests.wire.factories import EXAMPLES, STRATEGIES, measurement
+
+SETTINGS = settings(max_examples=150, deadline=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+
+
+def test_every_message_type_has_an_example_and_a_strategy():
+    assert set(EXAMPLES) == set(MESSAGE_TYPES) == set(STRATEGIES)
+
+
+def _check_round_trip(msg) -> None:
+    data = encode(msg)
+    back = decode(data, type(msg))
+    assert back == msg
+    assert hash(back) == hash(msg)
+    assert encode(back) == data  # canonical: same message, same bytes
+    for name in type(msg).model_fields:  # arrays come back read-only float64
+        value = getattr(back, name)
+        if isinstance(value, np.ndarray):
+            assert value.dtype == np.float64 and not value.flags.writeable
+            np.testing.assert_array_equal(value, getattr(msg, name))
+
+
+@pytest.mark.parametrize("msg_type", MESSAGE_TYPES, ids=lambda t: t.__name__)
+def test_example_round_trip(msg_type):
+    _check_round_trip(EXAMPLES[msg_type]())
+
+
+@pytest.mark.parametrize("msg_type", MESSAGE_TYPES, ids=lambda t: t.__name__)
+def test_property_round_trip(msg_type):
+    @SETTINGS
+    @given(STRATEGIES[msg_type])
+    def run(msg):
+        _check_round_trip(msg)
+
+    run()
+
+
+@SETTINGS
+@given(st.lists(st.floats(allow_nan=False, allow_infinity=False), min_size=1, max_size=64))
+def test_float_values_are_bit_exact(values):
+    m = measurement(z=np.array(values))
+    back = decode(encode(m), type(m))
+    assert [math.copysign(1.0, v) for v in back.z] == [math.copysign(1.0, v) for v in values]
+    assert back.z.tolist() == values
+
+
+def test_ints_in_data_are_floats():
+    raw = msgpack.unpackb(encode(measurement()))
+    raw["z"] = {"shape": [3], "data": [1, -2, 2**62]}
+    m = decode(msgpack.packb(raw), Measurement)
+    assert m.z.dtype == np.float64 and m.z.tolist() == [1.0, -2.0, float(2**62)]
+
+
+def test_field_order_and_all_fields_on_the_wire():
+    for msg_type, make in EXAMPLES.items():
+        raw = msgpack.unpackb(encode(make()))
+        assert list(raw) == list(msg_type.model_fields)
+        assert raw["v"] == 1
+
+
+def test_encode_refuses_non_messages():
+    with pytest.raises(WireError, match="expected a wire message"):
+        encode({"v": 1})  # type: ignore[arg-type]
+
+
+@pytest.mark.filterwarnings("ignore:Pydantic serializer warnings")
+def test_encode_refuses_unencodable_values():
+    bad = Measurement.model_construct(v=1, session="s1", sensor="c", seq=np.int64(1), step=0,
+                                      t_ns=None, z=np.zeros(1), R=None)
+    with pytest.raises(WireError, match="Measurement: cannot encode"):
+        encode(bad)
