@@ -20,6 +20,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) bench/estimation.py
+	$(PY) bench/wire.py
+
+schemas: $(STAMP)
+	$(PY) -m pd_service.wire.schemas
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
