@@ -1,0 +1,144 @@
+"""Shared plumbing of the SDK classes: transport ownership, handles, message building."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any, Self, TypeVar
+
+import numpy as np
+from pydantic import ValidationError
+
+from pd_service.transport import DEFAULT_ENDPOINT, Handle, Sample, Transport
+from pd_service.wire import Message, WireError, decode
+from pd_service.wire.codec import validation_reason
+
+from .errors import InvalidMessage, ServiceUnavailable
+
+log = logging.getLogger("pd_client")
+
+M = TypeVar("M", bound=Message)
+
+
+def connect(
+    endpoint: str | Sequence[str] | None = DEFAULT_ENDPOINT,
+    mode: str = "client",
+    *,
+    listen: Sequence[str] = (),
+    config_file: str | None = None,
+    user: str | None = None,
+    password: str | None = None,
+) -> Transport:
+    """Open a Zenoh transport to a pd-service deployment.
+
+    ``endpoint``: where to connect (a Zenoh locator such as ``"tcp/127.0.0.1:7447"``, or a
+    list; None or empty to connect nowhere, e.g. a peer that only listens). ``mode``:
+    ``"client"`` (default: talk through a router or the daemon's peer), ``"peer"`` or
+    ``"router"``. ``config_file``: a Zenoh JSON5 file read first; the other arguments
+    override it. Raises :class:`ServiceUnavailable` when Zenoh cannot open the session
+    (in client mode: nothing listens at ``endpoint``).
+    """
+    from pd_service.transport import ZenohTransport, zenoh_config  # imports zenoh lazily
+
+    if isinstance(endpoint, str):
+        endpoints: list[str] = [endpoint] if endpoint else []
+    else:
+        endpoints = list(endpoint or ())
+    try:
+        conf = zenoh_config(mode=mode, listen=list(listen), connect=endpoints,
+                            file=config_file, user=user, password=password)
+        return ZenohTransport(conf)
+    except Exception as exc:  # zenoh.ZError and friends
+        where = ", ".join(endpoints) or "(no endpoint)"
+        raise ServiceUnavailable(f"cannot open a Zenoh {mode} session to {where}: {exc}") from exc
+
+
+def build(msg_type: type[M], **fields: Any) -> M:
+    """Construct a wire message, turning pydantic's ValidationError into InvalidMessage."""
+    try:
+        return msg_type(**fields)
+    except ValidationError as exc:
+        raise InvalidMessage(validation_reason(msg_type.__name__, exc)) from None
+
+
+def as_array(value: object, what: str, ndim: int) -> np.ndarray:
+    """A float64 array of ``ndim`` dimensions from a list / tuple / array / scalar."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidMessage(f"{what}: expected numbers, got {type(value).__name__}") from None
+    if ndim == 1 and arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != ndim:
+        raise InvalidMessage(f"{what}: expected a {ndim}-D array, got shape {list(arr.shape)}")
+    return arr
+
+
+def try_decode(sample: Sample, msg_type: type[M]) -> M | None:
+    """Decode a sample; log and return None when it is not a valid ``msg_type``."""
+    try:
+        return decode(sample.payload, msg_type)
+    except WireError as exc:
+        log.warning("ignoring an invalid %s on %s: %s", msg_type.__name__, sample.key, exc.reason)
+        return None
+
+
+class ClientBase:
+    """Owns the subscriptions of one SDK object; closes them (and, if owned, the transport).
+
+    Use as a context manager. ``transport`` is shared: closing the client leaves it open
+    unless the client was made by :meth:`connect` (which opens its own).
+    """
+
+    def __init__(self, transport: Transport) -> None:
+        self.transport = transport
+        self._handles: list[Handle] = []
+        self._owns_transport = False
+        self._closed = False
+        self._lock = threading.Lock()
+
+    @classmethod
+    def connect(cls, *args: Any, endpoint: str | Sequence[str] | None = DEFAULT_ENDPOINT,
+                mode: str = "client", **kwargs: Any) -> Self:
+        """Open a Zenoh transport (see :func:`pd_client.connect`) owned by the new client.
+
+        The other arguments are the class's own (e.g. ``Robot.connect("s1", endpoint=...)``).
+        """
+        transport = connect(endpoint, mode)
+        try:
+            obj = cls(transport, *args, **kwargs)
+        except BaseException:
+            transport.close()
+            raise
+        obj._owns_transport = True
+        return obj
+
+    def _subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle:
+        h = self.transport.subscribe(keyexpr, callback)
+        self._handles.append(h)
+        return h
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self) -> None:
+        """Undeclare this client's subscriptions (and close the transport if it owns it)."""
+        if self._closed:
+            return
+        self._closed = True
+        for h in reversed(self._handles):
+            try:
+                h.close()
+            except Exception:  # pragma: no cover - closing twice is harmless
+                pass
+        self._handles.clear()
+        if self._owns_transport:
+            self.transport.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

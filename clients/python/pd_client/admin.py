@@ -1,0 +1,323 @@
+"""Admin side: open, replace and close sessions; read status; wait for the service.
+
+Example::
+
+    with Admin(transport) as admin:
+        admin.wait_for_service(timeout=10)       # liveliness of a pd-service instance
+        admin.open_session(spec)                 # put SessionSpec; waits for the service's ack
+        print(admin.status("s1").counters)
+        admin.close_session("s1")                # delete the config
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from pd_service.transport import Handle, Query, Sample, Transport
+from pd_service.wire import (
+    ErrorReport,
+    ServiceStatus,
+    SessionSpec,
+    SessionStatus,
+    WireError,
+    decode,
+    encode,
+    keys,
+)
+
+from ._base import ClientBase, try_decode
+from .errors import (
+    InvalidMessage,
+    PdClientError,
+    ServiceUnavailable,
+    SessionNotFound,
+    SessionRefused,
+    Timeout,
+)
+
+log = logging.getLogger("pd_client.admin")
+
+_POLL_S = 0.25
+
+
+def _instance_of(token_key: str) -> str:
+    return token_key.rsplit("/", 1)[-1]
+
+
+def _error_text(payload: bytes) -> str:
+    """The reason in an error reply: an encoded ErrorReport (as pd-service sends) or text."""
+    try:
+        return decode(payload, ErrorReport).reason
+    except WireError:
+        return payload.decode("utf-8", "replace")[:200]
+
+
+class _Ack:
+    """Waits for the service's reaction to a config put/delete on one session."""
+
+    def __init__(self, admin: Admin, session: str, states: set[str]) -> None:
+        self.session, self.states = session, states
+        self.event = threading.Event()
+        self.status: SessionStatus | None = None
+        self.refused: str | None = None
+        self._handles: list[Handle] = [
+            admin.transport.subscribe(keys.status_key(session), self._on_status),
+            admin.transport.subscribe(keys.error_key(session), self._on_error),
+        ]
+
+    def _on_status(self, sample: Sample) -> None:
+        if sample.kind != "put":
+            return
+        st = try_decode(sample, SessionStatus)
+        if st is not None and st.session == self.session and st.state in self.states:
+            self.status = st
+            self.event.set()
+
+    def _on_error(self, sample: Sample) -> None:
+        if sample.kind != "put":
+            return
+        rep = try_decode(sample, ErrorReport)
+        if rep is not None and rep.key == keys.config_key(self.session):
+            self.refused = rep.reason
+            self.event.set()
+
+    def close(self) -> None:
+        for h in self._handles:
+            h.close()
+
+
+class Admin(ClientBase):
+    """Manages sessions of a pd-service deployment.
+
+    A session is created by putting its SessionSpec on ``pd/<session>/config`` and removed by
+    deleting that key. The service acknowledges each change by putting a SessionStatus on
+    ``pd/<session>/status`` (or an ErrorReport on ``pd/<session>/error`` naming the config
+    key when it refuses the spec); with ``wait=True`` the methods below wait for that.
+
+    ``serve_spec=True`` (default) also answers queries on ``pd/<session>/config`` with the
+    spec while this Admin is open, so that other clients (a robot, an operator) can learn
+    the session's clock and model: :meth:`get_spec`, :meth:`wait_for_spec`.
+    """
+
+    def __init__(self, transport: Transport) -> None:
+        super().__init__(transport)
+        self._served: dict[str, tuple[SessionSpec, Handle]] = {}
+
+    # --- sessions ------------------------------------------------------------------------
+
+    def open_session(self, spec: SessionSpec, *, wait: bool = True, timeout: float = 5.0,
+                     exist_ok: bool = False, serve_spec: bool = True) -> SessionStatus | None:
+        """Create the session ``spec.session``.
+
+        Raises PdClientError if the service already runs it (unless ``exist_ok``: then it is
+        replaced), SessionRefused if the service refuses the spec, Timeout if no
+        acknowledgement arrives within ``timeout`` seconds (``wait=True``). Returns the
+        acknowledging SessionStatus (None when not waiting).
+        """
+        if not isinstance(spec, SessionSpec):
+            raise InvalidMessage(f"expected a SessionSpec, got {type(spec).__name__}")
+        if not exist_ok:
+            try:
+                st = self.status(spec.session, timeout=min(1.0, timeout))
+            except (SessionNotFound, ServiceUnavailable):
+                st = None
+            if st is not None and st.state in ("active", "restored"):
+                raise PdClientError(f"session {spec.session!r} already exists "
+                                    f"(instance {st.instance}); use replace_session")
+        return self._put(spec, wait, timeout, serve_spec, poll=not exist_ok)
+
+    def replace_session(self, spec: SessionSpec, *, wait: bool = True, timeout: float = 5.0,
+                        serve_spec: bool = True) -> SessionStatus | None:
+        """Create or replace the session ``spec.session`` (the service restarts its
+        estimator from the new spec). Same errors as :meth:`open_session`."""
+        return self._put(spec, wait, timeout, serve_spec, poll=False)
+
+    def _put(self, spec: SessionSpec, wait: bool, timeout: float, serve_spec: bool,
+             poll: bool) -> SessionStatus | None:
+        if not isinstance(spec, SessionSpec):
+            raise InvalidMessage(f"expected a SessionSpec, got {type(spec).__name__}")
+        try:
+            payload = encode(spec)
+        except WireError as exc:
+            raise InvalidMessage(exc.reason) from None
+        if serve_spec:
+            self._serve(spec)
+        ack = _Ack(self, spec.session, {"active", "restored"}) if wait else None
+        try:
+            self.transport.put(keys.config_key(spec.session), payload)
+            if ack is None:
+                return None
+            deadline = time.monotonic() + timeout
+            while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
+                if poll:  # a new session: its status appearing is an acknowledgement too
+                    st = self._get_status(spec.session, timeout=_POLL_S)
+                    if st is not None and st.state in ("active", "restored"):
+                        return st
+                if time.monotonic() >= deadline:
+                    raise Timeout(f"no acknowledgement for session {spec.session!r} within "
+                                  f"{timeout} s: is pd-service running and connected?")
+            if ack.refused is not None:
+                self._unserve(spec.session)
+                raise SessionRefused(spec.session, ack.refused)
+            return ack.status
+        finally:
+            if ack is not None:
+                ack.close()
+
+    def close_session(self, session: str, *, wait: bool = True,
+                      timeout: float = 5.0) -> SessionStatus | None:
+        """Remove ``session`` (delete its config key). With ``wait``, wait for the service's
+        "removed" status; raises Timeout if it does not come."""
+        session = self._check(session)
+        self._unserve(session)
+        ack = _Ack(self, session, {"removed"}) if wait else None
+        try:
+            self.transport.delete(keys.config_key(session))
+            if ack is None:
+                return None
+            if not ack.event.wait(timeout):
+                raise Timeout(f"no acknowledgement of the removal of session {session!r} "
+                              f"within {timeout} s")
+            return ack.status
+        finally:
+            if ack is not None:
+                ack.close()
+
+    # --- status --------------------------------------------------------------------------
+
+    def _get_status(self, session: str, timeout: float) -> SessionStatus | None:
+        for r in self.transport.get(keys.status_key(session), timeout=timeout):
+            if r.ok:
+                try:
+                    return decode(r.payload, SessionStatus)
+                except WireError as exc:
+                    log.warning("invalid SessionStatus from %s: %s", r.key, exc.reason)
+        return None
+
+    def status(self, session: str, timeout: float = 2.0) -> SessionStatus:
+        """The session's SessionStatus, from the service instance that runs it.
+
+        Raises SessionNotFound if no instance reports it, ServiceUnavailable if no
+        instance is alive at all.
+        """
+        session = self._check(session)
+        replies = self.transport.get(keys.status_key(session), timeout=timeout)
+        errors: list[str] = []
+        for r in replies:
+            if not r.ok:
+                errors.append(_error_text(r.payload))
+                continue
+            try:
+                return decode(r.payload, SessionStatus)
+            except WireError as exc:
+                errors.append(exc.reason)
+        if not errors and not self.services(timeout=min(timeout, 1.0)):
+            raise ServiceUnavailable("no pd-service instance is alive")
+        why = f": {errors[0]}" if errors else ""
+        raise SessionNotFound(f"no service instance reports session {session!r}{why}")
+
+    def service_status(self, timeout: float = 2.0) -> list[ServiceStatus]:
+        """ServiceStatus of every live instance that answers within ``timeout`` seconds."""
+        out = []
+        for r in self.transport.get(keys.all_service_status(), timeout=timeout):
+            if r.ok:
+                try:
+                    out.append(decode(r.payload, ServiceStatus))
+                except WireError as exc:
+                    log.warning("invalid ServiceStatus from %s: %s", r.key, exc.reason)
+        return out
+
+    def services(self, timeout: float = 1.0) -> list[str]:
+        """Instance ids of the live pd-service instances (from their liveliness tokens)."""
+        return sorted(_instance_of(k) for k in self.transport.get_liveliness(
+            keys.ALL_SERVICES, timeout=timeout))
+
+    def wait_for_service(self, timeout: float = 10.0) -> list[str]:
+        """Wait until at least one pd-service instance is alive; return the instance ids.
+        Raises ServiceUnavailable after ``timeout`` seconds."""
+        alive: set[str] = set()
+        event = threading.Event()
+
+        def on_token(key: str, is_alive: bool) -> None:
+            (alive.add if is_alive else alive.discard)(_instance_of(key))
+            if alive:
+                event.set()
+
+        h = self.transport.subscribe_liveliness(keys.ALL_SERVICES, on_token, history=True)
+        try:
+            if not event.wait(timeout):
+                raise ServiceUnavailable(f"no pd-service instance became alive within {timeout} s")
+            return sorted(alive)
+        finally:
+            h.close()
+
+    # --- specs ---------------------------------------------------------------------------
+
+    def _unserve(self, session: str) -> None:
+        served = self._served.pop(session, None)
+        if served is not None:
+            served[1].close()
+
+    def _serve(self, spec: SessionSpec) -> None:
+        self._unserve(spec.session)
+        payload = encode(spec)
+
+        def answer(query: Query) -> None:
+            query.reply(keys.config_key(spec.session), payload)
+
+        h = self.transport.queryable(keys.config_key(spec.session), answer)
+        self._handles.append(h)
+        self._served[spec.session] = (spec, h)
+
+    def get_spec(self, session: str, timeout: float = 1.0) -> SessionSpec | None:
+        """The session's SessionSpec from whoever answers ``pd/<session>/config`` queries
+        (an Admin serving it, or the service), or None."""
+        session = self._check(session)
+        for r in self.transport.get(keys.config_key(session), timeout=timeout):
+            if r.ok:
+                try:
+                    spec = decode(r.payload, SessionSpec)
+                except WireError as exc:
+                    log.warning("invalid SessionSpec from %s: %s", r.key, exc.reason)
+                    continue
+                if spec.session == session:
+                    return spec
+        return None
+
+    def wait_for_spec(self, session: str, timeout: float = 10.0) -> SessionSpec:
+        """Wait until the session's spec is known: put on its config key, or answered to a
+        query on it. Raises Timeout after ``timeout`` seconds."""
+        session = self._check(session)
+        found: list[SessionSpec] = []
+        event = threading.Event()
+
+        def on_config(sample: Sample) -> None:
+            if sample.kind == "put":
+                spec = try_decode(sample, SessionSpec)
+                if spec is not None and spec.session == session:
+                    found.append(spec)
+                    event.set()
+
+        h = self.transport.subscribe(keys.config_key(session), on_config)
+        try:
+            deadline = time.monotonic() + timeout
+            while True:
+                spec = self.get_spec(session, timeout=_POLL_S)
+                if spec is not None:
+                    return spec
+                if event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
+                    return found[-1]
+                if time.monotonic() >= deadline:
+                    raise Timeout(f"the spec of session {session!r} was not published within "
+                                  f"{timeout} s")
+        finally:
+            h.close()
+
+    @staticmethod
+    def _check(session: str) -> str:
+        try:
+            return keys.check_name(session, "session")
+        except keys.KeyError_ as exc:
+            raise InvalidMessage(str(exc)) from None

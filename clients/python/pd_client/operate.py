@@ -1,0 +1,174 @@
+"""``pd-operator``: a scripted operator that sends a scenario's command profile.
+
+    pd-operator --scenario paper --session paper --session paper-cam
+
+At each step k of the session clock (wall time ``epoch_ns + k * period_ns``) it sends, to
+every session, the scenario's command for apply step k + lead: the step at which a command
+sent now reaches the robot over an uplink of ``lead`` steps. The session specs are read
+from their config keys (the service and ``pd-robot-sim --create-session`` serve them); when
+a session is re-created (a new SessionSpec put), it follows the new clock. With ``--steps N``
+it stops after sending the command for apply step N. Progress lines go to stderr.
+Exit codes: 0 done or stopped by SIGINT/SIGTERM, 1 runtime error, 2 bad command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from collections.abc import Sequence
+
+from pd_service.transport import Sample, Transport
+from pd_service.wire import SessionSpec, keys
+
+from . import _cli
+from ._base import try_decode
+from .admin import Admin
+from .errors import PdClientError
+from .operator import Operator
+from .scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
+
+TOOL = "pd-operator"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
+    ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
+                    help=argparse.SUPPRESS)
+    ap.add_argument("--session", action="append", metavar="NAME",
+                    help="session to command (repeatable; default: the scenario's name)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="stop after the command for apply step N (default: the scenario's "
+                         "length; 0: run until stopped)")
+    ap.add_argument("--spec-timeout", type=float, default=30.0,
+                    help="seconds to wait for the session specs (default 30)")
+    ap.add_argument("--progress", type=float, default=2.0,
+                    help="seconds between progress lines on stderr (0: none)")
+    ap.add_argument("--verbose", "-v", action="store_true")
+    _cli.add_zenoh_args(ap)
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    with _cli.signal_stop() as stop:
+        return _main(argv, stop)
+
+
+def _main(argv: Sequence[str] | None, stop: threading.Event) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    _cli.setup_logging(args.verbose)
+    try:
+        scenario = get_scenario(args.scenario, args.noise)
+    except ValueError as exc:
+        ap.error(str(exc))
+    steps = scenario.default_steps if args.steps is None else args.steps
+    names = args.session or [scenario.name]
+    try:
+        transport = _cli.open_transport(args)
+    except PdClientError as exc:
+        return _cli.fail(TOOL, exc)
+    try:
+        return _run(transport, scenario, names, steps, args, stop)
+    except PdClientError as exc:
+        return _cli.fail(TOOL, exc)
+    finally:
+        transport.close()
+
+
+class _Followed:
+    """The current spec of each session: replaced when a new SessionSpec is put on its
+    config key (e.g. a simulator re-creating the session with a new epoch)."""
+
+    def __init__(self, transport: Transport, specs: list[SessionSpec]) -> None:
+        self.specs = {s.session: s for s in specs}
+        self.lock = threading.Lock()
+        self.changed = threading.Event()
+        self.handles = [transport.subscribe(keys.config_key(s.session), self._on_config)
+                        for s in specs]
+
+    def _on_config(self, sample: Sample) -> None:
+        if sample.kind != "put":
+            return
+        spec = try_decode(sample, SessionSpec)
+        if spec is None or spec.session not in self.specs:
+            return
+        with self.lock:
+            if spec != self.specs[spec.session]:
+                self.specs[spec.session] = spec
+                self.changed.set()
+
+    def close(self) -> None:
+        for h in self.handles:
+            h.close()
+
+
+def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
+         args: argparse.Namespace, stop: threading.Event) -> int:
+    specs: list[SessionSpec] = []
+    with Admin(transport) as admin:
+        for name in names:
+            _cli.progress(TOOL, f"waiting for the spec of session {name} ...")
+            spec = admin.wait_for_spec(name, args.spec_timeout)
+            if spec.r != scenario.nu:
+                return _cli.fail(TOOL, f"session {name}: {spec.r} inputs, scenario "
+                                       f"{scenario.name!r} has {scenario.nu}", 2)
+            specs.append(spec)
+    followed = _Followed(transport, specs)
+    ops = {s.session: Operator(transport, s.session, spec=s) for s in specs}
+    finished: dict[str, bool] = dict.fromkeys(ops, False)
+    sent = 0
+    try:
+        k: int | None = None
+        clock = specs[0]
+        last_report = time.monotonic()
+        while not stop.is_set():
+            if k is None or followed.changed.is_set():
+                followed.changed.clear()
+                with followed.lock:
+                    for name, op in ops.items():
+                        if op.spec is not followed.specs[name]:
+                            if k is not None:
+                                _cli.progress(TOOL, f"session {name} was replaced: "
+                                                    "following its new clock")
+                            op.spec = followed.specs[name]
+                            finished[name] = False
+                new_clock = ops[names[0]].spec
+                assert new_clock is not None
+                if k is None or (new_clock.epoch_ns, new_clock.period_ns) != (
+                        clock.epoch_ns, clock.period_ns):
+                    k = max(0, new_clock.step_of(time.time_ns()))
+                clock = new_clock
+            if not _cli.wait_until(clock.time_of(k), stop):
+                break
+            for name, op in ops.items():
+                assert op.spec is not None
+                j = op.spec.step_of(clock.time_of(k)) + op.spec.lead
+                if steps == 0 or j <= steps:
+                    op.send(scenario.command(j), step=j)
+                    sent += 1
+                    finished[name] = j == steps
+            if args.progress and time.monotonic() - last_report >= args.progress:
+                last_report = time.monotonic()
+                j = k + clock.lead
+                late = "" if steps == 0 or j <= steps else \
+                    f" (past --steps {steps}: waiting for the session to be re-created)"
+                _cli.progress(TOOL, f"step {k}: sent {sent} commands, u(step {j})="
+                                    f"{_cli.fmt_vec(scenario.command(j))}{late}")
+            if steps and all(finished.values()):
+                break
+            k += 1
+        _cli.progress(TOOL, f"{'stopped' if stop.is_set() else 'done'}: sent {sent} commands")
+    finally:
+        followed.close()
+        for op in ops.values():
+            op.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

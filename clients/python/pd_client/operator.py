@@ -1,0 +1,75 @@
+"""Operator side: send commands stamped with the step at which they apply.
+
+Example::
+
+    with Operator(transport, "s1") as op:
+        op.send([0.5], step=now_step + lead)      # u applies from that step on
+        op.send([0.0], issued_ns=time.time_ns())  # or: the service adds the session's lead
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from pd_service.transport import Transport
+from pd_service.wire import Command, SessionSpec, WireError, encode, keys
+from pd_service.wire.convert import check_command
+
+from ._base import ClientBase, as_array, build
+from .errors import InvalidMessage
+
+
+class Operator(ClientBase):
+    """Sends Commands on ``pd/<session>/cmd`` (the service reads them there, and the link
+    emulator carries them to the robot). ``seq`` counts up from 0.
+
+    ``spec`` (optional): the session's SessionSpec; with it, ``u`` is checked against the
+    model's input dimension before sending, and :meth:`now_step` / :meth:`send_now` work.
+    """
+
+    def __init__(self, transport: Transport, session: str, *,
+                 spec: SessionSpec | None = None) -> None:
+        super().__init__(transport)
+        try:
+            self.session = keys.check_name(session, "session")
+        except keys.KeyError_ as exc:
+            raise InvalidMessage(str(exc)) from None
+        if spec is not None and spec.session != session:
+            raise InvalidMessage(f"spec is for session {spec.session!r}, not {session!r}")
+        self.spec = spec
+        self._key = keys.command_key(session)
+        self.seq = 0
+
+    def send(self, u: Sequence[float] | np.ndarray | float, *, step: int | None = None,
+             issued_ns: int | None = None) -> Command:
+        """Send command ``u`` that applies from ``step`` on, or stamp it with the time it was
+        issued (``issued_ns``, ns on the shared clock; the service then applies it at
+        ``step_of(issued_ns) + lead``). Exactly one of the two.
+
+        Raises InvalidMessage (a ValueError) for a bad field, without sending anything.
+        """
+        msg = build(Command, session=self.session, seq=self.seq, step=step, issued_ns=issued_ns,
+                    u=as_array(u, "u", 1))
+        if self.spec is not None:
+            try:
+                check_command(msg, self.spec)
+            except WireError as exc:
+                raise InvalidMessage(exc.reason) from None
+        self.transport.put(self._key, encode(msg))
+        self.seq += 1
+        return msg
+
+    def now_step(self, t_ns: int) -> int:
+        """The session's step at time ``t_ns``: floor((t_ns - epoch_ns) / period_ns)."""
+        if self.spec is None:
+            raise InvalidMessage("now_step needs the session spec")
+        return self.spec.step_of(t_ns)
+
+    def send_now(self, u: Sequence[float] | np.ndarray | float, t_ns: int) -> Command:
+        """Send ``u`` to apply at ``step_of(t_ns) + lead``: the step at which a command sent
+        now reaches the robot over the uplink (needs the spec)."""
+        if self.spec is None:
+            raise InvalidMessage("send_now needs the session spec")
+        return self.send(u, step=self.spec.step_of(t_ns) + self.spec.lead)

@@ -1,0 +1,224 @@
+"""Robot side: publish measurements stamped with their sample time, receive commands.
+
+Example::
+
+    with Robot(transport, "s1") as robot:
+        robot.publish("camera", [1.2, 5.3], step=k)         # or t_ns=time.time_ns()
+        robot.on_command(lambda cmd: print(cmd.step, cmd.u))  # or: for cmd in robot.commands():
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import threading
+from collections.abc import Callable, Iterator, Sequence
+
+import numpy as np
+
+from pd_service.transport import Sample, Transport
+from pd_service.wire import Command, Measurement, SessionSpec, WireError, encode, keys
+from pd_service.wire.convert import check_measurement, command_step
+
+from ._base import ClientBase, as_array, build, try_decode
+from ._queue import Inbox
+from .errors import InvalidMessage, Timeout
+from .truth import Truth
+
+log = logging.getLogger("pd_client.robot")
+
+CommandCallback = Callable[[Command], None]
+
+
+class Robot(ClientBase):
+    """The robot's end of a session.
+
+    Measurements go to ``robot/<session>/sensor/<name>`` (the link emulator carries them to
+    the service); commands are read from ``robot/<session>/cmd``. With ``direct=True`` the
+    operator-side keys (``pd/<session>/...``) are used instead: no link emulator between.
+
+    ``spec`` (optional): the session's SessionSpec. With it, measurements are checked
+    against the session (known sensor, dimension) before they are sent, truth gets its
+    ``t_ns`` from the step, and :meth:`apply_step` can resolve commands stamped with
+    ``issued_ns``.
+    """
+
+    def __init__(self, transport: Transport, session: str, *, spec: SessionSpec | None = None,
+                 direct: bool = False, queue_size: int = 1024) -> None:
+        super().__init__(transport)
+        try:
+            self.session = keys.check_name(session, "session")
+        except keys.KeyError_ as exc:
+            raise InvalidMessage(str(exc)) from None
+        if spec is not None and spec.session != session:
+            raise InvalidMessage(f"spec is for session {spec.session!r}, not {session!r}")
+        self.spec = spec
+        self.direct = direct
+        self._seq: dict[str, int] = {}
+        self._inbox: Inbox[Command] = Inbox(queue_size)
+        self._callbacks: list[CommandCallback] = []
+        self.commands_received = 0
+        self.commands_invalid = 0
+        self.published = 0
+        cmd_key = keys.command_key(session) if direct else keys.robot_command_key(session)
+        self._subscribe(cmd_key, self._on_sample)
+
+    # --- measurements ------------------------------------------------------------------
+
+    def sensor_key(self, sensor: str) -> str:
+        return (keys.sensor_key if self.direct else keys.robot_sensor_key)(self.session, sensor)
+
+    def publish(self, sensor: str, z: Sequence[float] | np.ndarray | float, *,
+                step: int | None = None, t_ns: int | None = None,
+                R: np.ndarray | Sequence[Sequence[float]] | None = None) -> Measurement:
+        """Send one sample of ``sensor`` taken at ``step`` (or at time ``t_ns``, ns on the
+        shared clock): exactly one of the two. ``R``: this sample's noise covariance (m x m)
+        if it differs from the sensor's. The per-sensor ``seq`` counts up from 0.
+
+        Raises InvalidMessage (a ValueError) for a bad field, without sending anything.
+        """
+        try:
+            key = self.sensor_key(sensor)
+        except keys.KeyError_ as exc:
+            raise InvalidMessage(str(exc)) from None
+        fields: dict = {"session": self.session, "sensor": sensor,
+                        "seq": self._seq.get(sensor, 0), "step": step, "t_ns": t_ns,
+                        "z": as_array(z, "z", 1)}
+        if R is not None:
+            fields["R"] = as_array(R, "R", 2)
+        msg = build(Measurement, **fields)
+        if self.spec is not None:
+            try:
+                check_measurement(msg, self.spec)
+            except WireError as exc:
+                raise InvalidMessage(exc.reason) from None
+        self.transport.put(key, encode(msg))
+        self._seq[sensor] = msg.seq + 1
+        self.published += 1
+        return msg
+
+    def publish_truth(self, step: int, x: Sequence[float] | np.ndarray, *,
+                      t_ns: int | None = None, names: Sequence[str] = ()) -> Truth:
+        """Publish the true state x(step) on ``robot/<session>/truth`` (simulators only:
+        used by recorders and displays for evaluation, never by the service). ``t_ns``
+        defaults to the step's time when the spec is known."""
+        if t_ns is None:
+            if self.spec is None:
+                raise InvalidMessage("publish_truth: t_ns is required when the spec is unknown")
+            t_ns = self.spec.time_of(step)
+        msg = build(Truth, session=self.session, step=step, t_ns=t_ns,
+                    x=as_array(x, "x", 1), names=list(names))
+        self.transport.put(keys.truth_key(self.session), encode(msg))
+        return msg
+
+    # --- commands ----------------------------------------------------------------------
+
+    def _on_sample(self, sample: Sample) -> None:
+        if sample.kind != "put":
+            return
+        cmd = try_decode(sample, Command)
+        if cmd is None or cmd.session != self.session:
+            self.commands_invalid += 1
+            return
+        self.commands_received += 1
+        self._inbox.push(cmd)
+        for cb in list(self._callbacks):
+            try:
+                cb(cmd)
+            except Exception:
+                log.exception("command callback failed")
+
+    def on_command(self, callback: CommandCallback) -> None:
+        """Call ``callback(cmd)`` for every command received, on the transport's thread
+        (it must return quickly)."""
+        self._callbacks.append(callback)
+
+    def next_command(self, timeout: float | None = None) -> Command:
+        """The oldest command not yet taken; raises Timeout after ``timeout`` seconds."""
+        cmd = self._inbox.pop(timeout)
+        if cmd is None:
+            raise Timeout(f"no command for session {self.session!r} within {timeout} s")
+        return cmd
+
+    def commands(self, timeout: float | None = None) -> Iterator[Command]:
+        """Iterate over received commands; stops after ``timeout`` seconds without one
+        (None: wait forever) or when the robot is closed."""
+        return self._inbox.iterate(timeout)
+
+    def pending_commands(self) -> list[Command]:
+        """Every command received and not yet taken, oldest first (does not wait)."""
+        return self._inbox.drain()
+
+    def apply_step(self, cmd: Command) -> int:
+        """The step from which ``cmd`` applies: ``cmd.step``, or, for a command stamped with
+        ``issued_ns``, ``step_of(issued_ns) + lead`` (needs the spec)."""
+        if cmd.step is not None:
+            return cmd.step
+        if self.spec is None:
+            raise InvalidMessage("a command stamped with issued_ns needs the session spec")
+        return command_step(cmd, self.spec)
+
+    def close(self) -> None:
+        self._inbox.close()
+        super().close()
+
+
+class CommandSchedule:
+    """Commands by apply step, with zero-order hold: ``u_at(k)`` is the u of the command
+    with the greatest apply step <= k received so far (zeros before any).
+
+    This is how a robot applies commands "at their apply step, hold last": a command that
+    arrives after its apply step takes effect on arrival (it is then the newest one <= k),
+    and one older than the command already in force never takes effect (counted ``stale``).
+    Thread-safe: ``add`` may be called from a transport callback.
+    """
+
+    def __init__(self, nu: int, keep: int = 4096) -> None:
+        if nu < 1:
+            raise ValueError(f"nu: must be >= 1, got {nu}")
+        self.nu = nu
+        self._steps: list[int] = []
+        self._u: dict[int, np.ndarray] = {}
+        self._keep = keep
+        self._lock = threading.Lock()
+        self._applied_step = -1  # apply step of the command in force at the last u_at
+        self.received = 0
+        self.stale = 0
+        self.late = 0
+        self._last_k = -1
+
+    def add(self, step: int, u: Sequence[float] | np.ndarray) -> None:
+        """Record that ``u`` applies from ``step`` on (a later command for the same step
+        replaces the earlier one)."""
+        uv = np.asarray(u, dtype=np.float64).reshape(-1)
+        if uv.shape != (self.nu,):
+            raise ValueError(f"u: expected {self.nu} values, got {uv.shape[0]}")
+        with self._lock:
+            self.received += 1
+            if step < self._applied_step:
+                self.stale += 1
+                return
+            if step <= self._last_k:
+                self.late += 1  # takes effect at the next u_at, later than stamped
+            if step not in self._u:
+                bisect.insort(self._steps, step)
+            self._u[step] = uv
+            if len(self._steps) > self._keep:
+                old = self._steps.pop(0)
+                del self._u[old]
+
+    def u_at(self, k: int) -> np.ndarray:
+        """u(k): the newest command whose apply step is <= k (zeros before the first)."""
+        with self._lock:
+            self._last_k = max(self._last_k, k)
+            i = bisect.bisect_right(self._steps, k)
+            if i == 0:
+                return np.zeros(self.nu)
+            step = self._steps[i - 1]
+            self._applied_step = max(self._applied_step, step)
+            # Forget commands superseded by the one in force.
+            if i > 1:
+                for s in self._steps[: i - 1]:
+                    del self._u[s]
+                del self._steps[: i - 1]
+            return self._u[step].copy()

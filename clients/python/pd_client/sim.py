@@ -1,0 +1,282 @@
+"""``pd-robot-sim``: a simulated robot that runs a scenario in real time.
+
+    pd-robot-sim --scenario paper --noise journal --session paper --create-session
+    pd-robot-sim --scenario paper --session paper --session paper-cam:camera --create-session
+    pd-robot-sim --scenario maneuver --session rover --time-scale 2 --steps 600
+
+Every step k (wall time ``epoch_ns + k * period_ns``; the period is the scenario's divided by
+``--time-scale``) it moves the true state with the command in force for step k - 1, then
+publishes the truth x(k) on ``robot/<s>/truth`` and each sensor's sample of x(k), stamped
+with step k, on ``robot/<s>/sensor/<name>`` (the link emulator carries them to the service;
+``--direct`` publishes on ``pd/<s>/sensor/<name>`` instead). Commands are read from
+``robot/<s>/cmd`` (``pd/<s>/cmd`` with ``--direct``) of the first session and apply from their
+apply step, holding the last one; a command that arrives after its apply step applies on
+arrival. The transition k-1 -> k is computed at the start of step k, so a command has up to
+one period of slack after its apply step begins.
+
+Several ``--session NAME[:sensor,...]`` run the same robot (same truth and samples) for
+several sessions, each with its own sensor subset. ``--create-session`` puts the sessions'
+SessionSpecs (epoch = now) and answers spec queries while running; otherwise the specs are
+read from the config keys (whoever created the sessions must serve them).
+Progress lines go to stderr. Exit codes: 0 done or stopped by SIGINT/SIGTERM, 1 runtime
+error (e.g. no service acknowledged the session), 2 bad command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from pd_service.transport import Transport
+from pd_service.wire import Command, SessionSpec
+
+from . import _cli
+from .admin import Admin
+from .errors import PdClientError
+from .robot import CommandSchedule, Robot
+from .scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
+
+TOOL = "pd-robot-sim"
+log = logging.getLogger("pd_client.sim")
+
+
+@dataclass
+class SimSession:
+    """One session the simulated robot serves: its spec, sensor subset and Robot."""
+
+    spec: SessionSpec
+    sensors: set[str]
+    robot: Robot
+
+
+class RobotSim:
+    """The networked simulated robot (the stepping logic; :func:`main` adds the clock).
+
+    ``specs``: one SessionSpec per session, all on the same clock (epoch and period); the
+    first session's commands drive the robot. Call :meth:`tick` with k = 0, 1, 2, ... (or
+    starting later), one per step.
+    """
+
+    def __init__(self, transport: Transport, scenario: Scenario, specs: Sequence[SessionSpec],
+                 *, seed: int | None = 0, direct: bool = False) -> None:
+        if not specs:
+            raise ValueError("specs: at least one session is required")
+        first = specs[0]
+        for spec in specs:
+            if (spec.epoch_ns, spec.period_ns) != (first.epoch_ns, first.period_ns):
+                raise ValueError(f"session {spec.session!r} is on another clock than "
+                                 f"{first.session!r} (epoch_ns/period_ns differ)")
+            if spec.n != scenario.n or spec.r != scenario.nu:
+                raise ValueError(f"session {spec.session!r}: model is {spec.n} states / "
+                                 f"{spec.r} inputs, scenario {scenario.name!r} has "
+                                 f"{scenario.n} / {scenario.nu}")
+            unknown = {s.name for s in spec.sensors} - set(scenario.sensor_names)
+            if unknown:
+                raise ValueError(f"session {spec.session!r}: sensors {sorted(unknown)} are not "
+                                 f"in scenario {scenario.name!r}")
+        self.scenario = scenario
+        self.sim = ScenarioSim(scenario, seed)
+        self.schedule = CommandSchedule(scenario.nu)
+        self.sessions: list[SimSession] = []
+        try:
+            for spec in specs:
+                robot = Robot(transport, spec.session, spec=spec, direct=direct)
+                self.sessions.append(SimSession(spec, {s.name for s in spec.sensors}, robot))
+        except BaseException:
+            self.close()
+            raise
+        self.sessions[0].robot.on_command(self._on_command)
+        self.commands_invalid = 0
+        self.last_u = np.zeros(scenario.nu)
+        self.samples_published = 0
+        self._started = False
+
+    @property
+    def spec(self) -> SessionSpec:
+        return self.sessions[0].spec
+
+    def _on_command(self, cmd: Command) -> None:
+        try:
+            step = self.sessions[0].robot.apply_step(cmd)
+            self.schedule.add(step, cmd.u)
+        except (PdClientError, ValueError) as exc:
+            self.commands_invalid += 1
+            log.warning("ignoring command seq %s: %s", cmd.seq, exc)
+
+    def tick(self, k: int) -> np.ndarray:
+        """Run step k: move x(k-1) -> x(k) with u(k-1), then publish truth and samples of
+        x(k). Returns x(k). Steps must increase by one after the first call."""
+        if not self._started:
+            self._started = True
+            self.sim.k = k  # the first step (0, or later when joining a running session)
+        else:
+            if k != self.sim.k + 1:
+                raise ValueError(f"tick: expected step {self.sim.k + 1}, got {k}")
+            self.last_u = self.schedule.u_at(k - 1)
+            self.sim.advance(self.last_u)
+        x = self.sim.x
+        names = self.scenario.state_names
+        samples = self.sim.sample()
+        for s in self.sessions:
+            s.robot.publish_truth(k, x, names=names)
+            for name, z in samples:
+                if name in s.sensors:
+                    s.robot.publish(name, z, step=k)
+                    self.samples_published += 1
+        return x
+
+    def close(self) -> None:
+        for s in self.sessions:
+            s.robot.close()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
+    ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
+                    help="noise setting of the paper scenario (default: journal)")
+    ap.add_argument("--session", action="append", metavar="NAME[:SENSORS]",
+                    help="session to serve, optionally with a sensor subset "
+                         "(e.g. paper-cam:camera); repeatable; default: the scenario's name")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="run steps 0..N, then stop (default: the scenario's length; 0: run "
+                         "until stopped)")
+    ap.add_argument("--time-scale", type=float, default=1.0,
+                    help="run this many times faster than real time (default 1)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--create-session", action="store_true",
+                    help="put the SessionSpec(s) (epoch = now) and serve them while running")
+    ap.add_argument("--close-on-exit", action="store_true",
+                    help="with --create-session: delete the session(s) on exit")
+    ap.add_argument("--no-wait-service", action="store_true",
+                    help="with --create-session: do not wait for a service to acknowledge")
+    ap.add_argument("--service-timeout", type=float, default=15.0,
+                    help="seconds to wait for the service or for the spec (default 15)")
+    ap.add_argument("--lead", type=int, help="override the scenario's lead (steps)")
+    ap.add_argument("--max-delay", type=int, help="override the scenario's max_delay (steps)")
+    ap.add_argument("--publish-every", type=int, default=1)
+    ap.add_argument("--direct", action="store_true",
+                    help="publish on the service's keys (no link emulator in between)")
+    ap.add_argument("--progress", type=float, default=2.0,
+                    help="seconds between progress lines on stderr (0: none)")
+    ap.add_argument("--verbose", "-v", action="store_true")
+    _cli.add_zenoh_args(ap)
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    with _cli.signal_stop() as stop:
+        return _main(argv, stop)
+
+
+def _main(argv: Sequence[str] | None, stop: threading.Event) -> int:
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    _cli.setup_logging(args.verbose)
+    try:
+        scenario = get_scenario(args.scenario, args.noise)
+        sessions = [_cli.parse_session_arg(v) for v in (args.session or [scenario.name])]
+        for _, sensors in sessions:
+            scenario.select(sensors)
+        scenario.period_ns(args.time_scale)
+    except ValueError as exc:
+        ap.error(str(exc))
+    steps = scenario.default_steps if args.steps is None else args.steps
+    if steps < 0:
+        ap.error("--steps must be >= 0")
+    try:
+        transport = _cli.open_transport(args)
+    except PdClientError as exc:
+        return _cli.fail(TOOL, exc)
+    try:
+        return _run(args, scenario, sessions, steps, transport, stop)
+    except PdClientError as exc:
+        return _cli.fail(TOOL, exc)
+    finally:
+        transport.close()
+
+
+def _run(args: argparse.Namespace, scenario: Scenario, sessions: list, steps: int,
+         transport: Transport, stop: threading.Event) -> int:
+    with Admin(transport) as admin:
+        if args.create_session:
+            epoch = time.time_ns()
+            specs = []
+            for name, sensors in sessions:
+                try:
+                    specs.append(scenario.spec(name, epoch, time_scale=args.time_scale,
+                                               sensors=sensors, lead=args.lead,
+                                               max_delay=args.max_delay,
+                                               publish_every=args.publish_every))
+                except ValueError as exc:
+                    return _cli.fail(TOOL, exc, 2)
+            if not args.no_wait_service:
+                _cli.progress(TOOL, "waiting for pd-service ...")
+                admin.wait_for_service(args.service_timeout)
+            for spec in specs:
+                admin.replace_session(spec, wait=not args.no_wait_service,
+                                      timeout=args.service_timeout)
+                _cli.progress(TOOL, f"session {spec.session} created "
+                                    f"(sensors {', '.join(s.name for s in spec.sensors)}, "
+                                    f"period {spec.period_ns / 1e6:g} ms, lead {spec.lead})")
+        else:
+            specs = []
+            for name, _ in sessions:
+                _cli.progress(TOOL, f"waiting for the spec of session {name} ...")
+                specs.append(admin.wait_for_spec(name, args.service_timeout))
+        try:
+            sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct)
+        except ValueError as exc:
+            return _cli.fail(TOOL, exc, 2)
+        try:
+            _loop(sim, steps, args.progress, stop, from_zero=args.create_session)
+        finally:
+            sim.close()
+            if args.create_session and args.close_on_exit:
+                for spec in specs:
+                    try:
+                        admin.close_session(spec.session, timeout=2.0)
+                    except PdClientError as exc:
+                        _cli.progress(TOOL, f"closing {spec.session}: {exc}")
+    return 0
+
+
+def _loop(sim: RobotSim, steps: int, every_s: float, stop: threading.Event,
+          from_zero: bool = False) -> None:
+    """Tick in real time from step 0 (``from_zero``: we created the session just now, so any
+    steps already elapsed are caught up at once) or from the current step (joining)."""
+    spec = sim.spec
+    k = 0 if from_zero else max(0, spec.step_of(time.time_ns()))
+    if k > 0:
+        _cli.progress(TOOL, f"joining session {spec.session} at step {k}")
+    last_report = time.monotonic()
+    end = f"/{steps}" if steps else ""
+    while not stop.is_set() and (steps == 0 or k <= steps):
+        if not _cli.wait_until(spec.time_of(k), stop):
+            break
+        x = sim.tick(k)
+        if every_s and time.monotonic() - last_report >= every_s:
+            last_report = time.monotonic()
+            behind = spec.step_of(time.time_ns()) - k
+            _cli.progress(TOOL, f"step {k}{end} x={_cli.fmt_vec(x)} u={_cli.fmt_vec(sim.last_u)} "
+                                f"samples {sim.samples_published} commands "
+                                f"{sim.schedule.received} (late {sim.schedule.late}, stale "
+                                f"{sim.schedule.stale})" + (f" behind {behind}" if behind > 1 else ""))
+        k += 1
+    _cli.progress(TOOL, f"{'stopped' if stop.is_set() else 'done'} at step {k - 1}: samples "
+                        f"{sim.samples_published}, commands {sim.schedule.received} (late "
+                        f"{sim.schedule.late}, stale {sim.schedule.stale}, invalid "
+                        f"{sim.commands_invalid})")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
