@@ -7,6 +7,8 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: venv test demo bench lint schemas clean
 
+DEMO_STAMP := $(VENV)/.installed-demo
+
 $(STAMP): pyproject.toml clients/python/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
@@ -14,6 +16,14 @@ $(STAMP): pyproject.toml clients/python/pyproject.toml
 	touch $(STAMP)
 
 venv: $(STAMP)
+
+# The demo also renders PNG plots: matplotlib comes with the client's `plots` extra.
+$(DEMO_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e 'clients/python[plots]'
+	touch $(DEMO_STAMP)
+
+demo: $(DEMO_STAMP)
+	$(VENV)/bin/pd-demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q

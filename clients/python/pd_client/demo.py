@@ -1,0 +1,257 @@
+"""pd-demo: the whole system on one machine, for about 30 seconds, then a summary.
+
+Starts, each as its own process on a free loopback port:
+
+1. ``pd-service``     the daemon (peer mode, listening on 127.0.0.1:<port>)
+2. ``pd-link``        the link emulator with the paper's link (camera 10 steps, range
+                      finder 12, uplink 10, plus loss: ``deploy/link-paper.toml``)
+3. ``pd-record``      records predictions and truth for both sessions, renders PNGs
+4. ``pd-operator``    sends the paper's commands, stamped with their apply step
+5. ``pd-robot-sim``   the paper's vehicle chasing an object, publishing camera and range
+                      finder to session ``paper`` and the camera only to ``paper-cam``
+
+and prints a side-by-side summary: RMS prediction error and mean predicted variance of p1 and
+p2 with the range finder (``paper``) and with the camera only (``paper-cam``). Ctrl-C stops
+every process cleanly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+from pd_service.wire import keys
+
+from ._base import connect
+from .errors import ServiceUnavailable
+
+TOOL = "pd-demo"
+SESSIONS = ("paper", "paper-cam")
+LEAD, RANGER_DELAY = 10, 12  # the paper's uplink and range-finder delays, steps
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Proc:
+    """A child process whose output is relayed line by line with a name prefix."""
+
+    def __init__(self, name: str, args: list[str], quiet: bool = False) -> None:
+        self.name = name
+        self.quiet = quiet
+        self.popen = subprocess.Popen(
+            [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            text=True, bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.lines: list[str] = []
+        self._thread = threading.Thread(target=self._relay, daemon=True)
+        self._thread.start()
+
+    def _relay(self) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            line = line.rstrip("\n")
+            self.lines.append(line)
+            if not self.quiet:
+                print(f"[{self.name:8}] {line}", flush=True)
+
+    def stop(self, timeout: float = 10.0) -> int | None:
+        """SIGINT, then SIGTERM, then SIGKILL; returns the exit code."""
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            if self.popen.poll() is not None:
+                break
+            self.popen.send_signal(sig)
+            try:
+                self.popen.wait(timeout)
+            except subprocess.TimeoutExpired:
+                continue
+        self._thread.join(2.0)
+        return self.popen.returncode
+
+
+def wait_for(what: str, check, timeout: float, procs: list[Proc]) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for p in procs:
+            if p.popen.poll() is not None:
+                tail = "\n".join(p.lines[-15:])
+                raise RuntimeError(f"{p.name} exited with code {p.popen.returncode}:\n{tail}")
+        if check():
+            return
+        time.sleep(0.1)
+    raise RuntimeError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def open_probe(endpoint: str, procs: list[Proc], timeout: float = 30.0):
+    """A client session to the daemon, retried until the daemon listens."""
+    box: list = []
+
+    def attempt() -> bool:
+        try:
+            box.append(connect([endpoint], "client"))
+        except ServiceUnavailable:
+            return False
+        return True
+
+    wait_for(f"the daemon to listen on {endpoint}", attempt, timeout, procs)
+    return box[0]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0])
+    ap.add_argument("--steps", type=int, default=420,
+                    help="simulated steps, 50 ms each (default 420: about 30 s with start-up)")
+    ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
+    ap.add_argument("--link-config", default="deploy/link-paper.toml",
+                    help="link emulator rules (default deploy/link-paper.toml)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--quiet", action="store_true", help="do not relay the processes' output")
+    args = ap.parse_args(argv)
+
+    link_config = Path(args.link_config)
+    if not link_config.is_file():
+        print(f"{TOOL}: link config {link_config} not found (run from the repository root)",
+              file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    if (out / "state").exists():
+        shutil.rmtree(out / "state")  # a fresh daemon: no sessions restored from a past run
+    out.mkdir(parents=True, exist_ok=True)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    zenoh_args = ["--connect", endpoint]
+    procs: list[Proc] = []
+
+    def start(name: str, *a: str, quiet: bool = False) -> Proc:
+        p = Proc(name, list(a), quiet=quiet or args.quiet)
+        procs.append(p)
+        return p
+
+    interrupted = False
+    t0 = time.monotonic()
+    try:
+        print(f"{TOOL}: daemon on {endpoint}, output in {out}/", flush=True)
+        start("service", "-m", "pd_service", "--listen", endpoint, "--state-dir",
+              str(out / "state"), "--instance", "demo")
+        probe = open_probe(endpoint, procs)
+        try:
+            wait_for("the daemon", lambda: bool(probe.get_liveliness(keys.ALL_SERVICES, 0.5)),
+                     30.0, procs)
+            start("link", "-m", "pd_service.link", "--config", str(link_config), *zenoh_args,
+                  "--instance", "demo", "--stats-interval", "10")
+            wait_for("the link emulator",
+                     lambda: any(r.ok for r in probe.get(keys.link_stats_key("demo"), timeout=0.5)),
+                     30.0, procs)
+        finally:
+            probe.close()
+        recorder = start("record", "-m", "pd_client", "record", *[f"--session={s}" for s in SESSIONS],
+                         "--out", str(out), "--idle-timeout", "3", "--states", "p1,p2", *zenoh_args)
+        start("operator", "-m", "pd_client", "operator", *[f"--session={s}" for s in SESSIONS],
+              "--steps", str(args.steps), *zenoh_args)
+        sim = start("sim", "-m", "pd_client", "sim", "--session", "paper",
+                    "--session", "paper-cam:camera", "--create-session", "--close-on-exit",
+                    "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
+        sim.popen.wait()
+        if sim.popen.returncode != 0:
+            raise RuntimeError(f"the simulator exited with code {sim.popen.returncode}")
+        print(f"{TOOL}: simulation done after {time.monotonic() - t0:.1f} s; "
+              "waiting for the recorder", flush=True)
+        try:
+            recorder.popen.wait(60)
+        except subprocess.TimeoutExpired:
+            recorder.stop()
+    except KeyboardInterrupt:
+        interrupted = True
+        print(f"\n{TOOL}: interrupted, stopping every process", flush=True)
+    except RuntimeError as exc:
+        print(f"{TOOL}: {exc}", file=sys.stderr, flush=True)
+        interrupted = True
+    finally:
+        for p in reversed(procs):
+            p.stop()
+    if interrupted:
+        return 130
+    return report(out)
+
+
+def ranger_window(out: Path) -> dict[str, dict[str, float]]:
+    """RMS error and mean variance over the target steps whose prediction can use the range
+    finder: its sample (12 steps old at arrival, 22 before the target) was taken while
+    |p2 - p1| <= 3 on the recorded truth."""
+    import numpy as np
+
+    from .record import read_csv
+
+    result: dict[str, dict[str, float]] = {}
+    shift = RANGER_DELAY + LEAD
+    for session in SESSIONS:
+        path = out / f"{session}.csv"
+        if not path.exists():
+            continue
+        _, cols = read_csv(path)
+        steps = cols["step"].astype(int)
+        gap = dict(zip(steps.tolist(), np.abs(cols["true_p2"] - cols["true_p1"]).tolist(),
+                       strict=True))
+        keep = np.array([gap.get(int(t) - shift, np.inf) <= 3.0 for t in steps])
+        if not keep.any():
+            continue
+        row = {"rows": int(keep.sum()), "first": int(steps[keep].min()),
+               "last": int(steps[keep].max())}
+        for name in ("p1", "p2"):
+            row[f"rms_{name}"] = float(np.sqrt(np.nanmean(cols[f"err_{name}"][keep] ** 2)))
+            row[f"mean_var_{name}"] = float(np.nanmean(cols[f"var_{name}"][keep]))
+        result[session] = row
+    return result
+
+
+def print_table(title: str, data: dict[str, dict]) -> None:
+    cols = [("paper", "with range finder"), ("paper-cam", "camera only")]
+    print(title)
+    print(f"{'':28}" + "".join(f"{label:>20}" for _, label in cols))
+    for key, label in [("rms_p1", "RMS error p1"), ("rms_p2", "RMS error p2"),
+                       ("mean_var_p1", "mean variance p1"), ("mean_var_p2", "mean variance p2"),
+                       ("rows", "predictions compared")]:
+        cells = []
+        for s, _ in cols:
+            v = data.get(s, {}).get(key)
+            cells.append(f"{'-':>20}" if v is None else
+                         (f"{v:>20d}" if isinstance(v, int) else f"{v:>20.4f}"))
+        print(f"{label:28}" + "".join(cells))
+
+
+def report(out: Path) -> int:
+    path = out / "summary.json"
+    if not path.exists():
+        print(f"{TOOL}: no summary was written ({path} missing)", file=sys.stderr)
+        return 1
+    summary = json.loads(path.read_text())
+    print()
+    print("=" * 68)
+    print_table("pd-service demo: predicted x(k + 10) over the paper's link, whole run "
+                "after warm-up", summary)
+    window = ranger_window(out)
+    if window:
+        w = window.get("paper", next(iter(window.values())))
+        print()
+        print_table(f"... while the range finder reports (target steps {w['first']}-{w['last']})",
+                    window)
+    pngs = sorted(out.glob("*.png"))
+    print("PNG plots:" if pngs else "PNG plots: none (matplotlib not installed)")
+    for p in pngs:
+        print(f"  {p}")
+    print("=" * 68)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
