@@ -1,0 +1,108 @@
+"""Measurement models for the IMM backend (state layout of :mod:`.models`).
+
+* range-bearing from a known station s = (s_xi, s_eta) (m)::
+
+      z = [ sqrt((xi - s_xi)^2 + (eta - s_eta)^2),  atan2(eta - s_eta, xi - s_xi) ]   (m, rad)
+
+  The bearing (index 1) is an angle: innovations and the sigma-point mean wrap it.
+* position: z = [xi, eta] (m).
+
+Measurement functions accept batches: x (..., 5) -> z (..., m).
+
+A session spec names sensors with plain dicts, see :func:`make_sensor`::
+
+    {"name": "st1", "kind": "range_bearing", "station": [9.5, -8.5],
+     "sigma_range": 0.3, "sigma_bearing": 0.0611}                       # m, rad
+    {"name": "cam", "kind": "position", "sigma": 0.05}                   # m
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from ..checks import as_covariance, as_vector
+from ..nonlinear.registry import MeasurementModel
+from .models import ETA, XI
+
+#: The registry's optional ``vectorized`` flag, where the registry has it.
+VECTORIZED = {"vectorized": True} if "vectorized" in MeasurementModel.__dataclass_fields__ else {}
+
+
+def _positive(value: object, field: str) -> float:
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{field}: expected a number, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
+    return v
+
+
+def range_bearing(
+    name: str, station: object, sigma_range: float, sigma_bearing: float
+) -> MeasurementModel:
+    """Range (m) and bearing (rad, wrapped) from ``station`` (2,) m; R = diag(sr^2, sb^2)."""
+    st = as_vector(station, f"sensor {name!r} station", 2).copy()
+    sr = _positive(sigma_range, f"sensor {name!r} sigma_range")
+    sb = _positive(sigma_bearing, f"sensor {name!r} sigma_bearing")
+    sx, sy = float(st[0]), float(st[1])
+
+    def h(x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        dx = x[..., XI] - sx
+        dy = x[..., ETA] - sy
+        return np.stack([np.hypot(dx, dy), np.arctan2(dy, dx)], axis=-1)
+
+    h.vectorized = True  # type: ignore[attr-defined]
+    R = np.diag([sr * sr, sb * sb])
+    R.setflags(write=False)
+    return MeasurementModel(name=name, h=h, R=R, angles=(1,), **VECTORIZED)
+
+
+def position(name: str, sigma: float | None = None, R: object | None = None) -> MeasurementModel:
+    """Position z = [xi, eta] (m); R = sigma^2 I or the given (2, 2) covariance."""
+    if (sigma is None) == (R is None):
+        raise ValueError(f"sensor {name!r}: give exactly one of sigma and R")
+    if R is None:
+        s = _positive(sigma, f"sensor {name!r} sigma")
+        Rm = s * s * np.eye(2)
+    else:
+        Rm = as_covariance(R, f"sensor {name!r} R", 2)
+        if float(np.linalg.eigvalsh(Rm)[0]) <= 0.0:
+            raise ValueError(f"sensor {name!r} R: must be positive definite")
+
+    def h(x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        return np.stack([x[..., XI], x[..., ETA]], axis=-1)
+
+    h.vectorized = True  # type: ignore[attr-defined]
+    Rm.setflags(write=False)
+    return MeasurementModel(name=name, h=h, R=Rm, angles=(), **VECTORIZED)
+
+
+_KINDS = ("range_bearing", "position")
+
+
+def make_sensor(spec: MeasurementModel | Mapping[str, object]) -> MeasurementModel:
+    """A MeasurementModel from itself or a plain spec dict (see module docstring)."""
+    if isinstance(spec, MeasurementModel):
+        return spec
+    if not isinstance(spec, Mapping):
+        raise ValueError(
+            f"sensors: expected a MeasurementModel or a dict, got {type(spec).__name__}"
+        )
+    params = dict(spec)
+    name = params.pop("name", None)
+    kind = params.pop("kind", None)
+    if not isinstance(name, str) or not name:
+        raise ValueError("sensors: each sensor needs a non-empty 'name'")
+    if kind not in _KINDS:
+        raise ValueError(f"sensor {name!r} kind: expected one of {_KINDS}, got {kind!r}")
+    try:
+        if kind == "range_bearing":
+            return range_bearing(name, **params)  # type: ignore[arg-type]
+        return position(name, **params)  # type: ignore[arg-type]
+    except TypeError as exc:
+        raise ValueError(f"sensor {name!r}: bad parameters ({exc})") from None
