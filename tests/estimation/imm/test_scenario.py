@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
@@ -51,7 +49,6 @@ def test_bars_fast():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get("PD_SLOW_TESTS"), reason="set PD_SLOW_TESTS=1 (~1 min)")
 def test_bars_issue_100_runs():
     """The issue's bars on the bench's 100 runs (about a minute)."""
     p, _ = _ratios(100, 1)
