@@ -1,0 +1,292 @@
+"""Every file of deploy/ parses, and the files agree with each other and with the code.
+
+- JSON5 (router and per-role Zenoh configs): zenoh.Config.from_file, i.e. Zenoh's own parser,
+  which rejects unknown fields and unknown ACL message names;
+- compose.yml: PyYAML; the router image tag equals the installed eclipse-zenoh release, every
+  referenced service, file and command exists, every command line parses with its tool's
+  own argument parser;
+- Dockerfile: the Zenoh pin and every COPY source;
+- the systemd unit: configparser, and its ExecStart parses with the daemon's parser;
+- router.json5's access control, evaluated statically: who may put on which key.
+"""
+
+from __future__ import annotations
+
+import configparser
+import importlib
+import importlib.metadata
+import json
+import re
+import shlex
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+import zenoh
+
+from pd_service.link.config import load_config
+from pd_service.transport.keyexpr import intersects
+
+from ._support import DEPLOY, REPO, ROLES, ZENOH_DIR, load_healthcheck, read_users
+
+ZENOH_VERSION = importlib.metadata.version("eclipse-zenoh")
+JSON5_FILES = sorted(DEPLOY.rglob("*.json5"))
+
+#: console script -> module with ``build_parser()`` (the tools compose.yml runs)
+TOOL_MODULES = {
+    "pd-service": "pd_service.service.__main__",
+    "pd-link": "pd_service.link.__main__",
+    "pd-robot-sim": "pd_client.sim",
+    "pd-operator": "pd_client.operate",
+}
+
+
+def json5(path: Path) -> dict[str, Any]:
+    """A Zenoh JSON5 file parsed by Zenoh, as the full resulting configuration."""
+    return json.loads(str(zenoh.Config.from_file(str(path))))
+
+
+def compose() -> dict[str, Any]:
+    return yaml.safe_load((DEPLOY / "compose.yml").read_text(encoding="utf-8"))
+
+
+def console_scripts() -> dict[str, str]:
+    """[project.scripts] of the two packages the image installs."""
+    out: dict[str, str] = {}
+    for pp in (REPO / "pyproject.toml", REPO / "clients" / "python" / "pyproject.toml"):
+        out.update(tomllib.loads(pp.read_text(encoding="utf-8"))["project"].get("scripts", {}))
+    return out
+
+
+def parse_tool_args(argv: list[str]) -> None:
+    """Parse ``argv`` (a command line of compose.yml or the systemd unit) with the tool's own
+    argparse parser; argparse exits (SystemExit) on an unknown or malformed flag."""
+    tool = Path(argv[0]).name
+    if tool == "python":
+        assert argv[1] == "/opt/pd-service/healthcheck.py", argv
+        load_healthcheck().build_parser().parse_args(argv[2:])
+        return
+    module = importlib.import_module(TOOL_MODULES[tool])
+    module.build_parser().parse_args(argv[1:])
+
+
+# --- Zenoh configuration files ---------------------------------------------------------
+
+def test_deploy_has_the_expected_files() -> None:
+    names = {p.relative_to(DEPLOY).as_posix() for p in DEPLOY.rglob("*") if p.is_file()}
+    want = {"compose.yml", "Dockerfile", "README.md", "healthcheck.py", "link-paper.toml",
+            "systemd/pd-service.service", "zenoh/router.json5", "zenoh/users.txt",
+            *(f"zenoh/{r}.json5" for r in ROLES)}
+    assert want <= names
+
+
+@pytest.mark.parametrize("path", JSON5_FILES, ids=lambda p: p.relative_to(DEPLOY).as_posix())
+def test_json5_parses_with_zenoh(path: Path) -> None:
+    conf = json5(path)
+    assert conf["scouting"]["multicast"]["enabled"] is False, "explicit endpoints only"
+
+
+def test_users_file_has_one_marked_demo_password_per_role() -> None:
+    users = read_users()
+    assert set(users) == set(ROLES)
+    for user, password in users.items():
+        assert password.startswith("DEMO-ONLY-"), f"{user}: demo passwords must say so"
+    assert len(set(users.values())) == len(users), "every role has its own password"
+
+
+@pytest.mark.parametrize("role", ROLES)
+def test_role_config_is_an_authenticated_client_of_the_router(role: str) -> None:
+    conf = json5(ZENOH_DIR / f"{role}.json5")
+    assert conf["mode"] == "client", "access control is enforced at the router only"
+    assert conf["connect"]["endpoints"] == ["tcp/router:7447"]  # compose.yml's router service
+    auth = conf["transport"]["auth"]["usrpwd"]
+    assert auth["user"] == role
+    assert auth["password"] == read_users()[role]
+    listen = conf["listen"]["endpoints"]  # a list, or Zenoh's per-mode defaults (a dict)
+    assert not (listen.get("client") if isinstance(listen, dict) else listen), \
+        "a client listens on nothing"
+
+
+# --- access control, evaluated statically ----------------------------------------------
+
+def acl() -> dict[str, Any]:
+    return json5(ZENOH_DIR / "router.json5")["access_control"]
+
+
+def test_router_requires_auth_and_denies_by_default() -> None:
+    conf = json5(ZENOH_DIR / "router.json5")
+    assert conf["mode"] == "router"
+    assert conf["transport"]["auth"]["usrpwd"]["dictionary_file"] == "/etc/zenoh/users.txt"
+    a = conf["access_control"]
+    assert a["enabled"] is True and a["default_permission"] == "deny"
+    assert conf["adminspace"]["permissions"] == {"read": False, "write": False}
+
+
+def test_acl_references_are_consistent() -> None:
+    a = acl()
+    rule_ids = [r["id"] for r in a["rules"]]
+    subject_ids = [s["id"] for s in a["subjects"]]
+    assert len(rule_ids) == len(set(rule_ids)) and len(subject_ids) == len(set(subject_ids))
+    used: set[str] = set()
+    for p in a["policies"]:
+        assert set(p["rules"]) <= set(rule_ids), p["id"]
+        assert set(p["subjects"]) <= set(subject_ids), p["id"]
+        used |= set(p["rules"])
+    assert used == set(rule_ids), f"unused rules: {set(rule_ids) - used}"
+    users = set(read_users())
+    named = {u for s in a["subjects"] for u in s.get("usernames") or []}
+    assert named == users, "every user has a subject and every subject user can log in"
+    for r in a["rules"]:
+        assert r["permission"] == "allow", "deny-by-default: rules only allow"
+        assert r.get("flows"), f"{r['id']}: say the flows explicitly"
+        assert all(k not in ("**", "*") for k in r["key_exprs"]), f"{r['id']}: too wide"
+
+
+def allowed_users(message: str, flow: str, key: str) -> set[str]:
+    """Users whose policies allow ``message`` in ``flow`` on (a key intersecting) ``key``."""
+    a = acl()
+    rules = {r["id"]: r for r in a["rules"]}
+    subjects = {s["id"]: set(s.get("usernames") or []) for s in a["subjects"]}
+    out: set[str] = set()
+    for p in a["policies"]:
+        for rid in p["rules"]:
+            r = rules[rid]
+            if (message in r["messages"] and flow in r["flows"]
+                    and any(intersects(k, key) for k in r["key_exprs"])):
+                for sid in p["subjects"]:
+                    out |= subjects[sid]
+    return out
+
+
+@pytest.mark.parametrize(("message", "flow", "key", "who"), [
+    ("put", "ingress", "pd/s1/cmd", {"operator"}),
+    ("delete", "ingress", "pd/s1/cmd", {"operator"}),
+    ("put", "ingress", "robot/s1/sensor/camera", {"robot"}),
+    ("put", "ingress", "robot/s1/truth", {"robot"}),
+    ("put", "ingress", "pd/s1/prediction", {"service"}),
+    ("put", "ingress", "pd/s1/error", {"service"}),
+    ("put", "ingress", "pd/s1/status", {"service"}),
+    ("put", "ingress", "pd/s1/sensor/camera", {"link", "robot"}),   # robot: direct mode
+    ("put", "ingress", "robot/s1/cmd", {"link"}),
+    ("put", "ingress", "pd/s1/config", {"operator", "robot"}),      # robot: sim sessions
+    ("put", "ingress", "pd/@service/pd-a", {"service"}),
+    ("liveliness_token", "ingress", "pd/@service/pd-a", {"service"}),
+    ("declare_queryable", "ingress", "pd/s1/status", {"service"}),
+    ("declare_queryable", "ingress", "pd/@service/pd-a/status", {"service"}),
+    ("declare_queryable", "ingress", "pd/@link/paper/rules", {"link"}),
+    ("query", "ingress", "pd/@link/paper/rules", {"operator"}),     # a payload replaces rules
+    ("put", "egress", "pd/s1/cmd", {"service", "link", "robot"}),
+    ("put", "egress", "robot/s1/truth", {"display"}),
+    ("put", "egress", "robot/s1/cmd", {"robot"}),
+])
+def test_who_may_do_what(message: str, flow: str, key: str, who: set[str]) -> None:
+    assert allowed_users(message, flow, key) == who
+
+
+# --- compose ---------------------------------------------------------------------------
+
+def test_compose_router_is_the_pinned_zenoh_release() -> None:
+    c = compose()
+    assert c["services"]["router"]["image"] == f"eclipse/zenoh:{ZENOH_VERSION}"
+    assert c["services"]["router"]["command"] == ["-c", "/etc/zenoh/router.json5"]
+    for name, svc in c["services"].items():
+        if "build" in svc:
+            assert svc["build"]["args"]["ZENOH_VERSION"] == ZENOH_VERSION, name
+            assert (DEPLOY / svc["build"]["context"] / svc["build"]["dockerfile"]).resolve() \
+                == (DEPLOY / "Dockerfile").resolve()
+
+
+def test_compose_references_exist() -> None:
+    c = compose()
+    services = c["services"]
+    assert {"router", "pd-service", "link", "robot-sim", "operator"} <= set(services)
+    named_volumes = set(c.get("volumes") or {})
+    for name, svc in services.items():
+        for dep in svc.get("depends_on") or {}:
+            assert dep in services, f"{name} depends on unknown service {dep}"
+        assert svc.get("healthcheck", {}).get("test"), f"{name} has no health check"
+        mounts: dict[str, Path | None] = {}
+        for v in svc.get("volumes") or []:
+            source, target = v.split(":")[:2]
+            if source.startswith("."):
+                assert (DEPLOY / source).exists(), f"{name}: missing {source}"
+                mounts[target] = DEPLOY / source
+            else:
+                assert source in named_volumes, f"{name}: unknown volume {source}"
+                mounts[target] = None
+        # every file a command names under /etc is provided by a bind mount
+        words = list(svc.get("command") or []) + list(svc["healthcheck"]["test"][1:])
+        for w in words:
+            if isinstance(w, str) and w.startswith("/etc/"):
+                assert any(w == t or w.startswith(t.rstrip("/") + "/") for t in mounts), \
+                    f"{name}: {w} is not mounted"
+
+
+def test_compose_python_services_log_in_with_their_role() -> None:
+    want = {"pd-service": "service", "link": "link", "robot-sim": "robot",
+            "operator": "operator"}
+    services = compose()["services"]
+    for name, role in want.items():
+        cmd = services[name]["command"]
+        i = cmd.index("--zenoh-config")
+        assert cmd[i + 1] == f"/etc/pd-service/zenoh/{role}.json5", name
+        assert "--connect" not in cmd and "--listen" not in cmd, f"{name}: the file decides"
+        hc = services[name]["healthcheck"]["test"]
+        assert hc[hc.index("--zenoh-config") + 1] == cmd[i + 1], name
+
+
+def test_compose_commands_exist_and_parse() -> None:
+    scripts = console_scripts()
+    for name, svc in compose()["services"].items():
+        if "build" not in svc:
+            continue
+        cmd = svc["command"]
+        assert cmd[0] in scripts, f"{name}: {cmd[0]} is not a console script of the image"
+        assert scripts[cmd[0]].split(":")[0] == TOOL_MODULES[cmd[0]], cmd[0]
+        parse_tool_args(cmd)
+        test = svc["healthcheck"]["test"]
+        assert test[0] == "CMD"
+        parse_tool_args(test[1:])
+
+
+# --- Dockerfile, systemd, link rules ---------------------------------------------------
+
+def test_dockerfile_pins_zenoh_and_copies_existing_files() -> None:
+    text = (DEPLOY / "Dockerfile").read_text(encoding="utf-8")
+    assert f"ARG ZENOH_VERSION={ZENOH_VERSION}\n" in text
+    assert '"eclipse-zenoh==${ZENOH_VERSION}"' in text
+    copies = re.findall(r"^COPY\s+(?!--from)(.+)$", text, flags=re.M)
+    assert copies
+    for line in copies:
+        *sources, _dest = shlex.split(line)
+        for src in sources:
+            assert (REPO / src).exists(), f"COPY source {src} is missing"
+
+
+def test_systemd_unit_parses_and_runs_the_daemon() -> None:
+    unit = configparser.ConfigParser(interpolation=None, strict=True)
+    unit.optionxform = str  # type: ignore[assignment,method-assign]
+    assert unit.read(DEPLOY / "systemd" / "pd-service.service")
+    assert {"Unit", "Service", "Install"} <= set(unit.sections())
+    svc = unit["Service"]
+    argv = shlex.split(svc["ExecStart"])
+    assert Path(argv[0]).name == "pd-service"
+    parse_tool_args(argv)
+    assert argv[argv.index("--zenoh-config") + 1] == "/etc/pd-service/zenoh/service.json5"
+    assert svc["User"] != "root" and svc["KillSignal"] == "SIGTERM"
+    assert svc["StateDirectory"] == "pd-service"
+    assert argv[argv.index("--state-dir") + 1] == "/var/lib/pd-service"
+    assert unit["Install"]["WantedBy"] == "multi-user.target"
+
+
+def test_link_rules_are_the_papers_link() -> None:
+    """compose.yml's link emulator runs deploy/link-paper.toml: camera 10 steps, range finder
+    12, uplink 10 (Liang et al. 2017, Sec. 4)."""
+    cfg = load_config(DEPLOY / "link-paper.toml")
+    step_ns = round(cfg.step_ms * 1e6)
+    assert step_ns == 50_000_000
+    delays = {r.name: r.params.delay.delay_ns / step_ns for r in (*cfg.downlink, *cfg.uplink)}
+    assert {k: delays.get(k) for k in ("camera", "ranger", "commands")} == {
+        "camera": 10, "ranger": 12, "commands": 10}
