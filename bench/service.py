@@ -1,0 +1,355 @@
+#!/usr/bin/env python3
+"""Load test of the pd-service daemon: N sessions of the paper's scenario at 20 Hz.
+
+Starts the daemon (``python -m pd_service``, its own process, fresh state dir, free port)
+and a load-generator process, for each N in --sessions. Per session and step (50 ms): one
+command (20 Hz), one range-finder sample (20 Hz, stamp k - 12), one camera sample every
+second step (10 Hz, stamp k - 10). Session i sends at phase i/N of every step, so the load
+is spread over the step as independent robots would spread it.
+
+Printed per N, over the measurement interval (after a warm-up):
+  pred/s/sess   predictions published per session per second (daemon counter); the tick
+                guarantees >= 20, a measurement-triggered publish can add more
+  rx/s/sess     predictions received per second, per session, by a probe process
+                subscribed to sessions 0-9 (their phase is early in the step)
+  p50/p99 us    packet receipt -> prediction put, inside the daemon (ServiceStatus window)
+  daemon CPU    % of one core (utime + stime from /proc), generator CPU likewise
+  overruns, flood, late, refused: daemon counters over the interval
+
+Usage: python bench/service.py [--sessions 10,100,500,1000] [--duration 10] [--warmup 3]
+       [--instances 1]    several daemon instances (rendezvous split), one process each
+       [--profile]        cProfile the daemon's worker thread, print the top functions
+       [--threads]        print the CPU seconds of the daemon's busiest threads
+       [--declare-keys]   load generator declares its key expressions
+Settings reach the daemon through the environment, e.g. PD_SERVICE_ENGINE=single.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+PERIOD_NS = 50_000_000
+CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def thread_cpu(pid: int) -> list[tuple[float, str]]:
+    """CPU seconds of each thread of a process, busiest first (diagnostics)."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            name = (task / "comm").read_text().strip()
+            fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        out.append((round((int(fields[11]) + int(fields[12])) / CLK_TCK, 2), name))
+    return sorted(out, reverse=True)[:8]
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of a process (and its threads), seconds."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+# ------------------------------------------------------------------ load generator ------
+
+def session_name(i: int) -> str:
+    return f"bench{i:04d}"
+
+
+def _paper_spec(session: str, epoch_ns: int):
+    from pd_service.estimation.scenarios import paper_model, paper_prior, paper_sensors
+    from pd_service.wire import LinearModelSpec, SensorSpec, SessionSpec
+
+    m = paper_model()
+    x0, P0 = paper_prior()
+    delays = {"camera": (10, 2), "ranger": (12, 1)}
+    sensors = [SensorSpec(name=s.name, H=s.H, R=s.R, delay=delays[s.name][0],
+                          interval=delays[s.name][1]) for s in paper_sensors()]
+    return SessionSpec(session=session, period_ns=PERIOD_NS, epoch_ns=epoch_ns,
+                       model=LinearModelSpec(A=m.A, B=m.B, Q=m.Q), x0=x0, P0=P0,
+                       sensors=sensors, lead=10, max_delay=12)
+
+
+def run_loadgen(args: argparse.Namespace) -> None:
+    import msgpack
+    import numpy as np
+
+    from pd_service.estimation.scenarios import simulate_paper
+    from pd_service.transport import ZenohTransport, zenoh_config
+    from pd_service.wire import encode, keys
+
+    n = args.sessions
+    t = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=args.connect))
+    epoch = args.epoch
+    names = [session_name(i) for i in range(n)]
+    # configure, wait for every answer (status put by the owner)
+    answered: set[str] = set()
+    cond = threading.Condition()
+
+    def on_status(smp) -> None:
+        with cond:
+            answered.add(smp.key.split("/")[1])
+            cond.notify_all()
+
+    h = t.subscribe(keys.ALL_STATUS, on_status)
+    for s in names:
+        t.put(keys.config_key(s), encode(_paper_spec(s, epoch)))
+    with cond:
+        ok = cond.wait_for(lambda: len(answered) >= n, timeout=60)
+    h.close()
+    if not ok:
+        print(json.dumps({"error": f"only {len(answered)}/{n} sessions answered"}), flush=True)
+        return
+    # one simulated paper run, shared by all sessions (the content does not change the cost)
+    run = simulate_paper(400, np.random.default_rng(1))
+    cam = {smp.step: smp.z.tolist() for smp in run.samples if smp.sensor == "camera"}
+    x = run.truth
+    pack = msgpack.Packer(use_bin_type=True).pack
+    sensor_keys = [(keys.sensor_key(s, "ranger"), keys.sensor_key(s, "camera"),
+                    keys.command_key(s)) for s in names]
+    put = t.put
+    if args.declare_keys:
+        # declared key expressions travel as numeric ids and let the receiver cache the route
+        pubs = {}
+        for trio in sensor_keys:
+            for key in trio:
+                pubs[key] = t.session.declare_publisher(t.session.declare_keyexpr(key))
+
+        def put(key: str, payload: bytes) -> None:
+            pubs[key].put(payload)
+    print(json.dumps({"ready": True}), flush=True)
+    end = args.end_ns
+    sent = 0
+    seq = 0
+    k = max(0, (time.time_ns() - epoch) // PERIOD_NS + 1)
+    slot_ns = 1_000_000  # send in 1 ms slots: session i at phase i/N of the step
+    # phases spread over the first 90 % of the step: the range finder's delay equals
+    # max_delay (12), so a sample processed after the step boundary would be late
+    slots = PERIOD_NS // slot_ns
+    used = slots * 9 // 10
+    per_slot = [[i for i in range(n) if (i * used) // n == j] for j in range(slots)]
+    while True:
+        t_step = epoch + k * PERIOD_NS
+        if t_step >= end:
+            break
+        r = k % 400
+        z_r = [float(x[r, 2] - x[r, 0])]
+        z_c = cam.get((k - 10) % 400) if (k - 10) % 2 == 0 else None
+        u = [0.5 if 0 < (k + 10) % 400 <= 80 else 0.0]
+        for j in range(slots):
+            due = t_step + j * slot_ns
+            dt = (due - time.time_ns()) / 1e9
+            if dt > 0:
+                time.sleep(dt)
+            for i in per_slot[j]:
+                rk, ck, mk = sensor_keys[i]
+                s = names[i]
+                seq += 1
+                put(mk, pack({"v": 1, "session": s, "seq": seq, "step": k + 10,
+                              "u": {"shape": [1], "data": u}}))
+                put(rk, pack({"v": 1, "session": s, "sensor": "ranger", "seq": seq,
+                              "step": k - 12, "z": {"shape": [1], "data": z_r}}))
+                sent += 2
+                if z_c is not None:
+                    put(ck, pack({"v": 1, "session": s, "sensor": "camera", "seq": seq,
+                                  "step": k - 10, "z": {"shape": [2], "data": z_c}}))
+                    sent += 1
+        k += 1
+    print(json.dumps({"sent": sent}), flush=True)
+    t.close()
+
+
+# ------------------------------------------------------------------ driver --------------
+
+def query_status(t, instance: str):
+    from pd_service.wire import ServiceStatus, decode, keys
+
+    for r in t.get(keys.service_status_key(instance), timeout=5.0):
+        if r.ok:
+            return decode(r.payload, ServiceStatus)
+    return None
+
+
+def one_run(n: int, args: argparse.Namespace) -> dict:
+    from pd_service.transport import ZenohTransport, zenoh_config
+
+    port = free_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    state = tempfile.mkdtemp(prefix="pd-bench-")
+    env = dict(os.environ, PD_SERVICE_LATENCY_WINDOW="200000", PD_SERVICE_LOG_LEVEL="WARNING",
+               PD_SERVICE_INBOX_SIZE="1024")
+    env.pop("PD_SERVICE_CONFIG", None)
+    daemons = []
+    instances = [f"bench-{j}" for j in range(args.instances)]
+    endpoints: list[str] = []
+    for j, inst in enumerate(instances):
+        dport = port if j == 0 else free_port()
+        endpoints.append(f"tcp/127.0.0.1:{dport}")
+        cmd = [sys.executable, "-m", "pd_service", "--instance", inst, "--state-dir", f"{state}/{inst}",
+                "--listen", f"tcp/127.0.0.1:{dport}"]
+        if j > 0:
+            cmd += ["--connect", ep]
+        denv = dict(env, PD_SERVICE_PROFILE=f"{state}/{inst}.prof") if args.profile else env
+        daemons.append(subprocess.Popen(cmd, env=denv, cwd=ROOT))
+    probe = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=endpoints))
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            alive = probe.get_liveliness("pd/@service/*", timeout=1.0)
+            if len(alive) >= len(instances):
+                break
+        now = time.time_ns()
+        epoch = now
+        setup_s = 5.0 + n / 200.0
+        measure_start = now + int((setup_s + args.warmup) * 1e9)
+        end = measure_start + int(args.duration * 1e9)
+        gen = subprocess.Popen(
+            [sys.executable, __file__, "--loadgen", "--n", str(n)]
+            + [x for e in endpoints for x in ("--connect", e)]
+            + (["--declare-keys"] if args.declare_keys else []) + [
+             "--epoch", str(epoch), "--measure-start", str(measure_start), "--end", str(end)],
+            stdout=subprocess.PIPE, text=True, cwd=ROOT)
+        from pd_service.wire import keys as _keys
+        drv = {"n": 0}
+
+        def on_pred(_smp) -> None:
+            drv["n"] += 1
+
+        for i in range(min(10, n)):
+            probe.subscribe(_keys.prediction_key(session_name(i)), on_pred)
+        line = gen.stdout.readline()
+        if "ready" not in line:
+            raise RuntimeError(f"load generator failed: {line}")
+        while time.time_ns() < measure_start:
+            time.sleep(0.05)
+        s0 = [query_status(probe, i) for i in instances]
+        c0 = [cpu_seconds(d.pid) for d in daemons]
+        g0 = cpu_seconds(gen.pid)
+        d0 = drv["n"]
+        w0 = time.monotonic()
+        from pd_service.wire import SessionStatus, decode
+        pub0 = sum(decode(r.payload, SessionStatus).published for i in range(min(10, n))
+                   for r in probe.get(_keys.status_key(session_name(i))) if r.ok)
+        dd0 = drv["n"]
+        while time.time_ns() < end:
+            time.sleep(0.05)
+        s1 = [query_status(probe, i) for i in instances]
+        c1 = [cpu_seconds(d.pid) for d in daemons]
+        if args.threads:
+            for d in daemons:
+                print("  daemon threads (cpu s, name):", thread_cpu(d.pid), flush=True)
+        g1 = cpu_seconds(gen.pid)
+        wall = time.monotonic() - w0
+        d1 = drv["n"]
+        pub1 = sum(decode(r.payload, SessionStatus).published for i in range(min(10, n))
+                   for r in probe.get(_keys.status_key(session_name(i))) if r.ok)
+        dd1 = drv["n"]
+        if pub1 - pub0 != dd1 - dd0:
+            print(f"  (probe sessions: daemon published {pub1 - pub0}, probe received "
+                  f"{dd1 - dd0})")
+        out = json.loads(gen.stdout.readline() or "{}")
+        gen.wait(30)
+    finally:
+        probe.close()
+        for d in daemons:
+            d.send_signal(signal.SIGTERM)
+        for d in daemons:
+            try:
+                d.wait(30)
+            except subprocess.TimeoutExpired:
+                d.kill()
+
+    def delta(name: str) -> int:
+        return sum(b.counters.get(name, 0) - a.counters.get(name, 0) for a, b in zip(s0, s1, strict=True))
+
+    # latency percentiles: the daemon's window holds the last 200,000 samples, i.e. the
+    # measurement interval at these rates (weighted mean over instances if several)
+    p50 = sum(s.latency_p50_us for s in s1) / len(s1)
+    p99 = max(s.latency_p99_us for s in s1)
+    res = {
+        "n": n,
+        "pred_rate": delta("published") / n / wall,
+        "rx_rate": (d1 - d0) / min(10, n) / wall,
+        "sent": out.get("sent", 0),
+        "p50_us": p50,
+        "p99_us": p99,
+        "cpu_daemon": 100 * sum(b - a for a, b in zip(c0, c1, strict=True)) / wall,
+        "cpu_gen": 100 * (g1 - g0) / wall,
+        "overruns": delta("tick_overruns"),
+        "flood": delta("flood"),
+        "late": delta("late_total"),
+        "refused": delta("refused"),
+        "accepted": delta("accepted"),
+        "in_rate": (delta("accepted") + delta("commands_accepted") + delta("refused")) / wall,
+    }
+    if args.profile:
+        import pstats
+
+        for inst in instances:
+            print(f"--- cProfile of {inst}'s worker thread (by own time, top 25) ---")
+            pstats.Stats(f"{state}/{inst}.prof").sort_stats("tottime").print_stats(25)
+    shutil.rmtree(state, ignore_errors=True)
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--sessions", default="10,100,500,1000")
+    ap.add_argument("--duration", type=float, default=10.0)
+    ap.add_argument("--warmup", type=float, default=3.0)
+    ap.add_argument("--instances", type=int, default=1)
+    ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--threads", action="store_true", help="print the daemon's busiest threads")
+    ap.add_argument("--declare-keys", dest="declare_keys", action="store_true",
+                    help="load generator declares its key expressions (zenoh declare_keyexpr)")
+    # load-generator role (internal)
+    ap.add_argument("--loadgen", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
+    ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--epoch", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--measure-start", dest="measure_start_ns", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--end", dest="end_ns", type=int, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.loadgen:
+        args.sessions = args.n
+        run_loadgen(args)
+        return
+    print(f"pd-service load test: paper scenario, 20 Hz steps (cmd 20 Hz, ranger 20 Hz, camera "
+          f"10 Hz), {args.instances} daemon instance(s), {os.cpu_count()} CPUs, "
+          f"{args.duration:g} s measured after {args.warmup:g} s warm-up")
+    hdr = (f"{'N':>5} {'in msg/s':>9} {'pred/s/sess':>11} {'rx/s/sess':>9} {'p50 us':>8} "
+           f"{'p99 us':>9} {'daemon CPU':>10} {'gen CPU':>8} {'overruns':>8} {'flood':>6} "
+           f"{'late':>6} {'refused':>7}")
+    print(hdr)
+    for n in [int(x) for x in args.sessions.split(",")]:
+        r = one_run(n, args)
+        print(f"{r['n']:>5} {r['in_rate']:>9.0f} {r['pred_rate']:>11.1f} {r['rx_rate']:>9.1f} "
+              f"{r['p50_us']:>8.0f} {r['p99_us']:>9.0f} {r['cpu_daemon']:>9.0f}% "
+              f"{r['cpu_gen']:>7.0f}% {r['overruns']:>8} {r['flood']:>6} {r['late']:>6} "
+              f"{r['refused']:>7}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,89 @@
+"""``pd-service`` / ``python -m pd_service``: run the predictive-display daemon.
+
+Examples::
+
+    pd-service                                   # peer on tcp/127.0.0.1:7447, no router needed
+    pd-service --connect tcp/10.0.0.2:7447       # join a zenohd router (or other peers)
+    pd-service --zenoh-config deploy/zenoh/client.json5 --instance pd-a --shard 0/2
+    pd-service --print-config                    # show the effective settings and exit
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+
+from .config import ConfigError, Settings, load_settings
+from .logs import setup_logging
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="pd-service",
+        description="Predictive-display daemon: one observer-predictor per session over Zenoh. "
+                    "Settings: defaults < --config file (TOML/JSON) < PD_SERVICE_* env < flags.")
+    p.add_argument("--config", metavar="FILE", help="settings file (.toml, else JSON)")
+    p.add_argument("--instance", help="instance id (default pd-<hostname>)")
+    p.add_argument("--state-dir", dest="state_dir", help="where session specs are persisted")
+    z = p.add_argument_group("zenoh")
+    z.add_argument("--mode", choices=["peer", "client", "router"])
+    z.add_argument("--listen", action="append", metavar="ENDPOINT",
+                   help="listen endpoint (repeatable; default tcp/127.0.0.1:7447)")
+    z.add_argument("--connect", action="append", metavar="ENDPOINT",
+                   help="endpoint to connect to (repeatable), e.g. a zenohd router")
+    z.add_argument("--zenoh-config", dest="zenoh_config", metavar="FILE",
+                   help="Zenoh JSON5 config, loaded first; other zenoh flags override it")
+    z.add_argument("--multicast", action=argparse.BooleanOptionalAction, default=None,
+                   help="multicast scouting (default off)")
+    z.add_argument("--user", help="Zenoh user (usrpwd auth); password via PD_SERVICE_PASSWORD")
+    s = p.add_argument_group("sessions")
+    s.add_argument("--shard", metavar="I/N",
+                   help="static sharding instead of rendezvous over live instances")
+    s.add_argument("--expire-s", dest="expire_s", type=float,
+                   help="idle time before a session expires (default 600)")
+    s.add_argument("--tick-phase", dest="tick_phase", type=float,
+                   help="where in its step a session's tick fires, 0..1 (default 0.5)")
+    s.add_argument("--inbox-size", dest="inbox_size", type=int)
+    s.add_argument("--batch-budget", dest="batch_budget", type=int)
+    s.add_argument("--error-rate", dest="error_rate", type=float)
+    lg = p.add_argument_group("logs")
+    lg.add_argument("--log-level", dest="log_level")
+    lg.add_argument("--log-format", dest="log_format", choices=["kv", "json"])
+    p.add_argument("--print-config", action="store_true", help="print the settings and exit")
+    return p
+
+
+def settings_from_args(argv: Sequence[str] | None = None) -> tuple[Settings, bool]:
+    args = build_parser().parse_args(argv)
+    flags = {k: v for k, v in vars(args).items() if k not in ("config", "print_config")}
+    return load_settings(flags, config_file=args.config), args.print_config
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        settings, print_only = settings_from_args(argv)
+    except ConfigError as exc:
+        print(f"pd-service: {exc}", file=sys.stderr)
+        return 2
+    if print_only:
+        shown = settings.model_dump(mode="json")
+        if shown.get("password"):
+            shown["password"] = "***"
+        print(json.dumps(shown, indent=2))
+        return 0
+    setup_logging(settings.log_level, settings.log_format)
+    from .daemon import Daemon  # imports zenoh: only when actually running
+
+    try:
+        return Daemon(settings).run_forever()
+    except KeyboardInterrupt:  # pragma: no cover - signal handler normally catches it
+        return 0
+    except Exception as exc:
+        print(f"pd-service: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,233 @@
+"""Daemon settings: defaults < file (TOML or JSON) < environment (``PD_SERVICE_*``) < flags.
+
+Every field of :class:`Settings` can be set at each layer under the same name:
+
+- file: ``--config FILE`` (or ``PD_SERVICE_CONFIG``); ``.toml`` is read as TOML, anything else
+  as JSON; top-level keys are the field names (``expire_s = 900``);
+- environment: ``PD_SERVICE_<FIELD>`` upper case (``PD_SERVICE_EXPIRE_S=900``); list fields
+  (``listen``, ``connect``) are comma-separated;
+- flags: ``--expire-s 900``, ``--connect EP`` (repeatable), see ``pd-service --help``.
+
+A later layer replaces a field wholesale (a ``--connect`` flag replaces the file's list).
+Bad values raise :class:`ConfigError` naming the field and the layer it came from.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import socket
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from pd_service.wire.keys import NAME_PATTERN
+
+ENV_PREFIX = "PD_SERVICE_"
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+_SHARD_RE = re.compile(r"^(\d+)/(\d+)$")
+
+
+class ConfigError(ValueError):
+    """Settings that cannot be used; the message names the field and where it came from."""
+
+
+def default_instance() -> str:
+    """``pd-<hostname>`` reduced to the key-name alphabet ``[a-z0-9_-]`` (stable across restarts)."""
+    host = re.sub(r"[^a-z0-9_-]+", "-", socket.gethostname().lower()).strip("-_") or "host"
+    return ("pd-" + host)[:64]
+
+
+def default_state_dir() -> Path:
+    base = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return Path(base) / "pd-service"
+
+
+class Settings(BaseModel):
+    """Everything the daemon can be told. Units are in the field names (``_s`` seconds)."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    # identity and storage
+    instance: str = Field(default_factory=default_instance,
+                          description="Instance id (liveliness token, status key, ownership).")
+    state_dir: Path | None = Field(None, description="Where session specs are persisted; "
+                                   "default $XDG_STATE_HOME/pd-service/<instance>.")
+
+    # zenoh
+    mode: Literal["peer", "client", "router"] | None = Field(
+        None, description="Zenoh mode; default peer (or the --zenoh-config file's).")
+    listen: list[str] | None = Field(
+        None, description=f"Zenoh listen endpoints; default [{DEFAULT_LISTEN}] "
+                          "unless a zenoh config file is given.")
+    connect: list[str] = Field(default_factory=list, description="Zenoh endpoints to connect to.")
+    zenoh_config: Path | None = Field(None, description="Zenoh JSON5 config file, loaded first.")
+    multicast: bool | None = Field(None, description="Multicast scouting; default off.")
+    user: str | None = Field(None, description="Zenoh user (usrpwd authentication).")
+    password: str | None = Field(None, description="Zenoh password (prefer the environment).")
+
+    # scale-out
+    shard: str | None = Field(None, description="Static sharding 'i/N': serve the sessions with "
+                              "hash(session) % N == i. Default: rendezvous over live instances.")
+
+    # sessions
+    expire_s: float = Field(600.0, gt=0, description="Idle time after which a session expires.")
+    engine: Literal["stacked", "single"] = Field(
+        "stacked", description="Estimator numerics: 'stacked' evaluates the sessions of one "
+                               "round together as stacked arrays; 'single' runs "
+                               "ObserverPredictor per session. Same results to rounding.")
+    min_period_ms: float = Field(1.0, gt=0, description="Specs with a shorter step period are "
+                                 "refused (a 1 ns period would keep the worker busy).")
+    max_sessions: int = Field(10_000, ge=1, description="Specs beyond this many are refused.")
+    tick_phase: float = Field(0.5, ge=0.0, lt=1.0,
+                              description="When in its step a session's tick fires (fraction "
+                                          "of the period).")
+
+    # work queues and limits
+    inbox_size: int = Field(256, ge=1, description="Per-session inbox (messages); oldest dropped.")
+    unknown_inbox_size: int = Field(1024, ge=1, description="Shared inbox of unknown sessions.")
+    control_inbox_size: int = Field(4096, ge=1, description="Inbox of configs and presence events.")
+    batch_budget: int = Field(16, ge=1, description="Messages of one session per round.")
+    error_rate: float = Field(20.0, gt=0, description="ErrorReports per second per session.")
+    error_burst: int = Field(20, ge=1, description="ErrorReport burst per session.")
+    error_rate_total: float = Field(500.0, gt=0, description="ErrorReports per second, all "
+                                    "sessions together (overload must not feed itself).")
+    latency_window: int = Field(4096, ge=16, description="Latency samples kept (service-wide).")
+    sync_timeout_s: float = Field(1.0, gt=0, description="Wait for peers' specs at startup.")
+
+    switch_interval_us: float = Field(
+        200.0, gt=0, description="Python's GIL switch interval (sys.setswitchinterval), µs: "
+                                 "how long a Zenoh callback may wait for the worker to yield "
+                                 "the interpreter (Python's default is 5000).")
+
+    # logs
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    log_format: Literal["kv", "json"] = "kv"
+
+    @field_validator("instance")
+    @classmethod
+    def _check_instance(cls, v: str) -> str:
+        if not re.fullmatch(NAME_PATTERN, v):
+            raise ValueError(f"must match {NAME_PATTERN}")
+        return v
+
+    @field_validator("shard")
+    @classmethod
+    def _check_shard(cls, v: str | None) -> str | None:
+        if v is None or v == "":
+            return None
+        m = _SHARD_RE.match(v)
+        if not m or not (int(m.group(2)) >= 1 and int(m.group(1)) < int(m.group(2))):
+            raise ValueError("must be 'i/N' with 0 <= i < N")
+        return v
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _upper(cls, v: Any) -> Any:
+        return v.upper() if isinstance(v, str) else v
+
+    # derived values
+
+    @property
+    def shard_tuple(self) -> tuple[int, int] | None:
+        if self.shard is None:
+            return None
+        i, n = self.shard.split("/")
+        return int(i), int(n)
+
+    @property
+    def effective_state_dir(self) -> Path:
+        return self.state_dir if self.state_dir is not None else default_state_dir() / self.instance
+
+    @property
+    def effective_listen(self) -> list[str]:
+        if self.listen is not None:
+            return list(self.listen)
+        return [] if self.zenoh_config is not None else [DEFAULT_LISTEN]
+
+
+_LIST_FIELDS = {"listen", "connect"}
+
+
+def read_file(path: str | Path) -> dict[str, Any]:
+    """Read a settings file: TOML if it ends in ``.toml``, else JSON. Must be a table/object."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"config file {str(p)!r}: cannot read ({exc.strerror})") from None
+    try:
+        data = tomllib.loads(text) if p.suffix == ".toml" else json.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"config file {str(p)!r}: not valid "
+                          f"{'TOML' if p.suffix == '.toml' else 'JSON'} ({exc})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config file {str(p)!r}: expected a table of settings")
+    return data
+
+
+def read_env(environ: Mapping[str, str]) -> dict[str, Any]:
+    """``PD_SERVICE_<FIELD>`` variables as raw values (lists split on commas)."""
+    out: dict[str, Any] = {}
+    for name in Settings.model_fields:
+        raw = environ.get(ENV_PREFIX + name.upper())
+        if raw is None:
+            continue
+        if name in _LIST_FIELDS:
+            out[name] = [x.strip() for x in raw.split(",") if x.strip()]
+        elif name in ("multicast",):
+            low = raw.strip().lower()
+            if low not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
+                raise ConfigError(f"{ENV_PREFIX}{name.upper()}: expected a boolean, got {raw!r}")
+            out[name] = low in ("1", "true", "yes", "on")
+        else:
+            out[name] = raw
+    return out
+
+
+def _coerce(name: str, value: Any) -> Any:
+    """Environment values are strings: convert those of numeric fields (files give types)."""
+    ann = Settings.model_fields[name].annotation
+    if isinstance(value, str) and ann in (int, float):
+        try:
+            return ann(value)
+        except ValueError:
+            raise ConfigError(f"{name}: expected a number, got {value!r}") from None
+    return value
+
+
+def load_settings(
+    flags: Mapping[str, Any] | None = None,
+    environ: Mapping[str, str] | None = None,
+    config_file: str | Path | None = None,
+) -> Settings:
+    """Layer defaults < file < env < flags. ``flags`` holds only what was given on the
+    command line (None values are ignored). The file is ``config_file``, else
+    ``$PD_SERVICE_CONFIG``, else none."""
+    environ = os.environ if environ is None else environ
+    flags = {k: v for k, v in (flags or {}).items() if v is not None}
+    path = config_file or environ.get(ENV_PREFIX + "CONFIG")
+    layers: list[tuple[str, dict[str, Any]]] = []
+    if path:
+        layers.append((f"file {str(path)!r}", read_file(path)))
+    layers.append(("environment", read_env(environ)))
+    layers.append(("flags", dict(flags)))
+    merged: dict[str, Any] = {}
+    origin: dict[str, str] = {}
+    for where, values in layers:
+        for k, v in values.items():
+            if k not in Settings.model_fields:
+                raise ConfigError(f"{where}: unknown setting {k!r}")
+            merged[k] = _coerce(k, v) if where == "environment" else v
+            origin[k] = where
+    try:
+        return Settings(**merged)
+    except ValidationError as exc:
+        err = exc.errors(include_url=False)[0]
+        field = ".".join(str(p) for p in err["loc"]) or "settings"
+        where = origin.get(str(err["loc"][0]) if err["loc"] else "", "defaults")
+        raise ConfigError(f"{field} ({where}): {err['msg']}") from None

@@ -1,0 +1,135 @@
+"""The daemon: a Zenoh transport, a :class:`ServiceCore`, one worker thread, signals.
+
+Threads:
+
+- Zenoh's own threads run the callbacks (they only append to inboxes) and the queryables;
+- one worker thread runs :meth:`ServiceCore.run_once` whenever woken by a callback or when
+  the next tick / expiry check is due;
+- the main thread waits for SIGTERM / SIGINT, then stops the worker, withdraws the liveliness
+  token (peers take over at once), undeclares everything and closes the session.
+
+Specs are persisted as they change, so there is nothing else to flush at shutdown.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+from .config import Settings
+from .core import ServiceCore
+from .logs import LOGGER_NAME, event
+from .persist import SpecStore
+
+log = logging.getLogger(LOGGER_NAME)
+
+#: Longest the worker sleeps without a wake-up (s): bounds the reaction to a stop request.
+_MAX_SLEEP_S = 0.5
+
+
+def make_transport(settings: Settings) -> Any:
+    """A ZenohTransport from the settings (peer on tcp/127.0.0.1:7447 by default)."""
+    from pd_service.transport import ZenohTransport, zenoh_config
+
+    conf = zenoh_config(mode=settings.mode, listen=settings.effective_listen,
+                        connect=settings.connect, multicast=settings.multicast,
+                        file=settings.zenoh_config, user=settings.user,
+                        password=settings.password)
+    return ZenohTransport(conf)
+
+
+class Daemon:
+    """Runs a ServiceCore on a transport (Zenoh unless one is given) with a worker thread."""
+
+    def __init__(self, settings: Settings, transport: Any = None) -> None:
+        self.settings = settings
+        self._given_transport = transport
+        self.transport: Any = None
+        self.core: ServiceCore | None = None
+        self._stop = threading.Event()
+        self._worker: threading.Thread | None = None
+        self._worker_error: BaseException | None = None
+
+    def start(self) -> ServiceCore:
+        # Zenoh's threads need the GIL for every callback; with the default 5 ms switch
+        # interval a busy worker would delay each hand-off by up to 5 ms.
+        sys.setswitchinterval(self.settings.switch_interval_us * 1e-6)
+        self.transport = self._given_transport or make_transport(self.settings)
+        store = SpecStore(self.settings.effective_state_dir)
+        self.core = ServiceCore(self.transport, self.settings, store=store)
+        self.core.start()
+        self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)
+        self._worker.start()
+        return self.core
+
+    def _work(self) -> None:
+        path = os.environ.get("PD_SERVICE_PROFILE")  # diagnostics: cProfile of the worker
+        if not path:
+            self._loop()
+            return
+        import cProfile
+
+        prof = cProfile.Profile()
+        try:
+            prof.runcall(self._loop)
+        finally:
+            prof.dump_stats(path)
+
+    def _loop(self) -> None:
+        core = self.core
+        assert core is not None
+        wake, stop = core.wake, self._stop
+        while not stop.is_set():
+            try:
+                core.run_once()
+            except Exception as exc:  # the loop must survive anything
+                log.exception("worker round failed")
+                self._worker_error = exc
+                core.counters["internal_error"] += 1
+            if core.has_work():
+                continue
+            timeout = (core.next_deadline_ns() - time.time_ns()) / 1e9
+            if timeout > 0:
+                wake.wait(min(timeout, _MAX_SLEEP_S))
+            wake.clear()
+
+    def stop(self) -> None:
+        """Stop the worker, withdraw presence, undeclare everything, close the transport."""
+        self._stop.set()
+        if self.core is not None:
+            self.core.wake.set()
+        if self._worker is not None:
+            self._worker.join(timeout=10.0)
+        if self.core is not None:
+            self.core.close()
+        if self.transport is not None and self._given_transport is None:
+            try:
+                self.transport.close()
+            except Exception:  # pragma: no cover
+                log.exception("transport close failed")
+
+    def run_forever(self) -> int:
+        """Start, serve until SIGTERM / SIGINT, stop cleanly. Returns the exit status."""
+        got: list[int] = []
+
+        def on_signal(signum: int, _frame: object) -> None:
+            got.append(signum)
+            self._stop.set()
+
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            self.start()
+            while not self._stop.wait(1.0):
+                pass
+        finally:
+            event(log, "stopping", signal=signal.Signals(got[0]).name if got else "",
+                  instance=self.settings.instance)
+            self.stop()
+            for s, h in old.items():
+                signal.signal(s, h)
+        return 0

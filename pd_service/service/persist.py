@@ -1,0 +1,87 @@
+"""Session specs on disk: one ``<session>.msgpack`` file per session (the wire encoding).
+
+Writes are atomic and durable: write ``.<session>.msgpack.tmp``, fsync it, rename it over the
+old file, fsync the directory. A crash leaves either the old or the new spec, never half of
+one. Unreadable files found at startup are renamed ``*.bad`` and reported, never fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+from pd_service.wire import SessionSpec, WireError, decode, encode
+from pd_service.wire.keys import KeyError_, check_name
+
+log = logging.getLogger("pd_service.service")
+
+SUFFIX = ".msgpack"
+
+
+class SpecStore:
+    """Persisted specs in ``directory`` (created if missing, mode 0700)."""
+
+    def __init__(self, directory: str | Path) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
+
+    def path(self, session: str) -> Path:
+        return self.dir / f"{check_name(session, 'session')}{SUFFIX}"
+
+    def save(self, spec: SessionSpec) -> None:
+        """Persist ``spec`` atomically (tmp + fsync + rename + fsync dir)."""
+        data = encode(spec)
+        final = self.path(spec.session)
+        tmp = self.dir / f".{spec.session}{SUFFIX}.tmp"
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        try:
+            view = memoryview(data)
+            while view:
+                n = os.write(fd, view)
+                view = view[n:]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, final)
+        self._sync_dir()
+
+    def remove(self, session: str) -> None:
+        try:
+            self.path(session).unlink()
+        except FileNotFoundError:
+            return
+        self._sync_dir()
+
+    def load_all(self) -> tuple[dict[str, SessionSpec], list[str]]:
+        """Every readable spec by session, and the names of the files that were not readable
+        (renamed to ``*.bad``)."""
+        specs: dict[str, SessionSpec] = {}
+        bad: list[str] = []
+        for p in sorted(self.dir.glob(f"*{SUFFIX}")):
+            try:
+                session = check_name(p.name[: -len(SUFFIX)], "session")
+                spec = decode(p.read_bytes(), SessionSpec)
+                if spec.session != session:
+                    raise WireError(f"file holds session {spec.session!r}")
+                specs[session] = spec
+            except (OSError, WireError, KeyError_) as exc:
+                bad.append(p.name)
+                log.warning("event=spec_unreadable file=%s reason=%r", p, str(exc))
+                try:
+                    p.rename(p.with_name(p.name + ".bad"))
+                except OSError:
+                    pass
+        return specs, bad
+
+    def _sync_dir(self) -> None:
+        try:
+            fd = os.open(self.dir, os.O_RDONLY)
+        except OSError:
+            return
+        try:
+            os.fsync(fd)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)

@@ -1,0 +1,307 @@
+"""One session of the daemon: its spec, its estimator, its counters.
+
+Pure bookkeeping around :class:`pd_service.estimation.ObserverPredictor`; no transport, no
+clock reads (the core passes ``now_ns`` / ``now_step`` in), no locks (the core's worker is the
+only caller). Every refusal is returned as a :class:`Refusal`; nothing raises for bad input.
+
+Counters (per session; the service sums them), by outcome:
+
+=========================  =================================================================
+accepted                   measurement accepted by the estimator
+commands_accepted          command accepted
+late / future / duplicate  measurement outside ``[now - max_delay, now]`` / already stored
+commands_late / _future /  command for a final step / too far ahead / already stored
+commands_duplicate
+malformed                  bytes that are not a valid Measurement / Command (``commands_``
+                           prefix for commands)
+non_finite                 NaN or infinity in the payload
+key_mismatch               session or sensor in the payload differ from the key
+unknown_sensor             sensor not in the session's spec
+wrong_dims                 z / R / u of the wrong dimension
+before_epoch               stamp before the session's epoch (negative step)
+invalid                    refused by the estimator's own checks (ValueError)
+flood                      dropped unread because the session's inbox was full
+published                  predictions published
+tick_overruns              ticks that fired after their step had ended
+errors_suppressed          ErrorReports not sent because of the rate limit
+internal_error             an unexpected exception while handling one message
+=========================  =================================================================
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from pd_service.estimation import LinearModel, PredictedState, Sensor
+from pd_service.wire import (
+    MAX_MESSAGE_BYTES,
+    Command,
+    LinearModelSpec,
+    Measurement,
+    SessionSpec,
+    WireError,
+    decode,
+    encode,
+    keys,
+)
+from pd_service.wire.convert import (
+    check_command,
+    check_measurement,
+    command_step,
+    measurement_step,
+    prediction_from,
+    spec_to_estimator,
+)
+
+from .fastpath import read_command, read_measurement
+from .stacked import StackedObserverPredictor
+from .stats import LatencyWindow, TokenBucket
+
+SENSOR, COMMAND = 0, 1
+
+#: Per-session latency samples kept (µs, packet receipt -> prediction published).
+SESSION_LATENCY_WINDOW = 512
+
+_CHECK_REASONS = {  # WireError prefix from wire.convert.check_* -> counter name
+    "Measurement.session": "key_mismatch",
+    "Measurement.sensor": "unknown_sensor",
+    "Measurement.z": "wrong_dims",
+    "Measurement.R": "wrong_dims",
+    "Measurement.t_ns": "before_epoch",
+    "Command.session": "commands_key_mismatch",
+    "Command.u": "commands_wrong_dims",
+    "Command.issued_ns": "commands_before_epoch",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """Why one message was refused: counter name, one readable line, the sender's seq."""
+
+    reason: str
+    text: str
+    seq: int | None = None
+
+
+def _decode_reason(exc: WireError, prefix: str) -> Refusal:
+    r = exc.reason
+    return Refusal(prefix + ("non_finite" if "finite" in r else "malformed"), r)
+
+
+def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
+    head = exc.reason.split(":", 1)[0]
+    return Refusal(_CHECK_REASONS.get(head, default), exc.reason, seq)
+
+
+def build_estimator(spec: SessionSpec, engine: str = "stacked") -> Any:
+    """The session's estimator: "single" is :class:`~pd_service.estimation.ObserverPredictor`
+    (built by :func:`pd_service.wire.convert.spec_to_estimator`), "stacked" the same
+    estimator with batchable numerics (:mod:`pd_service.service.stacked`). WireError if
+    the estimator refuses the spec."""
+    if engine == "single":
+        return spec_to_estimator(spec)
+    model = spec.model
+    if not isinstance(model, LinearModelSpec):  # pragma: no cover - one kind so far
+        raise WireError(f"SessionSpec.model: kind {model.kind!r} is not supported")
+    try:
+        return StackedObserverPredictor(
+            LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
+            [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R)) for s in spec.sensors],
+            x0=np.array(spec.x0), P0=np.array(spec.P0), lead=spec.lead,
+            max_delay=spec.max_delay, command_hold=spec.command_hold)
+    except ValueError as exc:
+        raise WireError(f"SessionSpec: refused by the estimator: {exc}") from None
+
+
+_pack = msgpack.Packer(use_bin_type=True).pack
+
+
+def pack_prediction(pred: PredictedState, x: np.ndarray, P: np.ndarray, spec: SessionSpec,
+                    seq: int, made_ns: int, counters: Mapping[str, int]) -> bytes:
+    """Encoded Prediction, byte for byte what ``encode(prediction_from(...))`` gives, without
+    building the pydantic model (the hot path). WireError if x or P is not finite."""
+    n = spec.n
+    if x.shape != (n,) or P.shape != (n, n):
+        raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
+                        f"got {x.shape} and {P.shape}")
+    if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        raise WireError("Prediction: the estimate is not finite (NaN or infinity)")
+    step = int(pred.step)
+    obj = {
+        "v": 1,
+        "session": spec.session,
+        "seq": int(seq),
+        "step": step,
+        "t_ns": spec.time_of(step),
+        "x": {"shape": [n], "data": x.tolist()},
+        "P": {"shape": [n, n], "data": P.ravel().tolist()},
+        "newest_step": None if pred.newest_step is None else int(pred.newest_step),
+        "made_ns": int(made_ns),
+        "counters": dict(counters),
+    }
+    data = _pack(obj)
+    if len(data) > MAX_MESSAGE_BYTES:  # let the codec try its compact form, or refuse
+        plain = PredictedState(step, x, P, pred.newest_step)
+        data = encode(prediction_from(plain, spec, spec.session, seq, made_ns, counters))
+    return data
+
+
+class Session:
+    """A served session. ``state`` is "active" or "restored" (how it started)."""
+
+    def __init__(self, spec: SessionSpec, state: str, detail: str, now_ns: int,
+                 error_rate: float, error_burst: int, engine: str = "stacked") -> None:
+        self.spec = spec
+        self.name = spec.session
+        self.est = build_estimator(spec, engine)  # WireError for a spec it refuses
+        self.state = state
+        self.detail = detail
+        self.counters: Counter[str] = Counter()
+        self.seq = 0
+        self.published = 0
+        self.now_step: int | None = None
+        self.last_pub_step: int | None = None
+        self.last_activity_ns = now_ns
+        self.latency = LatencyWindow(SESSION_LATENCY_WINDOW)
+        self.limiter = TokenBucket(error_rate, error_burst, now_ns)
+        self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
+        self.alive = True
+        self.dims = {sp.name: sp.m for sp in spec.sensors}
+        self.r = spec.r
+        self.pred_key = keys.prediction_key(self.name)
+        self.error_key = keys.error_key(self.name)
+        self.status_key = keys.status_key(self.name)
+
+    # --- time --------------------------------------------------------------------------
+
+    def step_now(self, now_ns: int) -> int:
+        """Current step ``floor((now_ns - epoch_ns) / period_ns)``, never going backwards
+        (a clock stepped back by NTP holds the step instead of corrupting the estimator)."""
+        k = (now_ns - self.spec.epoch_ns) // self.spec.period_ns
+        if self.now_step is not None and k < self.now_step:
+            return self.now_step
+        self.now_step = k
+        return k
+
+    # --- input -------------------------------------------------------------------------
+
+    def on_measurement(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
+        """Offer one Measurement received on ``key``; None if accepted."""
+        sensor = key.rsplit("/", 1)[-1]
+        fast = read_measurement(payload, self.name, sensor, self.dims)
+        if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
+            seq, s, t_ns, z = fast
+            if s is None:
+                s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
+            R = None
+        else:  # full decode and checks: exact refusal reasons
+            try:
+                msg = decode(payload, Measurement)
+            except WireError as exc:
+                return _decode_reason(exc, "")
+            self.last_activity_ns = now_ns
+            if msg.sensor != sensor or msg.session != self.name:
+                return Refusal("key_mismatch", f"Measurement: session/sensor {msg.session!r}/"
+                               f"{msg.sensor!r} does not match the key {key!r}", msg.seq)
+            try:
+                check_measurement(msg, self.spec)
+            except WireError as exc:
+                return _check_reason(exc, msg.seq, "invalid")
+            seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
+        self.last_activity_ns = now_ns
+        if now_step < 0:
+            return Refusal("future", f"Measurement.step: {s} is in the future; the session "
+                           f"starts at its epoch (now step {now_step})", seq)
+        est = self.est
+        try:
+            ok = est.add_measurement(sensor, s, z, now=now_step, R=R)
+        except ValueError as exc:
+            return Refusal("invalid", f"Measurement: {exc}", seq)
+        if ok:
+            self.counters["accepted"] += 1
+            return None
+        lo = now_step - est.max_delay
+        if s > now_step:
+            return Refusal("future", f"Measurement.step: sample step {s} is after the current "
+                           f"step {now_step}", seq)
+        if s < lo or s < est.committed_step:
+            return Refusal("late", f"Measurement.step: sample step {s} is older than the "
+                           f"window [{max(lo, est.committed_step)}, {now_step}] "
+                           f"(max_delay {est.max_delay})", seq)
+        return Refusal("duplicate", f"Measurement: sensor {sensor!r} already has a sample "
+                       f"for step {s}", seq)
+
+    def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
+        """Offer one Command; None if accepted."""
+        spec = self.spec
+        fast = read_command(payload, self.name, self.r)
+        if fast is not None and (fast[1] is not None
+                                 or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
+            seq, j, issued, u = fast
+            if j is None:
+                j = spec.step_of(issued) + spec.lead  # type: ignore[arg-type]
+        else:
+            try:
+                msg = decode(payload, Command)
+            except WireError as exc:
+                return _decode_reason(exc, "commands_")
+            self.last_activity_ns = now_ns
+            try:
+                check_command(msg, spec)
+            except WireError as exc:
+                return _check_reason(exc, msg.seq, "commands_invalid")
+            seq, j, u = msg.seq, command_step(msg, spec), msg.u
+        self.last_activity_ns = now_ns
+        est = self.est
+        try:
+            ok = est.add_command(j, u, now=now_step if now_step >= 0 else None)
+        except (ValueError, IndexError) as exc:
+            return Refusal("commands_invalid", f"Command: {exc}", seq)
+        if ok:
+            self.counters["commands_accepted"] += 1
+            return None
+        ref = est.now if est.now is not None else 0
+        if j < est.committed_step:
+            return Refusal("commands_late", f"Command.step: apply step {j} is already final "
+                           f"(first open step {est.committed_step})", seq)
+        if j > ref + est.lead + est.max_delay + 1:
+            return Refusal("commands_future", f"Command.step: apply step {j} is more than "
+                           f"max_delay + 1 steps past the predicted step {ref + est.lead}", seq)
+        return Refusal("commands_duplicate", f"Command: a command for step {j} is already "
+                       "stored", seq)
+
+    # --- output ------------------------------------------------------------------------
+
+    def counters_snapshot(self) -> dict[str, int]:
+        """Non-zero counters plus the always-present ``accepted`` and ``published``."""
+        out = {k: v for k, v in self.counters.items() if v}
+        out.setdefault("accepted", 0)
+        out["published"] = self.published
+        return out
+
+    def predict(self, now_step: int) -> PredictedState:
+        """The estimator's prediction of x(now_step + lead); with the stacked engine its
+        x and P are a pending Node until :func:`pd_service.service.stacked.resolve`."""
+        return self.est.predict(now_step)
+
+    def pack(self, pred: PredictedState, now_step: int, made_ns: int) -> bytes:
+        """Encoded Prediction of a resolved ``pred``; bumps seq and the published count."""
+        x, P = pred.x, pred.P
+        if not isinstance(x, np.ndarray):  # a stacked Node (resolves alone if still pending)
+            x, P = x.value()
+        data = pack_prediction(pred, x, P, self.spec, self.seq, made_ns,
+                               self.counters_snapshot())
+        self.seq += 1
+        self.published += 1
+        self.last_pub_step = now_step
+        return data
+
+    def prediction(self, now_step: int, made_ns: int) -> bytes:
+        """predict + pack for one session alone."""
+        return self.pack(self.predict(now_step), now_step, made_ns)

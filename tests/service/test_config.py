@@ -1,0 +1,76 @@
+"""Settings layering: defaults < file < environment < flags."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from pd_service.service.__main__ import main, settings_from_args
+from pd_service.service.config import DEFAULT_LISTEN, ConfigError, load_settings
+from pd_service.service.ownership import Ownership, rendezvous_owner, stable_hash
+
+
+def test_layers_flags_over_env_over_file(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text('instance = "from-file"\nexpire_s = 30\nconnect = ["tcp/1.1.1.1:7447"]\n'
+                 'batch_budget = 4\n')
+    env = {"PD_SERVICE_EXPIRE_S": "45", "PD_SERVICE_CONNECT": "tcp/2.2.2.2:7447, tcp/3.3.3.3:1",
+           "PD_SERVICE_MULTICAST": "true"}
+    s = load_settings({"expire_s": 60.0, "instance": None}, environ=env, config_file=f)
+    assert s.instance == "from-file"  # file (flag was not given)
+    assert s.expire_s == 60.0  # flag beats env beats file
+    assert s.connect == ["tcp/2.2.2.2:7447", "tcp/3.3.3.3:1"]  # env beats file
+    assert s.batch_budget == 4 and s.multicast is True
+    assert s.effective_listen == [DEFAULT_LISTEN]
+
+
+def test_json_file_and_config_env_var(tmp_path):
+    f = tmp_path / "s.json"
+    f.write_text(json.dumps({"shard": "1/3", "zenoh_config": "/etc/z.json5"}))
+    s = load_settings({}, environ={"PD_SERVICE_CONFIG": str(f)})
+    assert s.shard_tuple == (1, 3)
+    assert s.effective_listen == []  # a zenoh config file decides the endpoints
+
+
+@pytest.mark.parametrize("flags, env, match", [
+    ({"shard": "2/2"}, {}, "shard"),
+    ({"instance": "Bad Name"}, {}, "instance"),
+    ({}, {"PD_SERVICE_EXPIRE_S": "soon"}, "expire_s"),
+    ({}, {"PD_SERVICE_TICK_PHASE": "1.5"}, "tick_phase"),
+    ({"expire_s": -1.0}, {}, "expire_s .flags."),
+])
+def test_bad_values_name_the_field(flags, env, match):
+    with pytest.raises(ConfigError, match=match):
+        load_settings(flags, environ=env)
+
+
+def test_unknown_setting_in_file(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text("expire = 3\n")
+    with pytest.raises(ConfigError, match="unknown setting 'expire'"):
+        load_settings({}, environ={}, config_file=f)
+
+
+def test_cli_flags(monkeypatch, capsys):
+    monkeypatch.delenv("PD_SERVICE_CONFIG", raising=False)
+    s, show = settings_from_args(["--instance", "x", "--connect", "tcp/a:1", "--connect",
+                                  "tcp/b:2", "--listen", "tcp/127.0.0.1:9000", "--shard", "0/2"])
+    assert (s.instance, s.connect, s.effective_listen, s.shard) == \
+        ("x", ["tcp/a:1", "tcp/b:2"], ["tcp/127.0.0.1:9000"], "0/2")
+    assert main(["--print-config", "--instance", "y"]) == 0
+    assert json.loads(capsys.readouterr().out)["instance"] == "y"
+    assert main(["--shard", "nonsense", "--print-config"]) == 2
+
+
+def test_rendezvous_is_stable_and_moves_only_the_leavers_sessions():
+    assert stable_hash("abc") == stable_hash("abc")
+    insts = ["a", "b", "c"]
+    names = [f"s{i}" for i in range(300)]
+    before = {s: rendezvous_owner(s, insts) for s in names}
+    counts = {i: list(before.values()).count(i) for i in insts}
+    assert all(60 <= c <= 140 for c in counts.values())
+    after = {s: rendezvous_owner(s, ["a", "c"]) for s in names}
+    assert all(after[s] == before[s] for s in names if before[s] != "b")
+    o = Ownership("a")
+    assert o.join("b") and not o.join("b") and not o.leave("a") and o.leave("b")

@@ -1,0 +1,572 @@
+"""ServiceCore on the in-memory bus with an injected clock: deterministic, no network."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pd_service.estimation import ObserverPredictor
+from pd_service.estimation.scenarios import (
+    paper_command,
+    paper_model,
+    paper_prior,
+    paper_sensors,
+    simulate_paper,
+)
+from pd_service.service import ServiceCore, Settings, SpecStore
+from pd_service.transport import InMemoryBus
+from pd_service.wire import (
+    ErrorReport,
+    Prediction,
+    ServiceStatus,
+    SessionSpec,
+    SessionStatus,
+    decode,
+    encode,
+    keys,
+)
+
+from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec, storm
+
+
+def make_core(bus, clock, tmp_path, instance="a", **kw) -> ServiceCore:
+    settings = Settings(instance=instance, **kw)
+    store = SpecStore(tmp_path / instance)
+    core = ServiceCore(bus.transport(), settings, store=store, now_ns=clock,
+                       spawn=lambda fn: fn())
+    core.start()
+    return core
+
+
+@pytest.fixture
+def world(tmp_path):
+    bus = InMemoryBus()
+    clock = Clock(0)
+    col = Collector().attach(bus.transport())
+    return bus, clock, col, bus.transport()
+
+
+def at(step: float, period: int = PERIOD_NS, epoch: int = 0) -> int:
+    return epoch + int(round(step * period))
+
+
+# ---------------------------------------------------------------- paper scenario driver --
+
+class PaperFeed:
+    """Feeds the paper's run to the daemon step by step and mirrors every call on an
+    offline ObserverPredictor built straight from pd_service.estimation (not via the wire).
+
+    At step k (clock at 10 % of the step): the operator's command for apply step k + lead,
+    then every sample arriving at k (plus injected duplicates and over-late copies);
+    run_once; then the clock moves to 60 % of the step (past the tick) and run_once again.
+    After each run_once the new predictions must equal the offline predict(k).
+    """
+
+    def __init__(self, core, cli, clock, col, session, seed=1, loss=0.1, steps=200,
+                 extra_late=True, epoch=0, max_delay=12, check=True):
+        self.core, self.cli, self.clock, self.col = core, cli, clock, col
+        self.s = session
+        self.spec = paper_spec(session, epoch_ns=epoch, max_delay=max_delay)
+        self.epoch = epoch
+        self.steps = steps
+        self.check = check
+        rng = np.random.default_rng(seed)
+        run = simulate_paper(steps, rng, loss=loss)
+        self.arrivals: dict[int, list] = {}
+        for smp in run.samples:
+            if smp.arrival is not None:
+                self.arrivals.setdefault(smp.arrival, []).append((smp.sensor, smp.step, smp.z))
+        if extra_late:  # a duplicate and an over-late copy now and then: both refused
+            for smp in run.samples[5::37]:
+                if smp.arrival is not None:
+                    self.arrivals.setdefault(smp.arrival + 1, []).append(
+                        (smp.sensor, smp.step, smp.z))
+                    self.arrivals.setdefault(smp.step + max_delay + 3, []).append(
+                        (smp.sensor, smp.step, smp.z))
+        x0, P0 = paper_prior()
+        self.offline = ObserverPredictor(paper_model(), paper_sensors(), x0=x0, P0=P0,
+                                         lead=self.spec.lead, max_delay=max_delay)
+        self.accepted = 0
+        self.compared = 0
+        self.seq = 0
+
+    def configure(self):
+        self.clock.t = at(0, epoch=self.epoch) - 1
+        self.cli.put(keys.config_key(self.s), encode(self.spec))
+        self.core.run_once()
+
+    def step(self, k: int):
+        s, lead = self.s, self.spec.lead
+        self.clock.t = at(k + 0.1, epoch=self.epoch)
+        u = paper_command(k + lead)
+        self.cli.put(keys.command_key(s), cmd_bytes(s, k + lead, u, seq=k))
+        assert self.offline.add_command(k + lead, np.array([u]), now=k)
+        for sensor, stamp, z in self.arrivals.get(k, []):
+            self.seq += 1
+            self.cli.put(keys.sensor_key(s, sensor), meas_bytes(s, sensor, stamp, z, self.seq))
+            self.accepted += self.offline.add_measurement(sensor, stamp, z, now=k)
+        self._run(k)
+        self.clock.t = at(k + 0.6, epoch=self.epoch)
+        self._run(k)
+
+    def _run(self, k):
+        before = len(self.col.predictions[self.s])
+        self.core.run_once()
+        new = self.col.predictions[self.s][before:]
+        if not self.check:
+            return
+        for p in new:
+            exp = self.offline.predict(k)
+            assert p.step == exp.step == k + self.spec.lead
+            assert p.newest_step == exp.newest_step
+            np.testing.assert_allclose(p.x, exp.x, rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(p.P, exp.P, rtol=1e-9, atol=1e-12)
+            assert p.counters["accepted"] == self.accepted
+            self.compared += 1
+
+    def run(self, steps=None):
+        for k in range(self.steps if steps is None else steps):
+            self.step(k)
+
+
+# ---------------------------------------------------------------- lifecycle ---------------
+
+def test_session_lifecycle_answers_every_change(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    spec = paper_spec("s1")
+    cli.put(keys.config_key("s1"), encode(spec))
+    core.run_once()
+    st = col.statuses["s1"][-1]
+    assert (st.state, st.instance, st.detail) == ("active", "a", "created")
+    assert (tmp_path / "a" / "s1.msgpack").exists()
+
+    # the status queryable answers for the session
+    [rep] = cli.get(keys.status_key("s1"))
+    assert rep.ok and decode(rep.payload, SessionStatus).state == "active"
+    # the same spec again: answered, estimator kept
+    est = core._routes["s1"].sess.est
+    cli.put(keys.config_key("s1"), encode(spec))
+    core.run_once()
+    assert col.statuses["s1"][-1].detail.startswith("unchanged")
+    assert core._routes["s1"].sess.est is est
+    # a different spec replaces it
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1", max_delay=20)))
+    core.run_once()
+    assert col.statuses["s1"][-1].detail.startswith("replaced")
+    assert core._routes["s1"].sess.est is not est
+    assert decode((tmp_path / "a" / "s1.msgpack").read_bytes(), SessionSpec).max_delay == 20
+    # delete removes it, from memory and disk; the status query now says unknown
+    cli.delete(keys.config_key("s1"))
+    core.run_once()
+    assert col.statuses["s1"][-1].state == "removed"
+    assert not (tmp_path / "a" / "s1.msgpack").exists()
+    [rep] = cli.get(keys.status_key("s1"))
+    assert not rep.ok and "unknown session" in decode(rep.payload, ErrorReport).reason
+    # deleting an unknown session is answered too
+    cli.delete(keys.config_key("nope"))
+    core.run_once()
+    assert col.statuses["nope"][-1].state == "removed"
+    assert col.statuses["nope"][-1].detail == "no such session"
+
+
+def test_bad_config_is_refused_with_an_error_report(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), b"\x81\xa1v\x01")  # a map, but not a SessionSpec
+    cli.put(keys.config_key("s2"), encode(paper_spec("s3")))  # session != key
+    cli.put(keys.config_key("s4"), encode(paper_spec("s4", period_ns=1)))  # would spin
+    core.run_once()
+    assert core.served_sessions() == []
+    assert "SessionSpec" in col.errors["s1"][0].reason
+    assert "does not match the key" in col.errors["s2"][0].reason
+    assert "period_ns" in col.errors["s4"][0].reason
+    assert core.service_status().counters["config_refused"] == 3
+
+
+def test_session_limit(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, max_sessions=2)
+    for s in ("s1", "s2", "s3"):
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1", max_delay=20)))  # replace: fine
+    core.run_once()
+    assert core.served_sessions() == ["s1", "s2"]
+    assert "max_sessions" in col.errors["s3"][0].reason
+    assert col.statuses["s1"][-1].detail.startswith("replaced")
+
+
+def test_ticks_publish_every_step_and_measurements_publish_at_once(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()  # created at t=0: first tick is due at 0.5 period
+    for k in range(5):
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert [p.step for p in col.predictions["s1"]] == [10, 11, 12, 13, 14]
+    # a measurement at 0.1 of step 5 publishes at once; the tick of step 5 then stays quiet
+    clock.t = at(5.1)
+    cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", 2, [5.0]))
+    core.run_once()
+    assert col.predictions["s1"][-1].newest_step == 2
+    clock.t = at(5.7)
+    core.run_once()
+    assert len(col.predictions["s1"]) == 6
+    clock.t = at(6.7)
+    core.run_once()
+    assert len(col.predictions["s1"]) == 7
+    seqs = [p.seq for p in col.predictions["s1"]]
+    assert seqs == list(range(7))
+    # the clock jumps 3 steps: one late tick, counted as an overrun, publishes once
+    clock.t = at(10.7)
+    core.run_once()
+    assert len(col.predictions["s1"]) == 8
+    assert core.service_status().counters["tick_overruns"] >= 1
+
+
+def test_publish_every_and_epoch_in_the_future(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    epoch = at(10)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1", epoch_ns=epoch, publish_every=3)))
+    core.run_once()
+    clock.t = at(5)  # before the epoch: no prediction, measurements refused as future
+    cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", 0, [5.0]))
+    core.run_once()
+    assert col.predictions["s1"] == []
+    assert col.errors["s1"][-1].reason.startswith("Measurement.step")
+    for k in range(8):
+        clock.t = epoch + at(k + 0.6)
+        core.run_once()
+    assert [p.step - 10 for p in col.predictions["s1"]] == [0, 3, 6]
+
+
+# ---------------------------------------------------------------- exactness ---------------
+
+def test_predictions_equal_offline_observer_predictor(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    feed = PaperFeed(core, cli, clock, col, "s1", seed=3, loss=0.1)
+    feed.configure()
+    feed.run()
+    assert feed.compared >= feed.steps  # at least one prediction per step, all compared
+    st = decode(cli.get(keys.status_key("s1"))[0].payload, SessionStatus)
+    off = feed.offline.counters
+    for name in ("accepted", "late", "duplicate", "commands_accepted"):
+        assert st.counters.get(name, 0) == off[name], name
+    assert off["late"] > 0 and off["duplicate"] > 0  # the refusals were exercised
+    # every refusal produced a counter, and an ErrorReport (within the rate limit)
+    reasons = [e.reason for e in col.errors["s1"]]
+    assert len(reasons) == off["late"] + off["duplicate"]
+    assert all(r.startswith("Measurement") for r in reasons)
+
+
+def test_commands_by_issue_time_and_refusals(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    clock.t = at(20.2)
+    from pd_service.wire import Command
+    msg = Command(session="s1", seq=1, issued_ns=at(20.1), u=np.array([0.5]))
+    cli.put(keys.command_key("s1"), encode(msg))
+    cli.put(keys.command_key("s1"), encode(msg))  # duplicate
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 2, 0.1))  # final already (late)
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 10**9, 0.1))  # far future
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 25, [0.1, 0.2]))  # wrong dims
+    core.run_once()
+    c = core.session_status("s1").counters
+    assert c["commands_accepted"] == 1
+    assert (c["commands_duplicate"], c["commands_late"], c["commands_future"],
+            c["commands_wrong_dims"]) == (1, 1, 1, 1)
+    assert core._routes["s1"].sess.est._inputs.has_command(30)  # issued step 20 + lead 10
+
+
+# ---------------------------------------------------------------- isolation ---------------
+
+def test_malformed_storm_leaves_other_session_byte_identical(tmp_path):
+    def run(with_storm: bool):
+        bus = InMemoryBus()
+        clock = Clock(0)
+        col = Collector().attach(bus.transport())
+        cli = bus.transport()
+        core = make_core(bus, clock, tmp_path / str(with_storm), error_burst=1000,
+                         error_rate_total=10_000.0)
+        good = PaperFeed(core, cli, clock, col, "good", seed=5, steps=120, check=False)
+        cli.put(keys.config_key("bad"), encode(paper_spec("bad")))
+        good.configure()
+        rng = np.random.default_rng(9)
+        sent = 0
+        for k in range(good.steps):
+            if with_storm and 30 <= k < 40:
+                msgs = storm("bad", rng)
+                for key, data in msgs:
+                    cli.put(key, data)
+                    cli.put(keys.sensor_key("ghost", "ranger"), data)  # unknown session
+                sent += len(msgs)
+            good.step(k)
+        return col, core, sent
+
+    col0, _, _ = run(False)
+    col1, core1, sent = run(True)
+    assert col1.raw["good/prediction"] == col0.raw["good/prediction"]  # byte-identical
+    assert len(col1.raw["good/prediction"]) >= 120
+    assert col1.errors["good"] == col0.errors["good"]
+    bad = core1.session_status("bad").counters
+    assert bad["refused"] == sent  # every storm message refused and counted
+    assert bad.get("accepted", 0) == 0
+    for reason in ("malformed", "non_finite", "wrong_dims", "unknown_sensor", "key_mismatch",
+                   "future", "late", "commands_malformed", "commands_future",
+                   "commands_late", "commands_wrong_dims", "commands_non_finite"):
+        assert bad.get(reason, 0) > 0, reason
+    assert len(col1.errors["bad"]) == sent  # burst raised: one report per refusal
+    svc = core1.service_status().counters
+    assert svc["unknown_session"] == sent
+    assert len(col1.errors["ghost"]) > 0  # reported, rate-limited
+
+
+def test_error_reports_are_rate_limited(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, error_rate=20.0, error_burst=20)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    clock.t = at(3)
+    for _ in range(100):
+        cli.put(keys.sensor_key("s1", "ranger"), b"junk")
+    core.run_once()
+    assert len(col.errors["s1"]) == 20
+    c = core.session_status("s1").counters
+    assert c["malformed"] == 100 and c["errors_suppressed"] == 80
+    clock.t += 1_000_000_000  # one second later: 20 more allowed
+    for _ in range(100):
+        cli.put(keys.sensor_key("s1", "ranger"), b"junk")
+    core.run_once()
+    assert len(col.errors["s1"]) == 40
+
+
+def test_flooding_session_cannot_starve_another(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, inbox_size=256, batch_budget=16)
+    for s in ("flood", "calm"):
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    core.run_once()
+    clock.t = at(20.1)
+    for i in range(5000):
+        cli.put(keys.sensor_key("flood", "ranger"), meas_bytes("flood", "ranger", 20, [1.0], i))
+    cli.put(keys.sensor_key("calm", "ranger"), meas_bytes("calm", "ranger", 19, [1.0]))
+    start = len(col.order)
+    core.run_once()
+    preds = [s for s, kind in col.order[start:] if kind == "prediction"]
+    # the calm session's packet went in the first round, so its prediction is among the
+    # first two published, not behind the flood's 256 queued messages
+    assert "calm" in preds[:2]
+    fl = core.session_status("flood").counters
+    assert fl["flood"] == 5000 - 256
+    assert fl["accepted"] == 1 and fl["duplicate"] == 255
+    assert core.session_status("calm").counters["accepted"] == 1
+
+
+# ---------------------------------------------------------------- expiry, persistence -----
+
+def test_idle_session_expires(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, expire_s=5.0)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    cli.put(keys.config_key("s2"), encode(paper_spec("s2")))
+    core.run_once()
+    seen_deletes = []
+    cli.subscribe(keys.ALL_CONFIGS, lambda smp: seen_deletes.append(smp.key)
+                  if smp.kind == "delete" else None)
+    for t in range(1, 9):
+        clock.t = t * 1_000_000_000
+        cli.put(keys.sensor_key("s2", "ranger"), meas_bytes("s2", "ranger", 0, [1.0]))
+        core.run_once()
+    assert core.served_sessions() == ["s2"]  # s2 kept alive by its traffic (even refused)
+    st = col.statuses["s1"][-1]
+    assert st.state == "expired" and "idle" in st.detail
+    assert not (tmp_path / "a" / "s1.msgpack").exists()
+    assert seen_deletes == [keys.config_key("s1")]  # peers are told
+    assert [s.state for s in col.statuses["s1"]].count("expired") == 1  # echo not re-answered
+
+
+def test_restart_restores_sessions_and_resumes_publishing(tmp_path):
+    bus = InMemoryBus()
+    clock = Clock(0)
+    col = Collector().attach(bus.transport())
+    cli = bus.transport()
+    core = make_core(bus, clock, tmp_path)
+    for s in ("s1", "s2"):
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    core.run_once()
+    core.close()
+    core.t.close()
+    # a new process with the same state dir
+    clock.t = at(100.6)
+    core2 = make_core(bus, clock, tmp_path)
+    assert core2.served_sessions() == ["s1", "s2"]
+    core2.run_once()
+    assert col.predictions["s1"][-1].step == 110
+    st = decode(cli.get(keys.status_key("s2"))[0].payload, SessionStatus)
+    assert st.state == "restored" and "restored" in st.detail
+    assert decode(cli.get(keys.service_status_key("a"))[0].payload,
+                  ServiceStatus).sessions == ["s1", "s2"]
+
+
+def test_unreadable_state_file_is_set_aside(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    d = tmp_path / "a"
+    d.mkdir()
+    (d / "s1.msgpack").write_bytes(b"not msgpack")
+    SpecStore(d).save(paper_spec("s2"))
+    core = make_core(bus, clock, tmp_path)
+    assert core.served_sessions() == ["s2"]
+    assert (d / "s1.msgpack.bad").exists()
+
+
+# ---------------------------------------------------------------- scale-out ---------------
+
+def test_two_instances_split_sessions_and_take_over(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    col = Collector().attach(bus.transport())
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a")
+    names = [f"s{i:02d}" for i in range(20)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    a.run_once()
+    assert a.served_sessions() == names
+    b = make_core(bus, clock, tmp_path, "inst-b")  # fetches the specs from inst-a
+    assert sorted(b.known_specs()) == names
+    assert sorted(p.name for p in (tmp_path / "inst-b").glob("*.msgpack")) == \
+        [f"{s}.msgpack" for s in names]
+    a.run_once()  # sees inst-b's token: hands its share over
+    b.run_once()
+    sa, sb = set(a.served_sessions()), set(b.served_sessions())
+    assert sa.isdisjoint(sb) and sa | sb == set(names)
+    assert 4 <= len(sb) <= 16  # a real split (rendezvous hash of 20 names)
+    # both keep every spec; a new config reaches both, exactly one serves it
+    cli.put(keys.config_key("late-one"), encode(paper_spec("late-one")))
+    a.run_once()
+    b.run_once()
+    assert ("late-one" in a.served_sessions()) != ("late-one" in b.served_sessions())
+    assert len(col.statuses["late-one"]) == 1  # answered once, by the owner
+    # sensor data is handled only by the owner
+    clock.t = at(5.2)
+    for s in names:
+        cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 3, [1.0]))
+    a.run_once()
+    b.run_once()
+    ca, cb = a.service_status().counters, b.service_status().counters
+    assert ca["accepted"] + cb["accepted"] == 20 and ca["accepted"] == len(sa)
+    # inst-b goes away: inst-a takes its sessions over and says so
+    moved = b.served_sessions()
+    b.close()
+    a.run_once()
+    assert set(a.served_sessions()) == set(names) | {"late-one"}
+    for s in moved:
+        assert "taken over" in col.statuses[s][-1].detail
+        assert col.statuses[s][-1].instance == "inst-a"
+
+
+def test_static_shards_split_without_coordination(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a", shard="0/2")
+    b = make_core(bus, clock, tmp_path, "inst-b", shard="1/2")
+    names = [f"s{i:02d}" for i in range(20)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    a.run_once()
+    b.run_once()
+    sa, sb = set(a.served_sessions()), set(b.served_sessions())
+    assert sa.isdisjoint(sb) and sa | sb == set(names) and sa and sb
+    b.close()
+    a.run_once()
+    assert set(a.served_sessions()) == sa  # static: no takeover
+    assert decode(cli.get(keys.service_status_key("inst-a"))[0].payload,
+                  ServiceStatus).shard == "0/2"
+
+
+def test_starting_instance_merges_disk_and_peer_specs(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a")
+    SpecStore(tmp_path / "inst-b").save(paper_spec("only-on-disk"))
+    SpecStore(tmp_path / "inst-b").save(paper_spec("both", max_delay=20))  # older version
+    cli.put(keys.config_key("both"), encode(paper_spec("both")))
+    cli.put(keys.config_key("fresh"), encode(paper_spec("fresh")))
+    a.run_once()
+    b = make_core(bus, clock, tmp_path, "inst-b")
+    assert sorted(b.known_specs()) == ["both", "fresh", "only-on-disk"]
+    assert b.known_specs()["both"].max_delay == 12  # the peers' version wins
+    assert SpecStore(tmp_path / "inst-b").load_all()[0]["both"].max_delay == 12
+    # inst-a learns the disk-only spec through its member-joined sync
+    a.run_once()
+    assert "only-on-disk" in a.known_specs()
+
+
+def test_instance_that_missed_peers_at_start_syncs_when_they_appear(tmp_path):
+    """inst-b starts while inst-a's presence is not visible yet (a race on a real network):
+    when inst-a's token shows up, inst-b fetches the specs it missed and takes its share."""
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a")
+    names = [f"s{i:02d}" for i in range(12)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    a.run_once()
+    a._token.close()  # hide inst-a
+    b = make_core(bus, clock, tmp_path, "inst-b")
+    assert b.known_specs() == {}
+    a.run_once()
+    a._token = a.t.declare_token(keys.service_token_key("inst-a"))  # inst-a visible again
+    b.run_once()
+    a.run_once()
+    assert sorted(b.known_specs()) == names
+    sa, sb = set(a.served_sessions()), set(b.served_sessions())
+    assert sa.isdisjoint(sb) and sa | sb == set(names) and sb
+
+
+def test_prediction_messages_decode_strictly(world, tmp_path):
+    """What the daemon publishes passes the strict decoder (PSD check included)."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    feed = PaperFeed(core, cli, clock, col, "s1", steps=40)
+    feed.configure()
+    feed.run()
+    for raw in col.raw["s1/prediction"]:
+        decode(raw, Prediction)
+
+
+def test_packed_prediction_is_byte_for_byte_what_the_codec_encodes():
+    from pd_service.estimation import PredictedState
+    from pd_service.service.session import pack_prediction
+    from pd_service.wire.convert import prediction_from
+
+    spec = paper_spec("s1", epoch_ns=123)
+    rng = np.random.default_rng(0)
+    for newest in (None, 0, 17):
+        L = rng.standard_normal((4, 4))
+        pred = PredictedState(25, rng.standard_normal(4), L @ L.T, newest)
+        counters = {"accepted": 3, "late": 1, "published": 9}
+        got = pack_prediction(pred, pred.x, pred.P, spec, 7, 999, counters)
+        assert got == encode(prediction_from(pred, spec, "s1", 7, 999, counters))
+    bad = PredictedState(25, np.array([np.nan, 0, 0, 0]), np.eye(4), None)
+    with pytest.raises(ValueError, match="not finite"):
+        pack_prediction(bad, bad.x, bad.P, spec, 0, 0, {})
+
+
+def test_error_reports_have_a_service_wide_budget(world, tmp_path):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, error_rate_total=30.0)
+    for s in ("s1", "s2", "s3"):
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    core.run_once()
+    clock.t = at(3)
+    for s in ("s1", "s2", "s3"):
+        for _ in range(20):
+            cli.put(keys.sensor_key(s, "ranger"), b"junk")
+    core.run_once()
+    assert sum(len(col.errors[s]) for s in ("s1", "s2", "s3")) == 30
+    assert core.service_status().counters["errors_suppressed"] == 30
