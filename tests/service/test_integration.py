@@ -230,7 +230,7 @@ def test_two_instances_split_sessions_and_take_over(own_net, tmp_path):
     try:
         assert pres.wait("inst-y"), b.log()
         epoch = time.time_ns()
-        names = [f"split{i:02d}" for i in range(12)]
+        names = [f"split{i:02d}" for i in range(20)]
         for s in names:
             configure(t, col, paper_spec(s, epoch_ns=epoch, period_ns=PERIOD))
         owners = {s: col.statuses[s][-1].instance for s in names}
