@@ -7,22 +7,16 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: venv test demo bench lint schemas clean
 
-DEMO_STAMP := $(VENV)/.installed-demo
-
 $(STAMP): pyproject.toml clients/python/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]' -e clients/python
+	$(PY) -m pip install --quiet -e '.[dev]' -e 'clients/python[plots]'
 	touch $(STAMP)
 
 venv: $(STAMP)
 
-# The demo also renders PNG plots: matplotlib comes with the client's `plots` extra.
-$(DEMO_STAMP): $(STAMP)
-	$(PY) -m pip install --quiet -e 'clients/python[plots]'
-	touch $(DEMO_STAMP)
-
-demo: $(DEMO_STAMP)
+# The demo's PNG plots need matplotlib: the client's `plots` extra, installed above.
+demo: $(STAMP)
 	$(VENV)/bin/pd-demo
 
 test: $(STAMP)
