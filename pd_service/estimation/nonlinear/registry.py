@@ -20,16 +20,27 @@ import numpy as np
 TransitionFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 #: h(x (n,)) -> z (m,)
 MeasurementFn = Callable[[np.ndarray], np.ndarray]
+#: Jacobian of f: F(x (n,), u (nu,), k) -> (n, n)  (batched: X (N, n) -> (N, n, n))
+TransitionJacobianFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
+#: Jacobian of h: H(x (n,)) -> (m, n)  (batched: X (N, n) -> (N, m, n))
+MeasurementJacobianFn = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True, eq=False)
 class MeasurementModel:
-    """z = h(x) + v, v ~ N(0, R). ``angles``: indices of z that are angles (wrapped to [-pi, pi))."""
+    """z = h(x) + v, v ~ N(0, R). ``angles``: indices of z that are angles (wrapped to [-pi, pi)).
+
+    Optional (consumers must work without them):
+    ``jac``: H(x) = dh/dx, used for exact sensitivities (else directional finite differences);
+    ``vectorized``: h (and jac) also accept a batch X (N, n) and return (N, m) ((N, m, n)).
+    """
 
     name: str
     h: MeasurementFn
     R: np.ndarray
     angles: tuple[int, ...] = ()
+    jac: MeasurementJacobianFn | None = None
+    vectorized: bool = False
 
     @property
     def m(self) -> int:
@@ -38,7 +49,13 @@ class MeasurementModel:
 
 @dataclass(frozen=True, eq=False)
 class NonlinearModel:
-    """x(k+1) = f(x, u, k) + w, w ~ N(0, Q). ``angles``: state indices that are angles."""
+    """x(k+1) = f(x, u, k) + w, w ~ N(0, Q). ``angles``: state indices that are angles.
+
+    Optional (consumers must work without them):
+    ``jac``: F(x, u, k) = df/dx, used for exact sensitivities (else directional finite
+    differences); ``vectorized``: f (and jac) also accept a batch X (N, n) with one u and
+    return (N, n) ((N, n, n)), so a filter evaluates all sigma points in one call.
+    """
 
     name: str
     n: int
@@ -47,6 +64,8 @@ class NonlinearModel:
     Q: np.ndarray
     sensors: dict[str, MeasurementModel] = field(default_factory=dict)
     angles: tuple[int, ...] = ()
+    jac: TransitionJacobianFn | None = None
+    vectorized: bool = False
 
 
 _REGISTRY: dict[str, Callable[..., NonlinearModel]] = {}
