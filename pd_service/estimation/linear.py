@@ -140,11 +140,11 @@ class LinearBackend:
         stacked = self._stacked.get(key)
         if stacked is None:
             H = np.vstack([self.sensors[i].H for i in key])
-            stacked = (H, _block_diag([self.sensors[i].R for i in key]))
+            stacked = (H, block_diag([self.sensors[i].R for i in key]))
             self._stacked[key] = stacked
         H, R = stacked
         if any(p.R is not None for p in packets):
-            R = _block_diag([self.sensors[p.sensor].R if p.R is None else p.R for p in packets])
+            R = block_diag([self.sensors[p.sensor].R if p.R is None else p.R for p in packets])
         z = np.concatenate([p.z for p in packets])
         return kalman_update(state[0], state[1], H, R, z)
 
@@ -152,7 +152,8 @@ class LinearBackend:
         return state
 
 
-def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+def block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    """diag(B_1, B_2, ...) of square blocks."""
     size = sum(b.shape[0] for b in blocks)
     out = np.zeros((size, size))
     i = 0

@@ -37,7 +37,7 @@ import numpy as np
 
 from pd_service.estimation import LinearModel, Packet, ReplayEstimator, Sensor
 from pd_service.estimation.checks import as_covariance, as_vector
-from pd_service.estimation.linear import kalman_update, tables_for
+from pd_service.estimation.linear import block_diag, kalman_update, tables_for
 
 #: Longest chain of pending operations before a node is resolved on its own.
 MAX_PENDING_DEPTH = 64
@@ -130,11 +130,11 @@ class LazyLinearBackend:
             stacked = self._stacked.get(key)
             if stacked is None:
                 Hs = _intern(np.vstack([self.sensors[i].H for i in key]))
-                stacked = (Hs, _block_diag([self.sensors[i].R for i in key]))
+                stacked = (Hs, block_diag([self.sensors[i].R for i in key]))
                 self._stacked[key] = stacked
             H, R = stacked
             if any(p.R is not None for p in packets):
-                R = _block_diag([self.sensors[p.sensor].R if p.R is None else p.R
+                R = block_diag([self.sensors[p.sensor].R if p.R is None else p.R
                                  for p in packets])
             z = np.concatenate([p.z for p in packets])
         if state.op and state.depth >= MAX_PENDING_DEPTH:
@@ -144,17 +144,6 @@ class LazyLinearBackend:
     def moments(self, state: Node) -> tuple[Node, Node]:
         """The node itself, twice: read ``.x`` / ``.P`` after :func:`resolve`."""
         return state, state
-
-
-def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
-    size = sum(b.shape[0] for b in blocks)
-    out = np.zeros((size, size))
-    i = 0
-    for b in blocks:
-        k = b.shape[0]
-        out[i: i + k, i: i + k] = b
-        i += k
-    return out
 
 
 # ------------------------------------------------------------------ batched evaluation ---

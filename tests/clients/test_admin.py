@@ -7,6 +7,7 @@ import threading
 
 import numpy as np
 import pytest
+
 from pd_client import (
     Admin,
     PdClientError,
@@ -15,7 +16,6 @@ from pd_client import (
     SessionRefused,
     Timeout,
 )
-
 from pd_service.wire import ErrorReport, ServiceStatus, encode, keys
 
 from .conftest import EPOCH_NS

@@ -6,10 +6,10 @@ import time
 
 import numpy as np
 import pytest
+
 from pd_client import Display, Prediction, Truth, operate, record, sim, watch
 from pd_client import __main__ as entry
 from pd_client._cli import parse_session_arg
-
 from pd_service.wire import encode, keys
 
 

@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 import pytest
-from pd_client import Display, Prediction, Timeout, Truth
 
+from pd_client import Display, Prediction, Timeout, Truth
 from pd_service.wire import ErrorReport, encode, keys
 
 

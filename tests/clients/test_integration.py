@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from pd_client import Admin, Display, ServiceUnavailable, connect
 from pd_client.record import Recorder, summarize
 

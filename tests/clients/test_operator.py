@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pd_client import Command, InvalidMessage, Operator
 
+from pd_client import Command, InvalidMessage, Operator
 from pd_service.wire import decode, keys
 
 from .conftest import Collector

@@ -9,9 +9,9 @@ import sys
 
 import numpy as np
 import pytest
+
 from pd_client import Prediction, Truth
 from pd_client.record import Recorder, finish, format_summary, read_csv, summarize
-
 from pd_service.wire import encode, keys
 
 NAMES = ["p1", "v1"]

@@ -6,9 +6,9 @@ import threading
 
 import numpy as np
 import pytest
+
 from pd_client import Command, InvalidMessage, Measurement, Robot, Timeout, Truth
 from pd_client.robot import CommandSchedule
-
 from pd_service.wire import decode, encode, keys
 
 from .conftest import EPOCH_NS, Collector

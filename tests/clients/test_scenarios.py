@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+
 from pd_client.scenarios import (
     MANEUVER_ACCEL_STEPS,
     MANEUVER_PATTERN,
@@ -15,7 +16,6 @@ from pd_client.scenarios import (
     get_scenario,
     maneuver_heading,
 )
-
 from pd_service.estimation.scenarios import paper_command, simulate_paper
 from pd_service.wire import SessionSpec, decode, encode
 

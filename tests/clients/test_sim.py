@@ -7,11 +7,11 @@ from collections import defaultdict
 
 import numpy as np
 import pytest
+
 from pd_client import Measurement, Operator, Truth
 from pd_client.record import Recorder, summarize
 from pd_client.scenarios import ScenarioSim, get_scenario
 from pd_client.sim import RobotSim
-
 from pd_service.wire import Command, decode, encode, keys
 
 from .conftest import EPOCH_NS, Collector

@@ -16,6 +16,14 @@ from pd_service.transport import DEFAULT_ENDPOINT, Transport
 from ._base import connect
 
 
+def add_tool_args(ap: argparse.ArgumentParser) -> None:
+    """The flags every tool has: --progress, --verbose and the Zenoh group."""
+    ap.add_argument("--progress", type=float, default=2.0,
+                    help="seconds between progress lines on stderr (0: none)")
+    ap.add_argument("--verbose", "-v", action="store_true")
+    add_zenoh_args(ap)
+
+
 def add_zenoh_args(ap: argparse.ArgumentParser) -> None:
     g = ap.add_argument_group("Zenoh")
     g.add_argument("--connect", "-e", dest="connect", action="append", metavar="ENDPOINT",

@@ -46,10 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "length; 0: run until stopped)")
     ap.add_argument("--spec-timeout", type=float, default=30.0,
                     help="seconds to wait for the session specs (default 30)")
-    ap.add_argument("--progress", type=float, default=2.0,
-                    help="seconds between progress lines on stderr (0: none)")
-    ap.add_argument("--verbose", "-v", action="store_true")
-    _cli.add_zenoh_args(ap)
+    _cli.add_tool_args(ap)
     return ap
 
 

@@ -328,10 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"target steps left out of the summary (default {DEFAULT_WARMUP})")
     ap.add_argument("--states", help="states in the printed summary, e.g. p1,p2 (default all)")
     ap.add_argument("--no-plots", action="store_true", help="do not render PNGs")
-    ap.add_argument("--progress", type=float, default=2.0,
-                    help="seconds between progress lines on stderr (0: none)")
-    ap.add_argument("--verbose", "-v", action="store_true")
-    _cli.add_zenoh_args(ap)
+    _cli.add_tool_args(ap)
     return ap
 
 

@@ -166,10 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--publish-every", type=int, default=1)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
-    ap.add_argument("--progress", type=float, default=2.0,
-                    help="seconds between progress lines on stderr (0: none)")
-    ap.add_argument("--verbose", "-v", action="store_true")
-    _cli.add_zenoh_args(ap)
+    _cli.add_tool_args(ap)
     return ap
 
 

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..linear import block_diag
 from ..replay import Packet
 from .registry import MeasurementModel, NonlinearModel, wrap_angle
 from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
@@ -215,7 +216,7 @@ def measurement_update(ops: ModelOps, w: SigmaWeights, state: UKFState, step: in
     Z = Zs[0] if len(Zs) == 1 else np.hstack(Zs)
     z = zs[0] if len(zs) == 1 else np.concatenate(zs)
     za = angles[0] if len(angles) == 1 else np.concatenate(angles)
-    R = Rs[0] if len(Rs) == 1 else _block_diag(Rs)
+    R = Rs[0] if len(Rs) == 1 else block_diag(Rs)
     zhat = _mean(w.Wm, Z, za)               # z^ = sum Wm_i Z_i
     DZ = _resid(Z, zhat, za)
     S = _sym(_wsum_outer(DZ, w.Wc, DZ) + R)  # S = sum Wc DZ DZ^T + R
@@ -254,17 +255,6 @@ def _inv(S: np.ndarray) -> np.ndarray:
         return np.linalg.inv(S)
     except np.linalg.LinAlgError:
         return np.linalg.pinv(S)
-
-
-def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
-    size = sum(b.shape[0] for b in blocks)
-    out = np.zeros((size, size))
-    i = 0
-    for b in blocks:
-        k = b.shape[0]
-        out[i : i + k, i : i + k] = b
-        i += k
-    return out
 
 
 class UnscentedBackend:
