@@ -1,8 +1,9 @@
 """One session of the daemon: its spec, its estimator, its counters.
 
-Pure bookkeeping around :class:`pd_service.estimation.ObserverPredictor`; no transport, no
-clock reads (the core passes ``now_ns`` / ``now_step`` in), no locks (the core's worker is the
-only caller). Every refusal is returned as a :class:`Refusal`; nothing raises for bad input.
+Pure bookkeeping around the session's estimator (:class:`pd_service.estimation.ObserverPredictor`
+or a nonlinear one with the same API); no transport, no clock reads (the core passes
+``now_ns`` / ``now_step`` in), no locks (the core's worker is the only caller). Every
+refusal is returned as a :class:`Refusal`; nothing raises for bad input.
 
 Counters (per session; the service sums them), by outcome:
 
@@ -53,6 +54,7 @@ from pd_service.wire import (
 from pd_service.wire.convert import (
     check_command,
     check_measurement,
+    command_dim,
     command_step,
     measurement_step,
     prediction_from,
@@ -100,15 +102,14 @@ def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
 
 
 def build_estimator(spec: SessionSpec, engine: str = "stacked") -> Any:
-    """The session's estimator: "single" is :class:`~pd_service.estimation.ObserverPredictor`
-    (built by :func:`pd_service.wire.convert.spec_to_estimator`), "stacked" the same
-    estimator with batchable numerics (:mod:`pd_service.service.stacked`). WireError if
-    the estimator refuses the spec."""
-    if engine == "single":
-        return spec_to_estimator(spec)
+    """The session's estimator: "single" is what :func:`pd_service.wire.convert.spec_to_estimator`
+    builds for the spec's model kind, "stacked" the same estimator with batchable numerics
+    (:mod:`pd_service.service.stacked`) for a linear model. A nonlinear model (unscented,
+    imm) always takes the plain path: its estimator has the same API, its ``predict``
+    returns resolved arrays. WireError if the estimator refuses the spec."""
     model = spec.model
-    if not isinstance(model, LinearModelSpec):  # pragma: no cover - one kind so far
-        raise WireError(f"SessionSpec.model: kind {model.kind!r} is not supported")
+    if engine == "single" or not isinstance(model, LinearModelSpec):
+        return spec_to_estimator(spec)
     try:
         return StackedObserverPredictor(
             LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
@@ -172,8 +173,8 @@ class Session:
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
         self.alive = True
-        self.dims = {sp.name: sp.m for sp in spec.sensors}
-        self.r = spec.r
+        self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
+        self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
         self.pred_key = keys.prediction_key(self.name)
         self.error_key = keys.error_key(self.name)
         self.status_key = keys.status_key(self.name)
@@ -253,7 +254,7 @@ class Session:
                 return _decode_reason(exc, "commands_")
             self.last_activity_ns = now_ns
             try:
-                check_command(msg, spec)
+                check_command(msg, spec, self.r)
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "commands_invalid")
             seq, j, u = msg.seq, command_step(msg, spec), msg.u

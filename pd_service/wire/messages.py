@@ -20,6 +20,8 @@ Command fits its session (sensor known, dimensions) is checked by
 
 from __future__ import annotations
 
+import math
+import re
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -29,9 +31,13 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
+    PlainValidator,
     PrivateAttr,
+    SerializerFunctionWrapHandler,
     StringConstraints,
     Tag,
+    WithJsonSchema,
+    model_serializer,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
@@ -46,6 +52,19 @@ MAX_SENSORS = 16
 MAX_DELAY_LIMIT = 1000
 MAX_LEAD = 10_000
 MAX_TEXT = 1024
+#: Bounds of a nonlinear model's parameters (``params``): entries, values in one list.
+MAX_PARAMS = 32
+MAX_PARAM_LIST = 256
+#: Bounds of an IMM model: modes; of an adapter: window (innovations), max_gap (steps).
+MIN_MODES, MAX_MODES = 2, 8
+MAX_ADAPT_WINDOW = 10_000
+MAX_ADAPT_GAP = 100
+#: Largest lead of a nonlinear model: its predictor propagates sigma points through every
+#: step of the lead at each prediction (about 70 us a step for the built-in models), where a
+#: linear one uses precomputed powers of A.
+MAX_NONLINEAR_LEAD = 1000
+#: Tolerance on probabilities (IMM transition rows, mu0) summing to 1.
+PROB_TOL = 1e-9
 
 #: A session, sensor or instance name: ``[a-z0-9][a-z0-9_-]{0,63}``.
 Name = Annotated[str, StringConstraints(pattern=f"^{NAME_PATTERN}$")]
@@ -113,32 +132,98 @@ class Message(WireModel):
 
 # --- session configuration ---------------------------------------------------------------
 
-class SensorSpec(WireModel):
-    """One sensor group: z = H x(s) + v, v ~ N(0, R), sampled every ``interval`` steps.
+#: What a sensor measures; see :class:`SensorSpec`.
+SensorKind = Literal["linear", "model", "range_bearing", "position"]
+#: Sensor kinds each model kind takes.
+SENSOR_KINDS: dict[str, tuple[str, ...]] = {
+    "linear": ("linear",),
+    "unscented": ("model",),
+    "imm": ("range_bearing", "position"),
+}
 
-    Rules: H is m x n; R is m x m, symmetric PSD.
+
+class SensorSpec(WireModel):
+    """One sensor group, sampled every ``interval`` steps, noise v ~ N(0, R).
+
+    ``kind`` says what the sensor measures (m = rows of R for every kind):
+
+    - ``"linear"`` (default): z = H x(s) + v, H is m x n (linear models);
+    - ``"model"``: z = h(x(s)) + v, h the sensor of this ``name`` in the registered model
+      (unscented models); R replaces the model's R for this sensor;
+    - ``"range_bearing"``: z = [range (m), bearing (rad)] of the target seen from
+      ``station`` (IMM models); R = diag(sigma_range^2, sigma_bearing^2);
+    - ``"position"``: z = [xi, eta] (m) (IMM models); R 2 x 2 positive definite.
+
+    Rules: H is given iff kind is "linear" (then R is m x m, m = rows of H); station is
+    given iff kind is "range_bearing"; R symmetric PSD. On the wire ``kind``, ``H`` and
+    ``station`` are written only where they apply, so a linear sensor is encoded byte for
+    byte as before these kinds existed (and older readers still take it).
     """
 
     name: Name = Field(description="Sensor name, unique in the session; the sensor key's last chunk.")
-    H: Matrix = Field(description="Observation matrix, m x n (m = measurement dimension).")
+    H: Matrix | None = Field(
+        None, description="Observation matrix, m x n; required for kind 'linear', absent otherwise.")
     R: Matrix = Field(description="Measurement noise covariance, m x m, symmetric PSD.")
     delay: Annotated[int, Field(ge=0, le=MAX_DELAY_LIMIT)] = Field(
         description="Nominal downlink delay in steps (0..max_delay).")
     interval: PosInt = Field(description="Sample interval in steps (1 = every step).")
+    kind: SensorKind = Field(
+        "linear", description="What the sensor measures: 'linear' (z = H x, default), 'model' "
+                              "(the unscented model's sensor of this name), 'range_bearing' "
+                              "or 'position' (IMM).")
+    station: Vector | None = Field(
+        None, description="Station position (xi, eta), m; required for kind 'range_bearing', "
+                          "absent otherwise.")
 
     @property
     def m(self) -> int:
-        """Measurement dimension."""
-        return int(self.H.shape[0])
+        """Measurement dimension (rows of R)."""
+        return int(self.R.shape[0])
+
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        out = handler(self)
+        if self.kind == "linear":
+            out.pop("kind", None)
+        if self.H is None:
+            out.pop("H", None)
+        if self.station is None:
+            out.pop("station", None)
+        return out
 
     @model_validator(mode="after")
     def _check(self) -> SensorSpec:
-        m = self.H.shape[0]
-        if self.R.shape != (m, m):
-            raise _invalid(f"R must be {m}x{m} (H has {m} rows), got shape {list(self.R.shape)}")
+        kind = self.kind
+        if kind == "linear":
+            if self.H is None:
+                raise _invalid("H is required for a sensor of kind 'linear' (z = H x + v)")
+            m = self.H.shape[0]
+            if self.R.shape != (m, m):
+                raise _invalid(f"R must be {m}x{m} (H has {m} rows), got shape {list(self.R.shape)}")
+        elif self.H is not None:
+            raise _invalid(f"H is only for kind 'linear'; a {kind!r} sensor's h(x) is the model's")
+        if kind == "range_bearing":
+            if self.station is None:
+                raise _invalid("station is required for kind 'range_bearing'")
+            if self.station.shape != (2,):
+                raise _invalid(f"station must have 2 values (xi, eta), got {self.station.shape[0]}")
+        elif self.station is not None:
+            raise _invalid(f"station is only for kind 'range_bearing', not {kind!r}")
         problem = psd_problem(self.R)
         if problem:
             raise _invalid(f"R {problem}")
+        if kind in ("range_bearing", "position"):
+            R = self.R
+            if R.shape != (2, 2):
+                raise _invalid(f"R must be 2x2 for kind {kind!r} (z has 2 values), "
+                               f"got shape {list(R.shape)}")
+            if kind == "range_bearing" and not (R[0, 1] == 0.0 == R[1, 0] and R[0, 0] > 0.0
+                                                and R[1, 1] > 0.0):
+                raise _invalid("R must be diagonal with positive entries for kind "
+                               "'range_bearing': diag(sigma_range^2, sigma_bearing^2)")
+            if kind == "position" and not float(np.linalg.eigvalsh(0.5 * (R + R.T))[0]) > 0.0:
+                raise _invalid("R must be positive definite for kind 'position' "
+                               "(the IMM filter uses R^-1)")
         return self
 
 
@@ -178,6 +263,202 @@ class LinearModelSpec(WireModel):
         return self
 
 
+# --- nonlinear models: registered names and their parameters ----------------------------
+
+_PARAM_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
+
+
+def _param_number(value: Any, where: str) -> int | float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise _invalid(f"{where}: expected a number or a list of numbers, got "
+                       f"{'nil' if value is None else type(value).__name__}")
+    if isinstance(value, int | np.integer):
+        v = int(value)
+        if not INT64_MIN <= v <= INT64_MAX:
+            raise _invalid(f"{where}: integer {v} is outside int64")
+        return v
+    f = float(value)
+    if not math.isfinite(f):
+        raise _invalid(f"{where}: must be a finite number (no NaN or infinity)")
+    return f
+
+
+def _params(value: Any) -> dict[str, int | float | list[int | float]]:
+    """A model's parameters: name -> finite number or list of 1..256 finite numbers."""
+    if not isinstance(value, dict):
+        raise _invalid("params must be a map: parameter name -> number or list of numbers")
+    if len(value) > MAX_PARAMS:
+        raise _invalid(f"params: at most {MAX_PARAMS} entries, got {len(value)}")
+    out: dict[str, int | float | list[int | float]] = {}
+    for key, v in value.items():
+        if type(key) is not str or not _PARAM_NAME.match(key):
+            raise _invalid(f"params: {str(key)[:70]!r} is not a parameter name "
+                           "([A-Za-z_][A-Za-z0-9_]{0,63})")
+        where = f"params[{key!r}]"
+        if isinstance(v, list | tuple) or (isinstance(v, np.ndarray) and v.ndim == 1):
+            if not 1 <= len(v) <= MAX_PARAM_LIST:
+                raise _invalid(f"{where}: a list holds 1..{MAX_PARAM_LIST} numbers, got {len(v)}")
+            out[key] = [_param_number(x, where) for x in v]
+        else:
+            out[key] = _param_number(v, where)
+    return out
+
+
+#: Parameters of a registered model: ``{name: number | [numbers]}`` (at most 32 entries,
+#: lists of 1..256 finite numbers; ints stay ints). Which names a model takes is the
+#: model's business: a wrong one is refused when the daemon builds the model.
+Params = Annotated[
+    dict[str, Any],
+    PlainValidator(_params),
+    WithJsonSchema({
+        "type": "object",
+        "description": "Model parameters: name -> finite number or list of finite numbers.",
+        "maxProperties": MAX_PARAMS,
+        "propertyNames": {"pattern": _PARAM_NAME.pattern},
+        "additionalProperties": {"anyOf": [
+            {"type": "number"},
+            {"type": "array", "minItems": 1, "maxItems": MAX_PARAM_LIST,
+             "items": {"type": "number"}},
+        ]},
+    }),
+]
+
+Probability = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class AdaptSpec(WireModel):
+    """Online adaptation of chosen diagonal entries q_m of Q (unscented models).
+
+    ``"mit"``: MIT rule on the windowed innovation-covariance mismatch; ``"sage_husa"``:
+    Sage-Husa covariance matching. Absent settings take the backend's defaults (mit: window
+    50, eta 0.1, rule "normalised", clip 0.1, max_gap 4; sage_husa: forgetting 0.98; bounds
+    q0 * 1e-4 .. q0 * 1e4). Rules: indices distinct and < n; mit-only settings (window, eta,
+    rule, clip, max_gap) not with sage_husa, forgetting not with mit; q_min / q_max one value
+    per index, 0 < q_min <= q_max. The adapted entries of the model's Q must be > 0 (checked
+    when the model is built).
+    """
+
+    method: Literal["mit", "sage_husa"] = Field("mit", description="Adaptation rule.")
+    indices: Annotated[list[Annotated[int, Field(ge=0, lt=MAX_DIM)]],
+                       Field(min_length=1, max_length=MAX_DIM)] = Field(
+        description="State indices m of the adapted diagonal entries Q[m, m] (normally the "
+                    "acceleration channels).")
+    window: Annotated[int, Field(ge=1, le=MAX_ADAPT_WINDOW)] | None = Field(
+        None, description="mit: innovations per window, N.")
+    eta: Annotated[float, Field(gt=0.0)] | None = Field(None, description="mit: adaptation rate.")
+    rule: Literal["normalised", "plain"] | None = Field(
+        None, description="mit: 'normalised' (unit-free step in log q) or 'plain' gradient step.")
+    clip: Annotated[float, Field(gt=0.0)] | None = Field(
+        None, description="mit: bound on one step of log q.")
+    max_gap: Annotated[int, Field(ge=1, le=MAX_ADAPT_GAP)] | None = Field(
+        None, description="mit: longest gap (steps since the previous update) whose "
+                          "innovations are used.")
+    forgetting: Annotated[float, Field(gt=0.0, lt=1.0)] | None = Field(
+        None, description="sage_husa: forgetting factor b in (0, 1).")
+    q_min: Annotated[list[Annotated[float, Field(gt=0.0)]],
+                     Field(min_length=1, max_length=MAX_DIM)] | None = Field(
+        None, description="Lower bounds of the adapted q, one per index.")
+    q_max: Annotated[list[Annotated[float, Field(gt=0.0)]],
+                     Field(min_length=1, max_length=MAX_DIM)] | None = Field(
+        None, description="Upper bounds of the adapted q, one per index.")
+
+    @model_validator(mode="after")
+    def _check(self) -> AdaptSpec:
+        if len(set(self.indices)) != len(self.indices):
+            raise _invalid(f"indices must be distinct, got {self.indices}")
+        only = {"mit": ("forgetting",), "sage_husa": ("window", "eta", "rule", "clip", "max_gap")}
+        wrong = [k for k in only[self.method] if getattr(self, k) is not None]
+        if wrong:
+            raise _invalid(f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply "
+                           f"to method {self.method!r}")
+        p = len(self.indices)
+        for key in ("q_min", "q_max"):
+            v = getattr(self, key)
+            if v is not None and len(v) != p:
+                raise _invalid(f"{key} must have one value per index ({p}), got {len(v)}")
+        if self.q_min is not None and self.q_max is not None and \
+                any(lo > hi for lo, hi in zip(self.q_min, self.q_max, strict=True)):
+            raise _invalid("q_min must be <= q_max")
+        return self
+
+
+class SigmaSpec(WireModel):
+    """Scaled sigma points: lambda = alpha^2 (n + kappa) - n. Rule: n + kappa > 0."""
+
+    alpha: Annotated[float, Field(gt=0.0)] = Field(1.0, description="Spread, > 0.")
+    beta: float = Field(2.0, description="Prior knowledge of the distribution (2 for Gaussian).")
+    kappa: float = Field(0.0, description="Secondary scaling.")
+
+
+class UnscentedModelSpec(WireModel):
+    """A registered nonlinear model x(k+1) = f(x, u, k) + w, z_i = h_i(x) + v_i, estimated by
+    the unscented observer-predictor, optionally with adaptive process noise.
+
+    n is the length of the session's x0 and must be the built model's; r (command
+    dimension) is the model's. The session's sensors are of kind "model": each names one of
+    the model's sensors and its R replaces the model's. Which models exist and which
+    parameters they take is known only to the daemon (a wrong name, parameter or dimension
+    is refused when the session is built, with the reason).
+    """
+
+    kind: Literal["unscented"] = Field("unscented", description="Model kind (discriminator).")
+    model: Name = Field(description="Registered model name, e.g. 'omni3'.")
+    params: Params = Field(default_factory=dict, description="The model's parameters.")
+    adapt: AdaptSpec | None = Field(None, description="Process-noise adaptation; nil = none.")
+    sigma: SigmaSpec | None = Field(
+        None, description="Sigma-point scaling; nil = alpha 1, beta 2, kappa 0.")
+
+
+class ModeSpec(WireModel):
+    """One IMM mode: a registered model and its parameters (e.g. 'imm_cv', 'imm_ct')."""
+
+    model: Name = Field(description="Registered model name.")
+    params: Params = Field(default_factory=dict, description="The model's parameters.")
+
+
+class ImmModelSpec(WireModel):
+    """Interacting multiple models of unscented information filters, fusing several sensors.
+
+    Rules: transition is r x r (r = number of modes), entries >= 0, every row sums to 1
+    within 1e-9 (row i = P(next mode | mode i)); mu0, if given, has r values >= 0 summing to
+    1 within 1e-9 (nil = uniform); node < number of sensors; n + kappa > 0. Every mode has the
+    same state (n = length of x0) and input dimension; the sensors are of kind
+    "range_bearing" or "position".
+    """
+
+    kind: Literal["imm"] = Field("imm", description="Model kind (discriminator).")
+    modes: Annotated[list[ModeSpec], Field(min_length=MIN_MODES, max_length=MAX_MODES)] = Field(
+        description="The modes (2..8).")
+    transition: Matrix = Field(description="Markov transition matrix, r x r, row-stochastic.")
+    variant: Literal["single", "centralised", "imm1", "imm2"] = Field(
+        description="'single' (sensor `node` only), 'centralised' (joint likelihood), 'imm1' "
+                    "(one IMM per sensor node, node `node` reported), 'imm2' (likelihoods "
+                    "fused across sensors).")
+    node: Annotated[int, Field(ge=0, lt=MAX_SENSORS)] = Field(
+        0, description="Index into sensors: the sensor of 'single', the reported node of 'imm1'.")
+    mu0: Vector | None = Field(None, description="Initial mode probabilities, r; nil = uniform.")
+    kappa: float = Field(0.0, description="Sigma-point scaling (n + kappa > 0).")
+
+    @model_validator(mode="after")
+    def _check(self) -> ImmModelSpec:
+        r = len(self.modes)
+        T = self.transition
+        if T.shape != (r, r):
+            raise _invalid(f"transition must be {r}x{r} ({r} modes), got shape {list(T.shape)}")
+        if (T < 0.0).any():
+            raise _invalid("transition entries must be >= 0")
+        worst = float(np.abs(T.sum(axis=1) - 1.0).max())
+        if worst > PROB_TOL:
+            raise _invalid(f"every row of transition must sum to 1 (off by {worst:.3g})")
+        if self.mu0 is not None:
+            mu = self.mu0
+            if mu.shape != (r,):
+                raise _invalid(f"mu0 must have {r} values ({r} modes), got {mu.shape[0]}")
+            if (mu < 0.0).any() or abs(float(mu.sum()) - 1.0) > PROB_TOL:
+                raise _invalid("mu0 must be >= 0 and sum to 1")
+        return self
+
+
 def _model_kind(value: Any) -> str | None:
     if isinstance(value, dict):
         kind = value.get("kind", "linear")
@@ -188,11 +469,13 @@ def _model_kind(value: Any) -> str | None:
 #: Every model kind, discriminated by ``kind`` (absent means "linear"). A new kind is one
 #: more ``Annotated[NewModelSpec, Tag("new")]`` here, plus its case in ``convert.py``.
 ModelSpec = Annotated[
-    Annotated[LinearModelSpec, Tag("linear")],
+    Annotated[LinearModelSpec, Tag("linear")]
+    | Annotated[UnscentedModelSpec, Tag("unscented")]
+    | Annotated[ImmModelSpec, Tag("imm")],
     Discriminator(
         _model_kind,
         custom_error_type="wire_model_kind",
-        custom_error_message="model must be a map whose 'kind' is one of: linear",
+        custom_error_message="model must be a map whose 'kind' is one of: linear, unscented, imm",
     ),
 ]
 
@@ -200,9 +483,12 @@ ModelSpec = Annotated[
 class SessionSpec(Message):
     """Creates or replaces a session (put on ``pd/<session>/config``).
 
-    Rules: n = model state dimension (1..64); x0 has n values; P0 is n x n; every sensor's
-    H has n columns; sensor names are unique; every sensor delay <= max_delay; covariances
-    symmetric PSD (tolerance 1e-9 * max(1, max|M|)).
+    Rules: n = state dimension (1..64): the rows of model.A for a linear model, the length
+    of x0 otherwise; x0 has n values; P0 is n x n; sensor names are unique; every sensor
+    delay <= max_delay; sensor kinds fit the model kind (linear: "linear", every H with n
+    columns; unscented: "model"; imm: "range_bearing" / "position"); covariances symmetric
+    PSD (tolerance 1e-9 * max(1, max|M|)); for nonlinear models lead <= 1000,
+    adapt.indices < n, n + kappa > 0 and imm node < number of sensors.
     """
 
     session: Name = Field(description="Session id.")
@@ -230,13 +516,14 @@ class SessionSpec(Message):
 
     @property
     def n(self) -> int:
-        """State dimension."""
-        return self.model.n
+        """State dimension (the length of x0; for a linear model also the rows of A)."""
+        return int(self.x0.shape[0])
 
     @property
-    def r(self) -> int:
-        """Command (input) dimension."""
-        return self.model.r
+    def r(self) -> int | None:
+        """Command (input) dimension of a linear model; None for the other kinds, whose
+        registered model knows it (:func:`pd_service.wire.convert.command_dim`)."""
+        return self.model.r if isinstance(self.model, LinearModelSpec) else None
 
     def sensor(self, name: str) -> SensorSpec | None:
         """The sensor called ``name``, or None."""
@@ -255,37 +542,66 @@ class SessionSpec(Message):
 
     @model_validator(mode="after")
     def _check(self) -> SessionSpec:
-        n = self.model.n
-        if n > MAX_DIM:  # unreachable while MAX_DIM bounds every array axis; kept explicit
-            raise _invalid(f"state dimension n={n} exceeds {MAX_DIM}")
-        if self.x0.shape != (n,):
-            raise _invalid(f"x0 must have n={n} values (model.A is {n}x{n}), got {self.x0.shape[0]}")
+        model = self.model
+        linear = isinstance(model, LinearModelSpec)
+        if linear:
+            n = model.n
+            if n > MAX_DIM:  # unreachable while MAX_DIM bounds every array axis; kept explicit
+                raise _invalid(f"state dimension n={n} exceeds {MAX_DIM}")
+            if self.x0.shape != (n,):
+                raise _invalid(f"x0 must have n={n} values (model.A is {n}x{n}), "
+                               f"got {self.x0.shape[0]}")
+            source = f"model.A is {n}x{n}"
+        else:
+            n = self.x0.shape[0]
+            source = f"x0 has {n} values"
+            if self.lead > MAX_NONLINEAR_LEAD:
+                raise _invalid(f"lead={self.lead} exceeds {MAX_NONLINEAR_LEAD} for a "
+                               f"{model.kind!r} model (every step of lead is propagated "
+                               "at each prediction)")
         if self.P0.shape != (n, n):
-            raise _invalid(f"P0 must be {n}x{n} (model.A is {n}x{n}), got shape {list(self.P0.shape)}")
+            raise _invalid(f"P0 must be {n}x{n} ({source}), got shape {list(self.P0.shape)}")
         problem = psd_problem(self.P0)
         if problem:
             raise _invalid(f"P0 {problem}")
+        allowed = SENSOR_KINDS[model.kind]
         seen: set[str] = set()
         for i, s in enumerate(self.sensors):
             if s.name in seen:
                 raise _invalid(f"sensors[{i}].name {s.name!r} is used twice; names must be unique")
             seen.add(s.name)
-            if s.H.shape[1] != n:
+            if s.kind not in allowed:
+                raise _invalid(f"sensors[{i}] ({s.name!r}).kind {s.kind!r} does not fit a "
+                               f"{model.kind!r} model (use: {', '.join(allowed)})")
+            if s.H is not None and s.H.shape[1] != n:
                 raise _invalid(f"sensors[{i}] ({s.name!r}).H must have n={n} columns, "
                                f"got shape {list(s.H.shape)}")
             if s.delay > self.max_delay:
                 raise _invalid(f"sensors[{i}] ({s.name!r}).delay={s.delay} exceeds "
                                f"max_delay={self.max_delay}: every sample would be late")
+        if isinstance(model, UnscentedModelSpec):
+            if model.adapt is not None and max(model.adapt.indices) >= n:
+                raise _invalid(f"model.adapt.indices {model.adapt.indices} must be < n={n} "
+                               f"({source})")
+            if model.sigma is not None and not n + model.sigma.kappa > 0:
+                raise _invalid(f"model.sigma: n + kappa must be > 0 (n={n}, "
+                               f"kappa={model.sigma.kappa})")
+        elif isinstance(model, ImmModelSpec):
+            if model.node >= len(self.sensors):
+                raise _invalid(f"model.node={model.node} must index one of the "
+                               f"{len(self.sensors)} sensors")
+            if not n + model.kappa > 0:
+                raise _invalid(f"model: n + kappa must be > 0 (n={n}, kappa={model.kappa})")
         return self
 
 
 # --- streams into the daemon ------------------------------------------------------------
 
 class Measurement(Message):
-    """One sensor sample (``pd/<session>/sensor/<name>``): z = H x(s) + v.
+    """One sensor sample (``pd/<session>/sensor/<name>``): z = H x(s) + v (or h(x(s)) + v).
 
     Rules: exactly one of step / t_ns; R, if given, is m x m (m = len(z)) symmetric PSD.
-    Against the session: the sensor exists and z has its dimension m.
+    Against the session: the sensor exists and z has its dimension m (rows of its R).
     """
 
     session: Name = Field(description="Session id.")
@@ -319,7 +635,7 @@ class Command(Message):
     """One operator command (``pd/<session>/cmd``): u applies from its apply step on.
 
     Rules: exactly one of step / issued_ns. Against the session: u has r values (the
-    columns of model.B).
+    columns of model.B, or the registered model's input dimension).
     """
 
     session: Name = Field(description="Session id.")

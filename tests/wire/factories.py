@@ -16,7 +16,15 @@ from pd_service.wire import (
     SessionSpec,
     SessionStatus,
 )
-from pd_service.wire.messages import INT64_MAX, INT64_MIN
+from pd_service.wire.messages import (
+    INT64_MAX,
+    INT64_MIN,
+    AdaptSpec,
+    ImmModelSpec,
+    ModeSpec,
+    SigmaSpec,
+    UnscentedModelSpec,
+)
 
 PERIOD_NS = 50_000_000  # the paper's 0.05 s step
 
@@ -38,6 +46,53 @@ def paper_spec(session: str = "s1", epoch_ns: int = 1_700_000_000_000_000_000) -
                        delay=12, interval=1),
         ],
         lead=10, max_delay=12,
+    )
+
+
+OMNI_Q0 = [1e-14, 1e-14, 1e-14, 4e-6, 4e-6, 2.5e-5]
+
+
+def omni_spec(session: str = "u1", epoch_ns: int = 0, adapt: bool = True,
+              sigma: bool = False) -> SessionSpec:
+    """The three-wheel omnidirectional robot (registered model "omni3", issue 9) with the
+    MIT-rule adaptation of its acceleration channels; pose sensor (x, y, theta)."""
+    return SessionSpec(
+        session=session, period_ns=10_000_000, epoch_ns=epoch_ns,
+        model=UnscentedModelSpec(
+            model="omni3", params={"period_s": 0.01, "mass": 10, "Q": OMNI_Q0},
+            adapt=AdaptSpec(method="mit", indices=[3, 4, 5], window=20, eta=0.1) if adapt else None,
+            sigma=SigmaSpec(alpha=1.0, beta=2.0, kappa=0.0) if sigma else None),
+        x0=np.zeros(6), P0=np.diag([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3]),
+        sensors=[SensorSpec(name="pose", kind="model", R=1e-8 * np.eye(3), delay=3, interval=1)],
+        lead=5, max_delay=10,
+    )
+
+
+STATIONS = [(9.5, -8.5), (25.1, 18.5), (-6.1, 18.5)]
+SIGMA_BEARING = float(np.deg2rad(3.5))
+
+
+def imm_spec(session: str = "i1", epoch_ns: int = 0, variant: str = "imm2", node: int = 0,
+             position: bool = False) -> SessionSpec:
+    """The issue-10 tracking scenario: CV / CT modes, three range-bearing stations (plus a
+    position sensor if ``position``)."""
+    sensors = [SensorSpec(name=f"st{i + 1}", kind="range_bearing", station=np.array(st),
+                          R=np.diag([0.3**2, SIGMA_BEARING**2]), delay=2, interval=1)
+               for i, st in enumerate(STATIONS)]
+    if position:
+        sensors.append(SensorSpec(name="cam", kind="position", R=np.array([[0.04, 0.01],
+                                                                          [0.01, 0.04]]),
+                                  delay=1, interval=2))
+    return SessionSpec(
+        session=session, period_ns=100_000_000, epoch_ns=epoch_ns,
+        model=ImmModelSpec(
+            modes=[ModeSpec(model="imm_cv", params={"period_s": 0.1, "sigma_accel": 0.003}),
+                   ModeSpec(model="imm_ct", params={"period_s": 0.1, "sigma_accel": 0.0016,
+                                                     "sigma_turn_step": 0.00349})],
+            transition=np.array([[0.995, 0.005], [0.005, 0.995]]), variant=variant, node=node),
+        x0=np.array([0.0, 0.3, 0.0, 0.0, 0.0]),
+        P0=np.diag([0.25, 0.0025, 0.25, 0.0025, np.deg2rad(1.0) ** 2]),
+        sensors=sensors, lead=5, max_delay=10,
     )
 
 
@@ -157,6 +212,67 @@ def session_specs(draw) -> SessionSpec:
     )
 
 
+param_numbers = st.one_of(int64, finite)
+params = st.dictionaries(
+    st.from_regex(r"[A-Za-z_][A-Za-z0-9_]{0,10}", fullmatch=True),
+    st.one_of(param_numbers, st.lists(param_numbers, min_size=1, max_size=8)), max_size=6)
+
+
+@st.composite
+def nonlinear_session_specs(draw) -> SessionSpec:
+    """Unscented or IMM specs with arbitrary (valid) parameters: wire round trips only."""
+    n = draw(st.integers(1, 6))
+    max_delay = draw(st.integers(0, 1000))
+    sensor_names = draw(st.lists(names, min_size=1, max_size=4, unique=True))
+    probs = st.floats(0.0, 1.0)
+    if draw(st.booleans()):
+        adapt = None
+        if draw(st.booleans()):
+            idx = draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=n, unique=True))
+            method = draw(st.sampled_from(["mit", "sage_husa"]))
+            mit = method == "mit"
+            adapt = AdaptSpec(
+                method=method, indices=idx,
+                window=draw(st.none() | st.integers(1, 10_000)) if mit else None,
+                eta=draw(st.none() | st.floats(1e-6, 10.0)) if mit else None,
+                rule=draw(st.none() | st.sampled_from(["normalised", "plain"])) if mit else None,
+                forgetting=None if mit else draw(st.none() | st.floats(0.01, 0.99)),
+                q_min=draw(st.none() | st.just([1e-9] * len(idx))))
+        sigma = draw(st.none() | st.builds(SigmaSpec, alpha=st.floats(1e-3, 2.0),
+                                           beta=finite, kappa=st.floats(-0.5, 3.0)))
+        model = UnscentedModelSpec(model=draw(names), params=draw(params), adapt=adapt,
+                                   sigma=sigma)
+        sensors = [SensorSpec(name=s, kind="model", R=draw(psd(draw(st.integers(1, 3)))),
+                              delay=draw(st.integers(0, max_delay)), interval=1)
+                   for s in sensor_names]
+    else:
+        r = draw(st.integers(2, 8))
+        rows = [draw(st.lists(probs, min_size=r, max_size=r)) for _ in range(r)]
+        T = np.array([[v / sum(row) for v in row] if sum(row) > 0 else [1.0 / r] * r
+                      for row in rows])
+        model = ImmModelSpec(
+            modes=[ModeSpec(model=draw(names), params=draw(params)) for _ in range(r)],
+            transition=T, variant=draw(st.sampled_from(["single", "centralised", "imm1", "imm2"])),
+            node=draw(st.integers(0, len(sensor_names) - 1)),
+            mu0=draw(st.none() | st.just(np.full(r, 1.0 / r))), kappa=draw(st.floats(0.0, 3.0)))
+        sensors = []
+        for s in sensor_names:
+            if draw(st.booleans()):
+                sensors.append(SensorSpec(
+                    name=s, kind="range_bearing", station=draw(vectors(2)),
+                    R=np.diag(draw(st.lists(st.floats(1e-12, 1e6), min_size=2, max_size=2))),
+                    delay=draw(st.integers(0, max_delay)), interval=1))
+            else:
+                sensors.append(SensorSpec(name=s, kind="position", R=np.eye(2) * 0.5,
+                                          delay=0, interval=draw(st.integers(1, 10**6))))
+    return SessionSpec(
+        session=draw(names), period_ns=draw(st.integers(1, INT64_MAX)), epoch_ns=draw(int64),
+        model=model, x0=draw(vectors(n)), P0=draw(psd(n)), sensors=sensors,
+        lead=draw(st.integers(0, 1000)), max_delay=max_delay,
+        command_hold=draw(st.sampled_from(["hold", "zero"])),
+    )
+
+
 @st.composite
 def measurements(draw) -> Measurement:
     m = draw(st.integers(1, 6))
@@ -206,7 +322,7 @@ service_statuses = st.builds(
     uptime_s=st.floats(0, 1e12), shard=st.text(max_size=64))
 
 STRATEGIES = {
-    SessionSpec: session_specs(),
+    SessionSpec: st.one_of(session_specs(), nonlinear_session_specs()),
     Measurement: measurements(),
     Command: commands(),
     Prediction: predictions(),

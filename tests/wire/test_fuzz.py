@@ -16,9 +16,23 @@ import msgpack
 import numpy as np
 import pytest
 
-from pd_service.wire import MAX_MESSAGE_BYTES, MESSAGE_TYPES, WireError, decode, encode
+from pd_service.wire import (
+    MAX_MESSAGE_BYTES,
+    MESSAGE_TYPES,
+    SessionSpec,
+    WireError,
+    decode,
+    encode,
+)
 from pd_service.wire.errors import MAX_REASON_CHARS
-from tests.wire.factories import EXAMPLES, measurement, paper_spec, prediction
+from tests.wire.factories import (
+    EXAMPLES,
+    imm_spec,
+    measurement,
+    omni_spec,
+    paper_spec,
+    prediction,
+)
 
 N_RANDOM = 2_000
 N_BYTE_MUTATIONS = 5_000
@@ -45,7 +59,9 @@ def _valid_encodings() -> list[bytes]:
     out = [encode(make()) for make in EXAMPLES.values()]
     out += [encode(measurement(step=None, t_ns=-5, R=np.eye(2))),
             encode(prediction(n=1, newest_step=None)),
-            encode(paper_spec(session="x-1"))]
+            encode(paper_spec(session="x-1")),
+            encode(omni_spec(sigma=True)),
+            encode(imm_spec(position=True))]
     return out
 
 
@@ -198,3 +214,15 @@ def test_decode_accepts_bytes_like_only():
 def test_decode_needs_a_message_class():
     with pytest.raises(TypeError):
         decode(encode(measurement()), dict)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("make", [omni_spec, imm_spec], ids=["unscented", "imm"])
+def test_nonlinear_specs_raise_only_wire_error(make):
+    """Structural and byte mutations of the nonlinear model kinds' specs."""
+    rng = random.Random(f"fuzz-{make.__name__}")
+    own = encode(make())
+    inputs = [_struct_mutation(rng, own) for _ in range(1_500)]
+    inputs += [_byte_mutation(rng, own) for _ in range(1_500)]
+    refused = sum(not _check(data, SessionSpec) for data in inputs)
+    assert refused > 0.8 * len(inputs)
+    assert _check(own, SessionSpec)

@@ -141,9 +141,9 @@ CASES = [
     (S, "model.Q", sym(3), "SessionSpec.model.linear: Q must be 4x4 (A is 4x4), got shape [3, 3]"),
     (S, "model.Q", arr(4, 4, (-np.eye(4)).ravel()), "SessionSpec.model.linear: Q must be positive semi-definite"),
     (S, "model.A", arr(65, 65, [0.0] * 65 * 65), "SessionSpec.model.linear.A: every array dimension must be between 1 and 64, got shape [65, 65]"),
-    (S, "model.kind", "nonlinear", "SessionSpec.model: model must be a map whose 'kind' is one of: linear"),
-    (S, "model.kind", 3, "SessionSpec.model: model must be a map whose 'kind' is one of: linear"),
-    (S, "model", [1.0], "SessionSpec.model: model must be a map whose 'kind' is one of: linear"),
+    (S, "model.kind", "nonlinear", "SessionSpec.model: model must be a map whose 'kind' is one of: linear, unscented, imm"),
+    (S, "model.kind", 3, "SessionSpec.model: model must be a map whose 'kind' is one of: linear, unscented, imm"),
+    (S, "model", [1.0], "SessionSpec.model: model must be a map whose 'kind' is one of: linear, unscented, imm"),
     (S, "model.extra", 1, "SessionSpec.model.linear.extra: Extra inputs are not permitted"),
     # -- session spec: prior, sensors, timing
     (S, "x0", arr(3, [0.0] * 3), "SessionSpec: x0 must have n=4 values (model.A is 4x4), got 3"),
