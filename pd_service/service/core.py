@@ -586,14 +586,15 @@ class ServiceCore:
                 # Let the estimator check the spec before anything changes.
                 Session(spec, "active", "", now, 1.0, 1, self.settings.engine)
         except WireError as exc:
-            self.counters["config_refused"] += 1
             event(log, "config_refused", session=session, reason=exc.reason)
-            if self.ownership.owns(session):
-                route = self._routes.get(session)
-                if route is not None and route.sess is not None:
-                    self._refuse(route.sess, sample.key, Refusal("config_refused", exc.reason),
-                                 now)
-                elif self._unknown_limiter.allow(now):
+            route = self._routes.get(session)
+            owns = self.ownership.owns(session)
+            if owns and route is not None and route.sess is not None:
+                # counted (per session and service-wide) and reported by _refuse
+                self._refuse(route.sess, sample.key, Refusal("config_refused", exc.reason), now)
+            else:
+                self.counters["config_refused"] += 1
+                if owns and self._unknown_limiter.allow(now):
                     self._error(keys.error_key(session), session, sample.key, exc.reason,
                                 None, now)
             return

@@ -19,6 +19,7 @@ from .messages import (
     SCHEMA_VERSION,
     Command,
     ErrorReport,
+    ImmModelSpec,
     LinearModelSpec,
     Measurement,
     Message,
@@ -28,6 +29,7 @@ from .messages import (
     ServiceStatus,
     SessionSpec,
     SessionStatus,
+    UnscentedModelSpec,
 )
 
 __all__ = [
@@ -38,6 +40,7 @@ __all__ = [
     "SCHEMA_VERSION",
     "Command",
     "ErrorReport",
+    "ImmModelSpec",
     "LinearModelSpec",
     "Matrix",
     "Measurement",
@@ -48,6 +51,7 @@ __all__ = [
     "ServiceStatus",
     "SessionSpec",
     "SessionStatus",
+    "UnscentedModelSpec",
     "Vector",
     "WireError",
     "decode",

@@ -269,6 +269,8 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path, engine):
     # the refusals: readable reasons, on the sessions' error keys
     assert core.served_sessions() == ["i1", "lin", "u1"]
     assert core.session_status("u1").counters["config_refused"] == 1
+    # bad1 and bad2 (new sessions) and u1's bad replacement: each counted once service-wide
+    assert core.service_status().counters["config_refused"] == 3
     [bad1] = col.errors["bad1"]
     assert bad1.reason.startswith("SessionSpec: refused by the estimator: model: unknown "
                                   "model 'no-such-model' (registered: ")
