@@ -121,3 +121,18 @@ def test_plots_are_rendered(bus, tmp_path, capsys):
     assert pngs == ["a-error.png", "a-states.png", "a-variance.png", "b-error.png",
                     "b-states.png", "b-variance.png", "compare-variance.png"]
     assert all((tmp_path / p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
+
+
+def test_angle_errors_are_wrapped(bus, tmp_path):
+    """A heading of +3.13 rad predicted against a true -3.13 rad is 0.023 rad off, not 6.26."""
+    pub = bus.transport()
+    rec = Recorder(bus.transport(), ["s1"], tmp_path)
+    pub.put(keys.prediction_key("s1"), _pred(0, 5, [3.13, 1.0]))
+    pub.put(keys.truth_key("s1"), encode(Truth(session="s1", step=5, t_ns=5,
+                                               x=np.array([-3.13, 1.5]), names=["theta", "w"],
+                                               angles=[0])))
+    rec.poll()
+    rec.close()
+    [row] = _rows(tmp_path / "s1.csv")
+    assert float(row["err_theta"]) == pytest.approx(6.26 - 2 * math.pi, abs=1e-12)
+    assert float(row["err_w"]) == -0.5  # not an angle: not wrapped

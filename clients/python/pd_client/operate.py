@@ -1,6 +1,7 @@
 """``pd-operator``: a scripted operator that sends a scenario's command profile.
 
     pd-operator --scenario paper --session paper --session paper-cam
+    pd-operator --scenario omni --session omni      # wheel torques of the omni robot
 
 At each step k of the session clock (wall time ``epoch_ns + k * period_ns``) it sends, to
 every session, the scenario's command for apply step k + lead: the step at which a command
@@ -20,7 +21,8 @@ import time
 from collections.abc import Sequence
 
 from pd_service.transport import Sample, Transport
-from pd_service.wire import SessionSpec, keys
+from pd_service.wire import SessionSpec, WireError, keys
+from pd_service.wire.convert import command_dim
 
 from . import _cli
 from ._base import try_decode
@@ -111,8 +113,12 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
         for name in names:
             _cli.progress(TOOL, f"waiting for the spec of session {name} ...")
             spec = admin.wait_for_spec(name, args.spec_timeout)
-            if spec.r != scenario.nu:
-                return _cli.fail(TOOL, f"session {name}: {spec.r} inputs, scenario "
+            try:
+                r = command_dim(spec)  # a nonlinear model's is its registered model's
+            except WireError as exc:
+                return _cli.fail(TOOL, f"session {name}: {exc.reason}", 2)
+            if r != scenario.nu:
+                return _cli.fail(TOOL, f"session {name}: {r} inputs, scenario "
                                        f"{scenario.name!r} has {scenario.nu}", 2)
             specs.append(spec)
     followed = _Followed(transport, specs)

@@ -120,7 +120,11 @@ class _SessionLog:
                           f"{(p.recv_ns - m.made_ns) / 1e3:.1f}"]
         row += [repr(float(v)) for v in m.x] + [repr(float(v)) for v in var]
         if t is not None and t.x.shape[0] == n:
-            row += [repr(float(v)) for v in t.x] + [repr(float(v)) for v in (m.x - t.x)]
+            err = m.x - t.x
+            if t.angles:  # an angle error across +-pi is small, not 2 pi
+                idx = [i for i in t.angles if i < n]
+                err[idx] = (err[idx] + np.pi) % (2.0 * np.pi) - np.pi
+            row += [repr(float(v)) for v in t.x] + [repr(float(v)) for v in err]
             self.matched += 1
             self.last_matched_step = max(self.last_matched_step or m.step, m.step)
         else:

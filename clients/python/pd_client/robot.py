@@ -98,7 +98,8 @@ class Robot(ClientBase):
         return msg
 
     def publish_truth(self, step: int, x: Sequence[float] | np.ndarray, *,
-                      t_ns: int | None = None, names: Sequence[str] = ()) -> Truth:
+                      t_ns: int | None = None, names: Sequence[str] = (),
+                      angles: Sequence[int] = ()) -> Truth:
         """Publish the true state x(step) on ``robot/<session>/truth`` (simulators only:
         used by recorders and displays for evaluation, never by the service). ``t_ns``
         defaults to the step's time when the spec is known."""
@@ -107,7 +108,7 @@ class Robot(ClientBase):
                 raise InvalidMessage("publish_truth: t_ns is required when the spec is unknown")
             t_ns = self.spec.time_of(step)
         msg = build(Truth, session=self.session, step=step, t_ns=t_ns,
-                    x=as_array(x, "x", 1), names=list(names))
+                    x=as_array(x, "x", 1), names=list(names), angles=list(angles))
         self.transport.put(keys.truth_key(self.session), encode(msg))
         return msg
 

@@ -18,6 +18,20 @@
   speed s and heading theta(k), u(k) = s ([cos, sin](theta(k) + omega d) -
   [cos, sin](theta(k))) / d, which rotates the nominal velocity by omega d per step
   exactly.
+- ``omni``: the three-wheel omnidirectional robot of issue 9, stepped by the registered
+  nonlinear model ``"omni3"`` of :mod:`pd_service.estimation.nonlinear` (one RK4 step of
+  0.01 s, wheel torques held), built from
+  :mod:`pd_service.estimation.nonlinear.scenario_omni`::
+
+      x = [x, y, theta, vx, vy, omega] (m, m, rad, m/s, m/s, rad/s),  u = wheel torques (N m)
+      x(k+1) = f(x(k), u(k)) + w(k),  w ~ N(0, diag q(k)),
+      q(k) = Q0 = (1e-14, 1e-14, 1e-14, 4e-6, 4e-6, 2.5e-5) for t < 10 s, 100 Q0 after
+      pose:     z = [x, y, theta] + v (theta wrapped),  every step, delay 3, R = 1e-8 I
+      lead 10 (uplink 0.1 s), max_delay 8;  commands: scenario_omni.omni_torque(k)
+
+  Its session runs the unscented observer-predictor (model kind "unscented", model
+  "omni3") with MIT-rule adaptation of Q's velocity-channel entries (indices 3, 4, 5),
+  starting from the nominal Q0: the adapter must find the x100 jump by itself.
 
 Simulators draw the noise of every sensor at every sample (even of sensors a session does
 not use), so sessions given different sensor subsets of one run see the same truth.
@@ -32,24 +46,39 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pd_service.estimation import scenarios as paper
-from pd_service.wire import LinearModelSpec, SensorSpec, SessionSpec
+from pd_service.estimation.nonlinear import NonlinearModel, make_model, wrap_angle
+from pd_service.estimation.nonlinear import scenario_omni as omni
+from pd_service.estimation.nonlinear.models_omni import OMNI_ACCEL_CHANNELS, OMNI_Q0
+from pd_service.wire import LinearModelSpec, SensorSpec, SessionSpec, UnscentedModelSpec
+from pd_service.wire.messages import AdaptSpec
 
 NOISE_SETTINGS = tuple(paper.NOISE_STD)
 
 
 @dataclass(frozen=True, eq=False)
 class SensorDef:
-    """One simulated sensor: z = H x + L v, v ~ N(0, I); R = L L^T.
+    """One simulated sensor: z = H x + L v (``kind`` "linear") or z = h(x) + L v (``kind``
+    "model": h is the nonlinear model's sensor of this name, ``H`` is None), v ~ N(0, I);
+    R = L L^T. ``angles``: indices of z wrapped to [-pi, pi) after the noise is added.
 
     ``available(x)``: whether the sensor reports for the true state x (e.g. a range limit).
     """
 
     name: str
-    H: np.ndarray
+    H: np.ndarray | None
     L: np.ndarray
     delay: int
     interval: int
     available: Callable[[np.ndarray], bool] | None = None
+    kind: str = "linear"
+    h: Callable[[np.ndarray], np.ndarray] | None = None
+    angles: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.kind == "linear" and self.H is None:
+            raise ValueError(f"sensor {self.name!r}: a linear sensor needs H")
+        if self.kind == "model" and self.h is None:
+            raise ValueError(f"sensor {self.name!r}: a model sensor needs h")
 
     @property
     def R(self) -> np.ndarray:
@@ -57,19 +86,45 @@ class SensorDef:
 
     @property
     def m(self) -> int:
-        return int(self.H.shape[0])
+        return int(self.L.shape[0])
+
+    def measure(self, x: np.ndarray) -> np.ndarray:
+        """The noise-free measurement of x: H x or h(x), (m,)."""
+        if self.h is not None:
+            return np.asarray(self.h(x), dtype=np.float64)
+        assert self.H is not None
+        return self.H @ x
+
+    def wire(self) -> SensorSpec:
+        """This sensor's SensorSpec."""
+        if self.kind == "linear":
+            return SensorSpec(name=self.name, H=self.H, R=self.R, delay=self.delay,
+                              interval=self.interval)
+        return SensorSpec(kind=self.kind, name=self.name, R=self.R, delay=self.delay,
+                          interval=self.interval)
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, eq=False, kw_only=True)
 class Scenario:
-    """A simulated robot: x(k+1) = A x(k) + B u(k) + w(k), w = G e (e ~ N(0, I)), or
-    w = sqrt(diag Q) * e when ``G`` is None (Q diagonal)."""
+    """A simulated robot, linear or nonlinear.
+
+    Linear (``A``, ``B`` given): x(k+1) = A x(k) + B u(k) + w(k), w = G e (e ~ N(0, I)), or
+    w = sqrt(diag Q) * e when ``G`` is None (Q diagonal).
+
+    Nonlinear (``nonlinear`` given, ``A`` = ``B`` = None): x(k+1) = f(x(k), u(k), k) + w(k),
+    f the registered model's transition, w = sqrt(q(k)) * e with q(k) = ``Q_of(k)`` (the
+    true, possibly time-varying diagonal; default diag Q). ``Q`` is then the nominal Q the
+    session's filter starts from, and ``model_spec`` the session's wire model.
+
+    ``angles``: state indices that are angles; the published truth has them wrapped to
+    [-pi, pi) (as the estimators report them), the simulated state does not.
+    ``loss_draw``: draw one uniform after each sample (kept so that the ``paper`` scenario
+    reproduces its reference simulator, which draws a packet-loss decision there).
+    """
 
     name: str
     description: str
     period_s: float
-    A: np.ndarray
-    B: np.ndarray
     Q: np.ndarray
     sensors: tuple[SensorDef, ...]
     x0_true: np.ndarray
@@ -79,17 +134,52 @@ class Scenario:
     max_delay: int
     state_names: tuple[str, ...]
     command: Callable[[int], np.ndarray]
+    A: np.ndarray | None = None
+    B: np.ndarray | None = None
     default_steps: int = 0
     G: np.ndarray | None = None
+    nonlinear: NonlinearModel | None = None
+    model_spec: UnscentedModelSpec | None = None
+    Q_of: Callable[[int], np.ndarray] | None = None
+    angles: tuple[int, ...] = ()
+    loss_draw: bool = True
     extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        linear = self.A is not None and self.B is not None
+        if linear == (self.nonlinear is not None):
+            raise ValueError(f"scenario {self.name!r}: give either A and B, or a nonlinear "
+                             "model")
+        if self.nonlinear is not None and self.model_spec is None:
+            raise ValueError(f"scenario {self.name!r}: a nonlinear scenario needs model_spec")
 
     @property
     def n(self) -> int:
+        if self.nonlinear is not None:
+            return int(self.nonlinear.n)
+        assert self.A is not None
         return int(self.A.shape[0])
 
     @property
     def nu(self) -> int:
+        if self.nonlinear is not None:
+            return int(self.nonlinear.nu)
+        assert self.B is not None
         return int(self.B.shape[1])
+
+    @property
+    def kind(self) -> str:
+        """The session's model kind: "linear" or the wire model's kind ("unscented")."""
+        return "linear" if self.model_spec is None else self.model_spec.kind
+
+    def truth_view(self, x: np.ndarray) -> np.ndarray:
+        """x as published on the truth key: the ``angles`` wrapped to [-pi, pi)."""
+        if not self.angles:
+            return x
+        out = np.array(x, dtype=np.float64)
+        idx = list(self.angles)
+        out[idx] = wrap_angle(out[idx])
+        return out
 
     @property
     def sensor_names(self) -> list[str]:
@@ -108,12 +198,13 @@ class Scenario:
         time (``period_ns`` = period / time_scale). ``sensors``: a subset by name (default
         all)."""
         chosen = self.select(sensors)
+        model = self.model_spec if self.model_spec is not None else \
+            LinearModelSpec(A=self.A, B=self.B, Q=self.Q)
         return SessionSpec(
             session=session, period_ns=self.period_ns(time_scale), epoch_ns=int(epoch_ns),
-            model=LinearModelSpec(A=self.A, B=self.B, Q=self.Q),
+            model=model,
             x0=self.x0, P0=self.P0,
-            sensors=[SensorSpec(name=s.name, H=s.H, R=s.R, delay=s.delay, interval=s.interval)
-                     for s in chosen],
+            sensors=[s.wire() for s in chosen],
             lead=self.lead if lead is None else lead,
             max_delay=self.max_delay if max_delay is None else max_delay,
             publish_every=publish_every,
@@ -134,10 +225,12 @@ class ScenarioSim:
     """Seeded simulation of a scenario, one step at a time (no clock, no network).
 
     At step k: :meth:`sample` gives the sensors' samples of x(k), then :meth:`advance`
-    applies u(k): x(k+1) = A x(k) + B u(k) + w(k). Draw order per step (so that the
-    ``paper`` scenario reproduces :func:`pd_service.estimation.scenarios.simulate_paper`
-    exactly for the same seed and commands): for each sensor in order, if it samples, its
-    noise then one uniform (the reference's loss draw); then the process noise.
+    applies u(k): x(k+1) = A x(k) + B u(k) + w(k) (or f(x(k), u(k), k) + w(k)). Draw order
+    per step, so that the scenarios reproduce their reference simulators exactly for the same
+    seed and commands (``paper``: :func:`pd_service.estimation.scenarios.simulate_paper`;
+    ``omni``: :func:`pd_service.estimation.nonlinear.scenario_omni.simulate_omni`): for each
+    sensor in order, if it samples, its noise, then (if ``loss_draw``) one uniform (the
+    reference's loss draw); then the process noise.
     """
 
     def __init__(self, scenario: Scenario, seed: int | None = 0) -> None:
@@ -161,20 +254,33 @@ class ScenarioSim:
                 noise = np.diag(L) * e  # L diagonal: elementwise, as the reference does
             else:
                 noise = L @ e
-            out.append((s.name, s.H @ self.x + noise))
-            self.rng.random()  # the reference simulator's loss draw (kept for equality)
+            z = s.measure(self.x) + noise
+            if s.angles:
+                idx = list(s.angles)
+                z[idx] = wrap_angle(z[idx])
+            out.append((s.name, z))
+            if self.scenario.loss_draw:
+                self.rng.random()  # the reference simulator's loss draw (kept for equality)
         return out
 
     def advance(self, u: np.ndarray | Sequence[float]) -> np.ndarray:
-        """x(k+1) = A x(k) + B u(k) + w(k); returns x(k+1)."""
+        """x(k+1) = A x(k) + B u(k) + w(k), or f(x(k), u(k), k) + w(k); returns x(k+1)."""
         sc = self.scenario
         uv = np.asarray(u, dtype=np.float64).reshape(sc.nu)
-        if self._qstd is not None:
+        if sc.Q_of is not None:
+            # w = sqrt(q(k)) * e: the true, time-varying diagonal Q
+            w = np.sqrt(np.asarray(sc.Q_of(self.k), dtype=np.float64)) * \
+                self.rng.standard_normal(sc.n)
+        elif self._qstd is not None:
             w = self._qstd * self.rng.standard_normal(sc.n)
         else:
             assert sc.G is not None
             w = sc.G @ self.rng.standard_normal(sc.G.shape[1])
-        self.x = sc.A @ self.x + sc.B @ uv + w
+        if sc.nonlinear is not None:
+            self.x = sc.nonlinear.f(self.x, uv, self.k) + w
+        else:
+            assert sc.A is not None and sc.B is not None
+            self.x = sc.A @ self.x + sc.B @ uv + w
         self.k += 1
         return self.x
 
@@ -302,13 +408,64 @@ def maneuver_scenario() -> Scenario:
     )
 
 
-SCENARIOS = ("paper", "maneuver")
+# --- issue 9: the three-wheel omnidirectional robot -------------------------------------
+
+#: Parameters of the registered model "omni3" (the issue's robot), as sent in the spec.
+OMNI_PARAMS: dict[str, float] = {
+    "period_s": omni.PERIOD_S, "mass": 10.0, "inertia": 0.25, "wheel_inertia": 0.01,
+    "wheel_radius": 0.05, "wheel_distance": 0.2, "friction": 0.02,
+}
+OMNI_LEAD = 10  # steps (uplink 0.1 s)
+OMNI_POSE_DELAY = 3  # steps, nominal downlink delay of the pose samples
+OMNI_MAX_DELAY = 8  # steps: the pose delay plus 50 ms of jitter
+
+
+def omni_q_true(k: int) -> np.ndarray:
+    """Diagonal of the true Q of step k -> k+1: Q0, x100 from t = 10 s (model time)."""
+    return omni.q_true(k, omni.PERIOD_S, omni.JUMP_S, omni.JUMP_FACTOR)
+
+
+def omni_scenario() -> Scenario:
+    """Issue 9's three-wheel omnidirectional robot (see the module docstring)."""
+    model = make_model("omni3", **OMNI_PARAMS)
+    pose = model.sensors["pose"]
+    wire_model = UnscentedModelSpec(
+        model="omni3",
+        params={**OMNI_PARAMS, "Q": [float(q) for q in OMNI_Q0]},
+        adapt=AdaptSpec(method="mit", indices=list(OMNI_ACCEL_CHANNELS)),
+    )
+    return Scenario(
+        name="omni",
+        description="three-wheel omnidirectional robot, wheel torques, Q x100 at 10 s "
+                    "(issue 9); adaptive UKF",
+        period_s=omni.PERIOD_S,
+        Q=np.diag(OMNI_Q0),
+        nonlinear=model,
+        model_spec=wire_model,
+        Q_of=omni_q_true,
+        sensors=(
+            SensorDef("pose", None, math.sqrt(omni.R_POSE) * np.eye(3), delay=OMNI_POSE_DELAY,
+                      interval=1, kind="model", h=pose.h, angles=pose.angles),
+        ),
+        x0_true=omni.X0.copy(), x0=np.zeros(6), P0=omni.P0.copy(),
+        lead=OMNI_LEAD, max_delay=OMNI_MAX_DELAY,
+        state_names=("x", "y", "theta", "vx", "vy", "omega"),
+        command=omni.omni_torque,
+        default_steps=int(round(omni.DURATION_S / omni.PERIOD_S)),
+        angles=model.angles,
+        loss_draw=False,
+    )
+
+
+SCENARIOS = ("paper", "maneuver", "omni")
 
 
 def get_scenario(name: str, noise: str = "journal") -> Scenario:
-    """A scenario by name: ``paper`` (``noise`` journal|english) or ``maneuver``."""
+    """A scenario by name: ``paper`` (``noise`` journal|english), ``maneuver`` or ``omni``."""
     if name == "paper":
         return paper_scenario(noise)
     if name == "maneuver":
         return maneuver_scenario()
+    if name == "omni":
+        return omni_scenario()
     raise ValueError(f"scenario: expected one of {', '.join(SCENARIOS)}, got {name!r}")

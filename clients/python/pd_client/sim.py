@@ -3,6 +3,7 @@
     pd-robot-sim --scenario paper --noise journal --session paper --create-session
     pd-robot-sim --scenario paper --session paper --session paper-cam:camera --create-session
     pd-robot-sim --scenario maneuver --session rover --time-scale 2 --steps 600
+    pd-robot-sim --scenario omni --session omni --create-session   # adaptive UKF session
 
 Every step k (wall time ``epoch_ns + k * period_ns``; the period is the scenario's divided by
 ``--time-scale``) it moves the true state with the command in force for step k - 1, then
@@ -35,7 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pd_service.transport import Transport
-from pd_service.wire import Command, SessionSpec
+from pd_service.wire import Command, SessionSpec, WireError
+from pd_service.wire.convert import command_dim
 
 from . import _cli
 from .admin import Admin
@@ -73,10 +75,17 @@ class RobotSim:
             if (spec.epoch_ns, spec.period_ns) != (first.epoch_ns, first.period_ns):
                 raise ValueError(f"session {spec.session!r} is on another clock than "
                                  f"{first.session!r} (epoch_ns/period_ns differ)")
-            if spec.n != scenario.n or spec.r != scenario.nu:
+            try:
+                r = command_dim(spec)  # a nonlinear model's is its registered model's
+            except WireError as exc:
+                raise ValueError(f"session {spec.session!r}: {exc.reason}") from None
+            if spec.n != scenario.n or r != scenario.nu:
                 raise ValueError(f"session {spec.session!r}: model is {spec.n} states / "
-                                 f"{spec.r} inputs, scenario {scenario.name!r} has "
+                                 f"{r} inputs, scenario {scenario.name!r} has "
                                  f"{scenario.n} / {scenario.nu}")
+            if spec.model.kind != scenario.kind:
+                raise ValueError(f"session {spec.session!r}: model kind {spec.model.kind!r}, "
+                                 f"scenario {scenario.name!r} is {scenario.kind!r}")
             unknown = {s.name for s in spec.sensors} - set(scenario.sensor_names)
             if unknown:
                 raise ValueError(f"session {spec.session!r}: sensors {sorted(unknown)} are not "
@@ -112,7 +121,8 @@ class RobotSim:
 
     def tick(self, k: int) -> np.ndarray:
         """Run step k: move x(k-1) -> x(k) with u(k-1), then publish truth and samples of
-        x(k). Returns x(k). Steps must increase by one after the first call."""
+        x(k). Returns x(k) (the simulated state; the published truth has the scenario's
+        angles wrapped to [-pi, pi)). Steps must increase by one after the first call."""
         if not self._started:
             self._started = True
             self.sim.k = k  # the first step (0, or later when joining a running session)
@@ -123,9 +133,10 @@ class RobotSim:
             self.sim.advance(self.last_u)
         x = self.sim.x
         names = self.scenario.state_names
+        truth = self.scenario.truth_view(x)
         samples = self.sim.sample()
         for s in self.sessions:
-            s.robot.publish_truth(k, x, names=names)
+            s.robot.publish_truth(k, truth, names=names, angles=self.scenario.angles)
             for name, z in samples:
                 if name in s.sensors:
                     s.robot.publish(name, z, step=k)
@@ -223,7 +234,8 @@ def _run(args: argparse.Namespace, scenario: Scenario, sessions: list, steps: in
                 admin.replace_session(spec, wait=not args.no_wait_service,
                                       timeout=args.service_timeout)
                 _cli.progress(TOOL, f"session {spec.session} created "
-                                    f"(sensors {', '.join(s.name for s in spec.sensors)}, "
+                                    f"(model {_model_label(spec)}, sensors "
+                                    f"{', '.join(s.name for s in spec.sensors)}, "
                                     f"period {spec.period_ns / 1e6:g} ms, lead {spec.lead})")
         else:
             specs = []
@@ -245,6 +257,19 @@ def _run(args: argparse.Namespace, scenario: Scenario, sessions: list, steps: in
                     except PdClientError as exc:
                         _cli.progress(TOOL, f"closing {spec.session}: {exc}")
     return 0
+
+
+def _model_label(spec: SessionSpec) -> str:
+    """e.g. "linear" or "unscented omni3, adapt mit [3, 4, 5]"."""
+    model = spec.model
+    label = model.kind
+    name = getattr(model, "model", None)
+    if isinstance(name, str):
+        label += f" {name}"
+    adapt = getattr(model, "adapt", None)
+    if adapt is not None:
+        label += f", adapt {adapt.method} {adapt.indices}"
+    return label
 
 
 def _loop(sim: RobotSim, steps: int, every_s: float, stop: threading.Event,

@@ -20,7 +20,8 @@ class Truth(Message):
     """True state x(step) of a simulated robot.
 
     ``names`` (optional, n entries) label the state components, e.g. ``["p1", "v1", "p2",
-    "v2"]``; recorders and displays use them as column and axis names.
+    "v2"]``; recorders and displays use them as column and axis names. ``angles`` lists the
+    components that are angles, so that an error across +-pi is wrapped, not 2 pi.
     """
 
     session: Name = Field(description="Session id.")
@@ -29,3 +30,6 @@ class Truth(Message):
     x: Vector = Field(description="True state x(k), n values.")
     names: Annotated[list[StateName], Field(max_length=64)] = Field(
         default_factory=list, description="Names of the n state components (or empty).")
+    angles: Annotated[list[Annotated[int, Field(ge=0, le=63)]], Field(max_length=64)] = Field(
+        default_factory=list,
+        description="Indices of the components that are angles (rad): errors are wrapped.")
