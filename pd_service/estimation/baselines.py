@@ -19,7 +19,7 @@ import numpy as np
 from .checks import as_covariance, as_step, as_vector
 from .inputs import InputBuffer
 from .linear import kalman_update, propagate, tables_for
-from .model import LinearModel, Sensor
+from .model import LinearModel, Sensor, check_sensors
 from .replay import COUNTER_NAMES, PredictedState
 
 
@@ -77,7 +77,7 @@ class AugmentedStateKF(_InputsMixin):
         max_delay: int,
         command_hold: str = "hold",
     ) -> None:
-        self.model, self.sensors = model, list(sensors)
+        self.model, self.sensors = model, check_sensors(model, sensors)
         self.lead, self.max_delay = as_step(lead, "lead"), as_step(max_delay, "max_delay")
         n, D = model.n, self.max_delay
         N = n * (D + 1)
@@ -161,7 +161,7 @@ class ConventionalPredictor(_InputsMixin):
 
     def __init__(self, model: LinearModel, sensor: Sensor, x0: object, P0: object,
                  lead: int, max_delay: int, command_hold: str = "hold") -> None:
-        self.model, self.sensor = model, sensor
+        self.model, self.sensor = model, check_sensors(model, [sensor])[0]
         self.lead, self.max_delay = as_step(lead, "lead"), as_step(max_delay, "max_delay")
         self._init_inputs(model, self.lead, self.max_delay, command_hold)
         self._x = as_vector(x0, "x0", model.n)

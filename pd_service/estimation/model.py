@@ -8,6 +8,7 @@ System (time steps k are integers)::
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,3 +77,22 @@ class Sensor:
     def m(self) -> int:
         """Measurement dimension."""
         return self.H.shape[0]
+
+
+def check_sensors(model: LinearModel, sensors: Sequence[Sensor]) -> list[Sensor]:
+    """Validate a sensor list against ``model``: non-empty, Sensor objects, unique names,
+    H with n columns. Returns it as a list; ValueError names the problem."""
+    if not isinstance(model, LinearModel):
+        raise ValueError("model: expected a LinearModel")
+    sensors = list(sensors)
+    if not sensors:
+        raise ValueError("sensors: at least one sensor is required")
+    for s in sensors:
+        if not isinstance(s, Sensor):
+            raise ValueError("sensors: expected Sensor objects")
+        if s.H.shape[1] != model.n:
+            raise ValueError(f"sensor {s.name!r} H: expected {model.n} columns, got {s.H.shape[1]}")
+    names = [s.name for s in sensors]
+    if len(set(names)) != len(names):
+        raise ValueError(f"sensors: duplicate names in {names}")
+    return sensors

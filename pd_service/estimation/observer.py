@@ -8,7 +8,7 @@ import numpy as np
 
 from .checks import as_covariance, as_vector
 from .linear import LinearBackend, LinearState
-from .model import LinearModel, Sensor
+from .model import LinearModel, Sensor, check_sensors
 from .replay import ReplayEstimator
 
 
@@ -39,21 +39,7 @@ class ObserverPredictor(ReplayEstimator[LinearState]):
         max_delay: int,
         command_hold: str = "hold",
     ) -> None:
-        if not isinstance(model, LinearModel):
-            raise ValueError("model: expected a LinearModel")
-        sensors = list(sensors)
-        if not sensors:
-            raise ValueError("sensors: at least one sensor is required")
-        names = [s.name for s in sensors]
-        if len(set(names)) != len(names):
-            raise ValueError(f"sensors: duplicate names in {names}")
-        for s in sensors:
-            if not isinstance(s, Sensor):
-                raise ValueError("sensors: expected Sensor objects")
-            if s.H.shape[1] != model.n:
-                raise ValueError(
-                    f"sensor {s.name!r} H: expected {model.n} columns, got {s.H.shape[1]}"
-                )
+        sensors = check_sensors(model, sensors)
         x = as_vector(x0, "x0", model.n)
         P = as_covariance(P0, "P0", model.n)
         super().__init__(

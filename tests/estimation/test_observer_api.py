@@ -173,3 +173,15 @@ def test_input_buffer_hold_and_zero() -> None:
     assert zero.slice(20, 8)[:, 0].tolist() == [0] * 8
     with pytest.raises(IndexError):
         zero.slice(19, 2)
+
+
+@pytest.mark.parametrize("cls", ["ObserverPredictor", "AugmentedStateKF", "ConventionalPredictor"])
+def test_every_linear_estimator_checks_its_sensors(cls) -> None:
+    """A sensor whose H does not fit the model is refused by name, by every estimator."""
+    import pd_service.estimation as est
+
+    x0, P0 = paper_prior()
+    bad = Sensor("lidar", np.ones((1, 3)), np.eye(1))
+    arg = bad if cls == "ConventionalPredictor" else [bad]
+    with pytest.raises(ValueError, match="sensor 'lidar' H: expected 4 columns"):
+        getattr(est, cls)(paper_model(), arg, x0, P0, lead=1, max_delay=1)
