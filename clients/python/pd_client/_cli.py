@@ -9,7 +9,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 from pd_service.transport import DEFAULT_ENDPOINT, Transport
 
@@ -66,6 +66,18 @@ def signal_stop() -> Iterator[threading.Event]:
     finally:
         for sig, h in previous.items():
             signal.signal(sig, h)
+
+
+def run_tool(build_parser: Callable[[], argparse.ArgumentParser],
+             body: Callable[[argparse.ArgumentParser, argparse.Namespace, threading.Event], int],
+             argv: Sequence[str] | None) -> int:
+    """A tool's main: parse the flags, set up logging, run ``body(parser, args, stop)`` with
+    ``stop`` set by SIGINT / SIGTERM."""
+    with signal_stop() as stop:
+        ap = build_parser()
+        args = ap.parse_args(argv)
+        setup_logging(args.verbose)
+        return body(ap, args, stop)
 
 
 def wait_until(t_ns: int, stop: threading.Event) -> bool:

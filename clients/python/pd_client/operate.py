@@ -53,14 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    with _cli.signal_stop() as stop:
-        return _main(argv, stop)
+    return _cli.run_tool(build_parser, _main, argv)
 
 
-def _main(argv: Sequence[str] | None, stop: threading.Event) -> int:
-    ap = build_parser()
-    args = ap.parse_args(argv)
-    _cli.setup_logging(args.verbose)
+def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         scenario = get_scenario(args.scenario, args.noise)
     except ValueError as exc:

@@ -337,14 +337,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    with _cli.signal_stop() as stop:
-        return _main(argv, stop)
+    return _cli.run_tool(build_parser, _main, argv)
 
 
-def _main(argv: Sequence[str] | None, stop: threading.Event) -> int:
-    ap = build_parser()
-    args = ap.parse_args(argv)
-    _cli.setup_logging(args.verbose)
+def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     sessions = args.session or ["paper"]
     try:
         transport = _cli.open_transport(args)

@@ -105,16 +105,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    with _cli.signal_stop() as stop:
-        return _main(argv, stop)
+    return _cli.run_tool(build_parser, _main, argv)
 
 
-def _main(argv: Sequence[str] | None, stop: threading.Event) -> int:
-    ap = build_parser()
-    args = ap.parse_args(argv)
+def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     if args.count is not None and args.count < 1:
         ap.error("--count must be >= 1")
-    _cli.setup_logging(args.verbose)
     plain = args.plain or args.once or not sys.stdout.isatty()
     try:
         transport = _cli.open_transport(args)
