@@ -29,8 +29,10 @@ bench: $(STAMP)
 schemas: $(STAMP)
 	$(PY) -m pd_service.wire.schemas
 
+# Lint and type check: ruff, then mypy (pydantic plugin; configured in pyproject.toml).
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/mypy
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .hypothesis

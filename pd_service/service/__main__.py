@@ -15,8 +15,11 @@ import json
 import sys
 from collections.abc import Sequence
 
-from .config import ConfigError, Settings, load_settings
-from .logs import setup_logging
+from pd_service.errors import ConfigError
+from pd_service.logs import add_logging_args, setup_logging
+from pd_service.transport.options import DAEMON, add_zenoh_args
+
+from .config import Settings, load_settings
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -27,17 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", metavar="FILE", help="settings file (.toml, else JSON)")
     p.add_argument("--instance", help="instance id (default pd-<hostname>)")
     p.add_argument("--state-dir", dest="state_dir", help="where session specs are persisted")
-    z = p.add_argument_group("zenoh")
-    z.add_argument("--mode", choices=["peer", "client", "router"])
-    z.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help="listen endpoint (repeatable; default tcp/127.0.0.1:7447)")
-    z.add_argument("--connect", action="append", metavar="ENDPOINT",
-                   help="endpoint to connect to (repeatable), e.g. a zenohd router")
-    z.add_argument("--zenoh-config", dest="zenoh_config", metavar="FILE",
-                   help="Zenoh JSON5 config, loaded first; other zenoh flags override it")
-    z.add_argument("--multicast", action=argparse.BooleanOptionalAction, default=None,
-                   help="multicast scouting (default off)")
-    z.add_argument("--user", help="Zenoh user (usrpwd auth); password via PD_SERVICE_PASSWORD")
+    add_zenoh_args(p, DAEMON)
     s = p.add_argument_group("sessions")
     s.add_argument("--shard", metavar="I/N",
                    help="static sharding instead of rendezvous over live instances")
@@ -48,9 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--inbox-size", dest="inbox_size", type=int)
     s.add_argument("--batch-budget", dest="batch_budget", type=int)
     s.add_argument("--error-rate", dest="error_rate", type=float)
-    lg = p.add_argument_group("logs")
-    lg.add_argument("--log-level", dest="log_level")
-    lg.add_argument("--log-format", dest="log_format", choices=["kv", "json"])
+    add_logging_args(p, default_level=None)
     p.add_argument("--print-config", action="store_true", help="print the settings and exit")
     return p
 

@@ -25,15 +25,12 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from pd_service.errors import ConfigError
+from pd_service.transport.options import DEFAULT_ENDPOINT, ZenohOptions
 from pd_service.wire.keys import NAME_PATTERN
 
 ENV_PREFIX = "PD_SERVICE_"
-DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 _SHARD_RE = re.compile(r"^(\d+)/(\d+)$")
-
-
-class ConfigError(ValueError):
-    """Settings that cannot be used; the message names the field and where it came from."""
 
 
 def default_instance() -> str:
@@ -62,7 +59,7 @@ class Settings(BaseModel):
     mode: Literal["peer", "client", "router"] | None = Field(
         None, description="Zenoh mode; default peer (or the --zenoh-config file's).")
     listen: list[str] | None = Field(
-        None, description=f"Zenoh listen endpoints; default [{DEFAULT_LISTEN}] "
+        None, description=f"Zenoh listen endpoints; default [{DEFAULT_ENDPOINT}] "
                           "unless a zenoh config file is given.")
     connect: list[str] = Field(default_factory=list, description="Zenoh endpoints to connect to.")
     zenoh_config: Path | None = Field(None, description="Zenoh JSON5 config file, loaded first.")
@@ -144,10 +141,11 @@ class Settings(BaseModel):
         return self.state_dir if self.state_dir is not None else default_state_dir() / self.instance
 
     @property
-    def effective_listen(self) -> list[str]:
-        if self.listen is not None:
-            return list(self.listen)
-        return [] if self.zenoh_config is not None else [DEFAULT_LISTEN]
+    def zenoh(self) -> ZenohOptions:
+        """The Zenoh fields as the option group's :class:`ZenohOptions`."""
+        return ZenohOptions(mode=self.mode, listen=tuple(self.listen or ()),
+                            connect=tuple(self.connect), config_file=self.zenoh_config,
+                            multicast=self.multicast, user=self.user, password=self.password)
 
 
 _LIST_FIELDS = {"listen", "connect"}

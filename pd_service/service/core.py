@@ -38,6 +38,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Query, Sample
 from pd_service.transport.keyexpr import intersects
 from pd_service.wire import (
@@ -53,7 +54,6 @@ from pd_service.wire import (
 from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
-from .logs import LOGGER_NAME, event
 from .ownership import Ownership
 from .persist import SpecStore
 from .session import COMMAND, SENSOR, Refusal, Session

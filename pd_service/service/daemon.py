@@ -21,9 +21,10 @@ import threading
 import time
 from typing import Any
 
+from pd_service.logs import LOGGER_NAME, event
+
 from .config import Settings
 from .core import ServiceCore
-from .logs import LOGGER_NAME, event
 from .persist import SpecStore
 
 log = logging.getLogger(LOGGER_NAME)
@@ -34,13 +35,9 @@ _MAX_SLEEP_S = 0.5
 
 def make_transport(settings: Settings) -> Any:
     """A ZenohTransport from the settings (peer on tcp/127.0.0.1:7447 by default)."""
-    from pd_service.transport import ZenohTransport, zenoh_config
+    from pd_service.transport import DAEMON, ZenohTransport
 
-    conf = zenoh_config(mode=settings.mode, listen=settings.effective_listen,
-                        connect=settings.connect, multicast=settings.multicast,
-                        file=settings.zenoh_config, user=settings.user,
-                        password=settings.password)
-    return ZenohTransport(conf)
+    return ZenohTransport(settings.zenoh.config(DAEMON))
 
 
 class Daemon:

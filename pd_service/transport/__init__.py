@@ -2,9 +2,27 @@
 
 from .base import Handle, Query, Reply, Sample, Transport
 from .memory import InMemoryBus, InMemoryTransport
-from .zenoh_transport import DEFAULT_ENDPOINT, ZenohTransport, zenoh_config
+from .options import (
+    DAEMON,
+    DEFAULT_ENDPOINT,
+    LINK,
+    TOOL,
+    Role,
+    ZenohOptions,
+    add_zenoh_args,
+    options_from_args,
+    zenoh_config,
+)
+from .zenoh_transport import ZenohTransport
 
 __all__ = [
+    "DAEMON",
+    "LINK",
+    "TOOL",
+    "Role",
+    "ZenohOptions",
+    "add_zenoh_args",
+    "options_from_args",
     "DEFAULT_ENDPOINT",
     "Handle",
     "InMemoryBus",

@@ -6,53 +6,16 @@ logged by Zenoh, so every callback here is wrapped to log and swallow errors its
 
 from __future__ import annotations
 
-import json
 import logging
 import time
-from collections.abc import Callable, Sequence
-from pathlib import Path
+from collections.abc import Callable
 
 import zenoh
 
 from .base import Reply, Sample
+from .options import zenoh_config
 
 log = logging.getLogger("pd_service.transport")
-
-DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-
-
-def zenoh_config(
-    mode: str | None = None,
-    listen: Sequence[str] = (),
-    connect: Sequence[str] = (),
-    multicast: bool | None = None,
-    file: str | Path | None = None,
-    user: str | None = None,
-    password: str | None = None,
-) -> zenoh.Config:
-    """Build a zenoh.Config: ``file`` (JSON5) first, then the given arguments override it.
-
-    Without a file the defaults are peer mode and multicast scouting off (explicit endpoints
-    only, which is what loopback tests and a router deployment want).
-    """
-    conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
-    if mode is None and not file:
-        mode = "peer"
-    if multicast is None and not file:
-        multicast = False
-    if mode is not None:
-        conf.insert_json5("mode", json.dumps(mode))
-    if listen:
-        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    if connect:
-        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    if multicast is not None:
-        conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast)))
-    if user is not None and password is not None:
-        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
-        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
-    return conf
-
 
 class _Handle:
     def __init__(self, obj: object) -> None:

@@ -6,9 +6,11 @@ import json
 
 import pytest
 
+from pd_service.errors import ConfigError
 from pd_service.service.__main__ import main, settings_from_args
-from pd_service.service.config import DEFAULT_LISTEN, ConfigError, load_settings
+from pd_service.service.config import load_settings
 from pd_service.service.ownership import Ownership, rendezvous_owner, stable_hash
+from pd_service.transport.options import DAEMON, DEFAULT_ENDPOINT
 
 
 def test_layers_flags_over_env_over_file(tmp_path):
@@ -22,7 +24,7 @@ def test_layers_flags_over_env_over_file(tmp_path):
     assert s.expire_s == 60.0  # flag beats env beats file
     assert s.connect == ["tcp/2.2.2.2:7447", "tcp/3.3.3.3:1"]  # env beats file
     assert s.batch_budget == 4 and s.multicast is True
-    assert s.effective_listen == [DEFAULT_LISTEN]
+    assert s.zenoh.resolved(DAEMON).listen == (DEFAULT_ENDPOINT,)
 
 
 def test_json_file_and_config_env_var(tmp_path):
@@ -30,7 +32,7 @@ def test_json_file_and_config_env_var(tmp_path):
     f.write_text(json.dumps({"shard": "1/3", "zenoh_config": "/etc/z.json5"}))
     s = load_settings({}, environ={"PD_SERVICE_CONFIG": str(f)})
     assert s.shard_tuple == (1, 3)
-    assert s.effective_listen == []  # a zenoh config file decides the endpoints
+    assert s.zenoh.resolved(DAEMON).listen == ()  # a zenoh config file decides the endpoints
 
 
 @pytest.mark.parametrize("flags, env, match", [
@@ -56,7 +58,7 @@ def test_cli_flags(monkeypatch, capsys):
     monkeypatch.delenv("PD_SERVICE_CONFIG", raising=False)
     s, show = settings_from_args(["--instance", "x", "--connect", "tcp/a:1", "--connect",
                                   "tcp/b:2", "--listen", "tcp/127.0.0.1:9000", "--shard", "0/2"])
-    assert (s.instance, s.connect, s.effective_listen, s.shard) == \
+    assert (s.instance, s.connect, list(s.zenoh.resolved(DAEMON).listen), s.shard) == \
         ("x", ["tcp/a:1", "tcp/b:2"], ["tcp/127.0.0.1:9000"], "0/2")
     assert main(["--print-config", "--instance", "y"]) == 0
     assert json.loads(capsys.readouterr().out)["instance"] == "y"
