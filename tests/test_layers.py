@@ -1,0 +1,180 @@
+"""The layering of docs/architecture.md, enforced: which package may import which, no import
+cycles, and a light ``import pd_client``.
+
+Every ``import`` statement of every module is read with :mod:`ast`, function-level (lazy)
+imports included, so a lazy import cannot hide an upward edge or a cycle.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = {"pd_service": ROOT / "pd_service", "pd_client": ROOT / "clients" / "python" / "pd_client"}
+
+#: Layers from the bottom up. A module may import its own layer, the layers listed in
+#: ``ALLOWED`` for it, and third-party/stdlib modules (restricted further by ``THIRD_PARTY``).
+ALLOWED: dict[str, set[str]] = {
+    "pd_service.estimation": set(),
+    "pd_service.errors": set(),
+    "pd_service.logs": set(),
+    "pd_service.wire": {"pd_service.estimation", "pd_service.errors"},
+    "pd_service.transport": {"pd_service.errors", "pd_service.logs", "pd_service.wire"},
+    "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
+    "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
+    "pd_service.service": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
+                           "pd_service.logs", "pd_service.transport", "pd_service.backends"},
+    "pd_service.link": {"pd_service.errors", "pd_service.logs", "pd_service.transport",
+                        "pd_service.wire"},
+    "pd_service.__main__": {"pd_service.service"},
+    "pd_service": set(),
+    "pd_client.tools": {"pd_client", "pd_service.estimation", "pd_service.wire",
+                        "pd_service.errors", "pd_service.logs", "pd_service.transport",
+                        "pd_service.scenarios", "pd_service.backends"},
+    "pd_client": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
+                  "pd_service.logs", "pd_service.transport"},
+}
+
+#: Third-party imports a layer may use (None: any). The estimation core is pure numpy.
+THIRD_PARTY: dict[str, set[str] | None] = {
+    "pd_service.estimation": {"numpy"},
+    "pd_service.errors": set(),
+    "pd_service.logs": set(),
+}
+
+STDLIB = set(sys.stdlib_module_names) | {"__future__"}
+
+
+def layer_of(module: str) -> str:
+    """The most specific key of ``ALLOWED`` that ``module`` falls under."""
+    best = ""
+    for name in ALLOWED:
+        if (module == name or module.startswith(name + ".")) and len(name) > len(best):
+            best = name
+    assert best, f"{module} belongs to no layer: add it to ALLOWED and docs/architecture.md"
+    return best
+
+
+def modules() -> Iterator[tuple[str, Path]]:
+    for top, base in SOURCES.items():
+        for path in sorted(base.rglob("*.py")):
+            rel = path.relative_to(base).with_suffix("")
+            parts = [top, *rel.parts]
+            if parts[-1] == "__init__":
+                parts.pop()
+            yield ".".join(parts), path
+
+
+def imports_of(module: str, path: Path) -> Iterator[tuple[str, int]]:
+    """Absolute names imported by the module (``from a import b`` gives ``a.b`` when ``a.b``
+    is a module of the project, else ``a``), with line numbers."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    is_pkg = path.name == "__init__.py"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                yield a.name, node.lineno
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.split(".")
+                if not is_pkg:
+                    base = base[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            for a in node.names:
+                sub = f"{mod}.{a.name}"
+                yield (sub if sub in KNOWN else mod), node.lineno
+
+
+KNOWN = {m for m, _ in modules()}
+
+
+def project_root(name: str) -> str | None:
+    top = name.split(".")[0]
+    return top if top in SOURCES else None
+
+
+def edges() -> Iterator[tuple[str, str, int, Path]]:
+    for module, path in modules():
+        for target, line in imports_of(module, path):
+            yield module, target, line, path
+
+
+def test_every_module_has_a_layer() -> None:
+    for module, _ in modules():
+        layer_of(module)
+
+
+def test_no_upward_or_sideways_import() -> None:
+    bad = []
+    for module, target, line, path in edges():
+        src = layer_of(module)
+        if project_root(target):
+            dst = layer_of(target)
+            if dst != src and dst not in ALLOWED[src]:
+                bad.append(f"{path.relative_to(ROOT)}:{line}: {src} imports {target} ({dst})")
+        else:
+            allowed = THIRD_PARTY.get(src)
+            top = target.split(".")[0]
+            if allowed is not None and top not in STDLIB and top not in allowed:
+                bad.append(f"{path.relative_to(ROOT)}:{line}: {src} imports {target}")
+    assert not bad, "imports against docs/architecture.md:\n" + "\n".join(bad)
+
+
+def test_no_import_cycle() -> None:
+    """Tarjan's strongly connected components over the module graph. An edge from a module to
+    a package that contains it is left out (Python imports the parent first anyway)."""
+    graph: dict[str, set[str]] = {m: set() for m in KNOWN}
+    for module, target, _, _ in edges():
+        while target not in KNOWN and "." in target:
+            target = target.rsplit(".", 1)[0]
+        if target in KNOWN and target != module and not module.startswith(target + "."):
+            graph[module].add(target)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not cycles, f"import cycles: {cycles}"
+
+
+@pytest.mark.parametrize("forbidden", ["matplotlib", "pd_client.tools", "pd_service.service",
+                                       "pd_service.link"])
+def test_import_pd_client_is_light(forbidden: str) -> None:
+    code = f"import pd_client, sys; print({forbidden!r} in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False", f"import pd_client loads {forbidden}"
