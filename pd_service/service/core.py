@@ -584,7 +584,7 @@ class ServiceCore:
                                 f"{self.settings.max_sessions} sessions (max_sessions)")
             if self.ownership.owns(session):
                 # Let the estimator check the spec before anything changes.
-                Session(spec, "active", "", now, 1.0, 1, self.settings.engine)
+                Session(spec, "active", "", now, 1.0, 1)
         except WireError as exc:
             event(log, "config_refused", session=session, reason=exc.reason)
             route = self._routes.get(session)
@@ -653,8 +653,7 @@ class ServiceCore:
             return
         try:
             sess = Session(self._specs[session], state, detail, now,
-                           self.settings.error_rate, self.settings.error_burst,
-                           self.settings.engine)
+                           self.settings.error_rate, self.settings.error_burst)
         except WireError as exc:  # a persisted or synced spec the estimator refuses
             route.sess, route.inbox = None, None
             self._routes[session] = route
