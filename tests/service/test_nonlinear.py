@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from pd_service.estimation.imm.factory import make_imm
 from pd_service.estimation.nonlinear.factory import make_unscented
