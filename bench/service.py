@@ -21,7 +21,7 @@ Usage: python bench/service.py [--sessions 10,100,500,1000] [--duration 10] [--w
        [--profile]        cProfile the daemon's worker thread, print the top functions
        [--threads]        print the CPU seconds of the daemon's busiest threads
        [--declare-keys]   load generator declares its key expressions
-Settings reach the daemon through the environment, e.g. PD_SERVICE_ENGINE=single.
+Settings reach the daemon through the environment, e.g. PD_SERVICE_BATCH_BUDGET=32.
 """
 
 from __future__ import annotations

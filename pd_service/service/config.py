@@ -10,6 +10,11 @@ Every field of :class:`Settings` can be set at each layer under the same name:
 
 A later layer replaces a field wholesale (a ``--connect`` flag replaces the file's list).
 Bad values raise :class:`ConfigError` naming the field and the layer it came from.
+
+The layers are pydantic-settings sources (:meth:`Settings.settings_customise_sources`): init
+kwargs (flags) > :class:`EnvSettingsSource` > :class:`TomlConfigSettingsSource` /
+:class:`JsonConfigSettingsSource`. They are used only inside :func:`load_settings`;
+``Settings(**values)`` alone is defaults + ``values``, whatever the environment holds.
 """
 
 from __future__ import annotations
@@ -19,11 +24,23 @@ import os
 import re
 import socket
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from contextvars import ContextVar
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, ValidationError, field_validator
+from pydantic.fields import FieldInfo
+from pydantic_settings import (
+    BaseSettings,
+    EnvSettingsSource,
+    JsonConfigSettingsSource,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
 
 from pd_service.errors import ConfigError
 from pd_service.transport.options import DEFAULT_ENDPOINT, ZenohOptions
@@ -44,10 +61,10 @@ def default_state_dir() -> Path:
     return Path(base) / "pd-service"
 
 
-class Settings(BaseModel):
+class Settings(BaseSettings):
     """Everything the daemon can be told. Units are in the field names (``_s`` seconds)."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = SettingsConfigDict(extra="forbid", validate_assignment=True)
 
     # identity and storage
     instance: str = Field(default_factory=default_instance,
@@ -73,10 +90,6 @@ class Settings(BaseModel):
 
     # sessions
     expire_s: float = Field(600.0, gt=0, description="Idle time after which a session expires.")
-    engine: Literal["stacked", "single"] = Field(
-        "stacked", description="Estimator numerics: 'stacked' evaluates the sessions of one "
-                               "round together as stacked arrays; 'single' runs "
-                               "ObserverPredictor per session. Same results to rounding.")
     min_period_ms: float = Field(1.0, gt=0, description="Specs with a shorter step period are "
                                  "refused (a 1 ns period would keep the worker busy).")
     max_sessions: int = Field(10_000, ge=1, description="Specs beyond this many are refused.")
@@ -148,54 +161,111 @@ class Settings(BaseModel):
                             multicast=self.multicast, user=self.user, password=self.password)
 
 
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        """Highest first: flags (init kwargs) > environment > file. Outside
+        :func:`load_settings` only the init kwargs (a plain model)."""
+        layers = _LAYERS.get()
+        if layers is None:
+            return (init_settings,)
+        sources: list[PydanticBaseSettingsSource] = [
+            _Traced(init_settings, "flags", layers.origin),
+            _Traced(_EnvSource(settings_cls, layers.environ), "environment", layers.origin),
+        ]
+        if layers.file is not None:
+            file_cls = TomlConfigSettingsSource if layers.file.suffix == ".toml" \
+                else JsonConfigSettingsSource
+            sources.append(_Traced(file_cls(settings_cls, layers.file), layers.file_label,
+                                   layers.origin))
+        return tuple(sources)
+
+
 _LIST_FIELDS = {"listen", "connect"}
 
 
-def read_file(path: str | Path) -> dict[str, Any]:
-    """Read a settings file: TOML if it ends in ``.toml``, else JSON. Must be a table/object."""
-    p = Path(path)
+@dataclass(slots=True)
+class _Layers:
+    """What one :func:`load_settings` call layers, and where each given field came from."""
+
+    environ: Mapping[str, str]
+    file: Path | None
+    origin: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def file_label(self) -> str:
+        return f"file {str(self.file)!r}"
+
+
+_LAYERS: ContextVar[_Layers | None] = ContextVar("pd_service_settings_layers", default=None)
+
+
+@contextmanager
+def _layering(layers: _Layers) -> Iterator[None]:
+    token = _LAYERS.set(layers)
+    try:
+        yield
+    finally:
+        _LAYERS.reset(token)
+
+
+class _EnvSource(EnvSettingsSource):
+    """``PD_SERVICE_<FIELD>`` read from a given mapping; list fields split on commas."""
+
+    def __init__(self, settings_cls: type[BaseSettings], environ: Mapping[str, str]) -> None:
+        self._environ = environ
+        super().__init__(settings_cls, case_sensitive=False, env_prefix=ENV_PREFIX)
+
+    def _load_env_vars(self) -> Mapping[str, str | None]:
+        return {k.lower(): v for k, v in self._environ.items()}
+
+    def prepare_field_value(self, field_name: str, field: FieldInfo, value: Any,
+                            value_is_complex: bool) -> Any:
+        if field_name in _LIST_FIELDS and isinstance(value, str):
+            return [x.strip() for x in value.split(",") if x.strip()]
+        return super().prepare_field_value(field_name, field, value, value_is_complex)
+
+
+class _Traced(PydanticBaseSettingsSource):
+    """A source that notes which fields it gave (pydantic-settings merges the layers
+    without saying where a value came from; the error messages name the layer)."""
+
+    def __init__(self, inner: PydanticBaseSettingsSource, label: str,
+                 origin: dict[str, str]) -> None:
+        super().__init__(inner.settings_cls)
+        self.inner, self.label, self.origin = inner, label, origin
+
+    def get_field_value(self, field: FieldInfo, field_name: str) -> tuple[Any, str, bool]:
+        return self.inner.get_field_value(field, field_name)
+
+    def __call__(self) -> dict[str, Any]:
+        values = self.inner()
+        for k in values:  # sources are called highest priority first
+            self.origin.setdefault(k, self.label)
+        return values
+
+
+def _check_file(p: Path) -> None:
+    """The file sources skip a missing file and raise their parser's errors: say which file
+    and why instead."""
+    kind = "TOML" if p.suffix == ".toml" else "JSON"
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConfigError(f"config file {str(p)!r}: cannot read ({exc.strerror})") from None
     try:
-        data = tomllib.loads(text) if p.suffix == ".toml" else json.loads(text)
+        data = tomllib.loads(text) if kind == "TOML" else json.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"config file {str(p)!r}: not valid "
-                          f"{'TOML' if p.suffix == '.toml' else 'JSON'} ({exc})") from None
+        raise ConfigError(f"config file {str(p)!r}: not valid {kind} ({exc})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"config file {str(p)!r}: expected a table of settings")
-    return data
-
-
-def read_env(environ: Mapping[str, str]) -> dict[str, Any]:
-    """``PD_SERVICE_<FIELD>`` variables as raw values (lists split on commas)."""
-    out: dict[str, Any] = {}
-    for name in Settings.model_fields:
-        raw = environ.get(ENV_PREFIX + name.upper())
-        if raw is None:
-            continue
-        if name in _LIST_FIELDS:
-            out[name] = [x.strip() for x in raw.split(",") if x.strip()]
-        elif name in ("multicast",):
-            low = raw.strip().lower()
-            if low not in ("1", "0", "true", "false", "yes", "no", "on", "off"):
-                raise ConfigError(f"{ENV_PREFIX}{name.upper()}: expected a boolean, got {raw!r}")
-            out[name] = low in ("1", "true", "yes", "on")
-        else:
-            out[name] = raw
-    return out
-
-
-def _coerce(name: str, value: Any) -> Any:
-    """Environment values are strings: convert those of numeric fields (files give types)."""
-    ann = Settings.model_fields[name].annotation
-    if isinstance(value, str) and ann in (int, float):
-        try:
-            return ann(value)
-        except ValueError:
-            raise ConfigError(f"{name}: expected a number, got {value!r}") from None
-    return value
 
 
 def load_settings(
@@ -207,25 +277,19 @@ def load_settings(
     command line (None values are ignored). The file is ``config_file``, else
     ``$PD_SERVICE_CONFIG``, else none."""
     environ = os.environ if environ is None else environ
-    flags = {k: v for k, v in (flags or {}).items() if v is not None}
+    given = {k: v for k, v in (flags or {}).items() if v is not None}
     path = config_file or environ.get(ENV_PREFIX + "CONFIG")
-    layers: list[tuple[str, dict[str, Any]]] = []
-    if path:
-        layers.append((f"file {str(path)!r}", read_file(path)))
-    layers.append(("environment", read_env(environ)))
-    layers.append(("flags", dict(flags)))
-    merged: dict[str, Any] = {}
-    origin: dict[str, str] = {}
-    for where, values in layers:
-        for k, v in values.items():
-            if k not in Settings.model_fields:
-                raise ConfigError(f"{where}: unknown setting {k!r}")
-            merged[k] = _coerce(k, v) if where == "environment" else v
-            origin[k] = where
+    layers = _Layers(environ, Path(path) if path else None)
+    if layers.file is not None:
+        _check_file(layers.file)
     try:
-        return Settings(**merged)
+        with _layering(layers):
+            return Settings(**given)
     except ValidationError as exc:
         err = exc.errors(include_url=False)[0]
-        field = ".".join(str(p) for p in err["loc"]) or "settings"
-        where = origin.get(str(err["loc"][0]) if err["loc"] else "", "defaults")
-        raise ConfigError(f"{field} ({where}): {err['msg']}") from None
+        name = str(err["loc"][0]) if err["loc"] else ""
+        where = layers.origin.get(name, "defaults")
+        if err["type"] == "extra_forbidden":
+            raise ConfigError(f"{where}: unknown setting {name!r}") from None
+        loc = ".".join(str(p) for p in err["loc"]) or "settings"
+        raise ConfigError(f"{loc} ({where}): {err['msg']}") from None

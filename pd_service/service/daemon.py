@@ -19,9 +19,9 @@ import signal
 import sys
 import threading
 import time
-from typing import Any
 
 from pd_service.logs import LOGGER_NAME, event
+from pd_service.transport import Transport
 
 from .config import Settings
 from .core import ServiceCore
@@ -33,7 +33,7 @@ log = logging.getLogger(LOGGER_NAME)
 _MAX_SLEEP_S = 0.5
 
 
-def make_transport(settings: Settings) -> Any:
+def make_transport(settings: Settings) -> Transport:
     """A ZenohTransport from the settings (peer on tcp/127.0.0.1:7447 by default)."""
     from pd_service.transport import DAEMON, ZenohTransport
 
@@ -43,10 +43,10 @@ def make_transport(settings: Settings) -> Any:
 class Daemon:
     """Runs a ServiceCore on a transport (Zenoh unless one is given) with a worker thread."""
 
-    def __init__(self, settings: Settings, transport: Any = None) -> None:
+    def __init__(self, settings: Settings, transport: Transport | None = None) -> None:
         self.settings = settings
         self._given_transport = transport
-        self.transport: Any = None
+        self.transport: Transport | None = None
         self.core: ServiceCore | None = None
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
@@ -56,9 +56,10 @@ class Daemon:
         # Zenoh's threads need the GIL for every callback; with the default 5 ms switch
         # interval a busy worker would delay each hand-off by up to 5 ms.
         sys.setswitchinterval(self.settings.switch_interval_us * 1e-6)
-        self.transport = self._given_transport or make_transport(self.settings)
+        transport = self._given_transport or make_transport(self.settings)
+        self.transport = transport
         store = SpecStore(self.settings.effective_state_dir)
-        self.core = ServiceCore(self.transport, self.settings, store=store)
+        self.core = ServiceCore(transport, self.settings, store=store)
         self.core.start()
         self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)
         self._worker.start()

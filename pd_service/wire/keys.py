@@ -67,11 +67,6 @@ def sensor_key(session: str, sensor: str) -> str:
     return f"{OPERATOR_ROOT}/{check_name(session, 'session')}/sensor/{check_name(sensor, 'sensor')}"
 
 
-def session_sensors(session: str) -> str:
-    """Every sensor stream of one session: ``pd/<session>/sensor/*``."""
-    return f"{OPERATOR_ROOT}/{check_name(session, 'session')}/sensor/*"
-
-
 def command_key(session: str) -> str:
     return f"{OPERATOR_ROOT}/{check_name(session, 'session')}/cmd"
 

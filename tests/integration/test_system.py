@@ -49,7 +49,7 @@ class Watcher:
         self.errors: list[ErrorReport] = []
         self.truth: dict[int, np.ndarray] = {}
         self.last_packet = time.monotonic()
-        t.subscribe(keys.session_sensors(SESSION), self._meas)
+        t.subscribe(keys.ALL_SENSORS.replace("*", SESSION, 1), self._meas)
         t.subscribe(keys.command_key(SESSION), self._cmd)
         t.subscribe(keys.prediction_key(SESSION), self._pred)
         t.subscribe(keys.error_key(SESSION), self._err)

@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import pytest
 
 from pd_service.estimation.imm.factory import make_imm
 from pd_service.estimation.nonlinear.factory import make_unscented
@@ -196,20 +195,19 @@ def at(step: float) -> int:
     return int(round(step * PERIOD_NS))
 
 
-def make_core(bus, clock, path, engine) -> ServiceCore:
-    core = ServiceCore(bus.transport(), Settings(instance="a", engine=engine),
+def make_core(bus, clock, path) -> ServiceCore:
+    core = ServiceCore(bus.transport(), Settings(instance="a"),
                        store=SpecStore(path), now_ns=clock, spawn=lambda fn: fn())
     core.start()
     return core
 
 
-@pytest.mark.parametrize("engine", ["stacked", "single"])
-def test_nonlinear_sessions_next_to_a_linear_one(tmp_path, engine):
+def test_nonlinear_sessions_next_to_a_linear_one(tmp_path):
     bus = InMemoryBus()
     clock = Clock(at(0) - 1)
     col = Collector().attach(bus.transport())
     cli = bus.transport()
-    core = make_core(bus, clock, tmp_path / "a", engine)
+    core = make_core(bus, clock, tmp_path / "a")
     steps = 60
     rng = np.random.default_rng(11)
     from pd_service.estimation.scenarios import paper_command, simulate_paper
@@ -234,7 +232,7 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path, engine):
         {"lin": "created", "u1": "created", "i1": "created"}
     # the stacked engine batches the linear session only; nonlinear ones run plain
     assert {s: type(core._routes[s].sess.est).__name__ for s in ("lin", "u1", "i1")} == {
-        "lin": "StackedObserverPredictor" if engine == "stacked" else "ObserverPredictor",
+        "lin": "StackedObserverPredictor",
         "u1": "UnscentedObserverPredictor", "i1": "ImmObserverPredictor"}
 
     for k in range(steps):
@@ -287,7 +285,7 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path, engine):
     # the specs were persisted: a restarted daemon serves the nonlinear sessions again
     bus2 = InMemoryBus()
     col2 = Collector().attach(bus2.transport())
-    core2 = make_core(bus2, clock, tmp_path / "a", engine)
+    core2 = make_core(bus2, clock, tmp_path / "a")
     assert core2.served_sessions() == ["i1", "lin", "u1"]
     assert core2._routes["i1"].sess.spec == imm_spec()
     clock.t = at(steps + 0.6)
@@ -305,7 +303,7 @@ def test_nonlinear_spec_replaces_a_linear_session(tmp_path):
     clock = Clock(at(0.1))
     col = Collector().attach(bus.transport())
     cli = bus.transport()
-    core = make_core(bus, clock, tmp_path / "a", "stacked")
+    core = make_core(bus, clock, tmp_path / "a")
     spec = linear_spec().model_copy(update={"session": "s1"})
     cli.put(keys.config_key("s1"), encode(spec))
     core.run_once()

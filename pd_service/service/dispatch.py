@@ -1,0 +1,265 @@
+"""Dispatch: transport callbacks -> bounded inboxes -> round-robin rounds of the worker.
+
+Data path::
+
+    transport thread(s)                         worker (one thread, under the core's lock)
+    -------------------                         ------------------------------------------
+    pd/*/sensor/*  --\\                          control inbox: configs, presence  (all)
+    pd/*/cmd       ---+-> parse session (split)  unknown inbox: unknown sessions   (all)
+    pd/*/config    --/   append to an inbox,    ready sessions, round-robin: <= batch_budget
+                         wake the worker           messages each per round
+
+Callbacks never block and never take the core's lock: they append ``(stream, key, payload,
+recv_mono_ns, kind)`` to a bounded deque (the oldest entry is dropped when full and counted
+as ``flood``). A session's inbox is bounded, so a flooding session loses its own oldest
+messages; the round-robin budget keeps it from delaying the others by more than one budget.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter, deque
+from dataclasses import dataclass
+
+from pd_service.logs import LOGGER_NAME
+from pd_service.transport import Sample
+from pd_service.wire import SessionSpec, keys
+from pd_service.wire.keys import KeyError_, check_name
+
+from .config import Settings
+from .ownership import Ownership
+from .publish import Publisher
+from .session import COMMAND, SENSOR, Refusal, Session
+
+log = logging.getLogger(LOGGER_NAME)
+
+#: One received message: (stream SENSOR/COMMAND, key, payload, recv_mono_ns, kind put/delete).
+Item = tuple[int, str, bytes, int, str]
+
+
+@dataclass(eq=False, slots=True)
+class Route:
+    """Where a session's messages go. ``inbox`` None: known, but served by another instance."""
+
+    session: str
+    inbox: deque[Item] | None = None
+    sess: Session | None = None
+    ready: bool = False
+    flood: int = 0  # written by callbacks only
+    flood_seen: int = 0  # written by the worker only
+
+
+# --- control inbox entries (handled by the lifecycle, before any session's messages) -------
+
+@dataclass(frozen=True, slots=True)
+class ConfigChange:
+    """A put or delete on ``pd/<session>/config``."""
+
+    sample: Sample
+
+
+@dataclass(frozen=True, slots=True)
+class PeerSpecs:
+    """Specs fetched from peers off the worker thread."""
+
+    specs: dict[str, SessionSpec]
+
+
+@dataclass(frozen=True, slots=True)
+class Membership:
+    """A service instance's liveliness token appeared (alive) or went away."""
+
+    key: str
+    alive: bool
+
+
+Control = ConfigChange | PeerSpecs | Membership
+
+
+class Dispatch:
+    """The inboxes and the round-robin. Callbacks (``on_*``) run on transport threads; the
+    rest on the worker, under the core's lock."""
+
+    def __init__(self, settings: Settings, counters: Counter[str], publisher: Publisher,
+                 ownership: Ownership, wake: threading.Event) -> None:
+        self.settings = settings
+        self.counters = counters
+        self.pub = publisher
+        self.ownership = ownership
+        self.wake = wake
+        self.routes: dict[str, Route] = {}
+        self.ready: deque[Route] = deque()
+        self.control: deque[Control] = deque(maxlen=settings.control_inbox_size)
+        self.unknown: deque[tuple[str, Item]] = deque(maxlen=settings.unknown_inbox_size)
+        self.control_drops = 0
+        self.unknown_drops = 0
+
+    # ================================================================== callbacks ======
+    # Transport threads. No lock, no decoding, no blocking: split the key, append, wake.
+
+    def on_sensor_sample(self, sample: Sample) -> None:
+        self._enqueue(SENSOR, sample)
+
+    def on_command_sample(self, sample: Sample) -> None:
+        self._enqueue(COMMAND, sample)
+
+    def _enqueue(self, stream: int, sample: Sample) -> None:
+        key = sample.key
+        parts = key.split("/", 2)
+        if len(parts) < 3:
+            return
+        route = self.routes.get(parts[1])
+        item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind)
+        if route is None:
+            q = self.unknown
+            if len(q) == q.maxlen:
+                self.unknown_drops += 1
+            q.append((parts[1], item))
+            self.wake.set()
+            return
+        inbox = route.inbox
+        if inbox is None:  # served by another instance
+            return
+        if len(inbox) == inbox.maxlen:
+            route.flood += 1
+        inbox.append(item)
+        if not route.ready:
+            route.ready = True
+            self.ready.append(route)
+            self.wake.set()
+
+    def on_config_sample(self, sample: Sample) -> None:
+        q = self.control
+        if len(q) == q.maxlen:
+            self.control_drops += 1
+        q.append(ConfigChange(sample))
+        self.wake.set()
+
+    def on_liveliness(self, key: str, alive: bool) -> None:
+        self.control.append(Membership(key, alive))
+        self.wake.set()
+
+    def post_peer_specs(self, specs: dict[str, SessionSpec]) -> None:
+        """From any thread: hand specs fetched from peers to the worker."""
+        self.control.append(PeerSpecs(specs))
+        self.wake.set()
+
+    # ================================================================== worker ========
+
+    def has_work(self) -> bool:
+        return bool(self.ready or self.control or self.unknown)
+
+    def mark_ready(self, route: Route) -> None:
+        """Queue ``route`` for the next round if its inbox holds messages."""
+        if route.inbox and not route.ready:
+            route.ready = True
+            self.ready.append(route)
+
+    def round(self, now: int, touched: list[Session]) -> int:
+        """One round-robin pass over the sessions that were ready when it began; appends to
+        ``touched`` each session that accepted its first measurement since it last published.
+        Returns the number of messages handled."""
+        ready = self.ready
+        budget = self.settings.batch_budget
+        handled = 0
+        for _ in range(len(ready)):
+            route = ready.popleft()
+            route.ready = False
+            sess, inbox = route.sess, route.inbox
+            if sess is None or inbox is None:
+                continue
+            if route.flood != route.flood_seen:
+                self._note_flood(route, sess, now)
+            now_step = sess.step_now(now)
+            n = 0
+            had_pending = bool(sess.pending_recv)
+            while n < budget and inbox:
+                item = inbox.popleft()
+                n += 1
+                self.handle(sess, item, now_step, now)
+            handled += n
+            if inbox and not route.ready:
+                route.ready = True
+                ready.append(route)
+            if sess.pending_recv and not had_pending:
+                touched.append(sess)
+        return handled
+
+    def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
+        """Give one message to its session; count it, or refuse it (reported)."""
+        stream, key, payload, recv_mono, kind = item
+        refusal: Refusal | None
+        try:
+            if kind != "put":
+                refusal = Refusal(
+                    "malformed" if stream == SENSOR else "commands_malformed",
+                    f"{kind} is not supported on {key!r}: publish a message with put")
+            elif stream == SENSOR:
+                refusal = sess.on_measurement(key, payload, now_step, now)
+                if refusal is None:
+                    self.counters["accepted"] += 1
+                    sess.pending_recv.append(recv_mono)
+                    return
+            else:
+                refusal = sess.on_command(key, payload, now_step, now)
+                if refusal is None:
+                    self.counters["commands_accepted"] += 1
+                    return
+        except Exception as exc:  # isolation: nothing one session sends escapes the worker
+            log.debug("internal error in session %s", sess.name, exc_info=True)
+            refusal = Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")
+        if refusal is not None:  # always: every accepted path returned above
+            self.pub.refuse(sess, key, refusal, now)
+
+    def _note_flood(self, route: Route, sess: Session, now: int) -> None:
+        seen = route.flood
+        dropped = seen - route.flood_seen
+        route.flood_seen = seen
+        sess.counters["flood"] += dropped
+        sess.counters["refused"] += dropped
+        self.counters["flood"] += dropped
+        self.counters["refused"] += dropped
+        pub = self.pub
+        if sess.limiter.allow(now) and pub.total_limiter.allow(now):
+            pub.error(sess.error_key, sess.name, keys.ALL_SENSORS.replace("*", sess.name, 1),
+                      f"inbox full: dropped {dropped} oldest unread message(s) "
+                      f"(more than {self.settings.inbox_size} waiting)", None, now)
+
+    def process_unknown(self, now: int, touched: list[Session]) -> int:
+        """Messages that arrived for no known session: hand them over if the session was
+        configured meanwhile, else count them and (the name's owner only) report them."""
+        q = self.unknown
+        n = 0
+        if self.unknown_drops:
+            self.counters["unknown_flood"] += self.unknown_drops
+            self.unknown_drops = 0
+        pub = self.pub
+        while q:
+            session, item = q.popleft()
+            n += 1
+            route = self.routes.get(session)
+            if route is not None:
+                sess = route.sess
+                if sess is not None:  # configured since the message arrived
+                    had = bool(sess.pending_recv)
+                    self.handle(sess, item, sess.step_now(now), now)
+                    if sess.pending_recv and not had:
+                        touched.append(sess)
+                continue
+            self.counters["unknown_session"] += 1
+            self.counters["refused"] += 1
+            try:
+                check_name(session, "session")
+            except KeyError_:
+                self.counters["bad_key"] += 1
+                continue
+            # Every instance knows every spec, so the rendezvous owner of the name reports.
+            if self.ownership.owns(session):
+                if pub.unknown_limiter.allow(now) and pub.total_limiter.allow(now):
+                    pub.error(keys.error_key(session), session, item[1],
+                              f"unknown session {session!r}: put a SessionSpec on "
+                              f"{keys.config_key(session)!r} first", None, now)
+                else:
+                    self.counters["errors_suppressed"] += 1
+        return n

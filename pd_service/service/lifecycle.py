@@ -1,0 +1,321 @@
+"""Session lifecycle: specs applied, sessions installed, removed, expired, reassigned,
+persisted and synced with the other instances.
+
+Every instance keeps every spec (``specs``) and runs the sessions it owns (rendezvous over
+the live instances, or a static shard; :class:`Ownership`). A spec comes from a config put
+(checked, persisted, answered with a SessionStatus), from the state directory at start, or
+from the peers (at start and whenever an instance joins). A session is (re)started from its
+spec's prior on every change: spec replaced, ownership gained. Worker thread only (under the
+core's lock), except :meth:`Lifecycle.recover` and the background sync.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter, deque
+from collections.abc import Callable
+
+from pd_service.logs import LOGGER_NAME, event
+from pd_service.transport import Sample, Transport
+from pd_service.wire import SessionSpec, WireError, decode, keys
+from pd_service.wire.keys import KeyError_, check_name
+
+from .config import Settings
+from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
+from .ownership import Ownership
+from .persist import SpecStore
+from .publish import Publisher
+from .session import Refusal, Session
+from .status import SessionState, state_of
+
+log = logging.getLogger(LOGGER_NAME)
+
+#: How long a removed or expired session's name is remembered (ns): a late sync from a peer
+#: does not bring it back, and a repeated delete is not answered twice.
+_GONE_MEMO_NS = 10_000_000_000
+
+
+def spawn_thread(fn: Callable[[], None]) -> None:
+    threading.Thread(target=fn, name="pd-service-sync", daemon=True).start()
+
+
+class Lifecycle:
+    """The known specs and the sessions started from them."""
+
+    def __init__(self, transport: Transport, settings: Settings, *, store: SpecStore | None,
+                 ownership: Ownership, counters: Counter[str], dispatch: Dispatch,
+                 publisher: Publisher, spawn: Callable[[Callable[[], None]], None]) -> None:
+        self.t = transport
+        self.settings = settings
+        self.store = store
+        self.ownership = ownership
+        self.counters = counters
+        self.dispatch = dispatch
+        self.pub = publisher
+        self._spawn = spawn
+        self.specs: dict[str, SessionSpec] = {}
+        self.gone: dict[str, int] = {}
+        #: Set at close: no more background syncs.
+        self.closed = False
+
+    # ================================================================== start =========
+
+    def recover(self, peers: list[str]
+                ) -> tuple[dict[str, SessionSpec], dict[str, SessionState]]:
+        """The specs to start with and their origin ("restored" or "active"): the state
+        directory's, joined with the live peers' (``peers``, who join the ownership)."""
+        disk: dict[str, SessionSpec] = {}
+        if self.store is not None:
+            disk, bad = self.store.load_all()
+            if bad:
+                event(log, "specs_unreadable", logging.WARNING, files=",".join(bad))
+        specs = dict(disk)
+        origin: dict[str, SessionState] = dict.fromkeys(disk, "restored")
+        if peers:
+            # Union of disk and peers; the peers' version wins (a change made while we were
+            # down reached them, not us). A spec deleted while we were down comes back and
+            # expires after expire_s without traffic (we cannot tell it from a spec the
+            # peers never had, e.g. when they started with an empty state directory).
+            from_peers = self.fetch_peer_specs()
+            for name, spec in from_peers.items():
+                if disk.get(name) != spec:
+                    specs[name], origin[name] = spec, "active"
+                    self.persist(spec)
+        for p in peers:
+            self.ownership.join(p)
+        return specs, origin
+
+    def install_recovered(self, specs: dict[str, SessionSpec],
+                          origin: dict[str, SessionState], now: int) -> None:
+        """Start the sessions :meth:`recover` found (not answered: nobody asked)."""
+        for name, spec in specs.items():
+            self.specs[name] = spec
+            detail = "restored from the state directory" if origin[name] == "restored" \
+                else "synced from peers"
+            self.install(name, origin[name], detail, now, answer=False)
+
+    def fetch_peer_specs(self) -> dict[str, SessionSpec]:
+        """Every spec the live peers hold (the first reply wins). Blocks up to
+        ``sync_timeout_s``."""
+        out: dict[str, SessionSpec] = {}
+        try:
+            replies = self.t.get(keys.ALL_CONFIGS, timeout=self.settings.sync_timeout_s)
+        except Exception as exc:  # a failed sync is not fatal: disk state is used
+            event(log, "sync_failed", logging.WARNING, reason=str(exc))
+            return out
+        for r in replies:
+            if not r.ok:
+                continue
+            try:
+                spec = decode(r.payload, SessionSpec)
+            except WireError:
+                continue
+            out.setdefault(spec.session, spec)
+        event(log, "synced", specs=len(out), replies=len(replies))
+        return out
+
+    # ================================================================== control =======
+
+    def process_control(self, now: int) -> None:
+        """Apply the control inbox: config changes, peers' specs, membership changes."""
+        d = self.dispatch
+        if d.control_drops:
+            self.counters["control_flood"] += d.control_drops
+            d.control_drops = 0
+        q = d.control
+        membership_changed = False
+        while q:
+            item = q.popleft()
+            if isinstance(item, ConfigChange):
+                try:
+                    self.apply_config(item.sample, now)
+                except Exception:  # pragma: no cover - defensive
+                    log.exception("config handling failed")
+                    self.counters["internal_error"] += 1
+            elif isinstance(item, PeerSpecs):
+                self.apply_sync(item.specs, now)
+            elif isinstance(item, Membership):
+                inst = item.key.rsplit("/", 1)[-1]
+                alive = item.alive
+                changed = self.ownership.join(inst) if alive else self.ownership.leave(inst)
+                if changed:
+                    membership_changed = True
+                    event(log, "member_joined" if alive else "member_left", instance=inst,
+                          members=len(self.ownership.members))
+                    if alive and not self.closed:
+                        # It may know specs we missed (e.g. it was not reachable yet when
+                        # we started): fetch them off the worker thread.
+                        self._spawn(self._sync_in_background)
+        if membership_changed and self.ownership.shard is None:
+            self.reassign(now)
+
+    def apply_config(self, sample: Sample, now: int) -> None:
+        """A put (checked, then installed) or delete (removed) on ``pd/<session>/config``."""
+        parts = sample.key.split("/")
+        try:
+            if len(parts) != 3:
+                raise KeyError_(sample.key)
+            session = check_name(parts[1], "session")
+        except KeyError_:
+            self.counters["bad_key"] += 1
+            return
+        if sample.kind == "delete":
+            self.remove(session, "removed", "config deleted", now, answer=True)
+            return
+        routes = self.dispatch.routes
+        try:
+            spec = decode(sample.payload, SessionSpec)
+            if spec.session != session:
+                raise WireError(f"SessionSpec.session: {spec.session!r} does not match the "
+                                f"key {sample.key!r}")
+            min_ns = int(self.settings.min_period_ms * 1e6)
+            if spec.period_ns < min_ns:
+                raise WireError(f"SessionSpec.period_ns: {spec.period_ns} is below this "
+                                f"service's minimum {min_ns} ns")
+            if session not in self.specs and len(self.specs) >= self.settings.max_sessions:
+                raise WireError(f"SessionSpec: this service already holds "
+                                f"{self.settings.max_sessions} sessions (max_sessions)")
+            if self.ownership.owns(session):
+                # Let the estimator check the spec before anything changes.
+                Session(spec, "active", "", now, 1.0, 1)
+        except WireError as exc:
+            event(log, "config_refused", session=session, reason=exc.reason)
+            route = routes.get(session)
+            owns = self.ownership.owns(session)
+            if owns and route is not None and route.sess is not None:
+                # counted (per session and service-wide) and reported by refuse
+                self.pub.refuse(route.sess, sample.key, Refusal("config_refused", exc.reason),
+                                now)
+            else:
+                self.counters["config_refused"] += 1
+                if owns and self.pub.unknown_limiter.allow(now):
+                    self.pub.error(keys.error_key(session), session, sample.key, exc.reason,
+                                   None, now)
+            return
+        old = self.specs.get(session)
+        self.gone.pop(session, None)
+        if old is not None and old == spec:
+            route = routes.get(session)
+            if route is not None and route.sess is not None:
+                self.pub.answer(route.sess, state_of(route.sess), "unchanged (same spec)",
+                                now)
+            return
+        self.specs[session] = spec
+        self.persist(spec)
+        detail = "created" if old is None else "replaced (estimator restarted from the prior)"
+        self.install(session, "active", detail, now, answer=True)
+
+    def _sync_in_background(self) -> None:
+        specs = self.fetch_peer_specs()
+        if specs:
+            self.dispatch.post_peer_specs(specs)
+
+    def apply_sync(self, specs: dict[str, SessionSpec], now: int) -> None:
+        """Specs fetched from peers: add the ones we do not know (a known one is kept: a
+        newer version of it would have come as a config put)."""
+        for name, spec in specs.items():
+            if name in self.specs or name in self.gone:
+                continue
+            self.specs[name] = spec
+            self.persist(spec)
+            self.install(name, "active", "synced from peers", now,
+                         answer=self.ownership.owns(name))
+
+    def persist(self, spec: SessionSpec) -> None:
+        if self.store is None:
+            return
+        try:
+            self.store.save(spec)
+        except OSError as exc:
+            self.counters["persist_failed"] += 1
+            event(log, "persist_failed", logging.ERROR, session=spec.session, reason=str(exc))
+
+    # ================================================================== sessions ======
+
+    def install(self, session: str, state: SessionState, detail: str, now: int,
+                answer: bool) -> None:
+        """(Re)start ``session`` from its spec if we own it, else route it elsewhere."""
+        routes = self.dispatch.routes
+        route = routes.get(session)
+        if route is None:
+            route = Route(session)
+        old = route.sess
+        if old is not None:
+            old.alive = False
+        if not self.ownership.owns(session):
+            route.sess, route.inbox = None, None
+            routes[session] = route
+            if old is not None:
+                event(log, "session_handed_over", session=session,
+                      owner=self.ownership.owner(session) or "")
+            return
+        try:
+            sess = Session(self.specs[session], state, detail, now,
+                           self.settings.error_rate, self.settings.error_burst)
+        except WireError as exc:  # a persisted or synced spec the estimator refuses
+            route.sess, route.inbox = None, None
+            routes[session] = route
+            event(log, "session_failed", logging.ERROR, session=session, reason=exc.reason)
+            return
+        if route.inbox is None:
+            route.inbox = deque(maxlen=self.settings.inbox_size)
+        route.sess = sess
+        routes[session] = route
+        self.dispatch.mark_ready(route)
+        self.pub.schedule(sess, sess.step_now(now) - 1)
+        event(log, "session_" + ("restored" if state == "restored" else
+                                 "replaced" if old is not None else "started"),
+              session=session, state=state, detail=detail, n=sess.spec.n,
+              sensors=len(sess.spec.sensors), period_ns=sess.spec.period_ns)
+        if answer:
+            self.pub.answer(sess, state, detail, now)
+
+    def remove(self, session: str, state: SessionState, detail: str, now: int,
+               answer: bool) -> None:
+        """Forget ``session`` (its spec, stored file and route); answer if we own it."""
+        spec = self.specs.pop(session, None)
+        route = self.dispatch.routes.pop(session, None)
+        owned = self.ownership.owns(session)
+        if spec is None:
+            if answer and owned and session not in self.gone:
+                self.pub.answer_gone(session, state, "no such session", now, None)
+            self.gone[session] = now
+            return
+        if self.store is not None:
+            self.store.remove(session)
+        sess = route.sess if route is not None else None
+        if sess is not None:
+            sess.alive = False
+        self.gone[session] = now
+        if owned:
+            event(log, "session_" + state, session=session, detail=detail)
+            if answer:
+                self.pub.answer_gone(session, state, detail, now, sess)
+
+    def expire_idle(self, now: int) -> None:
+        """Remove the sessions idle for more than ``expire_s``; forget old removals."""
+        limit = int(self.settings.expire_s * 1e9)
+        for name, route in list(self.dispatch.routes.items()):
+            sess = route.sess
+            if sess is not None and now - sess.last_activity_ns > limit:
+                self.remove(name, "expired", f"idle for more than {self.settings.expire_s:g} s",
+                            now, answer=True)
+                # Tell the other instances (they keep every spec) that it is gone.
+                self.pub.delete(keys.config_key(name))
+        for name in [n for n, t in self.gone.items() if now - t > _GONE_MEMO_NS]:
+            del self.gone[name]
+
+    def reassign(self, now: int) -> None:
+        """Membership changed: start the sessions we now own, stop those we no longer own."""
+        members = ",".join(sorted(self.ownership.members))
+        routes = self.dispatch.routes
+        for name in self.specs:
+            route = routes.get(name)
+            running = route is not None and route.sess is not None
+            owns = self.ownership.owns(name)
+            if owns and not running:
+                self.install(name, "active", f"taken over (members {members}); estimator "
+                             "restarted from the spec's prior", now, answer=True)
+            elif running and not owns:
+                self.install(name, "active", "", now, answer=False)

@@ -1,0 +1,198 @@
+"""Publishing: predictions, ticks, error reports and status answers, through one outbox.
+
+Everything the worker publishes during a round is appended to the outbox and sent by
+:meth:`Publisher.flush` at the end of the round (after the core's state is consistent). A
+Prediction is published for every session that accepted a measurement in the round
+(coalesced: one per session per round) and at every session's tick: the first step
+``k > after`` with ``k % publish_every == 0`` fires at ``epoch + (k + tick_phase) * period``.
+
+Refusals are counted per session and service-wide and reported as ErrorReports, limited per
+session (``error_rate``/``error_burst``) and service-wide (``error_rate_total``).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import logging
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from pd_service.logs import LOGGER_NAME, event
+from pd_service.transport import Transport
+from pd_service.wire import ErrorReport, SessionStatus, encode, keys
+
+from .config import Settings
+from .session import Refusal, Session
+from .stacked import Node, resolve
+from .stats import LatencyWindow, TokenBucket
+from .status import SessionState, session_status
+
+log = logging.getLogger(LOGGER_NAME)
+
+
+@dataclass(slots=True)
+class Out:
+    """One pending publication: put (payload) or delete (payload None). ``recv``: receipt
+    times (monotonic ns) of the measurements a prediction answers, for ``sess``'s latency."""
+
+    key: str
+    payload: bytes | None
+    sess: Session | None = None
+    recv: list[int] = field(default_factory=list)
+
+
+class Publisher:
+    """The outbox, the tick schedule and the error-report limits. Worker thread only."""
+
+    def __init__(self, transport: Transport, settings: Settings, counters: Counter[str],
+                 latency: LatencyWindow, mono_ns: Callable[[], int], now: int) -> None:
+        self.t = transport
+        self.settings = settings
+        self.instance = settings.instance
+        self.counters = counters
+        self.latency = latency
+        self.mono_ns = mono_ns
+        self.outbox: list[Out] = []
+        #: (deadline ns, tie-break, step, session), a heap ordered by deadline.
+        self.ticks: list[tuple[int, int, int, Session]] = []
+        self._tick_seq = itertools.count()
+        #: ErrorReports about sessions nobody serves (unknown names, refused new specs).
+        self.unknown_limiter = TokenBucket(settings.error_rate, settings.error_burst, now)
+        self.total_limiter = TokenBucket(settings.error_rate_total,
+                                         max(1, int(settings.error_rate_total)), now)
+
+    # --- error reports --------------------------------------------------------------------
+
+    def refuse(self, sess: Session, key: str, r: Refusal, now: int) -> None:
+        """Count a refusal (session and service) and report it unless rate-limited."""
+        sess.counters[r.reason] += 1
+        sess.counters["refused"] += 1
+        self.counters[r.reason] += 1
+        self.counters["refused"] += 1
+        if log.isEnabledFor(logging.DEBUG):
+            event(log, "refused", logging.DEBUG, session=sess.name, key=key, reason=r.reason,
+                  text=r.text)
+        if sess.limiter.allow(now) and self.total_limiter.allow(now):
+            self.error(sess.error_key, sess.name, key, r.text, r.seq, now)
+        else:
+            sess.counters["errors_suppressed"] += 1
+            self.counters["errors_suppressed"] += 1
+
+    def error(self, err_key: str, session: str, key: str, text: str, seq: int | None,
+              now: int) -> None:
+        rep = ErrorReport(session=session, key=key[:512], seq=seq, reason=text[:1024], t_ns=now)
+        self.outbox.append(Out(err_key, encode(rep)))
+        self.counters["errors_sent"] += 1
+
+    # --- status answers -------------------------------------------------------------------
+
+    def answer(self, sess: Session, state: SessionState, detail: str, now: int) -> None:
+        """Put the session's status (the answer to a config change)."""
+        st = session_status(sess, self.instance, state, detail, now)
+        self.outbox.append(Out(sess.status_key, encode(st)))
+
+    def answer_gone(self, session: str, state: SessionState, detail: str, now: int,
+                    sess: Session | None) -> None:
+        """Put the status of a session that is removed or expired (or never was)."""
+        if sess is not None:
+            st = session_status(sess, self.instance, state, detail, now)
+        else:
+            st = SessionStatus(session=session, instance=self.instance, state=state,
+                               now_step=0, published=0, latency_p50_us=0.0,
+                               latency_p99_us=0.0, detail=detail)
+        self.outbox.append(Out(keys.status_key(session), encode(st)))
+
+    def delete(self, key: str) -> None:
+        self.outbox.append(Out(key, None))
+
+    # --- predictions ----------------------------------------------------------------------
+
+    def publish_many(self, sessions: list[Session], now: int) -> None:
+        """Publish a Prediction of now + lead for each session: the estimators' pending
+        arithmetic is resolved together (stacked), then each message is packed."""
+        items = []
+        for sess in sessions:
+            k = sess.step_now(now)
+            if k < 0:  # before the session's epoch: nothing to predict yet
+                sess.pending_recv.clear()
+                continue
+            try:
+                items.append((sess, k, sess.predict(k)))
+            except Exception as exc:
+                self._publish_failed(sess, exc, now)
+        nodes = [p.x for _, _, p in items if isinstance(p.x, Node)]
+        if nodes:
+            try:
+                resolve(nodes)
+            except Exception:  # isolation: fall back to one session at a time (in pack)
+                log.debug("stacked resolve failed; resolving one by one", exc_info=True)
+        for sess, k, pred in items:
+            try:
+                data = sess.pack(pred, k, now)
+            except Exception as exc:  # e.g. a non-finite estimate: report, never crash
+                self._publish_failed(sess, exc, now)
+                continue
+            self.counters["published"] += 1
+            recv, sess.pending_recv = sess.pending_recv, []
+            self.outbox.append(Out(sess.pred_key, data, sess, recv))
+
+    def _publish_failed(self, sess: Session, exc: Exception, now: int) -> None:
+        sess.pending_recv.clear()
+        self.refuse(sess, sess.pred_key, Refusal(
+            "internal_error", f"prediction failed: {type(exc).__name__}: {exc}"), now)
+
+    def flush(self) -> None:
+        """Send the outbox; record receipt -> put latencies (µs) of the predictions sent."""
+        out, self.outbox = self.outbox, []
+        t = self.t
+        put, mono = t.put, self.mono_ns
+        for o in out:
+            try:
+                if o.payload is None:
+                    t.delete(o.key)
+                else:
+                    put(o.key, o.payload)
+            except Exception as exc:
+                self.counters["publish_failed"] += 1
+                log.debug("publish on %s failed: %s", o.key, exc)
+                continue
+            if o.recv and o.sess is not None:
+                now_mono = mono()
+                for r in o.recv:
+                    us = (now_mono - r) / 1000.0
+                    o.sess.latency.add(us)
+                    self.latency.add(us)
+
+    # --- ticks ----------------------------------------------------------------------------
+
+    def schedule(self, sess: Session, after_step: int) -> None:
+        """Queue the session's next tick: the first step k > after_step with
+        k % publish_every == 0, at time epoch + k * period + tick_phase * period."""
+        spec = sess.spec
+        pe = spec.publish_every
+        k = max(0, (after_step // pe + 1) * pe)
+        deadline = spec.time_of(k) + int(self.settings.tick_phase * spec.period_ns)
+        heapq.heappush(self.ticks, (deadline, next(self._tick_seq), k, sess))
+
+    def next_tick_ns(self) -> int | None:
+        return self.ticks[0][0] if self.ticks else None
+
+    def run_ticks(self, now: int) -> None:
+        """Publish for every session whose tick is due and has not published this step."""
+        heap = self.ticks
+        due: list[Session] = []
+        while heap and heap[0][0] <= now:
+            _, _, k, sess = heapq.heappop(heap)
+            if not sess.alive:
+                continue
+            cur = sess.step_now(now)
+            if cur > k:
+                sess.counters["tick_overruns"] += 1
+                self.counters["tick_overruns"] += 1
+            if cur >= 0 and sess.last_pub_step != cur:
+                due.append(sess)
+            self.schedule(sess, max(cur, k))
+        if due:
+            self.publish_many(due, now)

@@ -1,0 +1,176 @@
+"""Queries and status: SessionStatus / ServiceStatus, and the status and spec queryables.
+
+Queryables run on the transport's threads and take the core's lock (the worker holds it
+while processing one round), so replies never see a half-updated session. Replies are sent
+after the lock is released.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from collections.abc import Callable, Mapping
+from typing import Literal, Protocol, cast
+
+from pd_service.logs import LOGGER_NAME
+from pd_service.transport import Query
+from pd_service.transport.keyexpr import intersects
+from pd_service.wire import ErrorReport, ServiceStatus, SessionSpec, SessionStatus, encode, keys
+from pd_service.wire.keys import KeyError_, check_name
+
+from .config import Settings
+from .ownership import Ownership
+from .session import Session
+from .stats import LatencyWindow
+
+log = logging.getLogger(LOGGER_NAME)
+
+#: ``SessionStatus.state``.
+SessionState = Literal["active", "restored", "expired", "removed"]
+
+
+def session_status(sess: Session, instance: str, state: SessionState, detail: str,
+                   now: int) -> SessionStatus:
+    """The status of a served session at wall-clock time ``now`` (ns)."""
+    p50, p99 = sess.latency.percentiles()
+    return SessionStatus(session=sess.name, instance=instance, state=state,
+                         now_step=sess.spec.step_of(now), counters=sess.counters_snapshot(),
+                         published=sess.published, latency_p50_us=p50,
+                         latency_p99_us=p99, detail=detail[:1024])
+
+
+def state_of(sess: Session) -> SessionState:
+    """The state a session was started with."""
+    # Session.state is typed str; the lifecycle only ever creates it with a SessionState.
+    return cast(SessionState, sess.state)
+
+
+def current_status(sess: Session, instance: str, now: int) -> SessionStatus:
+    """The status a session was last answered with (its state and detail), now."""
+    return session_status(sess, instance, state_of(sess), sess.detail, now)
+
+
+def valid_name(name: str) -> bool:
+    try:
+        check_name(name)
+        return True
+    except KeyError_:
+        return False
+
+
+class Routed(Protocol):
+    """A known session as the queries see it (a dispatch route)."""
+
+    @property
+    def sess(self) -> Session | None:
+        """The Session this instance runs; None: served by another instance."""
+
+
+class Queries:
+    """Read-only views of the core's state, for the queryables and the daemon's API.
+
+    ``routes``: every known session name -> its route; ``specs``: every known spec. Both
+    are read under ``lock``."""
+
+    def __init__(self, settings: Settings, lock: threading.RLock, counters: Counter[str],
+                 latency: LatencyWindow, ownership: Ownership,
+                 routes: Mapping[str, Routed],
+                 specs: Mapping[str, SessionSpec], now_ns: Callable[[], int],
+                 mono_ns: Callable[[], int]) -> None:
+        self.settings = settings
+        self.instance = settings.instance
+        self.lock = lock
+        self.counters = counters
+        self.latency = latency
+        self.ownership = ownership
+        self.routes = routes
+        self.specs = specs
+        self.now_ns = now_ns
+        self.mono_ns = mono_ns
+        self._started_mono = mono_ns()
+
+    # --- the daemon's API (any thread) ----------------------------------------------------
+
+    def session_status(self, session: str) -> SessionStatus | None:
+        """Status of a session this instance serves (None otherwise)."""
+        with self.lock:
+            route = self.routes.get(session)
+            if route is None or route.sess is None:
+                return None
+            return current_status(route.sess, self.instance, self.now_ns())
+
+    def service_status(self) -> ServiceStatus:
+        with self.lock:
+            served = sorted(n for n, r in self.routes.items() if r.sess is not None)
+            c = {k: int(v) for k, v in self.counters.items() if v}
+            c.setdefault("refused", 0)
+            c["late_total"] = c.get("late", 0) + c.get("commands_late", 0)
+            c["sessions_served"] = len(served)
+            c["sessions_known"] = len(self.specs)
+            c["members"] = len(self.ownership.members)
+            p50, p99 = self.latency.percentiles()
+            return ServiceStatus(instance=self.instance, sessions=served, counters=c,
+                                 latency_p50_us=p50, latency_p99_us=p99,
+                                 uptime_s=(self.mono_ns() - self._started_mono) / 1e9,
+                                 shard=self.settings.shard or "")
+
+    def served_sessions(self) -> list[str]:
+        with self.lock:
+            return sorted(n for n, r in self.routes.items() if r.sess is not None)
+
+    def known_specs(self) -> dict[str, SessionSpec]:
+        with self.lock:
+            return dict(self.specs)
+
+    # --- queryables (transport threads) ---------------------------------------------------
+
+    def on_status_query(self, q: Query) -> None:
+        sel = q.key
+        with self.lock:
+            now = self.now_ns()
+            err: ErrorReport | None = None
+            if "*" in sel:
+                sessions = [r.sess for r in self.routes.values() if r.sess is not None]
+                replies = [(s.status_key, current_status(s, self.instance, now))
+                           for s in sessions if intersects(sel, s.status_key)]
+            else:
+                parts = sel.split("/")
+                name = parts[1] if len(parts) == 3 else ""
+                route = self.routes.get(name)
+                if route is not None and route.sess is not None:
+                    s = route.sess
+                    replies = [(s.status_key, current_status(s, self.instance, now))]
+                elif route is None and valid_name(name) and self.ownership.owns(name):
+                    replies = []
+                    err = ErrorReport(session=name, key=sel[:512], reason=f"unknown session "
+                                      f"{name!r}", t_ns=now)
+                else:
+                    return
+        for key, st in replies:
+            try:
+                q.reply(key, encode(st))
+            except Exception as exc:  # e.g. the query was dropped meanwhile
+                log.debug("status reply failed: %s", exc)
+        if err is not None:
+            try:
+                q.reply_err(encode(err))
+            except Exception as exc:
+                log.debug("status reply_err failed: %s", exc)
+
+    def on_service_query(self, q: Query) -> None:
+        try:
+            q.reply(keys.service_status_key(self.instance), encode(self.service_status()))
+        except Exception as exc:
+            log.debug("service status reply failed: %s", exc)
+
+    def on_config_query(self, q: Query) -> None:
+        sel = q.key
+        with self.lock:
+            specs = [(keys.config_key(n), s) for n, s in self.specs.items()
+                     if intersects(sel, keys.config_key(n))]
+        for key, spec in specs:
+            try:
+                q.reply(key, encode(spec))
+            except Exception as exc:
+                log.debug("config reply failed: %s", exc)
