@@ -1,10 +1,11 @@
 """Nonlinear observer backends (unscented filters) on the shared timestamp window and replay.
 
 Importing the package registers the built-in models: ``"omni3"`` (three-wheel
-omnidirectional robot) and ``"linear"`` (a linear model, for tests).
+omnidirectional robot), ``"unicycle"`` (differential-drive robot) and ``"linear"`` (a linear
+model, for tests).
 """
 
-from . import models_linear, models_omni  # noqa: F401  (register the built-in models)
+from . import models_linear, models_omni, models_unicycle  # noqa: F401  (register the built-in models)
 from .adaptive import MITAdapter, MITSettings, SageHusaAdapter, SageHusaSettings, make_adapter
 from .factory import make_unscented
 from .registry import (
