@@ -146,12 +146,19 @@ History = Literal["keep_last", "keep_all"]
 _RELIABILITY_CODE: dict[str, int] = {"reliable": 1, "best_effort": 2}
 _DURABILITY_CODE: dict[str, int] = {"transient_local": 1, "volatile": 2}
 _HISTORY_CODE: dict[str, int] = {"keep_last": 1, "keep_all": 2}
-_RELIABILITY_BY_CODE: dict[str, Reliability] = {"": "reliable", "0": "reliable", "1": "reliable",
-                                                "2": "best_effort"}
-_DURABILITY_BY_CODE: dict[str, Durability] = {"": "volatile", "0": "volatile",
-                                              "1": "transient_local", "2": "volatile"}
-_HISTORY_BY_CODE: dict[str, History] = {"": "keep_last", "0": "keep_last", "1": "keep_last",
-                                        "2": "keep_all"}
+_RELIABILITY_BY_CODE: dict[str, Reliability] = {
+    "": "reliable",
+    "0": "reliable",
+    "1": "reliable",
+    "2": "best_effort",
+}
+_DURABILITY_BY_CODE: dict[str, Durability] = {
+    "": "volatile",
+    "0": "volatile",
+    "1": "transient_local",
+    "2": "volatile",
+}
+_HISTORY_BY_CODE: dict[str, History] = {"": "keep_last", "0": "keep_last", "1": "keep_last", "2": "keep_all"}
 #: rmw_zenoh's defaults (qos.cpp, Jazzy >= 0.2.3): an empty component means this value.
 DEFAULT_DEPTH = 42
 

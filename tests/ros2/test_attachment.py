@@ -35,9 +35,13 @@ def test_positional_layout_bytes() -> None:
 def test_keyed_layout_bytes() -> None:
     raw = encode_attachment(ATT, "keyed")
     expected = (
-        b"\x0fsequence_number" + struct.pack("<q", 7)
-        + b"\x10source_timestamp" + struct.pack("<q", 1_700_000_000_123_456_789)
-        + b"\x0asource_gid" + b"\x10" + GID
+        b"\x0fsequence_number"
+        + struct.pack("<q", 7)
+        + b"\x10source_timestamp"
+        + struct.pack("<q", 1_700_000_000_123_456_789)
+        + b"\x0asource_gid"
+        + b"\x10"
+        + GID
     )
     assert raw == expected and len(raw) == 77
     assert attachment_layout(raw) == "keyed"

@@ -8,8 +8,8 @@ import pytest
 
 from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.ros2.keys import (
-    QoS,
     NodeIdentity,
+    QoS,
     TopicEndpoint,
     bridge_keyexpr,
     dds_type_name,
@@ -25,13 +25,13 @@ from pd_service.ros2.messages import type_hash
 STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
 
 # design.md, "Topic and Service name mapping to Zenoh key expressions" (verbatim).
-DOC_CHATTER_KEY = "0/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
-DOC_CHATTER_NS_KEY = "0/robot1/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+DOC_CHATTER_KEY = "0/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"  # noqa: E501
+DOC_CHATTER_NS_KEY = "0/robot1/chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"  # noqa: E501
 # design.md, "Graph Cache" examples (verbatim). The document writes domain 2 in these token
 # examples while saying "with ROS_DOMAIN_ID=0 by default"; the strings are reproduced as given.
 DOC_LISTENER_NODE = "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
-DOC_LISTENER_SUB = "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,10:,:,:,,"
-DOC_TALKER_PUB = "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,"
+DOC_LISTENER_SUB = "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,10:,:,:,,"  # noqa: E501
+DOC_TALKER_PUB = "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,"  # noqa: E501
 
 
 def test_rihs01_of_string_from_typestore_matches_design_doc() -> None:
@@ -49,8 +49,9 @@ def test_topic_keys_match_design_doc() -> None:
 
 
 def test_node_token_matches_design_doc() -> None:
-    node = NodeIdentity(domain_id=2, session_id="aac3178e146ba6f1fc6e6a4085e77f21", node_id=0,
-                        name="listener")
+    node = NodeIdentity(
+        domain_id=2, session_id="aac3178e146ba6f1fc6e6a4085e77f21", node_id=0, name="listener"
+    )
     assert node.token() == DOC_LISTENER_NODE
 
 
@@ -79,9 +80,18 @@ def test_parse_token_round_trips(token: str) -> None:
 def test_namespace_and_enclave_are_mangled() -> None:
     node = NodeIdentity(0, "ab", 3, "pd_service", namespace="/robot1/sim", enclave="/secure")
     assert node.token() == "@ros2_lv/0/ab/3/3/NN/%secure/%robot1%sim/pd_service"
-    ep = TopicEndpoint(node, 4, "MP", node.resolve("odom_predicted"), "nav_msgs/msg/Odometry",
-                       type_hash("nav_msgs/msg/Odometry"))
-    assert "/MP/%secure/%robot1%sim/pd_service/%robot1%sim%odom_predicted/nav_msgs::msg::dds_::Odometry_/" in ep.token()
+    ep = TopicEndpoint(
+        node,
+        4,
+        "MP",
+        node.resolve("odom_predicted"),
+        "nav_msgs/msg/Odometry",
+        type_hash("nav_msgs/msg/Odometry"),
+    )
+    assert (
+        "/MP/%secure/%robot1%sim/pd_service/%robot1%sim%odom_predicted/nav_msgs::msg::dds_::Odometry_/"
+        in ep.token()
+    )
     assert ep.keyexpr().startswith("0/robot1/sim/odom_predicted/nav_msgs::msg::dds_::Odometry_/RIHS01_")
 
 
@@ -130,7 +140,11 @@ def test_gid_is_xxh3_128_of_token_low_then_high() -> None:
 
 
 def test_bad_tokens_refused() -> None:
-    for bad in ("@ros2_lv/0/ab/0/0/XX/%/%/n", "@other/0/ab/0/0/NN/%/%/n", "@ros2_lv/0/ab/0/0/NN/%/%",
-                DOC_TALKER_PUB.rsplit("/", 1)[0]):
+    for bad in (
+        "@ros2_lv/0/ab/0/0/XX/%/%/n",
+        "@other/0/ab/0/0/NN/%/%/n",
+        "@ros2_lv/0/ab/0/0/NN/%/%",
+        DOC_TALKER_PUB.rsplit("/", 1)[0],
+    ):
         with pytest.raises(Ros2DecodeError):
             parse_token(bad)
