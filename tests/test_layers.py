@@ -28,6 +28,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.transport": {"pd_service.errors", "pd_service.logs", "pd_service.wire"},
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
+    "pd_service.ros2": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.service": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
                            "pd_service.logs", "pd_service.transport", "pd_service.backends"},
     "pd_service.link": {"pd_service.errors", "pd_service.logs", "pd_service.transport",
