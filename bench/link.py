@@ -211,7 +211,9 @@ def main() -> int:
 
             if args.switch_interval_us > 0:
                 sys.setswitchinterval(args.switch_interval_us / 1e6)
-            relay_session = zenoh.open(peer_config(connect=[endpoint]))
+            from pd_service.transport.zenoh_transport import ZenohTransport
+
+            relay_session = ZenohTransport(peer_config(connect=[endpoint]))
             relay = LinkRelay(relay_session, parse_config(rules(args.delay_ms)), INSTANCE,
                               spin_ns=args.spin_us * 1000, express=args.express).start()
             where = "in-process relay (shares this process's GIL with the load generator)"

@@ -2,13 +2,13 @@
 
 * :mod:`pd_service.link.model`  -- pure, seeded per-message decisions (no Zenoh, no clock);
 * :mod:`pd_service.link.config` -- TOML/JSON configuration with netem-style names;
-* :mod:`pd_service.link.relay`  -- the Zenoh adapter (subscribe, delay on a heap, publish);
+* :mod:`pd_service.link.relay`  -- the relay on a transport (subscribe, delay on a heap, publish);
 * ``pd-link`` (:mod:`pd_service.link.__main__`) -- the console script.
 
 See docs/link.md.
 """
 
-from .config import ConfigError, LinkConfig, Rule, load_config, parse_config
+from .config import LinkConfig, Rule, load_config, parse_config
 from .model import (
     DelaySpec,
     FourStateLoss,
@@ -22,7 +22,6 @@ from .model import (
 )
 
 __all__ = [
-    "ConfigError",
     "DelaySpec",
     "FourStateLoss",
     "GilbertElliott",

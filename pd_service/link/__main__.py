@@ -4,9 +4,10 @@
     pd-link --config link.toml --connect tcp/127.0.0.1:7447 --instance lab --seed 3
     pd-link --config link.toml --zenoh-config zenoh.json5
 
-Default Zenoh configuration (without ``--zenoh-config``): peer mode, multicast scouting off,
-listening on ``tcp/127.0.0.1:0`` (loopback only), connecting to ``tcp/127.0.0.1:7447`` (where the
-pd-service daemon listens by default) unless ``--connect``/``--listen`` are given.
+The Zenoh flags are the shared group (:mod:`pd_service.transport.options`, role ``LINK``):
+without ``--zenoh-config``, peer mode, multicast scouting off, listening on
+``tcp/127.0.0.1:0`` (loopback only) and connecting to ``tcp/127.0.0.1:7447`` (where the
+pd-service daemon listens by default), each unless its flag is given.
 Exit codes: 0 after SIGINT/SIGTERM, 2 for a bad command line or configuration, 1 if Zenoh
 cannot be opened.
 """
@@ -14,77 +15,23 @@ cannot be opened.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import signal
 import sys
 import threading
-import time
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
 
+from pd_service.errors import ConfigError
+from pd_service.logs import add_logging_args, setup_logging
+from pd_service.transport.options import LINK, add_zenoh_args, options_from_args
 from pd_service.wire import keys
 
-from .config import ConfigError, load_config
+from .config import load_config
 from .model import loss_theory
 
-DEFAULT_CONNECT = "tcp/127.0.0.1:7447"
-DEFAULT_LISTEN = "tcp/127.0.0.1:0"
-
 log = logging.getLogger("pd_service.link")
-
-
-class LogfmtFormatter(logging.Formatter):
-    """``ts=... level=INFO logger=... msg="..." key=value ...`` (fields from ``extra={"fields":
-    {...}}``)."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        parts = {
-            "ts": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(record.created))
-            + f".{int(record.msecs):03d}",
-            "level": record.levelname,
-            "logger": record.name,
-            "msg": record.getMessage(),
-        }
-        parts.update(getattr(record, "fields", {}) or {})
-        text = " ".join(f"{k}={_logfmt_value(v)}" for k, v in parts.items())
-        if record.exc_info:
-            text += "\n" + self.formatException(record.exc_info)
-        return text
-
-
-class JsonFormatter(logging.Formatter):
-    """One JSON object per line."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        out: dict[str, Any] = {
-            "ts": record.created,
-            "level": record.levelname,
-            "logger": record.name,
-            "msg": record.getMessage(),
-        }
-        out.update(getattr(record, "fields", {}) or {})
-        if record.exc_info:
-            out["exc"] = self.formatException(record.exc_info)
-        return json.dumps(out, default=str)
-
-
-def _logfmt_value(v: Any) -> str:
-    if isinstance(v, str) and v and not any(c in v for c in ' "=\n'):
-        return v
-    if isinstance(v, int | float | bool) or v is None:
-        return json.dumps(v)
-    return json.dumps(v if isinstance(v, str) else json.loads(json.dumps(v, default=str)),
-                      separators=(",", ":"))  # fmt: skip
-
-
-def setup_logging(level: str, fmt: str) -> None:
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(JsonFormatter() if fmt == "json" else LogfmtFormatter())
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(level)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -93,14 +40,6 @@ def build_parser() -> argparse.ArgumentParser:
         description="netem-style link emulator between robot-side and operator-side Zenoh keys",
     )
     p.add_argument("--config", required=True, help="rules file (.toml or .json)")
-    p.add_argument("--connect", action="append", metavar="ENDPOINT",
-                   help=f"Zenoh endpoint to connect to (repeatable; default {DEFAULT_CONNECT})")
-    p.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help=f"Zenoh endpoint to listen on (repeatable; default {DEFAULT_LISTEN})")
-    p.add_argument("--zenoh-config", metavar="FILE",
-                   help="Zenoh JSON5 config file (then --connect/--listen are added to it)")
-    p.add_argument("--mode", choices=("peer", "client"), default=None,
-                   help="Zenoh mode (default: peer, or the config file's)")
     p.add_argument("--instance", default="default",
                    help="instance name for pd/@link/<instance>/{rules,stats}")
     p.add_argument("--seed", type=int, default=None, help="override the config file's seed")
@@ -114,32 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "at high rates, no latency gain measured on loopback)")
     p.add_argument("--stats-interval", type=float, default=10.0, metavar="S",
                    help="log per-rule statistics every S seconds")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    p.add_argument("--log-format", default="text", choices=("text", "json"))
+    add_zenoh_args(p, LINK)
+    add_logging_args(p)
     return p  # fmt: skip
-
-
-def zenoh_config(args: argparse.Namespace) -> Any:
-    """Build the ``zenoh.Config`` from the command line (see the module docstring)."""
-    import zenoh
-
-    if args.zenoh_config:
-        conf = zenoh.Config.from_file(args.zenoh_config)
-    else:
-        conf = zenoh.Config()
-        conf.insert_json5("mode", json.dumps(args.mode or "peer"))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        if not args.listen and (args.mode or "peer") == "peer":
-            conf.insert_json5("listen/endpoints", json.dumps([DEFAULT_LISTEN]))
-        if not args.connect and not args.listen:
-            conf.insert_json5("connect/endpoints", json.dumps([DEFAULT_CONNECT]))
-    if args.zenoh_config and args.mode:
-        conf.insert_json5("mode", json.dumps(args.mode))
-    if args.connect:
-        conf.insert_json5("connect/endpoints", json.dumps(args.connect))
-    if args.listen:
-        conf.insert_json5("listen/endpoints", json.dumps(args.listen))
-    return conf
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -162,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.switch_interval_us > 0:
         sys.setswitchinterval(args.switch_interval_us / 1e6)
 
-    import zenoh
+    from pd_service.transport.zenoh_transport import ZenohTransport
 
     from .relay import LinkRelay
 
@@ -175,17 +91,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
-        conf = zenoh_config(args)
+        conf = options_from_args(args).config(LINK)
     except Exception as e:
         log.error("bad Zenoh configuration", extra={"fields": {"error": str(e)}})
         return 2
     try:
-        session_cm = zenoh.open(conf)
+        transport = ZenohTransport(conf)
     except Exception as e:
         log.error("cannot open Zenoh session", extra={"fields": {"error": str(e)}})
         return 1
-    with session_cm as session:
-        relay = LinkRelay(session, config, args.instance, spin_ns=args.spin_us * 1000,
+    with transport:
+        relay = LinkRelay(transport, config, args.instance, spin_ns=args.spin_us * 1000,
                           stats_interval_s=args.stats_interval,
                           express=args.express)  # fmt: skip
         relay.start()

@@ -19,9 +19,10 @@ Units: percentages are percent (netem style): ``loss = 1`` and ``loss = "1%"`` b
 Times are ms when a bare number, else a string with a unit: ``ns``, ``us``, ``ms``, ``s``,
 ``step``/``steps`` (needs ``step_ms``).  Rates need a unit (see :func:`parse_rate`).
 
-No Zenoh here: key expressions are matched by :func:`keyexpr_matches`, which implements the
-Zenoh 1.x rules this project uses (``*`` one chunk, ``**`` any number of chunks, ``$*`` inside
-a chunk, and chunks starting with ``@`` never matched by a wildcard).
+The document is read by strict pydantic models (unknown fields refused); a
+``ValidationError`` becomes a :class:`~pd_service.errors.ConfigError` whose message names the
+field (``downlink[0] (camera).delay: ...``).  The result is a :class:`LinkConfig` of
+:class:`Rule` objects carrying the model's :class:`~pd_service.link.model.LinkParams`.
 """
 
 from __future__ import annotations
@@ -30,23 +31,41 @@ import json
 import math
 import re
 import tomllib
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from functools import lru_cache
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Discriminator,
+    Field,
+    PlainValidator,
+    PrivateAttr,
+    Tag,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from pd_service.errors import ConfigError
+from pd_service.transport.keyexpr import check_keyexpr, intersects
 from pd_service.wire import keys
 
 from .model import (
-    DISTRIBUTIONS,
     NS_PER_MS,
     DelaySpec,
+    Distribution,
     FourStateLoss,
     GilbertElliott,
     LinkParams,
     LossSpec,
     Outage,
+    OutageMode,
     RandomLoss,
     Rate,
 )
@@ -55,58 +74,52 @@ Direction = Literal["downlink", "uplink"]
 DIRECTIONS: tuple[Direction, ...] = ("downlink", "uplink")
 
 
-class ConfigError(ValueError):
-    """A pd-link configuration that cannot be used; the message names the field."""
-
-
-# --- scalar parsers --------------------------------------------------------------------
+# --- scalar parsers (raise ConfigError, a ValueError: pydantic adds the field path) ---------
 
 _TIME_UNITS_NS = {"ns": 1, "us": 1_000, "µs": 1_000, "ms": NS_PER_MS, "s": 1_000_000_000}
 _TIME_RE = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*([a-zµ]+)?\s*$")
 
 
-def parse_time_ns(value: Any, what: str, step_ms: float | None = None) -> int:
+def parse_time_ns(value: Any, step_ms: float | None = None) -> int:
     """A duration -> integer ns.  Number = ms; str = number + unit (ns, us, ms, s, step[s])."""
     if isinstance(value, bool) or value is None:
-        raise ConfigError(f"{what}: expected a duration, got {value!r}")
+        raise ConfigError(f"expected a duration, got {value!r}")
     if isinstance(value, int | float):
         ms = float(value)
         if not math.isfinite(ms) or ms < 0:
-            raise ConfigError(f"{what}: duration must be finite and >= 0, got {value!r}")
+            raise ConfigError(f"duration must be finite and >= 0, got {value!r}")
         return round(ms * NS_PER_MS)
     if not isinstance(value, str):
-        raise ConfigError(f"{what}: expected a duration, got {value!r}")
+        raise ConfigError(f"expected a duration, got {value!r}")
     m = _TIME_RE.match(value)
     if m is None:
-        raise ConfigError(f"{what}: cannot read duration {value!r} (e.g. '50ms', '10 steps')")
+        raise ConfigError(f"cannot read duration {value!r} (e.g. '50ms', '10 steps')")
     number, unit = float(m.group(1)), (m.group(2) or "ms")
     if unit in ("step", "steps"):
         if step_ms is None:
-            raise ConfigError(f"{what}: {value!r} is in steps but step_ms is not set")
+            raise ConfigError(f"{value!r} is in steps but step_ms is not set")
         return round(number * step_ms * NS_PER_MS)
     if unit not in _TIME_UNITS_NS:
-        raise ConfigError(f"{what}: unknown time unit {unit!r} (ns, us, ms, s, steps)")
+        raise ConfigError(f"unknown time unit {unit!r} (ns, us, ms, s, steps)")
     return round(number * _TIME_UNITS_NS[unit])
 
 
-def parse_percent(value: Any, what: str) -> float:
+def parse_percent(value: Any) -> float:
     """A probability in netem's percent: ``5``, ``5.0``, ``"5%"`` -> 0.05."""
     if isinstance(value, bool) or value is None:
-        raise ConfigError(f"{what}: expected a percentage, got {value!r}")
+        raise ConfigError(f"expected a percentage, got {value!r}")
     if isinstance(value, str):
-        text = value.strip()
-        if text.endswith("%"):
-            text = text[:-1]
+        text = value.strip().removesuffix("%")
         try:
             number = float(text)
         except ValueError:
-            raise ConfigError(f"{what}: cannot read percentage {value!r} (e.g. '5%')") from None
+            raise ConfigError(f"cannot read percentage {value!r} (e.g. '5%')") from None
     elif isinstance(value, int | float):
         number = float(value)
     else:
-        raise ConfigError(f"{what}: expected a percentage, got {value!r}")
+        raise ConfigError(f"expected a percentage, got {value!r}")
     if not math.isfinite(number) or number < 0 or number > 100:
-        raise ConfigError(f"{what}: percentage must be in [0, 100], got {value!r}")
+        raise ConfigError(f"percentage must be in [0, 100], got {value!r}")
     return number / 100.0
 
 
@@ -116,17 +129,16 @@ _BYTE_UNITS = {"bps": 1, "kbps": 1e3, "mbps": 1e6, "gbps": 1e9}  # tc: "bps" = B
 _MSG_UNITS = ("msg/s", "msgps", "pps")
 
 
-def parse_rate(value: Any, what: str, overhead: int = 0) -> Rate:
+def parse_rate(value: Any, overhead: int = 0) -> Rate:
     """``"1mbit"`` (bits/s: bit, kbit, mbit, gbit), ``"125kbps"`` (BYTES/s as in tc: bps, kbps,
     mbps, gbps) or ``"200msg/s"`` (also ``msgps``, ``pps``) -> :class:`Rate`."""
     if not isinstance(value, str):
         raise ConfigError(
-            f"{what}: a rate needs a unit, e.g. '1mbit', '125kbps' (bytes/s) or '100msg/s'; "
-            f"got {value!r}"
+            f"a rate needs a unit, e.g. '1mbit', '125kbps' (bytes/s) or '100msg/s'; got {value!r}"
         )
     m = _RATE_RE.match(value)
     if m is None:
-        raise ConfigError(f"{what}: cannot read rate {value!r} (e.g. '1mbit', '100msg/s')")
+        raise ConfigError(f"cannot read rate {value!r} (e.g. '1mbit', '100msg/s')")
     number, unit = float(m.group(1)), m.group(2).lower()
     try:
         if unit in _BIT_UNITS:
@@ -136,10 +148,9 @@ def parse_rate(value: Any, what: str, overhead: int = 0) -> Rate:
         if unit in _MSG_UNITS:
             return Rate(msgs_per_s=number, overhead_bytes=overhead)
     except ValueError as e:
-        raise ConfigError(f"{what}: {e}") from None
+        raise ConfigError(str(e)) from None
     raise ConfigError(
-        f"{what}: unknown rate unit {unit!r} (bit kbit mbit gbit | bps kbps mbps gbps = bytes/s"
-        f" | msg/s)"
+        f"unknown rate unit {unit!r} (bit kbit mbit gbit | bps kbps mbps gbps = bytes/s | msg/s)"
     )
 
 
@@ -160,65 +171,27 @@ def format_rate(rate: Rate) -> str:
     return f"{rate.bytes_per_s * 8:.12g}bit"
 
 
-# --- key expressions -------------------------------------------------------------------
+def _duration(value: Any, info: ValidationInfo) -> int:
+    return parse_time_ns(value, (info.context or {}).get("step_ms"))
 
 
-def check_keyexpr(expr: Any, what: str) -> str:
-    """Basic shape check of a key expression (non-empty chunks, no leading/trailing '/')."""
-    if not isinstance(expr, str) or not expr:
-        raise ConfigError(f"{what}: expected a key expression, got {expr!r}")
-    chunks = expr.split("/")
-    if any(c == "" for c in chunks):
-        raise ConfigError(f"{what}: {expr!r} has an empty chunk (leading, trailing or '//')")
-    for c in chunks:
-        if c in ("*", "**"):
-            continue
-        if "**" in c:
-            raise ConfigError(f"{what}: {expr!r}: '**' must be a whole chunk")
-        if "*" in c.replace("$*", ""):
-            raise ConfigError(f"{what}: {expr!r}: '*' must be a whole chunk (or '$*' inside one)")
-        if any(ch in c for ch in "?#[]"):
-            raise ConfigError(f"{what}: {expr!r}: characters ?, #, [ and ] are not allowed")
-    return expr
+Percent = Annotated[float, PlainValidator(parse_percent)]
+Duration = Annotated[int, PlainValidator(_duration)]
+KeyExpr = Annotated[str, PlainValidator(check_keyexpr)]
 
 
-@lru_cache(maxsize=4096)
-def _chunk_regex(chunk: str) -> re.Pattern[str]:
-    return re.compile("^" + ".*".join(re.escape(p) for p in chunk.split("$*")) + "$")
+class _Doc(BaseModel):
+    """A table of the document: strict types, unknown fields refused."""
+
+    model_config = ConfigDict(strict=True, extra="forbid")
 
 
-def _chunk_matches(pattern: str, chunk: str) -> bool:
-    if pattern == "*":
-        return not chunk.startswith("@")
-    if "$*" in pattern:
-        return not chunk.startswith("@") and _chunk_regex(pattern).match(chunk) is not None
-    return pattern == chunk
-
-
-def keyexpr_matches(pattern: str, key: str) -> bool:
-    """Does the key expression ``pattern`` include the concrete key ``key``?"""
-    return _match(tuple(pattern.split("/")), tuple(key.split("/")))
-
-
-def _match(p: tuple[str, ...], k: tuple[str, ...]) -> bool:
-    if not p:
-        return not k
-    head = p[0]
-    if head == "**":
-        # zero chunks, or swallow one (non-verbatim) chunk and try again
-        if _match(p[1:], k):
-            return True
-        return bool(k) and not k[0].startswith("@") and _match(p, k[1:])
-    return bool(k) and _chunk_matches(head, k[0]) and _match(p[1:], k[1:])
-
-
-# --- mapping ---------------------------------------------------------------------------
+# --- key mappings ------------------------------------------------------------------------
 
 _PLACEHOLDER = re.compile(r"\{(\d+)\}")
 
 
-@dataclass(frozen=True, slots=True)
-class KeyMapping:
+class KeyMapping(_Doc):
     """Subscribe to ``subscribe`` and publish each sample on ``publish``'s image of its key.
 
     ``publish``: ``"operator"`` (:func:`keys.to_operator_side`), ``"robot"``
@@ -226,9 +199,26 @@ class KeyMapping:
     1st, 2nd, ... ``*`` of ``subscribe`` matched (``"pd/{1}/sensor/{2}"``).
     """
 
+    model_config = ConfigDict(frozen=True)
+
     direction: Direction
-    subscribe: str
-    publish: str
+    subscribe: KeyExpr
+    publish: str = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _check_template(self) -> KeyMapping:
+        if self.publish in ("operator", "robot"):
+            return self
+        if "**" in self.subscribe.split("/"):
+            raise ValueError("a template mapping cannot subscribe with '**'")
+        stars = self.subscribe.split("/").count("*")
+        for m in _PLACEHOLDER.finditer(self.publish):
+            if not 1 <= int(m.group(1)) <= stars:
+                raise ValueError(f"publish: {{{m.group(1)}}} but {self.subscribe!r} has {stars} '*'")
+        check_keyexpr(_PLACEHOLDER.sub("x", self.publish))
+        if "*" in self.publish.replace("$*", "*"):
+            raise ValueError("publish: the output key cannot contain wildcards")
+        return self
 
     def map_key(self, key: str) -> str:
         """Output key for input ``key``; raises ValueError if the key does not map."""
@@ -244,74 +234,133 @@ class KeyMapping:
         return _PLACEHOLDER.sub(lambda m: caught[int(m.group(1)) - 1], self.publish)
 
     def to_dict(self) -> dict[str, str]:
-        return {"direction": self.direction, "subscribe": self.subscribe, "publish": self.publish}
+        return self.model_dump()
 
 
 DEFAULT_MAPPINGS: tuple[KeyMapping, ...] = (
-    KeyMapping("downlink", keys.ROBOT_ALL_SENSORS, "operator"),
-    KeyMapping("uplink", keys.ALL_COMMANDS, "robot"),
+    KeyMapping(direction="downlink", subscribe=keys.ROBOT_ALL_SENSORS, publish="operator"),
+    KeyMapping(direction="uplink", subscribe=keys.ALL_COMMANDS, publish="robot"),
 )
 
 
-def _parse_mapping(raw: Any, i: int) -> KeyMapping:
-    what = f"mapping[{i}]"
-    if not isinstance(raw, Mapping):
-        raise ConfigError(f"{what}: expected a table with direction, subscribe, publish")
-    _no_unknown(raw, {"direction", "subscribe", "publish"}, what)
-    direction = raw.get("direction")
-    if direction not in DIRECTIONS:
-        raise ConfigError(f"{what}.direction must be 'downlink' or 'uplink', got {direction!r}")
-    subscribe = check_keyexpr(raw.get("subscribe"), f"{what}.subscribe")
-    publish = raw.get("publish")
-    if not isinstance(publish, str) or not publish:
-        raise ConfigError(f"{what}.publish: 'operator', 'robot' or a key template")
-    if publish not in ("operator", "robot"):
-        if "**" in subscribe.split("/"):
-            raise ConfigError(f"{what}: a template mapping cannot subscribe with '**'")
-        stars = subscribe.split("/").count("*")
-        for m in _PLACEHOLDER.finditer(publish):
-            if not 1 <= int(m.group(1)) <= stars:
-                raise ConfigError(
-                    f"{what}.publish: {{{m.group(1)}}} but {subscribe!r} has {stars} '*'"
-                )
-        check_keyexpr(_PLACEHOLDER.sub("x", publish), f"{what}.publish")
-        if "*" in publish.replace("$*", "*"):
-            raise ConfigError(f"{what}.publish: the output key cannot contain wildcards")
-    return KeyMapping(direction, subscribe, publish)
+# --- loss models (a tagged union on "model"; each table becomes the model's dataclass) -------
+
+
+class _LossDoc(_Doc):
+    """A loss table; validating it builds the model's loss dataclass (:attr:`spec`)."""
+
+    _spec: LossSpec = PrivateAttr()
+
+    @model_validator(mode="after")
+    def _build(self) -> _LossDoc:
+        self._spec = self.build()
+        return self
+
+    def build(self) -> LossSpec:
+        raise NotImplementedError
+
+    @property
+    def spec(self) -> LossSpec:
+        return self._spec
+
+
+class _RandomLossDoc(_LossDoc):
+    model: Literal["random"] = "random"
+    percent: Percent
+    correlation: Percent = 0.0
+
+    def build(self) -> LossSpec:
+        return RandomLoss(self.percent, self.correlation)
+
+
+class _GilbertElliottDoc(_LossDoc):
+    model: Literal["gemodel"]
+    p: Percent
+    r: Percent | None = None  # netem: 1 - p
+    one_minus_h: Percent = Field(1.0, alias="1-h")
+    one_minus_k: Percent = Field(0.0, alias="1-k")
+
+    def build(self) -> LossSpec:
+        r = 1.0 - self.p if self.r is None else self.r
+        return GilbertElliott(self.p, r, self.one_minus_h, self.one_minus_k)
+
+
+class _FourStateDoc(_LossDoc):
+    model: Literal["state"]
+    p13: Percent
+    p31: Percent | None = None  # netem: 1 - p13
+    p32: Percent = 0.0
+    p23: Percent = 1.0
+    p14: Percent = 0.0
+
+    def build(self) -> LossSpec:
+        p31 = 1.0 - self.p13 if self.p31 is None else self.p31
+        return FourStateLoss(self.p13, p31, self.p32, self.p23, self.p14)
+
+
+LOSS_MODELS = ("random", "gemodel", "state")
+
+
+def _loss_tag(value: Any) -> str:
+    """Which member of the loss union reads ``value``: a table by its ``model`` (default
+    random), anything else as the shorthand percentage (``loss = "1%"``)."""
+    if isinstance(value, Mapping):
+        return str(value.get("model", "random"))
+    return "percent"
+
+
+Loss = Annotated[
+    Annotated[_RandomLossDoc, Tag("random")]
+    | Annotated[_GilbertElliottDoc, Tag("gemodel")]
+    | Annotated[_FourStateDoc, Tag("state")]
+    | Annotated[Percent, Tag("percent")],
+    Discriminator(_loss_tag, custom_error_type="loss_model",
+                  custom_error_message="model must be 'random', 'gemodel' or 'state'"),
+]  # fmt: skip
+
+
+# --- outages ---------------------------------------------------------------------------
+
+
+class _OutageDoc(_Doc):
+    """``{at, for, every}``; validating it builds the model's :class:`Outage` (:attr:`window`)."""
+
+    at: Duration = 0
+    for_: Duration = Field(alias="for")
+    every: Duration = 0
+    _window: Outage = PrivateAttr()
+
+    @model_validator(mode="after")
+    def _build(self) -> _OutageDoc:
+        self._window = Outage(self.at, self.for_, self.every)
+        return self
+
+    @property
+    def window(self) -> Outage:
+        return self._window
+
+
+def _as_list(value: Any) -> Any:
+    """A single table where a list of tables is expected (``outage = {at, for}``)."""
+    return [value] if isinstance(value, Mapping) else value
 
 
 # --- rules -----------------------------------------------------------------------------
 
-RULE_FIELDS = frozenset(
-    {
-        "name", "match", "shared",
-        "delay", "jitter", "delay_correlation", "distribution",
-        "loss", "loss_correlation",
-        "duplicate", "duplicate_correlation",
-        "reorder", "reorder_correlation", "gap",
-        "corrupt", "corrupt_correlation", "corrupt_bits",
-        "rate", "packet_overhead",
-        "outage", "outage_mode",
-        "in_order",
-    }
-)  # fmt: skip
-TOP_FIELDS = frozenset({"seed", "step_ms", "mapping", "downlink", "uplink"})
-
 
 @dataclass(frozen=True, slots=True)
 class Rule:
-    """One rule: the messages of ``direction`` whose source key matches ``match`` get
+    """One rule: the messages of its direction whose source key matches ``match`` get
     ``params``.  ``shared``: one model state for all keys matched (one netem qdisc) instead of
     one per key."""
 
     name: str
-    direction: Direction
     match: str
     params: LinkParams
     shared: bool = False
 
     def matches(self, key: str) -> bool:
-        return keyexpr_matches(self.match, key)
+        return intersects(self.match, key)
 
     def to_dict(self) -> dict[str, Any]:
         """Normalised form (ms strings, percent strings) that parses back to the same rule."""
@@ -370,146 +419,105 @@ def _loss_to_dict(loss: LossSpec) -> dict[str, Any]:
     }
 
 
-def _parse_loss(raw: Any, corr_raw: Any, what: str) -> LossSpec | None:
-    if raw is None:
-        if corr_raw is not None:
-            raise ConfigError(f"{what}.loss_correlation given without loss")
-        return None
-    if not isinstance(raw, Mapping):  # shorthand: loss = "1%" -> random loss
-        p = parse_percent(raw, f"{what}.loss")
-        rho = parse_percent(corr_raw, f"{what}.loss_correlation") if corr_raw is not None else 0.0
-        return _model(RandomLoss, what + ".loss", p, rho) if p > 0 else None
-    if corr_raw is not None:
-        raise ConfigError(f"{what}: use loss.correlation inside the loss table")
-    model = raw.get("model", "random")
-    w = f"{what}.loss"
+class _RuleDoc(_Doc):
+    """One rule table (netem's names); validating it builds the :class:`LinkParams`."""
 
-    def pct(name: str, default: float | None = None) -> float:
-        if name not in raw:
-            if default is None:
-                raise ConfigError(f"{w}: {model} needs {name!r}")
-            return default
-        return parse_percent(raw[name], f"{w}.{name}")
+    name: str = Field(min_length=1)
+    match: KeyExpr = "**"
+    shared: bool = False
+    delay: Duration = 0
+    jitter: Duration = 0
+    delay_correlation: Percent = 0.0
+    distribution: Distribution = "uniform"
+    loss: Loss | None = None
+    loss_correlation: Percent | None = None
+    duplicate: Percent = 0.0
+    duplicate_correlation: Percent = 0.0
+    reorder: Percent = 0.0
+    reorder_correlation: Percent = 0.0
+    gap: int = 1
+    corrupt: Percent = 0.0
+    corrupt_correlation: Percent = 0.0
+    corrupt_bits: int = 1
+    rate: Annotated[Rate, PlainValidator(parse_rate)] | None = None
+    packet_overhead: int = 0
+    outage: Annotated[list[_OutageDoc], BeforeValidator(_as_list)] = []
+    outage_mode: OutageMode = "drop"
+    in_order: bool = False
 
-    if model == "random":
-        _no_unknown(raw, {"model", "percent", "correlation"}, w)
-        return _model(RandomLoss, w, pct("percent"), pct("correlation", 0.0))
-    if model == "gemodel":
-        _no_unknown(raw, {"model", "p", "r", "1-h", "1-k"}, w)
-        p = pct("p")
-        return _model(GilbertElliott, w, p, pct("r", 1.0 - p), pct("1-h", 1.0), pct("1-k", 0.0))
-    if model == "state":
-        _no_unknown(raw, {"model", "p13", "p31", "p32", "p23", "p14"}, w)
-        p13 = pct("p13")
-        return _model(FourStateLoss, w, p13, pct("p31", 1.0 - p13), pct("p32", 0.0),
-                      pct("p23", 1.0), pct("p14", 0.0))  # fmt: skip
-    raise ConfigError(f"{w}.model must be 'random', 'gemodel' or 'state', got {model!r}")
+    _params: LinkParams = PrivateAttr()
 
+    @model_validator(mode="after")
+    def _build_params(self) -> _RuleDoc:
+        given = self.model_fields_set
+        # the three refusals below are tc's
+        if "distribution" in given and self.jitter == 0:
+            raise ValueError("distribution given without jitter")
+        if "gap" in given and not self.reorder:
+            raise ValueError("gap given without reorder")
+        if "packet_overhead" in given and self.rate is None:
+            raise ValueError("packet_overhead given without rate")
+        loss: LossSpec | None = None
+        if isinstance(self.loss, float):  # shorthand: loss = "1%" [loss_correlation = ...]
+            if self.loss > 0:
+                loss = RandomLoss(self.loss, self.loss_correlation or 0.0)
+        elif self.loss_correlation is not None:
+            raise ValueError("use loss.correlation inside the loss table" if self.loss is not None
+                             else "loss_correlation given without loss")
+        elif self.loss is not None:
+            loss = self.loss.spec
+        rate = None if self.rate is None else replace(self.rate, overhead_bytes=self.packet_overhead)
+        delay = DelaySpec(self.delay, self.jitter, self.delay_correlation, self.distribution)
+        self._params = LinkParams(
+            delay, loss, self.duplicate, self.duplicate_correlation, self.reorder,
+            self.reorder_correlation, self.gap, self.corrupt, self.corrupt_correlation,
+            self.corrupt_bits, rate, tuple(w.window for w in self.outage), self.outage_mode,
+            self.in_order)
+        return self
 
-def _model(cls: Callable[..., Any], what: str, *args: Any) -> Any:
-    try:
-        return cls(*args)
-    except ValueError as e:
-        raise ConfigError(f"{what}: {e}") from None
-
-
-def _parse_outages(raw: Any, what: str, step_ms: float | None) -> tuple[Outage, ...]:
-    if raw is None:
-        return ()
-    if isinstance(raw, Mapping):
-        raw = [raw]
-    if not isinstance(raw, list):
-        raise ConfigError(f"{what}.outage: a table {{at, for, every}} or a list of them")
-    out = []
-    for i, w in enumerate(raw):
-        wi = f"{what}.outage[{i}]"
-        if not isinstance(w, Mapping):
-            raise ConfigError(f"{wi}: expected a table with 'at', 'for' and optional 'every'")
-        _no_unknown(w, {"at", "for", "every"}, wi)
-        if "for" not in w:
-            raise ConfigError(f"{wi}: 'for' (the duration) is required")
-        start = parse_time_ns(w.get("at", 0), f"{wi}.at", step_ms)
-        duration = parse_time_ns(w["for"], f"{wi}.for", step_ms)
-        every = parse_time_ns(w.get("every", 0), f"{wi}.every", step_ms)
-        out.append(_model(Outage, wi, start, duration, every))
-    return tuple(out)
+    def rule(self) -> Rule:
+        return Rule(self.name, self.match, self._params, self.shared)
 
 
-def parse_rule(raw: Any, direction: Direction, index: int, step_ms: float | None) -> Rule:
-    """One rule table -> :class:`Rule` (raises :class:`ConfigError` naming the field)."""
-    what = f"{direction}[{index}]"
-    if not isinstance(raw, Mapping):
-        raise ConfigError(f"{what}: expected a table of netem-style fields")
-    _no_unknown(raw, RULE_FIELDS, what)
-    name = raw.get("name", f"{direction}-{index}")
-    if not isinstance(name, str) or not name:
-        raise ConfigError(f"{what}.name must be a non-empty string")
-    what = f"{direction}[{index}] ({name})"
-    match = check_keyexpr(raw.get("match", "**"), f"{what}.match")
+def _rule_tables(value: Any, info: ValidationInfo) -> Any:
+    """``[[downlink]]`` tables (or one table); a rule without a name gets ``downlink-<i>``."""
+    value = _as_list(value)
+    if not isinstance(value, list):
+        raise ValueError(f"must be a list of rule tables ([[{info.field_name}]])")
+    return [{"name": f"{info.field_name}-{i}", **r} if isinstance(r, Mapping) else r
+            for i, r in enumerate(value)]  # fmt: skip
 
-    def pct(field_name: str) -> float:
-        return parse_percent(raw[field_name], f"{what}.{field_name}") if field_name in raw else 0.0
 
-    def flag(field_name: str) -> bool:
-        value = raw.get(field_name, False)
-        if not isinstance(value, bool):
-            raise ConfigError(f"{what}.{field_name} must be true or false, got {value!r}")
-        return value
+def _unique_names(rules: list[_RuleDoc]) -> list[_RuleDoc]:
+    names = [r.name for r in rules]
+    dupes = sorted({n for n in names if names.count(n) > 1})
+    if dupes:
+        raise ValueError(f"rule names must be unique, repeated: {dupes}")
+    return rules
 
-    def integer(field_name: str, default: int) -> int:
-        value = raw.get(field_name, default)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{what}.{field_name} must be an integer, got {value!r}")
-        return value
 
-    distribution = raw.get("distribution", "uniform")
-    if distribution not in DISTRIBUTIONS:
-        raise ConfigError(
-            f"{what}.distribution must be one of {', '.join(DISTRIBUTIONS)}, got {distribution!r}"
-        )
-    jitter = parse_time_ns(raw.get("jitter", 0), f"{what}.jitter", step_ms)
-    if "distribution" in raw and jitter == 0:
-        raise ConfigError(f"{what}: distribution given without jitter")  # as tc refuses it
-    delay = _model(
-        DelaySpec,
-        what,
-        parse_time_ns(raw.get("delay", 0), f"{what}.delay", step_ms),
-        jitter,
-        pct("delay_correlation"),
-        distribution,
-    )
-    if "gap" in raw and not pct("reorder"):
-        raise ConfigError(f"{what}: gap given without reorder")  # as tc refuses it
-    rate = None
-    if "rate" in raw:
-        rate = parse_rate(raw["rate"], f"{what}.rate", integer("packet_overhead", 0))
-    elif "packet_overhead" in raw:
-        raise ConfigError(f"{what}: packet_overhead given without rate")
-    outage_mode = raw.get("outage_mode", "drop")
-    if outage_mode not in ("drop", "stall"):
-        raise ConfigError(f"{what}.outage_mode must be 'drop' or 'stall', got {outage_mode!r}")
-    params = _model(
-        LinkParams,
-        what,
-        delay,
-        _parse_loss(raw.get("loss"), raw.get("loss_correlation"), what),
-        pct("duplicate"),
-        pct("duplicate_correlation"),
-        pct("reorder"),
-        pct("reorder_correlation"),
-        integer("gap", 1),
-        pct("corrupt"),
-        pct("corrupt_correlation"),
-        integer("corrupt_bits", 1),
-        rate,
-        _parse_outages(raw.get("outage"), what, step_ms),
-        outage_mode,
-        flag("in_order"),
-    )
-    return Rule(name, direction, match, params, flag("shared"))
+RuleList = Annotated[list[_RuleDoc], BeforeValidator(_rule_tables), AfterValidator(_unique_names)]
 
 
 # --- the whole configuration -----------------------------------------------------------
+
+
+class _ConfigDoc(_Doc):
+    """The document.  Fields are validated in this order: ``step_ms`` is known (through the
+    validation context) before the rules' durations in steps are read."""
+
+    seed: int = 0
+    step_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    mapping: Annotated[list[KeyMapping], Field(min_length=1)] | None = None
+    downlink: RuleList = []
+    uplink: RuleList = []
+
+    @field_validator("step_ms")
+    @classmethod
+    def _share_step(cls, value: float | None, info: ValidationInfo) -> float | None:
+        if isinstance(info.context, dict):
+            info.context["step_ms"] = value
+        return value
 
 
 @dataclass(frozen=True, slots=True)
@@ -547,49 +555,61 @@ class LinkConfig:
 
 
 def parse_config(doc: Any, *, base: LinkConfig | None = None) -> LinkConfig:
-    """A decoded document (dict) -> :class:`LinkConfig`.
+    """A decoded document (dict) -> :class:`LinkConfig` (raises :class:`ConfigError` naming
+    the field).
 
     With ``base`` (runtime replacement): ``seed`` and ``step_ms`` default to the base's, and
     ``mapping`` may be omitted or must equal the base's (subscriptions are fixed at start).
     """
     if not isinstance(doc, Mapping):
         raise ConfigError("the configuration must be a table / JSON object")
-    _no_unknown(doc, TOP_FIELDS, "configuration")
-    seed = doc.get("seed", base.seed if base else 0)
-    if isinstance(seed, bool) or not isinstance(seed, int):
-        raise ConfigError(f"seed must be an integer, got {seed!r}")
-    step_ms = doc.get("step_ms", base.step_ms if base else None)
-    if step_ms is not None and (
-        isinstance(step_ms, bool)
-        or not isinstance(step_ms, int | float)
-        or not math.isfinite(step_ms)
-        or step_ms <= 0
-    ):
-        raise ConfigError(f"step_ms must be a number > 0, got {step_ms!r}")
-    step_ms = float(step_ms) if step_ms is not None else None
-    if "mapping" in doc:
-        raw_maps = doc["mapping"]
-        if not isinstance(raw_maps, list) or not raw_maps:
-            raise ConfigError("mapping must be a non-empty list of tables")
-        mappings = tuple(_parse_mapping(m, i) for i, m in enumerate(raw_maps))
-        if base is not None and mappings != base.mappings:
+    if base is not None:
+        doc = {"seed": base.seed, "step_ms": base.step_ms} | dict(doc)
+    try:
+        d = _ConfigDoc.model_validate(doc, context={"step_ms": None})
+    except ValidationError as e:
+        raise ConfigError("; ".join(_describe(err, doc) for err in e.errors())) from None
+    mappings = DEFAULT_MAPPINGS if base is None else base.mappings
+    if d.mapping is not None:
+        if base is not None and tuple(d.mapping) != base.mappings:
             raise ConfigError("mapping cannot be changed at runtime; restart pd-link")
+        mappings = tuple(d.mapping)
+    return LinkConfig(d.seed, d.step_ms, mappings, tuple(r.rule() for r in d.downlink),
+                      tuple(r.rule() for r in d.uplink))  # fmt: skip
+
+
+def _describe(err: Any, doc: Mapping[str, Any]) -> str:
+    """One pydantic error as ``path: reason``; the path is built from ``loc`` in the document's
+    terms (``downlink[0] (camera).loss.p``: list indices in brackets, the rule's name after its
+    index, the loss union's tag left out)."""
+    loc: tuple[Any, ...] = err["loc"]
+    kind, value = err["type"], err.get("input")
+    if kind == "missing":
+        loc, reason = loc[:-1], f"needs {loc[-1]!r}"
+    elif kind == "extra_forbidden":
+        loc, reason = loc[:-1], f"unknown field {loc[-1]!r}"
+    elif kind == "value_error":
+        reason = str(err["ctx"]["error"])
+    elif kind == "model_type":
+        reason = f"expected a table, got {value!r}"
+    elif kind == "loss_model":
+        reason = f"{err['msg']}, got {value.get('model')!r}"
+    elif kind == "bool_type":
+        reason = f"must be true or false, got {value!r}"
     else:
-        mappings = base.mappings if base else DEFAULT_MAPPINGS
-    rules: dict[str, tuple[Rule, ...]] = {}
-    for direction in DIRECTIONS:
-        raw_rules = doc.get(direction, [])
-        if isinstance(raw_rules, Mapping):
-            raw_rules = [raw_rules]
-        if not isinstance(raw_rules, list):
-            raise ConfigError(f"{direction} must be a list of rule tables ([[{direction}]])")
-        parsed = tuple(parse_rule(r, direction, i, step_ms) for i, r in enumerate(raw_rules))
-        names = [r.name for r in parsed]
-        dupes = sorted({n for n in names if names.count(n) > 1})
-        if dupes:
-            raise ConfigError(f"{direction}: rule names must be unique, repeated: {dupes}")
-        rules[direction] = parsed
-    return LinkConfig(seed, step_ms, mappings, rules["downlink"], rules["uplink"])
+        reason = f"{err['msg']}, got {value!r}"
+    path = ""
+    node: Any = doc
+    for i, item in enumerate(loc):
+        if isinstance(item, int):
+            path += f"[{item}]"
+            node = _as_list(node)[item] if isinstance(node, Mapping | list) else None
+            if len(loc) > 1 and i == 1 and loc[0] in DIRECTIONS and isinstance(node, Mapping):
+                path += f" ({node.get('name', f'{loc[0]}-{item}')})"
+        elif not (i and loc[i - 1] == "loss" and item in (*LOSS_MODELS, "percent")):
+            path += f".{item}" if path else str(item)
+            node = node.get(item) if isinstance(node, Mapping) else None
+    return f"{path or 'configuration'}: {reason}"
 
 
 def decode_document(data: bytes | str) -> dict[str, Any]:
@@ -623,12 +643,3 @@ def load_config(path: str | Path) -> LinkConfig:
     except OSError as e:
         raise ConfigError(f"cannot read {p}: {e.strerror}") from None
     return parse_config(decode_document(data))
-
-
-def _no_unknown(raw: Mapping[str, Any], allowed: frozenset[str] | set[str], what: str) -> None:
-    unknown = sorted(set(raw) - set(allowed))
-    if unknown:
-        raise ConfigError(
-            f"{what}: unknown field(s) {', '.join(map(repr, unknown))}; "
-            f"valid: {', '.join(sorted(allowed))}"
-        )

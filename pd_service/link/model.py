@@ -215,6 +215,7 @@ class Rate:
         """Time on the wire of one message of ``size`` bytes, integer ns."""
         if self.msgs_per_s is not None:
             return round(NS_PER_S / self.msgs_per_s)
+        assert self.bytes_per_s is not None
         return round(max(0, size + self.overhead_bytes) * NS_PER_S / self.bytes_per_s)
 
 

@@ -1,20 +1,25 @@
-"""Zenoh adapter of pd-link: subscribe, apply the model, release from a heap on time.
+"""The relay of pd-link on a :class:`~pd_service.transport.base.Transport` (Zenoh, or the
+in-memory bus in tests): subscribe, apply the model, release from a heap on time.
 
 Threads::
 
-    zenoh callbacks --(deque + Event)--> worker --(heap + Condition)--> timer --> publisher.put
-    (stamp arrival, copy bytes;          (route, model.process,         (wait until due:
-     never block)                         push releases)                 Condition.wait, then
-                                                                         spin the last spin_ns)
+    transport callbacks --(deque + Event)--> worker --(heap + Condition)--> timer --> publisher.put
+    (stamp arrival;                          (route, model.process,         (wait until due:
+     never block)                             push releases)                 Condition.wait, then
+                                                                             spin the last spin_ns)
+
+:meth:`LinkRelay.step` does what the two threads do, once, on the caller's thread: with
+:meth:`LinkRelay.attach` instead of :meth:`LinkRelay.start` and an injected clock, a test drives
+the relay deterministically.
 
 * Payload bytes are relayed verbatim (never decoded); encoding and attachment are kept.
-* One publisher per output key, declared once and cached.
+* One publisher per output key, declared once and cached (reliable: it blocks, never drops).
 * Queryables: :func:`keys.link_rules_key` (GET -> current rules as JSON; GET with a payload ->
   replace the rules, answer the new rules or an error) and :func:`keys.link_stats_key`
   (per-rule counters and delay quantiles as JSON).
 * A stats line per active rule is logged every ``stats_interval_s`` at INFO.
 
-Timing: ``clock`` is ``time.monotonic_ns``; a message's arrival time is stamped in the Zenoh
+Timing: ``clock`` is ``time.monotonic_ns``; a message's arrival time is stamped in the transport
 callback, its release time is ``arrival + decided delay``; ``lateness`` = publish time - release
 time is what the timer thread could not hit (the benchmark's |applied - configured|).
 """
@@ -33,22 +38,17 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import zenoh
 
+from pd_service.errors import ConfigError
+from pd_service.transport.base import Handle, Publisher, Query, Sample, Transport
+from pd_service.transport.keyexpr import intersects
 from pd_service.wire import keys
 
-from .config import (
-    ConfigError,
-    KeyMapping,
-    LinkConfig,
-    Rule,
-    decode_document,
-    keyexpr_matches,
-    parse_config,
-)
+from .config import KeyMapping, LinkConfig, Rule, decode_document, parse_config
 from .model import Decision, LinkModel
 
 log = logging.getLogger("pd_service.link")
+_JSON = "application/json"
 
 _RESERVOIR = 20_000  # delays kept per rule for the quantiles (the most recent ones)
 
@@ -130,7 +130,7 @@ class _Route:
     """Where one input key goes and what is applied to it (cached per rule generation)."""
 
     out_key: str
-    publisher: Any  # zenoh.Publisher
+    publisher: Publisher
     model: LinkModel | None  # None: passthrough (no rule matched)
     stats: RuleStats
 
@@ -157,7 +157,7 @@ def _new_generation(number: int, config: LinkConfig, epoch_ns: int) -> _Generati
 
 
 class LinkRelay:
-    """Relays the configured mappings through the link model on an open Zenoh session.
+    """Relays the configured mappings through the link model on an open transport.
 
     ``spin_ns``: the timer thread busy-waits (holding the GIL) for the last ``spin_ns`` before
     a release instead of trusting ``Condition.wait`` to wake up on time -- only while releases
@@ -172,7 +172,7 @@ class LinkRelay:
 
     def __init__(
         self,
-        session: zenoh.Session,
+        transport: Transport,
         config: LinkConfig,
         instance: str = "default",
         *,
@@ -182,7 +182,7 @@ class LinkRelay:
         express: bool = False,
         clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
-        self._session = session
+        self._transport = transport
         self.instance = keys.check_name(instance, "instance")
         self._clock = clock
         self._spin_ns = int(spin_ns)
@@ -199,9 +199,8 @@ class LinkRelay:
         self._seq = itertools.count()
         self._stopping = False
 
-        self._publishers: dict[str, Any] = {}
-        self._subscribers: list[Any] = []
-        self._queryables: list[Any] = []
+        self._publishers: dict[str, Publisher] = {}
+        self._handles: list[Handle] = []
         self._threads: list[threading.Thread] = []
         self.overflow = 0  # inbox full
         self.unmapped = 0  # key that the mapping cannot translate
@@ -213,20 +212,25 @@ class LinkRelay:
     # lifecycle ---------------------------------------------------------------------------
 
     def start(self) -> LinkRelay:
-        """Start the threads, then declare queryables and subscribers."""
+        """Start the threads, then :meth:`attach`."""
         self._threads = [
             threading.Thread(target=self._worker, name="pd-link-worker", daemon=True),
             threading.Thread(target=self._timer, name="pd-link-timer", daemon=True),
         ]
         for t in self._threads:
             t.start()
-        s = self._session
-        self._queryables = [
-            s.declare_queryable(keys.link_rules_key(self.instance), self._on_rules_query),
-            s.declare_queryable(keys.link_stats_key(self.instance), self._on_stats_query),
+        return self.attach()
+
+    def attach(self) -> LinkRelay:
+        """Declare the queryables and subscribers.  Without :meth:`start` nothing moves until
+        :meth:`step` is called."""
+        t = self._transport
+        self._handles += [
+            t.queryable(keys.link_rules_key(self.instance), self._on_rules_query),
+            t.queryable(keys.link_stats_key(self.instance), self._on_stats_query),
         ]
         for idx, m in enumerate(self._gen.config.mappings):
-            self._subscribers.append(s.declare_subscriber(m.subscribe, self._callback(idx)))
+            self._handles.append(t.subscribe(m.subscribe, self._callback(idx)))
         log.info(
             "pd-link ready",
             extra={"fields": {
@@ -242,13 +246,12 @@ class LinkRelay:
         """Undeclare everything and stop the threads; messages still pending are dropped."""
         if self._stopping:
             return
-        for ent in (*self._subscribers, *self._queryables):
+        for h in self._handles:
             try:
-                ent.undeclare()
-            except Exception:  # session may already be closed
+                h.close()
+            except Exception:  # the transport may already be closed
                 pass
-        self._subscribers.clear()
-        self._queryables.clear()
+        self._handles.clear()
         self._stopping = True
         self._wake.set()
         with self._cond:
@@ -258,7 +261,7 @@ class LinkRelay:
             t.join(timeout=5.0)
         for pub in self._publishers.values():
             try:
-                pub.undeclare()
+                pub.close()
             except Exception:
                 pass
         self._publishers.clear()
@@ -318,19 +321,17 @@ class LinkRelay:
             "rules": [s.snapshot() for s in gen.stats.values()],
         }
 
-    def _on_rules_query(self, query: zenoh.Query) -> None:
+    def _on_rules_query(self, query: Query) -> None:
         key = keys.link_rules_key(self.instance)
         try:
-            payload = query.payload
-            data = payload.to_bytes() if payload is not None else b""
+            data = query.payload or b""
             if data.strip():
                 self.replace_rules(decode_document(data))
             body = json.dumps(self.rules_document()).encode()
-            query.reply(key, body, encoding=zenoh.Encoding.APPLICATION_JSON)
+            query.reply(key, body, encoding=_JSON)
         except ConfigError as e:
             log.warning("rules replacement refused", extra={"fields": {"error": str(e)}})
-            query.reply_err(json.dumps({"error": str(e)}).encode(),
-                            encoding=zenoh.Encoding.APPLICATION_JSON)  # fmt: skip
+            query.reply_err(json.dumps({"error": str(e)}).encode(), encoding=_JSON)
         except Exception as e:  # never let a bad query kill the callback thread
             log.exception("rules query failed")
             try:
@@ -338,22 +339,20 @@ class LinkRelay:
             except Exception:
                 pass
 
-    def _on_stats_query(self, query: zenoh.Query) -> None:
+    def _on_stats_query(self, query: Query) -> None:
         try:
             body = json.dumps(self.stats()).encode()
-            query.reply(keys.link_stats_key(self.instance), body,
-                        encoding=zenoh.Encoding.APPLICATION_JSON)  # fmt: skip
+            query.reply(keys.link_stats_key(self.instance), body, encoding=_JSON)
         except Exception:
             log.exception("stats query failed")
 
     # hot path: callbacks -> worker -------------------------------------------------------
 
-    def _callback(self, mapping_index: int) -> Callable[[zenoh.Sample], None]:
+    def _callback(self, mapping_index: int) -> Callable[[Sample], None]:
         inbox, wake, clock = self._inbox, self._wake, self._clock
-        delete = zenoh.SampleKind.DELETE
         max_inbox = self._max_inbox
 
-        def on_sample(sample: zenoh.Sample) -> None:
+        def on_sample(sample: Sample) -> None:
             now = clock()
             if len(inbox) >= max_inbox:
                 self.overflow += 1
@@ -361,39 +360,53 @@ class LinkRelay:
             inbox.append((
                 now,
                 mapping_index,
-                str(sample.key_expr),
-                sample.payload.to_bytes(),
+                sample.key,
+                sample.payload,
                 sample.encoding,
                 sample.attachment,
-                sample.kind == delete,
+                sample.kind == "delete",
             ))  # fmt: skip
             if not wake.is_set():
                 wake.set()
 
         return on_sample
 
+    def step(self) -> int:
+        """Handle every message received so far, then publish every copy due at ``clock()``;
+        returns how many were published.  (What the worker and timer threads do.)"""
+        self._drain_inbox()
+        with self._cond:
+            batch = self._pop_due(self._clock())
+        self._publish(batch)
+        return len(batch)
+
     def _worker(self) -> None:
-        inbox, wake = self._inbox, self._wake
+        wake = self._wake
         while not self._stopping:
             wake.wait(timeout=1.0)
             wake.clear()
-            while True:
-                try:
-                    item = inbox.popleft()
-                except IndexError:
-                    break
-                try:
-                    self._handle(*item)
-                except Exception:
-                    log.exception("dropping a message after an internal error")
+            self._drain_inbox()
             self._maybe_log_stats()
 
+    def _drain_inbox(self) -> None:
+        inbox = self._inbox
+        while True:
+            try:
+                item = inbox.popleft()
+            except IndexError:
+                return
+            try:
+                self._handle(*item)
+            except Exception:
+                log.exception("dropping a message after an internal error")
+
     def _handle(self, arrival_ns: int, mapping_index: int, key: str, payload: bytes,
-                encoding: Any, attachment: Any, is_delete: bool) -> None:  # fmt: skip
+                encoding: str | None, attachment: bytes | None, is_delete: bool) -> None:  # fmt: skip
         gen = self._gen
         route_key = (mapping_index, key)
-        route = gen.routes.get(route_key, False)
-        if route is False:
+        try:
+            route = gen.routes[route_key]
+        except KeyError:
             route = self._route(gen, mapping_index, key)
             if len(gen.routes) >= self.MAX_ROUTES:
                 gen.routes.clear()
@@ -419,19 +432,14 @@ class LinkRelay:
             self._warn_once(f"unmapped:{key}", "key does not map; dropped",
                             key=key, error=str(e))  # fmt: skip
             return None
-        if any(keyexpr_matches(m.subscribe, out_key) for m in gen.config.mappings):
+        if any(intersects(m.subscribe, out_key) for m in gen.config.mappings):
             self.loops += 1
             self._warn_once(f"loop:{key}", "output key would loop back into pd-link; dropped",
                             key=key, out_key=out_key)  # fmt: skip
             return None
         publisher = self._publishers.get(out_key)
         if publisher is None:
-            publisher = self._session.declare_publisher(
-                out_key,
-                express=self._express,
-                # a message the model forwards must not be lost by Zenoh's own queue
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
+            publisher = self._transport.publisher(out_key, express=self._express)
             self._publishers[out_key] = publisher
         direction = mapping.direction
         found = gen.config.rule_for(direction, key)
@@ -452,8 +460,8 @@ class LinkRelay:
             gen.models[mkey] = model
         return model
 
-    def _push(self, release_ns: int, route: _Route, payload: bytes, encoding: Any,
-              attachment: Any, is_delete: bool, arrival_ns: int) -> None:  # fmt: skip
+    def _push(self, release_ns: int, route: _Route, payload: bytes, encoding: str | None,
+              attachment: bytes | None, is_delete: bool, arrival_ns: int) -> None:  # fmt: skip
         item = (release_ns, next(self._seq), route, payload, encoding, attachment, is_delete,
                 arrival_ns)  # fmt: skip
         with self._cond:
@@ -494,24 +502,33 @@ class LinkRelay:
                     break
             while clock() < due:  # the last stretch: Condition.wait may wake up late
                 pass
-            batch = []
             with cond:
                 now = clock()
-                while heap and heap[0][0] <= now:
-                    batch.append(heapq.heappop(heap))
+                batch = self._pop_due(now)
             last_release = now
-            for release_ns, _, route, payload, encoding, attachment, is_delete, arrival in batch:
-                t = clock()
-                try:
-                    if is_delete:
-                        route.publisher.delete(attachment=attachment)
-                    else:
-                        route.publisher.put(payload, encoding=encoding, attachment=attachment)
-                except Exception as e:
-                    self._warn_once(f"put:{route.out_key}", "publish failed",
-                                    key=route.out_key, error=str(e))  # fmt: skip
-                    continue
-                route.stats.record_release(t - arrival, t - release_ns)
+            self._publish(batch)
+
+    def _pop_due(self, now: int) -> list[tuple[Any, ...]]:
+        """The heap's items due at ``now``, earliest first (call with ``_cond`` held)."""
+        heap, batch = self._heap, []
+        while heap and heap[0][0] <= now:
+            batch.append(heapq.heappop(heap))
+        return batch
+
+    def _publish(self, batch: list[tuple[Any, ...]]) -> None:
+        clock = self._clock
+        for release_ns, _, route, payload, encoding, attachment, is_delete, arrival in batch:
+            t = clock()
+            try:
+                if is_delete:
+                    route.publisher.delete(attachment=attachment)
+                else:
+                    route.publisher.put(payload, encoding=encoding, attachment=attachment)
+            except Exception as e:
+                self._warn_once(f"put:{route.out_key}", "publish failed",
+                                key=route.out_key, error=str(e))  # fmt: skip
+                continue
+            route.stats.record_release(t - arrival, t - release_ns)
 
     # logging -------------------------------------------------------------------------------
 

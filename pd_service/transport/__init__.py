@@ -1,6 +1,6 @@
 """Messaging adapters: Zenoh for real use, an in-memory bus for tests (same interface)."""
 
-from .base import Handle, Query, Reply, Sample, Transport
+from .base import Handle, Publisher, Query, Reply, Sample, Transport
 from .memory import InMemoryBus, InMemoryTransport
 from .options import (
     DAEMON,
@@ -27,6 +27,7 @@ __all__ = [
     "Handle",
     "InMemoryBus",
     "InMemoryTransport",
+    "Publisher",
     "Query",
     "Reply",
     "Sample",

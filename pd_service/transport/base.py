@@ -15,13 +15,16 @@ from typing import Literal, Protocol
 @dataclass(frozen=True, slots=True)
 class Sample:
     """A received publication. ``recv_ns``: wall clock at receipt (time.time_ns());
-    ``recv_mono_ns``: monotonic clock at receipt (for latency)."""
+    ``recv_mono_ns``: monotonic clock at receipt (for latency); ``encoding`` (None: the
+    default, Zenoh's ``zenoh/bytes``) and ``attachment`` as the publisher set them."""
 
     key: str
     payload: bytes
     kind: Literal["put", "delete"]
     recv_ns: int
     recv_mono_ns: int
+    encoding: str | None = None
+    attachment: bytes | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,12 +42,24 @@ class Query(Protocol):
     key: str  # the key expression the query asked for
     payload: bytes | None
 
-    def reply(self, key: str, payload: bytes) -> None: ...
+    def reply(self, key: str, payload: bytes, encoding: str | None = None) -> None: ...
 
-    def reply_err(self, payload: bytes) -> None: ...
+    def reply_err(self, payload: bytes, encoding: str | None = None) -> None: ...
 
 
 class Handle(Protocol):
+    def close(self) -> None: ...
+
+
+class Publisher(Protocol):
+    """A declared publisher on one key: reliable, it waits rather than drop a message when
+    the network is congested. ``encoding`` None: the default (Zenoh's ``zenoh/bytes``)."""
+
+    def put(self, payload: bytes, *, encoding: str | None = None,
+            attachment: bytes | None = None) -> None: ...
+
+    def delete(self, *, attachment: bytes | None = None) -> None: ...
+
     def close(self) -> None: ...
 
 
@@ -52,6 +67,10 @@ class Transport(Protocol):
     def put(self, key: str, payload: bytes) -> None: ...
 
     def delete(self, key: str) -> None: ...
+
+    def publisher(self, key: str, *, express: bool = False) -> Publisher:
+        """``express``: send at once, without batching (Zenoh's express flag)."""
+        ...
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle: ...
 

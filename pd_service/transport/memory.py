@@ -9,6 +9,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Literal
 
 from .base import Reply, Sample
 from .keyexpr import intersects
@@ -31,11 +32,27 @@ class _MemQuery:
     payload: bytes | None
     replies: list[Reply] = field(default_factory=list)
 
-    def reply(self, key: str, payload: bytes) -> None:
+    def reply(self, key: str, payload: bytes, encoding: str | None = None) -> None:
         self.replies.append(Reply(key, bytes(payload), True))
 
-    def reply_err(self, payload: bytes) -> None:
+    def reply_err(self, payload: bytes, encoding: str | None = None) -> None:
         self.replies.append(Reply(self.key, bytes(payload), False))
+
+
+@dataclass
+class _Publisher:
+    transport: InMemoryTransport
+    key: str
+
+    def put(self, payload: bytes, *, encoding: str | None = None,
+            attachment: bytes | None = None) -> None:
+        self.transport._deliver(self.key, bytes(payload), "put", encoding, attachment)
+
+    def delete(self, *, attachment: bytes | None = None) -> None:
+        self.transport._deliver(self.key, b"", "delete", None, attachment)
+
+    def close(self) -> None:
+        pass
 
 
 class InMemoryBus:
@@ -65,10 +82,14 @@ class InMemoryTransport:
     def delete(self, key: str) -> None:
         self._deliver(key, b"", "delete")
 
-    def _deliver(self, key: str, payload: bytes, kind: str) -> None:
+    def publisher(self, key: str, *, express: bool = False) -> _Publisher:
+        return _Publisher(self, key)
+
+    def _deliver(self, key: str, payload: bytes, kind: Literal["put", "delete"],
+                 encoding: str | None = None, attachment: bytes | None = None) -> None:
         with self.bus.lock:
             targets = [cb for ke, cb in self.bus.subs if intersects(ke, key)]
-        s = Sample(key, payload, kind, time.time_ns(), time.monotonic_ns())  # type: ignore[arg-type]
+        s = Sample(key, payload, kind, time.time_ns(), time.monotonic_ns(), encoding, attachment)
         for cb in targets:
             cb(s)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import Literal
 
 import zenoh
 
@@ -16,6 +17,8 @@ from .base import Reply, Sample
 from .options import zenoh_config
 
 log = logging.getLogger("pd_service.transport")
+_DEFAULT_ENCODING = zenoh.Encoding.ZENOH_BYTES
+
 
 class _Handle:
     def __init__(self, obj: object) -> None:
@@ -30,6 +33,23 @@ class _Handle:
                 pass
 
 
+class _Publisher:
+    __slots__ = ("_pub", "_handle")
+
+    def __init__(self, pub: zenoh.Publisher, handle: _Handle) -> None:
+        self._pub, self._handle = pub, handle
+
+    def put(self, payload: bytes, *, encoding: str | None = None,
+            attachment: bytes | None = None) -> None:
+        self._pub.put(payload, encoding=encoding, attachment=attachment)
+
+    def delete(self, *, attachment: bytes | None = None) -> None:
+        self._pub.delete(attachment=attachment)
+
+    def close(self) -> None:
+        self._handle.close()
+
+
 class _ZQuery:
     __slots__ = ("_q", "key", "payload")
 
@@ -38,11 +58,11 @@ class _ZQuery:
         self.key = str(q.key_expr)
         self.payload = q.payload.to_bytes() if q.payload is not None else None
 
-    def reply(self, key: str, payload: bytes) -> None:
-        self._q.reply(key, payload)
+    def reply(self, key: str, payload: bytes, encoding: str | None = None) -> None:
+        self._q.reply(key, payload, encoding=encoding)
 
-    def reply_err(self, payload: bytes) -> None:
-        self._q.reply_err(payload)
+    def reply_err(self, payload: bytes, encoding: str | None = None) -> None:
+        self._q.reply_err(payload, encoding=encoding)
 
 
 class ZenohTransport:
@@ -63,12 +83,22 @@ class ZenohTransport:
     def delete(self, key: str) -> None:
         self.session.delete(key)
 
+    def publisher(self, key: str, *, express: bool = False) -> _Publisher:
+        # BLOCK: a message must not be lost by Zenoh's own queue
+        pub = self.session.declare_publisher(key, express=express,
+                                             congestion_control=zenoh.CongestionControl.BLOCK)
+        return _Publisher(pub, self._keep(pub))
+
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         def on_sample(s: zenoh.Sample) -> None:
             try:
-                kind = "delete" if s.kind == zenoh.SampleKind.DELETE else "put"
+                kind: Literal["put", "delete"] = (
+                    "delete" if s.kind == zenoh.SampleKind.DELETE else "put")
+                enc, att = s.encoding, s.attachment
                 callback(Sample(str(s.key_expr), s.payload.to_bytes(), kind,
-                                time.time_ns(), time.monotonic_ns()))
+                                time.time_ns(), time.monotonic_ns(),
+                                None if enc == _DEFAULT_ENCODING else str(enc),
+                                None if att is None else att.to_bytes()))
             except Exception:
                 log.exception("subscriber callback failed for %s", keyexpr)
 

@@ -67,13 +67,16 @@ def collector_factory() -> type[Collector]:
 
 @pytest.fixture(scope="module")
 def zenoh_pair() -> Iterator[tuple[object, object, str]]:
-    """(test session listening on a free loopback port, relay session connected to it, endpoint)."""
+    """(test session listening on a free loopback port, relay transport connected to it,
+    endpoint)."""
     zenoh = pytest.importorskip("zenoh")
+    from pd_service.transport.zenoh_transport import ZenohTransport
+
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     test_session = zenoh.open(peer_config([endpoint]))
-    relay_session = zenoh.open(peer_config(connect=[endpoint]))
+    relay_transport = ZenohTransport(peer_config(connect=[endpoint]))
     try:
-        yield test_session, relay_session, endpoint
+        yield test_session, relay_transport, endpoint
     finally:
-        relay_session.close()
+        relay_transport.close()
         test_session.close()
