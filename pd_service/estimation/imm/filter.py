@@ -43,7 +43,7 @@ from ..checks import as_covariance, as_vector
 from ..nonlinear.registry import MeasurementModel, NonlinearModel
 from . import uif
 from .mixing import check_transition, combine, mix, posterior_probabilities
-from .unscented import apply_rows, is_vectorized, sigma_points, unscented_propagate, weights
+from .unscented import apply_rows, sigma_points, unscented_propagate, weights
 
 VARIANTS = ("single", "centralised", "imm1", "imm2")
 
@@ -126,7 +126,7 @@ class ImmFilter:
         self.n, self.nu, self.r = n, nu, len(modes)
         self.n_nodes = len(sensors) if variant == "imm1" else 1
         self._w = weights(n, kappa)
-        self._vec_modes = [is_vectorized(md) for md in modes]
+        self._vec_modes = [md.vectorized for md in modes]
 
     # --- state construction ----------------------------------------------------------------
 

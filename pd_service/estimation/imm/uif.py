@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..nonlinear.registry import MeasurementModel, wrap_angle
-from .unscented import apply_rows, is_vectorized, mean_and_deviations, weighted_outer
+from .unscented import apply_rows, mean_and_deviations, weighted_outer
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -98,7 +98,7 @@ def sensor_contribution(
 
     ``X`` (..., 2n+1, n) are the sigma points of the prior, ``w`` (2n+1,) their weights.
     """
-    Z = apply_rows(sensor.h, X, is_vectorized(sensor))  # (..., 2n+1, m)
+    Z = apply_rows(sensor.h, X, sensor.vectorized)  # (..., 2n+1, m)
     zhat, dZ = mean_and_deviations(Z, w, sensor.angles)
     dX = X - x_prior[..., None, :]
     Pxz = weighted_outer(w, dX, dZ)  # (..., n, m)
