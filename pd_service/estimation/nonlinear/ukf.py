@@ -187,9 +187,3 @@ def _checked_schedule(fn: Callable[[int], np.ndarray], n: int) -> Callable[[int]
 
     return checked
 
-
-def filtered_state(op: UnscentedObserverPredictor) -> tuple[int, np.ndarray, np.ndarray]:
-    """(step, x, P) of the newest posterior (or the base when none is open). Diagnostics."""
-    op._replay(None)
-    step, st = op._newest()
-    return step, st.x, st.P
