@@ -288,11 +288,13 @@ class CodedOnlineEstimator:
         self._F = F
         Qxi = np.zeros((N, N))
         Qxi[:n, :n] = plant.Q
+        S = plant.S
+        assert S is not None  # CorrelatedPlant.__post_init__ fills in zeros
         Mc = np.zeros((N, m))  # E[g(k) v(k)ᵀ] = [S; R; 0]
-        Mc[:n] = plant.S
+        Mc[:n] = S
         if d > 0:
-            Qxi[:n, n : n + m] = plant.S
-            Qxi[n : n + m, :n] = plant.S.T
+            Qxi[:n, n : n + m] = S
+            Qxi[n : n + m, :n] = S.T
             Qxi[n : n + m, n : n + m] = plant.R
             Mc[n : n + m] = plant.R
         self._Qxi = Qxi
@@ -433,7 +435,9 @@ class _OfflineModel:
                 if i < d:
                     Fc[blk(i + 1), blk(i)] = np.eye(m)
                     Fi[i][blk(i + 1), blk(i)] = -np.eye(m)
-        Om = np.block([[plant.Q, plant.S], [plant.S.T, plant.R]])
+        S = plant.S
+        assert S is not None  # CorrelatedPlant.__post_init__ fills in zeros
+        Om = np.block([[plant.Q, S], [S.T, plant.R]])
         self.N, self.n = N, n
         self.Fbar = Fc + sum(a[i] * Fi[i] for i in range(d + 1))
         Gbar = Gc + sum(a[i] * Gi[i] for i in range(d + 1))

@@ -34,8 +34,6 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
-import numpy as np
-
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, ObserverPredictor, PredictedState
 from pd_service.wire import (
@@ -56,7 +54,7 @@ from pd_service.wire.convert import (
 )
 
 from .fastpath import read_command, read_measurement
-from .stacked import StackedObserverPredictor
+from .stacked import Node, StackedObserverPredictor
 from .stats import LatencyWindow, TokenBucket
 
 SENSOR, COMMAND = 0, 1
@@ -238,11 +236,11 @@ class Session:
 
     def pack(self, pred: PredictedState, now_step: int, made_ns: int) -> bytes:
         """Encoded Prediction of a resolved ``pred``; bumps seq and the published count."""
-        x, P = pred.x, pred.P
-        if not isinstance(x, np.ndarray):  # a stacked Node (resolves alone if still pending)
-            x, P = x.value()
-        data = encode_prediction(PredictedState(pred.step, x, P, pred.newest_step), self.spec,
-                                 self.name, self.seq, made_ns, self.counters_snapshot())
+        node: object = pred.x  # typed ndarray; the stacked engine puts its Node there
+        if isinstance(node, Node):  # stacked: resolves alone if still pending
+            pred = PredictedState(pred.step, *node.value(), pred.newest_step)
+        data = encode_prediction(pred, self.spec, self.name, self.seq, made_ns,
+                                 self.counters_snapshot())
         self.seq += 1
         self.published += 1
         self.last_pub_step = now_step

@@ -32,6 +32,8 @@ Mode likelihoods use the linearised innovation covariance of the same pseudo-mea
 
 from __future__ import annotations
 
+import functools
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -147,7 +149,8 @@ def joint_loglik(
     information form (see module docstring); shape (...)."""
     m = sum(c.nu.shape[-1] for c in contributions)
     quad_R = sum(np.einsum("...a,ab,...b->...", c.nu, c.Rinv, c.nu) for c in contributions)
-    b = sum(_mv(np.swapaxes(c.H, -1, -2) @ c.Rinv, c.nu) for c in contributions)
+    b = functools.reduce(operator.add,
+                         (_mv(np.swapaxes(c.H, -1, -2) @ c.Rinv, c.nu) for c in contributions))
     Pb = np.linalg.solve(Y_post, b[..., None])[..., 0]
     maha = quad_R - np.einsum("...a,...a->...", b, Pb)
     logdet = (

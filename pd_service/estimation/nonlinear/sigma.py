@@ -100,11 +100,12 @@ def sqrt_cov(P: Array) -> Array:
     for that step.
     """
     try:
-        return np.linalg.cholesky(P)
+        L = np.linalg.cholesky(P)
     except np.linalg.LinAlgError:
         w, V = np.linalg.eigh(0.5 * (P + np.swapaxes(P, -1, -2)))
         w = np.clip(w, 0.0, None)
-        return (V * np.sqrt(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
+        L = (V * np.sqrt(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
+    return np.asarray(L, dtype=np.float64)
 
 
 def cholesky_derivative(L: Array, dP: Array) -> Array:
