@@ -1,7 +1,7 @@
 """One session of the daemon: its spec, its estimator, its counters.
 
-Pure bookkeeping around the session's estimator (:class:`pd_service.estimation.ObserverPredictor`
-or a nonlinear one with the same API); no transport, no clock reads (the core passes
+Pure bookkeeping around the session's estimator (a :class:`pd_service.estimation.Estimator`,
+built by :func:`pd_service.backends.build_estimator`); no transport, no clock reads (the core passes
 ``now_ns`` / ``now_step`` in), no locks (the core's worker is the only caller). Every
 refusal is returned as a :class:`Refusal`; nothing raises for bad input.
 
