@@ -9,10 +9,12 @@ Public surface::
     AugmentedStateKF                 classical augmented-state baseline (same API)
     ConventionalPredictor            one-sensor, one-delay baseline (same API)
     PredictedState                   what predict() returns
+    Estimator                        the API all of them share (a Protocol)
     ReplayEstimator, Backend, Packet the timestamp window and replay, for other backends
 """
 
 from .baselines import AugmentedStateKF, ConventionalPredictor
+from .estimator import Estimator
 from .model import LinearModel, Sensor
 from .observer import ObserverPredictor
 from .replay import COUNTER_NAMES, Backend, Packet, PredictedState, ReplayEstimator
@@ -22,6 +24,7 @@ __all__ = [
     "Backend",
     "COUNTER_NAMES",
     "ConventionalPredictor",
+    "Estimator",
     "LinearModel",
     "ObserverPredictor",
     "Packet",

@@ -26,6 +26,13 @@ from .replay import COUNTER_NAMES, PredictedState
 class _InputsMixin:
     """Command window shared by the baselines: commands for steps >= the filter's step."""
 
+    model: LinearModel
+    _now: int  # the filter's step
+
+    def _advance(self, now: int) -> None:
+        """Run the filter up to step ``now`` (each baseline's own)."""
+        raise NotImplementedError
+
     def _init_inputs(self, model: LinearModel, lead: int, max_delay: int, hold: str) -> None:
         if hold not in ("hold", "zero"):
             raise ValueError(f"command_hold: must be 'hold' or 'zero', got {hold!r}")

@@ -47,8 +47,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
+from .checks import as_covariance, as_matrix, as_vector
 from .delay_model import DelayModel
 
 __all__ = [
@@ -61,43 +62,28 @@ __all__ = [
     "is_stationary",
 ]
 
+Array = NDArray[np.float64]
+
 Packets = Iterable[tuple[int, ArrayLike]]
 """Packets received in one step: pairs (stamp, y) with y of shape (m,)."""
 
 
 # ---------------------------------------------------------------------------- validation
-def _matrix(name: str, value: ArrayLike, shape: tuple[int, int]) -> np.ndarray:
-    a = np.array(value, dtype=float)
+def _matrix(name: str, value: ArrayLike, shape: tuple[int, int]) -> Array:
+    """:func:`.checks.as_matrix`, also taking a vector (shape[0],) for a column."""
+    a = np.asarray(value)
     if a.ndim == 1 and shape[1] == 1 and a.shape[0] == shape[0]:
         a = a.reshape(shape)
-    if a.shape != shape:
-        raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name}: values must be finite")
-    return a
+    return as_matrix(a, name, shape)
 
 
-def _psd(name: str, a: np.ndarray) -> np.ndarray:
-    scale = max(1.0, float(np.max(np.abs(a))) if a.size else 1.0)
-    if not np.allclose(a, a.T, rtol=0.0, atol=1e-9 * scale):
-        raise ValueError(f"{name}: must be symmetric")
-    a = 0.5 * (a + a.T)
-    if a.size and np.min(np.linalg.eigvalsh(a)) < -1e-9 * scale:
-        raise ValueError(f"{name}: must be positive semi-definite")
-    return a
-
-
-def _vector(name: str, value: ArrayLike, size: int) -> np.ndarray:
+def _vector(name: str, value: ArrayLike, size: int) -> Array:
+    """:func:`.checks.as_vector`, also taking a scalar when size is 1."""
     try:
-        v = np.array(value, dtype=float)
+        a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"{name}: expected {size} numbers") from None
-    if v.ndim > 2 or v.size != size or (v.ndim == 2 and 1 not in v.shape):
-        raise ValueError(f"{name}: expected shape ({size},), got {v.shape}")
-    v = v.reshape(size)
-    if not np.all(np.isfinite(v)):
-        raise ValueError(f"{name}: values must be finite")
-    return v
+    return as_vector(a.reshape(1) if a.ndim == 0 else a, name, size)
 
 
 @dataclass(frozen=True)
@@ -128,12 +114,12 @@ class CorrelatedPlant:
             raise ValueError(f"C: expected shape (m, {n}), got {C.shape}")
         m = C.shape[0]
         C = _matrix("C", C, (m, n))
-        Q = _psd("Q", _matrix("Q", self.Q, (n, n)))
-        R = _psd("R", _matrix("R", self.R, (m, m)))
+        Q = as_covariance(_matrix("Q", self.Q, (n, n)), "Q")
+        R = as_covariance(_matrix("R", self.R, (m, m)), "R")
         if np.min(np.linalg.eigvalsh(R)) <= 0.0:
             raise ValueError("R: must be positive definite")
         S = np.zeros((n, m)) if self.S is None else _matrix("S", self.S, (n, m))
-        _psd("[[Q, S], [S.T, R]]", np.block([[Q, S], [S.T, R]]))
+        as_covariance(np.block([[Q, S], [S.T, R]]), "[[Q, S], [S.T, R]]")
         for name, val in (("A", A), ("C", C), ("Q", Q), ("R", R), ("S", S)):
             val.setflags(write=False)
             object.__setattr__(self, name, val)
@@ -302,11 +288,13 @@ class CodedOnlineEstimator:
         self._F = F
         Qxi = np.zeros((N, N))
         Qxi[:n, :n] = plant.Q
+        S = plant.S
+        assert S is not None  # CorrelatedPlant.__post_init__ fills in zeros
         Mc = np.zeros((N, m))  # E[g(k) v(k)ᵀ] = [S; R; 0]
-        Mc[:n] = plant.S
+        Mc[:n] = S
         if d > 0:
-            Qxi[:n, n : n + m] = plant.S
-            Qxi[n : n + m, :n] = plant.S.T
+            Qxi[:n, n : n + m] = S
+            Qxi[n : n + m, :n] = S.T
             Qxi[n : n + m, n : n + m] = plant.R
             Mc[n : n + m] = plant.R
         self._Qxi = Qxi
@@ -314,7 +302,7 @@ class CodedOnlineEstimator:
         self._xi = np.zeros(N)
         self._xi[:n] = _vector("x0", x0, n)
         self._P = np.zeros((N, N))
-        self._P[:n, :n] = _psd("P0", _matrix("P0", P0, (n, n)))
+        self._P[:n, :n] = as_covariance(_matrix("P0", P0, (n, n)), "P0")
         self._gate = _PacketGate(m, d)
 
     @property
@@ -447,7 +435,9 @@ class _OfflineModel:
                 if i < d:
                     Fc[blk(i + 1), blk(i)] = np.eye(m)
                     Fi[i][blk(i + 1), blk(i)] = -np.eye(m)
-        Om = np.block([[plant.Q, plant.S], [plant.S.T, plant.R]])
+        S = plant.S
+        assert S is not None  # CorrelatedPlant.__post_init__ fills in zeros
+        Om = np.block([[plant.Q, S], [S.T, plant.R]])
         self.N, self.n = N, n
         self.Fbar = Fc + sum(a[i] * Fi[i] for i in range(d + 1))
         Gbar = Gc + sum(a[i] * Gi[i] for i in range(d + 1))
@@ -541,7 +531,7 @@ class OfflineCodedEstimator:
         mean0 = np.zeros(N)
         mean0[:n] = _vector("x0", x0, n)
         P0x = np.zeros((N, N))
-        P0x[:n, :n] = _psd("P0", _matrix("P0", P0, (n, n)))
+        P0x[:n, :n] = as_covariance(_matrix("P0", P0, (n, n)), "P0")
         self._gains = _OfflineGains(self._model, mean0, P0x)
         self._ahead: deque[tuple[np.ndarray, np.ndarray, np.ndarray]] = deque()
         self._X = mean0
@@ -620,7 +610,7 @@ class TimestampReplayKF:
         self.max_delay = d = int(max_delay)
         n = plant.n
         x = _vector("x0", x0, n)
-        P = _psd("P0", _matrix("P0", P0, (n, n)))
+        P = as_covariance(_matrix("P0", P0, (n, n)), "P0")
         self._pred: dict[int, tuple[np.ndarray, np.ndarray]] = {0: (x, P)}  # s -> x^(s|s-1), P
         self._h = 0  # oldest cached stamp
         self._buf: dict[int, np.ndarray] = {}

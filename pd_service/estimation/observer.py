@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-
 from .checks import as_covariance, as_vector
 from .linear import LinearBackend, LinearState
 from .model import LinearModel, Sensor, check_sensors
@@ -59,10 +57,3 @@ class ObserverPredictor(ReplayEstimator[LinearState]):
     def n(self) -> int:
         return self.model.n
 
-
-def filtered_state(op: ObserverPredictor) -> tuple[int, np.ndarray, np.ndarray]:
-    """(step, x, P) of the newest posterior: x(s | packets stamped <= s) for the newest
-    measured step s (or the base when none is open). Diagnostics and tests."""
-    op._replay(None)
-    step, (x, P) = op._newest()
-    return step, x, P

@@ -1,7 +1,7 @@
 """One session of the daemon: its spec, its estimator, its counters.
 
-Pure bookkeeping around the session's estimator (:class:`pd_service.estimation.ObserverPredictor`
-or a nonlinear one with the same API); no transport, no clock reads (the core passes
+Pure bookkeeping around the session's estimator (a :class:`pd_service.estimation.Estimator`,
+built by :func:`pd_service.backends.build_estimator`); no transport, no clock reads (the core passes
 ``now_ns`` / ``now_step`` in), no locks (the core's worker is the only caller). Every
 refusal is returned as a :class:`Refusal`; nothing raises for bad input.
 
@@ -32,23 +32,16 @@ internal_error             an unexpected exception while handling one message
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
-import msgpack
-import numpy as np
-
-from pd_service.estimation import LinearModel, PredictedState, Sensor
+from pd_service.backends import build_estimator
+from pd_service.estimation import Estimator, ObserverPredictor, PredictedState
 from pd_service.wire import (
-    MAX_MESSAGE_BYTES,
     Command,
-    LinearModelSpec,
     Measurement,
     SessionSpec,
     WireError,
     decode,
-    encode,
     keys,
 )
 from pd_service.wire.convert import (
@@ -56,13 +49,12 @@ from pd_service.wire.convert import (
     check_measurement,
     command_dim,
     command_step,
+    encode_prediction,
     measurement_step,
-    prediction_from,
-    spec_to_estimator,
 )
 
 from .fastpath import read_command, read_measurement
-from .stacked import StackedObserverPredictor
+from .stacked import Node, StackedObserverPredictor
 from .stats import LatencyWindow, TokenBucket
 
 SENSOR, COMMAND = 0, 1
@@ -101,58 +93,6 @@ def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
     return Refusal(_CHECK_REASONS.get(head, default), exc.reason, seq)
 
 
-def build_estimator(spec: SessionSpec, engine: str = "stacked") -> Any:
-    """The session's estimator: "single" is what :func:`pd_service.wire.convert.spec_to_estimator`
-    builds for the spec's model kind, "stacked" the same estimator with batchable numerics
-    (:mod:`pd_service.service.stacked`) for a linear model. A nonlinear model (unscented,
-    imm) always takes the plain path: its estimator has the same API, its ``predict``
-    returns resolved arrays. WireError if the estimator refuses the spec."""
-    model = spec.model
-    if engine == "single" or not isinstance(model, LinearModelSpec):
-        return spec_to_estimator(spec)
-    try:
-        return StackedObserverPredictor(
-            LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
-            [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R)) for s in spec.sensors],
-            x0=np.array(spec.x0), P0=np.array(spec.P0), lead=spec.lead,
-            max_delay=spec.max_delay, command_hold=spec.command_hold)
-    except ValueError as exc:
-        raise WireError(f"SessionSpec: refused by the estimator: {exc}") from None
-
-
-_pack = msgpack.Packer(use_bin_type=True).pack
-
-
-def pack_prediction(pred: PredictedState, x: np.ndarray, P: np.ndarray, spec: SessionSpec,
-                    seq: int, made_ns: int, counters: Mapping[str, int]) -> bytes:
-    """Encoded Prediction, byte for byte what ``encode(prediction_from(...))`` gives, without
-    building the pydantic model (the hot path). WireError if x or P is not finite."""
-    n = spec.n
-    if x.shape != (n,) or P.shape != (n, n):
-        raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
-                        f"got {x.shape} and {P.shape}")
-    if not (np.isfinite(x).all() and np.isfinite(P).all()):
-        raise WireError("Prediction: the estimate is not finite (NaN or infinity)")
-    step = int(pred.step)
-    obj = {
-        "v": 1,
-        "session": spec.session,
-        "seq": int(seq),
-        "step": step,
-        "t_ns": spec.time_of(step),
-        "x": {"shape": [n], "data": x.tolist()},
-        "P": {"shape": [n, n], "data": P.ravel().tolist()},
-        "newest_step": None if pred.newest_step is None else int(pred.newest_step),
-        "made_ns": int(made_ns),
-        "counters": dict(counters),
-    }
-    data = _pack(obj)
-    if len(data) > MAX_MESSAGE_BYTES:  # let the codec try its compact form, or refuse
-        plain = PredictedState(step, x, P, pred.newest_step)
-        data = encode(prediction_from(plain, spec, spec.session, seq, made_ns, counters))
-    return data
-
-
 class Session:
     """A served session. ``state`` is "active" or "restored" (how it started)."""
 
@@ -160,7 +100,10 @@ class Session:
                  error_rate: float, error_burst: int, engine: str = "stacked") -> None:
         self.spec = spec
         self.name = spec.session
-        self.est = build_estimator(spec, engine)  # WireError for a spec it refuses
+        # WireError for a spec it refuses; "stacked": a linear model's numerics batched
+        # across sessions (pd_service.service.stacked), same results
+        self.est: Estimator = build_estimator(
+            spec, StackedObserverPredictor if engine == "stacked" else ObserverPredictor)
         self.state = state
         self.detail = detail
         self.counters: Counter[str] = Counter()
@@ -293,11 +236,11 @@ class Session:
 
     def pack(self, pred: PredictedState, now_step: int, made_ns: int) -> bytes:
         """Encoded Prediction of a resolved ``pred``; bumps seq and the published count."""
-        x, P = pred.x, pred.P
-        if not isinstance(x, np.ndarray):  # a stacked Node (resolves alone if still pending)
-            x, P = x.value()
-        data = pack_prediction(pred, x, P, self.spec, self.seq, made_ns,
-                               self.counters_snapshot())
+        node: object = pred.x  # typed ndarray; the stacked engine puts its Node there
+        if isinstance(node, Node):  # stacked: resolves alone if still pending
+            pred = PredictedState(pred.step, *node.value(), pred.newest_step)
+        data = encode_prediction(pred, self.spec, self.name, self.seq, made_ns,
+                                 self.counters_snapshot())
         self.seq += 1
         self.published += 1
         self.last_pub_step = now_step

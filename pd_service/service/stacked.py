@@ -32,6 +32,7 @@ Memory stays bounded: a resolved node drops its parent, and a chain deeper than
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -45,24 +46,29 @@ MAX_PENDING_DEPTH = 64
 _PROP, _UPD = 1, 2
 
 
+#: x and P of a pending node (an empty array: read them after :func:`resolve`).
+_PENDING = np.empty(0)
+_PENDING.setflags(write=False)
+
+
 class Node:
     """A Gaussian state (x (n,), P (n, n)), resolved or pending.
 
     Pending: ``op`` is ``_PROP`` with ``arg = (m, bu)`` (bu = the inputs' contribution to x)
-    or ``_UPD`` with ``arg = (H, R, z)``, applied to ``parent``. Resolved: ``op`` is 0,
-    ``x`` and ``P`` hold the values, ``parent`` is None.
+    or ``_UPD`` with ``arg = (H, R, z)``, applied to ``parent``; ``x`` and ``P`` are empty.
+    Resolved: ``op`` is 0, ``x`` and ``P`` hold the values, ``parent`` is None.
     """
 
     __slots__ = ("parent", "op", "arg", "x", "P", "depth")
 
-    def __init__(self, parent: Node | None, op: int, arg: tuple, x: np.ndarray | None = None,
-                 P: np.ndarray | None = None) -> None:
+    def __init__(self, parent: Node | None, op: int, arg: tuple[Any, ...],
+                 x: np.ndarray = _PENDING, P: np.ndarray = _PENDING) -> None:
         self.parent = parent
         self.op = op
         self.arg = arg
         self.x = x
         self.P = P
-        self.depth = 0 if parent is None or parent.op == 0 else parent.depth + 1
+        self.depth: int = 0 if parent is None or parent.op == 0 else parent.depth + 1
 
     @classmethod
     def resolved(cls, x: np.ndarray, P: np.ndarray) -> Node:
@@ -72,7 +78,7 @@ class Node:
         """(x, P), resolving the chain on its own if still pending."""
         if self.op:
             resolve([self])
-        return self.x, self.P  # type: ignore[return-value]
+        return self.x, self.P
 
 
 _INTERNED: dict[tuple[tuple[int, ...], bytes], np.ndarray] = {}
@@ -157,7 +163,7 @@ def resolve(nodes: Iterable[Node]) -> None:
         while nd is not None and nd.op and id(nd) not in seen:
             seen.add(id(nd))
             chain.append(nd)
-            nd = nd.parent  # type: ignore[assignment]
+            nd = nd.parent  # type: ignore[assignment]  # None ends the loop
         if chain:
             chain.reverse()
             chains.append(chain)
@@ -217,7 +223,7 @@ def _propagate_one(nd: Node) -> None:
     """The single-node form of :func:`_propagate_group`, with the same products (so the
     same bits as the node's slice in a stack)."""
     m, bu, t = nd.arg
-    x, P = nd.parent.x, nd.parent.P  # type: ignore[union-attr]
+    x, P = nd.parent.x, nd.parent.P  # type: ignore[union-attr]  # a pending node has a parent
     Am = t.Apow[m]
     xn = (Am @ x[:, None])[:, 0]
     if bu is not None:
@@ -228,7 +234,7 @@ def _propagate_one(nd: Node) -> None:
 def _update_one(nd: Node) -> None:
     """The single-node form of :func:`_update_group` (same products, same bits)."""
     H, R, z = nd.arg
-    x, P = nd.parent.x, nd.parent.P  # type: ignore[union-attr]
+    x, P = nd.parent.x, nd.parent.P  # type: ignore[union-attr]  # a pending node has a parent
     PHt = P @ H.T
     S = H @ PHt + R
     if H.shape[0] == 1:
@@ -258,8 +264,8 @@ def _finish(grp: Sequence[Node], X: np.ndarray, P: np.ndarray) -> None:
 
 def _propagate_group(grp: list[Node]) -> None:
     t = grp[0].arg[2]
-    X = np.stack([nd.parent.x for nd in grp])  # type: ignore[union-attr]
-    P = np.stack([nd.parent.P for nd in grp])  # type: ignore[union-attr]
+    X = np.stack([nd.parent.x for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
+    P = np.stack([nd.parent.P for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
     ms = np.fromiter((nd.arg[0] for nd in grp), dtype=np.intp, count=len(grp))
     Am = t.Apow[ms]  # (S, n, n)
     Xn = np.matmul(Am, X[:, :, None])[:, :, 0]  # A^m x
@@ -272,8 +278,8 @@ def _propagate_group(grp: list[Node]) -> None:
 def _update_group(grp: list[Node]) -> None:
     H = grp[0].arg[0]
     m = H.shape[0]
-    X = np.stack([nd.parent.x for nd in grp])  # type: ignore[union-attr]
-    P = np.stack([nd.parent.P for nd in grp])  # type: ignore[union-attr]
+    X = np.stack([nd.parent.x for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
+    P = np.stack([nd.parent.P for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
     R = np.stack([nd.arg[1] for nd in grp])
     Z = np.stack([nd.arg[2] for nd in grp])
     PHt = np.matmul(P, H.T)  # (S, n, m)
@@ -326,7 +332,10 @@ class StackedObserverPredictor(ReplayEstimator[Node]):
                          command_hold=command_hold)
         self.model = model
         self.sensors = sensors
-        self._backend = LazyLinearBackend(model, sensors, self._inputs.capacity)
+        # moments() of this backend are pending Nodes, not arrays: predict()'s x and P are
+        # read after resolve() (Session.pack, the core's batched resolve)
+        self._backend = LazyLinearBackend(  # type: ignore[assignment]
+            model, sensors, self._inputs.capacity)
 
     @property
     def n(self) -> int:

@@ -1,7 +1,8 @@
 """Wire protocol of pd-service: message schemas, msgpack codec, key expressions.
 
-Imports numpy, pydantic and msgpack, never zenoh. The conversion to and from
-:mod:`pd_service.estimation` lives in :mod:`pd_service.wire.convert` (not imported here).
+Imports numpy, pydantic and msgpack, never zenoh. What a message means for its session
+(steps, checks, Prediction encoding) lives in :mod:`pd_service.wire.convert` (not imported
+here); a SessionSpec becomes an estimator in :mod:`pd_service.backends`.
 
 ```python
 from pd_service.wire import encode, decode, WireError, Measurement

@@ -21,7 +21,8 @@ Rules (each gives a readable reason through ``PydanticCustomError``):
 Covariance tolerance (:func:`psd_problem`), with ``s = max(1, max|M|)``:
 
 - symmetric:  ``max|M - M^T| <= PSD_RTOL * s``;
-- positive semi-definite: ``min eig((M + M^T)/2) >= -PSD_RTOL * s``,  ``PSD_RTOL = 1e-9``.
+- positive semi-definite: ``min eig((M + M^T)/2) >= -PSD_RTOL * s``, ``PSD_RTOL`` (1e-9) from
+  :mod:`pd_service.estimation.checks`, the one tolerance of both layers.
 """
 
 from __future__ import annotations
@@ -33,10 +34,10 @@ import numpy as np
 from pydantic import PlainSerializer, PlainValidator, WithJsonSchema
 from pydantic_core import PydanticCustomError
 
+from pd_service.estimation.checks import PSD_RTOL
+
 #: Largest size of any array axis (state, input and measurement dimensions).
 MAX_DIM = 64
-#: Relative tolerance of the symmetry and PSD checks (same value as pd_service.estimation).
-PSD_RTOL = 1e-9
 
 _NUMBER_TYPES = frozenset((float, int))
 _REAL_KINDS = frozenset("fiu")

@@ -116,7 +116,8 @@ def validation_reason(type_name: str, exc: ValidationError) -> str:
 
 
 def _kind(obj: object) -> str:
-    return "nil" if obj is None else {list: "array", str: "string"}.get(type(obj), type(obj).__name__)
+    names: dict[type, str] = {list: "array", str: "string"}
+    return "nil" if obj is None else names.get(type(obj), type(obj).__name__)
 
 
 def _compact(obj: Any) -> Any:

@@ -1,8 +1,6 @@
-"""Between wire messages and :mod:`pd_service.estimation`: the only module importing both.
+"""Between wire messages and the estimators' numbers: what a message stands for, and whether
+it fits its session. Builds no estimator (that is :mod:`pd_service.backends`).
 
-- :func:`spec_to_estimator`: SessionSpec -> the estimator of its model kind
-  (``ObserverPredictor``, the unscented or the IMM observer-predictor; all with the same
-  API: ``add_measurement``, ``add_command``, ``predict``, ``counters``);
 - :func:`command_dim`: the command dimension r of a session (a nonlinear model's is the
   registered model's);
 - :func:`measurement_step` / :func:`command_step`: the integer step a message stands for;
@@ -14,9 +12,6 @@
   (the daemon's hot path: no model object).
 
 Time: ``step_of(t_ns) = floor((t_ns - epoch_ns) / period_ns)`` in exact integer arithmetic.
-
-The nonlinear backends (:mod:`pd_service.estimation.nonlinear`, :mod:`pd_service.estimation.imm`)
-are imported on first use, so linear sessions never depend on them.
 """
 
 from __future__ import annotations
@@ -27,152 +22,64 @@ from typing import Any, Protocol
 
 import msgpack
 import numpy as np
+from numpy.typing import NDArray
 
-from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
+from pd_service.estimation.imm import make_mode
+from pd_service.estimation.nonlinear import make_model
 
-from .codec import MAX_MESSAGE_BYTES
+from .codec import MAX_MESSAGE_BYTES, encode
 from .errors import WireError
 from .keys import KeyError_, ParsedKey, parse_key
 from .messages import (
     Command,
-    ImmModelSpec,
     LinearModelSpec,
     Measurement,
     Message,
     ModeSpec,
     Prediction,
-    SensorSpec,
     SessionSpec,
     UnscentedModelSpec,
 )
 
 
-class _PredictedState(Protocol):
-    step: int
-    x: np.ndarray
-    P: np.ndarray
-    newest_step: int | None
+class PredictedMoments(Protocol):
+    """What a prediction is made of (e.g. :class:`pd_service.estimation.PredictedState`):
+    x(step) ~ (x (n,), P (n, n)), ``newest_step`` the newest sample that contributed."""
+
+    @property
+    def step(self) -> int: ...
+
+    @property
+    def x(self) -> NDArray[np.float64]: ...
+
+    @property
+    def P(self) -> NDArray[np.float64]: ...
+
+    @property
+    def newest_step(self) -> int | None: ...
 
 
-def spec_to_estimator(spec: SessionSpec) -> Any:
-    """Build the session's estimator from its spec, by ``spec.model.kind``:
-
-    - "linear": :class:`~pd_service.estimation.ObserverPredictor`;
-    - "unscented": ``make_unscented`` (:mod:`pd_service.estimation.nonlinear.factory`) with
-      the registered model, its params, adapt and sigma settings, the session's sensors in
-      order and their R (``sensor_R``);
-    - "imm": ``make_imm`` (:mod:`pd_service.estimation.imm.factory`) with the modes,
-      transition, variant, node, mu0, kappa and the sensors as the factory's sensor maps
-      (range-bearing: station, sigma_range = sqrt(R[0, 0]), sigma_bearing = sqrt(R[1, 1]);
-      position: R).
-
-    What the wire layer cannot check alone (a model that is not registered, a parameter it
-    does not take, x0 / R of the wrong size for the model) is refused here: any error of the
-    factory becomes a WireError "SessionSpec: refused by the estimator: <reason>". A valid
-    linear spec is never refused.
-    """
-    model = spec.model
-    try:
-        if isinstance(model, LinearModelSpec):
-            est: Any = ObserverPredictor(
-                LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
-                [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R)) for s in spec.sensors],
-                x0=np.array(spec.x0),
-                P0=np.array(spec.P0),
-                lead=spec.lead,
-                max_delay=spec.max_delay,
-                command_hold=spec.command_hold,
-            )
-        elif isinstance(model, UnscentedModelSpec):
-            est = _unscented(spec, model)
-        elif isinstance(model, ImmModelSpec):
-            est = _imm(spec, model)
-        else:  # pragma: no cover - the discriminator admits no other kind
-            raise WireError(f"SessionSpec.model: kind {model.kind!r} is not supported")
-    except WireError:
-        raise
-    except ValueError as exc:
-        raise WireError(f"SessionSpec: refused by the estimator: {exc}") from None
-    except Exception as exc:  # a registered model's own code failing on odd parameters
-        raise WireError(f"SessionSpec: refused by the estimator: "
-                        f"{type(exc).__name__}: {exc}") from None
-    n = getattr(est, "n", spec.n)
-    if n != spec.n:  # the factories check x0 against the model; kept as a guard
-        raise WireError(f"SessionSpec: refused by the estimator: the model has n={n} states, "
-                        f"x0 has {spec.n}")
-    return est
-
-
-def _plain_params(params: Mapping[str, Any]) -> dict[str, Any]:
-    """Fresh copies of the parameter values (lists are mutable)."""
+def plain_params(params: Mapping[str, Any]) -> dict[str, Any]:
+    """Fresh copies of a model's parameter values (lists are mutable)."""
     return {k: list(v) if isinstance(v, list) else v for k, v in params.items()}
 
 
-def _unscented(spec: SessionSpec, model: UnscentedModelSpec) -> Any:
-    from pd_service.estimation.nonlinear.factory import make_unscented
-
-    adapt = None
-    if model.adapt is not None:
-        adapt = {k: v for k, v in model.adapt.model_dump().items() if v is not None}
-    sigma = None if model.sigma is None else model.sigma.model_dump()
-    return make_unscented(
-        model.model, _plain_params(model.params),
-        x0=np.array(spec.x0), P0=np.array(spec.P0),
-        lead=spec.lead, max_delay=spec.max_delay, command_hold=spec.command_hold,
-        adapt=adapt, sigma=sigma,
-        sensors=[s.name for s in spec.sensors],
-        sensor_R={s.name: np.array(s.R) for s in spec.sensors},
-    )
-
-
-def _mode(mode: ModeSpec) -> dict[str, Any]:
-    return {"model": mode.model, "params": _plain_params(mode.params)}
-
-
-def imm_sensor(sensor: SensorSpec) -> dict[str, Any]:
-    """The IMM factory's sensor map of a "range_bearing" or "position" SensorSpec."""
-    if sensor.kind == "range_bearing":
-        assert sensor.station is not None  # guaranteed by SensorSpec's validator
-        return {"name": sensor.name, "kind": "range_bearing",
-                "station": [float(v) for v in sensor.station],
-                "sigma_range": math.sqrt(float(sensor.R[0, 0])),
-                "sigma_bearing": math.sqrt(float(sensor.R[1, 1]))}
-    if sensor.kind == "position":
-        return {"name": sensor.name, "kind": "position", "R": np.array(sensor.R)}
-    raise WireError(f"SessionSpec: sensor {sensor.name!r} of kind {sensor.kind!r} does not "
-                    "fit an IMM model")
-
-
-def _imm(spec: SessionSpec, model: ImmModelSpec) -> Any:
-    from pd_service.estimation.imm.factory import make_imm
-
-    return make_imm(
-        modes=[_mode(m) for m in model.modes],
-        transition=np.array(model.transition),
-        sensors=[imm_sensor(s) for s in spec.sensors],
-        variant=model.variant,
-        x0=np.array(spec.x0), P0=np.array(spec.P0),
-        lead=spec.lead, max_delay=spec.max_delay,
-        mu0=None if model.mu0 is None else np.array(model.mu0),
-        node=model.node, kappa=model.kappa, command_hold=spec.command_hold,
-    )
+def mode_map(mode: ModeSpec) -> dict[str, Any]:
+    """An IMM mode as the registry's {"model": name, "params": {...}} map."""
+    return {"model": mode.model, "params": plain_params(mode.params)}
 
 
 def command_dim(spec: SessionSpec) -> int:
     """Command dimension r: the columns of model.B, or the registered model's input
     dimension (0 for a model without inputs: such a session takes no commands). Builds the
-    nonlinear model (not the estimator); WireError if it cannot be built."""
+    nonlinear model (not an estimator); WireError if it cannot be built."""
     model = spec.model
     if isinstance(model, LinearModelSpec):
         return model.r
     try:
         if isinstance(model, UnscentedModelSpec):
-            from pd_service.estimation.nonlinear import make_model
-
-            return int(make_model(model.model, **_plain_params(model.params)).nu)
-        from pd_service.estimation.imm.factory import make_mode
-
-        return int(make_mode(_mode(model.modes[0])).nu)
+            return int(make_model(model.model, **plain_params(model.params)).nu)
+        return int(make_mode(mode_map(model.modes[0])).nu)
     except ValueError as exc:
         raise WireError(f"SessionSpec: refused by the estimator: {exc}") from None
     except Exception as exc:
@@ -259,8 +166,41 @@ def check_key(msg: Message, key: str) -> ParsedKey:
     return parsed
 
 
+def _checked(pred: PredictedMoments, n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """x, P of ``pred`` as float64 arrays (views if they already are); WireError unless
+    x is (n,), P (n, n)."""
+    x = np.asarray(pred.x, dtype=np.float64)
+    P = np.asarray(pred.P, dtype=np.float64)
+    if x.shape != (n,) or P.shape != (n, n):
+        raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
+                        f"got {x.shape} and {P.shape}")
+    return x, P
+
+
+def _not_finite() -> WireError:
+    return WireError("Prediction: the estimate is not finite (NaN or infinity)")
+
+
+def _fields(pred: PredictedMoments, spec: SessionSpec, session: str, seq: int, made_ns: int,
+            counters: Mapping[str, int], x: object, P: object) -> dict[str, Any]:
+    """The Prediction's fields in wire order, ``t_ns = epoch_ns + step * period_ns``."""
+    step = int(pred.step)
+    return {
+        "v": 1,
+        "session": session,
+        "seq": int(seq),
+        "step": step,
+        "t_ns": spec.time_of(step),
+        "x": x,
+        "P": P,
+        "newest_step": None if pred.newest_step is None else int(pred.newest_step),
+        "made_ns": int(made_ns),
+        "counters": {str(k): int(v) for k, v in counters.items()},
+    }
+
+
 def prediction_from(
-    pred: _PredictedState,
+    pred: PredictedMoments,
     spec: SessionSpec,
     session: str,
     seq: int,
@@ -274,35 +214,17 @@ def prediction_from(
     (the estimator produces P = A P A^T + Q, symmetric PSD up to rounding, far inside the
     1e-9 tolerance a decoder applies). Raises WireError on a bad shape or non-finite value.
     """
-    n = spec.n
-    x = np.array(pred.x, dtype=np.float64)
-    P = np.array(pred.P, dtype=np.float64)
-    if x.shape != (n,) or P.shape != (n, n):
-        raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
-                        f"got {x.shape} and {P.shape}")
+    x, P = _checked(pred, spec.n)
     if not (np.isfinite(x).all() and np.isfinite(P).all()):
-        raise WireError("Prediction: the estimate is not finite (NaN or infinity)")
+        raise _not_finite()
+    x, P = np.array(x), np.array(P)
     x.flags.writeable = False
     P.flags.writeable = False
-    step = int(pred.step)
-    newest = None if pred.newest_step is None else int(pred.newest_step)
-    fields: dict[str, Any] = {
-        "v": 1,
-        "session": session,
-        "seq": int(seq),
-        "step": step,
-        "t_ns": spec.time_of(step),
-        "x": x,
-        "P": P,
-        "newest_step": newest,
-        "made_ns": int(made_ns),
-        "counters": {str(k): int(v) for k, v in counters.items()},
-    }
-    return Prediction.model_construct(**fields)
+    return Prediction.model_construct(**_fields(pred, spec, session, seq, made_ns, counters, x, P))
 
 
 def encode_prediction(
-    pred: _PredictedState,
+    pred: PredictedMoments,
     spec: SessionSpec,
     session: str,
     seq: int,
@@ -312,14 +234,11 @@ def encode_prediction(
     """``encode(prediction_from(...))``, byte for byte, without building the model.
 
     For the daemon's publish loop (about 3x cheaper). Same checks as
-    :func:`prediction_from`: shapes and finite values; raises WireError otherwise.
+    :func:`prediction_from`: shapes and finite values; raises WireError otherwise (also
+    when the message cannot fit in ``MAX_MESSAGE_BYTES``, even in the codec's compact form).
     """
     n = spec.n
-    x = np.asarray(pred.x, dtype=np.float64)
-    P = np.asarray(pred.P, dtype=np.float64)
-    if x.shape != (n,) or P.shape != (n, n):
-        raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
-                        f"got {x.shape} and {P.shape}")
+    x, P = _checked(pred, n)
     xs = x.tolist()
     ps = P.ravel().tolist()
     # finite check: fsum of finite values is finite unless it overflows (then look closer)
@@ -328,22 +247,10 @@ def encode_prediction(
     except OverflowError:
         finite = False
     if not finite and not (np.isfinite(x).all() and np.isfinite(P).all()):
-        raise WireError("Prediction: the estimate is not finite (NaN or infinity)")
-    step = int(pred.step)
-    obj = {
-        "v": 1,
-        "session": session,
-        "seq": int(seq),
-        "step": step,
-        "t_ns": spec.time_of(step),
-        "x": {"shape": [n], "data": xs},
-        "P": {"shape": [n, n], "data": ps},
-        "newest_step": None if pred.newest_step is None else int(pred.newest_step),
-        "made_ns": int(made_ns),
-        "counters": {str(k): int(v) for k, v in counters.items()},
-    }
-    data = msgpack.packb(obj, use_bin_type=True)
-    if len(data) > MAX_MESSAGE_BYTES:
-        raise WireError(f"Prediction: encoded message is {len(data)} bytes, more than the "
-                        f"{MAX_MESSAGE_BYTES}-byte limit")
+        raise _not_finite()
+    obj = _fields(pred, spec, session, seq, made_ns, counters,
+                  {"shape": [n], "data": xs}, {"shape": [n, n], "data": ps})
+    data: bytes = msgpack.packb(obj, use_bin_type=True)
+    if len(data) > MAX_MESSAGE_BYTES:  # the codec's compact form, or its refusal
+        data = encode(prediction_from(pred, spec, session, seq, made_ns, counters))
     return data

@@ -110,7 +110,8 @@ class WireModel(BaseModel):
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
             return NotImplemented
-        return self._identity() == other._identity()  # type: ignore[attr-defined]
+        assert isinstance(other, WireModel)  # same type as self
+        return self._identity() == other._identity()
 
     def __hash__(self) -> int:
         return hash(self._identity())
@@ -543,8 +544,7 @@ class SessionSpec(Message):
     @model_validator(mode="after")
     def _check(self) -> SessionSpec:
         model = self.model
-        linear = isinstance(model, LinearModelSpec)
-        if linear:
+        if isinstance(model, LinearModelSpec):
             n = model.n
             if n > MAX_DIM:  # unreachable while MAX_DIM bounds every array axis; kept explicit
                 raise _invalid(f"state dimension n={n} exceeds {MAX_DIM}")

@@ -2,7 +2,7 @@
 
 It speaks the same keys and messages as the daemon for what the clients need: configs
 (create/replace/delete, acknowledged by a SessionStatus put), sensor and command streams fed
-to :func:`pd_service.wire.convert.spec_to_estimator`, a Prediction per ``tick``, ErrorReports
+to :func:`pd_service.backends.build_estimator`, a Prediction per ``tick``, ErrorReports
 for refused input, the status queryable and a liveliness token. It is NOT the daemon: no
 state directory, no latency stats, no sharding.
 
@@ -18,6 +18,7 @@ import signal
 import threading
 import time
 
+from pd_service.backends import build_estimator
 from pd_service.transport import Query, Sample, Transport
 from pd_service.wire import (
     Command,
@@ -36,14 +37,13 @@ from pd_service.wire.convert import (
     command_step,
     measurement_step,
     prediction_from,
-    spec_to_estimator,
 )
 
 
 class _Session:
     def __init__(self, spec: SessionSpec) -> None:
         self.spec = spec
-        self.est = spec_to_estimator(spec)
+        self.est = build_estimator(spec)
         self.seq = 0
         self.last_now: int | None = None
 

@@ -22,12 +22,13 @@ from pd_client.scenarios import (
     get_scenario,
     omni_q_true,
 )
+from pd_service.backends import build_estimator
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
 from pd_service.estimation.nonlinear.adaptive import MITAdapter
 from pd_service.estimation.nonlinear.models_omni import OMNI_Q0
 from pd_service.estimation.nonlinear.scenario_omni import omni_torque, q_true, simulate_omni
 from pd_service.wire import Command, SessionSpec, decode, encode, keys
-from pd_service.wire.convert import command_dim, spec_to_estimator
+from pd_service.wire.convert import command_dim
 
 from .conftest import EPOCH_NS, Collector
 from .mini_daemon import MiniDaemon
@@ -50,7 +51,7 @@ def test_omni_spec_selects_the_adaptive_ukf():
     assert (spec.lead, spec.max_delay) == (OMNI_LEAD, OMNI_MAX_DELAY)
     assert command_dim(spec) == 3 and spec.n == 6
 
-    est = spec_to_estimator(decode(encode(spec), SessionSpec))
+    est = build_estimator(decode(encode(spec), SessionSpec))
     assert isinstance(est, UnscentedObserverPredictor)
     assert isinstance(est.adapter, MITAdapter) and list(est.adapter.indices) == [3, 4, 5]
     np.testing.assert_array_equal(np.diag(est.Q), OMNI_Q0)

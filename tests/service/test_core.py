@@ -541,8 +541,7 @@ def test_prediction_messages_decode_strictly(world, tmp_path):
 
 def test_packed_prediction_is_byte_for_byte_what_the_codec_encodes():
     from pd_service.estimation import PredictedState
-    from pd_service.service.session import pack_prediction
-    from pd_service.wire.convert import prediction_from
+    from pd_service.wire.convert import encode_prediction, prediction_from
 
     spec = paper_spec("s1", epoch_ns=123)
     rng = np.random.default_rng(0)
@@ -550,11 +549,11 @@ def test_packed_prediction_is_byte_for_byte_what_the_codec_encodes():
         L = rng.standard_normal((4, 4))
         pred = PredictedState(25, rng.standard_normal(4), L @ L.T, newest)
         counters = {"accepted": 3, "late": 1, "published": 9}
-        got = pack_prediction(pred, pred.x, pred.P, spec, 7, 999, counters)
+        got = encode_prediction(pred, spec, "s1", 7, 999, counters)
         assert got == encode(prediction_from(pred, spec, "s1", 7, 999, counters))
     bad = PredictedState(25, np.array([np.nan, 0, 0, 0]), np.eye(4), None)
     with pytest.raises(ValueError, match="not finite"):
-        pack_prediction(bad, bad.x, bad.P, spec, 0, 0, {})
+        encode_prediction(bad, spec, "s1", 0, 0, {})
 
 
 def test_error_reports_have_a_service_wide_budget(world, tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pd_service.backends import build_estimator
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.estimation.checks import PSD_RTOL as ESTIMATION_PSD_RTOL
 from pd_service.wire import PSD_RTOL, Prediction, WireError, decode, encode
@@ -16,7 +17,6 @@ from pd_service.wire.convert import (
     encode_prediction,
     measurement_step,
     prediction_from,
-    spec_to_estimator,
 )
 from tests.wire.factories import PERIOD_NS, command, measurement, paper_spec
 
@@ -28,9 +28,9 @@ def test_same_tolerance_as_the_estimator():
 
 
 @pytest.mark.parametrize("hold", ["hold", "zero"])
-def test_spec_to_estimator_matches_direct_construction(hold):
+def test_build_estimator_matches_direct_construction(hold):
     spec = paper_spec().model_copy(update={"command_hold": hold})
-    op = spec_to_estimator(spec)
+    op = build_estimator(spec)
     direct = ObserverPredictor(
         LinearModel(A=spec.model.A, B=spec.model.B, Q=spec.model.Q),
         [Sensor(name=s.name, H=s.H, R=s.R) for s in spec.sensors],
@@ -116,7 +116,7 @@ def test_check_command():
 
 def _estimate():
     spec = paper_spec(epoch_ns=EPOCH)
-    op = spec_to_estimator(spec)
+    op = build_estimator(spec)
     op.add_command(step=0, u=np.array([0.5]))
     op.add_measurement("camera", step=0, z=np.array([0.0, 5.0]), now=10)
     return spec, op, op.predict(now=10)

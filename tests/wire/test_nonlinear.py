@@ -16,13 +16,12 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from pd_service.backends import build_estimator, imm_sensor
 from pd_service.wire import SensorSpec, SessionSpec, WireError, decode, encode
 from pd_service.wire.convert import (
     check_command,
     check_measurement,
     command_dim,
-    imm_sensor,
-    spec_to_estimator,
 )
 from pd_service.wire.messages import AdaptSpec, ImmModelSpec, ModeSpec, UnscentedModelSpec
 from tests.wire.factories import (
@@ -316,7 +315,7 @@ def test_unscented_spec_builds_the_factorys_estimator():
     from pd_service.estimation.nonlinear.factory import make_unscented
 
     spec = omni_spec()
-    op = spec_to_estimator(spec)
+    op = build_estimator(spec)
     direct = make_unscented(
         "omni3", {"period_s": 0.01, "mass": 10, "Q": OMNI_Q0}, x0=np.zeros(6),
         P0=np.diag([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3]), lead=5, max_delay=10,
@@ -349,7 +348,7 @@ def test_imm_spec_builds_the_factorys_estimator(variant):
     from pd_service.estimation.imm.factory import make_imm
 
     spec = imm_spec(variant=variant, node=1, position=True)
-    op = spec_to_estimator(spec)
+    op = build_estimator(spec)
     direct = make_imm(
         modes=[{"model": "imm_cv", "params": {"period_s": 0.1, "sigma_accel": 0.003}},
                {"model": "imm_ct", "params": {"period_s": 0.1, "sigma_accel": 0.0016,
@@ -410,7 +409,7 @@ def _unscented(**model) -> SessionSpec:
 ])
 def test_refused_by_the_estimator(make, expected):
     with pytest.raises(WireError) as info:
-        spec_to_estimator(make())
+        build_estimator(make())
     assert info.value.reason.startswith(expected), info.value.reason
 
 

@@ -34,16 +34,16 @@ axes: mu (..., N, r), x (..., N, r, n), P (..., N, r, n, n).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..checks import as_covariance, as_vector
-from ..nonlinear.registry import MeasurementModel, NonlinearModel
+from ..nonlinear.registry import MeasurementModel, NonlinearModel, TransitionFn
 from . import uif
 from .mixing import check_transition, combine, mix, posterior_probabilities
-from .unscented import apply_rows, is_vectorized, sigma_points, unscented_propagate, weights
+from .unscented import Array, apply_rows, sigma_points, unscented_propagate, weights
 
 VARIANTS = ("single", "centralised", "imm1", "imm2")
 
@@ -126,7 +126,7 @@ class ImmFilter:
         self.n, self.nu, self.r = n, nu, len(modes)
         self.n_nodes = len(sensors) if variant == "imm1" else 1
         self._w = weights(n, kappa)
-        self._vec_modes = [is_vectorized(md) for md in modes]
+        self._vec_modes = [md.vectorized for md in modes]
 
     # --- state construction ----------------------------------------------------------------
 
@@ -172,7 +172,7 @@ class ImmFilter:
         for j, md in enumerate(self.modes):
             vec = self._vec_modes[j]
             xj, Pj = unscented_propagate(
-                lambda X, f=md.f, vec=vec: apply_rows(lambda R: f(R, u, k), X, vec),
+                _rows(md.f, u, k, vec),
                 x0[..., j, :],
                 P0[..., j, :, :],
                 md.Q,
@@ -253,3 +253,8 @@ class ImmFilter:
         if not 0 <= k < self.n_nodes:
             raise ValueError(f"node: must be in [0, {self.n_nodes}), got {k}")
         return k
+
+
+def _rows(f: TransitionFn, u: np.ndarray, k: int, vectorized: bool) -> Callable[[Array], Array]:
+    """X (..., n) -> f(X, u, k) row-wise (see :func:`.unscented.apply_rows`)."""
+    return lambda X: apply_rows(lambda R: f(R, u, k), X, vectorized)

@@ -26,9 +26,6 @@ from ..checks import as_covariance, as_vector
 from ..nonlinear.registry import MeasurementModel
 from .models import ETA, XI
 
-#: The registry's optional ``vectorized`` flag, where the registry has it.
-VECTORIZED = {"vectorized": True} if "vectorized" in MeasurementModel.__dataclass_fields__ else {}
-
 
 def _positive(value: object, field: str) -> float:
     try:
@@ -55,10 +52,9 @@ def range_bearing(
         dy = x[..., ETA] - sy
         return np.stack([np.hypot(dx, dy), np.arctan2(dy, dx)], axis=-1)
 
-    h.vectorized = True  # type: ignore[attr-defined]
     R = np.diag([sr * sr, sb * sb])
     R.setflags(write=False)
-    return MeasurementModel(name=name, h=h, R=R, angles=(1,), **VECTORIZED)
+    return MeasurementModel(name=name, h=h, R=R, angles=(1,), vectorized=True)
 
 
 def position(name: str, sigma: float | None = None, R: object | None = None) -> MeasurementModel:
@@ -77,9 +73,8 @@ def position(name: str, sigma: float | None = None, R: object | None = None) -> 
         x = np.asarray(x, dtype=float)
         return np.stack([x[..., XI], x[..., ETA]], axis=-1)
 
-    h.vectorized = True  # type: ignore[attr-defined]
     Rm.setflags(write=False)
-    return MeasurementModel(name=name, h=h, R=Rm, angles=(), **VECTORIZED)
+    return MeasurementModel(name=name, h=h, R=Rm, angles=(), vectorized=True)
 
 
 _KINDS = ("range_bearing", "position")

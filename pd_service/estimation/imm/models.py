@@ -35,9 +35,6 @@ import numpy as np
 
 from ..nonlinear.registry import NonlinearModel, register_model
 
-#: The registry's optional ``vectorized`` flag, where the registry has it.
-VECTORIZED = {"vectorized": True} if "vectorized" in NonlinearModel.__dataclass_fields__ else {}
-
 #: State layout.
 XI, XI_DOT, ETA, ETA_DOT, OMEGA = range(5)
 N_STATE = 5
@@ -112,8 +109,7 @@ def imm_cv(
     def f(x: np.ndarray, u: object, k: int) -> np.ndarray:
         return cv_transition(x, T)
 
-    f.vectorized = True  # type: ignore[attr-defined]
-    return NonlinearModel(name="imm_cv", n=N_STATE, nu=0, f=f, Q=Q, **VECTORIZED)
+    return NonlinearModel(name="imm_cv", n=N_STATE, nu=0, f=f, Q=Q, vectorized=True)
 
 
 @register_model("imm_ct")
@@ -150,8 +146,7 @@ def imm_ct(
     def f(x: np.ndarray, u: object, k: int) -> np.ndarray:
         return ct_transition(x, T)
 
-    f.vectorized = True  # type: ignore[attr-defined]
-    return NonlinearModel(name="imm_ct", n=N_STATE, nu=0, f=f, Q=Q, **VECTORIZED)
+    return NonlinearModel(name="imm_ct", n=N_STATE, nu=0, f=f, Q=Q, vectorized=True)
 
 
 def heading(x: np.ndarray) -> np.ndarray:

@@ -136,7 +136,3 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
             P_combined=pred.P,
         )
 
-    def filtered_state(self) -> tuple[int, ImmState]:
-        """(step, IMM state) of the newest posterior (all nodes). Diagnostics and tests."""
-        self._replay(None)
-        return self._newest()

@@ -32,12 +32,14 @@ Mode likelihoods use the linearised innovation covariance of the same pseudo-mea
 
 from __future__ import annotations
 
+import functools
+import operator
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..nonlinear.registry import MeasurementModel, wrap_angle
-from .unscented import apply_rows, is_vectorized, mean_and_deviations, weighted_outer
+from .unscented import apply_rows, mean_and_deviations, weighted_outer
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -98,7 +100,7 @@ def sensor_contribution(
 
     ``X`` (..., 2n+1, n) are the sigma points of the prior, ``w`` (2n+1,) their weights.
     """
-    Z = apply_rows(sensor.h, X, is_vectorized(sensor))  # (..., 2n+1, m)
+    Z = apply_rows(sensor.h, X, sensor.vectorized)  # (..., 2n+1, m)
     zhat, dZ = mean_and_deviations(Z, w, sensor.angles)
     dX = X - x_prior[..., None, :]
     Pxz = weighted_outer(w, dX, dZ)  # (..., n, m)
@@ -147,7 +149,8 @@ def joint_loglik(
     information form (see module docstring); shape (...)."""
     m = sum(c.nu.shape[-1] for c in contributions)
     quad_R = sum(np.einsum("...a,ab,...b->...", c.nu, c.Rinv, c.nu) for c in contributions)
-    b = sum(_mv(np.swapaxes(c.H, -1, -2) @ c.Rinv, c.nu) for c in contributions)
+    b = functools.reduce(operator.add,
+                         (_mv(np.swapaxes(c.H, -1, -2) @ c.Rinv, c.nu) for c in contributions))
     Pb = np.linalg.solve(Y_post, b[..., None])[..., 0]
     maha = quad_R - np.einsum("...a,...a->...", b, Pb)
     logdet = (

@@ -1,9 +1,10 @@
-"""Symmetric sigma points (Julier's kappa form) and unscented moments, batched.
+"""Unscented moments with Julier's symmetric kappa sigma points, batched.
 
-For x (..., n), P (..., n, n) and scaling kappa (> -n)::
+For x (..., n), P (..., n, n) and scaling kappa (n + kappa > 0), the points and weights are
+:meth:`..nonlinear.sigma.SigmaWeights.julier` (alpha = 1, beta = 0)::
 
-    L L^T = (n + kappa) P                                   (Cholesky)
-    chi_0 = x,  chi_i = x + L[:, i-1],  chi_{n+i} = x - L[:, i-1],   i = 1..n
+    L L^T = P   (Cholesky),   c = sqrt(n + kappa)
+    chi_0 = x,  chi_i = x + c L[:, i-1],  chi_{n+i} = x - c L[:, i-1],   i = 1..n
     W_0 = kappa / (n + kappa),  W_i = 1 / (2 (n + kappa))
 
 Angle components of transformed points are averaged on the circle and their deviations
@@ -13,21 +14,18 @@ would give 0 deg).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
+from numpy.typing import NDArray
 
 from ..nonlinear.registry import wrap_angle
+from ..nonlinear.sigma import SigmaWeights, sqrt_cov
+
+Array = NDArray[np.float64]
 
 
-def is_vectorized(model: object) -> bool:
-    """True if a model's f / h accepts a batch of rows (registry flag ``vectorized``, or a
-    ``vectorized`` attribute on the function itself for registries without the flag)."""
-    if getattr(model, "vectorized", False):
-        return True
-    fn = getattr(model, "f", None) or getattr(model, "h", None)
-    return bool(getattr(fn, "vectorized", False))
-
-
-def apply_rows(fn, X: np.ndarray, vectorized: bool) -> np.ndarray:
+def apply_rows(fn: Callable[[Array], Array], X: Array, vectorized: bool) -> Array:
     """fn over the last axis of X (..., n) -> (..., m): one call on the (N, n) rows if
     ``vectorized``, else row by row."""
     rows = X.reshape(-1, X.shape[-1])
@@ -35,38 +33,19 @@ def apply_rows(fn, X: np.ndarray, vectorized: bool) -> np.ndarray:
     return np.asarray(out, dtype=float).reshape(*X.shape[:-1], -1)
 
 
-def weights(n: int, kappa: float) -> np.ndarray:
-    """Weights (2n+1,) summing to 1."""
-    lam = n + kappa
-    if lam <= 0.0:
-        raise ValueError(f"kappa: n + kappa must be > 0, got n={n}, kappa={kappa}")
-    w = np.full(2 * n + 1, 1.0 / (2.0 * lam))
-    w[0] = kappa / lam
-    return w
+def weights(n: int, kappa: float) -> Array:
+    """Weights (2n+1,) summing to 1; ValueError unless n + kappa > 0."""
+    return SigmaWeights.julier(n, kappa).Wm
 
 
-def _sqrt_psd(P: np.ndarray) -> np.ndarray:
-    """A square root L (L L^T = P) of a batch of symmetric PSD matrices."""
-    try:
-        return np.linalg.cholesky(P)
-    except np.linalg.LinAlgError:
-        # Not numerically positive definite (e.g. a zero-variance direction): symmetric root.
-        vals, vecs = np.linalg.eigh(P)
-        return vecs * np.sqrt(np.clip(vals, 0.0, None))[..., None, :]
-
-
-def sigma_points(x: np.ndarray, P: np.ndarray, kappa: float) -> np.ndarray:
+def sigma_points(x: Array, P: Array, kappa: float) -> Array:
     """Sigma points (..., 2n+1, n) of N(x, P)."""
-    n = x.shape[-1]
-    L = _sqrt_psd((n + kappa) * P)
-    cols = np.swapaxes(L, -1, -2)  # (..., n, n): row i is column i of L
-    xe = x[..., None, :]
-    return np.concatenate([xe, xe + cols, xe - cols], axis=-2)
+    return SigmaWeights.julier(x.shape[-1], kappa).points(x, sqrt_cov(P))
 
 
 def mean_and_deviations(
-    Z: np.ndarray, w: np.ndarray, angles: tuple[int, ...]
-) -> tuple[np.ndarray, np.ndarray]:
+    Z: Array, w: Array, angles: tuple[int, ...]
+) -> tuple[Array, Array]:
     """Weighted mean (..., m) of points Z (..., 2n+1, m) and deviations Z - mean (wrapped on
     the ``angles`` components)::
 
@@ -85,14 +64,15 @@ def mean_and_deviations(
     return zbar, dZ
 
 
-def weighted_outer(w: np.ndarray, dA: np.ndarray, dB: np.ndarray) -> np.ndarray:
+def weighted_outer(w: Array, dA: Array, dB: Array) -> Array:
     """sum_i W_i dA_i dB_i^T: (..., a, b) from deviations (..., 2n+1, a), (..., 2n+1, b)."""
     return np.einsum("i,...ia,...ib->...ab", w, dA, dB)
 
 
 def unscented_propagate(
-    f, x: np.ndarray, P: np.ndarray, Q: np.ndarray, kappa: float, angles: tuple[int, ...] = ()
-) -> tuple[np.ndarray, np.ndarray]:
+    f: Callable[[Array], Array], x: Array, P: Array, Q: Array, kappa: float,
+    angles: tuple[int, ...] = (),
+) -> tuple[Array, Array]:
     """Prior of x+ = f(x) + w, w ~ N(0, Q), through sigma points::
 
         chi_i+ = f(chi_i),   x- = sum W_i chi_i+,   P- = sum W_i (chi_i+ - x-)(.)^T + Q

@@ -41,7 +41,7 @@ entries are used, clamped to [q_min, q_max].
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -271,25 +271,31 @@ def make_adapter(spec: Mapping[str, object] | None, Q0: np.ndarray,
         raise ValueError(f"adapt: unknown settings {sorted(unknown)} for method {method!r}")
     if "indices" not in spec:
         raise ValueError("adapt.indices: required (which diagonal entries of Q to adapt)")
+    indices = spec["indices"]
     try:
-        kw: dict[str, object] = {"indices": tuple(int(i) for i in spec["indices"])}  # type: ignore[union-attr]
+        if not isinstance(indices, Iterable):
+            raise TypeError
+        kw: dict[str, object] = {"indices": tuple(int(i) for i in indices)}
     except (TypeError, ValueError):
         raise ValueError("adapt.indices: expected a list of integers") from None
     for key in ("q_min", "q_max"):
-        if key in spec and spec[key] is not None:
+        bounds = spec.get(key)
+        if bounds is not None:
             try:
-                kw[key] = tuple(float(v) for v in spec[key])  # type: ignore[union-attr]
+                if not isinstance(bounds, Iterable):
+                    raise TypeError
+                kw[key] = tuple(float(v) for v in bounds)
             except (TypeError, ValueError):
                 raise ValueError(f"adapt.{key}: expected a list of numbers") from None
-    for key, typ in (("window", int), ("max_gap", int), ("eta", float), ("clip", float),
-                     ("forgetting", float)):
+    for key, integer in (("window", True), ("max_gap", True), ("eta", False), ("clip", False),
+                         ("forgetting", False)):
         if key in spec:
             v = spec[key]
-            bad = isinstance(v, bool) or not isinstance(v, (int, float))
-            if bad or (typ is int and not isinstance(v, int)):
-                what = "an integer" if typ is int else "a number"
+            if (isinstance(v, bool) or not isinstance(v, (int, float))
+                    or (integer and not isinstance(v, int))):
+                what = "an integer" if integer else "a number"
                 raise ValueError(f"adapt.{key}: expected {what}, got {v!r}")
-            kw[key] = typ(v)
+            kw[key] = int(v) if integer else float(v)
     if "rule" in spec:
         kw["rule"] = spec["rule"]
     if method == "mit":

@@ -1,7 +1,7 @@
 """Plain-Python construction of the unscented observer-predictor from session settings.
 
-Everything here is numbers, lists, strings and maps, as they arrive in a SessionSpec, so the
-wire layer can select this backend without knowing any function::
+Everything here is numbers, lists, strings and maps, as they arrive in a SessionSpec (which
+:mod:`pd_service.backends` maps onto this), so a session can select a model by name::
 
     op = make_unscented("omni3", {"period_s": 0.01}, x0=[0] * 6, P0=np.eye(6) * 1e-4,
                         lead=10, max_delay=12, command_hold="hold",

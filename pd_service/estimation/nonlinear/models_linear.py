@@ -54,8 +54,9 @@ def linear_as_nonlinear(model: LinearModel, sensors: list[Sensor]) -> NonlinearM
 @register_model("linear")
 def linear(A: object, B: object, Q: object, sensors: dict) -> NonlinearModel:
     """``sensors``: name -> {"H": m x n, "R": m x m} (plain nested lists are fine)."""
-    lm = LinearModel(A=np.asarray(A, dtype=float), B=None if B is None else np.asarray(B, float),
-                     Q=np.asarray(Q, dtype=float))
+    Am = np.asarray(A, dtype=float)
+    Bm = np.zeros((Am.shape[0] if Am.ndim else 1, 0)) if B is None else np.asarray(B, float)
+    lm = LinearModel(A=Am, B=Bm, Q=np.asarray(Q, dtype=float))
     if not isinstance(sensors, dict) or not sensors:
         raise ValueError("sensors: expected a non-empty map name -> {'H': ..., 'R': ...}")
     sens = []

@@ -1,6 +1,7 @@
-"""Scaled sigma points (Julier 2002; van der Merwe 2004) and the square-root derivative.
+"""Sigma points, the one implementation: the scaled form (Julier 2002; van der Merwe 2004),
+the symmetric kappa form (Julier 1997) as its special case, and the square-root derivative.
 
-For a mean x (n,) and covariance P = L L^T (L lower triangular)::
+For a mean x (..., n) and covariance P = L L^T (L lower triangular)::
 
     lambda = alpha^2 (n + kappa) - n,         c = sqrt(n + lambda)
     chi_0 = x,   chi_i = x + c L[:, i-1],   chi_{n+i} = x - c L[:, i-1]      (i = 1..n)
@@ -13,6 +14,9 @@ which is robust with the tiny covariances of a well-observed robot; alpha << 1 (
 gives a huge negative Wm_0 and loses digits. For a linear map every choice with
 n + lambda > 0 reproduces the mean and covariance exactly.
 
+The kappa form (:meth:`SigmaWeights.julier`, used by the IMM filters) is alpha = 1, beta = 0:
+lambda = kappa, c = sqrt(n + kappa), Wm = Wc, W_0 = kappa / (n + kappa).
+
 Sensitivities (the MIT rule, :mod:`.adaptive`) need d(chi)/dq, hence dL for a change dP of P.
 From L L^T = P:  dP = dL L^T + L dL^T, so with X = L^{-1} dL (lower triangular)::
 
@@ -24,8 +28,12 @@ where Phi keeps the strictly lower triangle and halves the diagonal.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,8 +45,8 @@ class SigmaWeights:
     beta: float
     kappa: float
     c: float  # spread factor sqrt(n + lambda)
-    Wm: np.ndarray
-    Wc: np.ndarray
+    Wm: Array
+    Wc: Array
 
     @classmethod
     def make(cls, n: int, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0) -> SigmaWeights:
@@ -50,46 +58,57 @@ class SigmaWeights:
                 raise ValueError(f"{name}: expected a finite number, got {v!r}")
         if alpha <= 0:
             raise ValueError(f"alpha: must be > 0, got {alpha}")
-        lam = alpha**2 * (n + kappa) - n
-        if n + lam <= 0:
-            raise ValueError(f"kappa: n + lambda = alpha^2 (n + kappa) must be > 0, got {n + lam}")
-        w = 1.0 / (2.0 * (n + lam))
+        n_lam = alpha**2 * (n + kappa)  # n + lambda
+        lam = kappa if alpha == 1.0 else n_lam - n
+        if n_lam <= 0:
+            raise ValueError(f"kappa: n + lambda = alpha^2 (n + kappa) must be > 0, got {n_lam}")
+        w = 1.0 / (2.0 * n_lam)
         Wm = np.full(2 * n + 1, w)
         Wc = np.full(2 * n + 1, w)
-        Wm[0] = lam / (n + lam)
-        Wc[0] = lam / (n + lam) + (1.0 - alpha**2 + beta)
+        Wm[0] = lam / n_lam
+        Wc[0] = lam / n_lam + (1.0 - alpha**2 + beta)
         for arr in (Wm, Wc):
             arr.setflags(write=False)
-        return cls(n, float(alpha), float(beta), float(kappa), float(np.sqrt(n + lam)), Wm, Wc)
+        return cls(n, float(alpha), float(beta), float(kappa), float(np.sqrt(n_lam)), Wm, Wc)
 
-    def points(self, x: np.ndarray, L: np.ndarray) -> np.ndarray:
-        """Sigma points (2n+1, n) around mean x (n,) with square root L (n, n)."""
-        cL = self.c * L.T  # rows are c L[:, i]
-        return np.concatenate((x[None, :], x + cL, x - cL))
+    @staticmethod
+    @lru_cache(maxsize=64)
+    def julier(n: int, kappa: float) -> SigmaWeights:
+        """The symmetric kappa form: :meth:`make` with alpha = 1, beta = 0 (n + kappa > 0)."""
+        return SigmaWeights.make(n, alpha=1.0, beta=0.0, kappa=kappa)
 
-    def point_offsets(self, dx: np.ndarray, dL: np.ndarray) -> np.ndarray:
+    def points(self, x: Array, L: Array) -> Array:
+        """Sigma points (..., 2n+1, n) around means x (..., n) with square roots L (..., n, n):
+        chi_0 = x, chi_i = x + c L[:, i-1], chi_{n+i} = x - c L[:, i-1]."""
+        cL = self.c * np.swapaxes(L, -1, -2)  # rows are c L[:, i]
+        xe = x[..., None, :]
+        return np.concatenate((xe, xe + cL, xe - cL), axis=-2)
+
+    def point_offsets(self, dx: Array, dL: Array) -> Array:
         """Derivatives of the sigma points, (p, 2n+1, n), for dx (p, n) and dL (p, n, n)."""
         cL = self.c * np.swapaxes(dL, 1, 2)
         return np.concatenate((dx[:, None, :], dx[:, None, :] + cL, dx[:, None, :] - cL), axis=1)
 
 
-def sqrt_cov(P: np.ndarray) -> np.ndarray:
-    """Lower-triangular L with L L^T = P (Cholesky).
+def sqrt_cov(P: Array) -> Array:
+    """Lower-triangular L (..., n, n) with L L^T = P (Cholesky), for P (..., n, n).
 
-    A covariance that rounding made slightly indefinite gets a symmetric square root of its
-    eigenvalue-clipped version instead (still L L^T ~= P, no longer triangular); this keeps the
-    filter alive, but the sensitivity formula assumes a Cholesky factor, so it is then only
-    approximate for that step.
+    A covariance that rounding made slightly indefinite (or a zero-variance direction) gets a
+    symmetric square root of its eigenvalue-clipped version instead (still L L^T ~= P, no
+    longer triangular; in a batch, every matrix of the batch); this keeps the filter alive,
+    but the sensitivity formula assumes a Cholesky factor, so it is then only approximate
+    for that step.
     """
     try:
-        return np.linalg.cholesky(P)
+        L = np.linalg.cholesky(P)
     except np.linalg.LinAlgError:
-        w, V = np.linalg.eigh(0.5 * (P + P.T))
+        w, V = np.linalg.eigh(0.5 * (P + np.swapaxes(P, -1, -2)))
         w = np.clip(w, 0.0, None)
-        return (V * np.sqrt(w)) @ V.T
+        L = (V * np.sqrt(w)[..., None, :]) @ np.swapaxes(V, -1, -2)
+    return np.asarray(L, dtype=np.float64)
 
 
-def cholesky_derivative(L: np.ndarray, dP: np.ndarray) -> np.ndarray:
+def cholesky_derivative(L: Array, dP: Array) -> Array:
     """dL (p, n, n) for dP (p, n, n) symmetric, given L (n, n) lower triangular.
 
         dL = L Phi(L^{-1} dP L^{-T})

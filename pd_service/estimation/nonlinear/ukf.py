@@ -109,9 +109,9 @@ class UnscentedObserverPredictor(ReplayEstimator[UKFState]):
         tracked = dQ is not None
         initial = UKFState(x, P, np.zeros((len(idx), n)) if tracked else None,
                            np.zeros((len(idx), n, n)) if tracked else None)
-        ops = ModelOps(model, names)
+        backend = UnscentedBackend(ModelOps(model, names), sigma, Q, dQ, Q_schedule)
         super().__init__(
-            backend=UnscentedBackend(ops, sigma, Q, dQ, Q_schedule),
+            backend=backend,
             initial=initial,
             sensor_dims={name: model.sensors[name].m for name in names},
             nu=model.nu,
@@ -121,7 +121,7 @@ class UnscentedObserverPredictor(ReplayEstimator[UKFState]):
         )
         self.model = model
         self.adapter = adapter
-        self._ukf: UnscentedBackend = self._backend  # typed alias
+        self._ukf = backend  # self._backend, with its own type
         self._prev_base: tuple[int, UKFState] = (self._base_step, self._base)
         self._last_update = 0  # newest committed measured step (0 before any): gaps count from it
 
@@ -187,9 +187,3 @@ def _checked_schedule(fn: Callable[[int], np.ndarray], n: int) -> Callable[[int]
 
     return checked
 
-
-def filtered_state(op: UnscentedObserverPredictor) -> tuple[int, np.ndarray, np.ndarray]:
-    """(step, x, P) of the newest posterior (or the base when none is open). Diagnostics."""
-    op._replay(None)
-    step, st = op._newest()
-    return step, st.x, st.P

@@ -183,7 +183,7 @@ def time_step(ops: ModelOps, w: SigmaWeights, Q: np.ndarray, state: UKFState, u:
     xm = _mean(w.Wm, Y, ops.x_angles)       # x- = sum Wm_i Y_i
     D = _resid(Y, xm, ops.x_angles)         # Y_i - x-
     Pm = _sym(_wsum_outer(D, w.Wc, D) + Q)  # P- = sum Wc_i D_i D_i^T + Q
-    if not state.tracked:
+    if state.dx is None or state.dP is None:  # not tracked
         return UKFState(xm, Pm)
     dL = cholesky_derivative(L, state.dP)
     dX = w.point_offsets(state.dx, dL)      # d chi_i
@@ -231,7 +231,7 @@ def measurement_update(ops: ModelOps, w: SigmaWeights, state: UKFState, step: in
         xp[ops.x_angles] = wrap_angle(xp[ops.x_angles])
     Pp = _sym(P - K @ Pxz.T)                 # P+ = P- - K Pxz^T  (= P- - K S K^T)
     dx = dP = dnu = dS = None
-    if state.tracked:
+    if state.dx is not None and state.dP is not None:  # tracked
         dL = cholesky_derivative(L, state.dP)
         dX = w.point_offsets(state.dx, dL)
         dDX = dX - state.dx[:, None, :]
