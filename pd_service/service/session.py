@@ -35,7 +35,7 @@ from collections import Counter
 from dataclasses import dataclass
 
 from pd_service.backends import build_estimator
-from pd_service.estimation import Estimator, ObserverPredictor, PredictedState
+from pd_service.estimation import Estimator, PredictedState
 from pd_service.wire import (
     Command,
     Measurement,
@@ -97,13 +97,12 @@ class Session:
     """A served session. ``state`` is "active" or "restored" (how it started)."""
 
     def __init__(self, spec: SessionSpec, state: str, detail: str, now_ns: int,
-                 error_rate: float, error_burst: int, engine: str = "stacked") -> None:
+                 error_rate: float, error_burst: int) -> None:
         self.spec = spec
         self.name = spec.session
-        # WireError for a spec it refuses; "stacked": a linear model's numerics batched
-        # across sessions (pd_service.service.stacked), same results
-        self.est: Estimator = build_estimator(
-            spec, StackedObserverPredictor if engine == "stacked" else ObserverPredictor)
+        # WireError for a spec it refuses; a linear model's numerics are batched across
+        # sessions (pd_service.service.stacked), equal to ObserverPredictor to rounding
+        self.est: Estimator = build_estimator(spec, StackedObserverPredictor)
         self.state = state
         self.detail = detail
         self.counters: Counter[str] = Counter()
