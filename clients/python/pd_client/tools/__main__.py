@@ -1,4 +1,4 @@
-"""``python -m pd_client <tool> [args]``: the command-line tools without installed scripts.
+"""``python -m pd_client.tools <tool> [args]``: the command-line tools without installed scripts.
 
 Tools: ``sim`` (pd-robot-sim), ``operator`` (pd-operator), ``display`` (pd-display),
 ``record`` (pd-record).
@@ -6,18 +6,21 @@ Tools: ``sim`` (pd-robot-sim), ``operator`` (pd-operator), ``display`` (pd-displ
 
 from __future__ import annotations
 
+import importlib
 import sys
+
+#: sub-command -> module of pd_client.tools with its ``main(argv)``
+TOOLS = {"sim": "pd_robot_sim", "operator": "pd_operator", "display": "pd_display",
+         "record": "pd_record"}
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    tools = {"sim": "sim", "operator": "operate", "display": "watch", "record": "record"}
-    if not argv or argv[0] not in tools:
-        print(f"usage: python -m pd_client {{{','.join(tools)}}} [args...]", file=sys.stderr)
+    if not argv or argv[0] not in TOOLS:
+        print(f"usage: python -m pd_client.tools {{{','.join(TOOLS)}}} [args...]",
+              file=sys.stderr)
         return 2
-    import importlib
-
-    module = importlib.import_module(f"pd_client.{tools[argv[0]]}")
+    module = importlib.import_module(f"pd_client.tools.{TOOLS[argv[0]]}")
     return int(module.main(argv[1:]))
 
 
