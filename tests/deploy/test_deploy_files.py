@@ -38,8 +38,8 @@ JSON5_FILES = sorted(DEPLOY.rglob("*.json5"))
 TOOL_MODULES = {
     "pd-service": "pd_service.service.__main__",
     "pd-link": "pd_service.link.__main__",
-    "pd-robot-sim": "pd_client.sim",
-    "pd-operator": "pd_client.operate",
+    "pd-robot-sim": "pd_client.tools.pd_robot_sim",
+    "pd-operator": "pd_client.tools.pd_operator",
 }
 
 

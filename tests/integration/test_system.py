@@ -156,9 +156,9 @@ def start_system(tmp_path: Path, link_config: str, steps: int, extra_sim: list[s
     deadline = time.monotonic() + 20
     while not any(r.ok for r in t.get(keys.link_stats_key("sys"), timeout=0.5)):
         assert time.monotonic() < deadline, (tmp_path / "link.log").read_text()
-    procs["operator"] = run_tool(["-m", "pd_client", "operator", "--session", SESSION,
+    procs["operator"] = run_tool(["-m", "pd_client.tools", "operator", "--session", SESSION,
                                   "--steps", str(steps), *z], tmp_path / "operator.log")
-    procs["sim"] = run_tool(["-m", "pd_client", "sim", "--session", SESSION, "--create-session",
+    procs["sim"] = run_tool(["-m", "pd_client.tools", "sim", "--session", SESSION, "--create-session",
                              "--steps", str(steps), "--seed", "3", *extra_sim, *z],
                             tmp_path / "sim.log")
     return d, t, w, procs

@@ -5,12 +5,14 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any, Self, TypeVar
 
 import numpy as np
 from pydantic import ValidationError
 
-from pd_service.transport import DEFAULT_ENDPOINT, Handle, Sample, Transport
+from pd_service.transport import TOOL, Handle, Sample, Transport, ZenohOptions, ZenohTransport
+from pd_service.transport.options import Mode
 from pd_service.wire import Message, WireError, decode
 from pd_service.wire.codec import validation_reason
 
@@ -22,36 +24,43 @@ M = TypeVar("M", bound=Message)
 
 
 def connect(
-    endpoint: str | Sequence[str] | None = DEFAULT_ENDPOINT,
-    mode: str = "client",
+    endpoint: str | Sequence[str] | None = None,
+    mode: Mode | None = None,
     *,
     listen: Sequence[str] = (),
-    config_file: str | None = None,
+    config_file: str | Path | None = None,
     user: str | None = None,
     password: str | None = None,
 ) -> Transport:
     """Open a Zenoh transport to a pd-service deployment.
 
     ``endpoint``: where to connect (a Zenoh locator such as ``"tcp/127.0.0.1:7447"``, or a
-    list; None or empty to connect nowhere, e.g. a peer that only listens). ``mode``:
-    ``"client"`` (default: talk through a router or the daemon's peer), ``"peer"`` or
-    ``"router"``. ``config_file``: a Zenoh JSON5 file read first; the other arguments
-    override it. Raises :class:`ServiceUnavailable` when Zenoh cannot open the session
-    (in client mode: nothing listens at ``endpoint``).
+    list). ``mode``: ``"client"`` (talk through a router or the daemon's peer), ``"peer"`` or
+    ``"router"``. Without ``config_file``, what is not given takes the TOOL role's default
+    (client mode, connect to ``tcp/127.0.0.1:7447``, multicast scouting off), as for the
+    command-line tools; with ``config_file`` (a Zenoh JSON5 file, read first) the file
+    decides what the arguments do not say. Raises :class:`ServiceUnavailable` when Zenoh
+    cannot open the session (in client mode: nothing listens at ``endpoint``).
     """
-    from pd_service.transport import ZenohTransport, zenoh_config  # imports zenoh lazily
-
     if isinstance(endpoint, str):
-        endpoints: list[str] = [endpoint] if endpoint else []
+        endpoints: tuple[str, ...] = (endpoint,) if endpoint else ()
     else:
-        endpoints = list(endpoint or ())
+        endpoints = tuple(endpoint or ())
+    return connect_options(ZenohOptions(
+        mode=mode, listen=tuple(listen), connect=endpoints,
+        config_file=Path(config_file) if config_file else None, user=user, password=password))
+
+
+def connect_options(options: ZenohOptions) -> Transport:
+    """Open a Zenoh transport from the Zenoh option group's :class:`ZenohOptions` (what is
+    not given takes the TOOL role's defaults); raises :class:`ServiceUnavailable`."""
+    resolved = options.resolved(TOOL)
     try:
-        conf = zenoh_config(mode=mode, listen=list(listen), connect=endpoints,
-                            file=config_file, user=user, password=password)
-        return ZenohTransport(conf)
+        return ZenohTransport(options.config(TOOL))
     except Exception as exc:  # zenoh.ZError and friends
-        where = ", ".join(endpoints) or "(no endpoint)"
-        raise ServiceUnavailable(f"cannot open a Zenoh {mode} session to {where}: {exc}") from exc
+        where = ", ".join(resolved.connect) or "(no endpoint)"
+        kind = resolved.mode or "configured"
+        raise ServiceUnavailable(f"cannot open a Zenoh {kind} session to {where}: {exc}") from exc
 
 
 def build(msg_type: type[M], **fields: Any) -> M:
@@ -99,8 +108,8 @@ class ClientBase:
         self._lock = threading.Lock()
 
     @classmethod
-    def connect(cls, *args: Any, endpoint: str | Sequence[str] | None = DEFAULT_ENDPOINT,
-                mode: str = "client", **kwargs: Any) -> Self:
+    def connect(cls, *args: Any, endpoint: str | Sequence[str] | None = None,
+                mode: Mode | None = None, **kwargs: Any) -> Self:
         """Open a Zenoh transport (see :func:`pd_client.connect`) owned by the new client.
 
         The other arguments are the class's own (e.g. ``Robot.connect("s1", endpoint=...)``).

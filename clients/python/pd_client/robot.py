@@ -81,7 +81,7 @@ class Robot(ClientBase):
             key = self.sensor_key(sensor)
         except keys.KeyError_ as exc:
             raise InvalidMessage(str(exc)) from None
-        fields: dict = {"session": self.session, "sensor": sensor,
+        fields: dict[str, object] = {"session": self.session, "sensor": sensor,
                         "seq": self._seq.get(sensor, 0), "step": step, "t_ns": t_ns,
                         "z": as_array(z, "z", 1)}
         if R is not None:

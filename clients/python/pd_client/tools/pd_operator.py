@@ -24,12 +24,12 @@ from pd_service.transport import Sample, Transport
 from pd_service.wire import SessionSpec, WireError, keys
 from pd_service.wire.convert import command_dim
 
-from . import _cli
-from ._base import try_decode
-from .admin import Admin
-from .errors import PdClientError
-from .operator import Operator
-from .scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
+from .._base import try_decode
+from ..admin import Admin
+from ..errors import PdClientError
+from ..operator import Operator
+from ..scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
+from . import common
 
 TOOL = "pd-operator"
 
@@ -48,12 +48,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "length; 0: run until stopped)")
     ap.add_argument("--spec-timeout", type=float, default=30.0,
                     help="seconds to wait for the session specs (default 30)")
-    _cli.add_tool_args(ap)
+    common.add_progress_arg(ap)
+    common.add_tool_args(ap)
     return ap
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return _cli.run_tool(build_parser, _main, argv)
+    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -64,13 +65,13 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     steps = scenario.default_steps if args.steps is None else args.steps
     names = args.session or [scenario.name]
     try:
-        transport = _cli.open_transport(args)
+        transport = common.open_transport(args)
     except PdClientError as exc:
-        return _cli.fail(TOOL, exc)
+        return common.fail(TOOL, exc)
     try:
         return _run(transport, scenario, names, steps, args, stop)
     except PdClientError as exc:
-        return _cli.fail(TOOL, exc)
+        return common.fail(TOOL, exc)
     finally:
         transport.close()
 
@@ -107,14 +108,14 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
     specs: list[SessionSpec] = []
     with Admin(transport) as admin:
         for name in names:
-            _cli.progress(TOOL, f"waiting for the spec of session {name} ...")
+            common.progress(TOOL, f"waiting for the spec of session {name} ...")
             spec = admin.wait_for_spec(name, args.spec_timeout)
             try:
                 r = command_dim(spec)  # a nonlinear model's is its registered model's
             except WireError as exc:
-                return _cli.fail(TOOL, f"session {name}: {exc.reason}", 2)
+                return common.fail(TOOL, f"session {name}: {exc.reason}", 2)
             if r != scenario.nu:
-                return _cli.fail(TOOL, f"session {name}: {r} inputs, scenario "
+                return common.fail(TOOL, f"session {name}: {r} inputs, scenario "
                                        f"{scenario.name!r} has {scenario.nu}", 2)
             specs.append(spec)
     followed = _Followed(transport, specs)
@@ -132,7 +133,7 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
                     for name, op in ops.items():
                         if op.spec is not followed.specs[name]:
                             if k is not None:
-                                _cli.progress(TOOL, f"session {name} was replaced: "
+                                common.progress(TOOL, f"session {name} was replaced: "
                                                     "following its new clock")
                             op.spec = followed.specs[name]
                             finished[name] = False
@@ -142,7 +143,7 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
                         clock.epoch_ns, clock.period_ns):
                     k = max(0, new_clock.step_of(time.time_ns()))
                 clock = new_clock
-            if not _cli.wait_until(clock.time_of(k), stop):
+            if not common.wait_until(clock.time_of(k), stop):
                 break
             for name, op in ops.items():
                 assert op.spec is not None
@@ -156,12 +157,12 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
                 j = k + clock.lead
                 late = "" if steps == 0 or j <= steps else \
                     f" (past --steps {steps}: waiting for the session to be re-created)"
-                _cli.progress(TOOL, f"step {k}: sent {sent} commands, u(step {j})="
-                                    f"{_cli.fmt_vec(scenario.command(j))}{late}")
+                common.progress(TOOL, f"step {k}: sent {sent} commands, u(step {j})="
+                                    f"{common.fmt_vec(scenario.command(j))}{late}")
             if steps and all(finished.values()):
                 break
             k += 1
-        _cli.progress(TOOL, f"{'stopped' if stop.is_set() else 'done'}: sent {sent} commands")
+        common.progress(TOOL, f"{'stopped' if stop.is_set() else 'done'}: sent {sent} commands")
     finally:
         followed.close()
         for op in ops.values():

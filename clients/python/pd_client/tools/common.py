@@ -1,54 +1,41 @@
-"""Shared pieces of the command-line tools: Zenoh options, logging, signals, the clock."""
+"""What every command-line tool shares: its main (flags, logging, stop signal), the Zenoh
+option group with the TOOL role's defaults, progress lines and the clock."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import logging
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 
-from pd_service.transport import DEFAULT_ENDPOINT, Transport
+import numpy as np
 
-from ._base import connect
+from pd_service.logs import add_logging_args, setup_logging
+from pd_service.transport import TOOL, Transport, add_zenoh_args, options_from_args
+
+from .._base import connect_options
 
 
 def add_tool_args(ap: argparse.ArgumentParser) -> None:
-    """The flags every tool has: --progress, --verbose and the Zenoh group."""
+    """The flags every tool has: ``--log-level`` / ``--log-format`` (default WARNING),
+    ``-v/--verbose`` (short for ``--log-level DEBUG``) and the Zenoh group (TOOL role:
+    client mode, connect to tcp/127.0.0.1:7447)."""
+    add_logging_args(ap, default_level="WARNING")
+    ap.add_argument("--verbose", "-v", action="store_true", help="same as --log-level DEBUG")
+    add_zenoh_args(ap, TOOL)
+
+
+def add_progress_arg(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--progress", type=float, default=2.0,
                     help="seconds between progress lines on stderr (0: none)")
-    ap.add_argument("--verbose", "-v", action="store_true")
-    add_zenoh_args(ap)
-
-
-def add_zenoh_args(ap: argparse.ArgumentParser) -> None:
-    g = ap.add_argument_group("Zenoh")
-    g.add_argument("--connect", "-e", dest="connect", action="append", metavar="ENDPOINT",
-                   help=f"Zenoh endpoint to connect to (repeatable; default {DEFAULT_ENDPOINT})")
-    g.add_argument("--mode", default="client", choices=("client", "peer"),
-                   help="Zenoh mode (default: client)")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to listen on (peer mode; repeatable)")
-    g.add_argument("--zenoh-config", metavar="FILE",
-                   help="Zenoh JSON5 configuration file, read first")
-    g.add_argument("--user", help="Zenoh user name (user/password authentication)")
-    g.add_argument("--password", help="Zenoh password")
 
 
 def open_transport(args: argparse.Namespace) -> Transport:
-    endpoints: list[str] | None = args.connect
-    if endpoints is None and not args.zenoh_config:
-        endpoints = [DEFAULT_ENDPOINT]
-    return connect(endpoints or [], args.mode, listen=args.listen,
-                   config_file=args.zenoh_config, user=args.user, password=args.password)
-
-
-def setup_logging(verbose: bool = False) -> None:
-    logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING, stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    """The Zenoh transport of a command line built with :func:`add_tool_args`."""
+    return connect_options(options_from_args(args))
 
 
 @contextlib.contextmanager
@@ -76,7 +63,7 @@ def run_tool(build_parser: Callable[[], argparse.ArgumentParser],
     with signal_stop() as stop:
         ap = build_parser()
         args = ap.parse_args(argv)
-        setup_logging(args.verbose)
+        setup_logging("DEBUG" if args.verbose else args.log_level, args.log_format)
         return body(ap, args, stop)
 
 
@@ -106,6 +93,7 @@ def parse_session_arg(value: str) -> tuple[str, list[str] | None]:
     return name, sensors
 
 
-def fmt_vec(values: Sequence[float], width: int = 8, prec: int = 3) -> str:
+def fmt_vec(values: Sequence[float] | np.ndarray, width: int = 8, prec: int = 3) -> str:
+    """``[   1.000   -2.500]``: a vector on one line, fixed width."""
     return "[" + " ".join(f"{v:{width}.{prec}f}" for v in values) + "]"
 

@@ -13,8 +13,10 @@ matplotlib.use("Agg")  # files only, no display needed
 
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
-from .record import read_csv  # noqa: E402
+from .record_csv import read_csv  # noqa: E402
 
 
 def _load(csv_path: str | Path) -> tuple[list[str], dict[str, np.ndarray]]:
@@ -28,13 +30,14 @@ def _load(csv_path: str | Path) -> tuple[list[str], dict[str, np.ndarray]]:
     return names, cols
 
 
-def _axes(n: int, title: str):
+def _axes(n: int, title: str) -> tuple[Figure, list[Axes]]:
+    """A figure of ``n`` stacked axes sharing the x axis."""
     fig, axes = plt.subplots(n, 1, figsize=(8, 1.9 * n + 0.8), sharex=True, squeeze=False)
     fig.suptitle(title)
-    return fig, axes[:, 0]
+    return fig, list(axes[:, 0])
 
 
-def _save(fig, path: Path) -> Path:
+def _save(fig: Figure, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

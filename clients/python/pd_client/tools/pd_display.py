@@ -22,9 +22,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from . import _cli
-from .display import Display
-from .errors import PdClientError
+from ..display import Display
+from ..errors import PdClientError
+from . import common
 
 TOOL = "pd-display"
 CLEAR = "\x1b[H\x1b[2J"
@@ -99,13 +99,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--interval", type=float, default=0.25, help="refresh period, s")
     ap.add_argument("--plain", action="store_true",
                     help="no ANSI screen clearing (default when stdout is not a terminal)")
-    ap.add_argument("--verbose", "-v", action="store_true")
-    _cli.add_zenoh_args(ap)
+    common.add_tool_args(ap)
     return ap
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return _cli.run_tool(build_parser, _main, argv)
+    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -113,16 +112,16 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         ap.error("--count must be >= 1")
     plain = args.plain or args.once or not sys.stdout.isatty()
     try:
-        transport = _cli.open_transport(args)
+        transport = common.open_transport(args)
     except PdClientError as exc:
-        return _cli.fail(TOOL, exc)
+        return common.fail(TOOL, exc)
     try:
         with Display(transport, args.session, truth=not args.no_truth) as display:
             if args.once:
                 try:
                     display.wait(1, timeout=args.timeout)
                 except PdClientError as exc:
-                    return _cli.fail(TOOL, exc)
+                    return common.fail(TOOL, exc)
                 print(render_frame(display), flush=True)
                 return 0
             deadline = time.monotonic() + args.timeout if args.count else None
@@ -132,12 +131,12 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
                 if args.count and display.stats().received >= args.count:
                     return 0
                 if deadline is not None and time.monotonic() > deadline:
-                    return _cli.fail(TOOL, f"{display.stats().received} of {args.count} "
+                    return common.fail(TOOL, f"{display.stats().received} of {args.count} "
                                            f"predictions within {args.timeout} s")
                 stop.wait(args.interval)
             return 0
     except PdClientError as exc:
-        return _cli.fail(TOOL, exc, 2)
+        return common.fail(TOOL, exc, 2)
     finally:
         transport.close()
 

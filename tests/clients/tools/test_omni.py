@@ -12,7 +12,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from pd_client import Admin, Operator, Prediction, Truth, operate, sim
+from pd_client import Admin, Operator, Prediction, Truth
 from pd_client.scenarios import (
     OMNI_LEAD,
     OMNI_MAX_DELAY,
@@ -22,6 +22,7 @@ from pd_client.scenarios import (
     get_scenario,
     omni_q_true,
 )
+from pd_client.tools import pd_operator, pd_robot_sim
 from pd_service.backends import build_estimator
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
 from pd_service.estimation.nonlinear.adaptive import MITAdapter
@@ -30,8 +31,8 @@ from pd_service.estimation.nonlinear.scenario_omni import omni_torque, q_true, s
 from pd_service.wire import Command, SessionSpec, decode, encode, keys
 from pd_service.wire.convert import command_dim
 
-from .conftest import EPOCH_NS, Collector
-from .mini_daemon import MiniDaemon
+from ..conftest import EPOCH_NS, Collector
+from ..mini_daemon import MiniDaemon
 
 
 def test_omni_spec_selects_the_adaptive_ukf():
@@ -116,7 +117,7 @@ def test_omni_chain_tracks_the_truth_and_adapts_q(bus):
     link = _Link(bus, {s.name: s.delay for s in sc.sensors}, uplink=sc.lead)
     preds = Collector(bus, keys.prediction_key(name))
     truths = Collector(bus, keys.truth_key(name))
-    robot = sim.RobotSim(bus.transport(), sc, [spec], seed=seed)
+    robot = pd_robot_sim.RobotSim(bus.transport(), sc, [spec], seed=seed)
     op = Operator(bus.transport(), name, spec=spec)
     true_x = []
     q_before = None
@@ -197,7 +198,7 @@ def test_operator_tool_sends_the_torque_profile(bus):
         admin.replace_session(spec, wait=False)  # serves the spec, no service needed
         args = argparse.Namespace(spec_timeout=5.0, progress=0.0)
         worker = threading.Thread(target=lambda: result.append(
-            operate._run(bus.transport(), sc, ["omni"], steps, args, stop)))
+            pd_operator._run(bus.transport(), sc, ["omni"], steps, args, stop)))
         worker.start()
         worker.join(30.0)
         stop.set()  # only matters if the tool hung
@@ -218,7 +219,7 @@ def test_truth_wraps_theta_only():
     assert get_scenario("maneuver").truth_view(x4) is x4  # no angles: as simulated
 
 
-@pytest.mark.parametrize("parser", [sim.build_parser, operate.build_parser])
+@pytest.mark.parametrize("parser", [pd_robot_sim.build_parser, pd_operator.build_parser])
 def test_tools_accept_the_omni_scenario(parser):
     assert parser().parse_args(["--scenario", "omni"]).scenario == "omni"
 
@@ -226,4 +227,4 @@ def test_tools_accept_the_omni_scenario(parser):
 def test_robot_sim_refuses_a_linear_session_for_the_omni_robot(bus):
     sc = get_scenario("omni")
     with pytest.raises(ValueError, match="model"):
-        sim.RobotSim(bus.transport(), sc, [get_scenario("paper").spec("a", EPOCH_NS)])
+        pd_robot_sim.RobotSim(bus.transport(), sc, [get_scenario("paper").spec("a", EPOCH_NS)])

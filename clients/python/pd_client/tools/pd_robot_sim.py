@@ -39,14 +39,14 @@ from pd_service.transport import Transport
 from pd_service.wire import Command, SessionSpec, WireError
 from pd_service.wire.convert import command_dim
 
-from . import _cli
-from .admin import Admin
-from .errors import PdClientError
-from .robot import CommandSchedule, Robot
-from .scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
+from ..admin import Admin
+from ..errors import PdClientError
+from ..robot import CommandSchedule, Robot
+from ..scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
+from . import common
 
 TOOL = "pd-robot-sim"
-log = logging.getLogger("pd_client.sim")
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -177,18 +177,19 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--publish-every", type=int, default=1)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
-    _cli.add_tool_args(ap)
+    common.add_progress_arg(ap)
+    common.add_tool_args(ap)
     return ap
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return _cli.run_tool(build_parser, _main, argv)
+    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     try:
         scenario = get_scenario(args.scenario, args.noise)
-        sessions = [_cli.parse_session_arg(v) for v in (args.session or [scenario.name])]
+        sessions = [common.parse_session_arg(v) for v in (args.session or [scenario.name])]
         for _, sensors in sessions:
             scenario.select(sensors)
         scenario.period_ns(args.time_scale)
@@ -198,18 +199,19 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     if steps < 0:
         ap.error("--steps must be >= 0")
     try:
-        transport = _cli.open_transport(args)
+        transport = common.open_transport(args)
     except PdClientError as exc:
-        return _cli.fail(TOOL, exc)
+        return common.fail(TOOL, exc)
     try:
         return _run(args, scenario, sessions, steps, transport, stop)
     except PdClientError as exc:
-        return _cli.fail(TOOL, exc)
+        return common.fail(TOOL, exc)
     finally:
         transport.close()
 
 
-def _run(args: argparse.Namespace, scenario: Scenario, sessions: list, steps: int,
+def _run(args: argparse.Namespace, scenario: Scenario,
+         sessions: list[tuple[str, list[str] | None]], steps: int,
          transport: Transport, stop: threading.Event) -> int:
     with Admin(transport) as admin:
         if args.create_session:
@@ -222,26 +224,26 @@ def _run(args: argparse.Namespace, scenario: Scenario, sessions: list, steps: in
                                                max_delay=args.max_delay,
                                                publish_every=args.publish_every))
                 except ValueError as exc:
-                    return _cli.fail(TOOL, exc, 2)
+                    return common.fail(TOOL, exc, 2)
             if not args.no_wait_service:
-                _cli.progress(TOOL, "waiting for pd-service ...")
+                common.progress(TOOL, "waiting for pd-service ...")
                 admin.wait_for_service(args.service_timeout)
             for spec in specs:
                 admin.replace_session(spec, wait=not args.no_wait_service,
                                       timeout=args.service_timeout)
-                _cli.progress(TOOL, f"session {spec.session} created "
+                common.progress(TOOL, f"session {spec.session} created "
                                     f"(model {_model_label(spec)}, sensors "
                                     f"{', '.join(s.name for s in spec.sensors)}, "
                                     f"period {spec.period_ns / 1e6:g} ms, lead {spec.lead})")
         else:
             specs = []
             for name, _ in sessions:
-                _cli.progress(TOOL, f"waiting for the spec of session {name} ...")
+                common.progress(TOOL, f"waiting for the spec of session {name} ...")
                 specs.append(admin.wait_for_spec(name, args.service_timeout))
         try:
             sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct)
         except ValueError as exc:
-            return _cli.fail(TOOL, exc, 2)
+            return common.fail(TOOL, exc, 2)
         try:
             _loop(sim, steps, args.progress, stop, from_zero=args.create_session)
         finally:
@@ -251,14 +253,14 @@ def _run(args: argparse.Namespace, scenario: Scenario, sessions: list, steps: in
                     try:
                         admin.close_session(spec.session, timeout=2.0)
                     except PdClientError as exc:
-                        _cli.progress(TOOL, f"closing {spec.session}: {exc}")
+                        common.progress(TOOL, f"closing {spec.session}: {exc}")
     return 0
 
 
 def _model_label(spec: SessionSpec) -> str:
     """e.g. "linear" or "unscented omni3, adapt mit [3, 4, 5]"."""
     model = spec.model
-    label = model.kind
+    label: str = model.kind
     name = getattr(model, "model", None)
     if isinstance(name, str):
         label += f" {name}"
@@ -275,22 +277,22 @@ def _loop(sim: RobotSim, steps: int, every_s: float, stop: threading.Event,
     spec = sim.spec
     k = 0 if from_zero else max(0, spec.step_of(time.time_ns()))
     if k > 0:
-        _cli.progress(TOOL, f"joining session {spec.session} at step {k}")
+        common.progress(TOOL, f"joining session {spec.session} at step {k}")
     last_report = time.monotonic()
     end = f"/{steps}" if steps else ""
     while not stop.is_set() and (steps == 0 or k <= steps):
-        if not _cli.wait_until(spec.time_of(k), stop):
+        if not common.wait_until(spec.time_of(k), stop):
             break
         x = sim.tick(k)
         if every_s and time.monotonic() - last_report >= every_s:
             last_report = time.monotonic()
             behind = spec.step_of(time.time_ns()) - k
-            _cli.progress(TOOL, f"step {k}{end} x={_cli.fmt_vec(x)} u={_cli.fmt_vec(sim.last_u)} "
+            common.progress(TOOL, f"step {k}{end} x={common.fmt_vec(x)} u={common.fmt_vec(sim.last_u)} "
                                 f"samples {sim.samples_published} commands "
                                 f"{sim.schedule.received} (late {sim.schedule.late}, stale "
                                 f"{sim.schedule.stale})" + (f" behind {behind}" if behind > 1 else ""))
         k += 1
-    _cli.progress(TOOL, f"{'stopped' if stop.is_set() else 'done'} at step {k - 1}: samples "
+    common.progress(TOOL, f"{'stopped' if stop.is_set() else 'done'} at step {k - 1}: samples "
                         f"{sim.samples_published}, commands {sim.schedule.received} (late "
                         f"{sim.schedule.late}, stale {sim.schedule.stale}, invalid "
                         f"{sim.commands_invalid})")

@@ -27,7 +27,6 @@ import argparse
 import csv
 import io
 import json
-import math
 import sys
 import threading
 import time
@@ -42,17 +41,14 @@ import numpy as np
 from pd_service.transport import Sample, Transport
 from pd_service.wire import Prediction, keys
 
-from . import _cli
-from ._base import try_decode
-from ._queue import Inbox
-from .errors import InvalidMessage, PdClientError
-from .truth import Truth
+from .._base import try_decode
+from .._queue import Inbox
+from ..errors import InvalidMessage, PdClientError
+from ..truth import Truth
+from . import common
+from .record_csv import DEFAULT_WARMUP, META_COLUMNS, format_summary, summarize
 
 TOOL = "pd-record"
-#: Target steps skipped by :func:`summarize` by default (the estimate's start-up transient).
-DEFAULT_WARMUP = 40
-META_COLUMNS = ("session", "step", "t_ns", "seq", "newest_step", "made_ns", "recv_ns",
-                "latency_us")
 
 
 @dataclass(frozen=True, slots=True)
@@ -227,93 +223,6 @@ class Recorder:
         self.close()
 
 
-# --- summary ---------------------------------------------------------------------------------
-
-def read_csv(path: str | Path) -> tuple[list[str], dict[str, np.ndarray]]:
-    """(state names, columns as float arrays; empty cells are NaN) of a pd-record CSV."""
-    with open(path, newline="", encoding="utf-8") as f:
-        reader = csv.reader(f)
-        try:
-            header = next(reader)
-        except StopIteration:
-            raise InvalidMessage(f"{path}: empty file (no header)") from None
-        rows = list(reader)
-    if header[: len(META_COLUMNS)] != list(META_COLUMNS):
-        raise InvalidMessage(f"{path}: not a pd-record CSV (header starts {header[:3]})")
-    names = [c[2:] for c in header if c.startswith("x_")]
-    cols: dict[str, np.ndarray] = {}
-    for i, c in enumerate(header):
-        if c == "session":
-            continue
-        cols[c] = np.array([float(r[i]) if i < len(r) and r[i] != "" else math.nan
-                            for r in rows], dtype=np.float64)
-    return names, cols
-
-
-def summarize(csv_path: str | Path, warmup: int = DEFAULT_WARMUP) -> dict[str, Any]:
-    """Accuracy of a recorded session, over the rows with truth and target step >= warmup.
-
-    Returns a dict with ``rows`` (rows used), ``first_step``, ``last_step``, ``warmup``,
-    ``states`` (names), and per state name s: ``rms_<s>`` (root mean square of prediction -
-    truth), ``mean_var_<s>`` (mean predicted variance P[s, s]), ``max_abs_err_<s>``, and
-    ``within_3sigma`` (fraction of all state errors with |err| <= 3 sqrt(var)). When a step
-    was recorded twice the last row counts. Values are NaN when no row qualifies.
-    """
-    names, cols = read_csv(csv_path)
-    steps = cols["step"]
-    keep: dict[int, int] = {}
-    for i, s in enumerate(steps):
-        if not math.isnan(s):
-            keep[int(s)] = i
-    idx = np.array(sorted(i for s, i in keep.items() if s >= warmup), dtype=int)
-    if names and idx.size:
-        has_truth = ~np.isnan(cols[f"true_{names[0]}"][idx])
-        idx = idx[has_truth]
-    out: dict[str, Any] = {"rows": int(idx.size), "warmup": int(warmup), "states": names,
-                           "first_step": int(steps[idx].min()) if idx.size else None,
-                           "last_step": int(steps[idx].max()) if idx.size else None}
-    inside = total = 0
-    for name in names:
-        err = cols[f"err_{name}"][idx]
-        var = cols[f"var_{name}"][idx]
-        if idx.size:
-            out[f"rms_{name}"] = float(np.sqrt(np.mean(err**2)))
-            out[f"mean_var_{name}"] = float(np.mean(var))
-            out[f"max_abs_err_{name}"] = float(np.max(np.abs(err)))
-            inside += int(np.sum(np.abs(err) <= 3 * np.sqrt(np.maximum(var, 0.0))))
-            total += err.size
-        else:
-            out[f"rms_{name}"] = out[f"mean_var_{name}"] = out[f"max_abs_err_{name}"] = math.nan
-    out["within_3sigma"] = inside / total if total else math.nan
-    return out
-
-
-def format_summary(summaries: dict[str, dict[str, Any]], states: Sequence[str] | None = None) -> str:
-    """A side-by-side table: one column per session, RMS error and mean variance per state."""
-    sessions = list(summaries)
-    if not sessions:
-        return "(no sessions)"
-    if states is None:
-        states = summaries[sessions[0]].get("states", [])
-    width = max(14, *(len(s) + 2 for s in sessions))
-    lines = [f"{'':22}" + "".join(f"{s:>{width}}" for s in sessions)]
-
-    def row(label: str, key: str, fmt: str) -> None:
-        cells = []
-        for s in sessions:
-            v = summaries[s].get(key)
-            cells.append(f"{'-':>{width}}" if v is None or (isinstance(v, float) and math.isnan(v))
-                         else f"{v:>{width}{fmt}}")
-        lines.append(f"{label:22}" + "".join(cells))
-
-    for name in states:
-        row(f"RMS error {name}", f"rms_{name}", ".4f")
-    for name in states:
-        row(f"mean variance {name}", f"mean_var_{name}", ".4f")
-    row("rows (after warm-up)", "rows", "d")
-    return "\n".join(lines)
-
-
 # --- command line ----------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
@@ -332,26 +241,27 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"target steps left out of the summary (default {DEFAULT_WARMUP})")
     ap.add_argument("--states", help="states in the printed summary, e.g. p1,p2 (default all)")
     ap.add_argument("--no-plots", action="store_true", help="do not render PNGs")
-    _cli.add_tool_args(ap)
+    common.add_progress_arg(ap)
+    common.add_tool_args(ap)
     return ap
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return _cli.run_tool(build_parser, _main, argv)
+    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     sessions = args.session or ["paper"]
     try:
-        transport = _cli.open_transport(args)
+        transport = common.open_transport(args)
     except PdClientError as exc:
-        return _cli.fail(TOOL, exc)
+        return common.fail(TOOL, exc)
     try:
         try:
             recorder = Recorder(transport, sessions, args.out)
         except PdClientError as exc:
-            return _cli.fail(TOOL, exc, 2)
-        _cli.progress(TOOL, f"recording {', '.join(sessions)} to {args.out}")
+            return common.fail(TOOL, exc, 2)
+        common.progress(TOOL, f"recording {', '.join(sessions)} to {args.out}")
         _record(recorder, args, stop)
         recorder.close()
     finally:
@@ -372,11 +282,11 @@ def _record(recorder: Recorder, args: argparse.Namespace, stop: threading.Event)
             break
         if (args.idle_timeout is not None and recorder.last_receipt is not None
                 and now - recorder.last_receipt >= args.idle_timeout):
-            _cli.progress(TOOL, f"no data for {args.idle_timeout:g} s: stopping")
+            common.progress(TOOL, f"no data for {args.idle_timeout:g} s: stopping")
             break
         if args.progress and now - last_report >= args.progress:
             last_report = now
-            _cli.progress(TOOL, "rows " + ", ".join(
+            common.progress(TOOL, "rows " + ", ".join(
                 f"{s} {lg.rows} ({lg.matched} with truth)" for s, lg in recorder.logs.items()))
 
 
@@ -386,7 +296,7 @@ def finish(paths: dict[str, Path], out_dir: str | Path, warmup: int = DEFAULT_WA
     summaries: dict[str, dict[str, Any]] = {}
     for session, path in paths.items():
         if not path.exists():
-            _cli.progress(TOOL, f"session {session}: nothing recorded")
+            common.progress(TOOL, f"session {session}: nothing recorded")
             continue
         summaries[session] = summarize(path, warmup)
     out = Path(out_dir)

@@ -7,20 +7,21 @@ import time
 import numpy as np
 import pytest
 
-from pd_client import Display, Prediction, Truth, operate, record, sim, watch
-from pd_client import __main__ as entry
-from pd_client._cli import parse_session_arg
+from pd_client import Display, Prediction, Truth
+from pd_client.tools import __main__ as entry
+from pd_client.tools import pd_display, pd_operator, pd_record, pd_robot_sim
+from pd_client.tools.common import parse_session_arg
 from pd_service.wire import encode, keys
 
 
 @pytest.mark.parametrize("main, argv", [
-    (sim.main, ["--scenario", "submarine"]),
-    (sim.main, ["--session", "paper:lidar"]),
-    (sim.main, ["--time-scale", "0"]),
-    (sim.main, ["--steps", "-1"]),
-    (operate.main, ["--scenario", "nope"]),
-    (watch.main, ["--count", "0"]),
-    (record.main, ["--bogus"]),
+    (pd_robot_sim.main, ["--scenario", "submarine"]),
+    (pd_robot_sim.main, ["--session", "paper:lidar"]),
+    (pd_robot_sim.main, ["--time-scale", "0"]),
+    (pd_robot_sim.main, ["--steps", "-1"]),
+    (pd_operator.main, ["--scenario", "nope"]),
+    (pd_display.main, ["--count", "0"]),
+    (pd_record.main, ["--bogus"]),
 ])
 def test_bad_command_lines_exit_2(main, argv, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -32,7 +33,7 @@ def test_bad_command_lines_exit_2(main, argv, capsys):
 def test_module_entry_point_usage(capsys):
     assert entry.main([]) == 2
     assert entry.main(["fly"]) == 2
-    assert "usage: python -m pd_client" in capsys.readouterr().err
+    assert "usage: python -m pd_client.tools" in capsys.readouterr().err
 
 
 def test_session_argument():
@@ -44,7 +45,7 @@ def test_session_argument():
 def test_display_frame_shows_prediction_truth_and_counters(bus):
     pub = bus.transport()
     with Display(bus.transport(), "s1", truth=True) as d:
-        assert "waiting for predictions" in watch.render_frame(d)
+        assert "waiting for predictions" in pd_display.render_frame(d)
         for seq, step in enumerate((20, 21)):
             pub.put(keys.prediction_key("s1"), encode(Prediction(
                 session="s1", seq=seq, step=step, t_ns=0, x=np.array([1.0, 2.0, 3.0, 4.0]),
@@ -53,7 +54,7 @@ def test_display_frame_shows_prediction_truth_and_counters(bus):
         pub.put(keys.truth_key("s1"), encode(Truth(
             session="s1", step=20, t_ns=0, x=np.array([1.1, 2.0, 2.7, 4.0]),
             names=["p1", "v1", "p2", "v2"])))
-        frame = watch.render_frame(d)
+        frame = pd_display.render_frame(d)
     assert "predictions 2" in frame and "truth 1" in frame
     assert "x(step 21)" in frame and "newest sample used: step 9" in frame
     assert "checked against truth at step 20" in frame
@@ -73,5 +74,5 @@ def test_no_listener_gives_service_unavailable_and_exit_1(capsys):
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
     with pytest.raises(ServiceUnavailable, match="cannot open a Zenoh client session"):
         connect(endpoint)
-    assert sim.main(["--connect", endpoint]) == 1
+    assert pd_robot_sim.main(["--connect", endpoint]) == 1
     assert "pd-robot-sim: error: cannot open" in capsys.readouterr().err

@@ -1,5 +1,5 @@
 """Real processes over real Zenoh on loopback: the daemon (``python -m pd_service``), the
-simulated robot and the scripted operator (``python -m pd_client sim|operator``), and, in
+simulated robot and the scripted operator (``python -m pd_client.tools sim|operator``), and, in
 this process, a Display and a Recorder. Checks that predictions arrive and track the truth.
 
 The robot publishes straight on the service's keys (``--direct``: no link emulator; the
@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 from pd_client import Admin, Display, ServiceUnavailable, connect
-from pd_client.record import Recorder, summarize
+from pd_client.tools.pd_record import Recorder
+from pd_client.tools.record_csv import summarize
 
 pytestmark = pytest.mark.integration
 
@@ -97,13 +98,13 @@ def test_sim_daemon_display_over_zenoh(procs, tmp_path):
         display = Display(transport, "paper", truth=True, history=STEPS * 2)
         recorder = Recorder(transport, ["paper"], tmp_path / "rec")
         zenoh = ["--connect", endpoint]
-        operator = procs.start("operator", "-m", "pd_client", "operator", *zenoh,
+        operator = procs.start("operator", "-m", "pd_client.tools", "operator", *zenoh,
                                "--session", "paper", "--steps", str(STEPS))
-        sim = procs.start("sim", "-m", "pd_client", "sim", *zenoh, "--direct",
+        sim = procs.start("sim", "-m", "pd_client.tools", "sim", *zenoh, "--direct",
                           "--create-session", "--session", "paper", "--time-scale", "4",
                           "--steps", str(STEPS), "--progress", "0")
         display.wait(1, timeout=30)  # predictions arrive ...
-        viewer = procs.start("display", "-m", "pd_client", "display", *zenoh,
+        viewer = procs.start("display", "-m", "pd_client.tools", "display", *zenoh,
                              "--session", "paper", "--count", "5", "--plain")
         while sim.poll() is None:
             recorder.poll(timeout=0.2)

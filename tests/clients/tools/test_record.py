@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from pd_client import Prediction, Truth
-from pd_client.record import Recorder, finish, format_summary, read_csv, summarize
+from pd_client.tools.pd_record import Recorder, finish
+from pd_client.tools.record_csv import format_summary, read_csv, summarize
 from pd_service.wire import encode, keys
 
 NAMES = ["p1", "v1"]
@@ -104,7 +105,7 @@ def _record_some(bus, tmp_path, sessions=("s1",)):
 def test_finish_without_matplotlib_still_writes_csv_and_summary(bus, tmp_path, capsys,
                                                                 monkeypatch):
     rec = _record_some(bus, tmp_path)
-    monkeypatch.setitem(sys.modules, "pd_client.plots", None)  # import fails
+    monkeypatch.setitem(sys.modules, "pd_client.tools.plots", None)  # import fails
     assert finish(rec.paths, tmp_path, warmup=20) == 0
     out = capsys.readouterr().out
     assert "PNG plots skipped" in out and "RMS error p1" in out

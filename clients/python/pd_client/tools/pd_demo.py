@@ -4,7 +4,8 @@ Starts, each as its own process on a free loopback port:
 
 1. ``pd-service``     the daemon (peer mode, listening on 127.0.0.1:<port>)
 2. ``pd-link``        the link emulator with the paper's link (camera 10 steps, range
-                      finder 12, uplink 10, plus loss: ``deploy/link-paper.toml``)
+                      finder 12, uplink 10, plus loss: ``link-paper.toml``, shipped in
+                      ``pd_client/tools/data/``; ``deploy/link-paper.toml`` links to it)
 3. ``pd-record``      records predictions and truth for both sessions, renders PNGs
 4. ``pd-operator``    sends the paper's commands, stamped with their apply step
 5. ``pd-robot-sim``   the paper's vehicle chasing an object, publishing camera and range
@@ -18,6 +19,7 @@ every process cleanly.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
@@ -27,12 +29,18 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterator, Mapping
+from importlib import resources
 from pathlib import Path
 
+import numpy as np
+
+from pd_service.transport import Transport
 from pd_service.wire import keys
 
-from ._base import connect
-from .errors import ServiceUnavailable
+from .._base import connect
+from ..errors import ServiceUnavailable
+from .record_csv import read_csv
 
 TOOL = "pd-demo"
 SESSIONS = ("paper", "paper-cam")
@@ -80,7 +88,14 @@ class Proc:
         return self.popen.returncode
 
 
-def wait_for(what: str, check, timeout: float, procs: list[Proc]) -> None:
+@contextlib.contextmanager
+def packaged_link_config() -> Iterator[Path]:
+    """A file path of the paper's link rules shipped with the package (``data/link-paper.toml``)."""
+    with resources.as_file(resources.files("pd_client.tools").joinpath("data", "link-paper.toml")) as p:
+        yield p
+
+
+def wait_for(what: str, check: Callable[[], bool], timeout: float, procs: list[Proc]) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         for p in procs:
@@ -93,9 +108,9 @@ def wait_for(what: str, check, timeout: float, procs: list[Proc]) -> None:
     raise RuntimeError(f"timed out after {timeout:g} s waiting for {what}")
 
 
-def open_probe(endpoint: str, procs: list[Proc], timeout: float = 30.0):
+def open_probe(endpoint: str, procs: list[Proc], timeout: float = 30.0) -> Transport:
     """A client session to the daemon, retried until the daemon listens."""
-    box: list = []
+    box: list[Transport] = []
 
     def attempt() -> bool:
         try:
@@ -113,17 +128,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=420,
                     help="simulated steps, 50 ms each (default 420: about 30 s with start-up)")
     ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
-    ap.add_argument("--link-config", default="deploy/link-paper.toml",
-                    help="link emulator rules (default deploy/link-paper.toml)")
+    ap.add_argument("--link-config", type=Path,
+                    help="link emulator rules (default: the paper's link, shipped with pd-client)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--quiet", action="store_true", help="do not relay the processes' output")
     args = ap.parse_args(argv)
-
-    link_config = Path(args.link_config)
-    if not link_config.is_file():
-        print(f"{TOOL}: link config {link_config} not found (run from the repository root)",
-              file=sys.stderr)
+    if args.link_config is not None and not args.link_config.is_file():
+        print(f"{TOOL}: link config {args.link_config} not found", file=sys.stderr)
         return 2
+    with contextlib.ExitStack() as stack:
+        link_config = args.link_config or stack.enter_context(packaged_link_config())
+        return run(args, link_config)
+
+
+def run(args: argparse.Namespace, link_config: Path) -> int:
+    """Start the processes, wait for the simulation to end, stop them, print the report."""
     out = Path(args.out)
     if (out / "state").exists():
         shutil.rmtree(out / "state")  # a fresh daemon: no sessions restored from a past run
@@ -154,11 +173,11 @@ def main(argv: list[str] | None = None) -> int:
                      30.0, procs)
         finally:
             probe.close()
-        recorder = start("record", "-m", "pd_client", "record", *[f"--session={s}" for s in SESSIONS],
+        recorder = start("record", "-m", "pd_client.tools", "record", *[f"--session={s}" for s in SESSIONS],
                          "--out", str(out), "--idle-timeout", "3", "--states", "p1,p2", *zenoh_args)
-        start("operator", "-m", "pd_client", "operator", *[f"--session={s}" for s in SESSIONS],
+        start("operator", "-m", "pd_client.tools", "operator", *[f"--session={s}" for s in SESSIONS],
               "--steps", str(args.steps), *zenoh_args)
-        sim = start("sim", "-m", "pd_client", "sim", "--session", "paper",
+        sim = start("sim", "-m", "pd_client.tools", "sim", "--session", "paper",
                     "--session", "paper-cam:camera", "--create-session", "--close-on-exit",
                     "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
         sim.popen.wait()
@@ -188,10 +207,6 @@ def ranger_window(out: Path) -> dict[str, dict[str, float]]:
     """RMS error and mean variance over the target steps whose prediction can use the range
     finder: its sample (12 steps old at arrival, 22 before the target) was taken while
     |p2 - p1| <= 3 on the recorded truth."""
-    import numpy as np
-
-    from .record import read_csv
-
     result: dict[str, dict[str, float]] = {}
     shift = RANGER_DELAY + LEAD
     for session in SESSIONS:
@@ -205,7 +220,7 @@ def ranger_window(out: Path) -> dict[str, dict[str, float]]:
         keep = np.array([gap.get(int(t) - shift, np.inf) <= 3.0 for t in steps])
         if not keep.any():
             continue
-        row = {"rows": int(keep.sum()), "first": int(steps[keep].min()),
+        row: dict[str, float] = {"rows": int(keep.sum()), "first": int(steps[keep].min()),
                "last": int(steps[keep].max())}
         for name in ("p1", "p2"):
             row[f"rms_{name}"] = float(np.sqrt(np.nanmean(cols[f"err_{name}"][keep] ** 2)))
@@ -214,7 +229,7 @@ def ranger_window(out: Path) -> dict[str, dict[str, float]]:
     return result
 
 
-def print_table(title: str, data: dict[str, dict]) -> None:
+def print_table(title: str, data: Mapping[str, Mapping[str, float]]) -> None:
     cols = [("paper", "with range finder"), ("paper-cam", "camera only")]
     print(title)
     print(f"{'':28}" + "".join(f"{label:>20}" for _, label in cols))
