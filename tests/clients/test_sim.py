@@ -10,8 +10,8 @@ import pytest
 
 from pd_client import Measurement, Operator, Truth
 from pd_client.record import Recorder, summarize
-from pd_client.scenarios import ScenarioSim, get_scenario
 from pd_client.sim import RobotSim
+from pd_service.scenarios import ScenarioSim, get_scenario
 from pd_service.wire import Command, decode, encode, keys
 
 from .conftest import EPOCH_NS, Collector
