@@ -32,20 +32,18 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pd_service.estimation.nonlinear import (  # noqa: E402
+from pd_service.estimation.nonlinear import (
     UnscentedObserverPredictor,
     make_adapter,
     make_model,
 )
-from pd_service.estimation.nonlinear.scenario_omni import (  # noqa: E402
+from pd_service.scenarios.filter_runs import run_filter
+from pd_service.scenarios.omni import (
     JUMP_FACTOR,
     JUMP_S,
     P0,
     PERIOD_S,
     X0,
-    run_filter,
     simulate_omni,
     true_q_schedule,
 )

@@ -21,14 +21,11 @@ import argparse
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pd_service.estimation import AugmentedStateKF, LinearModel, ObserverPredictor, Sensor  # noqa: E402
-from pd_service.estimation.scenarios import paper_model, paper_prior, paper_sensors  # noqa: E402
+from pd_service.estimation import AugmentedStateKF, LinearModel, ObserverPredictor, Sensor
+from pd_service.scenarios.paper import paper_model, paper_prior, paper_sensors
 
 
 def random_system(rng, n, sensor_rows):

@@ -35,14 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from pd_service.estimation.imm.scenario import (  # noqa: E402
-    STATIONS,
-    TURN_NOISE,
-    monte_carlo,
-    paper_scenario,
-)
+from pd_service.scenarios.filter_runs import monte_carlo
+from pd_service.scenarios.tracking import STATIONS, TURN_NOISE, tracking_scenario
 
 METHODS = (  # key (scenario.METHODS), label, variant, node
     ("single", "single", "single", 0),
@@ -187,7 +181,7 @@ def replay_cost(scn, ticks: int = 600) -> dict:
     """Median ms per tick of ImmObserverPredictor (add the tick's packets, then predict):
     3 stations every step, delays uniform 0..5 steps, max_delay 10, lead 5."""
     from pd_service.estimation.imm.factory import make_imm
-    from pd_service.estimation.imm.scenario import simulate
+    from pd_service.scenarios.tracking import simulate
 
     x0, Z = simulate(scn, 1, 3)
     rng = np.random.default_rng(0)
@@ -222,7 +216,7 @@ def main() -> None:
     if args.runs < 1:
         ap.error("--runs must be >= 1")
 
-    scn = paper_scenario(args.turn_noise)
+    scn = tracking_scenario(args.turn_noise)
     print(f"running {args.runs} runs x {scn.steps} steps, 4 methods ...", file=sys.stderr)
     res = run(scn, args.runs, args.seed, extra_singles=True)
     print_table(res, args.runs, args.turn_noise)
@@ -237,7 +231,7 @@ def main() -> None:
         for tn in sorted(TURN_NOISE):
             if tn == args.turn_noise:
                 continue
-            r = run(paper_scenario(tn), args.sensitivity, args.seed, label=f"{tn}: ")
+            r = run(tracking_scenario(tn), args.sensitivity, args.seed, label=f"{tn}: ")
             sens[tn] = {k: round(v, 4) for k, v in r["pos"].items()}
             p = r["pos"]
             print(f"  {tn:<10} position single {p['single']:.4f}"

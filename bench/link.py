@@ -38,11 +38,10 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from pd_service.link.config import parse_config
+from pd_service.wire import keys
 
-from pd_service.link.config import parse_config  # noqa: E402
-from pd_service.wire import keys  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 INSTANCE = "bench"
 IN_KEY = keys.robot_sensor_key("bench", "s")

@@ -40,7 +40,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 PERIOD_NS = 50_000_000
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -79,24 +78,16 @@ def session_name(i: int) -> str:
 
 
 def _paper_spec(session: str, epoch_ns: int):
-    from pd_service.estimation.scenarios import paper_model, paper_prior, paper_sensors
-    from pd_service.wire import LinearModelSpec, SensorSpec, SessionSpec
+    from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario
 
-    m = paper_model()
-    x0, P0 = paper_prior()
-    delays = {"camera": (10, 2), "ranger": (12, 1)}
-    sensors = [SensorSpec(name=s.name, H=s.H, R=s.R, delay=delays[s.name][0],
-                          interval=delays[s.name][1]) for s in paper_sensors()]
-    return SessionSpec(session=session, period_ns=PERIOD_NS, epoch_ns=epoch_ns,
-                       model=LinearModelSpec(A=m.A, B=m.B, Q=m.Q), x0=x0, P0=P0,
-                       sensors=sensors, lead=10, max_delay=12)
+    return paper_scenario().spec(session, epoch_ns, max_delay=RANGER_DELAY)
 
 
 def run_loadgen(args: argparse.Namespace) -> None:
     import msgpack
     import numpy as np
 
-    from pd_service.estimation.scenarios import simulate_paper
+    from pd_service.scenarios.paper import simulate_paper
     from pd_service.transport import ZenohTransport, zenoh_config
     from pd_service.wire import encode, keys
 

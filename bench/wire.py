@@ -13,12 +13,11 @@ from collections.abc import Callable
 
 import numpy as np
 
+from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario
 from pd_service.wire import (
     Command,
-    LinearModelSpec,
     Measurement,
     Prediction,
-    SensorSpec,
     SessionSpec,
     decode,
     encode,
@@ -46,23 +45,9 @@ def median_us(fn: Callable[[], object]) -> float:
     return statistics.median(means)
 
 
-def paper_spec() -> SessionSpec:
-    T = 0.05
-    A = np.eye(4)
-    A[0, 2] = A[1, 3] = T
-    return SessionSpec(
-        session="s1", period_ns=50_000_000, epoch_ns=0,
-        model=LinearModelSpec(A=A, B=np.array([[0.0], [0.0], [T], [0.0]]), Q=1e-3 * np.eye(4)),
-        x0=np.zeros(4), P0=np.eye(4),
-        sensors=[SensorSpec(name="camera", H=np.eye(2, 4), R=0.25 * np.eye(2), delay=10, interval=2),
-                 SensorSpec(name="ranger", H=np.array([[-1.0, 1.0, 0, 0]]), R=np.array([[0.01]]),
-                            delay=12, interval=1)],
-        lead=10, max_delay=12)
-
-
 def main() -> None:
     rng = np.random.default_rng(0)
-    spec = paper_spec()
+    spec = paper_scenario().spec("s1", 0, max_delay=RANGER_DELAY)
     meas = Measurement(session="s1", sensor="camera", seq=12345, step=100_000,
                        z=rng.normal(size=2))
     meas_r = Measurement(session="s1", sensor="camera", seq=12345, step=100_000,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from pd_client.scenarios import get_scenario
+from pd_service.scenarios import get_scenario
 from pd_service.transport import InMemoryBus
 from pd_service.wire import SessionSpec
 

@@ -7,7 +7,7 @@ import pytest
 
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.estimation.inputs import InputBuffer
-from pd_service.estimation.scenarios import paper_model, paper_prior, paper_sensors
+from pd_service.scenarios.paper import paper_model, paper_prior, paper_sensors
 
 
 def make(lead: int = 10, max_delay: int = 12, hold: str = "hold") -> ObserverPredictor:

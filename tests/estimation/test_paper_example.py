@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pd_service.estimation import ConventionalPredictor, ObserverPredictor
-from pd_service.estimation.scenarios import (
+from pd_service.scenarios.paper import (
     CAMERA_DELAY,
     RANGER_DELAY,
     UPLINK_DELAY,

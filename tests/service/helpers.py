@@ -11,23 +11,12 @@ from dataclasses import dataclass, field
 import msgpack
 import numpy as np
 
-from pd_service.estimation.scenarios import (
-    CAMERA_DELAY,
-    CAMERA_INTERVAL,
-    RANGER_DELAY,
-    RANGER_INTERVAL,
-    UPLINK_DELAY,
-    paper_model,
-    paper_prior,
-    paper_sensors,
-)
+from pd_service.scenarios.paper import RANGER_DELAY, UPLINK_DELAY, paper_scenario
 from pd_service.wire import (
     Command,
     ErrorReport,
-    LinearModelSpec,
     Measurement,
     Prediction,
-    SensorSpec,
     SessionSpec,
     SessionStatus,
     decode,
@@ -41,17 +30,13 @@ PERIOD_NS = 50_000_000
 def paper_spec(session: str, epoch_ns: int = 0, period_ns: int = PERIOD_NS, max_delay: int = 12,
                lead: int = UPLINK_DELAY, noise: str = "journal", publish_every: int = 1
                ) -> SessionSpec:
-    """The paper's example as a SessionSpec (camera + ranger, x0 = 0, broad P0)."""
-    m = paper_model()
-    x0, P0 = paper_prior()
-    delays = {"camera": CAMERA_DELAY, "ranger": RANGER_DELAY}
-    intervals = {"camera": CAMERA_INTERVAL, "ranger": RANGER_INTERVAL}
-    sensors = [SensorSpec(name=s.name, H=s.H, R=s.R, delay=min(delays[s.name], max_delay),
-                          interval=intervals[s.name]) for s in paper_sensors(noise)]
-    return SessionSpec(session=session, period_ns=period_ns, epoch_ns=epoch_ns,
-                       model=LinearModelSpec(A=m.A, B=m.B, Q=m.Q), x0=x0, P0=P0,
-                       sensors=sensors, lead=lead, max_delay=max_delay,
-                       publish_every=publish_every)
+    """The paper scenario's SessionSpec (camera + ranger, x0 = 0, broad P0) on a clock of
+    ``period_ns`` (the tests run it faster or slower than the model's 50 ms)."""
+    if max_delay < RANGER_DELAY:
+        raise ValueError(f"max_delay: the ranger's delay is {RANGER_DELAY} steps")
+    spec = paper_scenario(noise).spec(session, epoch_ns, lead=lead, max_delay=max_delay,
+                                      publish_every=publish_every)
+    return spec.model_copy(update={"period_ns": period_ns})
 
 
 def meas_bytes(session: str, sensor: str, step: int, z, seq: int = 0) -> bytes:

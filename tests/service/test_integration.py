@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from pd_service.estimation import ObserverPredictor
-from pd_service.estimation.scenarios import (
+from pd_service.scenarios.paper import (
     paper_command,
     paper_model,
     paper_prior,

@@ -97,7 +97,7 @@ def linear_spec() -> SessionSpec:
 
 def linear_offline():
     from pd_service.estimation import ObserverPredictor
-    from pd_service.estimation.scenarios import paper_model, paper_prior, paper_sensors
+    from pd_service.scenarios.paper import paper_model, paper_prior, paper_sensors
 
     x0, P0 = paper_prior()
     return ObserverPredictor(paper_model(), paper_sensors(), x0=x0, P0=P0, lead=LEAD,
@@ -210,7 +210,7 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path):
     core = make_core(bus, clock, tmp_path / "a")
     steps = 60
     rng = np.random.default_rng(11)
-    from pd_service.estimation.scenarios import paper_command, simulate_paper
+    from pd_service.scenarios.paper import paper_command, simulate_paper
 
     run = simulate_paper(steps, np.random.default_rng(4), loss=0.1)
     lin_arrivals: dict[int, list] = {}

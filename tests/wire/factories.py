@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import strategies as st
 
+from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario
 from pd_service.wire import (
     Command,
     ErrorReport,
@@ -30,23 +31,8 @@ PERIOD_NS = 50_000_000  # the paper's 0.05 s step
 
 
 def paper_spec(session: str = "s1", epoch_ns: int = 1_700_000_000_000_000_000) -> SessionSpec:
-    """The paper's vehicle-chasing example: x = (p1, p2, v1, v2), camera + range finder."""
-    T = 0.05
-    A = np.eye(4)
-    A[0, 2] = A[1, 3] = T
-    B = np.array([[0.0], [0.0], [T], [0.0]])
-    Q = np.diag([1e-4, 1e-4, 1e-3, 1e-3])
-    return SessionSpec(
-        session=session, period_ns=PERIOD_NS, epoch_ns=epoch_ns,
-        model=LinearModelSpec(A=A, B=B, Q=Q),
-        x0=np.zeros(4), P0=np.eye(4),
-        sensors=[
-            SensorSpec(name="camera", H=np.eye(2, 4), R=0.25 * np.eye(2), delay=10, interval=2),
-            SensorSpec(name="ranger", H=np.array([[-1.0, 1.0, 0.0, 0.0]]), R=np.array([[0.01]]),
-                       delay=12, interval=1),
-        ],
-        lead=10, max_delay=12,
-    )
+    """The paper's vehicle-chasing example (camera + range finder), max_delay 12."""
+    return paper_scenario().spec(session, epoch_ns, max_delay=RANGER_DELAY)
 
 
 OMNI_Q0 = [1e-14, 1e-14, 1e-14, 4e-6, 4e-6, 2.5e-5]

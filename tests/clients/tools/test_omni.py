@@ -1,5 +1,4 @@
-"""Issue 9's omnidirectional robot in the simulated robot: its spec selects the adaptive UKF,
-its truth is the estimation package's simulator, and a whole in-memory chain (sim -> link ->
+"""Issue 9's omnidirectional robot in the simulated robot: a whole in-memory chain (sim -> link ->
 MiniDaemon, with the scripted operator's torques) tracks it through the Q x100 jump."""
 
 from __future__ import annotations
@@ -13,69 +12,15 @@ import numpy as np
 import pytest
 
 from pd_client import Admin, Operator, Prediction, Truth
-from pd_client.scenarios import (
-    OMNI_LEAD,
-    OMNI_MAX_DELAY,
-    OMNI_POSE_DELAY,
-    SCENARIOS,
-    ScenarioSim,
-    get_scenario,
-    omni_q_true,
-)
 from pd_client.tools import pd_operator, pd_robot_sim
-from pd_service.backends import build_estimator
-from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
-from pd_service.estimation.nonlinear.adaptive import MITAdapter
+from pd_service.estimation.nonlinear import wrap_angle
 from pd_service.estimation.nonlinear.models_omni import OMNI_Q0
-from pd_service.estimation.nonlinear.scenario_omni import omni_torque, q_true, simulate_omni
-from pd_service.wire import Command, SessionSpec, decode, encode, keys
-from pd_service.wire.convert import command_dim
+from pd_service.scenarios import ScenarioSim, get_scenario
+from pd_service.scenarios.omni import omni_torque
+from pd_service.wire import Command, decode, encode, keys
 
 from ..conftest import EPOCH_NS, Collector
 from ..mini_daemon import MiniDaemon
-
-
-def test_omni_spec_selects_the_adaptive_ukf():
-    sc = get_scenario("omni")
-    assert "omni" in SCENARIOS and (sc.n, sc.nu) == (6, 3)
-    spec = sc.spec("omni", EPOCH_NS, time_scale=2.0)
-    assert decode(encode(spec), SessionSpec) == spec
-    assert spec.period_ns == 5_000_000  # 10 ms of model time, run twice as fast
-    m = spec.model
-    assert (m.kind, m.model) == ("unscented", "omni3")
-    assert m.adapt is not None and (m.adapt.method, m.adapt.indices) == ("mit", [3, 4, 5])
-    np.testing.assert_array_equal(m.params["Q"], OMNI_Q0)  # the filter starts from Q0
-    [pose] = spec.sensors
-    assert (pose.kind, pose.name, pose.interval, pose.delay) == ("model", "pose", 1,
-                                                                OMNI_POSE_DELAY)
-    np.testing.assert_allclose(pose.R, 1e-8 * np.eye(3), rtol=1e-12)
-    assert (spec.lead, spec.max_delay) == (OMNI_LEAD, OMNI_MAX_DELAY)
-    assert command_dim(spec) == 3 and spec.n == 6
-
-    est = build_estimator(decode(encode(spec), SessionSpec))
-    assert isinstance(est, UnscentedObserverPredictor)
-    assert isinstance(est.adapter, MITAdapter) and list(est.adapter.indices) == [3, 4, 5]
-    np.testing.assert_array_equal(np.diag(est.Q), OMNI_Q0)
-
-
-def test_omni_sim_equals_the_estimation_simulator():
-    """Same seed, same torques (from step 0): the same truth and pose samples, bit for bit,
-    as scenario_omni.simulate_omni, across the Q jump at 10 s."""
-    seed, duration = 21, 11.0
-    ref = simulate_omni(np.random.default_rng(seed), duration_s=duration)
-    sc = get_scenario("omni")
-    s = ScenarioSim(sc, seed=seed)
-    truth, z = [s.x.copy()], []
-    for k in range(ref.steps + 1):
-        z += [zk for name, zk in s.sample() if name == "pose"]
-        if k < ref.steps:
-            truth.append(s.advance(sc.command(k)).copy())
-    np.testing.assert_array_equal(np.array(truth), ref.truth)
-    np.testing.assert_array_equal(np.array(z), ref.z)
-    np.testing.assert_array_equal(sc.command(123), omni_torque(123))
-    for k in (0, 999, 1000, 1500):
-        np.testing.assert_array_equal(omni_q_true(k), q_true(k))
-    assert omni_q_true(1000)[3] == 100 * omni_q_true(999)[3]
 
 
 class _Link:
@@ -208,15 +153,6 @@ def test_operator_tool_sends_the_torque_profile(bus):
     assert got and got[-1].step == steps
     for c in got:
         np.testing.assert_array_equal(c.u, omni_torque(c.step))
-
-
-def test_truth_wraps_theta_only():
-    sc = get_scenario("omni")
-    x = np.array([1.0, -2.0, 4.0, 0.5, -0.5, 7.0])
-    np.testing.assert_allclose(sc.truth_view(x), [1.0, -2.0, 4.0 - 2 * np.pi, 0.5, -0.5, 7.0])
-    assert x[2] == 4.0  # the simulated state itself is not wrapped
-    x4 = x[:4]
-    assert get_scenario("maneuver").truth_view(x4) is x4  # no angles: as simulated
 
 
 @pytest.mark.parametrize("parser", [pd_robot_sim.build_parser, pd_operator.build_parser])

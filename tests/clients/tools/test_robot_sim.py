@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from pd_client import Measurement, Operator, Truth
-from pd_client.scenarios import ScenarioSim, get_scenario
 from pd_client.tools.pd_record import Recorder
 from pd_client.tools.pd_robot_sim import RobotSim
 from pd_client.tools.record_csv import summarize
+from pd_service.scenarios import ScenarioSim, get_scenario
 from pd_service.wire import Command, decode, encode, keys
 
 from ..conftest import EPOCH_NS, Collector

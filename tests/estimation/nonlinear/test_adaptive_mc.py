@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, make_adapter, make_model
-from pd_service.estimation.nonlinear.scenario_omni import (
+from pd_service.scenarios.filter_runs import run_filter
+from pd_service.scenarios.omni import (
     P0,
     X0,
-    run_filter,
     simulate_omni,
     true_q_schedule,
 )

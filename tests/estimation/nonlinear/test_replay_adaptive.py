@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, make_adapter
-from pd_service.estimation.nonlinear.scenario_omni import omni_torque
+from pd_service.scenarios.omni import omni_torque
 
 from .reference import from_scratch, omni_with_beacon
 

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from pd_service.estimation.nonlinear import SigmaWeights, make_model
-from pd_service.estimation.nonlinear.scenario_omni import omni_torque
 from pd_service.estimation.nonlinear.unscented import (
     ModelOps,
     UKFState,
@@ -13,6 +12,7 @@ from pd_service.estimation.nonlinear.unscented import (
     time_step,
 )
 from pd_service.estimation.replay import Packet
+from pd_service.scenarios.omni import omni_torque
 
 from .reference import omni_with_beacon
 

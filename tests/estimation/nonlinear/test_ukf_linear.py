@@ -6,7 +6,7 @@ import pytest
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.estimation.nonlinear import SigmaWeights, UnscentedObserverPredictor
 from pd_service.estimation.nonlinear.models_linear import linear_as_nonlinear
-from pd_service.estimation.scenarios import (
+from pd_service.scenarios.paper import (
     paper_command,
     paper_model,
     paper_prior,

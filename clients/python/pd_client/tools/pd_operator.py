@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Sequence
 
+from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
 from pd_service.transport import Sample, Transport
 from pd_service.wire import SessionSpec, WireError, keys
 from pd_service.wire.convert import command_dim
@@ -28,7 +29,6 @@ from .._base import try_decode
 from ..admin import Admin
 from ..errors import PdClientError
 from ..operator import Operator
-from ..scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
 from . import common
 
 TOOL = "pd-operator"

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
 from pd_service.transport import Transport
 from pd_service.wire import Command, SessionSpec, WireError
 from pd_service.wire.convert import command_dim
@@ -42,7 +43,6 @@ from pd_service.wire.convert import command_dim
 from ..admin import Admin
 from ..errors import PdClientError
 from ..robot import CommandSchedule, Robot
-from ..scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
 from . import common
 
 TOOL = "pd-robot-sim"
@@ -137,9 +137,9 @@ class RobotSim:
         samples = self.sim.sample()
         for s in self.sessions:
             s.robot.publish_truth(k, truth, names=names, angles=self.scenario.angles)
-            for name, z in samples:
-                if name in s.sensors:
-                    s.robot.publish(name, z, step=k)
+            for d in samples:
+                if d.sensor in s.sensors:
+                    s.robot.publish(d.sensor, d.z, step=k)
                     self.samples_published += 1
         return x
 
