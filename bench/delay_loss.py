@@ -1,4 +1,4 @@
-"""Linear coding vs exact timestamped replay under random delay and packet loss (issue 11).
+"""Linear coding vs exact timestamped replay under random delay and packet loss.
 
 Two profiles, each 200 seeded runs x 300 steps (change with --runs / --steps):
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """IMM of unscented information filters: the UIF-IMM paper's table, honestly reproduced.
 
-Scenario (issue 10): speed 0.3 m/s, T = 0.1 s, straight / +4.5 deg/s / straight / -3 deg/s /
+Scenario: speed 0.3 m/s, T = 0.1 s, straight / +4.5 deg/s / straight / -3 deg/s /
 straight; three range-bearing stations (0.3 m, 3.5 deg); CV + CT modes, p_stay 0.995.
 Monte-Carlo runs share their random numbers across methods (same initial estimate, same
 measurement noise), and the runs are vectorised (one numpy batch per method).
@@ -221,7 +221,7 @@ def main() -> None:
     res = run(scn, args.runs, args.seed, extra_singles=True)
     print_table(res, args.runs, args.turn_noise)
     b = bars(res)
-    print("bars (issue 10):")
+    print("bars:")
     for name, (val, want, ok) in b.items():
         print(f"  {name:<24} {val:8.4f}   want {want:<12} {'PASS' if ok else 'FAIL'}")
 

@@ -18,7 +18,7 @@ Two figures per rate:
 The relay quantiles cover the last 20,000 copies of each run (pd-link's stats reservoir).
 A baseline line per rate gives the same sender and receiver through one Zenoh loopback hop
 without pd-link: the floor the machine itself puts under the end-to-end column.
-Bar (issue 6): relay p99 <= 1 ms at 10,000 messages/s.  BENCH_DEBUG=1 prints the worst
+Bar: relay p99 <= 1 ms at 10,000 messages/s.  BENCH_DEBUG=1 prints the worst
 messages of each run (a run of consecutive ones = a stall of the machine or of a process).
 """
 

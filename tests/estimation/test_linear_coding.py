@@ -1,4 +1,4 @@
-"""Linear-coding estimators (issue 11) against brute-force conditioning and Monte Carlo.
+"""Linear-coding estimators against brute-force conditioning and Monte Carlo.
 
 The brute force writes every quantity as a linear map of the primitive Gaussian vector
 u = [x(0); w̄(0); v(0); w̄(1); v(1); ...] and conditions directly (Moore-Penrose inverse of the

@@ -2,8 +2,8 @@
 
 One ServiceCore on the in-memory bus with an injected clock serves three sessions at once:
 the paper's linear example ("lin", batched by the stacked engine), an unscented session on
-the registered omni-robot model with MIT-rule adaptation ("u1", issue 9) and an IMM session
-tracking a turning target from three range-bearing stations ("i1", issue 10). Every
+the registered omni-robot model with MIT-rule adaptation ("u1") and an IMM session
+tracking a turning target from three range-bearing stations ("i1"). Every
 published prediction must equal the offline estimator built by the backend's own factory
 and fed the same accepted packets; bad nonlinear specs are refused with a readable reason
 and leave the others untouched.

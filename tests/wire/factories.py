@@ -40,7 +40,7 @@ OMNI_Q0 = [1e-14, 1e-14, 1e-14, 4e-6, 4e-6, 2.5e-5]
 
 def omni_spec(session: str = "u1", epoch_ns: int = 0, adapt: bool = True,
               sigma: bool = False) -> SessionSpec:
-    """The three-wheel omnidirectional robot (registered model "omni3", issue 9) with the
+    """The three-wheel omnidirectional robot (registered model "omni3") with the
     MIT-rule adaptation of its acceleration channels; pose sensor (x, y, theta)."""
     return SessionSpec(
         session=session, period_ns=10_000_000, epoch_ns=epoch_ns,

@@ -1,5 +1,5 @@
 # ruff: noqa: E501  (the rule table reads best one rule per line)
-"""The nonlinear model kinds on the wire: "unscented" (issue 9) and "imm" (issue 10).
+"""The nonlinear model kinds on the wire: "unscented" and "imm".
 
 Round trips, one test per validation rule (through the wire, checking the reason a person
 reads), linear specs unchanged byte for byte, and the conversion to the backends' plain

@@ -1,4 +1,4 @@
-"""IMM of unscented information filters with multi-sensor likelihood fusion (issue 10).
+"""IMM of unscented information filters with multi-sensor likelihood fusion.
 
 Importing this package registers the mode models ``imm_cv`` and ``imm_ct`` in the nonlinear
 model registry. See docs/imm.md.

@@ -1,4 +1,4 @@
-"""Issue 9's omnidirectional robot in the simulated robot: a whole in-memory chain (sim -> link ->
+"""The omnidirectional robot in the simulated robot: a whole in-memory chain (sim -> link ->
 MiniDaemon, with the scripted operator's torques) tracks it through the Q x100 jump."""
 
 from __future__ import annotations
