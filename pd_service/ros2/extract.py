@@ -23,8 +23,8 @@ robot_localization-style consumers treat it as unknown rather than as certain.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -56,7 +56,6 @@ from rosbags.typesys.stores.ros2_jazzy import (
     geometry_msgs__msg__Vector3 as Vector3,
 )
 
-from pd_service.ros2.bindings import FieldName, TopicBinding
 from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.ros2.messages import (
     Imu,
@@ -74,6 +73,7 @@ from pd_service.ros2.messages import (
     header,
     stamp_ns,
 )
+from pd_service.wire.ros2 import FieldName, StateLayout, TopicBinding
 
 FloatArray = NDArray[np.float64]
 
@@ -153,7 +153,7 @@ def _check_psd(R: FloatArray, what: str) -> FloatArray:
     return R
 
 
-def _finite(values: list[float], fields: tuple[FieldName, ...], what: str) -> FloatArray:
+def _finite(values: list[float], fields: Sequence[FieldName], what: str) -> FloatArray:
     z = np.asarray(values, dtype=np.float64)
     bad = [f for f, v in zip(fields, z, strict=True) if not math.isfinite(v)]
     if bad:
@@ -166,7 +166,7 @@ def _finite(values: list[float], fields: tuple[FieldName, ...], what: str) -> Fl
 # ---------------------------------------------------------------------------------------------
 
 
-def _pose_values(pose: Pose, fields: tuple[FieldName, ...]) -> list[float]:
+def _pose_values(pose: Pose, fields: Sequence[FieldName]) -> list[float]:
     out: list[float] = []
     for f in fields:
         if f == "x":
@@ -178,7 +178,7 @@ def _pose_values(pose: Pose, fields: tuple[FieldName, ...]) -> list[float]:
     return out
 
 
-def _twist_values(twist: TwistMsg, fields: tuple[FieldName, ...]) -> list[float]:
+def _twist_values(twist: TwistMsg, fields: Sequence[FieldName]) -> list[float]:
     values = {"vx": twist.linear.x, "vy": twist.linear.y, "yaw_rate": twist.angular.z}
     return [float(values[f]) for f in fields]
 
@@ -188,7 +188,7 @@ def _sub(cov: FloatArray, size: int, idx: list[int]) -> FloatArray:
     return full[np.ix_(idx, idx)]
 
 
-def extract_measurement(msg: RosMessage, fields: tuple[FieldName, ...]) -> Sample:
+def extract_measurement(msg: RosMessage, fields: Sequence[FieldName]) -> Sample:
     """The measurement ``fields`` of a decoded sensor message (see the module docstring for R).
     Raises Ros2DecodeError for a zero stamp, a non-finite value, a zero quaternion, a bad
     covariance or a field the message type does not carry."""
@@ -248,7 +248,7 @@ def extract_measurement(msg: RosMessage, fields: tuple[FieldName, ...]) -> Sampl
     raise Ros2DecodeError(f"{what} is not a measurement message type")
 
 
-def _only(fields: tuple[FieldName, ...], allowed: tuple[str, ...], what: str) -> None:
+def _only(fields: Sequence[FieldName], allowed: tuple[str, ...], what: str) -> None:
     bad = [f for f in fields if f not in allowed]
     if bad:
         raise Ros2DecodeError(f"{what}: no field(s) {bad}")
@@ -281,29 +281,6 @@ def extract_command(msg: RosMessage) -> Command:
 # ---------------------------------------------------------------------------------------------
 # outputs
 # ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class StateLayout:
-    """Where the planar quantities sit in the state vector (None: not in the state).
-
-    ``velocity_frame``: ``"body"`` when (vx, vy) are along / across the heading (unicycle v is
-    ``vx``), ``"world"`` when they are in the session frame (a constant-velocity model); world
-    velocities are rotated into the body frame for Odometry's twist (which is expressed in
-    ``child_frame_id``), with the yaw uncertainty propagated to first order.
-    """
-
-    x: int | None = None
-    y: int | None = None
-    yaw: int | None = None
-    vx: int | None = None
-    vy: int | None = None
-    yaw_rate: int | None = None
-    velocity_frame: Literal["body", "world"] = "body"
-
-    def indices(self) -> dict[str, int]:
-        names = ("x", "y", "yaw", "vx", "vy", "yaw_rate")
-        return {n: i for n in names if (i := getattr(self, n)) is not None}
 
 
 def _moments(

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from pd_service.ros2.errors import Ros2DecodeError
+from pd_service.wire.ros2 import check_topic_name
 
 #: Prefix of every rmw_zenoh liveliness token (a Zenoh hermetic namespace).
 ADMIN_SPACE = "@ros2_lv"
@@ -45,18 +46,6 @@ _NAMESPACE = re.compile(rf"^/({_TOKEN}(/{_TOKEN})*)?$")
 _ROS_TYPE = re.compile(rf"^({_TOKEN})/(msg|srv)/({_TOKEN})$")
 _TYPE_HASH = re.compile(r"^RIHS01_[0-9a-f]{64}$")
 _ZID = re.compile(r"^[0-9a-f]{1,32}$")
-
-
-def check_topic_name(name: str) -> str:
-    """Return ``name`` if it is a ROS 2 topic name pd-service accepts (absolute ``/a/b`` or
-    relative ``a/b``; no ``~``, no substitutions, no ``//``, no trailing ``/``), else raise
-    ValueError naming the problem."""
-    if not _NAME.match(name):
-        raise ValueError(
-            f"{name!r} is not a ROS 2 topic name (tokens of letters, digits and '_', not starting "
-            "with a digit, separated by single '/')"
-        )
-    return name
 
 
 def check_namespace(namespace: str) -> str:

@@ -49,18 +49,8 @@ from rosbags.typesys.stores.ros2_jazzy import (
 )
 
 from pd_service.ros2.errors import Ros2DecodeError
+from pd_service.wire.ros2 import CommandType, MeasurementType
 
-#: Sensor message types a measurement binding may name.
-MeasurementType = Literal[
-    "nav_msgs/msg/Odometry",
-    "geometry_msgs/msg/PoseWithCovarianceStamped",
-    "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/PointStamped",
-    "sensor_msgs/msg/Range",
-    "sensor_msgs/msg/Imu",
-]
-#: Command message types (the operator's ``cmd_vel``).
-CommandType = Literal["geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped"]
 #: Output message types pd-service publishes.
 OutputType = Literal[
     "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseWithCovarianceStamped", "tf2_msgs/msg/TFMessage"

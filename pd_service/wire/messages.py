@@ -26,9 +26,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import (
-    BaseModel,
     BeforeValidator,
-    ConfigDict,
     Discriminator,
     Field,
     PlainValidator,
@@ -43,7 +41,9 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from .arrays import MAX_DIM, Matrix, Vector, psd_problem
+from .base import WireModel
 from .keys import NAME_PATTERN
+from .ros2 import Ros2Binding
 
 SCHEMA_VERSION = 1
 INT64_MIN = -(2**63)
@@ -78,43 +78,6 @@ NonNegFloat = Annotated[float, Field(ge=0.0)]
 
 def _invalid(message: str) -> PydanticCustomError:
     return PydanticCustomError("wire_invalid", message)
-
-
-def _comparable(value: Any) -> Any:
-    """A hashable stand-in for a field value (arrays by shape and values)."""
-    if isinstance(value, np.ndarray):
-        return ("ndarray", value.shape, tuple(value.ravel().tolist()))
-    if isinstance(value, WireModel):
-        return value._identity()
-    if isinstance(value, list | tuple):
-        return tuple(_comparable(v) for v in value)
-    if isinstance(value, dict):
-        return tuple(sorted((k, _comparable(v)) for k, v in value.items()))
-    return value
-
-
-class WireModel(BaseModel):
-    """Base of every wire model: strict, frozen, no unknown fields, no NaN/inf floats.
-
-    Equality and hashing compare array fields by shape and values (pydantic's default
-    would compare numpy arrays element-wise and fail).
-    """
-
-    model_config = ConfigDict(strict=True, extra="forbid", frozen=True, allow_inf_nan=False)
-
-    def _identity(self) -> tuple[Any, ...]:
-        return (type(self).__name__,) + tuple(
-            _comparable(getattr(self, name)) for name in type(self).model_fields
-        )
-
-    def __eq__(self, other: object) -> bool:
-        if type(other) is not type(self):
-            return NotImplemented
-        assert isinstance(other, WireModel)  # same type as self
-        return self._identity() == other._identity()
-
-    def __hash__(self) -> int:
-        return hash(self._identity())
 
 
 def _version_is_int(value: Any) -> Any:
@@ -509,6 +472,8 @@ class SessionSpec(Message):
     publish_every: PosInt = Field(1, description="Publish a Prediction every this many steps.")
     command_hold: Literal["hold", "zero"] = Field(
         "hold", description="A step without a command: hold the last u, or use u = 0.")
+    ros2: Ros2Binding | None = Field(
+        None, description="ROS 2 topics of the session (served by the pd-ros2 bridge).")
 
     # name -> SensorSpec, rebuilt whenever `sensors` is not the list it was built from
     # (model_copy(update=...) copies private attributes but not their meaning).
@@ -592,7 +557,30 @@ class SessionSpec(Message):
                                f"{len(self.sensors)} sensors")
             if not n + model.kappa > 0:
                 raise _invalid(f"model: n + kappa must be > 0 (n={n}, kappa={model.kappa})")
+        if self.ros2 is not None:
+            self._check_ros2(self.ros2, n)
         return self
+
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        out = handler(self)
+        if self.ros2 is None:  # a session without ROS 2 topics: the bytes stay as before
+            out.pop("ros2", None)
+        return out
+
+    def _check_ros2(self, ros2: Ros2Binding, n: int) -> None:
+        for name, binding in ros2.sensors.items():
+            sensor = self.sensor(name)
+            if sensor is None:
+                raise _invalid(f"ros2.sensors[{name!r}]: no sensor of that name in sensors")
+            m = sensor.H.shape[0] if sensor.H is not None else None
+            if m is not None and m != len(binding.fields):
+                raise _invalid(f"ros2.sensors[{name!r}].fields has {len(binding.fields)} "
+                               f"values but sensor {name!r} measures m={m}")
+        if ros2.outputs is not None:
+            for quantity, i in ros2.outputs.layout.indices().items():
+                if i >= n:
+                    raise _invalid(f"ros2.outputs.layout.{quantity}={i} must be < n={n}")
 
 
 # --- streams into the daemon ------------------------------------------------------------

@@ -8,11 +8,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from pd_service.ros2.bindings import CommandBinding, TopicBinding
 from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.ros2.extract import (
     UNOBSERVED_VARIANCE,
-    StateLayout,
     decode_measurement,
     extract_command,
     extract_measurement,
@@ -23,6 +21,7 @@ from pd_service.ros2.extract import (
     yaw_of,
 )
 from pd_service.ros2.messages import decode, encode, time_msg
+from pd_service.wire.ros2 import CommandBinding, StateLayout, TopicBinding
 from tests.ros2.test_messages import STAMP, samples
 
 X = np.array([1.0, -2.0, 0.3, 0.5, 0.1])
@@ -43,7 +42,7 @@ def test_odometry_round_trip_through_cdr_and_extraction() -> None:
     binding = TopicBinding(
         topic="/odom",
         msg_type="nav_msgs/msg/Odometry",
-        fields=("x", "y", "yaw", "vx", "yaw_rate"),
+        fields=["x", "y", "yaw", "vx", "yaw_rate"],
         frame="odom",
     )
     s = decode_measurement(binding, encode(odom, "nav_msgs/msg/Odometry"))
@@ -155,7 +154,7 @@ def test_bad_values_refused() -> None:
 
 def test_frame_mismatch_refused() -> None:
     b = TopicBinding(
-        topic="pose", msg_type="geometry_msgs/msg/PoseWithCovarianceStamped", fields=("x", "y"), frame="map"
+        topic="pose", msg_type="geometry_msgs/msg/PoseWithCovarianceStamped", fields=["x", "y"], frame="map"
     )
     raw = encode(pose_from_state(X, P, LAYOUT, STAMP, "odom"), b.msg_type)
     with pytest.raises(Ros2DecodeError, match="frame_id"):
@@ -185,13 +184,13 @@ def test_yaw_quaternion_round_trip() -> None:
 
 def test_bindings_validate_and_have_a_schema() -> None:
     with pytest.raises(ValidationError):
-        TopicBinding(topic="/imu", msg_type="sensor_msgs/msg/Imu", fields=("x",))
+        TopicBinding(topic="/imu", msg_type="sensor_msgs/msg/Imu", fields=["x",])
     with pytest.raises(ValidationError):
-        TopicBinding(topic="/a//b", msg_type="sensor_msgs/msg/Range", fields=("range",))
+        TopicBinding(topic="/a//b", msg_type="sensor_msgs/msg/Range", fields=["range",])
     with pytest.raises(ValidationError):
-        TopicBinding(topic="/odom", msg_type="nav_msgs/msg/Odometry", fields=("x", "x"))
+        TopicBinding(topic="/odom", msg_type="nav_msgs/msg/Odometry", fields=["x", "x"])
     with pytest.raises(ValidationError):
-        TopicBinding(topic="/odom", msg_type="nav_msgs/msg/Odometry", fields=())
+        TopicBinding(topic="/odom", msg_type="nav_msgs/msg/Odometry", fields=[])
     b = TopicBinding.model_validate(
         {"topic": "odom", "msg_type": "nav_msgs/msg/Odometry", "fields": ["x", "y", "yaw"]}
     )

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pd_service.ros2.errors import Ros2DecodeError
-from pd_service.ros2.extract import StateLayout, odometry_from_state, pose_from_state, tf_from_state
+from pd_service.ros2.extract import odometry_from_state, pose_from_state, tf_from_state
 from pd_service.ros2.messages import (
     MESSAGE_TYPES,
     Imu,
@@ -23,6 +23,7 @@ from pd_service.ros2.messages import (
     type_hash,
     typestore,
 )
+from pd_service.wire.ros2 import StateLayout
 
 STAMP = 1_700_000_000_250_000_000
 

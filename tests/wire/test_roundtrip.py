@@ -10,8 +10,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pd_service.wire import MESSAGE_TYPES, Measurement, WireError, decode, encode
-from tests.wire.factories import EXAMPLES, STRATEGIES, measurement
+from pd_service.wire import MESSAGE_TYPES, Measurement, SessionSpec, WireError, decode, encode
+from pd_service.wire.ros2 import (
+    CommandBinding,
+    OutputBinding,
+    Ros2Binding,
+    StateLayout,
+    TopicBinding,
+)
+from tests.wire.factories import EXAMPLES, STRATEGIES, measurement, paper_spec
 
 SETTINGS = settings(max_examples=150, deadline=None,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
@@ -68,8 +75,24 @@ def test_ints_in_data_are_floats():
 def test_field_order_and_all_fields_on_the_wire():
     for msg_type, make in EXAMPLES.items():
         raw = msgpack.unpackb(encode(make()))
-        assert list(raw) == list(msg_type.model_fields)
+        # SessionSpec.ros2 is left off the wire when None (a spec without ROS 2 topics)
+        optional = {"ros2"} if msg_type is SessionSpec else set()
+        assert list(raw) == [f for f in msg_type.model_fields if f not in optional]
         assert raw["v"] == 1
+
+
+def test_spec_with_ros2_topics_round_trips():
+    spec = paper_spec()
+    binding = Ros2Binding(
+        sensors={"camera": TopicBinding(topic="/cam/point", msg_type="geometry_msgs/msg/PointStamped",
+                                        fields=["x", "y"])},
+        commands=CommandBinding(msg_type="geometry_msgs/msg/TwistStamped"),
+        outputs=OutputBinding(layout=StateLayout(x=0, y=2, vx=1, vy=3, velocity_frame="world")))
+    with_ros2 = SessionSpec.model_validate({**spec.model_dump(), "ros2": binding.model_dump()})
+    raw = msgpack.unpackb(encode(with_ros2))
+    assert raw["ros2"]["sensors"]["camera"]["fields"] == ["x", "y"]
+    back = decode(encode(with_ros2), SessionSpec)
+    assert back == with_ros2 and back.ros2 == binding
 
 
 def test_encode_refuses_non_messages():
