@@ -1,7 +1,8 @@
 """pd-service: networked predictive display for teleoperation.
 
-Layers (imports point one way): ``estimation`` (pure numpy) <- ``wire`` (schemas, codec,
-keys) <- ``service`` / ``link`` (Zenoh adapters).
+Layers (imports point one way; docs/architecture.md is the map, tests/test_layers.py enforces
+it): ``estimation`` (pure numpy) <- ``wire`` (schemas, codec, keys) <- ``transport``,
+``scenarios``, ``backends``, ``ros2`` <- ``service`` (the daemon) / ``link`` (the emulator).
 """
 
 __version__ = "0.1.0"

@@ -62,8 +62,10 @@ def build_estimator(spec: SessionSpec,
             )
         elif isinstance(model, UnscentedModelSpec):
             est = _unscented(spec, model)
-        else:
+        elif isinstance(model, ImmModelSpec):
             est = _imm(spec, model)
+        else:  # a model kind the wire accepts but no backend builds: a programming error
+            raise TypeError(f"no backend for model kind {model.kind!r}")
     except WireError:
         raise
     except ValueError as exc:

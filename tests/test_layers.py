@@ -25,7 +25,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.errors": set(),
     "pd_service.logs": set(),
     "pd_service.wire": {"pd_service.estimation", "pd_service.errors"},
-    "pd_service.transport": {"pd_service.errors", "pd_service.logs", "pd_service.wire"},
+    "pd_service.transport": set(),
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.ros2": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
@@ -38,8 +38,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_client.tools": {"pd_client", "pd_service.estimation", "pd_service.wire",
                         "pd_service.errors", "pd_service.logs", "pd_service.transport",
                         "pd_service.scenarios", "pd_service.backends"},
-    "pd_client": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
-                  "pd_service.logs", "pd_service.transport"},
+    "pd_client": {"pd_service.wire", "pd_service.errors", "pd_service.transport"},
 }
 
 #: Third-party imports a layer may use (None: any). The estimation core is pure numpy.

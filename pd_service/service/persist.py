@@ -11,10 +11,11 @@ import logging
 import os
 from pathlib import Path
 
+from pd_service.logs import LOGGER_NAME, event
 from pd_service.wire import SessionSpec, WireError, decode, encode
 from pd_service.wire.keys import KeyError_, check_name
 
-log = logging.getLogger("pd_service.service")
+log = logging.getLogger(LOGGER_NAME)
 
 SUFFIX = ".msgpack"
 
@@ -67,7 +68,7 @@ class SpecStore:
                 specs[session] = spec
             except (OSError, WireError, KeyError_) as exc:
                 bad.append(p.name)
-                log.warning("event=spec_unreadable file=%s reason=%r", p, str(exc))
+                event(log, "spec_unreadable", logging.WARNING, file=str(p), reason=str(exc))
                 try:
                     p.rename(p.with_name(p.name + ".bad"))
                 except OSError:

@@ -431,7 +431,8 @@ def _model_kind(value: Any) -> str | None:
 
 
 #: Every model kind, discriminated by ``kind`` (absent means "linear"). A new kind is one
-#: more ``Annotated[NewModelSpec, Tag("new")]`` here, plus its case in ``convert.py``.
+#: more ``Annotated[NewModelSpec, Tag("new")]`` here, plus its case in
+#: ``pd_service.backends.build_estimator`` (and ``convert.command_dim``).
 ModelSpec = Annotated[
     Annotated[LinearModelSpec, Tag("linear")]
     | Annotated[UnscentedModelSpec, Tag("unscented")]
