@@ -84,8 +84,8 @@ class Refusal:
 
 
 def _decode_reason(exc: WireError, prefix: str) -> Refusal:
-    r = exc.reason
-    return Refusal(prefix + ("non_finite" if "finite" in r else "malformed"), r)
+    """A message that failed to decode: counted by the error's kind, its seq echoed."""
+    return Refusal(prefix + exc.kind, exc.reason, exc.seq)
 
 
 def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:

@@ -47,6 +47,14 @@ def _fail(message: str) -> PydanticCustomError:
     return PydanticCustomError("wire_array", message)
 
 
+#: Error type of a non-finite array value (the codec counts it as ``non_finite``).
+NON_FINITE_ERROR = "wire_non_finite"
+
+
+def _non_finite(message: str) -> PydanticCustomError:
+    return PydanticCustomError(NON_FINITE_ERROR, message)
+
+
 def _type_name(value: object) -> str:
     return "nil" if value is None else type(value).__name__
 
@@ -89,9 +97,9 @@ def _from_wire(value: dict[Any, Any], ndim: int) -> np.ndarray:
     try:
         arr = np.array(data, dtype=np.float64)
     except (OverflowError, ValueError, TypeError):
-        raise _fail("array 'data' holds a value that is not a finite float64") from None
+        raise _non_finite("array 'data' holds a value that is not a finite float64") from None
     if not math.isfinite(total) and not np.isfinite(arr).all():
-        raise _fail("array 'data' must hold finite numbers only (no NaN or infinity)")
+        raise _non_finite("array 'data' must hold finite numbers only (no NaN or infinity)")
     if ndim == 2:
         arr = arr.reshape(shape)
     arr.flags.writeable = False
@@ -104,7 +112,7 @@ def _from_numpy(value: np.ndarray, ndim: int) -> np.ndarray:
     _check_shape(value.shape, ndim)
     arr = np.array(value, dtype=np.float64, order="C", copy=True)
     if not np.isfinite(arr).all():
-        raise _fail("array must hold finite numbers only (no NaN or infinity)")
+        raise _non_finite("array must hold finite numbers only (no NaN or infinity)")
     arr.flags.writeable = False
     return arr
 

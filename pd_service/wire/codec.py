@@ -29,7 +29,8 @@ from typing import Any, TypeVar
 import msgpack
 from pydantic import ValidationError
 
-from .errors import WireError
+from .arrays import NON_FINITE_ERROR
+from .errors import ErrorKind, WireError
 from .messages import Message
 
 #: Largest encoded message, bytes.
@@ -95,7 +96,8 @@ def decode(data: bytes | bytearray | memoryview, msg_type: type[M]) -> M:
     try:
         return msg_type.model_validate(obj)
     except ValidationError as exc:
-        raise WireError(validation_reason(name, exc)) from None
+        raise WireError(validation_reason(name, exc), error_kind(exc), _readable_seq(obj)) \
+            from None
     except RecursionError:  # defensive: validators do not recurse into input
         raise WireError(f"{name}: input nested too deep") from None
     except Exception as exc:  # defensive: the contract is "only WireError comes out"
@@ -113,6 +115,23 @@ def validation_reason(type_name: str, exc: ValidationError) -> str:
     more = f" (and {len(errors) - 1} more error{'s' if len(errors) > 2 else ''})" \
         if len(errors) > 1 else ""
     return f"{where}: {first['msg']}{more}"
+
+
+#: pydantic error types that mean "a value is NaN or infinite".
+_NON_FINITE_TYPES = frozenset({"finite_number", NON_FINITE_ERROR})
+
+
+def error_kind(exc: ValidationError) -> ErrorKind:
+    """``non_finite`` if any error is a NaN / infinity, else ``malformed`` (by error type)."""
+    types = {e["type"] for e in exc.errors(include_url=False, include_context=False,
+                                           include_input=False)}
+    return "non_finite" if types & _NON_FINITE_TYPES else "malformed"
+
+
+def _readable_seq(obj: dict[Any, Any]) -> int | None:
+    """The message's ``seq`` if it is a valid one on its own (an int in [0, 2^63))."""
+    seq = obj.get("seq")
+    return seq if type(seq) is int and 0 <= seq < 2**63 else None
 
 
 def _kind(obj: object) -> str:

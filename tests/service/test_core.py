@@ -569,3 +569,29 @@ def test_error_reports_have_a_service_wide_budget(world, tmp_path):
     core.run_once()
     assert sum(len(col.errors[s]) for s in ("s1", "s2", "s3")) == 30
     assert core.service_status().counters["errors_suppressed"] == 30
+
+
+def test_refusals_are_counted_by_kind_and_echo_a_readable_seq(world, tmp_path):
+    """A non-PSD R is malformed (not non_finite, though "semi-definite" contains "finite"),
+    a NaN is non_finite; both ErrorReports echo the seq the message carried."""
+    import msgpack
+
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    clock.t = at(20.5)
+    raw = msgpack.unpackb(meas_bytes("s1", "camera", 20, [1.0, 2.0], seq=41))
+    raw["R"] = {"shape": [2, 2], "data": [1.0, 0.0, 0.0, -1.0]}  # not PSD
+    cli.put(keys.sensor_key("s1", "camera"), msgpack.packb(raw))
+    raw = msgpack.unpackb(meas_bytes("s1", "camera", 20, [1.0, 2.0], seq=42))
+    raw["z"]["data"] = [1.0, float("nan")]
+    cli.put(keys.sensor_key("s1", "camera"), msgpack.packb(raw))
+    raw["seq"] = -3  # not a valid seq: nothing to echo
+    cli.put(keys.sensor_key("s1", "camera"), msgpack.packb(raw))
+    core.run_once()
+    c = core.session_status("s1").counters
+    assert (c["malformed"], c["non_finite"]) == (1, 2)
+    reports = col.errors["s1"]
+    assert [r.seq for r in reports] == [41, 42, None]
+    assert "semi-definite" in reports[0].reason and "finite" in reports[1].reason
