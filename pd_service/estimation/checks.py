@@ -73,5 +73,16 @@ def as_step(value: object, field: str) -> int:
     return int(value)
 
 
+def as_positive(value: object, field: str) -> float:
+    """Return ``value`` as a finite float > 0."""
+    try:
+        v = float(value)  # type: ignore[arg-type]  # any object; float() says if it cannot
+    except (TypeError, ValueError):
+        raise ValueError(f"{field}: expected a number, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
+    return v
+
+
 def _fmt(shape: tuple[int | None, int | None]) -> str:
     return "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"

@@ -47,12 +47,10 @@ wheel odometry whose pose drifts, use ``"odom_twist"``.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from .models_omni import _diag_or_matrix
-from .registry import MeasurementModel, NonlinearModel, register_model, wrap_angle
+from .registry import MeasurementModel, NonlinearModel, batched, register_model, wrap_angle
 
 #: State layout.
 X, Y, YAW, V, W = range(5)
@@ -179,18 +177,6 @@ def _command(u: np.ndarray) -> np.ndarray:
     return u
 
 
-def _batched(fn: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
-    """Lift a batched map (N, n) -> (N, ...) to also take one state (n,)."""
-
-    def wrapped(Xs: np.ndarray, *args: object) -> np.ndarray:
-        Xs = np.asarray(Xs, dtype=float)
-        if Xs.ndim == 1:
-            return fn(Xs[None, :], *args)[0]
-        return fn(Xs, *args)
-
-    return wrapped
-
-
 def _selection_sensor(name: str, idx: tuple[int, ...], R_diag: tuple[float, ...]) -> MeasurementModel:
     """z = s[idx] (+ v): a linear selection of state entries, as a vectorised sensor."""
     H = np.zeros((len(idx), N_STATE))
@@ -202,10 +188,10 @@ def _selection_sensor(name: str, idx: tuple[int, ...], R_diag: tuple[float, ...]
     angles = tuple(i for i, j in enumerate(idx) if j == YAW)
     return MeasurementModel(
         name=name,
-        h=_batched(lambda Xs: Xs[:, cols].copy()),
+        h=batched(lambda Xs: Xs[:, cols].copy()),
         R=R,
         angles=angles,
-        jac=_batched(lambda Xs: np.broadcast_to(H, (Xs.shape[0],) + H.shape).copy()),
+        jac=batched(lambda Xs: np.broadcast_to(H, (Xs.shape[0],) + H.shape).copy()),
         vectorized=True,
     )
 
@@ -225,5 +211,5 @@ def unicycle(
     sensors = {name: _selection_sensor(name, idx, R) for name, (idx, R) in UNICYCLE_SENSORS.items()}
     return NonlinearModel(
         name="unicycle", n=N_STATE, nu=2,
-        f=_batched(lambda Xs, u, k: dyn.step(Xs, u)), Q=Qm, sensors=sensors, angles=(YAW,),
-        jac=_batched(lambda Xs, u, k: dyn.step_jac(Xs, u)), vectorized=True)
+        f=batched(lambda Xs, u, k: dyn.step(Xs, u)), Q=Qm, sensors=sensors, angles=(YAW,),
+        jac=batched(lambda Xs, u, k: dyn.step_jac(Xs, u)), vectorized=True)
