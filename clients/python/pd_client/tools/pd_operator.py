@@ -27,7 +27,6 @@ from pd_service.wire.convert import command_dim
 
 from .._base import try_decode
 from ..admin import Admin
-from ..errors import PdClientError
 from ..operator import Operator
 from . import common
 
