@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..checks import as_nonnegative
 from .models_omni import _diag_or_matrix
 from .registry import MeasurementModel, NonlinearModel, batched, register_model, wrap_angle
 
@@ -99,9 +100,9 @@ class UnicycleDynamics:
     """The step map and its Jacobian, batched over rows of S (N, 5); u = (v_cmd, w_cmd)."""
 
     def __init__(self, period_s: float, tau_v: float, tau_w: float) -> None:
-        dt = _number(period_s, "period_s", positive=True)
-        tv = _number(tau_v, "tau_v", positive=False)
-        tw = _number(tau_w, "tau_w", positive=False)
+        dt = as_nonnegative(period_s, "period_s", strict=True)
+        tv = as_nonnegative(tau_v, "tau_v", strict=False)
+        tw = as_nonnegative(tau_w, "tau_w", strict=False)
         self.dt = dt
         self.e_v, self.a_v = lag_factors(tv, dt)
         self.e_w, self.a_w = lag_factors(tw, dt)
@@ -159,15 +160,6 @@ class UnicycleDynamics:
         return J
 
 
-def _number(value: object, field: str, positive: bool) -> float:
-    try:
-        v = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{field}: expected a number, got {value!r}") from None
-    if not np.isfinite(v) or v < 0.0 or (positive and v == 0.0):
-        raise ValueError(f"{field}: must be a finite number {'> 0' if positive else '>= 0'}, "
-                         f"got {value!r}")
-    return v
 
 
 def _command(u: np.ndarray) -> np.ndarray:
