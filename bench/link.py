@@ -39,11 +39,13 @@ import numpy as np
 import zenoh
 
 from pd_service.link.config import parse_config
+from pd_service.transport import zenoh_config
 from pd_service.wire import keys
 
 ROOT = Path(__file__).resolve().parents[1]
 
 INSTANCE = "bench"
+ANY_PORT = "tcp/127.0.0.1:0"  # the listen endpoint of the peers that connect
 IN_KEY = keys.robot_sensor_key("bench", "s")
 OUT_KEY = keys.sensor_key("bench", "s")
 
@@ -52,16 +54,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def peer_config(listen: list[str] | None = None, connect: list[str] | None = None):
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", json.dumps(listen or ["tcp/127.0.0.1:0"]))
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps(connect))
-    return c
 
 
 def rules(delay_ms: float) -> dict:
@@ -153,8 +145,8 @@ def run_baseline(endpoint: str, rate: int, seconds: float, size: int,
         got.append((time.monotonic_ns(), struct.unpack_from("<q", sample.payload.to_bytes())[0]))
 
     key = "bench/baseline"
-    with zenoh.open(peer_config(connect=[endpoint])) as other, \
-            zenoh.open(peer_config(connect=[endpoint])) as sender:  # fmt: skip
+    with zenoh.open(zenoh_config(listen=[ANY_PORT], connect=[endpoint])) as other, \
+            zenoh.open(zenoh_config(listen=[ANY_PORT], connect=[endpoint])) as sender:  # fmt: skip
         sub = other.declare_subscriber(key, on_sample)
         pub = sender.declare_publisher(key, express=express,
                                        congestion_control=zenoh.CongestionControl.BLOCK)
@@ -201,7 +193,7 @@ def main() -> int:
     proc = None
     relay = None
     relay_session = None
-    with zenoh.open(peer_config([endpoint])) as session, tempfile.TemporaryDirectory() as tmp:
+    with zenoh.open(zenoh_config(listen=[endpoint])) as session, tempfile.TemporaryDirectory() as tmp:
         sub = session.declare_subscriber(OUT_KEY, on_sample)
         cfg_path = Path(tmp) / "bench.json"
         cfg_path.write_text(json.dumps(rules(args.delay_ms)))
@@ -212,7 +204,7 @@ def main() -> int:
                 sys.setswitchinterval(args.switch_interval_us / 1e6)
             from pd_service.transport.zenoh_transport import ZenohTransport
 
-            relay_session = ZenohTransport(peer_config(connect=[endpoint]))
+            relay_session = ZenohTransport(zenoh_config(listen=[ANY_PORT], connect=[endpoint]))
             relay = LinkRelay(relay_session, parse_config(rules(args.delay_ms)), INSTANCE,
                               spin_ns=args.spin_us * 1000, express=args.express).start()
             where = "in-process relay (shares this process's GIL with the load generator)"

@@ -50,18 +50,8 @@ class _InputsMixin:
         uv = as_vector(u, "u", self.model.nu)
         if now is not None:
             self._advance(as_step(now, "now"))
-        if step < self._inputs.origin:
-            self._counters["commands_late"] += 1
-            return False
-        if step > self._now + self._ahead:
-            self._counters["commands_future"] += 1
-            return False
-        if self._inputs.has_command(step):
-            self._counters["commands_duplicate"] += 1
-            return False
-        self._inputs.set(step, uv)
-        self._counters["commands_accepted"] += 1
-        return True
+        return self._inputs.admit(step, uv, self._inputs.origin, self._now + self._ahead,
+                                  self._counters)
 
 
 class AugmentedStateKF(_InputsMixin):

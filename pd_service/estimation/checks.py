@@ -73,5 +73,28 @@ def as_step(value: object, field: str) -> int:
     return int(value)
 
 
+def as_positive(value: object, field: str) -> float:
+    """Return ``value`` as a finite float > 0."""
+    try:
+        v = float(value)  # type: ignore[arg-type]  # any object; float() says if it cannot
+    except (TypeError, ValueError):
+        raise ValueError(f"{field}: expected a number, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
+    return v
+
+
+def as_nonnegative(value: object, field: str, strict: bool) -> float:
+    """Return ``value`` as a finite float >= 0 (> 0 if ``strict``)."""
+    try:
+        v = float(value)  # type: ignore[arg-type]  # any object; float() says if it cannot
+    except (TypeError, ValueError):
+        raise ValueError(f"{field}: expected a number, got {value!r}") from None
+    if not np.isfinite(v) or v < 0.0 or (strict and v == 0.0):
+        raise ValueError(f"{field}: must be a finite number {'> 0' if strict else '>= 0'}, "
+                         f"got {value!r}")
+    return v
+
+
 def _fmt(shape: tuple[int | None, int | None]) -> str:
     return "(" + ", ".join("any" if s is None else str(s) for s in shape) + ")"

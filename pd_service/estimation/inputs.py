@@ -10,6 +10,7 @@ contiguous (m, nu) slice, with no per-step Python work.
 from __future__ import annotations
 
 import bisect
+from collections import Counter
 
 import numpy as np
 
@@ -29,6 +30,24 @@ class InputBuffer:
     def has_command(self, step: int) -> bool:
         i = bisect.bisect_left(self._cmd_steps, step)
         return i < len(self._cmd_steps) and self._cmd_steps[i] == step
+
+    def admit(self, step: int, u: np.ndarray, first: int, last: int,
+              counters: Counter[str]) -> bool:
+        """Store the command for ``step`` if ``first <= step <= last`` and none is stored for
+        it yet; count the outcome in ``counters``: "commands_late" (step < first),
+        "commands_future" (step > last), "commands_duplicate", or "commands_accepted"."""
+        if step < first:
+            counters["commands_late"] += 1
+            return False
+        if step > last:
+            counters["commands_future"] += 1
+            return False
+        if self.has_command(step):
+            counters["commands_duplicate"] += 1
+            return False
+        self.set(step, u)
+        counters["commands_accepted"] += 1
+        return True
 
     def set(self, step: int, u: np.ndarray) -> None:
         """Record a command for ``step`` (origin <= step < origin + capacity)."""

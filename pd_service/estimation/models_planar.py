@@ -33,6 +33,7 @@ import math
 
 import numpy as np
 
+from .checks import as_nonnegative
 from .model import LinearModel
 
 #: Rows of H for the usual planar sensors on [px, vx, py, vy].
@@ -75,14 +76,14 @@ def planar_cv(period_s: float, q: float, tau: float | None = None) -> LinearMode
     """The planar CV model on [px, vx, py, vy]. period_s (s) > 0, q (m^2/s^3) >= 0 the
     acceleration noise density (same on both axes); ``tau`` (s) > 0: velocity commands
     (vx_cmd, vy_cmd) through a first-order lag, None: no input (pure CV)."""
-    dt = _finite(period_s, "period_s", strict=True)
-    qq = _finite(q, "q", strict=False)
+    dt = as_nonnegative(period_s, "period_s", strict=True)
+    qq = as_nonnegative(q, "q", strict=False)
     if tau is None:
         A2 = np.array([[1.0, dt], [0.0, 1.0]])
         B2 = np.zeros((2, 0))
         Q2 = white_accel_block(dt, qq)
     else:
-        A2, B2, Q2 = lagged_axis(dt, _finite(tau, "tau", strict=True), qq)
+        A2, B2, Q2 = lagged_axis(dt, as_nonnegative(tau, "tau", strict=True), qq)
     Z = np.zeros((2, 2))
     A = np.block([[A2, Z], [Z, A2]])
     Q = np.block([[Q2, Z], [Z, Q2]])
@@ -90,14 +91,3 @@ def planar_cv(period_s: float, q: float, tau: float | None = None) -> LinearMode
     B[0:2, 0:B2.shape[1]] = B2
     B[2:4, B2.shape[1]:] = B2
     return LinearModel(A=A, B=B, Q=Q)
-
-
-def _finite(value: object, field: str, strict: bool) -> float:
-    try:
-        v = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{field}: expected a number, got {value!r}") from None
-    if not math.isfinite(v) or v < 0.0 or (strict and v == 0.0):
-        raise ValueError(f"{field}: must be a finite number {'> 0' if strict else '>= 0'}, "
-                         f"got {value!r}")
-    return v

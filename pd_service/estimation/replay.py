@@ -228,18 +228,9 @@ class ReplayEstimator(Generic[S]):
             now = self._check_now(now)
             self._advance(now)
         ref = self._now if self._now is not None else 0
-        if step < self._c:
-            self._counters["commands_late"] += 1
+        if not self._inputs.admit(step, uv, self._c, ref + self._cmd_ahead, self._counters):
             return False
-        if step > ref + self._cmd_ahead:
-            self._counters["commands_future"] += 1
-            return False
-        if self._inputs.has_command(step):
-            self._counters["commands_duplicate"] += 1
-            return False
-        self._inputs.set(step, uv)
         self._invalidate(step + 1)  # u(step) first moves x(step + 1)
-        self._counters["commands_accepted"] += 1
         return True
 
     def predict(self, now: int) -> PredictedState:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Literal, Protocol, Self
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,3 +91,30 @@ class Transport(Protocol):
     def __enter__(self) -> Transport: ...
 
     def __exit__(self, *exc: object) -> None: ...
+
+
+class HandleOwner:
+    """What both transports do with the handles they declare: close them newest first, once,
+    then :meth:`_close_more` (the Zenoh session, say); a context manager closing on exit."""
+
+    def __init__(self) -> None:
+        self._handles: list[Handle] = []
+        self._closed = False
+
+    def _close_more(self) -> None:
+        """Closed after the handles; nothing by default."""
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for h in reversed(self._handles):
+            h.close()
+        self._handles.clear()
+        self._close_more()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

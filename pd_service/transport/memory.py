@@ -11,7 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
-from .base import Reply, Sample
+from .base import HandleOwner, Reply, Sample
 from .keyexpr import intersects
 
 
@@ -69,11 +69,10 @@ class InMemoryBus:
         return InMemoryTransport(self)
 
 
-class InMemoryTransport:
+class InMemoryTransport(HandleOwner):
     def __init__(self, bus: InMemoryBus) -> None:
+        super().__init__()
         self.bus = bus
-        self._handles: list[_Handle] = []
-        self._closed = False
 
     # pub/sub
     def put(self, key: str, payload: bytes) -> None:
@@ -128,7 +127,7 @@ class InMemoryTransport:
                     cb(key, False)
 
         tok = _Token()
-        self._handles.append(tok)  # type: ignore[arg-type]
+        self._handles.append(tok)
         return tok  # type: ignore[return-value]
 
     def subscribe_liveliness(self, keyexpr: str, callback: Callable[[str, bool], None],
@@ -152,17 +151,3 @@ class InMemoryTransport:
         h = _Handle(registry, entry)
         self._handles.append(h)
         return h
-
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        for h in reversed(self._handles):
-            h.close()
-        self._handles.clear()
-
-    def __enter__(self) -> InMemoryTransport:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -13,7 +13,7 @@ from typing import Literal
 
 import zenoh
 
-from .base import Reply, Sample
+from .base import HandleOwner, Reply, Sample
 from .options import zenoh_config
 
 log = logging.getLogger("pd_service.transport")
@@ -65,13 +65,12 @@ class _ZQuery:
         self._q.reply_err(payload, encoding=encoding)
 
 
-class ZenohTransport:
+class ZenohTransport(HandleOwner):
     """A Zenoh session behind the :class:`~pd_service.transport.base.Transport` interface."""
 
     def __init__(self, conf: zenoh.Config | None = None) -> None:
         self.session = zenoh.open(conf if conf is not None else zenoh_config())
-        self._handles: list[_Handle] = []
-        self._closed = False
+        super().__init__()
 
     def put(self, key: str, payload: bytes) -> None:
         # session.put, not a declared publisher per key: with zenoh 1.10 every declared
@@ -148,16 +147,5 @@ class ZenohTransport:
         self._handles.append(h)
         return h
 
-    def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        for h in reversed(self._handles):
-            h.close()
+    def _close_more(self) -> None:
         self.session.close()
-
-    def __enter__(self) -> ZenohTransport:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

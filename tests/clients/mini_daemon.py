@@ -17,6 +17,7 @@ import argparse
 import signal
 import threading
 import time
+from collections.abc import Callable
 
 from pd_service.backends import build_estimator
 from pd_service.transport import Query, Sample, Transport
@@ -103,31 +104,33 @@ class MiniDaemon:
         self.t.put(keys.status_key(session), encode(st))
 
     def _on_sensor(self, sample: Sample) -> None:
+        self._on_input(sample, self._add_measurement)
+
+    def _on_command(self, sample: Sample) -> None:
+        self._on_input(sample, self._add_command)
+
+    def _on_input(self, sample: Sample, add: Callable[[_Session, bytes], None]) -> None:
+        """``add(session, payload)`` for a served session; its errors become ErrorReports."""
         session = keys.parse_key(sample.key).session
         with self.lock:
             s = self.sessions.get(session)
             if s is None:
                 return
             try:
-                msg = decode(sample.payload, Measurement)
-                check_measurement(msg, s.spec)
-                s.est.add_measurement(msg.sensor, measurement_step(msg, s.spec), msg.z,
-                                      now=self._now(s), R=msg.R)
+                add(s, sample.payload)
             except (WireError, ValueError) as exc:
                 self._error(session, sample.key, None, str(exc))
 
-    def _on_command(self, sample: Sample) -> None:
-        session = keys.parse_key(sample.key).session
-        with self.lock:
-            s = self.sessions.get(session)
-            if s is None:
-                return
-            try:
-                msg = decode(sample.payload, Command)
-                check_command(msg, s.spec)
-                s.est.add_command(command_step(msg, s.spec), msg.u, now=self._now(s))
-            except (WireError, ValueError) as exc:
-                self._error(session, sample.key, None, str(exc))
+    def _add_measurement(self, s: _Session, payload: bytes) -> None:
+        msg = decode(payload, Measurement)
+        check_measurement(msg, s.spec)
+        s.est.add_measurement(msg.sensor, measurement_step(msg, s.spec), msg.z,
+                              now=self._now(s), R=msg.R)
+
+    def _add_command(self, s: _Session, payload: bytes) -> None:
+        msg = decode(payload, Command)
+        check_command(msg, s.spec)
+        s.est.add_command(command_step(msg, s.spec), msg.u, now=self._now(s))
 
     def _on_status_query(self, query: Query) -> None:
         with self.lock:

@@ -10,6 +10,22 @@ from __future__ import annotations
 import numpy as np
 
 
+def applied_inputs(commands, nu, steps, hold=True):
+    """u(0) .. u(steps - 1) from commands {step: u}: a step without a command holds the last
+    one (``hold``, zeros before the first) or applies zeros."""
+    us = []
+    u_held = np.zeros(nu)
+    for k in range(steps):
+        if k in commands:
+            u = np.asarray(commands[k], float)
+            if hold:
+                u_held = u
+        else:
+            u = u_held if hold else np.zeros(nu)
+        us.append(u)
+    return us
+
+
 def batch_predict(A, B, Q, sensors, x0, P0, commands, packets, target, hold=True):
     """sensors: list of (H, R); commands: {step: u}; packets: list of (sensor_idx, step, z, R|None).
 
@@ -22,7 +38,7 @@ def batch_predict(A, B, Q, sensors, x0, P0, commands, packets, target, hold=True
         by_step.setdefault(step, []).append((idx, np.asarray(z, float), R))
     x = np.array(x0, float)
     P = np.array(P0, float)
-    u_held = np.zeros(nu)
+    us = applied_inputs(commands, nu, target, hold)
     for k in range(target + 1):
         for idx, z, R in sorted(by_step.get(k, []), key=lambda t: t[0]):
             H, R0 = sensors[idx]
@@ -34,12 +50,6 @@ def batch_predict(A, B, Q, sensors, x0, P0, commands, packets, target, hold=True
             P = 0.5 * (P + P.T)
         if k == target:
             break
-        if k in commands:
-            u = np.asarray(commands[k], float)
-            if hold:
-                u_held = u
-        else:
-            u = u_held if hold else np.zeros(nu)
-        x = A @ x + B @ u
+        x = A @ x + B @ us[k]
         P = A @ P @ A.T + Q
     return x, P

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import socket
 import threading
 import time
@@ -15,18 +14,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def peer_config(listen: list[str] | None = None, connect: list[str] | None = None):
-    import zenoh
-
-    c = zenoh.Config()
-    c.insert_json5("mode", '"peer"')
-    c.insert_json5("scouting/multicast/enabled", "false")
-    c.insert_json5("listen/endpoints", json.dumps(listen or ["tcp/127.0.0.1:0"]))
-    if connect:
-        c.insert_json5("connect/endpoints", json.dumps(connect))
-    return c
 
 
 class Collector:
@@ -70,11 +57,12 @@ def zenoh_pair() -> Iterator[tuple[object, object, str]]:
     """(test session listening on a free loopback port, relay transport connected to it,
     endpoint)."""
     zenoh = pytest.importorskip("zenoh")
+    from pd_service.transport import zenoh_config
     from pd_service.transport.zenoh_transport import ZenohTransport
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    test_session = zenoh.open(peer_config([endpoint]))
-    relay_transport = ZenohTransport(peer_config(connect=[endpoint]))
+    test_session = zenoh.open(zenoh_config(listen=[endpoint]))
+    relay_transport = ZenohTransport(zenoh_config(listen=["tcp/127.0.0.1:0"], connect=[endpoint]))
     try:
         yield test_session, relay_transport, endpoint
     finally:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from hypothesis import strategies as st
 
@@ -316,3 +318,25 @@ STRATEGIES = {
     SessionStatus: session_statuses,
     ServiceStatus: service_statuses,
 }
+
+
+#: ``set_field`` value meaning "remove the field".
+DELETE = object()
+
+
+def set_field(obj: dict, path: str | bytes, value) -> dict:
+    """A deep copy of a raw (decoded msgpack) message with the field at ``path`` (dotted,
+    list indices as digits; or one bytes key) set to ``value``, or removed for DELETE."""
+    obj = copy.deepcopy(obj)
+    if isinstance(path, bytes):
+        keys = [path]
+    else:
+        keys = [int(k) if k.isdigit() else k for k in path.split(".")]
+    parent = obj
+    for k in keys[:-1]:
+        parent = parent[k]
+    if value is DELETE:
+        del parent[keys[-1]]
+    else:
+        parent[keys[-1]] = value
+    return obj

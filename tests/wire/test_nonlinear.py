@@ -8,7 +8,6 @@ factories (same estimator as the factory called directly, refusals with the reas
 
 from __future__ import annotations
 
-import copy
 import math
 
 import msgpack
@@ -25,6 +24,7 @@ from pd_service.wire.convert import (
 )
 from pd_service.wire.messages import AdaptSpec, ImmModelSpec, ModeSpec, UnscentedModelSpec
 from tests.wire.factories import (
+    DELETE,
     OMNI_Q0,
     SIGMA_BEARING,
     STATIONS,
@@ -33,9 +33,8 @@ from tests.wire.factories import (
     measurement,
     omni_spec,
     paper_spec,
+    set_field,
 )
-
-DELETE = object()
 
 #: A small linear SessionSpec as encoded by the protocol before the nonlinear kinds existed
 #: (session "old": A = [[1, 0.1], [0, 1]], B = [[0], [0.1]], Q = 0.01 I, sensor "pos"
@@ -108,19 +107,6 @@ def test_params_keep_ints_and_floats():
 
 
 # ---------------------------------------------------------------- validation -------------
-
-def _set(obj: dict, path: str, value) -> dict:
-    obj = copy.deepcopy(obj)
-    keys = [int(k) if k.isdigit() else k for k in path.split(".")]
-    parent = obj
-    for k in keys[:-1]:
-        parent = parent[k]
-    if value is DELETE:
-        del parent[keys[-1]]
-    else:
-        parent[keys[-1]] = value
-    return obj
-
 
 def arr(*shape_then_data):
     *shape, data = shape_then_data
@@ -244,7 +230,7 @@ CASES = [
 @pytest.mark.parametrize("base, path, value, expected", CASES,
                          ids=[f"{c[0]}.{c[1]}={str(c[2])[:20]}" for c in CASES])
 def test_rule(base, path, value, expected):
-    got = reason(_set(RAW[base](), path, value))
+    got = reason(set_field(RAW[base](), path, value))
     assert expected in got, got
 
 
@@ -271,7 +257,7 @@ def test_sensor_kind_must_fit_the_model(base, fields, expected):
 
 
 def test_transition_tolerance():
-    ok = _set(RAW[I](), "model.transition", arr(2, 2, [0.995, 0.005 + 5e-10, 0.005, 0.995]))
+    ok = set_field(RAW[I](), "model.transition", arr(2, 2, [0.995, 0.005 + 5e-10, 0.005, 0.995]))
     assert decode(msgpack.packb(ok), SessionSpec).model.transition[0, 1] == 0.005 + 5e-10
 
 

@@ -8,8 +8,6 @@ the reason ("<Type>.<field>: ..."). Python construction raises pydantic's Valida
 
 from __future__ import annotations
 
-import copy
-
 import msgpack
 import numpy as np
 import pytest
@@ -34,29 +32,11 @@ from pd_service.wire import (
     encode,
     psd_problem,
 )
-from tests.wire.factories import EXAMPLES, paper_spec
-
-DELETE = object()
+from tests.wire.factories import DELETE, EXAMPLES, paper_spec, set_field
 
 
 def raw(msg_type) -> dict:
     return msgpack.unpackb(encode(EXAMPLES[msg_type]()))
-
-
-def _set(obj: dict, path: str, value) -> dict:
-    obj = copy.deepcopy(obj)
-    if isinstance(path, bytes):
-        keys = [path]
-    else:
-        keys = [int(k) if k.isdigit() else k for k in path.split(".")]
-    parent = obj
-    for k in keys[:-1]:
-        parent = parent[k]
-    if value is DELETE:
-        del parent[keys[-1]]
-    else:
-        parent[keys[-1]] = value
-    return obj
 
 
 def reason(msg_type, obj: dict) -> str:
@@ -187,7 +167,7 @@ def test_rule(msg_type, path, value, expected):
         with pytest.raises(OverflowError):
             msgpack.packb({"epoch_ns": value})
         return
-    got = reason(msg_type, _set(raw(msg_type), path, value))
+    got = reason(msg_type, set_field(raw(msg_type), path, value))
     assert expected in got, got
 
 

@@ -13,7 +13,7 @@ from pydantic import ValidationError
 
 from pd_service.transport import TOOL, Handle, Sample, Transport, ZenohOptions, ZenohTransport
 from pd_service.transport.options import Mode
-from pd_service.wire import Message, WireError, decode
+from pd_service.wire import Message, SessionSpec, WireError, decode, keys
 from pd_service.wire.codec import validation_reason
 
 from .errors import InvalidMessage, ServiceUnavailable
@@ -69,6 +69,18 @@ def build(msg_type: type[M], **fields: Any) -> M:
         return msg_type(**fields)
     except ValidationError as exc:
         raise InvalidMessage(validation_reason(msg_type.__name__, exc)) from None
+
+
+def session_name(session: str, spec: SessionSpec | None = None) -> str:
+    """``session``, checked as a name (one key chunk) and, with ``spec``, as the spec's
+    session; InvalidMessage otherwise."""
+    try:
+        name = keys.check_name(session, "session")
+    except keys.KeyError_ as exc:
+        raise InvalidMessage(str(exc)) from None
+    if spec is not None and spec.session != session:
+        raise InvalidMessage(f"spec is for session {spec.session!r}, not {session!r}")
+    return name
 
 
 def as_array(value: object, what: str, ndim: int) -> np.ndarray:

@@ -27,7 +27,7 @@ from pd_service.wire import (
     keys,
 )
 
-from ._base import ClientBase, try_decode
+from ._base import ClientBase, session_name, try_decode
 from .errors import (
     InvalidMessage,
     PdClientError,
@@ -317,7 +317,4 @@ class Admin(ClientBase):
 
     @staticmethod
     def _check(session: str) -> str:
-        try:
-            return keys.check_name(session, "session")
-        except keys.KeyError_ as exc:
-            raise InvalidMessage(str(exc)) from None
+        return session_name(session)

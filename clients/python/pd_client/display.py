@@ -21,9 +21,9 @@ from dataclasses import dataclass
 from pd_service.transport import Sample, Transport
 from pd_service.wire import ErrorReport, Prediction, keys
 
-from ._base import ClientBase, try_decode
+from ._base import ClientBase, session_name, try_decode
 from ._queue import Inbox
-from .errors import InvalidMessage, Timeout
+from .errors import Timeout
 from .truth import Truth
 
 log = logging.getLogger("pd_client.display")
@@ -64,10 +64,7 @@ class Display(ClientBase):
     def __init__(self, transport: Transport, session: str, *, truth: bool = False,
                  errors: bool = True, history: int = 4096) -> None:
         super().__init__(transport)
-        try:
-            self.session = keys.check_name(session, "session")
-        except keys.KeyError_ as exc:
-            raise InvalidMessage(str(exc)) from None
+        self.session = session_name(session)
         self._history = history
         self._state = threading.Lock()
         self._cond = threading.Condition(self._state)

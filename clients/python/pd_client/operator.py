@@ -17,7 +17,7 @@ from pd_service.transport import Transport
 from pd_service.wire import Command, SessionSpec, WireError, encode, keys
 from pd_service.wire.convert import check_command
 
-from ._base import ClientBase, as_array, build
+from ._base import ClientBase, as_array, build, session_name
 from .errors import InvalidMessage
 
 
@@ -32,12 +32,7 @@ class Operator(ClientBase):
     def __init__(self, transport: Transport, session: str, *,
                  spec: SessionSpec | None = None) -> None:
         super().__init__(transport)
-        try:
-            self.session = keys.check_name(session, "session")
-        except keys.KeyError_ as exc:
-            raise InvalidMessage(str(exc)) from None
-        if spec is not None and spec.session != session:
-            raise InvalidMessage(f"spec is for session {spec.session!r}, not {session!r}")
+        self.session = session_name(session, spec)
         self.spec = spec
         self._key = keys.command_key(session)
         self.seq = 0

@@ -20,7 +20,7 @@ from pd_service.transport import Sample, Transport
 from pd_service.wire import Command, Measurement, SessionSpec, WireError, encode, keys
 from pd_service.wire.convert import check_measurement, command_step
 
-from ._base import ClientBase, as_array, build, try_decode
+from ._base import ClientBase, as_array, build, session_name, try_decode
 from ._queue import Inbox
 from .errors import InvalidMessage, Timeout
 from .truth import Truth
@@ -46,12 +46,7 @@ class Robot(ClientBase):
     def __init__(self, transport: Transport, session: str, *, spec: SessionSpec | None = None,
                  direct: bool = False, queue_size: int = 1024) -> None:
         super().__init__(transport)
-        try:
-            self.session = keys.check_name(session, "session")
-        except keys.KeyError_ as exc:
-            raise InvalidMessage(str(exc)) from None
-        if spec is not None and spec.session != session:
-            raise InvalidMessage(f"spec is for session {spec.session!r}, not {session!r}")
+        self.session = session_name(session, spec)
         self.spec = spec
         self.direct = direct
         self._seq: dict[str, int] = {}

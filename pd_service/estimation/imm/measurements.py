@@ -22,19 +22,9 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from ..checks import as_covariance, as_vector
+from ..checks import as_covariance, as_positive, as_vector
 from ..nonlinear.registry import MeasurementModel
 from .models import ETA, XI
-
-
-def _positive(value: object, field: str) -> float:
-    try:
-        v = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{field}: expected a number, got {value!r}") from None
-    if not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
-    return v
 
 
 def range_bearing(
@@ -42,8 +32,8 @@ def range_bearing(
 ) -> MeasurementModel:
     """Range (m) and bearing (rad, wrapped) from ``station`` (2,) m; R = diag(sr^2, sb^2)."""
     st = as_vector(station, f"sensor {name!r} station", 2).copy()
-    sr = _positive(sigma_range, f"sensor {name!r} sigma_range")
-    sb = _positive(sigma_bearing, f"sensor {name!r} sigma_bearing")
+    sr = as_positive(sigma_range, f"sensor {name!r} sigma_range")
+    sb = as_positive(sigma_bearing, f"sensor {name!r} sigma_bearing")
     sx, sy = float(st[0]), float(st[1])
 
     def h(x: np.ndarray) -> np.ndarray:
@@ -62,7 +52,7 @@ def position(name: str, sigma: float | None = None, R: object | None = None) -> 
     if (sigma is None) == (R is None):
         raise ValueError(f"sensor {name!r}: give exactly one of sigma and R")
     if R is None:
-        s = _positive(sigma, f"sensor {name!r} sigma")
+        s = as_positive(sigma, f"sensor {name!r} sigma")
         Rm = s * s * np.eye(2)
     else:
         Rm = as_covariance(R, f"sensor {name!r} R", 2)

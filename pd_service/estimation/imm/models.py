@@ -33,22 +33,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..checks import as_positive
 from ..nonlinear.registry import NonlinearModel, register_model
 
 #: State layout.
 XI, XI_DOT, ETA, ETA_DOT, OMEGA = range(5)
 N_STATE = 5
 _SMALL_OMEGA = 1e-12
-
-
-def _positive(value: object, field: str) -> float:
-    try:
-        v = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{field}: expected a number, got {value!r}") from None
-    if not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{field}: must be finite and > 0, got {value!r}")
-    return v
 
 
 def _accel_block(T: float, sigma: float) -> np.ndarray:
@@ -97,9 +88,9 @@ def imm_cv(
 ) -> NonlinearModel:
     """Constant velocity. period_s (s), sigma_accel (m/s^2), sigma_omega (rad/s: std of the
     turn rate after its reset to 0; small, it only keeps P invertible)."""
-    T = _positive(period_s, "period_s")
-    sa = _positive(sigma_accel, "sigma_accel")
-    so = _positive(sigma_omega, "sigma_omega")
+    T = as_positive(period_s, "period_s")
+    sa = as_positive(sigma_accel, "sigma_accel")
+    so = as_positive(sigma_omega, "sigma_omega")
     Q = np.zeros((N_STATE, N_STATE))
     blk = _accel_block(T, sa)
     Q[np.ix_([XI, XI_DOT], [XI, XI_DOT])] = blk
@@ -128,15 +119,15 @@ def imm_ct(
     * ``sigma_turn_accel`` (rad/s^2): white turn acceleration, omega+ = omega + T b
       (Gamma_omega = T), i.e. an increment std of T * sigma_turn_accel per step.
     """
-    T = _positive(period_s, "period_s")
-    sa = _positive(sigma_accel, "sigma_accel")
+    T = as_positive(period_s, "period_s")
+    sa = as_positive(sigma_accel, "sigma_accel")
     if sigma_turn_accel is not None and sigma_turn_step is not None:
         raise ValueError("imm_ct: give at most one of sigma_turn_accel and sigma_turn_step")
     if sigma_turn_accel is not None:
-        q_omega = (T * _positive(sigma_turn_accel, "sigma_turn_accel")) ** 2
+        q_omega = (T * as_positive(sigma_turn_accel, "sigma_turn_accel")) ** 2
     else:
         step = np.radians(0.2) if sigma_turn_step is None else sigma_turn_step
-        q_omega = _positive(step, "sigma_turn_step") ** 2
+        q_omega = as_positive(step, "sigma_turn_step") ** 2
     Q = np.zeros((N_STATE, N_STATE))
     blk = _accel_block(T, sa)
     Q[np.ix_([XI, XI_DOT], [XI, XI_DOT])] = blk

@@ -11,17 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model import LinearModel, Sensor
-from .registry import MeasurementModel, NonlinearModel, register_model
-
-
-def _batched(fn):
-    def wrapped(X, *args):
-        X = np.asarray(X, dtype=float)
-        if X.ndim == 1:
-            return fn(X[None, :], *args)[0]
-        return fn(X, *args)
-
-    return wrapped
+from .registry import MeasurementModel, NonlinearModel, batched, register_model
 
 
 def linear_as_nonlinear(model: LinearModel, sensors: list[Sensor]) -> NonlinearModel:
@@ -42,13 +32,13 @@ def linear_as_nonlinear(model: LinearModel, sensors: list[Sensor]) -> NonlinearM
         H = s.H
         meas[s.name] = MeasurementModel(
             name=s.name,
-            h=_batched(lambda X, H=H: X @ H.T),
+            h=batched(lambda X, H=H: X @ H.T),
             R=s.R,
-            jac=_batched(lambda X, H=H: np.broadcast_to(H, (X.shape[0],) + H.shape).copy()),
+            jac=batched(lambda X, H=H: np.broadcast_to(H, (X.shape[0],) + H.shape).copy()),
             vectorized=True,
         )
-    return NonlinearModel(name="linear", n=model.n, nu=model.nu, f=_batched(f), Q=model.Q,
-                          sensors=meas, jac=_batched(F), vectorized=True)
+    return NonlinearModel(name="linear", n=model.n, nu=model.nu, f=batched(f), Q=model.Q,
+                          sensors=meas, jac=batched(F), vectorized=True)
 
 
 @register_model("linear")

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..checks import as_covariance
-from .registry import MeasurementModel, NonlinearModel, register_model
+from .registry import MeasurementModel, NonlinearModel, batched, register_model
 
 #: The acceleration channels (indices of vx, vy, omega): the entries of Q worth adapting.
 OMNI_ACCEL_CHANNELS = (3, 4, 5)
@@ -146,18 +146,6 @@ class OmniDynamics:
         return eye + (h / 6.0) * (J1 + 2.0 * J2 + 2.0 * J3 + J4)
 
 
-def _batched(fn):
-    """Lift a batched map (N, 6) -> (N, ...) to also take one state (6,)."""
-
-    def wrapped(X, *args):
-        X = np.asarray(X, dtype=float)
-        if X.ndim == 1:
-            return fn(X[None, :], *args)[0]
-        return fn(X, *args)
-
-    return wrapped
-
-
 @register_model("omni3")
 def omni3(
     period_s: float = 0.01,
@@ -191,10 +179,10 @@ def omni3(
     def Hjac(X: np.ndarray) -> np.ndarray:
         return np.broadcast_to(H, (X.shape[0], 3, 6)).copy()
 
-    pose = MeasurementModel(name="pose", h=_batched(h), R=Rm, angles=(2,), jac=_batched(Hjac),
+    pose = MeasurementModel(name="pose", h=batched(h), R=Rm, angles=(2,), jac=batched(Hjac),
                             vectorized=True)
-    return NonlinearModel(name="omni3", n=6, nu=3, f=_batched(f), Q=Qm, sensors={"pose": pose},
-                          angles=(2,), jac=_batched(F), vectorized=True)
+    return NonlinearModel(name="omni3", n=6, nu=3, f=batched(f), Q=Qm, sensors={"pose": pose},
+                          angles=(2,), jac=batched(F), vectorized=True)
 
 
 def _diag_or_matrix(value: object, field: str, n: int) -> np.ndarray:

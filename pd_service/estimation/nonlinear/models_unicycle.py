@@ -47,12 +47,11 @@ wheel odometry whose pose drifts, use ``"odom_twist"``.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
+from ..checks import as_nonnegative
 from .models_omni import _diag_or_matrix
-from .registry import MeasurementModel, NonlinearModel, register_model, wrap_angle
+from .registry import MeasurementModel, NonlinearModel, batched, register_model, wrap_angle
 
 #: State layout.
 X, Y, YAW, V, W = range(5)
@@ -101,9 +100,9 @@ class UnicycleDynamics:
     """The step map and its Jacobian, batched over rows of S (N, 5); u = (v_cmd, w_cmd)."""
 
     def __init__(self, period_s: float, tau_v: float, tau_w: float) -> None:
-        dt = _number(period_s, "period_s", positive=True)
-        tv = _number(tau_v, "tau_v", positive=False)
-        tw = _number(tau_w, "tau_w", positive=False)
+        dt = as_nonnegative(period_s, "period_s", strict=True)
+        tv = as_nonnegative(tau_v, "tau_v", strict=False)
+        tw = as_nonnegative(tau_w, "tau_w", strict=False)
         self.dt = dt
         self.e_v, self.a_v = lag_factors(tv, dt)
         self.e_w, self.a_w = lag_factors(tw, dt)
@@ -161,15 +160,6 @@ class UnicycleDynamics:
         return J
 
 
-def _number(value: object, field: str, positive: bool) -> float:
-    try:
-        v = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{field}: expected a number, got {value!r}") from None
-    if not np.isfinite(v) or v < 0.0 or (positive and v == 0.0):
-        raise ValueError(f"{field}: must be a finite number {'> 0' if positive else '>= 0'}, "
-                         f"got {value!r}")
-    return v
 
 
 def _command(u: np.ndarray) -> np.ndarray:
@@ -177,18 +167,6 @@ def _command(u: np.ndarray) -> np.ndarray:
     if u.shape != (2,):
         raise ValueError(f"u: expected (v_cmd, w_cmd), got shape {u.shape}")
     return u
-
-
-def _batched(fn: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
-    """Lift a batched map (N, n) -> (N, ...) to also take one state (n,)."""
-
-    def wrapped(Xs: np.ndarray, *args: object) -> np.ndarray:
-        Xs = np.asarray(Xs, dtype=float)
-        if Xs.ndim == 1:
-            return fn(Xs[None, :], *args)[0]
-        return fn(Xs, *args)
-
-    return wrapped
 
 
 def _selection_sensor(name: str, idx: tuple[int, ...], R_diag: tuple[float, ...]) -> MeasurementModel:
@@ -202,10 +180,10 @@ def _selection_sensor(name: str, idx: tuple[int, ...], R_diag: tuple[float, ...]
     angles = tuple(i for i, j in enumerate(idx) if j == YAW)
     return MeasurementModel(
         name=name,
-        h=_batched(lambda Xs: Xs[:, cols].copy()),
+        h=batched(lambda Xs: Xs[:, cols].copy()),
         R=R,
         angles=angles,
-        jac=_batched(lambda Xs: np.broadcast_to(H, (Xs.shape[0],) + H.shape).copy()),
+        jac=batched(lambda Xs: np.broadcast_to(H, (Xs.shape[0],) + H.shape).copy()),
         vectorized=True,
     )
 
@@ -225,5 +203,5 @@ def unicycle(
     sensors = {name: _selection_sensor(name, idx, R) for name, (idx, R) in UNICYCLE_SENSORS.items()}
     return NonlinearModel(
         name="unicycle", n=N_STATE, nu=2,
-        f=_batched(lambda Xs, u, k: dyn.step(Xs, u)), Q=Qm, sensors=sensors, angles=(YAW,),
-        jac=_batched(lambda Xs, u, k: dyn.step_jac(Xs, u)), vectorized=True)
+        f=batched(lambda Xs, u, k: dyn.step(Xs, u)), Q=Qm, sensors=sensors, angles=(YAW,),
+        jac=batched(lambda Xs, u, k: dyn.step_jac(Xs, u)), vectorized=True)

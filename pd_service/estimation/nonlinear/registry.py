@@ -98,6 +98,18 @@ def registered_models() -> list[str]:
     return sorted(_REGISTRY)
 
 
+def batched(fn: Callable[..., np.ndarray]) -> Callable[..., np.ndarray]:
+    """Lift a batched map (N, n) -> (N, ...) to also take one state (n,) -> (...)."""
+
+    def wrapped(Xs: np.ndarray, *args: object) -> np.ndarray:
+        Xs = np.asarray(Xs, dtype=float)
+        if Xs.ndim == 1:
+            return fn(Xs[None, :], *args)[0]
+        return fn(Xs, *args)
+
+    return wrapped
+
+
 def wrap_angle(a: np.ndarray | float) -> np.ndarray | float:
     """Wrap angles to [-pi, pi)."""
     return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi

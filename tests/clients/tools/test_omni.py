@@ -6,7 +6,6 @@ from __future__ import annotations
 import argparse
 import threading
 import time
-from collections import defaultdict
 
 import numpy as np
 import pytest
@@ -19,33 +18,8 @@ from pd_service.scenarios import ScenarioSim, get_scenario
 from pd_service.scenarios.omni import omni_torque
 from pd_service.wire import Command, decode, encode, keys
 
-from ..conftest import EPOCH_NS, Collector
+from ..conftest import EPOCH_NS, Collector, MemLink
 from ..mini_daemon import MiniDaemon
-
-
-class _Link:
-    """In-memory link: robot sensors -> service after the sensor's delay, service commands
-    -> robot after ``uplink`` steps (test clock ``now``)."""
-
-    def __init__(self, bus, delays: dict[str, int], uplink: int) -> None:
-        self.t = bus.transport()
-        self.now = 0
-        self.delays, self.uplink = delays, uplink
-        self.queue: dict[int, list[tuple[str, bytes]]] = defaultdict(list)
-        self.t.subscribe(keys.ROBOT_ALL_SENSORS, self._down)
-        self.t.subscribe(keys.ALL_COMMANDS, self._up)
-
-    def _down(self, s) -> None:
-        sensor = keys.parse_key(s.key).sensor
-        self.queue[self.now + self.delays[sensor]].append((keys.to_operator_side(s.key),
-                                                           s.payload))
-
-    def _up(self, s) -> None:
-        self.queue[self.now + self.uplink].append((keys.to_robot_side(s.key), s.payload))
-
-    def release(self, k: int) -> None:
-        for key, payload in self.queue.pop(k, []):
-            self.t.put(key, payload)
 
 
 def test_omni_chain_tracks_the_truth_and_adapts_q(bus):
@@ -59,7 +33,7 @@ def test_omni_chain_tracks_the_truth_and_adapts_q(bus):
     daemon = MiniDaemon(bus.transport())
     bus.transport().put(keys.config_key(name), encode(spec))
     assert name in daemon.sessions and not daemon.errors
-    link = _Link(bus, {s.name: s.delay for s in sc.sensors}, uplink=sc.lead)
+    link = MemLink(bus, {s.name: s.delay for s in sc.sensors}, uplink=sc.lead)
     preds = Collector(bus, keys.prediction_key(name))
     truths = Collector(bus, keys.truth_key(name))
     robot = pd_robot_sim.RobotSim(bus.transport(), sc, [spec], seed=seed)

@@ -15,33 +15,8 @@ from pd_client.tools.record_csv import summarize
 from pd_service.scenarios import ScenarioSim, get_scenario
 from pd_service.wire import Command, decode, encode, keys
 
-from ..conftest import EPOCH_NS, Collector
+from ..conftest import EPOCH_NS, Collector, MemLink
 from ..mini_daemon import MiniDaemon
-
-
-class MemLink:
-    """In-memory link emulator: robot/<s>/sensor/<n> -> pd/<s>/sensor/<n> after the sensor's
-    nominal delay, pd/<s>/cmd -> robot/<s>/cmd after ``uplink`` steps (test clock ``now``)."""
-
-    def __init__(self, bus, delays: dict[str, int], uplink: int) -> None:
-        self.t = bus.transport()
-        self.now = 0
-        self.delays, self.uplink = delays, uplink
-        self.queue: dict[int, list[tuple[str, bytes]]] = defaultdict(list)
-        self.t.subscribe(keys.ROBOT_ALL_SENSORS, self._down)
-        self.t.subscribe(keys.ALL_COMMANDS, self._up)
-
-    def _down(self, s):
-        p = keys.parse_key(s.key)
-        self.queue[self.now + self.delays[p.sensor]].append((keys.to_operator_side(s.key),
-                                                             s.payload))
-
-    def _up(self, s):
-        self.queue[self.now + self.uplink].append((keys.to_robot_side(s.key), s.payload))
-
-    def release(self, k: int) -> None:
-        for key, payload in self.queue.pop(k, []):
-            self.t.put(key, payload)
 
 
 def test_tick_publishes_truth_and_stamped_samples_per_session(bus):

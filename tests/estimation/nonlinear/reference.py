@@ -20,6 +20,7 @@ from pd_service.estimation.nonlinear.unscented import (
     time_step,
 )
 from pd_service.estimation.replay import Packet
+from tests.estimation.reference import applied_inputs
 
 
 def from_scratch(model, sensor_names, x0, P0, commands, packets, commit, target, adapter=None,
@@ -48,7 +49,7 @@ def from_scratch(model, sensor_names, x0, P0, commands, packets, commit, target,
     for idx, step, z in packets:
         by_step.setdefault(step, []).append(Packet(idx, np.asarray(z, float), None))
     last = 0
-    u_held = np.zeros(model.nu)
+    us = applied_inputs(commands, model.nu, target, hold)
     for k in range(target + 1):
         if k in by_step:
             pk = sorted(by_step[k], key=lambda p: p.sensor)
@@ -62,13 +63,7 @@ def from_scratch(model, sensor_names, x0, P0, commands, packets, commit, target,
                 state = measurement_update(ops, w, UKFState(state.x, state.P), k, pk)[0]
         if k == target:
             break
-        if k in commands:
-            u = np.asarray(commands[k], float)
-            if hold:
-                u_held = u
-        else:
-            u = u_held if hold else np.zeros(model.nu)
-        state = time_step(ops, w, Q, state, u, k, dQ if state.tracked else None)
+        state = time_step(ops, w, Q, state, us[k], k, dQ if state.tracked else None)
     return state.x, state.P, Q
 
 

@@ -17,6 +17,15 @@ from pd_service.logs import add_logging_args, setup_logging
 from pd_service.transport import TOOL, Transport, add_zenoh_args, options_from_args
 
 from .._base import connect_options
+from ..errors import PdClientError
+
+
+def tool_parser(tool: str, doc: str) -> argparse.ArgumentParser:
+    """A tool's parser: its docstring's first paragraph as the description, the rest (kept
+    as written) as the epilog."""
+    return argparse.ArgumentParser(prog=tool, description=doc.split("\n\n")[0],
+                                   formatter_class=argparse.RawDescriptionHelpFormatter,
+                                   epilog=doc.split("\n\n", 1)[1])
 
 
 def add_tool_args(ap: argparse.ArgumentParser) -> None:
@@ -36,6 +45,24 @@ def add_progress_arg(ap: argparse.ArgumentParser) -> None:
 def open_transport(args: argparse.Namespace) -> Transport:
     """The Zenoh transport of a command line built with :func:`add_tool_args`."""
     return connect_options(options_from_args(args))
+
+
+def run_on_transport(tool: str, args: argparse.Namespace, body: Callable[[Transport], int],
+                     error_code: int = 1) -> int:
+    """Open the transport of the command line, return ``body(transport)`` and close it.
+
+    A PdClientError opening it is reported and gives exit code 1; one raised by ``body``
+    gives ``error_code``."""
+    try:
+        transport = open_transport(args)
+    except PdClientError as exc:
+        return fail(tool, exc)
+    try:
+        return body(transport)
+    except PdClientError as exc:
+        return fail(tool, exc, error_code)
+    finally:
+        transport.close()
 
 
 @contextlib.contextmanager

@@ -22,6 +22,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pd_service.transport import Transport
+
 from ..display import Display
 from ..errors import PdClientError
 from . import common
@@ -86,9 +88,7 @@ def render_frame(display: Display) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap = common.tool_parser(TOOL, __doc__)
     ap.add_argument("--session", default="paper")
     ap.add_argument("--no-truth", action="store_true", help="do not read the truth key")
     ap.add_argument("--once", action="store_true",
@@ -111,34 +111,31 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     if args.count is not None and args.count < 1:
         ap.error("--count must be >= 1")
     plain = args.plain or args.once or not sys.stdout.isatty()
-    try:
-        transport = common.open_transport(args)
-    except PdClientError as exc:
-        return common.fail(TOOL, exc)
-    try:
-        with Display(transport, args.session, truth=not args.no_truth) as display:
-            if args.once:
-                try:
-                    display.wait(1, timeout=args.timeout)
-                except PdClientError as exc:
-                    return common.fail(TOOL, exc)
-                print(render_frame(display), flush=True)
-                return 0
-            deadline = time.monotonic() + args.timeout if args.count else None
-            while not stop.is_set():
-                frame = render_frame(display)
-                print((frame if plain else CLEAR + frame) + ("\n" if plain else ""), flush=True)
-                if args.count and display.stats().received >= args.count:
-                    return 0
-                if deadline is not None and time.monotonic() > deadline:
-                    return common.fail(TOOL, f"{display.stats().received} of {args.count} "
-                                           f"predictions within {args.timeout} s")
-                stop.wait(args.interval)
+    return common.run_on_transport(
+        TOOL, args, lambda transport: _show(transport, args, plain, stop), error_code=2)
+
+
+def _show(transport: Transport, args: argparse.Namespace, plain: bool,
+          stop: threading.Event) -> int:
+    with Display(transport, args.session, truth=not args.no_truth) as display:
+        if args.once:
+            try:
+                display.wait(1, timeout=args.timeout)
+            except PdClientError as exc:
+                return common.fail(TOOL, exc)
+            print(render_frame(display), flush=True)
             return 0
-    except PdClientError as exc:
-        return common.fail(TOOL, exc, 2)
-    finally:
-        transport.close()
+        deadline = time.monotonic() + args.timeout if args.count else None
+        while not stop.is_set():
+            frame = render_frame(display)
+            print((frame if plain else CLEAR + frame) + ("\n" if plain else ""), flush=True)
+            if args.count and display.stats().received >= args.count:
+                return 0
+            if deadline is not None and time.monotonic() > deadline:
+                return common.fail(TOOL, f"{display.stats().received} of {args.count} "
+                                       f"predictions within {args.timeout} s")
+            stop.wait(args.interval)
+        return 0
 
 
 if __name__ == "__main__":

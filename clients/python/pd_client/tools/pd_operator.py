@@ -27,7 +27,6 @@ from pd_service.wire.convert import command_dim
 
 from .._base import try_decode
 from ..admin import Admin
-from ..errors import PdClientError
 from ..operator import Operator
 from . import common
 
@@ -35,9 +34,7 @@ TOOL = "pd-operator"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap = common.tool_parser(TOOL, __doc__)
     ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help=argparse.SUPPRESS)
@@ -64,16 +61,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         ap.error(str(exc))
     steps = scenario.default_steps if args.steps is None else args.steps
     names = args.session or [scenario.name]
-    try:
-        transport = common.open_transport(args)
-    except PdClientError as exc:
-        return common.fail(TOOL, exc)
-    try:
-        return _run(transport, scenario, names, steps, args, stop)
-    except PdClientError as exc:
-        return common.fail(TOOL, exc)
-    finally:
-        transport.close()
+    return common.run_on_transport(
+        TOOL, args, lambda transport: _run(transport, scenario, names, steps, args, stop))
 
 
 class _Followed:

@@ -226,9 +226,7 @@ class Recorder:
 # --- command line ----------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap = common.tool_parser(TOOL, __doc__)
     ap.add_argument("--session", action="append", metavar="NAME",
                     help="session to record (repeatable; default: paper)")
     ap.add_argument("--out", default="out/record", help="output directory (default out/record)")

@@ -149,9 +149,7 @@ class RobotSim:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap = common.tool_parser(TOOL, __doc__)
     ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help="noise setting of the paper scenario (default: journal)")
@@ -198,16 +196,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     steps = scenario.default_steps if args.steps is None else args.steps
     if steps < 0:
         ap.error("--steps must be >= 0")
-    try:
-        transport = common.open_transport(args)
-    except PdClientError as exc:
-        return common.fail(TOOL, exc)
-    try:
-        return _run(args, scenario, sessions, steps, transport, stop)
-    except PdClientError as exc:
-        return common.fail(TOOL, exc)
-    finally:
-        transport.close()
+    return common.run_on_transport(
+        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop))
 
 
 def _run(args: argparse.Namespace, scenario: Scenario,
