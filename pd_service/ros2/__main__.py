@@ -20,13 +20,14 @@ import signal
 import sys
 import threading
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, setup_logging
 from pd_service.transport.options import TOOL, add_zenoh_args, options_from_args
 
-from .bridge import BridgeSettings
+if TYPE_CHECKING:
+    from .bridge import BridgeSettings
 
 log = logging.getLogger("pd_service.ros2")
 
@@ -63,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def settings_from_args(args: argparse.Namespace) -> BridgeSettings:
     """The bridge settings of a parsed command line; raises ConfigError."""
+    from .bridge import BridgeSettings
+
     domain = args.domain_id
     if domain is None:
         env = os.environ.get("ROS_DOMAIN_ID", "").strip()
@@ -80,6 +83,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, args.log_format)
     try:
+        from .bridge import Ros2Bridge
+    except ImportError as exc:  # rosbags / xxhash: the ros2 extra
+        log.error("pd-ros2 needs the ros2 extra: pip install 'pd-service[ros2]'",
+                  extra={"fields": {"error": str(exc)}})
+        return 2
+    try:
         settings = settings_from_args(args)
         conf = options_from_args(args).config(TOOL)
     except (ConfigError, ValueError) as exc:
@@ -87,8 +96,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     from pd_service.transport.zenoh_transport import ZenohTransport
-
-    from .bridge import Ros2Bridge
 
     stop = threading.Event()
 
