@@ -64,6 +64,7 @@ class InMemoryBus:
         self.queryables: list[tuple[str, Callable]] = []
         self.tokens: list[str] = []
         self.live_subs: list[tuple[str, Callable[[str, bool], None]]] = []
+        self.transports = 0  # how many transports were made on this bus (their session ids)
 
     def transport(self) -> InMemoryTransport:
         return InMemoryTransport(self)
@@ -73,6 +74,13 @@ class InMemoryTransport(HandleOwner):
     def __init__(self, bus: InMemoryBus) -> None:
         super().__init__()
         self.bus = bus
+        with bus.lock:
+            bus.transports += 1
+            # a fixed Zenoh-like id per transport of the bus: 1st -> "a1", 2nd -> "a2", ...
+            self._zid = f"a{bus.transports:x}"
+
+    def session_id(self) -> str:
+        return self._zid
 
     # pub/sub
     def put(self, key: str, payload: bytes) -> None:

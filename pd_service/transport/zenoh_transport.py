@@ -142,6 +142,9 @@ class ZenohTransport(HandleOwner):
         return [str(r.ok.key_expr) for r in self.session.liveliness().get(keyexpr, timeout=timeout)
                 if r.ok is not None]
 
+    def session_id(self) -> str:
+        return str(self.session.zid())
+
     def _keep(self, obj: object) -> _Handle:
         h = _Handle(obj)
         self._handles.append(h)

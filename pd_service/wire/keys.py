@@ -24,6 +24,10 @@ Link emulator::
     pd/@link/<instance>/rules    queryable: get or replace the rule set
     pd/@link/<instance>/stats    queryable: per-rule statistics
 
+ROS 2 bridge (``pd-ros2``)::
+
+    pd/@ros2/<instance>/status   queryable: per-session counters (JSON)
+
 Chunks starting with ``@`` are *verbatim* in Zenoh 1.x: ``*`` and ``**`` never match
 them, so a session wildcard such as ``pd/*/cmd`` can never catch a service key, and a
 session id (which may not start with ``@``) can never collide with one.
@@ -42,6 +46,7 @@ OPERATOR_ROOT = "pd"
 ROBOT_ROOT = "robot"
 SERVICE_CHUNK = "@service"
 LINK_CHUNK = "@link"
+ROS2_CHUNK = "@ros2"
 
 StreamKind = Literal["config", "sensor", "cmd", "prediction", "error", "status", "truth"]
 
@@ -131,6 +136,12 @@ def link_rules_key(instance: str) -> str:
 
 def link_stats_key(instance: str) -> str:
     return f"{OPERATOR_ROOT}/{LINK_CHUNK}/{check_name(instance, 'instance')}/stats"
+
+
+# --- ROS 2 bridge ----------------------------------------------------------------------
+
+def ros2_status_key(instance: str) -> str:
+    return f"{OPERATOR_ROOT}/{ROS2_CHUNK}/{check_name(instance, 'instance')}/status"
 
 
 # --- parsing ---------------------------------------------------------------------------

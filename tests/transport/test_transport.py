@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import socket
 import threading
 
@@ -36,6 +37,8 @@ def test_keyexpr_intersection(a: str, b: str, want: bool) -> None:
 
 
 def exercise(t1, t2, wait) -> None:
+    ids = (t1.session_id(), t2.session_id())  # Zenoh ids: lowercase hex, one per session
+    assert ids[0] != ids[1] and all(re.fullmatch(r"[0-9a-f]{1,32}", i) for i in ids)
     got: list = []
     ev = threading.Event()
 

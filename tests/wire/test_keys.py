@@ -23,7 +23,8 @@ SESSION_KEYS = {
     keys.truth_key("s1"): ParsedKey("robot", "s1", "truth"),
 }
 SERVICE_KEYS = [keys.service_token_key("pd-a"), keys.service_status_key("pd-a"),
-                keys.link_rules_key("link-1"), keys.link_stats_key("link-1")]
+                keys.link_rules_key("link-1"), keys.link_stats_key("link-1"),
+                keys.ros2_status_key("r-1")]
 WILDCARDS = {
     keys.ALL_CONFIGS: keys.config_key, keys.ALL_COMMANDS: keys.command_key,
     keys.ALL_PREDICTIONS: keys.prediction_key, keys.ALL_ERRORS: keys.error_key,
@@ -36,7 +37,8 @@ def test_layout():
         "pd/s1/config", "pd/s1/sensor/camera", "pd/s1/cmd", "pd/s1/prediction", "pd/s1/error",
         "pd/s1/status", "robot/s1/sensor/camera", "robot/s1/cmd", "robot/s1/truth"]
     assert SERVICE_KEYS == ["pd/@service/pd-a", "pd/@service/pd-a/status",
-                            "pd/@link/link-1/rules", "pd/@link/link-1/stats"]
+                            "pd/@link/link-1/rules", "pd/@link/link-1/stats",
+                            "pd/@ros2/r-1/status"]
 
 
 @pytest.mark.parametrize("key", list(SESSION_KEYS))
