@@ -10,12 +10,13 @@ STAMP  := $(VENV)/.installed
 $(STAMP): pyproject.toml clients/python/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]' -e 'clients/python[plots]'
+	$(PY) -m pip install --quiet -e '.[dev]' -e 'clients/python[plots,viz]'
 	touch $(STAMP)
 
 venv: $(STAMP)
 
-# The demo's PNG plots need matplotlib: the client's `plots` extra, installed above.
+# The demo's PNG plots need matplotlib (the client's `plots` extra), its live view and MCAP
+# log foxglove-sdk and mcap (`viz`), both installed above.
 demo: $(STAMP)
 	$(VENV)/bin/pd-demo
 

@@ -6,7 +6,10 @@ Starts, each as its own process on a free loopback port:
 2. ``pd-link``        the link emulator with the paper's link (camera 10 steps, range
                       finder 12, uplink 10, plus loss: ``link-paper.toml``, shipped in
                       ``pd_client/tools/data/``; ``deploy/link-paper.toml`` links to it)
-3. ``pd-record``      records predictions and truth for both sessions, renders PNGs
+3. ``pd-record``      records predictions and truth for both sessions, renders PNGs, and
+                      (with the ``viz`` extra) every input and output to ``<out>/run.mcap``
+   ``pd-viz``         (with the ``viz`` extra) a Foxglove WebSocket server on
+                      ws://127.0.0.1:8765 showing both sessions live (docs/visualize.md)
 4. ``pd-operator``    sends the paper's commands, stamped with their apply step
 5. ``pd-robot-sim``   the paper's vehicle chasing an object, publishing camera and range
                       finder to session ``paper`` and the camera only to ``paper-cam``
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import json
 import os
 import shutil
@@ -95,6 +99,11 @@ def packaged_link_config() -> Iterator[Path]:
         yield p
 
 
+def has_viz() -> bool:
+    """foxglove-sdk and mcap (the client's ``viz`` extra) are installed."""
+    return all(importlib.util.find_spec(m) is not None for m in ("foxglove", "mcap"))
+
+
 def wait_for(what: str, check: Callable[[], bool], timeout: float, procs: list[Proc]) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -132,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="link emulator rules (default: the paper's link, shipped with pd-client)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--quiet", action="store_true", help="do not relay the processes' output")
+    ap.add_argument("--viz-port", type=int, default=8765,
+                    help="pd-viz's WebSocket port (default 8765; -1: no pd-viz)")
     args = ap.parse_args(argv)
     if args.link_config is not None and not args.link_config.is_file():
         print(f"{TOOL}: link config {args.link_config} not found", file=sys.stderr)
@@ -173,8 +184,18 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                      30.0, procs)
         finally:
             probe.close()
+        viz = has_viz()
+        mcap = ["--mcap", str(out / "run.mcap")] if viz else []
         recorder = start("record", "-m", "pd_client.tools", "record", *[f"--session={s}" for s in SESSIONS],
-                         "--out", str(out), "--idle-timeout", "3", "--states", "p1,p2", *zenoh_args)
+                         "--out", str(out), "--idle-timeout", "3", "--states", "p1,p2", *mcap,
+                         *zenoh_args)
+        if viz and args.viz_port >= 0:  # a live view; the demo goes on without it if it fails
+            start("viz", "-m", "pd_client.tools", "viz", *[f"--session={s}" for s in SESSIONS],
+                  "--port", str(args.viz_port), *zenoh_args)
+            print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{args.viz_port} "
+                  "(open it in Foxglove: docs/visualize.md)", flush=True)
+        elif not viz:
+            print(f"{TOOL}: no live view / MCAP: pip install 'pd-client[viz]'", flush=True)
         start("operator", "-m", "pd_client.tools", "operator", *[f"--session={s}" for s in SESSIONS],
               "--steps", str(args.steps), *zenoh_args)
         sim = start("sim", "-m", "pd_client.tools", "sim", "--session", "paper",
@@ -260,6 +281,8 @@ def report(out: Path) -> int:
         print()
         print_table(f"... while the range finder reports (target steps {w['first']}-{w['last']})",
                     window)
+    if (out / "run.mcap").exists():
+        print(f"MCAP of the run: {out / 'run.mcap'} (pd-replay {out / 'run.mcap'})")
     pngs = sorted(out.glob("*.png"))
     print("PNG plots:" if pngs else "PNG plots: none (matplotlib not installed)")
     for p in pngs:

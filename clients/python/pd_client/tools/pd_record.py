@@ -34,7 +34,7 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -47,6 +47,9 @@ from ..errors import InvalidMessage, PdClientError
 from ..truth import Truth
 from . import common
 from .record_csv import DEFAULT_WARMUP, META_COLUMNS, format_summary, summarize
+
+if TYPE_CHECKING:
+    from .mcap_log import McapRecorder
 
 TOOL = "pd-record"
 
@@ -239,6 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"target steps left out of the summary (default {DEFAULT_WARMUP})")
     ap.add_argument("--states", help="states in the printed summary, e.g. p1,p2 (default all)")
     ap.add_argument("--no-plots", action="store_true", help="do not render PNGs")
+    ap.add_argument("--mcap", metavar="FILE",
+                    help="also record every input and output of the sessions to this MCAP "
+                         "file (pip install 'pd-client[viz]'; see pd_client.tools.mcap_log)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap
@@ -259,13 +265,27 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
             recorder = Recorder(transport, sessions, args.out)
         except PdClientError as exc:
             return common.fail(TOOL, exc, 2)
+        try:
+            mcap = _open_mcap(transport, sessions, args.mcap) if args.mcap else None
+        except ImportError:
+            return common.fail(TOOL, "--mcap needs the mcap package: "
+                                     "pip install 'pd-client[viz]'", 2)
         common.progress(TOOL, f"recording {', '.join(sessions)} to {args.out}")
         _record(recorder, args, stop)
         recorder.close()
+        if mcap is not None:
+            mcap.close()
+            print(f"mcap: {mcap.path} ({mcap.log.messages} messages)")
     finally:
         transport.close()
     return finish(recorder.paths, args.out, args.warmup,
                   args.states.split(",") if args.states else None, plots=not args.no_plots)
+
+
+def _open_mcap(transport: Transport, sessions: Sequence[str], path: str) -> McapRecorder:
+    from .mcap_log import McapRecorder
+
+    return McapRecorder(transport, sessions, path)
 
 
 def _record(recorder: Recorder, args: argparse.Namespace, stop: threading.Event) -> None:

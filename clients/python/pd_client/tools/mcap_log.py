@@ -1,0 +1,255 @@
+"""MCAP logs of pd-service sessions: what ``pd-record --mcap`` writes and ``pd-replay`` reads.
+
+One MCAP channel per Zenoh key, topic ``/`` + key (``/pd/<s>/sensor/<name>``, ``/pd/<s>/cmd``,
+``/pd/<s>/prediction``, ``/pd/<s>/error``, ``/pd/<s>/status``, ``/pd/<s>/config``,
+``/robot/<s>/truth``), message encoding ``json`` with the message type's JSON Schema
+(``jsonschema`` schema encoding; the same schemas as docs/schemas, from
+:func:`pd_service.wire.schemas.schemas`, and :class:`pd_client.Truth`'s).
+
+Each message is the payload's msgpack map, unpacked (the wire form: arrays are
+``{"shape": [...], "data": [...]}``) and written as JSON. Python writes a float with
+``repr``, which reads back as the same float64, and keeps ``1`` and ``1.0`` apart, so
+``msgpack.packb(json.loads(data))`` decodes to exactly the numbers the daemon decoded: this
+is what makes an exact offline replay possible without storing the msgpack bytes twice.
+A payload that is not such a map (undecodable bytes, bin fields, NaN/inf, a delete) goes to
+``/pd/<s>/raw`` as ``{"key", "kind", "payload_b64"}`` so a replay still sees it.
+
+Log time and publish time are the recorder's receipt time (wall clock, ns); the MCAP
+``sequence`` of each message is its arrival order at the recorder (over all channels).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import msgpack
+
+from pd_service.transport import Handle, Sample, Transport
+from pd_service.wire import keys
+from pd_service.wire.schemas import schemas
+
+from ..truth import Truth
+
+#: Stream kind of a key -> message type name (its JSON Schema's title).
+TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Prediction",
+                "error": "ErrorReport", "status": "SessionStatus", "config": "SessionSpec",
+                "truth": "Truth"}
+RAW_SCHEMA: dict[str, Any] = {
+    "title": "RawSample", "type": "object",
+    "description": "A sample that is not a JSON-representable msgpack map (kept for replay).",
+    "properties": {"key": {"type": "string"}, "kind": {"enum": ["put", "delete"]},
+                   "payload_b64": {"type": "string"}},
+    "required": ["key", "kind", "payload_b64"],
+}
+_UNPACK: dict[str, Any] = {"raw": False, "strict_map_key": True, "use_list": True}
+
+
+def _json_schemas() -> dict[str, dict[str, Any]]:
+    out = {name.removesuffix(".json"): s for name, s in schemas().items()}
+    out["Truth"] = Truth.model_json_schema(mode="validation")
+    out["RawSample"] = RAW_SCHEMA
+    return out
+
+
+def topic_of(key: str) -> str:
+    return "/" + key
+
+
+def key_of(topic: str) -> str:
+    return topic.removeprefix("/")
+
+
+def to_json(payload: bytes) -> bytes | None:
+    """The payload's msgpack map as JSON bytes, or None if it is not one (or holds NaN/inf
+    or bytes, which JSON cannot carry)."""
+    try:
+        obj = msgpack.unpackb(payload, **_UNPACK)
+        if not isinstance(obj, dict):
+            return None
+        return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
+    except Exception:
+        return None
+
+
+def to_payload(data: bytes) -> bytes:
+    """Inverse of :func:`to_json`: msgpack bytes that decode to the same values."""
+    return msgpack.packb(json.loads(data), use_bin_type=True)
+
+
+class McapLog:
+    """An MCAP file being written: channels are registered on first use. Thread-safe."""
+
+    def __init__(self, path: str | Path, library: str = "pd-client") -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file: IO[bytes] = open(self.path, "wb")
+        self._w = Writer(self._file, compression=CompressionType.ZSTD)
+        self._w.start(profile="", library=library)
+        self._schemas = _json_schemas()
+        self._schema_ids: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self._seq = 0
+        self.messages = 0
+        self._closed = False
+
+    def _channel(self, topic: str, type_name: str) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            sid = self._schema_ids.get(type_name)
+            if sid is None:
+                sid = self._w.register_schema(
+                    name=type_name, encoding="jsonschema",
+                    data=json.dumps(self._schemas[type_name]).encode())
+                self._schema_ids[type_name] = sid
+            cid = self._w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
+            self._channels[topic] = cid
+        return cid
+
+    def write(self, topic: str, type_name: str, data: bytes, log_ns: int) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            cid = self._channel(topic, type_name)
+            self._w.add_message(channel_id=cid, log_time=log_ns, data=data,
+                                publish_time=log_ns, sequence=self._seq)
+            self._seq += 1
+            self.messages += 1
+
+    def write_sample(self, key: str, payload: bytes, log_ns: int, kind: str = "put") -> None:
+        """One received sample: on its key's channel, or the session's raw channel."""
+        try:
+            parsed = keys.parse_key(key)
+        except keys.KeyError_:
+            return
+        data = to_json(payload) if kind == "put" else None
+        if data is not None:
+            self.write(topic_of(key), TYPE_OF_KIND[parsed.kind], data, log_ns)
+            return
+        raw = {"key": key, "kind": kind, "payload_b64": base64.b64encode(payload).decode()}
+        self.write(topic_of(f"{keys.OPERATOR_ROOT}/{parsed.session}/raw"), "RawSample",
+                   json.dumps(raw).encode(), log_ns)
+
+    def metadata(self, name: str, data: dict[str, str]) -> None:
+        with self._lock:
+            self._w.add_metadata(name, data)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._w.finish()
+            self._file.close()
+
+
+class McapRecorder:
+    """Records every input and output of ``sessions`` to an MCAP file: the sensor packets on
+    the daemon's side of the link (``pd/<s>/sensor/*``), commands, predictions, error
+    reports, configs (the SessionSpec, also fetched from the daemon at start), the truth,
+    and the session status (queried every ``status_every`` s on a background thread)."""
+
+    def __init__(self, transport: Transport, sessions: Sequence[str], path: str | Path,
+                 status_every: float = 1.0) -> None:
+        self.t = transport
+        self.sessions = [keys.check_name(s, "session") for s in sessions]
+        self.log = McapLog(path)
+        self.log.metadata("pd-record", {"sessions": ",".join(self.sessions)})
+        self._handles: list[Handle] = []
+        for s in self.sessions:
+            for kx in (keys.ALL_SENSORS.replace("*", s, 1), keys.command_key(s), keys.prediction_key(s),
+                       keys.error_key(s), keys.status_key(s), keys.config_key(s),
+                       keys.truth_key(s)):
+                self._handles.append(transport.subscribe(kx, self._on_sample))
+        self._stop = threading.Event()
+        for s in self.sessions:
+            self._query(keys.config_key(s))
+        self._thread: threading.Thread | None = None
+        if status_every > 0:
+            self._thread = threading.Thread(target=self._status_loop, args=(status_every,),
+                                            name="pd-record-status", daemon=True)
+            self._thread.start()
+
+    @property
+    def path(self) -> Path:
+        return self.log.path
+
+    def _on_sample(self, sample: Sample) -> None:
+        self.log.write_sample(sample.key, sample.payload, sample.recv_ns, sample.kind)
+
+    def _query(self, key: str) -> None:
+        try:
+            replies = self.t.get(key, timeout=1.0)
+        except Exception:  # no daemon answering: nothing to record
+            return
+        for r in replies:
+            if r.ok:
+                self.log.write_sample(r.key, r.payload, time.time_ns())
+
+    def _status_loop(self, every: float) -> None:
+        while not self._stop.wait(every):
+            for s in self.sessions:
+                self._query(keys.status_key(s))
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        for h in self._handles:
+            h.close()
+        self._handles.clear()
+        self.log.close()
+
+    def __enter__(self) -> McapRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --- reading ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class Record:
+    """One logged message: Zenoh key, stream kind, the msgpack payload, log time (ns), and
+    ``kind`` put/delete (raw samples keep theirs)."""
+
+    key: str
+    stream: str
+    session: str
+    payload: bytes
+    log_ns: int
+    kind: str = "put"
+
+
+def read_records(path: str | Path) -> Iterator[Record]:
+    """The messages of an MCAP written by :class:`McapLog`, in arrival order."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        msgs = [(m.sequence, m.log_time, ch.topic, m.data)
+                for _, ch, m in reader.iter_messages(log_time_order=False)]
+    msgs.sort(key=lambda t: t[0])
+    for _, log_ns, topic, data in msgs:
+        key = key_of(topic)
+        parts = key.split("/")
+        if len(parts) == 3 and parts[2] == "raw":
+            raw = json.loads(data)
+            key, kind, payload = raw["key"], raw["kind"], base64.b64decode(raw["payload_b64"])
+        else:
+            kind, payload = "put", to_payload(data)
+        try:
+            parsed = keys.parse_key(key)
+        except keys.KeyError_:
+            continue
+        yield Record(key, parsed.kind, parsed.session, payload, log_ns, kind)

@@ -1,0 +1,458 @@
+"""``pd-viz``: a Foxglove WebSocket server showing pd-service sessions live.
+
+    pd-viz --session paper                  # ws://127.0.0.1:8765, open it in Foxglove
+    pd-viz                                  # every session the daemons serve
+    pd-viz --session paper --xy 0,2 --port 8766
+
+Built on the official ``foxglove-sdk`` (``pip install 'pd-client[viz]'``); Foxglove desktop
+or web (and PlotJuggler's Foxglove WebSocket client) connect to it. Channels per session
+``<s>`` (frame ``world``; docs/visualize.md and deploy/foxglove/pd-service-layout.json):
+
+=========================  ====================  ============================================
+topic                      schema                content
+=========================  ====================  ============================================
+/<s>/pose                  foxglove.PoseInFrame  predicted position (x, y) at the target step
+/<s>/ellipse               foxglove.SceneUpdate  its 2-sigma ellipse, from P's (x, y) block
+/<s>/truth_pose            foxglove.PoseInFrame  the simulator's truth (when published)
+/<s>/prediction            JSON                  step, x / var / sd per state name, latency
+/<s>/error                 JSON                  prediction - truth per state, and / sigma
+/<s>/measurement           JSON                  each sensor packet as it arrives, its age
+/<s>/command               JSON                  each command as it arrives
+/<s>/truth                 JSON                  truth per state name
+/<s>/status                JSON                  counters, latency, late / future refusals
+/<s>/log                   foxglove.Log          the service's ErrorReports
+=========================  ====================  ============================================
+
+The position states are ``--xy I,J`` or, from the truth's state names, ``x,y`` /
+``p1,p2`` / ``px,py``, else 0 and 1; a heading named ``theta``/``yaw``/``psi``/``heading``
+orients the pose. Angles in the JSON channels are radians; times ns; ages ms.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from pd_service.transport import Handle, Sample, Transport
+from pd_service.wire import (
+    Command,
+    ErrorReport,
+    Measurement,
+    Prediction,
+    SessionSpec,
+    SessionStatus,
+    WireError,
+    decode,
+    keys,
+)
+from pd_service.wire.convert import command_step, measurement_step
+
+from ..admin import Admin
+from ..display import Display
+from ..errors import PdClientError
+from ..truth import Truth
+from . import common
+
+TOOL = "pd-viz"
+FRAME = "world"
+DEFAULT_PORT = 8765
+_HEADINGS = ("theta", "yaw", "psi", "heading")
+_XY_NAMES = (("x", "y"), ("p1", "p2"), ("px", "py"))
+
+log = logging.getLogger("pd_client.viz")
+
+
+def position_indices(n: int, names: Sequence[str] | None,
+                     override: tuple[int, int] | None = None) -> tuple[int, int | None]:
+    """Indices of the (x, y) position in a state of ``n`` components (y None if n == 1)."""
+    if override is not None:
+        return override
+    if names:
+        for a, b in _XY_NAMES:
+            if a in names and b in names:
+                return names.index(a), names.index(b)
+    return 0, (1 if n > 1 else None)
+
+
+def heading_index(names: Sequence[str] | None) -> int | None:
+    for h in _HEADINGS:
+        if names and h in names:
+            return list(names).index(h)
+    return None
+
+
+def ellipse_points(mean: tuple[float, float], cov: np.ndarray, k: float = 2.0,
+                   segments: int = 48) -> list[tuple[float, float]]:
+    """The k-sigma ellipse {m + k L (cos t, sin t)} of a 2x2 covariance (L: its Cholesky-like
+    square root from the eigendecomposition, negative eigenvalues clipped to 0)."""
+    w, v = np.linalg.eigh((cov + cov.T) / 2.0)
+    L = v @ np.diag(np.sqrt(np.maximum(w, 0.0)))
+    t = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
+    pts = np.asarray(mean)[:, None] + k * L @ np.vstack([np.cos(t), np.sin(t)])
+    return [(float(a), float(b)) for a, b in pts.T]
+
+
+def _ts(t_ns: int) -> Any:
+    """foxglove Timestamp of a time in ns (exact; None before 1970)."""
+    from foxglove.messages import Timestamp
+
+    return Timestamp(sec=t_ns // 1_000_000_000, nsec=t_ns % 1_000_000_000) if t_ns >= 0 else None
+
+
+def _named(values: Sequence[float] | np.ndarray, names: Sequence[str]) -> dict[str, float]:
+    return {n: float(v) for n, v in zip(names, values, strict=False)}
+
+
+class SessionView:
+    """The Foxglove channels of one session, fed from the transport. Callbacks may run on
+    any transport thread; the foxglove channels are thread-safe, the small state is locked."""
+
+    def __init__(self, transport: Transport, session: str, context: Any,
+                 xy: tuple[int, int] | None = None, spec: SessionSpec | None = None) -> None:
+        import foxglove
+        from foxglove.channels import LogChannel, PoseInFrameChannel, SceneUpdateChannel
+
+        self.session = session
+        self.spec = spec
+        self.xy = xy
+        self.names: list[str] | None = None
+        self._lock = threading.Lock()
+        self._preds: OrderedDict[int, Prediction] = OrderedDict()
+        self._truth: OrderedDict[int, Truth] = OrderedDict()
+        self.counts = {"predictions": 0, "measurements": 0, "commands": 0, "truth": 0,
+                       "errors": 0, "invalid": 0}
+        p = f"/{session}/"
+        ctx = {"context": context}
+        self.pose = PoseInFrameChannel(p + "pose", **ctx)
+        self.ellipse = SceneUpdateChannel(p + "ellipse", **ctx)
+        self.truth_pose = PoseInFrameChannel(p + "truth_pose", **ctx)
+        self.log = LogChannel(p + "log", **ctx)
+        self.json = {name: foxglove.Channel(p + name, message_encoding="json", **ctx)
+                     for name in ("prediction", "error", "measurement", "command", "truth",
+                                  "status")}
+        self.display = Display(transport, session, truth=True, errors=False, history=256)
+        self.display.on_prediction(self._on_prediction)
+        self.display.on_truth(self._on_truth)
+        self._handles: list[Handle] = [
+            transport.subscribe(keys.ALL_SENSORS.replace("*", session, 1), self._on_sensor),
+            transport.subscribe(keys.command_key(session), self._on_command),
+            transport.subscribe(keys.error_key(session), self._on_error),
+        ]
+
+    # --- helpers -----------------------------------------------------------------------
+
+    def _state_names(self, n: int) -> list[str]:
+        names = self.names
+        return list(names) if names and len(names) == n else [f"x{i}" for i in range(n)]
+
+    def _pose(self, x: np.ndarray, t_ns: int) -> Any:
+        from foxglove.messages import Pose, PoseInFrame, Quaternion, Vector3
+
+        i, j = position_indices(x.shape[0], self.names, self.xy)
+        h = heading_index(self.names)
+        yaw = float(x[h]) if h is not None and h < x.shape[0] else 0.0
+        return PoseInFrame(
+            timestamp=_ts(t_ns),
+            frame_id=FRAME,
+            pose=Pose(position=Vector3(x=float(x[i]), y=float(x[j]) if j is not None else 0.0,
+                                       z=0.0),
+                      orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0),
+                                             w=math.cos(yaw / 2.0))))
+
+    def _emit(self, name: str, msg: dict[str, Any], log_ns: int | None = None) -> None:
+        self.json[name].log(json.dumps(msg, allow_nan=False, default=float).encode(),
+                            log_time=log_ns or time.time_ns())
+
+    # --- callbacks -----------------------------------------------------------------------
+
+    def _on_prediction(self, p: Prediction) -> None:
+        from foxglove.messages import (
+            Color,
+            LinePrimitive,
+            LinePrimitiveLineType,
+            Point3,
+            SceneEntity,
+            SceneUpdate,
+        )
+
+        now = time.time_ns()
+        with self._lock:
+            self.counts["predictions"] += 1
+            self._preds[p.step] = p
+            while len(self._preds) > 256:
+                self._preds.popitem(last=False)
+            truth = self._truth.get(p.step)
+        n = p.x.shape[0]
+        names = self._state_names(n)
+        var = np.diag(p.P)
+        self.pose.log(self._pose(p.x, p.t_ns), log_time=now)
+        i, j = position_indices(n, self.names, self.xy)
+        if j is not None:
+            cov = p.P[np.ix_([i, j], [i, j])]
+            pts = ellipse_points((float(p.x[i]), float(p.x[j])), cov)
+            line = LinePrimitive(type=LinePrimitiveLineType.LineLoop, thickness=2.0,
+                                 scale_invariant=True,
+                                 points=[Point3(x=a, y=b, z=0.0) for a, b in pts],
+                                 color=Color(r=0.2, g=0.6, b=1.0, a=1.0))
+            self.ellipse.log(SceneUpdate(entities=[SceneEntity(
+                timestamp=_ts(p.t_ns),
+                frame_id=FRAME, id=f"{self.session}-2sigma", lines=[line])]), log_time=now)
+        self._emit("prediction", {
+            "step": p.step, "seq": p.seq, "newest_step": p.newest_step, "t_ns": p.t_ns,
+            "x": _named(p.x, names), "var": _named(var, names),
+            "sd": _named(np.sqrt(np.maximum(var, 0.0)), names),
+            "latency_ms": (now - p.made_ns) / 1e6}, now)
+        self._emit("status", self._status_msg(p, now), now)
+        if truth is not None:
+            self._emit_error(p, truth, now)
+
+    def _status_msg(self, p: Prediction, now: int) -> dict[str, Any]:
+        st = self.display.stats()
+        c = p.counters
+        return {"session": self.session, "counters": dict(c),
+                "late": c.get("late", 0), "future": c.get("future", 0),
+                "accepted": c.get("accepted", 0), "refused": c.get("refused", 0),
+                "published": c.get("published", 0),
+                "latency_ms_last": (st.latency_us_last or 0.0) / 1e3,
+                "latency_ms_p50": (st.latency_us_p50 or 0.0) / 1e3,
+                "latency_ms_max": (st.latency_us_max or 0.0) / 1e3,
+                "missed": st.missed, "viewer": dict(self.counts)}
+
+    def _emit_error(self, p: Prediction, t: Truth, now: int) -> None:
+        n = p.x.shape[0]
+        if t.x.shape[0] != n:
+            return
+        err = p.x - t.x
+        if t.angles:
+            idx = [a for a in t.angles if a < n]
+            err[idx] = (err[idx] + np.pi) % (2.0 * np.pi) - np.pi
+        sd = np.sqrt(np.maximum(np.diag(p.P), 0.0))
+        names = self._state_names(n)
+        z = np.where(sd > 0, err / np.where(sd > 0, sd, 1.0), 0.0)
+        self._emit("error", {"step": p.step, "err": _named(err, names), "sd": _named(sd, names),
+                             "z": _named(z, names)}, now)
+
+    def _on_truth(self, t: Truth) -> None:
+        now = time.time_ns()
+        with self._lock:
+            if self.names is None and t.names and len(t.names) == t.x.shape[0]:
+                self.names = list(t.names)
+            self.counts["truth"] += 1
+            self._truth[t.step] = t
+            while len(self._truth) > 256:
+                self._truth.popitem(last=False)
+            p = self._preds.get(t.step)
+        names = self._state_names(t.x.shape[0])
+        self.truth_pose.log(self._pose(t.x, t.t_ns), log_time=now)
+        self._emit("truth", {"step": t.step, "x": _named(t.x, names)}, now)
+        if p is not None:
+            self._emit_error(p, t, now)
+
+    def _on_sensor(self, sample: Sample) -> None:
+        if sample.kind != "put":
+            return
+        try:
+            m = decode(sample.payload, Measurement)
+        except WireError:
+            self.counts["invalid"] += 1
+            return
+        self.counts["measurements"] += 1
+        msg: dict[str, Any] = {"sensor": m.sensor, "seq": m.seq, "z": [float(v) for v in m.z]}
+        spec = self.spec
+        if spec is not None:
+            s = measurement_step(m, spec)
+            msg["step"] = s
+            msg["age_steps"] = spec.step_of(sample.recv_ns) - s
+            msg["age_ms"] = (sample.recv_ns - (m.t_ns if m.t_ns is not None
+                                               else spec.time_of(s))) / 1e6
+        self._emit("measurement", msg, sample.recv_ns)
+
+    def _on_command(self, sample: Sample) -> None:
+        if sample.kind != "put":
+            return
+        try:
+            c = decode(sample.payload, Command)
+        except WireError:
+            self.counts["invalid"] += 1
+            return
+        self.counts["commands"] += 1
+        msg: dict[str, Any] = {"seq": c.seq, "u": [float(v) for v in c.u]}
+        if self.spec is not None:
+            msg["step"] = command_step(c, self.spec)
+        self._emit("command", msg, sample.recv_ns)
+
+    def _on_error(self, sample: Sample) -> None:
+        from foxglove.messages import Log, LogLevel
+
+        try:
+            e = decode(sample.payload, ErrorReport)
+        except WireError:
+            return
+        self.counts["errors"] += 1
+        self.log.log(Log(timestamp=_ts(e.t_ns), level=LogLevel.Warning,
+                         message=f"{e.key}: {e.reason}", name=f"pd-service/{self.session}"),
+                     log_time=sample.recv_ns)
+
+    def on_status(self, st: SessionStatus) -> None:
+        """The daemon's SessionStatus (queried periodically)."""
+        c = st.counters
+        self._emit("status", {"session": self.session, "state": st.state,
+                              "now_step": st.now_step, "counters": dict(c),
+                              "late": c.get("late", 0), "future": c.get("future", 0),
+                              "accepted": c.get("accepted", 0), "published": st.published,
+                              "daemon_latency_us_p50": st.latency_p50_us,
+                              "daemon_latency_us_p99": st.latency_p99_us})
+
+    def close(self) -> None:
+        for h in self._handles:
+            h.close()
+        self._handles.clear()
+        self.display.close()
+
+
+class VizServer:
+    """A Foxglove WebSocket server (its own foxglove Context) with one :class:`SessionView`
+    per session. ``port`` 0 picks a free port (see :attr:`port`)."""
+
+    def __init__(self, transport: Transport, sessions: Sequence[str], host: str = "127.0.0.1",
+                 port: int = DEFAULT_PORT, xy: tuple[int, int] | None = None,
+                 status_every: float = 1.0) -> None:
+        import foxglove
+
+        self.transport = transport
+        self.host = host
+        self.context = foxglove.Context()
+        self.admin = Admin(transport)
+        self.views: dict[str, SessionView] = {}
+        for s in sessions:
+            spec = self._spec(s)
+            self.views[s] = SessionView(transport, s, self.context, xy, spec)
+        self.server = foxglove.start_server(name="pd-service", host=host, port=port,
+                                            context=self.context)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if status_every > 0:
+            self._thread = threading.Thread(target=self._poll, args=(status_every,),
+                                            name="pd-viz-status", daemon=True)
+            self._thread.start()
+
+    def _spec(self, session: str) -> SessionSpec | None:
+        try:
+            return self.admin.get_spec(session, timeout=1.0)
+        except PdClientError:
+            return None
+
+    @property
+    def port(self) -> int:
+        return int(self.server.port)
+
+    @property
+    def url(self) -> str:
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
+        return f"ws://{host}:{self.port}"
+
+    def _poll(self, every: float) -> None:
+        while not self._stop.wait(every):
+            for s, view in self.views.items():
+                if view.spec is None:
+                    view.spec = self._spec(s)
+                try:
+                    view.on_status(self.admin.status(s, timeout=min(every, 1.0)))
+                except PdClientError:
+                    continue
+                except Exception:  # never let a bad reply stop the status channel
+                    log.debug("status of %s failed", s, exc_info=True)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+        for v in self.views.values():
+            v.close()
+        self.admin.close()
+        self.server.stop()
+
+
+def served_sessions(transport: Transport, timeout: float = 2.0) -> list[str]:
+    """Every session the live daemon instances serve."""
+    with Admin(transport) as admin:
+        return sorted({s for st in admin.service_status(timeout=timeout) for s in st.sessions})
+
+
+# --- command line ----------------------------------------------------------------------------
+
+def _xy(value: str) -> tuple[int, int]:
+    a, _, b = value.partition(",")
+    try:
+        return int(a), int(b)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--xy: expected I,J (two state indices), got {value!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("--session", action="append", metavar="NAME",
+                    help="session to show (repeatable; default: all the daemons serve)")
+    ap.add_argument("--host", default="127.0.0.1",
+                    help="address the WebSocket server binds (default 127.0.0.1)")
+    ap.add_argument("--port", type=int, default=DEFAULT_PORT,
+                    help=f"WebSocket port (default {DEFAULT_PORT}; 0: any free port)")
+    ap.add_argument("--xy", type=_xy, help="state indices of the x, y position, e.g. 0,2")
+    ap.add_argument("--status-every", type=float, default=1.0,
+                    help="seconds between SessionStatus queries (0: none)")
+    ap.add_argument("--duration", type=float, help="stop after this many seconds")
+    common.add_tool_args(ap)
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return common.run_tool(build_parser, _main, argv)
+
+
+def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
+    try:
+        import foxglove  # noqa: F401
+    except ImportError:
+        return common.fail(TOOL, "needs foxglove-sdk: pip install 'pd-client[viz]'", 2)
+    try:
+        transport = common.open_transport(args)
+    except PdClientError as exc:
+        return common.fail(TOOL, exc)
+    try:
+        sessions = args.session or served_sessions(transport)
+        if not sessions:
+            return common.fail(TOOL, "no session given and none served by a live daemon")
+        try:
+            for s in sessions:
+                keys.check_name(s, "session")
+            server = VizServer(transport, sessions, args.host, args.port, args.xy,
+                               args.status_every)
+        except (keys.KeyError_, PdClientError) as exc:
+            return common.fail(TOOL, exc, 2)
+        except RuntimeError as exc:  # the port is taken
+            return common.fail(TOOL, f"cannot serve on {args.host}:{args.port}: {exc}")
+        print(f"{TOOL}: Foxglove WebSocket server on {server.url} "
+              f"(sessions: {', '.join(sessions)})", flush=True)
+        try:
+            stop.wait(args.duration)
+        finally:
+            server.close()
+    finally:
+        transport.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

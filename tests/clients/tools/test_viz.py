@@ -1,0 +1,87 @@
+"""pd-viz: a Foxglove WebSocket client (foxglove.websocket.v1, named foxglove.sdk.v1 by the
+SDK's server) connected to the server while
+the daemon core runs the paper scenario on the in-memory bus; the decoded predicted pose
+equals the daemon's Prediction for the same step."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("foxglove")
+pytest.importorskip("websockets")
+pytest.importorskip("google.protobuf")
+
+from pd_client.tools.pd_viz import VizServer, ellipse_points, position_indices  # noqa: E402
+from pd_service.transport import InMemoryBus  # noqa: E402
+from tests.service.helpers import Clock, Collector  # noqa: E402
+from tests.service.test_core import PaperFeed, make_core  # noqa: E402
+
+from .foxglove_ws import FoxgloveClient  # noqa: E402
+
+TOPICS = ["/s1/pose", "/s1/ellipse", "/s1/prediction", "/s1/measurement", "/s1/command",
+          "/s1/status", "/s1/log"]
+
+
+def test_pose_equals_the_daemons_prediction(tmp_path):
+    bus = InMemoryBus()
+    clock = Clock(0)
+    col = Collector().attach(bus.transport())
+    core = make_core(bus, clock, tmp_path)
+    feed = PaperFeed(core, bus.transport(), clock, col, "s1", steps=60, check=False)
+    feed.configure()
+    server = VizServer(bus.transport(), ["s1"], port=0, xy=(0, 2), status_every=0)
+    client = FoxgloveClient(server.url)
+    try:
+        client.wait_channels(TOPICS)
+        assert client.server_info is not None
+        assert client.subprotocol == "foxglove.sdk.v1"
+        client.subscribe(TOPICS)
+        client.pump(0.5)  # the server takes the subscription
+        for k in range(60):
+            feed.step(k)
+        client.pump(1.0)
+    finally:
+        client.close()
+        server.close()
+        core.close()
+    preds = {p.t_ns: p for p in col.predictions["s1"]}
+    Pose = client.protobuf_class("/s1/pose")
+    poses = [Pose.FromString(data) for _, data in client.messages.get("/s1/pose", [])]
+    assert len(poses) >= 50, len(poses)
+    for pose in poses:
+        t_ns = pose.timestamp.seconds * 1_000_000_000 + pose.timestamp.nanos
+        p = preds[t_ns]  # the prediction of the same target step
+        assert pose.frame_id == "world"
+        assert pose.pose.position.x == p.x[0] and pose.pose.position.y == p.x[2]
+    js = [json.loads(d) for _, d in client.messages["/s1/prediction"]]
+    by_step = {p.step: p for p in col.predictions["s1"]}
+    for m in js:
+        p = by_step[m["step"]]
+        assert list(m["x"].values()) == p.x.tolist()
+        assert list(m["var"].values()) == np.diag(p.P).tolist()
+    # the measurements as they arrive, with their age
+    meas = [json.loads(d) for _, d in client.messages["/s1/measurement"]]
+    assert meas and {m["sensor"] for m in meas} <= {s.name for s in feed.spec.sensors}
+    # (ages here are against the wall clock: the core runs on a test clock from epoch 0)
+    assert all("age_steps" in m and "age_ms" in m and "step" in m for m in meas)
+    assert any(json.loads(d)["late"] > 0 or json.loads(d)["accepted"] > 0
+               for _, d in client.messages["/s1/status"])
+    Scene = client.protobuf_class("/s1/ellipse")
+    scene = Scene.FromString(client.messages["/s1/ellipse"][-1][1])
+    assert len(scene.entities[0].lines[0].points) == 48
+    # the refused duplicates / over-late copies show up as Log messages
+    assert client.messages.get("/s1/log")
+
+
+def test_position_and_ellipse_helpers():
+    assert position_indices(4, ["p1", "v1", "p2", "v2"]) == (0, 2)
+    assert position_indices(5, ["x", "y", "theta", "v", "w"]) == (0, 1)
+    assert position_indices(1, None) == (0, None)
+    assert position_indices(4, None, (1, 3)) == (1, 3)
+    pts = np.array(ellipse_points((1.0, 2.0), np.diag([4.0, 1.0]), k=2.0, segments=4))
+    assert np.allclose(pts, [[5.0, 2.0], [1.0, 4.0], [-3.0, 2.0], [1.0, 0.0]]) or np.allclose(
+        np.sort(pts, axis=0), np.sort(np.array([[5.0, 2.0], [1.0, 4.0], [-3.0, 2.0],
+                                                [1.0, 0.0]]), axis=0))
