@@ -6,6 +6,7 @@ covariance."""
 from __future__ import annotations
 
 import numpy as np
+
 from pd_service.backends import build_estimator
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
 from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario

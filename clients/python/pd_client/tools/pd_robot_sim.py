@@ -40,7 +40,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -82,13 +82,14 @@ class RobotSim:
     ``ros2``: be a ROS 2 robot (one session, whose spec has ``ros2`` bindings): the bound
     sensors are published as ROS messages by :attr:`ros` (a
     :class:`~.ros2_robot.Ros2RobotNode`), stamped with the step's time, and its Twist
-    commands drive the robot from the step they arrive in (the last step ticked); a sensor
-    without a binding stays native.
+    commands drive the robot from the step they arrive in: u(j) on, j = the session's step at
+    ``clock()`` (wall clock, ns) on arrival; a sensor without a binding stays native.
     """
 
     def __init__(self, transport: Transport, scenario: Scenario, specs: Sequence[SessionSpec],
                  *, seed: int | None = 0, direct: bool = False,
-                 ros2: Ros2Options | None = None) -> None:
+                 ros2: Ros2Options | None = None,
+                 clock: Callable[[], int] = time.time_ns) -> None:
         if not specs:
             raise ValueError("specs: at least one session is required")
         if ros2 is not None:
@@ -128,6 +129,7 @@ class RobotSim:
         except BaseException:
             self.close()
             raise
+        self._clock = clock
         self.ros: Ros2RobotNode | None = None
         if ros2 is None:
             self.sessions[0].robot.on_command(self._on_command)
@@ -161,8 +163,8 @@ class RobotSim:
             log.warning("ignoring command seq %s: %s", cmd.seq, exc)
 
     def _on_ros_command(self, u: np.ndarray) -> None:
-        """A Twist's u = (v, yaw_rate): in force from the step of arrival, u(sim.k) on."""
-        self.schedule.add(self.sim.k, u)
+        """A Twist's u = (v, yaw_rate): in force from the step it arrives in."""
+        self.schedule.add(max(0, self.spec.step_of(self._clock())), u)
 
     def tick(self, k: int) -> np.ndarray:
         """Run step k: move x(k-1) -> x(k) with u(k-1), then publish truth and samples of

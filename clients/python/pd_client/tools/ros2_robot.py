@@ -124,8 +124,9 @@ def sensor_message(binding: TopicBinding, z: np.ndarray, R: np.ndarray,
     z = np.asarray(z, dtype=np.float64).reshape(-1)
     if z.shape != (len(binding.fields),):
         raise ValueError(f"{binding.topic}: z has {z.size} values, fields {binding.fields}")
-    value = dict(zip(binding.fields, (float(v) for v in z), strict=True))
-    var = dict(zip(binding.fields, (float(R[i, i]) for i in range(len(z))), strict=True))
+    value: dict[str, float] = dict(zip(binding.fields, (float(v) for v in z), strict=True))
+    var: dict[str, float] = dict(zip(binding.fields, (float(R[i, i]) for i in range(len(z))),
+                                     strict=True))
     frame = binding.frame or DEFAULT_FRAMES.get(binding.msg_type, "odom")
     hdr = header(stamp_ns, frame)
 
