@@ -221,6 +221,9 @@ class Ros2RobotNode:
         self._handles.append(t.declare_token(node.token()))
         entity = 1
         for name, b in self._binding.sensors.items():
+            if b.msg_type not in DEFAULT_FRAMES:
+                raise ValueError(f"sensor {name!r}: the simulated robot does not publish "
+                                 f"{b.msg_type}")
             ep = TopicEndpoint(node=node, entity_id=entity, kind="MP", topic=node.resolve(b.topic),
                                ros_type=b.msg_type, type_hash=type_hash(b.msg_type))
             entity += 1
