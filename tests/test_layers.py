@@ -42,7 +42,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service": set(),
     "pd_client.tools": {"pd_client", "pd_service.estimation", "pd_service.wire",
                         "pd_service.errors", "pd_service.logs", "pd_service.transport",
-                        "pd_service.scenarios", "pd_service.backends"},
+                        "pd_service.scenarios", "pd_service.backends", "pd_service.ros2"},
     "pd_client": {"pd_service.wire", "pd_service.errors", "pd_service.transport"},
 }
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from pd_service.estimation.nonlinear import NonlinearModel, wrap_angle
 from pd_service.wire import LinearModelSpec, SensorSpec, SessionSpec, UnscentedModelSpec
+from pd_service.wire.ros2 import Ros2Binding
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,6 +89,8 @@ class Scenario:
     [-pi, pi) (as the estimators report them), the simulated state does not.
     ``loss_draw``: draw one uniform after each sample, the packet-loss decision (the
     ``paper`` scenario's reference stream has it; see :class:`ScenarioSim`).
+    ``ros2``: the session's ROS 2 topic bindings, if the robot speaks ROS 2 (the spec keeps
+    the bindings of the sensors it selects).
     """
 
     name: str
@@ -111,6 +114,7 @@ class Scenario:
     Q_of: Callable[[int], np.ndarray] | None = None
     angles: tuple[int, ...] = ()
     loss_draw: bool = True
+    ros2: Ros2Binding | None = None
 
     def __post_init__(self) -> None:
         linear = self.A is not None and self.B is not None
@@ -181,7 +185,16 @@ class Scenario:
             lead=self.lead if lead is None else lead,
             max_delay=self.max_delay if max_delay is None else max_delay,
             publish_every=publish_every,
+            ros2=self._ros2_of(chosen),
         )
+
+    def _ros2_of(self, chosen: Sequence[SensorDef]) -> Ros2Binding | None:
+        """The ROS 2 bindings restricted to the ``chosen`` sensors."""
+        if self.ros2 is None:
+            return None
+        names = {s.name for s in chosen}
+        sensors = {n: b for n, b in self.ros2.sensors.items() if n in names}
+        return self.ros2.model_copy(update={"sensors": sensors})
 
     def select(self, sensors: Sequence[str] | None) -> list[SensorDef]:
         """The sensors named (default: all), in the order given; ValueError for an unknown

@@ -4,6 +4,7 @@
     pd-robot-sim --scenario paper --session paper --session paper-cam:camera --create-session
     pd-robot-sim --scenario maneuver --session rover --time-scale 2 --steps 600
     pd-robot-sim --scenario omni --session omni --create-session   # adaptive UKF session
+    pd-robot-sim --scenario diffdrive --session bot --create-session --ros2   # a ROS 2 robot
 
 Every step k (wall time ``epoch_ns + k * period_ns``; the period is the scenario's divided by
 ``--time-scale``) it moves the true state with the command in force for step k - 1, then
@@ -14,6 +15,14 @@ with step k, on ``robot/<s>/sensor/<name>`` (the link emulator carries them to t
 apply step, holding the last one; a command that arrives after its apply step applies on
 arrival. The transition k-1 -> k is computed at the start of step k, so a command has up to
 one period of slack after its apply step begins.
+
+``--ros2`` (one session, whose spec has ROS 2 bindings, e.g. ``--scenario diffdrive``): the
+robot is a ROS 2 node ``robot_sim`` in rmw_zenoh's format instead. Each bound sensor's sample
+is a ROS message (CDR, rmw_zenoh attachment, header.stamp = the step's time) on
+``robot/<rmw_zenoh key>`` (pd-link's ``deploy/link-ros2.toml`` maps it to the plain key;
+``--direct``: the plain key), its liveliness tokens are declared for ``--domain-id`` and
+``--namespace``, and Twist commands on ``robot/<cmd_vel key>`` apply from the step they
+arrive in (see docs/ros2.md). The truth stays native.
 
 Several ``--session NAME[:sensor,...]`` run the same robot (same truth and samples) for
 several sessions, each with its own sensor subset. ``--create-session`` puts the sessions'
@@ -27,11 +36,13 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,6 +55,9 @@ from ..admin import Admin
 from ..errors import PdClientError
 from ..robot import CommandSchedule, Robot
 from . import common
+
+if TYPE_CHECKING:
+    from .ros2_robot import Ros2Options, Ros2RobotNode
 
 TOOL = "pd-robot-sim"
 log = logging.getLogger(__name__)
@@ -64,12 +78,26 @@ class RobotSim:
     ``specs``: one SessionSpec per session, all on the same clock (epoch and period); the
     first session's commands drive the robot. Call :meth:`tick` with k = 0, 1, 2, ... (or
     starting later), one per step.
+
+    ``ros2``: be a ROS 2 robot (one session, whose spec has ``ros2`` bindings): the bound
+    sensors are published as ROS messages by :attr:`ros` (a
+    :class:`~.ros2_robot.Ros2RobotNode`), stamped with the step's time, and its Twist
+    commands drive the robot from the step they arrive in: u(j) on, j = the session's step at
+    ``clock()`` (wall clock, ns) on arrival; a sensor without a binding stays native.
     """
 
     def __init__(self, transport: Transport, scenario: Scenario, specs: Sequence[SessionSpec],
-                 *, seed: int | None = 0, direct: bool = False) -> None:
+                 *, seed: int | None = 0, direct: bool = False,
+                 ros2: Ros2Options | None = None,
+                 clock: Callable[[], int] = time.time_ns) -> None:
         if not specs:
             raise ValueError("specs: at least one session is required")
+        if ros2 is not None:
+            if len(specs) != 1:
+                raise ValueError("--ros2: the ROS 2 robot serves exactly one session")
+            if specs[0].ros2 is None:
+                raise ValueError(f"session {specs[0].session!r} has no ROS 2 bindings "
+                                 "(its spec's ros2 is unset)")
         first = specs[0]
         for spec in specs:
             if (spec.epoch_ns, spec.period_ns) != (first.epoch_ns, first.period_ns):
@@ -101,7 +129,22 @@ class RobotSim:
         except BaseException:
             self.close()
             raise
-        self.sessions[0].robot.on_command(self._on_command)
+        self._clock = clock
+        self.ros: Ros2RobotNode | None = None
+        if ros2 is None:
+            self.sessions[0].robot.on_command(self._on_command)
+        else:
+            from .ros2_robot import Ros2RobotNode
+
+            bindings = specs[0].ros2
+            assert bindings is not None
+            try:
+                self.ros = Ros2RobotNode(transport, bindings,
+                                         {s.name: s.R for s in scenario.sensors},
+                                         options=ros2, on_command=self._on_ros_command)
+            except BaseException:
+                self.close()
+                raise
         self.commands_invalid = 0
         self.last_u = np.zeros(scenario.nu)
         self.samples_published = 0
@@ -118,6 +161,10 @@ class RobotSim:
         except (PdClientError, ValueError) as exc:
             self.commands_invalid += 1
             log.warning("ignoring command seq %s: %s", cmd.seq, exc)
+
+    def _on_ros_command(self, u: np.ndarray) -> None:
+        """A Twist's u = (v, yaw_rate): in force from the step it arrives in."""
+        self.schedule.add(max(0, self.spec.step_of(self._clock())), u)
 
     def tick(self, k: int) -> np.ndarray:
         """Run step k: move x(k-1) -> x(k) with u(k-1), then publish truth and samples of
@@ -138,12 +185,19 @@ class RobotSim:
         for s in self.sessions:
             s.robot.publish_truth(k, truth, names=names, angles=self.scenario.angles)
             for d in samples:
-                if d.sensor in s.sensors:
+                if d.sensor not in s.sensors:
+                    continue
+                if self.ros is not None and self.ros.binds(d.sensor):
+                    self.ros.publish(d.sensor, d.z, stamp_ns=s.spec.time_of(k))
+                else:
                     s.robot.publish(d.sensor, d.z, step=k)
-                    self.samples_published += 1
+                self.samples_published += 1
         return x
 
     def close(self) -> None:
+        ros = getattr(self, "ros", None)
+        if ros is not None:
+            ros.close()
         for s in self.sessions:
             s.robot.close()
 
@@ -175,6 +229,13 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--publish-every", type=int, default=1)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
+    ap.add_argument("--ros2", action="store_true",
+                    help="be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
+                         "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
+    ap.add_argument("--domain-id", type=int, default=None,
+                    help="with --ros2: ROS domain id (default: $ROS_DOMAIN_ID or 0)")
+    ap.add_argument("--namespace", default="/",
+                    help="with --ros2: the node's ROS namespace (default /)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap
@@ -191,18 +252,19 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         for _, sensors in sessions:
             scenario.select(sensors)
         scenario.period_ns(args.time_scale)
+        ros2 = _ros2_options(args)
     except ValueError as exc:
         ap.error(str(exc))
     steps = scenario.default_steps if args.steps is None else args.steps
     if steps < 0:
         ap.error("--steps must be >= 0")
     return common.run_on_transport(
-        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop))
+        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop, ros2))
 
 
 def _run(args: argparse.Namespace, scenario: Scenario,
          sessions: list[tuple[str, list[str] | None]], steps: int,
-         transport: Transport, stop: threading.Event) -> int:
+         transport: Transport, stop: threading.Event, ros2: Ros2Options | None = None) -> int:
     with Admin(transport) as admin:
         if args.create_session:
             epoch = time.time_ns()
@@ -231,9 +293,16 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                 common.progress(TOOL, f"waiting for the spec of session {name} ...")
                 specs.append(admin.wait_for_spec(name, args.service_timeout))
         try:
-            sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct)
+            sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct,
+                           ros2=ros2)
         except ValueError as exc:
             return common.fail(TOOL, exc, 2)
+        if sim.ros is not None:
+            keys = [sim.ros.key_of(n) for n in sim.ros.endpoints]
+            common.progress(TOOL, f"ROS 2 node {sim.ros.node.name} (domain "
+                                f"{sim.ros.node.domain_id}, namespace {sim.ros.node.namespace}) "
+                                f"publishing on {', '.join(keys)}; commands from "
+                                f"{sim.ros.command_key}")
         try:
             _loop(sim, steps, args.progress, stop, from_zero=args.create_session)
         finally:
@@ -245,6 +314,32 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                     except PdClientError as exc:
                         common.progress(TOOL, f"closing {spec.session}: {exc}")
     return 0
+
+
+def _ros2_options(args: argparse.Namespace) -> Ros2Options | None:
+    """The ROS 2 settings of the command line (None without --ros2); ValueError for a domain
+    id or namespace ROS 2 refuses, or without the ros2 extra."""
+    if not args.ros2:
+        return None
+    try:
+        from .ros2_robot import Ros2Options
+    except ImportError as exc:
+        raise ValueError(f"--ros2 needs the ros2 extra (pip install 'pd-service[ros2]'): "
+                         f"{exc}") from None
+    from pd_service.ros2.keys import check_namespace
+
+    domain = args.domain_id
+    if domain is None:
+        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        try:
+            domain = int(env) if env else 0
+        except ValueError:
+            raise ValueError(f"ROS_DOMAIN_ID={env!r} is not a number") from None
+    if not 0 <= domain <= 232:
+        raise ValueError(f"--domain-id: {domain} is outside 0..232")
+    check_namespace(args.namespace)
+    return Ros2Options(domain_id=domain, namespace=args.namespace,
+                       prefix=None if args.direct else "robot")
 
 
 def _model_label(spec: SessionSpec) -> str:

@@ -1,0 +1,198 @@
+"""``pd-robot-sim --ros2`` on the in-memory bus: the simulated differential-drive robot
+publishes its sensors as rmw_zenoh ROS 2 messages (CDR, attachment, liveliness tokens) that
+decode to the simulator's samples, obeys cmd_vel Twists from the step they arrive in, and goes
+through pd-link's deploy/link-ros2.toml with each topic's delay."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+
+from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Vector3 as Vector3  # noqa: E402
+
+from pd_client import Truth  # noqa: E402
+from pd_client.tools.pd_robot_sim import RobotSim, main  # noqa: E402
+from pd_client.tools.ros2_robot import Ros2Options  # noqa: E402
+from pd_service.link.config import load_config  # noqa: E402
+from pd_service.link.relay import LinkRelay  # noqa: E402
+from pd_service.ros2.attachment import decode_attachment  # noqa: E402
+from pd_service.ros2.extract import decode_measurement  # noqa: E402
+from pd_service.ros2.keys import parse_token, topic_keyexpr  # noqa: E402
+from pd_service.ros2.messages import Twist, encode, type_hash  # noqa: E402
+from pd_service.scenarios import ScenarioSim, get_scenario  # noqa: E402
+from pd_service.wire import decode  # noqa: E402
+
+from ..conftest import EPOCH_NS, Collector  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[3]
+TWIST = "geometry_msgs/msg/Twist"
+
+
+def twist(v: float, w: float) -> bytes:
+    return encode(Twist(linear=Vector3(x=v, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=w)),
+                  TWIST)
+
+
+def cmd_key(domain: int = 0, ns: str = "") -> str:
+    return topic_keyexpr(domain, f"{ns}/cmd_vel", TWIST, type_hash(TWIST))
+
+
+def test_samples_are_ros_messages_of_the_simulated_values(bus):
+    sc = get_scenario("diffdrive")
+    spec = sc.spec("bot", EPOCH_NS)
+    sink = Collector(bus, "robot/**")
+    sim = RobotSim(bus.transport(), sc, [spec], seed=7, ros2=Ros2Options())
+    ref = ScenarioSim(sc, seed=7)
+    expected = []
+    for k in range(25):
+        sim.tick(k)
+        if k:
+            ref.advance(np.zeros(2))
+        expected += ref.sample()
+    assert sim.ros is not None
+    by_key = defaultdict(list)
+    for s in sink.samples:
+        by_key[s.key].append(s)
+    assert not [k for k in by_key if "/sensor/" in k]  # no native measurement
+    truth = [decode(s.payload, Truth) for s in by_key["robot/bot/truth"]]
+    assert [t.step for t in truth] == list(range(25))  # the truth stays native
+    assert spec.ros2 is not None
+    for name, binding in spec.ros2.sensors.items():
+        ros_type = binding.msg_type
+        key = f"robot/0/{binding.topic}/{ros_type.replace('/msg/', '::msg::dds_::')}_/" \
+              f"{type_hash(ros_type)}"
+        assert sim.ros.key_of(name) == key
+        got = by_key[key]
+        want = [d for d in expected if d.sensor == name]
+        assert len(got) == len(want) > 0
+        R = sc.select([name])[0].R
+        gid = sim.ros.endpoints[name].gid()
+        for i, (s, d) in enumerate(zip(got, want, strict=True)):
+            m = decode_measurement(binding, s.payload)
+            np.testing.assert_allclose(m.z, d.z, rtol=0, atol=1e-12)
+            assert m.stamp_ns == spec.time_of(d.step)  # header.stamp = the sample's step
+            assert m.R is not None
+            np.testing.assert_allclose(m.R, R, rtol=1e-12)  # the message's covariance
+            att = decode_attachment(s.attachment)
+            assert att.sequence_number == i + 1 and att.gid == gid
+            assert att.source_timestamp_ns > 0
+
+
+def test_liveliness_tokens_announce_node_publishers_and_subscription(bus):
+    sc = get_scenario("diffdrive")
+    sim = RobotSim(bus.transport(), sc, [sc.spec("bot", EPOCH_NS)], seed=0,
+                   ros2=Ros2Options(domain_id=3, namespace="/bot1"))
+    tokens = [parse_token(t) for t in bus.transport().get_liveliness("@ros2_lv/**")]
+    by_kind = defaultdict(list)
+    for t in tokens:
+        assert (t.domain_id, t.namespace, t.node_name) == (3, "/bot1", "robot_sim")
+        by_kind[t.kind].append(t)
+    assert len(by_kind["NN"]) == 1
+    assert {(t.topic, t.ros_type) for t in by_kind["MP"]} == {
+        ("/bot1/odom", "nav_msgs/msg/Odometry"), ("/bot1/imu", "sensor_msgs/msg/Imu"),
+        ("/bot1/pose_fix", "geometry_msgs/msg/PoseWithCovarianceStamped")}
+    assert [(t.topic, t.ros_type) for t in by_kind["MS"]] == [("/bot1/cmd_vel", TWIST)]
+    assert len({t.entity_id for t in tokens}) == 5
+    assert sim.ros is not None and sim.ros.command_key == "robot/" + cmd_key(3, "/bot1")
+    assert sim.ros.key_of("imu").startswith("robot/3/bot1/imu/sensor_msgs::msg::dds_::Imu_/")
+    sim.close()
+    assert bus.transport().get_liveliness("@ros2_lv/**") == []
+
+
+def test_cmd_vel_twist_drives_the_robot_from_the_step_it_arrives(bus):
+    sc = get_scenario("diffdrive-stationary")
+    spec = sc.spec("bot", EPOCH_NS)
+    now = [0]  # the step the wall clock is in
+    sim = RobotSim(bus.transport(), sc, [spec], seed=4, ros2=Ros2Options(),
+                   clock=lambda: spec.time_of(now[0]) + 1_000)
+    operator = bus.transport()
+    ref = ScenarioSim(sc, seed=4)
+    ref.sample()
+    us = []
+    for k in range(12):
+        now[0] = k
+        sim.tick(k)
+        if k == 3:
+            operator.put("robot/" + cmd_key(), twist(0.6, 0.2))  # arrives during step 3
+        if k == 7:
+            operator.put("robot/" + cmd_key(), b"\x00\x01\x00\x00garbage")  # refused
+        if k:
+            us.append(sim.last_u.copy())
+    assert sim.ros is not None
+    assert (sim.ros.commands_received, sim.ros.commands_invalid) == (2, 1)
+    np.testing.assert_array_equal(us[:3], np.zeros((3, 2)))  # u(0..2)
+    np.testing.assert_array_equal(us[3:], np.tile([0.6, 0.2], (8, 1)))  # u(3..10)
+    for u in us:
+        ref.advance(u)
+        ref.sample()
+    np.testing.assert_array_equal(sim.sim.x, ref.x)
+    assert sim.sim.x[3] > 0.1  # the commanded speed took the robot's speed up
+    sim.close()
+
+
+def test_through_pd_link_each_topic_gets_its_delay_and_cmd_vel_the_lead(bus):
+    """sim -> pd-link (deploy/link-ros2.toml, in-memory relay on a 20 ms step clock) -> the
+    plain rmw_zenoh keys; a Twist on the plain cmd_vel key reaches the robot 100 ms later."""
+    sc = get_scenario("diffdrive")
+    spec = sc.spec("bot", EPOCH_NS)
+    period_ms = spec.period_ns // 1_000_000
+    now = [0]
+    relay = LinkRelay(bus.transport(), load_config(ROOT / "deploy" / "link-ros2.toml"), "t",
+                      clock=lambda: now[0]).attach()
+    sim = RobotSim(bus.transport(), sc, [spec], seed=2, ros2=Ros2Options(),
+                   clock=lambda: EPOCH_NS + now[0])
+    assert sim.ros is not None and spec.ros2 is not None
+    arrivals: dict[str, list[tuple[int, int]]] = defaultdict(list)  # sensor -> (step, arrival)
+    sub = bus.transport()
+    for name, binding in spec.ros2.sensors.items():
+        plain = sim.ros.key_of(name).removeprefix("robot/")
+
+        def on(s, name=name, binding=binding):
+            m = decode_measurement(binding, s.payload)
+            arrivals[name].append((spec.step_of(m.stamp_ns), now[0] // (period_ms * 1_000_000)))
+
+        sub.subscribe(plain, on)
+    operator = bus.transport()
+    for k in range(60):
+        now[0] = k * period_ms * 1_000_000
+        relay.step()  # releases due now, before the robot's step k
+        sim.tick(k)
+        relay.step()  # takes in step k's samples
+        if k == 10:
+            operator.put(cmd_key(), twist(0.5, 0.0))  # the operator side, plain key
+    delays = {name: {a - s for s, a in got} for name, got in arrivals.items()}
+    assert delays == {"odom_twist": {2}, "imu": {1}, "pose": {15}}
+    # the Twist sent during step 10 is released 5 steps later: it applies from step 15
+    assert sim.schedule.received == 1
+    assert sim.last_u.tolist() == [0.5, 0.0]
+    ref = ScenarioSim(sc, seed=2)
+    ref.sample()
+    for k in range(1, 60):
+        ref.advance([0.5, 0.0] if k - 1 >= 15 else [0.0, 0.0])
+        ref.sample()
+    np.testing.assert_array_equal(sim.sim.x, ref.x)
+    sim.close()
+    relay.close()
+
+
+def test_ros2_needs_bindings_and_one_session(bus):
+    paper = get_scenario("paper")
+    with pytest.raises(ValueError, match="no ROS 2 bindings"):
+        RobotSim(bus.transport(), paper, [paper.spec("p", EPOCH_NS)], ros2=Ros2Options())
+    sc = get_scenario("diffdrive")
+    with pytest.raises(ValueError, match="exactly one session"):
+        RobotSim(bus.transport(), sc, [sc.spec("a", EPOCH_NS), sc.spec("b", EPOCH_NS)],
+                 ros2=Ros2Options())
+
+
+@pytest.mark.parametrize("argv", [["--namespace", "bot1"], ["--domain-id", "300"]])
+def test_bad_ros2_flags_exit_2(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--scenario", "diffdrive", "--ros2", *argv])
+    assert exc.value.code == 2
+    assert argv[0].removeprefix("--").split("-")[0] in capsys.readouterr().err
