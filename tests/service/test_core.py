@@ -16,7 +16,9 @@ from pd_service.scenarios.paper import (
 from pd_service.service import ServiceCore, Settings, SpecStore
 from pd_service.transport import InMemoryBus
 from pd_service.wire import (
+    Command,
     ErrorReport,
+    Measurement,
     Prediction,
     ServiceStatus,
     SessionSpec,
@@ -595,3 +597,35 @@ def test_refusals_are_counted_by_kind_and_echo_a_readable_seq(world, tmp_path):
     reports = col.errors["s1"]
     assert [r.seq for r in reports] == [41, 42, None]
     assert "semi-definite" in reports[0].reason and "finite" in reports[1].reason
+
+
+def test_window_refusals_name_the_stamp_field_the_message_used(world, tmp_path):
+    """A future / late / duplicate sample stamped by t_ns is reported as Measurement.t_ns
+    (by step: Measurement.step); a command stamped by issued_ns as Command.issued_ns."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    spec = paper_spec("s1")
+    cli.put(keys.config_key("s1"), encode(spec))
+    core.run_once()
+    clock.t = at(20.5)
+    key = keys.sensor_key("s1", "camera")
+
+    def by_time(step: int, seq: int) -> bytes:
+        return encode(Measurement(session="s1", sensor="camera", seq=seq,
+                                  t_ns=spec.time_of(step), z=np.array([1.0, 2.0])))
+
+    cli.put(key, by_time(25, 1))                       # future
+    cli.put(key, by_time(2, 2))                        # late
+    cli.put(key, by_time(19, 3))                       # accepted
+    cli.put(key, by_time(19, 4))                       # duplicate (same sensor and step)
+    cli.put(key, meas_bytes("s1", "camera", 19, [5.0, 6.0], seq=5))  # duplicate, by step
+    far = spec.time_of(20 + 2 * spec.lead + spec.max_delay + 5)
+    cli.put(keys.command_key("s1"), encode(Command(session="s1", seq=6, issued_ns=far,
+                                               u=np.array([1.0]))))
+    core.run_once()
+    c = core.session_status("s1").counters
+    assert (c["future"], c["late"], c["accepted"], c["duplicate"], c["commands_future"]) \
+        == (1, 1, 1, 2, 1)
+    heads = [(r.seq, r.reason.split(": ", 1)[0]) for r in col.errors["s1"]]
+    assert heads == [(1, "Measurement.t_ns"), (2, "Measurement.t_ns"), (4, "Measurement.t_ns"),
+                     (5, "Measurement.step"), (6, "Command.issued_ns")]
