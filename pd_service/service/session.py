@@ -23,7 +23,10 @@ before_epoch               stamp before the session's epoch (negative step)
 invalid                    refused by the estimator's own checks (ValueError)
 flood                      dropped unread because the session's inbox was full
 published                  predictions published
-tick_overruns              ticks that fired after their step had ended
+tick_overruns              ticks that fired after their step had ended (late ticks)
+steps_missed               due steps (multiples of publish_every) that got no prediction at
+                           all, e.g. while the worker was stalled: counted when the next
+                           prediction is published
 errors_suppressed          ErrorReports not sent because of the rate limit
 internal_error             an unexpected exception while handling one message
 =========================  =================================================================
@@ -233,6 +236,16 @@ class Session:
         out.setdefault("accepted", 0)
         out["published"] = self.published
         return out
+
+    def steps_missed_before(self, k: int) -> int:
+        """Due steps (multiples of ``publish_every``) after the last published step and
+        before step ``k`` that got no prediction: ``floor((k-1)/pe) - floor(last/pe)``
+        (0 before the first publication)."""
+        last = self.last_pub_step
+        if last is None or k <= last + 1:
+            return 0
+        pe = self.spec.publish_every
+        return (k - 1) // pe - last // pe
 
     def predict(self, now_step: int) -> PredictedState:
         """The estimator's prediction of x(now_step + lead); with the stacked engine its
