@@ -33,7 +33,7 @@ from pd_service.wire import (
     UnscentedModelSpec,
     WireError,
 )
-from pd_service.wire.convert import mode_map, plain_params
+from pd_service.wire.convert import estimator_refusal, mode_map, plain_params
 
 #: Constructor of a linear estimator: (model, sensors, x0, P0, lead, max_delay, command_hold).
 LinearEstimatorType = Callable[
@@ -68,13 +68,10 @@ def build_estimator(spec: SessionSpec,
             raise TypeError(f"no backend for model kind {model.kind!r}")
     except WireError:
         raise
-    except ValueError as exc:
-        raise WireError(f"SessionSpec: refused by the estimator: {exc}") from None
-    except Exception as exc:  # a registered model's own code failing on odd parameters
-        raise WireError(f"SessionSpec: refused by the estimator: "
-                        f"{type(exc).__name__}: {exc}") from None
+    except Exception as exc:  # ValueError, or a registered model's own code failing
+        raise estimator_refusal(exc) from None
     if est.n != spec.n:  # the constructors check x0 against the model; kept as a guard
-        raise WireError(f"SessionSpec: refused by the estimator: the model has n={est.n} "
+        raise WireError(f"SessionSpec.x0: refused by the estimator: the model has n={est.n} "
                         f"states, x0 has {spec.n}")
     return est
 
@@ -106,7 +103,7 @@ def imm_sensor(sensor: SensorSpec) -> dict[str, Any]:
                 "sigma_bearing": math.sqrt(float(sensor.R[1, 1]))}
     if sensor.kind == "position":
         return {"name": sensor.name, "kind": "position", "R": np.array(sensor.R)}
-    raise WireError(f"SessionSpec: sensor {sensor.name!r} of kind {sensor.kind!r} does not "
+    raise WireError(f"SessionSpec.sensors: sensor {sensor.name!r} of kind {sensor.kind!r} does not "
                     "fit an IMM model")
 
 

@@ -14,6 +14,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, setup_logging
@@ -52,6 +53,21 @@ def settings_from_args(argv: Sequence[str] | None = None) -> tuple[Settings, boo
     return load_settings(flags, config_file=args.config), args.print_config
 
 
+def settings_in_force(settings: Settings) -> dict[str, Any]:
+    """The settings as JSON values, with the defaults the daemon applies filled in: the Zenoh
+    mode, listen / connect endpoints and multicast of the DAEMON role (left as given when a
+    --zenoh-config file decides them) and the state directory; the password masked."""
+    shown = settings.model_dump(mode="json")
+    z = settings.zenoh.resolved(DAEMON)
+    if z.config_file is None:
+        shown.update(mode=z.mode, listen=list(z.listen), connect=list(z.connect),
+                     multicast=z.multicast)
+    shown["state_dir"] = str(settings.effective_state_dir)
+    if shown.get("password"):
+        shown["password"] = "***"
+    return shown
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         settings, print_only = settings_from_args(argv)
@@ -59,10 +75,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"pd-service: {exc}", file=sys.stderr)
         return 2
     if print_only:
-        shown = settings.model_dump(mode="json")
-        if shown.get("password"):
-            shown["password"] = "***"
-        print(json.dumps(shown, indent=2))
+        print(json.dumps(settings_in_force(settings), indent=2))
         return 0
     setup_logging(settings.log_level, settings.log_format)
     from .daemon import Daemon  # imports zenoh: only when actually running

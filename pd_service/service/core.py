@@ -13,8 +13,9 @@ steps; ``mono_ns``: monotonic clock for latencies), so tests drive it determinis
 - :mod:`.status`: SessionStatus / ServiceStatus and the status and spec queryables.
 
 One worker thread calls :meth:`ServiceCore.run_once`; it holds ``lock`` while processing one
-round, and the queries (transport threads) take it too, so replies never see a half-updated
-session. Callbacks never take it.
+round. The queries (transport threads) take it only to copy what a reply needs, so replies
+never see a half-updated session and never stall the worker (they build, encode and send
+with the lock free). Callbacks never take it.
 """
 
 from __future__ import annotations

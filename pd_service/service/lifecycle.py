@@ -174,7 +174,7 @@ class Lifecycle:
                 raise WireError(f"SessionSpec.period_ns: {spec.period_ns} is below this "
                                 f"service's minimum {min_ns} ns")
             if session not in self.specs and len(self.specs) >= self.settings.max_sessions:
-                raise WireError(f"SessionSpec: this service already holds "
+                raise WireError(f"SessionSpec.session: this service already holds "
                                 f"{self.settings.max_sessions} sessions (max_sessions)")
             if self.ownership.owns(session):
                 # Let the estimator check the spec before anything changes.

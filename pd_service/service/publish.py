@@ -129,12 +129,16 @@ class Publisher:
             except Exception:  # isolation: fall back to one session at a time (in pack)
                 log.debug("stacked resolve failed; resolving one by one", exc_info=True)
         for sess, k, pred in items:
+            missed = sess.steps_missed_before(k)
             try:
                 data = sess.pack(pred, k, now)
             except Exception as exc:  # e.g. a non-finite estimate: report, never crash
                 self._publish_failed(sess, exc, now)
                 continue
             self.counters["published"] += 1
+            if missed:
+                sess.counters["steps_missed"] += missed
+                self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
             self.outbox.append(Out(sess.pred_key, data, sess, recv))
 

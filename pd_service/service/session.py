@@ -23,7 +23,10 @@ before_epoch               stamp before the session's epoch (negative step)
 invalid                    refused by the estimator's own checks (ValueError)
 flood                      dropped unread because the session's inbox was full
 published                  predictions published
-tick_overruns              ticks that fired after their step had ended
+tick_overruns              ticks that fired after their step had ended (late ticks)
+steps_missed               due steps (multiples of publish_every) that got no prediction at
+                           all, e.g. while the worker was stalled: counted when the next
+                           prediction is published
 errors_suppressed          ErrorReports not sent because of the rate limit
 internal_error             an unexpected exception while handling one message
 =========================  =================================================================
@@ -140,6 +143,7 @@ class Session:
         fast = read_measurement(payload, self.name, sensor, self.dims)
         if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
             seq, s, t_ns, z = fast
+            stamp = "step" if s is not None else "t_ns"
             if s is None:
                 s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
             R = None
@@ -150,35 +154,38 @@ class Session:
                 return _decode_reason(exc, "")
             self.last_activity_ns = now_ns
             if msg.sensor != sensor or msg.session != self.name:
-                return Refusal("key_mismatch", f"Measurement: session/sensor {msg.session!r}/"
-                               f"{msg.sensor!r} does not match the key {key!r}", msg.seq)
+                field = "session" if msg.session != self.name else "sensor"
+                return Refusal("key_mismatch", f"Measurement.{field}: session/sensor "
+                               f"{msg.session!r}/{msg.sensor!r} does not match the key {key!r}",
+                               msg.seq)
             try:
                 check_measurement(msg, self.spec)
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "invalid")
             seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
+            stamp = "step" if msg.step is not None else "t_ns"
         self.last_activity_ns = now_ns
         if now_step < 0:
-            return Refusal("future", f"Measurement.step: {s} is in the future; the session "
-                           f"starts at its epoch (now step {now_step})", seq)
+            return Refusal("future", f"Measurement.{stamp}: sample step {s} is in the future; "
+                           f"the session starts at its epoch (now step {now_step})", seq)
         est = self.est
         try:
             ok = est.add_measurement(sensor, s, z, now=now_step, R=R)
         except ValueError as exc:
-            return Refusal("invalid", f"Measurement: {exc}", seq)
+            return Refusal("invalid", f"Measurement.z: {exc}", seq)
         if ok:
             self.counters["accepted"] += 1
             return None
         lo = now_step - est.max_delay
         if s > now_step:
-            return Refusal("future", f"Measurement.step: sample step {s} is after the current "
+            return Refusal("future", f"Measurement.{stamp}: sample step {s} is after the current "
                            f"step {now_step}", seq)
         if s < lo or s < est.committed_step:
-            return Refusal("late", f"Measurement.step: sample step {s} is older than the "
+            return Refusal("late", f"Measurement.{stamp}: sample step {s} is older than the "
                            f"window [{max(lo, est.committed_step)}, {now_step}] "
                            f"(max_delay {est.max_delay})", seq)
-        return Refusal("duplicate", f"Measurement: sensor {sensor!r} already has a sample "
-                       f"for step {s}", seq)
+        return Refusal("duplicate", f"Measurement.{stamp}: sensor {sensor!r} already has a "
+                       f"sample for step {s}", seq)
 
     def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
         """Offer one Command; None if accepted."""
@@ -187,6 +194,7 @@ class Session:
         if fast is not None and (fast[1] is not None
                                  or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
             seq, j, issued, u = fast
+            stamp = "step" if j is not None else "issued_ns"
             if j is None:
                 j = spec.step_of(issued) + spec.lead  # type: ignore[arg-type]
         else:
@@ -200,24 +208,25 @@ class Session:
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "commands_invalid")
             seq, j, u = msg.seq, command_step(msg, spec), msg.u
+            stamp = "step" if msg.step is not None else "issued_ns"
         self.last_activity_ns = now_ns
         est = self.est
         try:
             ok = est.add_command(j, u, now=now_step if now_step >= 0 else None)
         except (ValueError, IndexError) as exc:
-            return Refusal("commands_invalid", f"Command: {exc}", seq)
+            return Refusal("commands_invalid", f"Command.u: {exc}", seq)
         if ok:
             self.counters["commands_accepted"] += 1
             return None
         ref = est.now if est.now is not None else 0
         if j < est.committed_step:
-            return Refusal("commands_late", f"Command.step: apply step {j} is already final "
+            return Refusal("commands_late", f"Command.{stamp}: apply step {j} is already final "
                            f"(first open step {est.committed_step})", seq)
         if j > ref + est.lead + est.max_delay + 1:
-            return Refusal("commands_future", f"Command.step: apply step {j} is more than "
+            return Refusal("commands_future", f"Command.{stamp}: apply step {j} is more than "
                            f"max_delay + 1 steps past the predicted step {ref + est.lead}", seq)
-        return Refusal("commands_duplicate", f"Command: a command for step {j} is already "
-                       "stored", seq)
+        return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
+                       "already stored", seq)
 
     # --- output ------------------------------------------------------------------------
 
@@ -227,6 +236,16 @@ class Session:
         out.setdefault("accepted", 0)
         out["published"] = self.published
         return out
+
+    def steps_missed_before(self, k: int) -> int:
+        """Due steps (multiples of ``publish_every``) after the last published step and
+        before step ``k`` that got no prediction: ``floor((k-1)/pe) - floor(last/pe)``
+        (0 before the first publication)."""
+        last = self.last_pub_step
+        if last is None or k <= last + 1:
+            return 0
+        pe = self.spec.publish_every
+        return (k - 1) // pe - last // pe
 
     def predict(self, now_step: int) -> PredictedState:
         """The estimator's prediction of x(now_step + lead); with the stacked engine its

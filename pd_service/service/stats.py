@@ -2,9 +2,30 @@
 
 from __future__ import annotations
 
+import math
 from collections import deque
+from collections.abc import Iterable
 
-import numpy as np
+
+def percentiles(values: Iterable[float]) -> tuple[float, float]:
+    """(p50, p99) of ``values`` (µs), clipped at 0; (0, 0) when empty.
+
+    Linear interpolation between order statistics, as numpy's default: with the sorted
+    values x_0..x_{n-1} and h = (n - 1) q, p_q = x_i + (h - i)(x_{i+1} - x_i), i = floor(h).
+    Plain Python (a sort of at most a few thousand floats): no first-call cost, nothing to
+    warm up.
+    """
+    xs = sorted(values)
+    if not xs:
+        return 0.0, 0.0
+
+    def at(q: float) -> float:
+        h = (len(xs) - 1) * q
+        i = math.floor(h)
+        j = min(i + 1, len(xs) - 1)
+        return max(xs[i] + (h - i) * (xs[j] - xs[i]), 0.0)
+
+    return at(0.50), at(0.99)
 
 
 class LatencyWindow:
@@ -21,13 +42,13 @@ class LatencyWindow:
     def __len__(self) -> int:
         return len(self._buf)
 
+    def values(self) -> list[float]:
+        """A copy of the window (µs), e.g. taken under a lock and reduced outside it."""
+        return list(self._buf)
+
     def percentiles(self) -> tuple[float, float]:
         """(p50, p99) in µs; (0, 0) when empty."""
-        if not self._buf:
-            return 0.0, 0.0
-        arr = np.fromiter(self._buf, dtype=np.float64, count=len(self._buf))
-        p50, p99 = np.percentile(arr, [50.0, 99.0])
-        return float(max(p50, 0.0)), float(max(p99, 0.0))
+        return percentiles(self._buf)
 
 
 class TokenBucket:

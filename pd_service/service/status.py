@@ -1,8 +1,10 @@
 """Queries and status: SessionStatus / ServiceStatus, and the status and spec queryables.
 
-Queryables run on the transport's threads and take the core's lock (the worker holds it
-while processing one round), so replies never see a half-updated session. Replies are sent
-after the lock is released.
+Queryables run on the transport's threads. They hold the core's lock (which the worker
+holds while processing one round) only to copy what a reply needs (a :class:`SessionView`:
+counters, the latency window, a few scalars; microseconds), so replies never see a
+half-updated session; percentiles, building and validating the message, encoding and
+sending happen after the lock is released, so a query never stalls the worker.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import logging
 import threading
 from collections import Counter
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Literal, Protocol, cast
 
 from pd_service.logs import LOGGER_NAME
@@ -22,7 +25,7 @@ from pd_service.wire.keys import KeyError_, check_name
 from .config import Settings
 from .ownership import Ownership
 from .session import Session
-from .stats import LatencyWindow
+from .stats import LatencyWindow, percentiles
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -30,14 +33,38 @@ log = logging.getLogger(LOGGER_NAME)
 SessionState = Literal["active", "restored", "expired", "removed"]
 
 
+@dataclass(frozen=True, slots=True)
+class SessionView:
+    """What a SessionStatus needs, copied from a session (under the core's lock)."""
+
+    name: str
+    status_key: str
+    state: SessionState
+    detail: str
+    spec: SessionSpec  # immutable; for now_step
+    counters: dict[str, int]
+    published: int
+    latency_us: list[float]
+
+    def status(self, instance: str, now: int) -> SessionStatus:
+        """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
+        p50, p99 = percentiles(self.latency_us)
+        return SessionStatus(session=self.name, instance=instance, state=self.state,
+                             now_step=self.spec.step_of(now), counters=self.counters,
+                             published=self.published, latency_p50_us=p50,
+                             latency_p99_us=p99, detail=self.detail[:1024])
+
+
+def view_of(sess: Session, state: SessionState, detail: str) -> SessionView:
+    """Copy of what ``sess``'s status needs (hold the lock while calling this)."""
+    return SessionView(sess.name, sess.status_key, state, detail, sess.spec,
+                       sess.counters_snapshot(), sess.published, sess.latency.values())
+
+
 def session_status(sess: Session, instance: str, state: SessionState, detail: str,
                    now: int) -> SessionStatus:
     """The status of a served session at wall-clock time ``now`` (ns)."""
-    p50, p99 = sess.latency.percentiles()
-    return SessionStatus(session=sess.name, instance=instance, state=state,
-                         now_step=sess.spec.step_of(now), counters=sess.counters_snapshot(),
-                         published=sess.published, latency_p50_us=p50,
-                         latency_p99_us=p99, detail=detail[:1024])
+    return view_of(sess, state, detail).status(instance, now)
 
 
 def state_of(sess: Session) -> SessionState:
@@ -46,9 +73,9 @@ def state_of(sess: Session) -> SessionState:
     return cast(SessionState, sess.state)
 
 
-def current_status(sess: Session, instance: str, now: int) -> SessionStatus:
-    """The status a session was last answered with (its state and detail), now."""
-    return session_status(sess, instance, state_of(sess), sess.detail, now)
+def current_view(sess: Session) -> SessionView:
+    """The view of a session in the state and detail it was last answered with."""
+    return view_of(sess, state_of(sess), sess.detail)
 
 
 def valid_name(name: str) -> bool:
@@ -98,22 +125,26 @@ class Queries:
             route = self.routes.get(session)
             if route is None or route.sess is None:
                 return None
-            return current_status(route.sess, self.instance, self.now_ns())
+            view = current_view(route.sess)
+        return view.status(self.instance, self.now_ns())
 
     def service_status(self) -> ServiceStatus:
+        """The instance's status; holds the lock only to copy counters and latencies."""
         with self.lock:
-            served = sorted(n for n, r in self.routes.items() if r.sess is not None)
+            served = [n for n, r in self.routes.items() if r.sess is not None]
             c = {k: int(v) for k, v in self.counters.items() if v}
-            c.setdefault("refused", 0)
-            c["late_total"] = c.get("late", 0) + c.get("commands_late", 0)
-            c["sessions_served"] = len(served)
-            c["sessions_known"] = len(self.specs)
-            c["members"] = len(self.ownership.members)
-            p50, p99 = self.latency.percentiles()
-            return ServiceStatus(instance=self.instance, sessions=served, counters=c,
-                                 latency_p50_us=p50, latency_p99_us=p99,
-                                 uptime_s=(self.mono_ns() - self._started_mono) / 1e9,
-                                 shard=self.settings.shard or "")
+            known, members = len(self.specs), len(self.ownership.members)
+            latency = self.latency.values()
+        c.setdefault("refused", 0)
+        c["late_total"] = c.get("late", 0) + c.get("commands_late", 0)
+        c["sessions_served"] = len(served)
+        c["sessions_known"] = known
+        c["members"] = members
+        p50, p99 = percentiles(latency)
+        return ServiceStatus(instance=self.instance, sessions=sorted(served), counters=c,
+                             latency_p50_us=p50, latency_p99_us=p99,
+                             uptime_s=(self.mono_ns() - self._started_mono) / 1e9,
+                             shard=self.settings.shard or "")
 
     def served_sessions(self) -> list[str]:
         with self.lock:
@@ -127,29 +158,29 @@ class Queries:
 
     def on_status_query(self, q: Query) -> None:
         sel = q.key
-        with self.lock:
-            now = self.now_ns()
-            err: ErrorReport | None = None
+        unknown = ""
+        with self.lock:  # copies only: the statuses are built after it is released
             if "*" in sel:
                 sessions = [r.sess for r in self.routes.values() if r.sess is not None]
-                replies = [(s.status_key, current_status(s, self.instance, now))
-                           for s in sessions if intersects(sel, s.status_key)]
+                views = [current_view(s) for s in sessions if intersects(sel, s.status_key)]
             else:
                 parts = sel.split("/")
                 name = parts[1] if len(parts) == 3 else ""
                 route = self.routes.get(name)
                 if route is not None and route.sess is not None:
-                    s = route.sess
-                    replies = [(s.status_key, current_status(s, self.instance, now))]
+                    views = [current_view(route.sess)]
                 elif route is None and valid_name(name) and self.ownership.owns(name):
-                    replies = []
-                    err = ErrorReport(session=name, key=sel[:512], reason=f"unknown session "
-                                      f"{name!r}", t_ns=now)
+                    views, unknown = [], name
                 else:
                     return
-        for key, st in replies:
+        now = self.now_ns()
+        err: ErrorReport | None = None
+        if unknown:
+            err = ErrorReport(session=unknown, key=sel[:512],
+                              reason=f"unknown session {unknown!r}", t_ns=now)
+        for view in views:
             try:
-                q.reply(key, encode(st))
+                q.reply(view.status_key, encode(view.status(self.instance, now)))
             except Exception as exc:  # e.g. the query was dropped meanwhile
                 log.debug("status reply failed: %s", exc)
         if err is not None:

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
+from pydantic_core import PydanticCustomError
 
 
 def _comparable(value: Any) -> Any:
@@ -19,6 +20,20 @@ def _comparable(value: Any) -> Any:
     if isinstance(value, dict):
         return tuple(sorted((k, _comparable(v)) for k, v in value.items()))
     return value
+
+
+#: pydantic error type of a rule checked across a model's fields.
+INVALID_ERROR = "wire_invalid"
+
+
+def invalid(field: str, message: str) -> PydanticCustomError:
+    """A rule failed on ``field`` (a dotted path below the validated model, e.g. ``"R"`` or
+    ``"sensors.1.H"``; ``""`` for none). The error reads ``"<field>: <message>"`` (so a
+    ValidationError raised in Python names the field too) and carries ``field`` in its
+    context: the codec moves it into the path, ``<Message>.<loc>.<field>: <message>``, so a
+    model-level check still names the field it refuses."""
+    return PydanticCustomError(INVALID_ERROR, f"{field}: {message}" if field else message,
+                               {"field": field})
 
 
 class WireModel(BaseModel):

@@ -30,6 +30,7 @@ import msgpack
 from pydantic import ValidationError
 
 from .arrays import NON_FINITE_ERROR
+from .base import INVALID_ERROR
 from .errors import ErrorKind, WireError
 from .messages import Message
 
@@ -105,16 +106,26 @@ def decode(data: bytes | bytearray | memoryview, msg_type: type[M]) -> M:
 
 
 def validation_reason(type_name: str, exc: ValidationError) -> str:
-    """First error of a pydantic ValidationError as ``"<Type>.<path>: <message>"``."""
-    errors = exc.errors(include_url=False, include_context=False, include_input=False)
+    """First error of a pydantic ValidationError as ``"<Type>.<path>: <message>"``.
+
+    The path is the error's location plus, for a rule checked across a model's fields
+    (:func:`pd_service.wire.base.invalid`), the field it names below that location.
+    """
+    errors = exc.errors(include_url=False, include_context=True, include_input=False)
     if not errors:  # pragma: no cover - pydantic always reports at least one
         return f"{type_name}: invalid"
     first = errors[0]
-    path = ".".join(str(p) for p in first["loc"])
+    parts = [str(p) for p in first["loc"]]
+    msg = first["msg"]
+    field = (first.get("ctx") or {}).get("field") if first["type"] == INVALID_ERROR else None
+    if field:
+        parts.append(str(field))
+        msg = msg.removeprefix(f"{field}: ")
+    path = ".".join(parts)
     where = f"{type_name}.{path}" if path else type_name
     more = f" (and {len(errors) - 1} more error{'s' if len(errors) > 2 else ''})" \
         if len(errors) > 1 else ""
-    return f"{where}: {first['msg']}{more}"
+    return f"{where}: {msg}{more}"
 
 
 #: pydantic error types that mean "a value is NaN or infinite".

@@ -17,6 +17,7 @@ Time: ``step_of(t_ns) = floor((t_ns - epoch_ns) / period_ns)`` in exact integer 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from typing import Any, Protocol
 
@@ -80,11 +81,23 @@ def command_dim(spec: SessionSpec) -> int:
         if isinstance(model, UnscentedModelSpec):
             return int(make_model(model.model, **plain_params(model.params)).nu)
         return int(make_mode(mode_map(model.modes[0])).nu)
-    except ValueError as exc:
-        raise WireError(f"SessionSpec: refused by the estimator: {exc}") from None
-    except Exception as exc:
-        raise WireError(f"SessionSpec: refused by the estimator: "
-                        f"{type(exc).__name__}: {exc}") from None
+    except Exception as exc:  # ValueError, or a registered model's own code failing
+        raise estimator_refusal(exc) from None
+
+
+#: The estimator factories start a refusal with what they refuse ("x0: ...",
+#: "sensor_R['pose']: ..."); the SessionSpec field each such word stands for (else "model").
+_ESTIMATOR_FIELDS = {"x0": "x0", "P0": "P0", "sensors": "sensors", "sensor_R": "sensors",
+                     "indices": "model.unscented.adapt.indices", "modes": "model.imm.modes"}
+
+
+def estimator_refusal(exc: Exception) -> WireError:
+    """A spec the estimator refused, as ``SessionSpec.<field>: refused by the estimator:
+    <reason>`` (the field its reason starts with, else ``model``)."""
+    text = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+    head = re.match(r"[A-Za-z0-9_]+", text)
+    field = _ESTIMATOR_FIELDS.get(head.group(0) if head else "", "model")
+    return WireError(f"SessionSpec.{field}: refused by the estimator: {text}")
 
 
 def measurement_step(msg: Measurement, spec: SessionSpec) -> int:

@@ -41,7 +41,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from .arrays import MAX_DIM, Matrix, Vector, psd_problem
-from .base import WireModel
+from .base import WireModel, invalid
 from .keys import NAME_PATTERN
 from .ros2 import Ros2Binding
 
@@ -76,14 +76,10 @@ Text = Annotated[str, StringConstraints(max_length=MAX_TEXT)]
 NonNegFloat = Annotated[float, Field(ge=0.0)]
 
 
-def _invalid(message: str) -> PydanticCustomError:
-    return PydanticCustomError("wire_invalid", message)
-
-
 def _version_is_int(value: Any) -> Any:
     # Literal[1] alone would take True and 1.0 (both == 1 in Python)
     if type(value) is not int:
-        raise _invalid("Input should be 1")
+        raise PydanticCustomError("wire_invalid", "Input should be 1")
     return value
 
 
@@ -160,33 +156,33 @@ class SensorSpec(WireModel):
         kind = self.kind
         if kind == "linear":
             if self.H is None:
-                raise _invalid("H is required for a sensor of kind 'linear' (z = H x + v)")
+                raise invalid("H", "is required for a sensor of kind 'linear' (z = H x + v)")
             m = self.H.shape[0]
             if self.R.shape != (m, m):
-                raise _invalid(f"R must be {m}x{m} (H has {m} rows), got shape {list(self.R.shape)}")
+                raise invalid("R", f"must be {m}x{m} (H has {m} rows), got shape {list(self.R.shape)}")
         elif self.H is not None:
-            raise _invalid(f"H is only for kind 'linear'; a {kind!r} sensor's h(x) is the model's")
+            raise invalid("H", f"is only for kind 'linear'; a {kind!r} sensor's h(x) is the model's")
         if kind == "range_bearing":
             if self.station is None:
-                raise _invalid("station is required for kind 'range_bearing'")
+                raise invalid("station", "is required for kind 'range_bearing'")
             if self.station.shape != (2,):
-                raise _invalid(f"station must have 2 values (xi, eta), got {self.station.shape[0]}")
+                raise invalid("station", f"must have 2 values (xi, eta), got {self.station.shape[0]}")
         elif self.station is not None:
-            raise _invalid(f"station is only for kind 'range_bearing', not {kind!r}")
+            raise invalid("station", f"is only for kind 'range_bearing', not {kind!r}")
         problem = psd_problem(self.R)
         if problem:
-            raise _invalid(f"R {problem}")
+            raise invalid("R", problem)
         if kind in ("range_bearing", "position"):
             R = self.R
             if R.shape != (2, 2):
-                raise _invalid(f"R must be 2x2 for kind {kind!r} (z has 2 values), "
+                raise invalid("R", f"must be 2x2 for kind {kind!r} (z has 2 values), "
                                f"got shape {list(R.shape)}")
             if kind == "range_bearing" and not (R[0, 1] == 0.0 == R[1, 0] and R[0, 0] > 0.0
                                                 and R[1, 1] > 0.0):
-                raise _invalid("R must be diagonal with positive entries for kind "
+                raise invalid("R", "must be diagonal with positive entries for kind "
                                "'range_bearing': diag(sigma_range^2, sigma_bearing^2)")
             if kind == "position" and not float(np.linalg.eigvalsh(0.5 * (R + R.T))[0]) > 0.0:
-                raise _invalid("R must be positive definite for kind 'position' "
+                raise invalid("R", "must be positive definite for kind 'position' "
                                "(the IMM filter uses R^-1)")
         return self
 
@@ -216,14 +212,14 @@ class LinearModelSpec(WireModel):
     def _check(self) -> LinearModelSpec:
         n = self.A.shape[0]
         if self.A.shape != (n, n):
-            raise _invalid(f"A must be square (n x n), got shape {list(self.A.shape)}")
+            raise invalid("A", f"must be square (n x n), got shape {list(self.A.shape)}")
         if self.B.shape[0] != n:
-            raise _invalid(f"B must have n={n} rows (A is {n}x{n}), got shape {list(self.B.shape)}")
+            raise invalid("B", f"must have n={n} rows (A is {n}x{n}), got shape {list(self.B.shape)}")
         if self.Q.shape != (n, n):
-            raise _invalid(f"Q must be {n}x{n} (A is {n}x{n}), got shape {list(self.Q.shape)}")
+            raise invalid("Q", f"must be {n}x{n} (A is {n}x{n}), got shape {list(self.Q.shape)}")
         problem = psd_problem(self.Q)
         if problem:
-            raise _invalid(f"Q {problem}")
+            raise invalid("Q", problem)
         return self
 
 
@@ -234,34 +230,34 @@ _PARAM_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
 
 def _param_number(value: Any, where: str) -> int | float:
     if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise _invalid(f"{where}: expected a number or a list of numbers, got "
+        raise invalid(where, "expected a number or a list of numbers, got "
                        f"{'nil' if value is None else type(value).__name__}")
     if isinstance(value, int | np.integer):
         v = int(value)
         if not INT64_MIN <= v <= INT64_MAX:
-            raise _invalid(f"{where}: integer {v} is outside int64")
+            raise invalid(where, f"integer {v} is outside int64")
         return v
     f = float(value)
     if not math.isfinite(f):
-        raise _invalid(f"{where}: must be a finite number (no NaN or infinity)")
+        raise invalid(where, "must be a finite number (no NaN or infinity)")
     return f
 
 
 def _params(value: Any) -> dict[str, int | float | list[int | float]]:
     """A model's parameters: name -> finite number or list of 1..256 finite numbers."""
     if not isinstance(value, dict):
-        raise _invalid("params must be a map: parameter name -> number or list of numbers")
+        raise invalid("", "must be a map: parameter name -> number or list of numbers")
     if len(value) > MAX_PARAMS:
-        raise _invalid(f"params: at most {MAX_PARAMS} entries, got {len(value)}")
+        raise invalid("", f"at most {MAX_PARAMS} entries, got {len(value)}")
     out: dict[str, int | float | list[int | float]] = {}
     for key, v in value.items():
         if type(key) is not str or not _PARAM_NAME.match(key):
-            raise _invalid(f"params: {str(key)[:70]!r} is not a parameter name "
+            raise invalid("", f"{str(key)[:70]!r} is not a parameter name "
                            "([A-Za-z_][A-Za-z0-9_]{0,63})")
-        where = f"params[{key!r}]"
+        where = key
         if isinstance(v, list | tuple) or (isinstance(v, np.ndarray) and v.ndim == 1):
             if not 1 <= len(v) <= MAX_PARAM_LIST:
-                raise _invalid(f"{where}: a list holds 1..{MAX_PARAM_LIST} numbers, got {len(v)}")
+                raise invalid(where, f"a list holds 1..{MAX_PARAM_LIST} numbers, got {len(v)}")
             out[key] = [_param_number(x, where) for x in v]
         else:
             out[key] = _param_number(v, where)
@@ -329,20 +325,20 @@ class AdaptSpec(WireModel):
     @model_validator(mode="after")
     def _check(self) -> AdaptSpec:
         if len(set(self.indices)) != len(self.indices):
-            raise _invalid(f"indices must be distinct, got {self.indices}")
+            raise invalid("indices", f"must be distinct, got {self.indices}")
         only = {"mit": ("forgetting",), "sage_husa": ("window", "eta", "rule", "clip", "max_gap")}
         wrong = [k for k in only[self.method] if getattr(self, k) is not None]
         if wrong:
-            raise _invalid(f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not apply "
-                           f"to method {self.method!r}")
+            raise invalid(wrong[0], f"{', '.join(wrong)} {'does' if len(wrong) == 1 else 'do'} not "
+                                     f"apply to method {self.method!r}")
         p = len(self.indices)
         for key in ("q_min", "q_max"):
             v = getattr(self, key)
             if v is not None and len(v) != p:
-                raise _invalid(f"{key} must have one value per index ({p}), got {len(v)}")
+                raise invalid(key, f"must have one value per index ({p}), got {len(v)}")
         if self.q_min is not None and self.q_max is not None and \
                 any(lo > hi for lo, hi in zip(self.q_min, self.q_max, strict=True)):
-            raise _invalid("q_min must be <= q_max")
+            raise invalid("q_min", "must be <= q_max")
         return self
 
 
@@ -408,18 +404,18 @@ class ImmModelSpec(WireModel):
         r = len(self.modes)
         T = self.transition
         if T.shape != (r, r):
-            raise _invalid(f"transition must be {r}x{r} ({r} modes), got shape {list(T.shape)}")
+            raise invalid("transition", f"must be {r}x{r} ({r} modes), got shape {list(T.shape)}")
         if (T < 0.0).any():
-            raise _invalid("transition entries must be >= 0")
+            raise invalid("transition", "entries must be >= 0")
         worst = float(np.abs(T.sum(axis=1) - 1.0).max())
         if worst > PROB_TOL:
-            raise _invalid(f"every row of transition must sum to 1 (off by {worst:.3g})")
+            raise invalid("transition", f"every row must sum to 1 (off by {worst:.3g})")
         if self.mu0 is not None:
             mu = self.mu0
             if mu.shape != (r,):
-                raise _invalid(f"mu0 must have {r} values ({r} modes), got {mu.shape[0]}")
+                raise invalid("mu0", f"must have {r} values ({r} modes), got {mu.shape[0]}")
             if (mu < 0.0).any() or abs(float(mu.sum()) - 1.0) > PROB_TOL:
-                raise _invalid("mu0 must be >= 0 and sum to 1")
+                raise invalid("mu0", "must be >= 0 and sum to 1")
         return self
 
 
@@ -513,51 +509,51 @@ class SessionSpec(Message):
         if isinstance(model, LinearModelSpec):
             n = model.n
             if n > MAX_DIM:  # unreachable while MAX_DIM bounds every array axis; kept explicit
-                raise _invalid(f"state dimension n={n} exceeds {MAX_DIM}")
+                raise invalid("model.linear.A", f"state dimension n={n} exceeds {MAX_DIM}")
             if self.x0.shape != (n,):
-                raise _invalid(f"x0 must have n={n} values (model.A is {n}x{n}), "
+                raise invalid("x0", f"must have n={n} values (model.A is {n}x{n}), "
                                f"got {self.x0.shape[0]}")
             source = f"model.A is {n}x{n}"
         else:
             n = self.x0.shape[0]
             source = f"x0 has {n} values"
             if self.lead > MAX_NONLINEAR_LEAD:
-                raise _invalid(f"lead={self.lead} exceeds {MAX_NONLINEAR_LEAD} for a "
+                raise invalid("lead", f"{self.lead} exceeds {MAX_NONLINEAR_LEAD} for a "
                                f"{model.kind!r} model (every step of lead is propagated "
                                "at each prediction)")
         if self.P0.shape != (n, n):
-            raise _invalid(f"P0 must be {n}x{n} ({source}), got shape {list(self.P0.shape)}")
+            raise invalid("P0", f"must be {n}x{n} ({source}), got shape {list(self.P0.shape)}")
         problem = psd_problem(self.P0)
         if problem:
-            raise _invalid(f"P0 {problem}")
+            raise invalid("P0", problem)
         allowed = SENSOR_KINDS[model.kind]
         seen: set[str] = set()
         for i, s in enumerate(self.sensors):
             if s.name in seen:
-                raise _invalid(f"sensors[{i}].name {s.name!r} is used twice; names must be unique")
+                raise invalid(f"sensors.{i}.name", f"{s.name!r} is used twice; names must be unique")
             seen.add(s.name)
             if s.kind not in allowed:
-                raise _invalid(f"sensors[{i}] ({s.name!r}).kind {s.kind!r} does not fit a "
+                raise invalid(f"sensors.{i}.kind", f"{s.kind!r} ({s.name!r}) does not fit a "
                                f"{model.kind!r} model (use: {', '.join(allowed)})")
             if s.H is not None and s.H.shape[1] != n:
-                raise _invalid(f"sensors[{i}] ({s.name!r}).H must have n={n} columns, "
+                raise invalid(f"sensors.{i}.H", f"must have n={n} columns ({s.name!r}), "
                                f"got shape {list(s.H.shape)}")
             if s.delay > self.max_delay:
-                raise _invalid(f"sensors[{i}] ({s.name!r}).delay={s.delay} exceeds "
+                raise invalid(f"sensors.{i}.delay", f"{s.delay} ({s.name!r}) exceeds "
                                f"max_delay={self.max_delay}: every sample would be late")
         if isinstance(model, UnscentedModelSpec):
             if model.adapt is not None and max(model.adapt.indices) >= n:
-                raise _invalid(f"model.adapt.indices {model.adapt.indices} must be < n={n} "
+                raise invalid("model.unscented.adapt.indices", f"{model.adapt.indices} must be < n={n} "
                                f"({source})")
             if model.sigma is not None and not n + model.sigma.kappa > 0:
-                raise _invalid(f"model.sigma: n + kappa must be > 0 (n={n}, "
+                raise invalid("model.unscented.sigma.kappa", f"n + kappa must be > 0 (n={n}, "
                                f"kappa={model.sigma.kappa})")
         elif isinstance(model, ImmModelSpec):
             if model.node >= len(self.sensors):
-                raise _invalid(f"model.node={model.node} must index one of the "
+                raise invalid("model.imm.node", f"{model.node} must index one of the "
                                f"{len(self.sensors)} sensors")
             if not n + model.kappa > 0:
-                raise _invalid(f"model: n + kappa must be > 0 (n={n}, kappa={model.kappa})")
+                raise invalid("model.imm.kappa", f"n + kappa must be > 0 (n={n}, kappa={model.kappa})")
         if self.ros2 is not None:
             self._check_ros2(self.ros2, n)
         return self
@@ -573,15 +569,15 @@ class SessionSpec(Message):
         for name, binding in ros2.sensors.items():
             sensor = self.sensor(name)
             if sensor is None:
-                raise _invalid(f"ros2.sensors[{name!r}]: no sensor of that name in sensors")
+                raise invalid(f"ros2.sensors.{name}", "no sensor of that name in sensors")
             m = sensor.H.shape[0] if sensor.H is not None else None
             if m is not None and m != len(binding.fields):
-                raise _invalid(f"ros2.sensors[{name!r}].fields has {len(binding.fields)} "
+                raise invalid(f"ros2.sensors.{name}.fields", f"has {len(binding.fields)} "
                                f"values but sensor {name!r} measures m={m}")
         if ros2.outputs is not None:
             for quantity, i in ros2.outputs.layout.indices().items():
                 if i >= n:
-                    raise _invalid(f"ros2.outputs.layout.{quantity}={i} must be < n={n}")
+                    raise invalid(f"ros2.outputs.layout.{quantity}", f"{i} must be < n={n}")
 
 
 # --- streams into the daemon ------------------------------------------------------------
@@ -608,15 +604,15 @@ class Measurement(Message):
     @model_validator(mode="after")
     def _check(self) -> Measurement:
         if (self.step is None) == (self.t_ns is None):
-            raise _invalid("exactly one of step / t_ns must be given"
+            raise invalid("step", "exactly one of step / t_ns must be given"
                            + (", got both" if self.step is not None else ", got neither"))
         if self.R is not None:
             m = self.z.shape[0]
             if self.R.shape != (m, m):
-                raise _invalid(f"R must be {m}x{m} (z has {m} values), got shape {list(self.R.shape)}")
+                raise invalid("R", f"must be {m}x{m} (z has {m} values), got shape {list(self.R.shape)}")
             problem = psd_problem(self.R)
             if problem:
-                raise _invalid(f"R {problem}")
+                raise invalid("R", problem)
         return self
 
 
@@ -640,7 +636,7 @@ class Command(Message):
     @model_validator(mode="after")
     def _check(self) -> Command:
         if (self.step is None) == (self.issued_ns is None):
-            raise _invalid("exactly one of step / issued_ns must be given"
+            raise invalid("step", "exactly one of step / issued_ns must be given"
                            + (", got both" if self.step is not None else ", got neither"))
         return self
 
@@ -669,10 +665,10 @@ class Prediction(Message):
     def _check(self) -> Prediction:
         n = self.x.shape[0]
         if self.P.shape != (n, n):
-            raise _invalid(f"P must be {n}x{n} (x has {n} values), got shape {list(self.P.shape)}")
+            raise invalid("P", f"must be {n}x{n} (x has {n} values), got shape {list(self.P.shape)}")
         problem = psd_problem(self.P)
         if problem:
-            raise _invalid(f"P {problem}")
+            raise invalid("P", problem)
         return self
 
 

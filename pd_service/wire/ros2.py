@@ -14,7 +14,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, StringConstraints, field_validator, model_validator
 
-from .base import WireModel
+from .base import WireModel, invalid
 
 #: Sensor message types a measurement binding may name.
 MeasurementType = Literal[
@@ -89,9 +89,9 @@ class TopicBinding(_Topic):
         allowed = FIELDS_BY_TYPE[self.msg_type]
         bad = [f for f in self.fields if f not in allowed]
         if bad:
-            raise ValueError(f"{self.msg_type} has no field(s) {bad}; it has {list(allowed)}")
+            raise invalid("fields", f"{self.msg_type} has no field(s) {bad}; it has {list(allowed)}")
         if len(set(self.fields)) != len(self.fields):
-            raise ValueError(f"fields {list(self.fields)} repeat a field")
+            raise invalid("fields", f"{list(self.fields)} repeat a field")
         return self
 
 

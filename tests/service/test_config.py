@@ -65,6 +65,28 @@ def test_cli_flags(monkeypatch, capsys):
     assert main(["--shard", "nonsense", "--print-config"]) == 2
 
 
+def test_print_config_shows_the_zenoh_values_in_force(monkeypatch, capsys, tmp_path):
+    for var in ("PD_SERVICE_CONFIG", "PD_SERVICE_MODE", "PD_SERVICE_LISTEN",
+                "PD_SERVICE_CONNECT", "PD_SERVICE_MULTICAST", "PD_SERVICE_ZENOH_CONFIG"):
+        monkeypatch.delenv(var, raising=False)
+    assert main(["--print-config", "--instance", "y", "--state-dir", str(tmp_path)]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert (shown["mode"], shown["listen"], shown["connect"], shown["multicast"]) == \
+        ("peer", [DEFAULT_ENDPOINT], [], False)
+    assert shown["state_dir"] == str(tmp_path)
+    assert main(["--print-config", "--mode", "client", "--connect", "tcp/127.0.0.1:9",
+                 "--password", "secret"]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert (shown["mode"], shown["listen"], shown["connect"], shown["password"]) == \
+        ("client", [DEFAULT_ENDPOINT], ["tcp/127.0.0.1:9"], "***")
+    # with a zenoh config file, the file decides what the flags do not say
+    f = tmp_path / "z.json5"
+    f.write_text('{mode: "client"}')
+    assert main(["--print-config", "--zenoh-config", str(f)]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert (shown["mode"], shown["listen"]) == (None, None)
+
+
 def test_rendezvous_is_stable_and_moves_only_the_leavers_sessions():
     assert stable_hash("abc") == stable_hash("abc")
     insts = ["a", "b", "c"]

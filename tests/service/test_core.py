@@ -16,7 +16,9 @@ from pd_service.scenarios.paper import (
 from pd_service.service import ServiceCore, Settings, SpecStore
 from pd_service.transport import InMemoryBus
 from pd_service.wire import (
+    Command,
     ErrorReport,
+    Measurement,
     Prediction,
     ServiceStatus,
     SessionSpec,
@@ -595,3 +597,123 @@ def test_refusals_are_counted_by_kind_and_echo_a_readable_seq(world, tmp_path):
     reports = col.errors["s1"]
     assert [r.seq for r in reports] == [41, 42, None]
     assert "semi-definite" in reports[0].reason and "finite" in reports[1].reason
+
+
+def test_window_refusals_name_the_stamp_field_the_message_used(world, tmp_path):
+    """A future / late / duplicate sample stamped by t_ns is reported as Measurement.t_ns
+    (by step: Measurement.step); a command stamped by issued_ns as Command.issued_ns."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    spec = paper_spec("s1")
+    cli.put(keys.config_key("s1"), encode(spec))
+    core.run_once()
+    clock.t = at(20.5)
+    key = keys.sensor_key("s1", "camera")
+
+    def by_time(step: int, seq: int) -> bytes:
+        return encode(Measurement(session="s1", sensor="camera", seq=seq,
+                                  t_ns=spec.time_of(step), z=np.array([1.0, 2.0])))
+
+    cli.put(key, by_time(25, 1))                       # future
+    cli.put(key, by_time(2, 2))                        # late
+    cli.put(key, by_time(19, 3))                       # accepted
+    cli.put(key, by_time(19, 4))                       # duplicate (same sensor and step)
+    cli.put(key, meas_bytes("s1", "camera", 19, [5.0, 6.0], seq=5))  # duplicate, by step
+    far = spec.time_of(20 + 2 * spec.lead + spec.max_delay + 5)
+    cli.put(keys.command_key("s1"), encode(Command(session="s1", seq=6, issued_ns=far,
+                                               u=np.array([1.0]))))
+    core.run_once()
+    c = core.session_status("s1").counters
+    assert (c["future"], c["late"], c["accepted"], c["duplicate"], c["commands_future"]) \
+        == (1, 1, 1, 2, 1)
+    heads = [(r.seq, r.reason.split(": ", 1)[0]) for r in col.errors["s1"]]
+    assert heads == [(1, "Measurement.t_ns"), (2, "Measurement.t_ns"), (4, "Measurement.t_ns"),
+                     (5, "Measurement.step"), (6, "Command.issued_ns")]
+
+
+@pytest.mark.parametrize("publish_every, missed", [(1, 9), (2, 4)])
+def test_steps_that_got_no_prediction_are_counted(world, tmp_path, publish_every, missed):
+    """The worker stalls from step 2 to step 12: the due steps 3..11 (every step, or the
+    even ones with publish_every 2) got no prediction; one late tick is one overrun."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1", publish_every=publish_every)))
+    core.run_once()
+    for k in range(3):
+        clock.t = at(k + 0.6)
+        core.run_once()
+    st = core.session_status("s1")
+    assert "steps_missed" not in st.counters
+    clock.t = at(12.6)
+    core.run_once()
+    assert core.session_status("s1").counters["steps_missed"] == missed
+    assert core.service_status().counters["steps_missed"] == missed
+    assert core.session_status("s1").counters["tick_overruns"] == 1
+    for k in (13, 14):  # back on time: nothing more is missed
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert core.session_status("s1").counters["steps_missed"] == missed
+    assert col.predictions["s1"][-1].counters["steps_missed"] == missed
+
+
+def _lock_free(lock) -> bool:
+    """True if another thread could take ``lock`` now (the caller may hold it reentrantly)."""
+    import threading
+
+    free: list[bool] = []
+
+    def probe() -> None:
+        got = lock.acquire(blocking=False)
+        if got:
+            lock.release()
+        free.append(got)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    return free[0]
+
+
+def test_status_queries_build_their_replies_without_the_lock(world, tmp_path, monkeypatch):
+    """A query holds the core's lock only to copy: the message is built (percentiles,
+    validation) and encoded with the lock free, so a slow reply never stalls the worker."""
+    from pd_service.service import status as status_mod
+
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    for s in ("s1", "s2"):
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    core.run_once()
+    clock.t = at(20.5)
+    cli.put(keys.sensor_key("s1", "camera"), meas_bytes("s1", "camera", 19, [1.0, 2.0]))
+    core.run_once()
+    seen: list[tuple[str, bool]] = []
+
+    def checking(name, real):
+        def wrapped(*a, **kw):
+            seen.append((name, _lock_free(core.lock)))
+            return real(*a, **kw)
+        return wrapped
+
+    names = ("SessionStatus", "ServiceStatus", "encode", "percentiles")
+    for name in names:
+        monkeypatch.setattr(status_mod, name, checking(name, getattr(status_mod, name)))
+    replies = cli.get("pd/*/status") + cli.get(keys.status_key("s1"))
+    replies += cli.get(keys.service_status_key("a"))
+    assert core.session_status("s1") is not None and core.service_status() is not None
+    assert {n for n, _ in seen} == set(names)
+    assert all(free for _, free in seen), seen
+    by_session = {decode(r.payload, SessionStatus).session: decode(r.payload, SessionStatus)
+                  for r in replies[:3]}
+    assert (by_session["s1"].counters["accepted"], by_session["s2"].counters["accepted"]) == (1, 0)
+    assert decode(replies[3].payload, ServiceStatus).sessions == ["s1", "s2"]
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 10, 511, 4096])
+def test_latency_percentiles_equal_numpys(n):
+    from pd_service.service.stats import percentiles
+
+    x = np.random.default_rng(n).exponential(100.0, n)
+    assert percentiles(x.tolist()) == pytest.approx(tuple(np.percentile(x, [50.0, 99.0])),
+                                                    rel=1e-12, abs=0.0)
+    assert percentiles([]) == (0.0, 0.0)

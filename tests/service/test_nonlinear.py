@@ -270,13 +270,13 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path):
     # bad1 and bad2 (new sessions) and u1's bad replacement: each counted once service-wide
     assert core.service_status().counters["config_refused"] == 3
     [bad1] = col.errors["bad1"]
-    assert bad1.reason.startswith("SessionSpec: refused by the estimator: model: unknown "
+    assert bad1.reason.startswith("SessionSpec.model: refused by the estimator: model: unknown "
                                   "model 'no-such-model' (registered: ")
     [bad2] = col.errors["bad2"]
-    assert bad2.reason == "SessionSpec: refused by the estimator: x0: expected length 6, got 5"
+    assert bad2.reason == "SessionSpec.x0: refused by the estimator: x0: expected length 6, got 5"
     u1_errors = [e.reason for e in col.errors["u1"] if e.key == keys.config_key("u1")]
     assert len(u1_errors) == 1 and u1_errors[0].startswith(
-        "SessionSpec: refused by the estimator: model: unknown model 'imm_turn' (registered: ")
+        "SessionSpec.model: refused by the estimator: model: unknown model 'imm_turn' (registered: ")
     assert core._routes["u1"].sess.spec == omni_spec()  # the running session was kept
     i1_cmd = [e.reason for e in col.errors["i1"] if e.key == keys.command_key("i1")]
     assert i1_cmd == ["Command.u: session 'i1' takes no commands (its model has no inputs)"]

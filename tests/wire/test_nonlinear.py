@@ -139,26 +139,26 @@ CASES = [
     (U, "model.model", DELETE, "SessionSpec.model.unscented.model: Field required"),
     (U, "model.model", "Omni3", "SessionSpec.model.unscented.model: String should match pattern"),
     # -- params
-    (U, "model.params", [1.0], "SessionSpec.model.unscented.params: params must be a map: parameter name -> number or list of numbers"),
-    (U, "model.params.mass", True, "SessionSpec.model.unscented.params: params['mass']: expected a number or a list of numbers, got bool"),
-    (U, "model.params.mass", None, "params['mass']: expected a number or a list of numbers, got nil"),
-    (U, "model.params.mass", "10", "params['mass']: expected a number or a list of numbers, got str"),
-    (U, "model.params.mass", {"a": 1}, "params['mass']: expected a number or a list of numbers, got dict"),
-    (U, "model.params.mass", math.nan, "params['mass']: must be a finite number (no NaN or infinity)"),
-    (U, "model.params.mass", [1.0, math.inf], "params['mass']: must be a finite number"),
-    (U, "model.params.mass", [], "params['mass']: a list holds 1..256 numbers, got 0"),
-    (U, "model.params.mass", [0.5] * 257, "params['mass']: a list holds 1..256 numbers, got 257"),
-    (U, "model.params.mass", [[1.0]], "params['mass']: expected a number or a list of numbers, got list"),
+    (U, "model.params", [1.0], "SessionSpec.model.unscented.params: must be a map: parameter name -> number or list of numbers"),
+    (U, "model.params.mass", True, "SessionSpec.model.unscented.params.mass: expected a number or a list of numbers, got bool"),
+    (U, "model.params.mass", None, "params.mass: expected a number or a list of numbers, got nil"),
+    (U, "model.params.mass", "10", "params.mass: expected a number or a list of numbers, got str"),
+    (U, "model.params.mass", {"a": 1}, "params.mass: expected a number or a list of numbers, got dict"),
+    (U, "model.params.mass", math.nan, "params.mass: must be a finite number (no NaN or infinity)"),
+    (U, "model.params.mass", [1.0, math.inf], "params.mass: must be a finite number"),
+    (U, "model.params.mass", [], "params.mass: a list holds 1..256 numbers, got 0"),
+    (U, "model.params.mass", [0.5] * 257, "params.mass: a list holds 1..256 numbers, got 257"),
+    (U, "model.params.mass", [[1.0]], "params.mass: expected a number or a list of numbers, got list"),
     (U, "model.params.bad-name", 1, "params: 'bad-name' is not a parameter name"),
     (U, "model.params", {f"p{i}": 1 for i in range(33)}, "params: at most 32 entries, got 33"),
     # -- adapt
     (U, "model.adapt.method", "kalman", "SessionSpec.model.unscented.adapt.method: Input should be 'mit' or 'sage_husa'"),
     (U, "model.adapt.indices", DELETE, "SessionSpec.model.unscented.adapt.indices: Field required"),
     (U, "model.adapt.indices", [], "adapt.indices: List should have at least 1 item"),
-    (U, "model.adapt.indices", [3, 3], "SessionSpec.model.unscented.adapt: indices must be distinct, got [3, 3]"),
+    (U, "model.adapt.indices", [3, 3], "SessionSpec.model.unscented.adapt.indices: must be distinct, got [3, 3]"),
     (U, "model.adapt.indices", [64], "adapt.indices.0: Input should be less than 64"),
     (U, "model.adapt.indices", [3.0], "adapt.indices.0: Input should be a valid integer"),
-    (U, "model.adapt.indices", [2, 6], "SessionSpec: model.adapt.indices [2, 6] must be < n=6 (x0 has 6 values)"),
+    (U, "model.adapt.indices", [2, 6], "SessionSpec.model.unscented.adapt.indices: [2, 6] must be < n=6 (x0 has 6 values)"),
     (U, "model.adapt.window", 0, "adapt.window: Input should be greater than or equal to 1"),
     (U, "model.adapt.window", 10_001, "adapt.window: Input should be less than or equal to 10000"),
     (U, "model.adapt.window", 20.0, "adapt.window: Input should be a valid integer"),
@@ -166,64 +166,64 @@ CASES = [
     (U, "model.adapt.eta", math.inf, "adapt.eta: Input should be a finite number"),
     (U, "model.adapt.rule", "fast", "adapt.rule: Input should be 'normalised' or 'plain'"),
     (U, "model.adapt.max_gap", 101, "adapt.max_gap: Input should be less than or equal to 100"),
-    (U, "model.adapt.forgetting", 0.9, "SessionSpec.model.unscented.adapt: forgetting does not apply to method 'mit'"),
-    (U, "model.adapt.method", "sage_husa", "SessionSpec.model.unscented.adapt: window, eta do not apply to method 'sage_husa'"),
-    (U, "model.adapt.q_min", [1e-9], "adapt: q_min must have one value per index (3), got 1"),
+    (U, "model.adapt.forgetting", 0.9, "SessionSpec.model.unscented.adapt.forgetting: forgetting does not apply to method 'mit'"),
+    (U, "model.adapt.method", "sage_husa", "SessionSpec.model.unscented.adapt.window: window, eta do not apply to method 'sage_husa'"),
+    (U, "model.adapt.q_min", [1e-9], "adapt.q_min: must have one value per index (3), got 1"),
     (U, "model.adapt.q_max", [0.0, 1.0, 1.0], "adapt.q_max.0: Input should be greater than 0"),
     (U, "model.adapt.extra", 1, "adapt.extra: Extra inputs are not permitted"),
     # -- sigma
     (U, "model.sigma", {"alpha": 0.0}, "SessionSpec.model.unscented.sigma.alpha: Input should be greater than 0"),
     (U, "model.sigma", {"alpha": 1.0, "gamma": 1.0}, "sigma.gamma: Extra inputs are not permitted"),
-    (U, "model.sigma", {"kappa": -6.0}, "SessionSpec: model.sigma: n + kappa must be > 0 (n=6, kappa=-6.0)"),
+    (U, "model.sigma", {"kappa": -6.0}, "SessionSpec.model.unscented.sigma.kappa: n + kappa must be > 0 (n=6, kappa=-6.0)"),
     # -- timing
-    (U, "lead", 1001, "SessionSpec: lead=1001 exceeds 1000 for a 'unscented' model (every step of lead is propagated at each prediction)"),
-    (I, "lead", 1001, "SessionSpec: lead=1001 exceeds 1000 for a 'imm' model"),
+    (U, "lead", 1001, "SessionSpec.lead: 1001 exceeds 1000 for a 'unscented' model (every step of lead is propagated at each prediction)"),
+    (I, "lead", 1001, "SessionSpec.lead: 1001 exceeds 1000 for a 'imm' model"),
     # -- prior
-    (U, "x0", arr(5, [0.0] * 5), "SessionSpec: P0 must be 5x5 (x0 has 5 values), got shape [6, 6]"),
-    (U, "P0", arr(6, 6, (-np.eye(6)).ravel()), "SessionSpec: P0 must be positive semi-definite"),
+    (U, "x0", arr(5, [0.0] * 5), "SessionSpec.P0: must be 5x5 (x0 has 5 values), got shape [6, 6]"),
+    (U, "P0", arr(6, 6, (-np.eye(6)).ravel()), "SessionSpec.P0: must be positive semi-definite"),
     # -- sensors of an unscented model
-    (U, "sensors.0.kind", "linear", "SessionSpec.sensors.0: H is required for a sensor of kind 'linear' (z = H x + v)"),
+    (U, "sensors.0.kind", "linear", "SessionSpec.sensors.0.H: is required for a sensor of kind 'linear' (z = H x + v)"),
     (U, "sensors.0.kind", "lidar", "SessionSpec.sensors.0.kind: Input should be 'linear', 'model', 'range_bearing' or 'position'"),
-    (U, "sensors.0.H", arr(3, 6, [0.0] * 18), "SessionSpec.sensors.0: H is only for kind 'linear'; a 'model' sensor's h(x) is the model's"),
-    (U, "sensors.0.station", arr(2, [0.0, 0.0]), "SessionSpec.sensors.0: station is only for kind 'range_bearing', not 'model'"),
-    (U, "sensors.0.R", arr(3, 2, [0.0] * 6), "SessionSpec.sensors.0: R must be square, got shape [3, 2]"),
-    (U, "sensors.0.R", arr(1, 1, [-1.0]), "SessionSpec.sensors.0: R must be positive semi-definite"),
-    (U, "sensors.0.kind", "position", "SessionSpec.sensors.0: R must be 2x2 for kind 'position' (z has 2 values), got shape [3, 3]"),
+    (U, "sensors.0.H", arr(3, 6, [0.0] * 18), "SessionSpec.sensors.0.H: is only for kind 'linear'; a 'model' sensor's h(x) is the model's"),
+    (U, "sensors.0.station", arr(2, [0.0, 0.0]), "SessionSpec.sensors.0.station: is only for kind 'range_bearing', not 'model'"),
+    (U, "sensors.0.R", arr(3, 2, [0.0] * 6), "SessionSpec.sensors.0.R: must be square, got shape [3, 2]"),
+    (U, "sensors.0.R", arr(1, 1, [-1.0]), "SessionSpec.sensors.0.R: must be positive semi-definite"),
+    (U, "sensors.0.kind", "position", "SessionSpec.sensors.0.R: must be 2x2 for kind 'position' (z has 2 values), got shape [3, 3]"),
     # -- imm model
     (I, "model.modes", [{"model": "imm_cv", "params": {}}], "SessionSpec.model.imm.modes: List should have at least 2 items after validation, not 1"),
     (I, "model.modes", [{"model": "imm_cv", "params": {}}] * 9, "SessionSpec.model.imm.modes: List should have at most 8 items after validation, not 9"),
     (I, "model.modes.1.model", DELETE, "SessionSpec.model.imm.modes.1.model: Field required"),
     (I, "model.modes.1.extra", 1, "SessionSpec.model.imm.modes.1.extra: Extra inputs are not permitted"),
-    (I, "model.modes.1.params.sigma_accel", -math.inf, "SessionSpec.model.imm.modes.1.params: params['sigma_accel']: must be a finite number"),
-    (I, "model.transition", arr(3, 3, np.eye(3).ravel()), "SessionSpec.model.imm: transition must be 2x2 (2 modes), got shape [3, 3]"),
-    (I, "model.transition", arr(2, 2, [1.1, -0.1, 0.005, 0.995]), "SessionSpec.model.imm: transition entries must be >= 0"),
-    (I, "model.transition", arr(2, 2, [0.9, 0.2, 0.005, 0.995]), "SessionSpec.model.imm: every row of transition must sum to 1 (off by 0.1)"),
-    (I, "model.transition", arr(2, 2, [0.995, 0.005 + 2e-9, 0.005, 0.995]), "every row of transition must sum to 1 (off by 2e-09)"),
+    (I, "model.modes.1.params.sigma_accel", -math.inf, "SessionSpec.model.imm.modes.1.params.sigma_accel: must be a finite number"),
+    (I, "model.transition", arr(3, 3, np.eye(3).ravel()), "SessionSpec.model.imm.transition: must be 2x2 (2 modes), got shape [3, 3]"),
+    (I, "model.transition", arr(2, 2, [1.1, -0.1, 0.005, 0.995]), "SessionSpec.model.imm.transition: entries must be >= 0"),
+    (I, "model.transition", arr(2, 2, [0.9, 0.2, 0.005, 0.995]), "SessionSpec.model.imm.transition: every row must sum to 1 (off by 0.1)"),
+    (I, "model.transition", arr(2, 2, [0.995, 0.005 + 2e-9, 0.005, 0.995]), "imm.transition: every row must sum to 1 (off by 2e-09)"),
     (I, "model.transition", DELETE, "SessionSpec.model.imm.transition: Field required"),
     (I, "model.variant", "federated", "SessionSpec.model.imm.variant: Input should be 'single', 'centralised', 'imm1' or 'imm2'"),
     (I, "model.variant", DELETE, "SessionSpec.model.imm.variant: Field required"),
-    (I, "model.mu0", arr(3, [0.5, 0.25, 0.25]), "SessionSpec.model.imm: mu0 must have 2 values (2 modes), got 3"),
-    (I, "model.mu0", arr(2, [0.7, 0.7]), "SessionSpec.model.imm: mu0 must be >= 0 and sum to 1"),
-    (I, "model.mu0", arr(2, [1.5, -0.5]), "SessionSpec.model.imm: mu0 must be >= 0 and sum to 1"),
-    (I, "model.node", 3, "SessionSpec: model.node=3 must index one of the 3 sensors"),
+    (I, "model.mu0", arr(3, [0.5, 0.25, 0.25]), "SessionSpec.model.imm.mu0: must have 2 values (2 modes), got 3"),
+    (I, "model.mu0", arr(2, [0.7, 0.7]), "SessionSpec.model.imm.mu0: must be >= 0 and sum to 1"),
+    (I, "model.mu0", arr(2, [1.5, -0.5]), "SessionSpec.model.imm.mu0: must be >= 0 and sum to 1"),
+    (I, "model.node", 3, "SessionSpec.model.imm.node: 3 must index one of the 3 sensors"),
     (I, "model.node", 16, "SessionSpec.model.imm.node: Input should be less than 16"),
     (I, "model.node", -1, "SessionSpec.model.imm.node: Input should be greater than or equal to 0"),
-    (I, "model.kappa", -5.0, "SessionSpec: model: n + kappa must be > 0 (n=5, kappa=-5.0)"),
+    (I, "model.kappa", -5.0, "SessionSpec.model.imm.kappa: n + kappa must be > 0 (n=5, kappa=-5.0)"),
     (I, "model.kappa", math.nan, "SessionSpec.model.imm.kappa: Input should be a finite number"),
     # -- sensors of an imm model
-    (I, "sensors.0.station", DELETE, "SessionSpec.sensors.0: station is required for kind 'range_bearing'"),
-    (I, "sensors.0.station", arr(3, [0.0] * 3), "SessionSpec.sensors.0: station must have 2 values (xi, eta), got 3"),
+    (I, "sensors.0.station", DELETE, "SessionSpec.sensors.0.station: is required for kind 'range_bearing'"),
+    (I, "sensors.0.station", arr(3, [0.0] * 3), "SessionSpec.sensors.0.station: must have 2 values (xi, eta), got 3"),
     (I, "sensors.0.station", [9.5, -8.5], "SessionSpec.sensors.0.station: expected an array"),
-    (I, "sensors.0.R", arr(2, 2, [0.09, 0.01, 0.01, 0.004]), "SessionSpec.sensors.0: R must be diagonal with positive entries for kind 'range_bearing': diag(sigma_range^2, sigma_bearing^2)"),
-    (I, "sensors.0.R", arr(2, 2, [0.09, 0.0, 0.0, 0.0]), "SessionSpec.sensors.0: R must be diagonal with positive entries"),
-    (I, "sensors.0.R", arr(1, 1, [0.09]), "SessionSpec.sensors.0: R must be 2x2 for kind 'range_bearing' (z has 2 values), got shape [1, 1]"),
-    (I, "sensors.0.H", arr(2, 5, [0.0] * 10), "SessionSpec.sensors.0: H is only for kind 'linear'"),
-    (IP, "sensors.3.R", arr(2, 2, [1.0, 1.0, 1.0, 1.0]), "SessionSpec.sensors.3: R must be positive definite for kind 'position' (the IMM filter uses R^-1)"),
-    (IP, "sensors.3.station", arr(2, [0.0, 0.0]), "SessionSpec.sensors.3: station is only for kind 'range_bearing', not 'position'"),
-    (I, "x0", arr(6, [0.0] * 6), "SessionSpec: P0 must be 6x6 (x0 has 6 values), got shape [5, 5]"),
+    (I, "sensors.0.R", arr(2, 2, [0.09, 0.01, 0.01, 0.004]), "SessionSpec.sensors.0.R: must be diagonal with positive entries for kind 'range_bearing': diag(sigma_range^2, sigma_bearing^2)"),
+    (I, "sensors.0.R", arr(2, 2, [0.09, 0.0, 0.0, 0.0]), "SessionSpec.sensors.0.R: must be diagonal with positive entries"),
+    (I, "sensors.0.R", arr(1, 1, [0.09]), "SessionSpec.sensors.0.R: must be 2x2 for kind 'range_bearing' (z has 2 values), got shape [1, 1]"),
+    (I, "sensors.0.H", arr(2, 5, [0.0] * 10), "SessionSpec.sensors.0.H: is only for kind 'linear'"),
+    (IP, "sensors.3.R", arr(2, 2, [1.0, 1.0, 1.0, 1.0]), "SessionSpec.sensors.3.R: must be positive definite for kind 'position' (the IMM filter uses R^-1)"),
+    (IP, "sensors.3.station", arr(2, [0.0, 0.0]), "SessionSpec.sensors.3.station: is only for kind 'range_bearing', not 'position'"),
+    (I, "x0", arr(6, [0.0] * 6), "SessionSpec.P0: must be 6x6 (x0 has 6 values), got shape [5, 5]"),
     # -- a linear model keeps its rules and names the model kind in the error
     (L, "model.kind", "other", f"SessionSpec.model: {KINDS}"),
-    (L, "sensors.0.H", DELETE, "SessionSpec.sensors.0: H is required for a sensor of kind 'linear' (z = H x + v)"),
+    (L, "sensors.0.H", DELETE, "SessionSpec.sensors.0.H: is required for a sensor of kind 'linear' (z = H x + v)"),
 ]
 
 
@@ -244,12 +244,12 @@ def _kind_swap(base: str, index: int, **fields) -> dict:
 
 
 @pytest.mark.parametrize("base, fields, expected", [
-    (L, {"kind": "model"}, "SessionSpec: sensors[0] ('camera').kind 'model' does not fit a 'linear' model (use: linear)"),
+    (L, {"kind": "model"}, "SessionSpec.sensors.0.kind: 'model' ('camera') does not fit a 'linear' model (use: linear)"),
     (U, {"kind": "range_bearing", "station": arr(2, [0.0, 0.0]), "R": arr(2, 2, [1.0, 0.0, 0.0, 1.0])},
-     "SessionSpec: sensors[0] ('pose').kind 'range_bearing' does not fit a 'unscented' model (use: model)"),
+     "SessionSpec.sensors.0.kind: 'range_bearing' ('pose') does not fit a 'unscented' model (use: model)"),
     (U, {"kind": "linear", "H": arr(3, 6, np.eye(3, 6).ravel())},
-     "SessionSpec: sensors[0] ('pose').kind 'linear' does not fit a 'unscented' model (use: model)"),
-    (I, {"kind": "model"}, "SessionSpec: sensors[0] ('st1').kind 'model' does not fit a 'imm' model (use: range_bearing, position)"),
+     "SessionSpec.sensors.0.kind: 'linear' ('pose') does not fit a 'unscented' model (use: model)"),
+    (I, {"kind": "model"}, "SessionSpec.sensors.0.kind: 'model' ('st1') does not fit a 'imm' model (use: range_bearing, position)"),
 ])
 def test_sensor_kind_must_fit_the_model(base, fields, expected):
     got = reason(_kind_swap(base, 0, **fields))
@@ -262,14 +262,14 @@ def test_transition_tolerance():
 
 
 def test_python_construction():
-    with pytest.raises(ValidationError, match="indices must be distinct"):
+    with pytest.raises(ValidationError, match="indices: must be distinct"):
         AdaptSpec(indices=[1, 1])
-    with pytest.raises(ValidationError, match="every row of transition must sum to 1"):
+    with pytest.raises(ValidationError, match="transition: every row must sum to 1"):
         ImmModelSpec(modes=[ModeSpec(model="a"), ModeSpec(model="b")],
                      transition=np.ones((2, 2)), variant="imm2")
-    with pytest.raises(ValidationError, match="params\\['x'\\]: expected a number"):
+    with pytest.raises(ValidationError, match="x: expected a number"):
         UnscentedModelSpec(model="omni3", params={"x": np.array([[1.0]])})
-    with pytest.raises(ValidationError, match="station is required"):
+    with pytest.raises(ValidationError, match="station: is required"):
         SensorSpec(name="st", kind="range_bearing", R=np.eye(2), delay=0, interval=1)
     assert UnscentedModelSpec(model="omni3").params == {}
 
@@ -381,17 +381,17 @@ def _unscented(**model) -> SessionSpec:
 
 
 @pytest.mark.parametrize("make, expected", [
-    (lambda: _unscented(model="no-such-model"), "SessionSpec: refused by the estimator: model: unknown model 'no-such-model' (registered: "),
-    (lambda: _unscented(model="omni3", params={"wheels": 4}), "SessionSpec: refused by the estimator: model 'omni3': bad parameters"),
-    (lambda: _unscented(model="omni3", params={"mass": -1.0}), "SessionSpec: refused by the estimator: mass: must be a positive number"),
-    (lambda: _unscented(model="omni3", params={"mass": [1.0, 2.0]}), "SessionSpec: refused by the estimator: model 'omni3': bad parameters"),
-    (lambda: omni_spec(adapt=False).model_copy(update={"x0": np.zeros(5), "P0": np.eye(5)}), "SessionSpec: refused by the estimator: x0: expected length 6, got 5"),
-    (lambda: omni_spec().model_copy(update={"sensors": [SensorSpec(name="gps", kind="model", R=np.eye(3), delay=0, interval=1)]}), "SessionSpec: refused by the estimator: sensors: unknown ['gps']"),
-    (lambda: omni_spec().model_copy(update={"sensors": [SensorSpec(name="pose", kind="model", R=np.eye(2), delay=0, interval=1)]}), "SessionSpec: refused by the estimator: sensor_R['pose']: expected shape (3, 3), got (2, 2)"),
-    (lambda: _unscented(model="omni3", params={"Q": [0.0] * 6}, adapt=AdaptSpec(indices=[3])), "SessionSpec: refused by the estimator: indices: adapted entries of Q must start > 0"),
-    (lambda: imm_spec().model_copy(update={"x0": np.zeros(4), "P0": np.eye(4)}), "SessionSpec: refused by the estimator: P0: expected shape (5, 5), got (4, 4)"),
-    (lambda: imm_spec().model_copy(update={"model": imm_spec().model.model_copy(update={"modes": [ModeSpec(model="imm_cv"), ModeSpec(model="omni3")]})}), "SessionSpec: refused by the estimator: modes: all modes need the same n and nu"),
-    (lambda: imm_spec().model_copy(update={"model": imm_spec().model.model_copy(update={"modes": [ModeSpec(model="imm_cv"), ModeSpec(model="nope")]})}), "SessionSpec: refused by the estimator: model: unknown model 'nope'"),
+    (lambda: _unscented(model="no-such-model"), "SessionSpec.model: refused by the estimator: model: unknown model 'no-such-model' (registered: "),
+    (lambda: _unscented(model="omni3", params={"wheels": 4}), "SessionSpec.model: refused by the estimator: model 'omni3': bad parameters"),
+    (lambda: _unscented(model="omni3", params={"mass": -1.0}), "SessionSpec.model: refused by the estimator: mass: must be a positive number"),
+    (lambda: _unscented(model="omni3", params={"mass": [1.0, 2.0]}), "SessionSpec.model: refused by the estimator: model 'omni3': bad parameters"),
+    (lambda: omni_spec(adapt=False).model_copy(update={"x0": np.zeros(5), "P0": np.eye(5)}), "SessionSpec.x0: refused by the estimator: x0: expected length 6, got 5"),
+    (lambda: omni_spec().model_copy(update={"sensors": [SensorSpec(name="gps", kind="model", R=np.eye(3), delay=0, interval=1)]}), "SessionSpec.sensors: refused by the estimator: sensors: unknown ['gps']"),
+    (lambda: omni_spec().model_copy(update={"sensors": [SensorSpec(name="pose", kind="model", R=np.eye(2), delay=0, interval=1)]}), "SessionSpec.sensors: refused by the estimator: sensor_R['pose']: expected shape (3, 3), got (2, 2)"),
+    (lambda: _unscented(model="omni3", params={"Q": [0.0] * 6}, adapt=AdaptSpec(indices=[3])), "SessionSpec.model.unscented.adapt.indices: refused by the estimator: indices: adapted entries of Q must start > 0"),
+    (lambda: imm_spec().model_copy(update={"x0": np.zeros(4), "P0": np.eye(4)}), "SessionSpec.P0: refused by the estimator: P0: expected shape (5, 5), got (4, 4)"),
+    (lambda: imm_spec().model_copy(update={"model": imm_spec().model.model_copy(update={"modes": [ModeSpec(model="imm_cv"), ModeSpec(model="omni3")]})}), "SessionSpec.model.imm.modes: refused by the estimator: modes: all modes need the same n and nu"),
+    (lambda: imm_spec().model_copy(update={"model": imm_spec().model.model_copy(update={"modes": [ModeSpec(model="imm_cv"), ModeSpec(model="nope")]})}), "SessionSpec.model: refused by the estimator: model: unknown model 'nope'"),
 ])
 def test_refused_by_the_estimator(make, expected):
     with pytest.raises(WireError) as info:
@@ -420,3 +420,10 @@ def test_check_measurement_uses_the_sensor_R_dimension():
         check_measurement(measurement(session="u1", sensor="pose"), u)
     with pytest.raises(WireError, match="unknown sensor 'camera' \\(session 'i1' has: st1, st2, st3\\)"):
         check_measurement(measurement(session="i1", sensor="camera"), i)
+
+
+@pytest.mark.parametrize("base, path, value, expected", CASES,
+                         ids=[f"{c[0]}.{c[1]}={str(c[2])[:20]}" for c in CASES])
+def test_every_rule_has_a_field_path(base, path, value, expected):
+    head = reason(_set(RAW[base](), path, value)).split(": ", 1)[0]
+    assert head.startswith("SessionSpec.") and len(head) > len("SessionSpec."), head

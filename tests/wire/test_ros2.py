@@ -21,11 +21,11 @@ def with_ros2(binding: Ros2Binding) -> bytes:
 
 @pytest.mark.parametrize("binding, reason", [
     (Ros2Binding(sensors={"lidar": TopicBinding(topic="p", msg_type=POINT, fields=["x"])}),
-     "ros2.sensors['lidar']: no sensor of that name"),
+     "ros2.sensors.lidar: no sensor of that name"),
     (Ros2Binding(sensors={"camera": TopicBinding(topic="p", msg_type=POINT, fields=["x"])}),
-     "fields has 1 values but sensor 'camera' measures m=2"),
+     "ros2.sensors.camera.fields: has 1 values but sensor 'camera' measures m=2"),
     (Ros2Binding(outputs=OutputBinding(layout=StateLayout(x=0, y=4))),
-     "ros2.outputs.layout.y=4 must be < n=4"),
+     "ros2.outputs.layout.y: 4 must be < n=4"),
 ])
 def test_bindings_must_fit_the_spec(binding: Ros2Binding, reason: str) -> None:
     with pytest.raises(WireError, match=reason.replace("[", r"\[").replace("]", r"\]")):

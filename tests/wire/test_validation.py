@@ -80,10 +80,10 @@ CASES = [
     (M, "sensor", "-camera", "Measurement.sensor: String should match pattern"),
     (M, "session", 5, "Measurement.session: Input should be a valid string"),
     # -- exactly one stamp
-    (M, "t_ns", 5, "Measurement: exactly one of step / t_ns must be given, got both"),
-    (M, "step", None, "Measurement: exactly one of step / t_ns must be given, got neither"),
-    (C, "issued_ns", 5, "Command: exactly one of step / issued_ns must be given, got both"),
-    (C, "step", None, "Command: exactly one of step / issued_ns must be given, got neither"),
+    (M, "t_ns", 5, "Measurement.step: exactly one of step / t_ns must be given, got both"),
+    (M, "step", None, "Measurement.step: exactly one of step / t_ns must be given, got neither"),
+    (C, "issued_ns", 5, "Command.step: exactly one of step / issued_ns must be given, got both"),
+    (C, "step", None, "Command.step: exactly one of step / issued_ns must be given, got neither"),
     # -- arrays
     (M, "z", [0.5, 1.5], "Measurement.z: expected an array: a map with 'shape' and 'data' (or a numpy array in Python), got list"),
     (M, "z", None, "Measurement.z: expected an array"),
@@ -105,39 +105,39 @@ CASES = [
     (M, "z", arr(2, [1.0, float("nan")]), "Measurement.z: array 'data' must hold finite numbers only"),
     (M, "z", arr(2, [float("-inf"), 1.0]), "Measurement.z: array 'data' must hold finite numbers only"),
     # -- per-sample R
-    (M, "R", arr(2, 3, [1.0] * 6), "Measurement: R must be 2x2 (z has 2 values), got shape [2, 3]"),
-    (M, "R", arr(3, 3, np.eye(3).ravel()), "Measurement: R must be 2x2 (z has 2 values), got shape [3, 3]"),
-    (M, "R", arr(2, 2, [1.0, 0.5, 0.4, 1.0]), "Measurement: R must be symmetric (max |M - M^T| = 0.1 > tolerance 1e-09)"),
-    (M, "R", arr(2, 2, [1.0, 0.0, 0.0, -1.0]), "Measurement: R must be positive semi-definite (min eigenvalue -1 < -tolerance -1e-09)"),
+    (M, "R", arr(2, 3, [1.0] * 6), "Measurement.R: must be 2x2 (z has 2 values), got shape [2, 3]"),
+    (M, "R", arr(3, 3, np.eye(3).ravel()), "Measurement.R: must be 2x2 (z has 2 values), got shape [3, 3]"),
+    (M, "R", arr(2, 2, [1.0, 0.5, 0.4, 1.0]), "Measurement.R: must be symmetric (max |M - M^T| = 0.1 > tolerance 1e-09)"),
+    (M, "R", arr(2, 2, [1.0, 0.0, 0.0, -1.0]), "Measurement.R: must be positive semi-definite (min eigenvalue -1 < -tolerance -1e-09)"),
     # -- prediction
-    (P, "P", sym(3), "Prediction: P must be 4x4 (x has 4 values), got shape [3, 3]"),
-    (P, "P", arr(4, 4, -np.eye(4).ravel()), "Prediction: P must be positive semi-definite"),
+    (P, "P", sym(3), "Prediction.P: must be 4x4 (x has 4 values), got shape [3, 3]"),
+    (P, "P", arr(4, 4, -np.eye(4).ravel()), "Prediction.P: must be positive semi-definite"),
     (P, "counters", {"accepted": 1.5}, "Prediction.counters.accepted: Input should be a valid integer"),
     (P, "counters", {"": 1}, "Prediction.counters..[key]: String should have at least 1 character"),
     (P, "newest_step", -1, "Prediction.newest_step: Input should be greater than or equal to 0"),
     # -- session spec: the model
-    (S, "model.A", arr(4, 3, [0.0] * 12), "SessionSpec.model.linear: A must be square (n x n), got shape [4, 3]"),
-    (S, "model.B", arr(3, 1, [0.0] * 3), "SessionSpec.model.linear: B must have n=4 rows (A is 4x4), got shape [3, 1]"),
-    (S, "model.Q", sym(3), "SessionSpec.model.linear: Q must be 4x4 (A is 4x4), got shape [3, 3]"),
-    (S, "model.Q", arr(4, 4, (-np.eye(4)).ravel()), "SessionSpec.model.linear: Q must be positive semi-definite"),
+    (S, "model.A", arr(4, 3, [0.0] * 12), "SessionSpec.model.linear.A: must be square (n x n), got shape [4, 3]"),
+    (S, "model.B", arr(3, 1, [0.0] * 3), "SessionSpec.model.linear.B: must have n=4 rows (A is 4x4), got shape [3, 1]"),
+    (S, "model.Q", sym(3), "SessionSpec.model.linear.Q: must be 4x4 (A is 4x4), got shape [3, 3]"),
+    (S, "model.Q", arr(4, 4, (-np.eye(4)).ravel()), "SessionSpec.model.linear.Q: must be positive semi-definite"),
     (S, "model.A", arr(65, 65, [0.0] * 65 * 65), "SessionSpec.model.linear.A: every array dimension must be between 1 and 64, got shape [65, 65]"),
     (S, "model.kind", "nonlinear", "SessionSpec.model: model must be a map whose 'kind' is one of: linear, unscented, imm"),
     (S, "model.kind", 3, "SessionSpec.model: model must be a map whose 'kind' is one of: linear, unscented, imm"),
     (S, "model", [1.0], "SessionSpec.model: model must be a map whose 'kind' is one of: linear, unscented, imm"),
     (S, "model.extra", 1, "SessionSpec.model.linear.extra: Extra inputs are not permitted"),
     # -- session spec: prior, sensors, timing
-    (S, "x0", arr(3, [0.0] * 3), "SessionSpec: x0 must have n=4 values (model.A is 4x4), got 3"),
-    (S, "P0", sym(3), "SessionSpec: P0 must be 4x4 (model.A is 4x4), got shape [3, 3]"),
-    (S, "P0", arr(4, 4, (np.eye(4) + np.triu(np.ones((4, 4)), 1)).ravel()), "SessionSpec: P0 must be symmetric"),
-    (S, "P0", arr(2, 2, [1.0, 2.0, 2.0, 1.0]), "SessionSpec: P0 must be 4x4"),
-    (S, "sensors.0.H", arr(2, 3, [0.0] * 6), "SessionSpec: sensors[0] ('camera').H must have n=4 columns, got shape [2, 3]"),
-    (S, "sensors.1.R", sym(2), "SessionSpec.sensors.1: R must be 1x1 (H has 1 rows), got shape [2, 2]"),
-    (S, "sensors.1.R", arr(1, 1, [-0.01]), "SessionSpec.sensors.1: R must be positive semi-definite"),
-    (S, "sensors.1.name", "camera", "SessionSpec: sensors[1].name 'camera' is used twice; names must be unique"),
+    (S, "x0", arr(3, [0.0] * 3), "SessionSpec.x0: must have n=4 values (model.A is 4x4), got 3"),
+    (S, "P0", sym(3), "SessionSpec.P0: must be 4x4 (model.A is 4x4), got shape [3, 3]"),
+    (S, "P0", arr(4, 4, (np.eye(4) + np.triu(np.ones((4, 4)), 1)).ravel()), "SessionSpec.P0: must be symmetric"),
+    (S, "P0", arr(2, 2, [1.0, 2.0, 2.0, 1.0]), "SessionSpec.P0: must be 4x4"),
+    (S, "sensors.0.H", arr(2, 3, [0.0] * 6), "SessionSpec.sensors.0.H: must have n=4 columns ('camera'), got shape [2, 3]"),
+    (S, "sensors.1.R", sym(2), "SessionSpec.sensors.1.R: must be 1x1 (H has 1 rows), got shape [2, 2]"),
+    (S, "sensors.1.R", arr(1, 1, [-0.01]), "SessionSpec.sensors.1.R: must be positive semi-definite"),
+    (S, "sensors.1.name", "camera", "SessionSpec.sensors.1.name: 'camera' is used twice; names must be unique"),
     (S, "sensors.1.name", "Ranger", "SessionSpec.sensors.1.name: String should match pattern"),
     (S, "sensors", [], "SessionSpec.sensors: List should have at least 1 item after validation, not 0"),
     (S, "sensors.0.delay", -1, "SessionSpec.sensors.0.delay: Input should be greater than or equal to 0"),
-    (S, "sensors.0.delay", 13, "SessionSpec: sensors[0] ('camera').delay=13 exceeds max_delay=12: every sample would be late"),
+    (S, "sensors.0.delay", 13, "SessionSpec.sensors.0.delay: 13 ('camera') exceeds max_delay=12: every sample would be late"),
     (S, "sensors.0.interval", 0, "SessionSpec.sensors.0.interval: Input should be greater than or equal to 1"),
     (S, "lead", -1, "SessionSpec.lead: Input should be greater than or equal to 0"),
     (S, "lead", 10_001, "SessionSpec.lead: Input should be less than or equal to 10000"),
@@ -377,3 +377,48 @@ def test_sensor_lookup_follows_model_copy():
     other = spec.model_copy(update={"sensors": spec.sensors[1:]})
     assert other.sensor("camera") is None and other.sensor("ranger").m == 1
     assert spec.sensor("camera") is not None
+
+
+#: Reasons about the whole message, not one field (each message type): no field path.
+_WHOLE_MESSAGE = ("not valid msgpack", "expected a msgpack map", "trailing bytes", "nesting",
+                  "message is", "expected bytes")
+
+
+def _field_path(reason: str) -> str:
+    head = reason.split(": ", 1)[0]
+    assert "." in head, f"no field path in {reason!r}"
+    return head.split(".", 1)[1]
+
+
+@pytest.mark.parametrize(
+    "msg_type, path, value, expected", CASES,
+    ids=[f"{c[0].__name__}.{c[1]!s}={str(c[2])[:20]}" for c in CASES])
+def test_every_rule_names_the_field_it_refuses(msg_type, path, value, expected):
+    """Model-level checks too: the reason's path is the field the case broke, a field
+    inside it, or the one it must agree with (e.g. exactly one of step / t_ns)."""
+    if msg_type is S and path == "epoch_ns" or isinstance(path, bytes):
+        return
+    got = reason(msg_type, _set(raw(msg_type), path, value))
+    field = _field_path(got)
+    keys = path.split(".")
+    # a discriminated model's path holds its kind: SessionSpec.model.linear.A for model.A
+    field_keys = [k for k in field.split(".") if k not in ("linear", "unscented", "imm")]
+    partner = {"t_ns": "step", "issued_ns": "step", "x0": "P0", "model.A": "x0"}
+    assert field_keys[:len(keys)] == keys or keys[:len(field_keys)] == field_keys \
+        or field == partner.get(path), (path, got)
+
+
+@pytest.mark.parametrize("obj, field", [
+    # a per-sample R that is not PSD is a field error of R, not of the Measurement
+    (lambda: _set(raw(M), "R", arr(2, 2, [1.0, 0.0, 0.0, -1.0])), "R"),
+    (lambda: _set(raw(M), "R", arr(2, 3, [1.0] * 6)), "R"),
+    (lambda: _set(_set(raw(M), "step", None), "t_ns", None), "step"),
+])
+def test_model_level_checks_of_a_measurement_name_their_field(obj, field):
+    assert reason(M, obj()).startswith(f"Measurement.{field}: ")
+
+
+def test_python_construction_names_the_field_too():
+    with pytest.raises(ValidationError, match="R: must be positive semi-definite"):
+        Measurement(session="s", sensor="a", seq=0, step=1, z=np.zeros(2),
+                    R=np.array([[1.0, 0.0], [0.0, -1.0]]))
