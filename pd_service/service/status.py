@@ -37,7 +37,8 @@ def session_status(sess: Session, instance: str, state: SessionState, detail: st
     return SessionStatus(session=sess.name, instance=instance, state=state,
                          now_step=sess.spec.step_of(now), counters=sess.counters_snapshot(),
                          published=sess.published, latency_p50_us=p50,
-                         latency_p99_us=p99, detail=detail[:1024])
+                         latency_p99_us=p99, detail=detail[:1024],
+                         origin=sess.origin, origin_step=sess.origin_step)
 
 
 def state_of(sess: Session) -> SessionState:
