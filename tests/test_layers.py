@@ -28,6 +28,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.transport": set(),
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
+    "pd_service.checkpoint": {"pd_service.estimation", "pd_service.wire"},
     "pd_service.ros2": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     # the pd-ros2 bridge on top of the pure building blocks: they never import it
     "pd_service.ros2.bridge": {"pd_service.ros2", "pd_service.wire", "pd_service.errors",
@@ -35,7 +36,8 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.ros2.__main__": {"pd_service.ros2.bridge", "pd_service.errors", "pd_service.logs",
                                  "pd_service.transport"},
     "pd_service.service": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
-                           "pd_service.logs", "pd_service.transport", "pd_service.backends"},
+                           "pd_service.logs", "pd_service.transport", "pd_service.backends",
+                           "pd_service.checkpoint"},
     "pd_service.link": {"pd_service.errors", "pd_service.logs", "pd_service.transport",
                         "pd_service.wire"},
     "pd_service.__main__": {"pd_service.service"},

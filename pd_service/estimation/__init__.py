@@ -11,6 +11,7 @@ Public surface::
     PredictedState                   what predict() returns
     Estimator                        the API all of them share (a Protocol)
     ReplayEstimator, Backend, Packet the timestamp window and replay, for other backends
+    EstimatorState, StateError       export_state() / restore_state(): continue exactly
 """
 
 from .baselines import AugmentedStateKF, ConventionalPredictor
@@ -18,6 +19,7 @@ from .estimator import Estimator
 from .model import LinearModel, Sensor
 from .observer import ObserverPredictor
 from .replay import COUNTER_NAMES, Backend, Packet, PredictedState, ReplayEstimator
+from .state import STATE_VERSION, EstimatorState, StateError
 
 __all__ = [
     "AugmentedStateKF",
@@ -25,10 +27,13 @@ __all__ = [
     "COUNTER_NAMES",
     "ConventionalPredictor",
     "Estimator",
+    "EstimatorState",
     "LinearModel",
     "ObserverPredictor",
     "Packet",
     "PredictedState",
     "ReplayEstimator",
+    "STATE_VERSION",
     "Sensor",
+    "StateError",
 ]

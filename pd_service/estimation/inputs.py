@@ -73,6 +73,26 @@ class InputBuffer:
             raise IndexError(f"steps [{step}, {step + m}) outside the input window")
         return view
 
+    def export(self) -> tuple[int, np.ndarray, list[tuple[int, np.ndarray]]]:
+        """(origin, u(origin) (nu,), [(step, u (nu,)) of every explicit command >= origin]):
+        enough for :meth:`restore` to rebuild u(t) over the whole buffer."""
+        cmds = [(s, self._buf[self._off + s - self.origin].copy()) for s in self._cmd_steps]
+        return self.origin, self._buf[self._off].copy(), cmds
+
+    def restore(self, origin: int, u_origin: np.ndarray,
+                commands: list[tuple[int, np.ndarray]]) -> None:
+        """Replace the contents by what :meth:`export` returned: u(origin) held ("hold") or
+        zeros ("zero") until the first command, then the commands as :meth:`set` stores them.
+        IndexError for a command outside [origin, origin + capacity)."""
+        self.origin = origin
+        self._off = 0
+        self._cmd_steps = []
+        self._buf[:] = u_origin if self.hold else 0.0
+        for step, u in sorted(commands, key=lambda c: c[0]):
+            if self.has_command(step):
+                raise IndexError(f"two commands for step {step}")
+            self.set(step, u)
+
     def advance(self, origin: int) -> None:
         """Forget steps before ``origin``; new steps at the end continue the hold."""
         d = origin - self.origin

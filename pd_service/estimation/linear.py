@@ -19,6 +19,7 @@ import numpy as np
 
 from .model import LinearModel, Sensor
 from .replay import Packet
+from .state import check_names, take
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
@@ -150,6 +151,18 @@ class LinearBackend:
 
     def moments(self, state: LinearState) -> LinearState:
         return state
+
+    def export_state(self, state: LinearState) -> dict[str, np.ndarray]:
+        return {"x": state[0].copy(), "P": state[1].copy()}
+
+    def import_state(self, arrays: dict[str, np.ndarray]) -> LinearState:
+        return import_gaussian(arrays, self.model.n)
+
+
+def import_gaussian(arrays: dict[str, np.ndarray], n: int) -> LinearState:
+    """(x (n,), P (n, n)) from {"x", "P"}; StateError if missing, misshapen or non-finite."""
+    check_names(arrays, {"x", "P"})
+    return take(arrays, "x", (n,)), take(arrays, "P", (n, n))
 
 
 def block_diag(blocks: list[np.ndarray]) -> np.ndarray:

@@ -40,6 +40,7 @@ import numpy as np
 
 from .checks import as_covariance, as_step, as_vector
 from .inputs import InputBuffer
+from .state import STATE_VERSION, EstimatorState, PacketRecord, StateError
 
 S = TypeVar("S")
 
@@ -92,6 +93,14 @@ class Backend(Protocol[S]):
 
     def moments(self, state: S) -> tuple[np.ndarray, np.ndarray]:
         """Mean (n,) and covariance (n, n) of a state."""
+        ...
+
+    def export_state(self, state: S) -> dict[str, np.ndarray]:
+        """A state as named arrays (copies), e.g. {"x": (n,), "P": (n, n)}."""
+        ...
+
+    def import_state(self, arrays: dict[str, np.ndarray]) -> S:
+        """The state :meth:`export_state` described; StateError if the arrays do not fit."""
         ...
 
 
@@ -248,6 +257,96 @@ class ReplayEstimator(Generic[S]):
         pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
         self._cache = (now, pred)
         return pred
+
+    # --- export / restore of the window --------------------------------------------------
+
+    def export_state(self) -> EstimatorState:
+        """The committed-horizon estimate, the packets and commands inside the window, the
+        counters and the backend's extras (copies; see :mod:`.state`)."""
+        names = self.sensor_names
+        packets: list[PacketRecord] = [
+            (s, names[p.sensor], p.z.copy(), None if p.R is None else p.R.copy())
+            for s in self._steps for p in self._packets[s]]
+        origin, u0, cmds = self._inputs.export()
+        return EstimatorState(
+            kind=type(self).__name__, n=int(getattr(self, "n", 0)), now=self._now,
+            committed_step=self._c, base_step=self._base_step,
+            newest_committed=self._newest_committed,
+            base=self._backend.export_state(self._base), packets=packets,
+            inputs_origin=origin, u_origin=u0, commands=cmds,
+            counters=dict(self._counters), extras=self._export_extras())
+
+    def restore_state(self, state: EstimatorState) -> None:
+        """Continue from ``state`` (an :meth:`export_state` of an estimator built from the
+        same spec). StateError, and nothing changed, if it does not fit: another version,
+        estimator kind or size, packets of unknown sensors or wrong sizes, steps outside
+        the window. The open window's posteriors are recomputed on the next call."""
+        st = state
+        if st.version != STATE_VERSION:
+            raise StateError(f"version: {st.version} is not {STATE_VERSION}")
+        if st.kind != type(self).__name__ or st.n != int(getattr(self, "n", 0)):
+            raise StateError(f"kind: a {st.kind} with n={st.n} does not fit a "
+                             f"{type(self).__name__} with n={getattr(self, 'n', 0)}")
+        c, b = int(st.committed_step), int(st.base_step)
+        if not 0 <= b <= c or st.inputs_origin != b:
+            raise StateError(f"steps: base step {b}, committed step {c} and input origin "
+                             f"{st.inputs_origin} are inconsistent")
+        if c != (0 if st.now is None else max(st.now - self.max_delay, 0)):
+            raise StateError(f"now: {st.now} does not fit the committed step {c} "
+                             f"(max_delay {self.max_delay})")
+        base = self._backend.import_state(st.base)
+        packets: dict[int, list[Packet]] = {}
+        for step, name, z, R in st.packets:
+            idx = self._index.get(name)
+            if idx is None:
+                raise StateError(f"packets: unknown sensor {name!r}")
+            m = self._dims[idx]
+            hi = st.now if st.now is not None else 0
+            if not c <= step <= hi:
+                raise StateError(f"packets: step {step} outside the window [{c}, {hi}]")
+            try:
+                zv = as_vector(z, "z", m)
+                Rm = None if R is None else as_covariance(R, "R", m)
+            except ValueError as exc:
+                raise StateError(f"packets: {exc}") from None
+            bucket = packets.setdefault(int(step), [])
+            if any(p.sensor == idx for p in bucket):
+                raise StateError(f"packets: two samples of {name!r} at step {step}")
+            zv.setflags(write=False)
+            bucket.append(Packet(idx, zv, Rm))
+        for bucket in packets.values():
+            bucket.sort(key=lambda p: p.sensor)
+        inputs = InputBuffer(self._nu, self._inputs.capacity, self._inputs.hold)
+        try:
+            u0 = as_vector(st.u_origin, "u_origin", self._nu)
+            inputs.restore(b, u0, [(int(j), as_vector(u, "u", self._nu))
+                                   for j, u in st.commands])
+        except (ValueError, IndexError) as exc:
+            raise StateError(f"commands: {exc}") from None
+        unknown = set(st.counters) - set(COUNTER_NAMES)
+        if unknown:
+            raise StateError(f"counters: unknown names {sorted(unknown)}")
+        self._restore_extras(st.extras)  # may raise StateError: before anything else changes
+        self._base, self._base_step, self._c, self._now = base, b, c, st.now
+        self._packets = packets
+        self._steps = sorted(packets)
+        self._chk = {}
+        self._dirty = c if self._steps else None
+        self._counters = Counter({k: 0 for k in COUNTER_NAMES})
+        self._counters.update({k: int(v) for k, v in st.counters.items()})
+        self._cache = None
+        self._newest_committed = st.newest_committed
+        self._inputs = inputs
+
+    def _export_extras(self) -> dict[str, np.ndarray]:
+        """What the estimator learnt beyond the base (none by default)."""
+        return {}
+
+    def _restore_extras(self, extras: dict[str, np.ndarray]) -> None:
+        """Install :meth:`_export_extras`' output; StateError if it does not fit. Must
+        check everything before changing anything."""
+        if extras:
+            raise StateError(f"extras: {sorted(extras)} not expected by {type(self).__name__}")
 
     # --- hooks for backends that learn on the committed horizon --------------------------
 

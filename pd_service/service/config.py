@@ -109,6 +109,16 @@ class Settings(BaseSettings):
     latency_window: int = Field(4096, ge=16, description="Latency samples kept (service-wide).")
     sync_timeout_s: float = Field(1.0, gt=0, description="Wait for peers' specs at startup.")
 
+    # restart and takeover (see pd_service.service.failover)
+    checkpoint_interval_s: float = Field(
+        1.0, ge=0, description="Least time between two checkpoints of one session in the "
+                               "state directory (written when new steps were committed); 0: none.")
+    replica_interval_s: float = Field(
+        1.0, ge=0, description="Least time between two replicas of one session sent to its "
+                               "successor instance; 0: none.")
+    checkpoint_max_bytes: int = Field(
+        65536, ge=1024, le=65536, description="Largest encoded session state written or sent.")
+
     switch_interval_us: float = Field(
         200.0, gt=0, description="Python's GIL switch interval (sys.setswitchinterval), µs: "
                                  "how long a Zenoh callback may wait for the worker to yield "

@@ -32,6 +32,7 @@ from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 
 from .config import Settings
 from .dispatch import Dispatch, Route
+from .failover import StateKeeper, replicas_for
 from .lifecycle import Lifecycle, spawn_thread
 from .ownership import Ownership
 from .persist import SpecStore
@@ -43,6 +44,8 @@ from .status import Queries
 log = logging.getLogger(LOGGER_NAME)
 
 _EXPIRY_CHECK_NS = 1_000_000_000
+#: How often every served session is offered for a checkpoint / replica (ns).
+_SWEEP_NS = 250_000_000
 #: A single run_once() call returns after this long even if work remains (ns).
 _RUN_BUDGET_NS = 50_000_000
 
@@ -76,15 +79,19 @@ class ServiceCore:
                                    now_ns())
         self.dispatch = Dispatch(settings, self.counters, self.publisher, self.ownership,
                                  self.wake)
+        self.keeper = StateKeeper(settings, store, self.ownership, self.counters,
+                                  self.publisher)
         self.lifecycle = Lifecycle(transport, settings, store=store, ownership=self.ownership,
                                    counters=self.counters, dispatch=self.dispatch,
-                                   publisher=self.publisher, spawn=spawn or spawn_thread)
+                                   publisher=self.publisher, spawn=spawn or spawn_thread,
+                                   keeper=self.keeper)
         self.queries = Queries(settings, self.lock, self.counters, self.latency,
                                self.ownership, self.dispatch.routes, self.lifecycle.specs,
                                now_ns, mono_ns)
         #: Every known session's route (the dispatch's table; read by tests).
         self._routes: dict[str, Route] = self.dispatch.routes
         self._next_expiry_ns = 0
+        self._next_sweep_ns = 0
         self._handles: list[Handle] = []
         self._token: Handle | None = None
         self._closed = False
@@ -103,6 +110,7 @@ class ServiceCore:
         event(log, "starting", instance=self.instance, shard=s.shard or "rendezvous",
               state_dir=str(self.store.dir) if self.store else "")
         self._handles.append(t.subscribe(keys.ALL_CONFIGS, d.on_config_sample))
+        self._handles.append(t.subscribe(replicas_for(self.instance), self.keeper.on_replica))
         peers = [k.rsplit("/", 1)[-1] for k in t.get_liveliness(keys.ALL_SERVICES,
                                                                  timeout=s.sync_timeout_s)]
         peers = [p for p in peers if p != self.instance]
@@ -169,6 +177,12 @@ class ServiceCore:
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now)
                 pub.run_ticks(now)
+                if touched:
+                    self.keeper.after_round(touched, now)
+                if now >= self._next_sweep_ns:  # sessions that only tick commit steps too
+                    self.keeper.after_round([r.sess for r in self._routes.values()
+                                             if r.sess is not None], now)
+                    self._next_sweep_ns = now + _SWEEP_NS
                 if now >= self._next_expiry_ns:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS

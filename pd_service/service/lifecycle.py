@@ -23,10 +23,11 @@ from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
+from .failover import StateKeeper
 from .ownership import Ownership
 from .persist import SpecStore
 from .publish import Publisher
-from .session import Refusal, Session
+from .session import Origin, Refusal, Session
 from .status import SessionState, state_of
 
 log = logging.getLogger(LOGGER_NAME)
@@ -45,7 +46,8 @@ class Lifecycle:
 
     def __init__(self, transport: Transport, settings: Settings, *, store: SpecStore | None,
                  ownership: Ownership, counters: Counter[str], dispatch: Dispatch,
-                 publisher: Publisher, spawn: Callable[[Callable[[], None]], None]) -> None:
+                 publisher: Publisher, spawn: Callable[[Callable[[], None]], None],
+                 keeper: StateKeeper | None = None) -> None:
         self.t = transport
         self.settings = settings
         self.store = store
@@ -54,6 +56,7 @@ class Lifecycle:
         self.dispatch = dispatch
         self.pub = publisher
         self._spawn = spawn
+        self.keeper = keeper
         self.specs: dict[str, SessionSpec] = {}
         self.gone: dict[str, int] = {}
         #: Set at close: no more background syncs.
@@ -93,7 +96,7 @@ class Lifecycle:
             self.specs[name] = spec
             detail = "restored from the state directory" if origin[name] == "restored" \
                 else "synced from peers"
-            self.install(name, origin[name], detail, now, answer=False)
+            self.install(name, origin[name], detail, now, answer=False, resume="checkpoint")
 
     def fetch_peer_specs(self) -> dict[str, SessionSpec]:
         """Every spec the live peers hold (the first reply wins). Blocks up to
@@ -234,8 +237,10 @@ class Lifecycle:
     # ================================================================== sessions ======
 
     def install(self, session: str, state: SessionState, detail: str, now: int,
-                answer: bool) -> None:
-        """(Re)start ``session`` from its spec if we own it, else route it elsewhere."""
+                answer: bool, resume: Origin = "prior") -> None:
+        """(Re)start ``session`` from its spec if we own it, else route it elsewhere;
+        ``resume``: continue from its checkpoint or the replica held for it, if it passes
+        (pd_service.service.failover), else from the spec's prior."""
         routes = self.dispatch.routes
         route = routes.get(session)
         if route is None:
@@ -258,6 +263,11 @@ class Lifecycle:
             routes[session] = route
             event(log, "session_failed", logging.ERROR, session=session, reason=exc.reason)
             return
+        if resume != "prior" and self.keeper is not None:
+            self.keeper.resume(sess, resume, now)
+            if sess.origin != "prior":
+                detail = sess.detail = (f"{detail}; estimate resumed from the {sess.origin} of "
+                                        f"step {sess.origin_step}")
         if route.inbox is None:
             route.inbox = deque(maxlen=self.settings.inbox_size)
         route.sess = sess
@@ -284,6 +294,8 @@ class Lifecycle:
             return
         if self.store is not None:
             self.store.remove(session)
+        if self.keeper is not None:
+            self.keeper.forget(session)
         sess = route.sess if route is not None else None
         if sess is not None:
             sess.alive = False
@@ -315,7 +327,7 @@ class Lifecycle:
             running = route is not None and route.sess is not None
             owns = self.ownership.owns(name)
             if owns and not running:
-                self.install(name, "active", f"taken over (members {members}); estimator "
-                             "restarted from the spec's prior", now, answer=True)
+                self.install(name, "active", f"taken over (members {members})", now,
+                             answer=True, resume="replica")
             elif running and not owns:
                 self.install(name, "active", "", now, answer=False)

@@ -51,6 +51,13 @@ class Ownership:
             return self.instance if shard_of(session, n) == i else None
         return rendezvous_owner(session, self.members)
 
+    def successor(self, session: str) -> str | None:
+        """Who would own ``session`` if this instance went away (rendezvous only): the
+        next instance in its rendezvous order. None with static shards or alone."""
+        if self.shard is not None:
+            return None
+        return rendezvous_owner(session, self.members - {self.instance})
+
     def owns(self, session: str) -> bool:
         return self.owner(session) == self.instance
 

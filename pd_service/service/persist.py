@@ -18,6 +18,8 @@ from pd_service.wire.keys import KeyError_, check_name
 log = logging.getLogger(LOGGER_NAME)
 
 SUFFIX = ".msgpack"
+#: Checkpoint files: ``<session>.ckpt`` (an encoded SessionState).
+STATE_SUFFIX = ".ckpt"
 
 
 class SpecStore:
@@ -32,9 +34,31 @@ class SpecStore:
 
     def save(self, spec: SessionSpec) -> None:
         """Persist ``spec`` atomically (tmp + fsync + rename + fsync dir)."""
-        data = encode(spec)
-        final = self.path(spec.session)
-        tmp = self.dir / f".{spec.session}{SUFFIX}.tmp"
+        self._write(self.path(spec.session), encode(spec))
+
+    def state_path(self, session: str) -> Path:
+        return self.dir / f"{check_name(session, 'session')}{STATE_SUFFIX}"
+
+    def save_state(self, session: str, data: bytes) -> None:
+        """Write a session's checkpoint (encoded SessionState) atomically, like a spec."""
+        self._write(self.state_path(session), data)
+
+    def load_state(self, session: str) -> bytes | None:
+        """The session's checkpoint bytes, or None if there is none (or it is unreadable)."""
+        try:
+            return self.state_path(session).read_bytes()
+        except OSError:
+            return None
+
+    def remove_state(self, session: str) -> None:
+        try:
+            self.state_path(session).unlink()
+        except FileNotFoundError:
+            return
+        self._sync_dir()
+
+    def _write(self, final: Path, data: bytes) -> None:
+        tmp = final.with_name(f".{final.name}.tmp")
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         try:
             view = memoryview(data)

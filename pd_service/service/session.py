@@ -36,6 +36,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
+from typing import Literal
 
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
@@ -55,12 +56,16 @@ from pd_service.wire.convert import (
     encode_prediction,
     measurement_step,
 )
+from pd_service.wire.state import spec_fingerprint
 
 from .fastpath import read_command, read_measurement
 from .stacked import Node, StackedObserverPredictor
 from .stats import LatencyWindow, TokenBucket
 
 SENSOR, COMMAND = 0, 1
+
+#: Where a session's estimate started from (``SessionStatus.origin``).
+Origin = Literal["prior", "checkpoint", "replica"]
 
 #: Per-session latency samples kept (µs, packet receipt -> prediction published).
 SESSION_LATENCY_WINDOW = 512
@@ -123,6 +128,14 @@ class Session:
         self.pred_key = keys.prediction_key(self.name)
         self.error_key = keys.error_key(self.name)
         self.status_key = keys.status_key(self.name)
+        # where the estimate came from ("prior", "checkpoint", "replica") and the step of
+        # that state; checkpoint / replica bookkeeping (pd_service.service.failover)
+        self.origin: Origin = "prior"
+        self.origin_step: int | None = None
+        self.fingerprint = spec_fingerprint(spec)
+        self.saved_committed = 0
+        self.last_checkpoint_ns = -(1 << 62)
+        self.last_replica_ns = -(1 << 62)
 
     # --- time --------------------------------------------------------------------------
 

@@ -38,7 +38,7 @@ import numpy as np
 
 from pd_service.estimation import LinearModel, Packet, ReplayEstimator, Sensor
 from pd_service.estimation.checks import as_covariance, as_vector
-from pd_service.estimation.linear import block_diag, kalman_update, tables_for
+from pd_service.estimation.linear import block_diag, import_gaussian, kalman_update, tables_for
 
 #: Longest chain of pending operations before a node is resolved on its own.
 MAX_PENDING_DEPTH = 64
@@ -150,6 +150,14 @@ class LazyLinearBackend:
     def moments(self, state: Node) -> tuple[Node, Node]:
         """The node itself, twice: read ``.x`` / ``.P`` after :func:`resolve`."""
         return state, state
+
+    def export_state(self, state: Node) -> dict[str, np.ndarray]:
+        """{"x": (n,), "P": (n, n)} of the node (resolved on the spot if pending)."""
+        x, P = state.value()
+        return {"x": x.copy(), "P": P.copy()}
+
+    def import_state(self, arrays: dict[str, np.ndarray]) -> Node:
+        return Node.resolved(*import_gaussian(arrays, self.model.n))
 
 
 # ------------------------------------------------------------------ batched evaluation ---

@@ -45,6 +45,8 @@ class SessionView:
     counters: dict[str, int]
     published: int
     latency_us: list[float]
+    origin: Literal["prior", "checkpoint", "replica"]
+    origin_step: int | None
 
     def status(self, instance: str, now: int) -> SessionStatus:
         """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
@@ -52,13 +54,15 @@ class SessionView:
         return SessionStatus(session=self.name, instance=instance, state=self.state,
                              now_step=self.spec.step_of(now), counters=self.counters,
                              published=self.published, latency_p50_us=p50,
-                             latency_p99_us=p99, detail=self.detail[:1024])
+                             latency_p99_us=p99, detail=self.detail[:1024],
+                             origin=self.origin, origin_step=self.origin_step)
 
 
 def view_of(sess: Session, state: SessionState, detail: str) -> SessionView:
     """Copy of what ``sess``'s status needs (hold the lock while calling this)."""
     return SessionView(sess.name, sess.status_key, state, detail, sess.spec,
-                       sess.counters_snapshot(), sess.published, sess.latency.values())
+                       sess.counters_snapshot(), sess.published, sess.latency.values(),
+                       sess.origin, sess.origin_step)
 
 
 def session_status(sess: Session, instance: str, state: SessionState, detail: str,

@@ -32,6 +32,7 @@ from .messages import (
     SessionStatus,
     UnscentedModelSpec,
 )
+from .state import SessionState, spec_fingerprint
 
 __all__ = [
     "MAX_DIM",
@@ -51,6 +52,7 @@ __all__ = [
     "SensorSpec",
     "ServiceStatus",
     "SessionSpec",
+    "SessionState",
     "SessionStatus",
     "UnscentedModelSpec",
     "Vector",
@@ -59,4 +61,5 @@ __all__ = [
     "encode",
     "keys",
     "psd_problem",
+    "spec_fingerprint",
 ]

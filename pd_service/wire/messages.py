@@ -697,6 +697,11 @@ class SessionStatus(Message):
     latency_p50_us: NonNegFloat = Field(description="Median processing latency, µs.")
     latency_p99_us: NonNegFloat = Field(description="99th percentile processing latency, µs.")
     detail: Text = Field("", description="Free text (e.g. why the session was replaced).")
+    origin: Literal["prior", "checkpoint", "replica"] = Field(
+        "prior", description="Where the estimate started from: the spec's prior, a checkpoint "
+                             "(restart) or a replica (takeover) of step origin_step.")
+    origin_step: NonNegInt | None = Field(
+        None, description="now_step of the checkpoint or replica resumed from; nil for prior.")
 
 
 class ServiceStatus(Message):

@@ -18,7 +18,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .messages import MESSAGE_TYPES
+from .messages import MESSAGE_TYPES, Message
+from .state import SessionState
 
 DEFAULT_DIR = Path("docs/schemas")
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
@@ -27,7 +28,8 @@ DIALECT = "https://json-schema.org/draft/2020-12/schema"
 def schemas() -> dict[str, dict[str, Any]]:
     """File name -> JSON Schema, for every message type."""
     out: dict[str, dict[str, Any]] = {}
-    for cls in MESSAGE_TYPES:
+    types: tuple[type[Message], ...] = (*MESSAGE_TYPES, SessionState)
+    for cls in types:
         schema = cls.model_json_schema(mode="validation")
         schema = {"$schema": DIALECT, "$id": f"pd-service/v1/{cls.__name__}.json", **schema}
         out[f"{cls.__name__}.json"] = schema

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..replay import Packet, ReplayEstimator
+from ..state import StateError, check_names, take
 from .filter import ImmFilter, ImmState
 
 
@@ -46,6 +47,19 @@ class ImmBackend:
 
     def moments(self, state: ImmState) -> tuple[np.ndarray, np.ndarray]:
         return self.filter.output(state)
+
+    def export_state(self, state: ImmState) -> dict[str, np.ndarray]:
+        """Mode probabilities "mu" (N, r), per-mode "x" (N, r, n) and "P" (N, r, n, n)."""
+        return {"mu": state.mu.copy(), "x": state.x.copy(), "P": state.P.copy()}
+
+    def import_state(self, arrays: dict[str, np.ndarray]) -> ImmState:
+        f = self.filter
+        N, r, n = f.n_nodes, f.r, f.n
+        check_names(arrays, {"mu", "x", "P"})
+        mu = take(arrays, "mu", (N, r))
+        if np.any(mu < 0) or not np.allclose(mu.sum(axis=1), 1.0, atol=1e-9):
+            raise StateError("base.mu: not a probability vector per node")
+        return ImmState(mu, take(arrays, "x", (N, r, n)), take(arrays, "P", (N, r, n, n)))
 
 
 @dataclass(frozen=True, slots=True)

@@ -47,6 +47,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ..state import StateError
 from .unscented import InnovationRecord
 
 
@@ -58,6 +59,15 @@ class Adapter(Protocol):
 
     def observe(self, rec: InnovationRecord, Q: np.ndarray) -> np.ndarray | None:
         """Take one committed innovation; return the new Q (n, n) or None if unchanged."""
+        ...
+
+    def export_memory(self) -> dict[str, np.ndarray]:
+        """What the adapter remembers, as named arrays (copies)."""
+        ...
+
+    def restore_memory(self, memory: dict[str, np.ndarray]) -> None:
+        """Install :meth:`export_memory`'s output; StateError (nothing changed) if it does
+        not fit these settings."""
         ...
 
 
@@ -189,6 +199,40 @@ class MITAdapter:
             g_plain += ddS @ dS                  # dJ / dq_m
         return g_norm, g_plain, used
 
+    def export_memory(self) -> dict[str, np.ndarray]:
+        """"updates" (1,); "kinds" (K, 3) rows (sensor, gap, count); "nu.<i>" (N, m) and
+        "dnu.<i>" (N, p, m) of the i-th kind's window."""
+        out = {"updates": np.array([self.updates]),
+               "kinds": np.array([(s, g, r.count) for (s, g), r in self._rings.items()],
+                                 dtype=np.int64).reshape(-1, 3)}
+        for i, ring in enumerate(self._rings.values()):
+            out[f"nu.{i}"], out[f"dnu.{i}"] = ring.nu.copy(), ring.dnu.copy()
+        return out
+
+    def restore_memory(self, memory: dict[str, np.ndarray]) -> None:
+        N, p = self.settings.window, len(self.indices)
+        try:
+            updates = int(np.asarray(memory["updates"]).reshape(-1)[0])
+            kinds = np.asarray(memory["kinds"], dtype=np.int64).reshape(-1, 3)
+        except (KeyError, IndexError, TypeError, ValueError):
+            raise StateError("extras.adapter: MIT memory expected (updates, kinds)") from None
+        if set(memory) != {"updates", "kinds"} | {f"{a}.{i}" for i in range(len(kinds))
+                                                  for a in ("nu", "dnu")}:
+            raise StateError("extras.adapter: MIT windows do not match their kinds")
+        rings: dict[tuple[int, int], _Ring] = {}
+        for i, (sensor, gap, count) in enumerate(kinds.tolist()):
+            if not 0 <= sensor < len(self._dims) or not 1 <= gap <= self.settings.max_gap \
+                    or count < 0 or (sensor, gap) in rings:
+                raise StateError(f"extras.adapter: bad window kind {(sensor, gap, count)}")
+            ring = _Ring(N, self._dims[sensor], p)
+            nu, dnu = np.asarray(memory[f"nu.{i}"], float), np.asarray(memory[f"dnu.{i}"], float)
+            if nu.shape != ring.nu.shape or dnu.shape != ring.dnu.shape \
+                    or not (np.all(np.isfinite(nu)) and np.all(np.isfinite(dnu))):
+                raise StateError(f"extras.adapter: window {i} of the wrong size or not finite")
+            ring.nu[:], ring.dnu[:], ring.count = nu, dnu, count
+            rings[(sensor, gap)] = ring
+        self._rings, self.updates = rings, updates
+
     def observe(self, rec: InnovationRecord, Q: np.ndarray) -> np.ndarray | None:
         g_norm, g_plain, used = self.gradient_terms(rec)
         if not used:
@@ -222,6 +266,16 @@ class SageHusaAdapter:
         self._idx = np.array(self.indices)
         self.q_min, self.q_max = _bounds(np.diag(Q0)[self._idx], s.q_min, s.q_max)
         self.k = 0
+
+    def export_memory(self) -> dict[str, np.ndarray]:
+        """"k" (1,): innovations seen (sets the forgetting weight d_k)."""
+        return {"k": np.array([self.k])}
+
+    def restore_memory(self, memory: dict[str, np.ndarray]) -> None:
+        k = np.asarray(memory.get("k", []))
+        if set(memory) != {"k"} or k.shape != (1,) or int(k[0]) < 0:
+            raise StateError("extras.adapter: Sage-Husa memory expected (k)")
+        self.k = int(k[0])
 
     def observe(self, rec: InnovationRecord, Q: np.ndarray) -> np.ndarray | None:
         b = self.settings.forgetting

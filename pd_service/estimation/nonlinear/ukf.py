@@ -28,6 +28,7 @@ import numpy as np
 
 from ..checks import as_covariance, as_vector
 from ..replay import Packet, ReplayEstimator
+from ..state import EstimatorState, StateError
 from .adaptive import Adapter
 from .registry import NonlinearModel, wrap_angle
 from .sigma import SigmaWeights
@@ -149,6 +150,44 @@ class UnscentedObserverPredictor(ReplayEstimator[UKFState]):
             raise ValueError("Q: adapted diagonal entries must stay > 0")
         self._ukf.Q = Qm
         self.invalidate_from(self._c)
+
+    # --- export / restore ------------------------------------------------------------------
+
+    def _export_extras(self) -> dict[str, np.ndarray]:
+        """"Q" (n, n) in use and "last_update" (1,); with an adapter, its memory ("adapter.*")."""
+        out = {"Q": self._ukf.Q.copy(), "last_update": np.array([self._last_update])}
+        if self.adapter is not None:
+            out.update({f"adapter.{k}": v for k, v in self.adapter.export_memory().items()})
+        return out
+
+    def _restore_extras(self, extras: dict[str, np.ndarray]) -> None:
+        n = self.n
+        if "Q" not in extras:
+            raise StateError("extras.Q: missing")
+        try:
+            Q = as_covariance(extras["Q"], "Q", n)
+        except ValueError as exc:
+            raise StateError(f"extras: {exc}") from None
+        lu = np.asarray(extras.get("last_update", []))
+        if lu.shape != (1,) or not float(lu[0]).is_integer() or lu[0] < 0:
+            raise StateError("extras.last_update: expected one step >= 0")
+        memory = {k[len("adapter."):]: v for k, v in extras.items() if k.startswith("adapter.")}
+        unknown = set(extras) - {"Q", "last_update"} - {f"adapter.{k}" for k in memory}
+        if unknown:
+            raise StateError(f"extras: unexpected {sorted(unknown)}")
+        if self.adapter is None:
+            if memory:
+                raise StateError("extras: adapter memory for an estimator without adapter")
+            if not np.array_equal(Q, self._ukf.Q):
+                raise StateError("extras.Q: differs from the model's Q (no adapter)")
+        else:
+            self.adapter.restore_memory(memory)  # checks first, StateError if it does not fit
+        self._ukf.Q = Q
+        self._last_update = int(lu[0])
+
+    def restore_state(self, state: EstimatorState) -> None:
+        super().restore_state(state)
+        self._prev_base = (self._base_step, self._base)
 
     # --- committed-horizon adaptation ----------------------------------------------------
 

@@ -36,6 +36,7 @@ import numpy as np
 
 from ..linear import block_diag
 from ..replay import Packet
+from ..state import check_names, take
 from .registry import MeasurementModel, NonlinearModel, wrap_angle
 from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
 
@@ -296,3 +297,21 @@ class UnscentedBackend:
 
     def moments(self, state: UKFState) -> tuple[np.ndarray, np.ndarray]:
         return state.x, state.P
+
+    def export_state(self, state: UKFState) -> dict[str, np.ndarray]:
+        """{"x", "P"} plus {"dx", "dP"} for a tracked state."""
+        out = {"x": state.x.copy(), "P": state.P.copy()}
+        if state.dx is not None and state.dP is not None:
+            out["dx"], out["dP"] = state.dx.copy(), state.dP.copy()
+        return out
+
+    def import_state(self, arrays: dict[str, np.ndarray]) -> UKFState:
+        """A tracked state iff this backend tracks sensitivities (``dQ`` set)."""
+        n = self.ops.n
+        if self.dQ is None:
+            check_names(arrays, {"x", "P"})
+            return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)))
+        p = self.dQ.shape[0]
+        check_names(arrays, {"x", "P", "dx", "dP"})
+        return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)),
+                        take(arrays, "dx", (p, n)), take(arrays, "dP", (p, n, n)))

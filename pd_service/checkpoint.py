@@ -1,0 +1,118 @@
+"""EstimatorState <-> SessionState (the wire message), and whether a state may be resumed.
+
+A state is resumed only if it is the same version, was taken from an estimator built from
+the very same spec (fingerprint of the encoded spec), is not stale and restores cleanly;
+otherwise :func:`refusal` names the reason and the session starts from its prior:
+
+============  =======================================================================
+version       ``state_version`` is not this build's
+spec          ``spec_fingerprint`` differs (the spec changed) or another session
+stale         older than the window: ``now_step - state.now_step > max_delay`` (every
+              packet it still waited for is final by now), or from the future
+corrupt       undecodable, or the estimator's restore_state refused it (reason given)
+============  =======================================================================
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pd_service.estimation import STATE_VERSION, Estimator, EstimatorState, StateError
+from pd_service.wire import SessionSpec, WireError, decode
+from pd_service.wire.state import SessionState, StateCommand, StatePacket, spec_fingerprint
+
+__all__ = ["Refused", "from_message", "refusal", "restore", "to_message"]
+
+
+@dataclass(frozen=True, slots=True)
+class Refused:
+    """Why a state was not resumed: ``reason`` one of version / spec / stale / corrupt."""
+
+    reason: str
+    text: str
+
+
+def to_message(st: EstimatorState, *, session: str, instance: str, fingerprint: str,
+               made_ns: int, session_counters: dict[str, int] | None = None,
+               published: int = 0, seq: int = 0) -> SessionState:
+    """The wire form of ``st`` (see :class:`~pd_service.wire.state.SessionState`)."""
+    base = dict(st.base)
+    x, P = st.mean, st.cov
+    if "mu" not in base:  # linear / UKF: x and P are the base itself, sent once
+        base.pop("x"), base.pop("P")
+    return SessionState(
+        session=session, instance=instance, spec_fingerprint=fingerprint,
+        state_version=st.version, kind=st.kind, made_ns=made_ns, now_step=st.now,
+        committed_step=st.committed_step, base_step=st.base_step,
+        newest_committed=st.newest_committed, x=x, P=0.5 * (P + P.T), base=base,
+        packets=[StatePacket(step=s, sensor=name, z=z, R=R) for s, name, z, R in st.packets],
+        u_origin=st.u_origin,
+        commands=[StateCommand(step=j, u=u) for j, u in st.commands],
+        counters=dict(st.counters), extras=dict(st.extras),
+        session_counters=dict(session_counters or {}), published=published, seq=seq)
+
+
+def from_message(msg: SessionState, n: int) -> EstimatorState:
+    """The EstimatorState ``msg`` describes (arrays copied, writable)."""
+    base = {k: np.array(v) for k, v in msg.base.items()}
+    if "mu" not in base:
+        base["x"], base["P"] = np.array(msg.x), np.array(msg.P)
+    return EstimatorState(
+        kind=msg.kind, n=n, now=msg.now_step, committed_step=msg.committed_step,
+        base_step=msg.base_step, newest_committed=msg.newest_committed, base=base,
+        packets=[(p.step, p.sensor, np.array(p.z), None if p.R is None else np.array(p.R))
+                 for p in msg.packets],
+        inputs_origin=msg.base_step, u_origin=np.array(msg.u_origin).reshape(-1),
+        commands=[(c.step, np.array(c.u).reshape(-1)) for c in msg.commands],
+        counters=dict(msg.counters), extras={k: np.array(v) for k, v in msg.extras.items()},
+        version=msg.state_version)
+
+
+def refusal(msg: SessionState, spec: SessionSpec, fingerprint: str,
+            now_step: int) -> Refused | None:
+    """Why ``msg`` must not be resumed for ``spec`` at ``now_step`` (None: it may be)."""
+    if msg.state_version != STATE_VERSION:
+        return Refused("version", f"state version {msg.state_version}, this build reads "
+                       f"{STATE_VERSION}")
+    if msg.session != spec.session or msg.spec_fingerprint != fingerprint:
+        return Refused("spec", "taken from another spec (fingerprint "
+                       f"{msg.spec_fingerprint[:12]}, the spec's is {fingerprint[:12]})")
+    taken = msg.now_step if msg.now_step is not None else 0
+    if now_step - taken > spec.max_delay:
+        return Refused("stale", f"taken at step {taken}, {now_step - taken} steps ago: more "
+                       f"than the window (max_delay {spec.max_delay})")
+    if taken > now_step + 1:
+        return Refused("stale", f"taken at step {taken}, after the current step {now_step}")
+    return None
+
+
+def restore(est: Estimator, data: bytes | SessionState, spec: SessionSpec, fingerprint: str,
+            now_step: int) -> tuple[SessionState | None, Refused | None]:
+    """Decode, check and restore ``data`` into ``est`` (built from ``spec``). Returns the
+    message and None when ``est`` now continues from it, else (message or None, Refused);
+    ``est`` is unchanged on refusal."""
+    if isinstance(data, SessionState):
+        msg = data
+    else:
+        try:
+            msg = decode(data, SessionState)
+        except WireError as exc:
+            return None, Refused("corrupt", exc.reason)
+    why = refusal(msg, spec, fingerprint, now_step)
+    if why is not None:
+        return msg, why
+    restore_state = getattr(est, "restore_state", None)
+    if restore_state is None:
+        return msg, Refused("corrupt", f"{type(est).__name__} cannot restore a state")
+    try:
+        restore_state(from_message(msg, est.n))
+    except StateError as exc:
+        return msg, Refused("corrupt", str(exc))
+    return msg, None
+
+
+def fingerprint_of(spec: SessionSpec) -> str:
+    """:func:`~pd_service.wire.state.spec_fingerprint` of a spec."""
+    return spec_fingerprint(spec)

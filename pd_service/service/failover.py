@@ -1,0 +1,207 @@
+"""Checkpoints and replicas of the sessions' estimator state: restart and takeover without
+going back to the prior.
+
+- **Checkpoint** (restart): after a round, a session whose estimator committed new steps
+  since its last checkpoint, and whose last checkpoint is at least ``checkpoint_interval_s``
+  old, writes its :class:`~pd_service.wire.state.SessionState` to the state directory
+  (``<session>.ckpt``, atomic like the specs). A restarted daemon resumes each restored
+  session from it.
+- **Replica** (takeover): at the same moments, rate-bounded by ``replica_interval_s``, the
+  owner puts the same message on ``pd/@service/<successor>/replica/<session>``, the successor
+  being the instance that owns the session if this one goes away (the rendezvous order
+  without this instance). Every instance keeps the newest replica per session it received;
+  when it takes a session over it resumes from it.
+- A state that is stale, corrupt, from another spec or of another version is refused
+  (:mod:`pd_service.checkpoint`): the session starts from its prior, the refusal is counted
+  (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.
+
+An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
+(``checkpoint_too_large``). Worker thread only, except :meth:`StateKeeper.on_replica`
+(transport threads: it only stores the bytes).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+
+from pd_service.checkpoint import Refused, restore, to_message
+from pd_service.logs import LOGGER_NAME, event
+from pd_service.transport import Sample
+from pd_service.wire import WireError, decode, encode, keys
+from pd_service.wire.keys import KeyError_, check_name
+from pd_service.wire.state import SessionState
+
+from .config import Settings
+from .ownership import Ownership
+from .persist import SpecStore
+from .publish import Out, Publisher
+from .session import Origin, Session
+
+log = logging.getLogger(LOGGER_NAME)
+
+#: Most replicas held (sessions); the oldest received is dropped beyond it.
+MAX_REPLICAS = 100_000
+
+
+def replica_key(instance: str, session: str) -> str:
+    """``pd/@service/<instance>/replica/<session>``: state of ``session`` for ``instance``."""
+    return f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/{check_name(instance, 'instance')}" \
+           f"/replica/{check_name(session, 'session')}"
+
+
+def replicas_for(instance: str) -> str:
+    """Key expression of every replica sent to ``instance``."""
+    return f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/{check_name(instance, 'instance')}" \
+           "/replica/*"
+
+
+class StateKeeper:
+    """Writes checkpoints, sends replicas, keeps received replicas, resumes sessions."""
+
+    def __init__(self, settings: Settings, store: SpecStore | None, ownership: Ownership,
+                 counters: Counter[str], publisher: Publisher) -> None:
+        self.settings = settings
+        self.store = store
+        self.ownership = ownership
+        self.counters = counters
+        self.pub = publisher
+        self._lock = threading.Lock()
+        #: session -> (now_step of the state, encoded SessionState), newest received
+        self.replicas: dict[str, tuple[int, bytes]] = {}
+
+    # ================================================================== outgoing ======
+
+    def after_round(self, sessions: list[Session], now: int) -> None:
+        """Checkpoint / replicate the sessions that committed new steps, rate-bounded."""
+        s = self.settings
+        ck_ns, rep_ns = int(s.checkpoint_interval_s * 1e9), int(s.replica_interval_s * 1e9)
+        want_ck = self.store is not None and s.checkpoint_interval_s > 0
+        want_rep = s.replica_interval_s > 0 and len(self.ownership.members) > 1 \
+            and self.ownership.shard is None
+        for sess in sessions:
+            if not sess.alive:
+                continue
+            committed = sess.est.committed_step
+            if committed <= sess.saved_committed:
+                continue
+            ck = want_ck and now - sess.last_checkpoint_ns >= ck_ns
+            rep = want_rep and now - sess.last_replica_ns >= rep_ns
+            if not (ck or rep):
+                continue
+            data = self.encode_state(sess, now)
+            if data is None:
+                continue
+            sess.saved_committed = committed
+            if ck:
+                sess.last_checkpoint_ns = now
+                self._write(sess, data)
+            if rep:
+                sess.last_replica_ns = now
+                succ = self.ownership.successor(sess.name)
+                if succ is not None:
+                    self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
+                    self.counters["replicas_sent"] += 1
+                    self.counters["replica_bytes"] += len(data)
+
+    def encode_state(self, sess: Session, now: int) -> bytes | None:
+        """The session's SessionState, encoded (None if too large or not exportable)."""
+        export = getattr(sess.est, "export_state", None)
+        if export is None:
+            return None
+        msg = to_message(export(), session=sess.name, instance=self.settings.instance,
+                         fingerprint=sess.fingerprint, made_ns=now,
+                         session_counters=dict(sess.counters), published=sess.published,
+                         seq=sess.seq)
+        try:
+            data = encode(msg)
+        except WireError as exc:
+            self.counters["checkpoint_too_large"] += 1
+            event(log, "checkpoint_too_large", logging.WARNING, session=sess.name,
+                  reason=exc.reason)
+            return None
+        if len(data) > self.settings.checkpoint_max_bytes:
+            self.counters["checkpoint_too_large"] += 1
+            return None
+        return data
+
+    def _write(self, sess: Session, data: bytes) -> None:
+        assert self.store is not None
+        try:
+            self.store.save_state(sess.name, data)
+        except OSError as exc:
+            self.counters["checkpoint_failed"] += 1
+            event(log, "checkpoint_failed", logging.ERROR, session=sess.name, reason=str(exc))
+            return
+        self.counters["checkpoints"] += 1
+        self.counters["checkpoint_bytes"] += len(data)
+
+    def forget(self, session: str) -> None:
+        """The session is gone: its checkpoint and replica too."""
+        if self.store is not None:
+            self.store.remove_state(session)
+        with self._lock:
+            self.replicas.pop(session, None)
+
+    # ================================================================== incoming ======
+
+    def on_replica(self, sample: Sample) -> None:
+        """Transport thread: keep the newest replica per session (by its now_step)."""
+        session = sample.key.rsplit("/", 1)[-1]
+        if sample.kind == "delete" or sample.payload is None:
+            return
+        try:
+            check_name(session, "session")
+            st = decode(sample.payload, SessionState)
+        except (KeyError_, WireError):
+            self.counters["replica_malformed"] += 1
+            return
+        step = st.now_step or 0
+        with self._lock:
+            old = self.replicas.get(session)
+            if old is None or step >= old[0]:
+                if old is None and len(self.replicas) >= MAX_REPLICAS:
+                    self.replicas.pop(next(iter(self.replicas)))
+                self.replicas[session] = (step, bytes(sample.payload))
+        self.counters["replicas_received"] += 1
+
+    # ================================================================== resume ========
+
+    def resume(self, sess: Session, source: Origin, now: int) -> None:
+        """Continue ``sess`` (just built from its prior) from its checkpoint ("checkpoint")
+        or from the replica held for it ("replica"); a refusal is counted and reported and
+        the session stays at its prior."""
+        if source == "checkpoint":
+            data = self.store.load_state(sess.name) if self.store is not None else None
+        else:
+            with self._lock:
+                held = self.replicas.pop(sess.name, None)
+            data = None if held is None else held[1]
+        if data is None:
+            return
+        now_step = sess.step_now(now)
+        msg, why = restore(sess.est, data, sess.spec, sess.fingerprint, now_step)
+        if why is not None:
+            self._refused(sess, source, why, now)
+            return
+        assert msg is not None
+        sess.origin, sess.origin_step = source, msg.now_step
+        sess.counters.update({k: v for k, v in msg.session_counters.items()
+                              if k not in sess.counters})
+        sess.published, sess.seq = msg.published, msg.seq
+        sess.saved_committed = sess.est.committed_step
+        self.counters[f"resumed_from_{source}"] += 1
+        event(log, "session_resumed", session=sess.name, source=source,
+              step=msg.now_step if msg.now_step is not None else -1,
+              packets=len(msg.packets), writer=msg.instance)
+
+    def _refused(self, sess: Session, source: str, why: Refused, now: int) -> None:
+        self.counters["restore_refused"] += 1
+        self.counters[f"restore_refused_{why.reason}"] += 1
+        sess.counters["restore_refused"] += 1
+        text = f"{source} not resumed ({why.reason}): {why.text}; started from the prior"
+        event(log, "restore_refused", logging.WARNING, session=sess.name, source=source,
+              reason=why.reason, detail=why.text)
+        self.pub.error(sess.error_key, sess.name, f"{source}/{sess.name}", text, None, now)
+

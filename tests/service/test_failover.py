@@ -1,0 +1,213 @@
+"""Restart from a checkpoint and takeover from a replica, on the in-memory bus: the resumed
+session's predictions equal an offline estimator that saw what the checkpoint / replica held
+plus what the new instance accepted; stale, corrupt, other-spec and other-version states are
+refused (counted, reported) and the session starts from its prior."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+
+from pd_service.backends import build_estimator
+from pd_service.service import ServiceCore
+from pd_service.service.failover import replica_key
+from pd_service.transport import InMemoryBus
+from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
+
+from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
+from .test_core import make_core
+
+
+class Driver:
+    """Step k: command for k + lead, a ranger sample of step k - 2 and a camera sample of
+    k - 5; mirrored on an offline estimator; ``snap`` holds a copy of it as of each
+    checkpoint / replica the core took."""
+
+    def __init__(self, cli, clock, col, session="s1"):
+        self.cli, self.clock, self.col, self.s = cli, clock, col, session
+        self.spec = paper_spec(session)
+        self.off = build_estimator(self.spec)
+        self.snap = None
+        self.rng = np.random.default_rng(3)
+
+    def step(self, cores, k, taken=lambda: 0, mirror=True):
+        self.clock.t = int((k + 0.1) * PERIOD_NS)
+        u = self.rng.standard_normal(1)
+        z1, z2 = self.rng.standard_normal(1) + 5, self.rng.standard_normal(2)
+        self.cli.put(keys.command_key(self.s), cmd_bytes(self.s, k + self.spec.lead, u))
+        if k >= 2:
+            self.cli.put(keys.sensor_key(self.s, "ranger"),
+                         meas_bytes(self.s, "ranger", k - 2, z1))
+        if k >= 5:
+            self.cli.put(keys.sensor_key(self.s, "camera"), meas_bytes(self.s, "camera", k - 5, z2))
+        if mirror:
+            self.off.add_command(k + self.spec.lead, u, now=k)
+            if k >= 2:
+                self.off.add_measurement("ranger", k - 2, z1, now=k)
+            if k >= 5:
+                self.off.add_measurement("camera", k - 5, z2, now=k)
+        for phase in (0.1, 0.6):  # inputs, then the tick (a state may be taken at both)
+            self.clock.t = int((k + phase) * PERIOD_NS)
+            before = taken()
+            for c in cores:
+                c.run_once()
+            if taken() != before:
+                self.snap = copy.deepcopy(self.off)
+
+    def check(self, k, ref):
+        pred = self.col.predictions[self.s][-1]
+        want = ref.predict(k)
+        assert pred.step == want.step
+        np.testing.assert_allclose(pred.x, want.x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(pred.P, want.P, rtol=1e-9, atol=1e-9)
+
+
+def status(cli, s):
+    return decode(cli.get(keys.status_key(s))[0].payload, SessionStatus)
+
+
+def test_restart_resumes_from_the_checkpoint_exactly(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
+    d = Driver(cli, clock, col)
+    cli.put(keys.config_key("s1"), encode(d.spec))
+    a.run_once()
+    for k in range(40):
+        d.step([a], k, lambda: a.counters["checkpoints"])
+    assert a.counters["checkpoints"] >= 5 and d.snap is not None
+    a.t.close()  # a crash: nothing flushed, nothing said
+    ref = d.snap  # what the newest checkpoint held; the steps after it are lost
+    b = make_core(bus, clock, tmp_path)
+    d.off = ref
+    for k in range(43, 70):  # restarted 3 steps later, within one window (max_delay 12)
+        d.step([b], k)
+        d.check(k, ref)
+    st = status(cli, "s1")
+    assert st.origin == "checkpoint" and st.origin_step is not None and 30 <= st.origin_step < 40
+    assert b.counters["resumed_from_checkpoint"] == 1
+    # the run from the prior would be far off: P(p2) back near the prior's 100
+    fresh = build_estimator(d.spec)
+    assert float(col.predictions["s1"][-1].P[1, 1]) < 0.1 * float(fresh.predict(43).P[1, 1])
+
+
+def _checkpointed(tmp_path, steps=20):
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
+    d = Driver(cli, clock, col)
+    cli.put(keys.config_key("s1"), encode(d.spec))
+    a.run_once()
+    for k in range(steps):
+        d.step([a], k)
+    a.t.close()
+    return bus, clock, col, cli, d
+
+
+def _tamper(path, **update):
+    msg = decode(path.read_bytes(), SessionState)
+    path.write_bytes(encode(msg.model_copy(update=update)))
+
+
+@pytest.mark.parametrize("how, reason", [
+    ("stale", "stale"),
+    ("corrupt", "corrupt"),
+    ("spec", "spec"),
+    ("version", "version"),
+    ("misfit", "corrupt"),
+])
+def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_path, how,
+                                                                           reason):
+    bus, clock, col, cli, d = _checkpointed(tmp_path)
+    path = tmp_path / "a" / "s1.ckpt"
+    assert path.exists()
+    restart_step = 19
+    if how == "stale":
+        restart_step = 19 + d.spec.max_delay + 2
+    elif how == "corrupt":
+        path.write_bytes(path.read_bytes()[:-7])
+    elif how == "spec":
+        _tamper(path, spec_fingerprint="0" * 64)
+    elif how == "version":
+        _tamper(path, state_version=2)
+    elif how == "misfit":
+        _tamper(path, kind="ImmObserverPredictor")
+    clock.t = int((restart_step + 0.1) * PERIOD_NS)
+    b = make_core(bus, clock, tmp_path)
+    assert b.counters["restore_refused"] == 1
+    assert b.counters[f"restore_refused_{reason}"] == 1
+    st = status(cli, "s1")
+    assert st.origin == "prior" and st.origin_step is None
+    assert st.counters.get("restore_refused") == 1
+    b.run_once()  # the ErrorReport leaves with the first flush
+    assert any(f"({reason})" in e.reason for e in col.errors["s1"])
+    clock.t = int((restart_step + 0.6) * PERIOD_NS)
+    b.run_once()  # the tick: a prediction from the prior
+    prior = build_estimator(d.spec).predict(restart_step)
+    assert col.predictions["s1"][-1].step == prior.step
+    np.testing.assert_allclose(col.predictions["s1"][-1].P, prior.P, rtol=1e-9)
+
+
+def test_takeover_resumes_from_the_replica_exactly(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a", replica_interval_s=0.3)
+    b = make_core(bus, clock, tmp_path, "inst-b", replica_interval_s=0.3)
+    names = [f"s{i:02d}" for i in range(12)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    for c in (a, b, a, b):
+        c.run_once()
+    owner_of = {s: ("inst-a" if s in a.served_sessions() else "inst-b") for s in names}
+    s = next(n for n in names if owner_of[n] == "inst-a")  # a serves it, b is its successor
+    assert a.ownership.successor(s) == "inst-b"
+    d = Driver(cli, clock, col, s)
+    for k in range(40):
+        d.step([a, b], k, lambda: b.keeper.replicas.get(s, (None,))[0] or 0)
+    assert d.snap is not None and b.counters["replicas_received"] > 0
+    held = decode(b.keeper.replicas[s][1], SessionState)
+    assert held.session == s and held.instance == "inst-a"
+    a.t.close()  # a dies; b learns it through liveliness (the bus drops a's token)
+    b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
+    b.run_once()  # takes the session over (inputs sent before that reach nobody)
+    ref = d.snap
+    d.off = ref
+    for k in range(41, 60):
+        d.step([b], k)
+        d.check(k, ref)
+    st = status(cli, s)
+    assert st.instance == "inst-b" and st.origin == "replica"
+    assert b.counters["resumed_from_replica"] >= 1
+
+
+def test_a_replica_for_another_spec_is_refused(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a")
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    a.run_once()
+    other = build_estimator(paper_spec("s1", max_delay=20))
+    from pd_service.checkpoint import to_message
+    from pd_service.wire.state import spec_fingerprint
+    msg = to_message(other.export_state(), session="s1", instance="inst-x",
+                     fingerprint=spec_fingerprint(paper_spec("s1", max_delay=20)), made_ns=0)
+    cli.put(replica_key("inst-a", "s1"), encode(msg))
+    assert "s1" in a.keeper.replicas
+    a.keeper.resume(a.dispatch.routes["s1"].sess, "replica", 0)
+    assert a.counters["restore_refused_spec"] == 1
+    assert a.dispatch.routes["s1"].sess.origin == "prior"
+
+
+def test_checkpoints_are_bounded_in_rate(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=1.0)
+    d = Driver(cli, clock, col)
+    cli.put(keys.config_key("s1"), encode(d.spec))
+    a.run_once()
+    for k in range(100):  # 5 s of 50 ms steps
+        d.step([a], k)
+    assert 4 <= a.counters["checkpoints"] <= 6
+    assert isinstance(a, ServiceCore)
