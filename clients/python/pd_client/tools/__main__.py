@@ -1,7 +1,7 @@
 """``python -m pd_client.tools <tool> [args]``: the command-line tools without installed scripts.
 
 Tools: ``sim`` (pd-robot-sim), ``operator`` (pd-operator), ``display`` (pd-display),
-``record`` (pd-record).
+``record`` (pd-record), ``web`` (pd-web).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import sys
 
 #: sub-command -> module of pd_client.tools with its ``main(argv)``
 TOOLS = {"sim": "pd_robot_sim", "operator": "pd_operator", "display": "pd_display",
-         "record": "pd_record"}
+         "record": "pd_record", "web": "pd_web"}
 
 
 def main(argv: list[str] | None = None) -> int:
