@@ -182,3 +182,19 @@ def test_server_serves_page_events_and_state() -> None:
             _get(server.url + "nothing-here")
     finally:
         server.close()
+
+
+def test_spec_from_a_config_put_and_from_a_query(feed) -> None:
+    f, t, out, clock = feed
+    spec = get_scenario("maneuver").spec("man", EPOCH)
+    t.put(keys.config_key("man"), encode(spec))
+    assert f.views["man"].spec == spec
+    later = get_scenario("paper").spec("late", EPOCH)
+    served = t.queryable(keys.config_key("late"), lambda q: q.reply(keys.config_key("late"), encode(later)))
+    t.put(keys.prediction_key("late"), encode(pred("late", 3, np.zeros(4), np.eye(4))))
+    assert f.views["late"].spec is None
+    f.poll_status(timeout=0.1)
+    assert f.views["late"].spec == later
+    served.close()
+    t.put(keys.config_key("man"), b"junk")
+    assert f.invalid == 1 and f.views["man"].spec == spec

@@ -95,6 +95,7 @@ class SessionView:
         self.name = name
         self.keep = keep
         self.spec: SessionSpec | None = None
+        self.spec_asked: float | None = None  # monotonic s of the last query for it
         self.names: list[str] | None = None
         self.angles: list[int] = []
         self.truth: OrderedDict[int, np.ndarray] = OrderedDict()
@@ -283,6 +284,7 @@ class LiveFeed:
         self.admin = Admin(transport)
         subs: list[tuple[str, Callable[[Sample], None]]] = [
             (keys.ALL_PREDICTIONS, self._on_prediction),
+            (keys.ALL_CONFIGS, self._on_config),
             (keys.ALL_SENSORS, self._on_measurement),
             (keys.ALL_COMMANDS, self._on_command),
             (f"{keys.ROBOT_ROOT}/*/truth", self._on_truth),
@@ -319,6 +321,17 @@ class LiveFeed:
             text = json.dumps(ev, separators=(",", ":"))
             self.views[session].history.append((self.events, text))
             self.sink(text)
+
+    def _on_config(self, sample: Sample) -> None:
+        session = self._session_of(sample)  # a delete (session removed) keeps the last spec
+        if session is None:
+            return
+        spec = try_decode(sample, SessionSpec)
+        with self.lock:
+            if spec is None or spec.session != session:
+                self.invalid += 1
+                return
+            self._view(session).spec = spec
 
     def _on_measurement(self, sample: Sample) -> None:
         session = self._session_of(sample)
@@ -357,16 +370,22 @@ class LiveFeed:
 
     def poll_status(self, timeout: float = 0.5) -> None:
         """Sessions the daemons report (ServiceStatus), and the specs of the sessions seen
-        (queried on ``pd/<s>/config``: the daemon answers them)."""
+        that were not put while this feed listened (queried on ``pd/<s>/config``: the daemon
+        answers them; at most every 10 s per session)."""
         try:
             reported = sorted({s for st in self.admin.service_status(timeout=timeout)
                                for s in st.sessions})
         except PdClientError:
             reported = []
+        mono = self._mono()
         with self.lock:
             self.reported = reported
-            missing = [s for s in set(reported) | set(self.views)
-                       if s not in self.views or self.views[s].spec is None]
+            missing = []
+            for s in sorted(set(reported) | set(self.views)):
+                v = self._view(s)
+                if v.spec is None and (v.spec_asked is None or mono - v.spec_asked >= 10.0):
+                    v.spec_asked = mono
+                    missing.append(s)
         for s in missing:
             try:
                 spec = self.admin.get_spec(s, timeout=timeout)
