@@ -5,8 +5,8 @@ driven by Selenium) loads the page.
    and ``pd-web`` itself as a process): the page updates live, the values it shows (read
    from the DOM's data-* attributes) are the daemon's predictions for the same step (this
    test subscribes to ``pd/paper/prediction`` too), pause freezes it, and a warning appears
-   when the robot simulator is stopped. Screenshots: ``out/web/live.png``,
-   ``out/web/warning.png``.
+   when the robot simulator is stopped, and the page keeps its last state when pd-web
+   stops. Screenshots: ``out/web/live.png``, ``out/web/warning.png``.
 2. Load: 10 sessions at 20 Hz each (an in-process server on the in-memory bus): every event
    reaches the page, in order; the lag (page receipt - server send) is printed, not asserted.
 
@@ -179,6 +179,15 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
                        timeout=20)
         assert browser.find_element("id", "warn").is_displayed()
         browser.save_screenshot(str(OUT / "warning.png"))
+
+        # pd-web stops: the page keeps its last state and says the stream is lost.
+        last_k = read(browser)["k"]
+        web.send_signal(signal.SIGTERM)
+        assert web.wait(15) == 0, procs.log("web")
+        wait_until("the page to notice the end of the stream",
+                   lambda: "stream lost" in browser.find_element("id", "conn").text, timeout=15)
+        v = read(browser)
+        assert v["k"] is not None and int(v["k"]) >= int(last_k) and len(v["rows"]) == 2
         print(f"\npd-web live chain: compared {checked} frames (steps {min(steps)}..{max(steps)}); "
               f"warning: {v['warn']!r}; screenshots in {OUT}")
         display.close()
