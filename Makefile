@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test demo bench lint schemas clean
+.PHONY: venv test demo bench lint schemas clean browser
 
 $(STAMP): pyproject.toml clients/python/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,8 +20,22 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/pd-demo
 
-test: $(STAMP)
+test: $(STAMP) browser
 	$(PY) -m pytest -q
+
+# pd-web's browser test drives Debian's chromium through chromedriver: installed here when
+# missing and possible (root and apt-get); otherwise that test skips and says why.
+browser:
+	@if [ -x /usr/bin/chromium ] && [ -x /usr/bin/chromedriver ]; then :; \
+	elif [ "$$(id -u)" != 0 ]; then \
+	  echo "make: chromium for the browser test is missing and only root can install it: that test will skip"; \
+	elif ! command -v apt-get >/dev/null; then \
+	  echo "make: chromium for the browser test is missing and there is no apt-get: that test will skip"; \
+	else \
+	  echo "make: installing chromium and chromium-driver (apt-get) for the browser test"; \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null) \
+	    || echo "make: apt-get could not install chromium: the browser test will skip"; \
+	fi
 
 bench: $(STAMP)
 	$(PY) bench/estimation.py

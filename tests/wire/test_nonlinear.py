@@ -425,5 +425,5 @@ def test_check_measurement_uses_the_sensor_R_dimension():
 @pytest.mark.parametrize("base, path, value, expected", CASES,
                          ids=[f"{c[0]}.{c[1]}={str(c[2])[:20]}" for c in CASES])
 def test_every_rule_has_a_field_path(base, path, value, expected):
-    head = reason(_set(RAW[base](), path, value)).split(": ", 1)[0]
+    head = reason(set_field(RAW[base](), path, value)).split(": ", 1)[0]
     assert head.startswith("SessionSpec.") and len(head) > len("SessionSpec."), head

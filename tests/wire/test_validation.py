@@ -398,7 +398,7 @@ def test_every_rule_names_the_field_it_refuses(msg_type, path, value, expected):
     inside it, or the one it must agree with (e.g. exactly one of step / t_ns)."""
     if msg_type is S and path == "epoch_ns" or isinstance(path, bytes):
         return
-    got = reason(msg_type, _set(raw(msg_type), path, value))
+    got = reason(msg_type, set_field(raw(msg_type), path, value))
     field = _field_path(got)
     keys = path.split(".")
     # a discriminated model's path holds its kind: SessionSpec.model.linear.A for model.A
@@ -410,9 +410,9 @@ def test_every_rule_names_the_field_it_refuses(msg_type, path, value, expected):
 
 @pytest.mark.parametrize("obj, field", [
     # a per-sample R that is not PSD is a field error of R, not of the Measurement
-    (lambda: _set(raw(M), "R", arr(2, 2, [1.0, 0.0, 0.0, -1.0])), "R"),
-    (lambda: _set(raw(M), "R", arr(2, 3, [1.0] * 6)), "R"),
-    (lambda: _set(_set(raw(M), "step", None), "t_ns", None), "step"),
+    (lambda: set_field(raw(M), "R", arr(2, 2, [1.0, 0.0, 0.0, -1.0])), "R"),
+    (lambda: set_field(raw(M), "R", arr(2, 3, [1.0] * 6)), "R"),
+    (lambda: set_field(set_field(raw(M), "step", None), "t_ns", None), "step"),
 ])
 def test_model_level_checks_of_a_measurement_name_their_field(obj, field):
     assert reason(M, obj()).startswith(f"Measurement.{field}: ")

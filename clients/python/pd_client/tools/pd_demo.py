@@ -13,6 +13,9 @@ Starts, each as its own process on a free loopback port:
 4. ``pd-operator``    sends the paper's commands, stamped with their apply step
 5. ``pd-robot-sim``   the paper's vehicle chasing an object, publishing camera and range
                       finder to session ``paper`` and the camera only to ``paper-cam``
+6. ``pd-web``         the live view in the browser (http://127.0.0.1:8080/, or a free port
+                      when 8080 is taken); it keeps serving the final state ``--web-linger``
+                      seconds after the run (the page keeps it after that too)
 
 and prints a side-by-side summary: RMS prediction error and mean predicted variance of p1 and
 p2 with the range finder (``paper``) and with the camera only (``paper-cam``). Ctrl-C stops
@@ -55,6 +58,16 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def web_port(preferred: int) -> int:
+    """``preferred`` if nothing listens on it on 127.0.0.1, else a free port."""
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", preferred))
+        except OSError:
+            return free_port()
+    return preferred
 
 
 class Proc:
@@ -143,6 +156,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quiet", action="store_true", help="do not relay the processes' output")
     ap.add_argument("--viz-port", type=int, default=8765,
                     help="pd-viz's WebSocket port (default 8765; -1: no pd-viz)")
+    ap.add_argument("--web-port", type=int, default=8080,
+                    help="port of the live view (default 8080; a free one if taken; 0: no live view)")
+    ap.add_argument("--web-linger", type=float, default=10.0,
+                    help="seconds the live view keeps serving the final state after the run")
     args = ap.parse_args(argv)
     if args.link_config is not None and not args.link_config.is_file():
         print(f"{TOOL}: link config {args.link_config} not found", file=sys.stderr)
@@ -186,6 +203,12 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
             probe.close()
         viz = has_viz()
         mcap = ["--mcap", str(out / "run.mcap")] if viz else []
+        web_url = None
+        if args.web_port:
+            port = web_port(args.web_port)
+            start("web", "-m", "pd_client.tools", "web", "--port", str(port), *zenoh_args)
+            web_url = f"http://127.0.0.1:{port}/"
+            print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
         recorder = start("record", "-m", "pd_client.tools", "record", *[f"--session={s}" for s in SESSIONS],
                          "--out", str(out), "--idle-timeout", "3", "--states", "p1,p2", *mcap,
                          *zenoh_args)
@@ -210,6 +233,13 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
             recorder.popen.wait(60)
         except subprocess.TimeoutExpired:
             recorder.stop()
+        if web_url is not None and args.web_linger > 0:
+            print(f"{TOOL}: the live view at {web_url} shows the final state for "
+                  f"{args.web_linger:g} s more (Ctrl-C to skip)", flush=True)
+            try:
+                time.sleep(args.web_linger)
+            except KeyboardInterrupt:
+                pass
     except KeyboardInterrupt:
         interrupted = True
         print(f"\n{TOOL}: interrupted, stopping every process", flush=True)
