@@ -50,14 +50,21 @@ def exercise(t1, t2, wait) -> None:
     t1.queryable("pd/*/status", lambda q: q.reply(q.key, b"status:" + (q.payload or b"")))
     t1.declare_token("pd/@service/a")
     live: list = []
-    t2.subscribe_liveliness("pd/@service/*", lambda k, alive: live.append((k, alive)))
+    seen = threading.Event()
+
+    def on_live(k: str, alive: bool) -> None:
+        live.append((k, alive))
+        seen.set()
+
+    t2.subscribe_liveliness("pd/@service/*", on_live)
     wait()
     t2.put("pd/s1/sensor/cam", b"abc")
     assert ev.wait(5.0)
     assert got == [("pd/s1/sensor/cam", b"abc", "put")]
     replies = t2.get("pd/s1/status", payload=b"q", timeout=2.0)
     assert [(r.key, r.payload, r.ok) for r in replies] == [("pd/s1/status", b"status:q", True)]
-    assert t2.get_liveliness("pd/@service/*") == ["pd/@service/a"]
+    assert t2.get_liveliness("pd/@service/*", timeout=5.0) == ["pd/@service/a"]
+    assert seen.wait(5.0)  # the subscriber's callback may come after the get's reply
     assert ("pd/@service/a", True) in live
     sub.close()
     ev.clear()
