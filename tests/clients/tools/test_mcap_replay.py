@@ -140,3 +140,35 @@ def test_records_status_spec_and_raw_samples(tmp_path):
     rec.close()
     got = list(read_records(path))
     assert [(r.key, r.payload) for r in got] == [("pd/s1/sensor/camera", b"\xc1junk")]
+
+
+def test_ros2_outputs_are_recorded_in_the_ros2_profile(tmp_path):
+    """A session binding ROS 2 outputs gets cdr Odometry/Pose channels with ros2msg schemas,
+    decoding to the predicted pose; the JSON prediction stays the record."""
+    from mcap.reader import make_reader
+
+    from pd_client.tools.mcap_log import McapLog
+    from pd_service.ros2.extract import yaw_of
+    from pd_service.ros2.messages import decode as decode_ros
+    from pd_service.scenarios import get_scenario
+
+    spec = get_scenario("diffdrive").spec("bot", 0)
+    x = np.array([1.5, -2.0, 0.3, 0.4, 0.05])
+    P = np.diag([0.01, 0.02, 0.003, 0.001, 0.002])
+    pred = Prediction(session="bot", seq=1, step=40, t_ns=spec.time_of(40), x=x, P=P,
+                      newest_step=30, made_ns=5)
+    log = McapLog(tmp_path / "r.mcap")
+    log.write_sample(keys.config_key("bot"), encode(spec), 1)
+    log.write_sample(keys.prediction_key("bot"), encode(pred), 2)
+    log.close()
+    with open(tmp_path / "r.mcap", "rb") as f:
+        got = {ch.topic: (sc.encoding, sc.name, ch.message_encoding, m.data)
+               for sc, ch, m in make_reader(f).iter_messages()}
+    enc, name, menc, data = got["/pd/bot/ros2/odom"]
+    assert (enc, name, menc) == ("ros2msg", "nav_msgs/msg/Odometry", "cdr")
+    odom = decode_ros(data, "nav_msgs/msg/Odometry")
+    p = odom.pose.pose.position
+    assert (p.x, p.y) == (1.5, -2.0) and abs(yaw_of(odom.pose.pose.orientation) - 0.3) < 1e-12
+    assert odom.header.stamp.sec * 10**9 + odom.header.stamp.nanosec == spec.time_of(40)
+    assert got["/pd/bot/ros2/pose"][1] == "geometry_msgs/msg/PoseWithCovarianceStamped"
+    assert [r.stream for r in read_records(tmp_path / "r.mcap")] == ["config", "prediction"]

@@ -16,12 +16,21 @@ A payload that is not such a map (undecodable bytes, bin fields, NaN/inf, a dele
 
 Log time and publish time are the recorder's receipt time (wall clock, ns); the MCAP
 ``sequence`` of each message is its arrival order at the recorder (over all channels).
+
+ROS 2 profile where a ROS message type exists: for a session whose spec binds ROS 2 outputs
+(``SessionSpec.ros2.outputs``), every prediction is also written as ``nav_msgs/msg/Odometry``
+and ``geometry_msgs/msg/PoseWithCovarianceStamped`` on ``/pd/<s>/ros2/odom`` and
+``/pd/<s>/ros2/pose`` (``cdr`` messages, ``ros2msg`` schemas: the message definitions from the
+rosbags Jazzy typestore), the same messages the ``pd-ros2`` bridge publishes, so ROS tools
+plot the predicted pose directly. They need the ``ros2`` extra (rosbags); without it they are
+left out (said once on stderr). Replay ignores them (the JSON predictions are the record).
 """
 
 from __future__ import annotations
 
 import base64
 import json
+import sys
 import threading
 import time
 from collections.abc import Iterator, Sequence
@@ -32,7 +41,7 @@ from typing import IO, Any
 import msgpack
 
 from pd_service.transport import Handle, Sample, Transport
-from pd_service.wire import keys
+from pd_service.wire import Prediction, SessionSpec, WireError, decode, keys
 from pd_service.wire.schemas import schemas
 
 from ..truth import Truth
@@ -101,6 +110,59 @@ class McapLog:
         self._seq = 0
         self.messages = 0
         self._closed = False
+        self._specs: dict[str, SessionSpec] = {}  # session -> newest spec seen
+        self._ros2_ok: bool | None = None  # None: not tried yet
+
+    def _ros2_channel(self, topic: str, msg_type: str) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            from pd_service.ros2.messages import typestore
+
+            sid = self._schema_ids.get(msg_type)
+            if sid is None:
+                text, _ = typestore().generate_msgdef(msg_type, ros_version=2)
+                sid = self._w.register_schema(name=msg_type, encoding="ros2msg",
+                                              data=text.encode())
+                self._schema_ids[msg_type] = sid
+            cid = self._w.register_channel(topic=topic, message_encoding="cdr", schema_id=sid)
+            self._channels[topic] = cid
+        return cid
+
+    def _write_ros2(self, session: str, payload: bytes, log_ns: int) -> None:
+        """The prediction as ROS 2 messages, if the session's spec binds ROS 2 outputs."""
+        spec = self._specs.get(session)
+        out = spec.ros2.outputs if spec is not None and spec.ros2 is not None else None
+        if out is None or self._ros2_ok is False:
+            return
+        try:
+            from pd_service.ros2.extract import odometry_from_state, pose_from_state
+            from pd_service.ros2.messages import encode as encode_ros
+        except ImportError as exc:  # the ros2 extra is not installed
+            self._ros2_ok = False
+            print(f"pd-record: no ROS 2 channels in the MCAP ({exc}); pip install "
+                  "'pd-service[ros2]'", file=sys.stderr)
+            return
+        self._ros2_ok = True
+        try:
+            pred = decode(payload, Prediction)
+            odom = odometry_from_state(pred.x, pred.P, out.layout, pred.t_ns, out.frame_id,
+                                       out.child_frame_id)
+            pose = pose_from_state(pred.x, pred.P, out.layout, pred.t_ns, out.frame_id)
+            msgs = ((f"/pd/{session}/ros2/odom", "nav_msgs/msg/Odometry", odom),
+                    (f"/pd/{session}/ros2/pose", "geometry_msgs/msg/PoseWithCovarianceStamped",
+                     pose))
+            for topic, msg_type, msg in msgs:
+                data = encode_ros(msg, msg_type)
+                with self._lock:
+                    if self._closed:
+                        return
+                    cid = self._ros2_channel(topic, msg_type)
+                    self._w.add_message(channel_id=cid, log_time=log_ns, data=data,
+                                        publish_time=log_ns, sequence=self._seq)
+                    self._seq += 1
+                    self.messages += 1
+        except (WireError, ValueError):  # a prediction the JSON channel keeps anyway
+            return
 
     def _channel(self, topic: str, type_name: str) -> int:
         cid = self._channels.get(topic)
@@ -134,6 +196,13 @@ class McapLog:
         data = to_json(payload) if kind == "put" else None
         if data is not None:
             self.write(topic_of(key), TYPE_OF_KIND[parsed.kind], data, log_ns)
+            if parsed.kind == "config":
+                try:
+                    self._specs[parsed.session] = decode(payload, SessionSpec)
+                except WireError:
+                    pass
+            elif parsed.kind == "prediction":
+                self._write_ros2(parsed.session, payload, log_ns)
             return
         raw = {"key": key, "kind": kind, "payload_b64": base64.b64encode(payload).decode()}
         self.write(topic_of(f"{keys.OPERATOR_ROOT}/{parsed.session}/raw"), "RawSample",
@@ -238,7 +307,8 @@ def read_records(path: str | Path) -> Iterator[Record]:
     with open(path, "rb") as f:
         reader = make_reader(f)
         msgs = [(m.sequence, m.log_time, ch.topic, m.data)
-                for _, ch, m in reader.iter_messages(log_time_order=False)]
+                for _, ch, m in reader.iter_messages(log_time_order=False)
+                if ch.message_encoding == "json"]  # the ROS 2 (cdr) copies are not the record
     msgs.sort(key=lambda t: t[0])
     for _, log_ns, topic, data in msgs:
         key = key_of(topic)
