@@ -97,6 +97,19 @@ class Settings(BaseSettings):
                               description="When in its step a session's tick fires (fraction "
                                           "of the period).")
 
+    # admission (pd_service.service.admission): what a spec may cost
+    max_session_bytes: int = Field(64 * 2**20, ge=2**20, description="Largest memory one "
+                                   "session's tables and buffers may need (bytes).")
+    max_session_cpu: float = Field(0.25, gt=0, description="Largest nominal CPU one session "
+                                   "may need, fraction of a core (µs per step / period).")
+    memory_budget_bytes: int = Field(256 * 2**20, ge=2**20, description="Memory all the "
+                                     "sessions run here may need together (bytes; shared "
+                                     "tables counted once).")
+    cpu_budget: float = Field(0.8, gt=0, description="Nominal CPU all the sessions run here "
+                              "may need together, fraction of a core (one worker thread).")
+    tables_max_bytes: int = Field(64 * 2**20, ge=0, description="Bytes of shared propagation "
+                                  "tables kept in the memo beyond the sessions using them.")
+
     # work queues and limits
     inbox_size: int = Field(256, ge=1, description="Per-session inbox (messages); oldest dropped.")
     unknown_inbox_size: int = Field(1024, ge=1, description="Shared inbox of unknown sessions.")

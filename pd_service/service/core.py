@@ -26,6 +26,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
+from pd_service.estimation.linear import set_tables_max_bytes
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Handle, Transport
 from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
@@ -71,6 +72,7 @@ class ServiceCore:
         self.now_ns = now_ns
         self.mono_ns = mono_ns
         self.lock = threading.RLock()
+        set_tables_max_bytes(settings.tables_max_bytes)
         self.wake = threading.Event()
         self.ownership = Ownership(self.instance, settings.shard_tuple)
         self.counters: Counter[str] = Counter()

@@ -21,6 +21,7 @@ from pd_service.transport import Sample, Transport
 from pd_service.wire import SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
+from .admission import Ledger, Refused, spec_cost
 from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
 from .failover import StateKeeper
@@ -59,6 +60,11 @@ class Lifecycle:
         self.keeper = keeper
         self.specs: dict[str, SessionSpec] = {}
         self.gone: dict[str, int] = {}
+        #: Costs of the sessions run here, against the budgets (pd_service.service.admission).
+        self.ledger = Ledger(settings.max_session_bytes, settings.max_session_cpu,
+                             settings.memory_budget_bytes, settings.cpu_budget)
+        #: Sessions known but not run here because they do not fit: name -> reason.
+        self.refused: dict[str, str] = {}
         #: Set at close: no more background syncs.
         self.closed = False
 
@@ -180,7 +186,13 @@ class Lifecycle:
                 raise WireError(f"SessionSpec.session: this service already holds "
                                 f"{self.settings.max_sessions} sessions (max_sessions)")
             if self.ownership.owns(session):
-                # Let the estimator check the spec before anything changes.
+                # Its cost against the budgets first (nothing allocated yet), then let the
+                # estimator check the spec before anything changes.
+                try:
+                    self.ledger.check(session, spec_cost(spec))
+                except Refused as ref:
+                    self.counters["admission_refused"] += 1
+                    raise WireError(ref.reason) from None
                 Session(spec, "active", "", now, 1.0, 1)
         except WireError as exc:
             event(log, "config_refused", session=session, reason=exc.reason)
@@ -249,20 +261,42 @@ class Lifecycle:
         if old is not None:
             old.alive = False
         if not self.ownership.owns(session):
+            self.ledger.release(session)
+            self.refused.pop(session, None)
             route.sess, route.inbox = None, None
             routes[session] = route
             if old is not None:
                 event(log, "session_handed_over", session=session,
                       owner=self.ownership.owner(session) or "")
             return
+        spec = self.specs[session]
         try:
-            sess = Session(self.specs[session], state, detail, now,
+            cost = spec_cost(spec)
+            self.ledger.admit(session, cost)
+        except (Refused, WireError) as exc:  # e.g. a persisted spec over today's budget
+            self.ledger.release(session)
+            self.counters["admission_refused"] += 1
+            event(log, "session_refused", logging.WARNING, session=session, reason=exc.reason)
+            if state == "restored":  # a persisted spec that no longer fits: set aside
+                self.specs.pop(session, None)
+                routes.pop(session, None)
+                if self.store is not None:
+                    self.store.set_aside(session, exc.reason)
+                return
+            route.sess, route.inbox = None, None
+            routes[session] = route
+            self.refused[session] = exc.reason
+            return
+        try:
+            sess = Session(spec, state, detail, now,
                            self.settings.error_rate, self.settings.error_burst)
         except WireError as exc:  # a persisted or synced spec the estimator refuses
+            self.ledger.release(session)
             route.sess, route.inbox = None, None
             routes[session] = route
             event(log, "session_failed", logging.ERROR, session=session, reason=exc.reason)
             return
+        self.refused.pop(session, None)
         if resume != "prior" and self.keeper is not None:
             self.keeper.resume(sess, resume, now)
             if sess.origin != "prior":
@@ -286,6 +320,8 @@ class Lifecycle:
         """Forget ``session`` (its spec, stored file and route); answer if we own it."""
         spec = self.specs.pop(session, None)
         route = self.dispatch.routes.pop(session, None)
+        self.ledger.release(session)
+        self.refused.pop(session, None)
         owned = self.ownership.owns(session)
         if spec is None:
             if answer and owned and session not in self.gone:

@@ -78,6 +78,16 @@ class SpecStore:
             return
         self._sync_dir()
 
+    def set_aside(self, session: str, reason: str) -> None:
+        """Rename a persisted spec that will not be run to ``<file>.refused`` (kept for the
+        operator, never read again) and log why."""
+        p = self.path(session)
+        try:
+            p.rename(p.with_name(p.name + ".refused"))
+        except OSError:
+            pass
+        event(log, "spec_set_aside", logging.WARNING, file=str(p), reason=reason)
+
     def load_all(self) -> tuple[dict[str, SessionSpec], list[str]]:
         """Every readable spec by session, and the names of the files that were not readable
         (renamed to ``*.bad``)."""
