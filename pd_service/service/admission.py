@@ -47,7 +47,7 @@ import math
 from collections import Counter
 from dataclasses import dataclass
 
-from pd_service.wire import ImmModelSpec, LinearModelSpec, SessionSpec, UnscentedModelSpec
+from pd_service.wire import LinearModelSpec, SessionSpec, UnscentedModelSpec
 from pd_service.wire.convert import command_dim
 
 SESSION_FIXED_BYTES = 32 * 1024

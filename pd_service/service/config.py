@@ -114,6 +114,14 @@ class Settings(BaseSettings):
     inbox_size: int = Field(256, ge=1, description="Per-session inbox (messages); oldest dropped.")
     unknown_inbox_size: int = Field(1024, ge=1, description="Shared inbox of unknown sessions.")
     control_inbox_size: int = Field(4096, ge=1, description="Inbox of configs and presence events.")
+    config_rate: float = Field(2.0, gt=0, description="Config changes (put or delete) per "
+                               "second per session; more are refused (config_rate_limited).")
+    config_burst: int = Field(5, ge=1, description="Config change burst per session.")
+    config_rate_total: float = Field(20.0, gt=0, description="Config changes per second, all "
+                                     "sessions together.")
+    config_burst_total: int = Field(40, ge=1, description="Config change burst, all sessions.")
+    config_slice: int = Field(2, ge=1, description="Config changes applied per worker round "
+                              "(between two rounds of data and publications).")
     batch_budget: int = Field(16, ge=1, description="Messages of one session per round.")
     error_rate: float = Field(20.0, gt=0, description="ErrorReports per second per session.")
     error_burst: int = Field(20, ge=1, description="ErrorReport burst per session.")

@@ -170,7 +170,7 @@ class ServiceCore:
         while True:
             with self.lock:
                 now = self.now_ns()
-                if d.control:
+                if d.control or d.configs:
                     self.lifecycle.process_control(now)
                 touched: list[Session] = []
                 if d.unknown:

@@ -91,6 +91,8 @@ class Dispatch:
         self.routes: dict[str, Route] = {}
         self.ready: deque[Route] = deque()
         self.control: deque[Control] = deque(maxlen=settings.control_inbox_size)
+        #: Config changes, apart from presence events (a config flood cannot push those out).
+        self.configs: deque[ConfigChange] = deque(maxlen=settings.control_inbox_size)
         self.unknown: deque[tuple[str, Item]] = deque(maxlen=settings.unknown_inbox_size)
         self.control_drops = 0
         self.unknown_drops = 0
@@ -130,7 +132,7 @@ class Dispatch:
             self.wake.set()
 
     def on_config_sample(self, sample: Sample) -> None:
-        q = self.control
+        q = self.configs
         if len(q) == q.maxlen:
             self.control_drops += 1
         q.append(ConfigChange(sample))
@@ -148,7 +150,7 @@ class Dispatch:
     # ================================================================== worker ========
 
     def has_work(self) -> bool:
-        return bool(self.ready or self.control or self.unknown)
+        return bool(self.ready or self.control or self.configs or self.unknown)
 
     def mark_ready(self, route: Route) -> None:
         """Queue ``route`` for the next round if its inbox holds messages."""

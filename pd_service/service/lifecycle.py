@@ -29,6 +29,7 @@ from .ownership import Ownership
 from .persist import SpecStore
 from .publish import Publisher
 from .session import Origin, Refusal, Session
+from .stats import TokenBucket
 from .status import SessionState, state_of
 
 log = logging.getLogger(LOGGER_NAME)
@@ -36,6 +37,8 @@ log = logging.getLogger(LOGGER_NAME)
 #: How long a removed or expired session's name is remembered (ns): a late sync from a peer
 #: does not bring it back, and a repeated delete is not answered twice.
 _GONE_MEMO_NS = 10_000_000_000
+#: Per-session config rate buckets kept (oldest forgotten first).
+_MAX_CONFIG_BUCKETS = 10_000
 
 
 def spawn_thread(fn: Callable[[], None]) -> None:
@@ -65,6 +68,9 @@ class Lifecycle:
                              settings.memory_budget_bytes, settings.cpu_budget)
         #: Sessions known but not run here because they do not fit: name -> reason.
         self.refused: dict[str, str] = {}
+        self._config_buckets: dict[str, TokenBucket] = {}
+        self._config_total = TokenBucket(settings.config_rate_total,
+                                         settings.config_burst_total, 0)
         #: Set at close: no more background syncs.
         self.closed = False
 
@@ -134,14 +140,22 @@ class Lifecycle:
             d.control_drops = 0
         q = d.control
         membership_changed = False
+        # Config changes: rate-limited per session and service-wide, at most config_slice
+        # per round, so that replacing specs in a loop costs its sender, not the others.
+        cq = d.configs
+        for _ in range(min(len(cq), self.settings.config_slice)):
+            change = cq.popleft()
+            if not self._config_allowed(change.sample, now):
+                continue
+            try:
+                self.apply_config(change.sample, now)
+            except Exception:  # pragma: no cover - defensive
+                log.exception("config handling failed")
+                self.counters["internal_error"] += 1
         while q:
             item = q.popleft()
-            if isinstance(item, ConfigChange):
-                try:
-                    self.apply_config(item.sample, now)
-                except Exception:  # pragma: no cover - defensive
-                    log.exception("config handling failed")
-                    self.counters["internal_error"] += 1
+            if isinstance(item, ConfigChange):  # pragma: no cover - configs have their queue
+                cq.append(item)
             elif isinstance(item, PeerSpecs):
                 self.apply_sync(item.specs, now)
             elif isinstance(item, Membership):
@@ -158,6 +172,29 @@ class Lifecycle:
                         self._spawn(self._sync_in_background)
         if membership_changed and self.ownership.shard is None:
             self.reassign(now)
+
+    def _config_allowed(self, sample: Sample, now: int) -> bool:
+        """Take a token from the sender session's bucket and the service's; refuse
+        (counted ``config_rate_limited``, reported within the error budget) if either is
+        empty."""
+        session = sample.key.split("/")[1] if sample.key.count("/") == 2 else ""
+        s = self.settings
+        b = self._config_buckets.get(session)
+        if b is None:
+            if len(self._config_buckets) >= _MAX_CONFIG_BUCKETS:  # forget the oldest
+                self._config_buckets.pop(next(iter(self._config_buckets)))
+            b = self._config_buckets[session] = TokenBucket(s.config_rate, s.config_burst, now)
+        if b.allow(now) and self._config_total.allow(now):
+            return True
+        self.counters["config_rate_limited"] += 1
+        self.counters["config_refused"] += 1
+        if session and self.ownership.owns(session) and self.pub.unknown_limiter.allow(now) \
+                and self.pub.total_limiter.allow(now):
+            self.pub.error(keys.error_key(session), session, sample.key,
+                           f"config change refused: more than {s.config_rate:g} per second "
+                           f"for this session or {s.config_rate_total:g} per second for "
+                           "this service (config_rate, config_rate_total)", None, now)
+        return False
 
     def apply_config(self, sample: Sample, now: int) -> None:
         """A put (checked, then installed) or delete (removed) on ``pd/<session>/config``."""

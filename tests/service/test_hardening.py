@@ -7,14 +7,13 @@ from __future__ import annotations
 import numpy as np
 
 from pd_service.estimation import linear as linear_mod
-from pd_service.service import ServiceCore, Settings, SpecStore
+from pd_service.service import Settings, SpecStore
 from pd_service.service.admission import Ledger, Refused, spec_cost
 from pd_service.transport import InMemoryBus
 from pd_service.wire import (
     LinearModelSpec,
     SensorSpec,
     SessionSpec,
-    UnscentedModelSpec,
     encode,
     keys,
 )
@@ -137,3 +136,41 @@ def test_tables_memo_is_bounded_in_bytes():
         assert 0 < held <= 200_000
     finally:
         linear_mod.set_tables_max_bytes(Settings(instance="a").tables_max_bytes)
+
+
+# ---------------------------------------------------------------- fair config scheduling --
+
+def test_config_flood_does_not_delay_another_sessions_predictions(tmp_path):
+    from .helpers import meas_bytes
+
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("calm"), encode(paper_spec("calm")))
+    cli.put(keys.config_key("evil"), encode(paper_spec("evil")))
+    core.run_once()
+    per_step = 50  # 1,000 replacements per second at 50 ms steps
+    steps = range(5, 45)
+    for k in steps:
+        clock.t = at(k + 0.1)
+        for i in range(per_step):
+            cli.put(keys.config_key("evil"),
+                    encode(paper_spec("evil", max_delay=12 + (k * per_step + i) % 50)))
+        cli.put(keys.sensor_key("calm", "ranger"), meas_bytes("calm", "ranger", k, [1.0], k))
+        start = len(col.order)
+        core.run_once()
+        got = col.order[start:]
+        # the calm session's prediction went out after at most one slice of configs
+        first = got.index(("calm", "prediction"))
+        assert sum(1 for s, kind in got[:first] if s == "evil" and kind == "status") <= \
+            core.settings.config_slice
+        clock.t = at(k + 0.6)
+        core.run_once()
+    lead = paper_spec("calm").lead
+    steps_with_pred = {p.step - lead for p in col.predictions["calm"]}
+    assert set(steps) <= steps_with_pred  # one prediction per step at least
+    c = core.service_status().counters
+    total = per_step * len(steps)
+    allowed = len(col.statuses["evil"]) - 1  # each allowed change is answered
+    assert c["config_rate_limited"] == total - allowed
+    elapsed_s = (at(44.6) - at(5.1)) / 1e9
+    assert 1 <= allowed <= 5 + 2.0 * elapsed_s + 1  # config_burst + config_rate * time
