@@ -89,10 +89,15 @@ class Settings(BaseSettings):
                               "hash(session) % N == i. Default: rendezvous over live instances.")
 
     # sessions
-    expire_s: float = Field(600.0, gt=0, description="Idle time after which a session expires.")
+    expire_s: float = Field(120.0, gt=0, description="Idle time after which a session expires.")
+    idle_after_s: float = Field(5.0, gt=0, description="A session with no measurement or "
+                                "command that decoded for this long is idle: it is published only every "
+                                "idle_publish_s instead of every step.")
+    idle_publish_s: float = Field(1.0, gt=0, description="Least time between two predictions "
+                                  "of an idle session.")
     min_period_ms: float = Field(1.0, gt=0, description="Specs with a shorter step period are "
                                  "refused (a 1 ns period would keep the worker busy).")
-    max_sessions: int = Field(10_000, ge=1, description="Specs beyond this many are refused.")
+    max_sessions: int = Field(2_000, ge=1, description="Specs beyond this many are refused.")
     tick_phase: float = Field(0.5, ge=0.0, lt=1.0,
                               description="When in its step a session's tick fires (fraction "
                                           "of the period).")

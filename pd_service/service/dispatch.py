@@ -171,6 +171,8 @@ class Dispatch:
             sess, inbox = route.sess, route.inbox
             if sess is None or inbox is None:
                 continue
+            if sess.idle:
+                self.pub.wake(sess, now)
             if route.flood != route.flood_seen:
                 self._note_flood(route, sess, now)
             now_step = sess.step_now(now)

@@ -123,6 +123,10 @@ class Session:
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
         self.alive = True
+        #: Tick bookkeeping (pd_service.service.publish): the generation of the live heap
+        #: entry (older entries are skipped) and whether the session is ticking as idle.
+        self.tick_gen = 0
+        self.idle = False
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
         self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
         self.pred_key = keys.prediction_key(self.name)

@@ -174,3 +174,36 @@ def test_config_flood_does_not_delay_another_sessions_predictions(tmp_path):
     assert c["config_rate_limited"] == total - allowed
     elapsed_s = (at(44.6) - at(5.1)) / 1e9
     assert 1 <= allowed <= 5 + 2.0 * elapsed_s + 1  # config_burst + config_rate * time
+
+
+# ---------------------------------------------------------------- idle sessions -----------
+
+def test_idle_sessions_tick_rarely_and_wake_on_traffic(tmp_path):
+    from .helpers import meas_bytes
+
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path, idle_after_s=1.0, idle_publish_s=1.0)
+    for s in ("busy", "idle"):
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    core.run_once()
+    lead = paper_spec("x").lead
+    for k in range(0, 100):  # 5 s at 50 ms
+        clock.t = at(k + 0.1)
+        cli.put(keys.sensor_key("busy", "ranger"), meas_bytes("busy", "ranger", k, [1.0], k))
+        core.run_once()
+        clock.t = at(k + 0.6)
+        core.run_once()
+    busy = {p.step - lead for p in col.predictions["busy"]}
+    idle = [p.step - lead for p in col.predictions["idle"]]
+    assert set(range(100)) <= busy
+    assert set(range(21)) <= set(idle)  # every step until idle (1 s = 20 steps)
+    late = [k for k in idle if k > 21]
+    assert 3 <= len(late) <= 5 and all(b - a >= 20 for a, b in zip(late, late[1:]))
+    # traffic wakes it: every step again
+    for k in range(100, 110):
+        clock.t = at(k + 0.1)
+        cli.put(keys.sensor_key("idle", "ranger"), meas_bytes("idle", "ranger", k, [1.0], k))
+        core.run_once()
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert set(range(100, 110)) <= {p.step - lead for p in col.predictions["idle"]}
