@@ -80,7 +80,7 @@ class ServiceCore:
         self.publisher = Publisher(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())
         self.dispatch = Dispatch(settings, self.counters, self.publisher, self.ownership,
-                                 self.wake)
+                                 self.wake, now_ns)
         self.keeper = StateKeeper(settings, store, self.ownership, self.counters,
                                   self.publisher)
         self.lifecycle = Lifecycle(transport, settings, store=store, ownership=self.ownership,

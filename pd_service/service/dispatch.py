@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
+from collections.abc import Callable
 from collections import Counter, deque
 from dataclasses import dataclass
 
@@ -34,8 +36,10 @@ from .session import COMMAND, SENSOR, Refusal, Session
 
 log = logging.getLogger(LOGGER_NAME)
 
-#: One received message: (stream SENSOR/COMMAND, key, payload, recv_mono_ns, kind put/delete).
-Item = tuple[int, str, bytes, int, str]
+#: One received message: (stream SENSOR/COMMAND, key, payload, recv_mono_ns, kind put/delete,
+#: the core's wall clock read when it arrived (ns): a packet is judged "future" or on time
+#: against that, not against the worker's later loop time).
+Item = tuple[int, str, bytes, int, str, int]
 
 
 @dataclass(eq=False, slots=True)
@@ -82,8 +86,10 @@ class Dispatch:
     rest on the worker, under the core's lock."""
 
     def __init__(self, settings: Settings, counters: Counter[str], publisher: Publisher,
-                 ownership: Ownership, wake: threading.Event) -> None:
+                 ownership: Ownership, wake: threading.Event,
+                 now_ns: Callable[[], int] = time.time_ns) -> None:
         self.settings = settings
+        self.now_ns = now_ns
         self.counters = counters
         self.pub = publisher
         self.ownership = ownership
@@ -112,7 +118,7 @@ class Dispatch:
         if len(parts) < 3:
             return
         route = self.routes.get(parts[1])
-        item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind)
+        item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind, self.now_ns())
         if route is None:
             q = self.unknown
             if len(q) == q.maxlen:
@@ -192,7 +198,9 @@ class Dispatch:
 
     def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """Give one message to its session; count it, or refuse it (reported)."""
-        stream, key, payload, recv_mono, kind = item
+        stream, key, payload, recv_mono, kind, recv_now = item
+        if recv_now > now:  # arrived after the loop read its clock: judge it at its arrival
+            now_step = sess.step_now(recv_now)
         refusal: Refusal | None
         try:
             if kind != "put":
