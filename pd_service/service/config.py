@@ -5,7 +5,7 @@ Every field of :class:`Settings` can be set at each layer under the same name:
 - file: ``--config FILE`` (or ``PD_SERVICE_CONFIG``); ``.toml`` is read as TOML, anything else
   as JSON; top-level keys are the field names (``expire_s = 900``);
 - environment: ``PD_SERVICE_<FIELD>`` upper case (``PD_SERVICE_EXPIRE_S=900``); list fields
-  (``listen``, ``connect``) are comma-separated;
+  (``listen``, ``connect``, ``peers``) are comma-separated;
 - flags: ``--expire-s 900``, ``--connect EP`` (repeatable), see ``pd-service --help``.
 
 A later layer replaces a field wholesale (a ``--connect`` flag replaces the file's list).
@@ -88,6 +88,10 @@ class Settings(BaseSettings):
     shard: str | None = Field(None, description="Static sharding 'i/N': serve the sessions with "
                               "hash(session) % N == i. Default: rendezvous over live instances.")
 
+    peers: list[str] = Field(default_factory=list, description="The other instances this one "
+                             "shares sessions with (rendezvous, takeover, spec sync); empty: "
+                             "standalone. Liveliness tokens of any other instance are ignored.")
+
     # sessions
     expire_s: float = Field(120.0, gt=0, description="Idle time after which a session expires.")
     idle_after_s: float = Field(5.0, gt=0, description="A session with no measurement or "
@@ -161,6 +165,14 @@ class Settings(BaseSettings):
             raise ValueError(f"must match {NAME_PATTERN}")
         return v
 
+    @field_validator("peers")
+    @classmethod
+    def _check_peers(cls, v: list[str]) -> list[str]:
+        for p in v:
+            if not re.fullmatch(NAME_PATTERN, p):
+                raise ValueError(f"{p!r} must match {NAME_PATTERN}")
+        return v
+
     @field_validator("shard")
     @classmethod
     def _check_shard(cls, v: str | None) -> str | None:
@@ -224,7 +236,7 @@ class Settings(BaseSettings):
         return tuple(sources)
 
 
-_LIST_FIELDS = {"listen", "connect"}
+_LIST_FIELDS = {"listen", "connect", "peers"}
 
 
 @dataclass(slots=True)

@@ -116,6 +116,7 @@ class ServiceCore:
         peers = [k.rsplit("/", 1)[-1] for k in t.get_liveliness(keys.ALL_SERVICES,
                                                                  timeout=s.sync_timeout_s)]
         peers = [p for p in peers if p != self.instance]
+        peers = self.lifecycle.trusted_peers(peers)
         specs, origin = self.lifecycle.recover(peers)
         now = self.now_ns()
         with self.lock:

@@ -69,12 +69,29 @@ class Lifecycle:
         #: Sessions known but not run here because they do not fit: name -> reason.
         self.refused: dict[str, str] = {}
         self._config_buckets: dict[str, TokenBucket] = {}
+        self._untrusted_seen: set[str] = set()
         self._config_total = TokenBucket(settings.config_rate_total,
                                          settings.config_burst_total, 0)
         #: Set at close: no more background syncs.
         self.closed = False
 
     # ================================================================== start =========
+
+    def trusted_peers(self, instances: list[str]) -> list[str]:
+        """The ``instances`` listed in the ``peers`` setting; a warning, once per name, for
+        each other one (a stray or forged ``pd/@service/*`` token is never a member)."""
+        trusted = set(self.settings.peers)
+        out = []
+        for inst in instances:
+            if inst in trusted:
+                out.append(inst)
+            elif inst not in self._untrusted_seen and inst != self.ownership.instance:
+                if len(self._untrusted_seen) < 1000:
+                    self._untrusted_seen.add(inst)
+                self.counters["untrusted_peer"] += 1
+                event(log, "untrusted_peer", logging.WARNING, instance=inst,
+                      detail="liveliness token of an instance not in the peers setting: ignored")
+        return out
 
     def recover(self, peers: list[str]
                 ) -> tuple[dict[str, SessionSpec], dict[str, SessionState]]:
@@ -161,6 +178,8 @@ class Lifecycle:
             elif isinstance(item, Membership):
                 inst = item.key.rsplit("/", 1)[-1]
                 alive = item.alive
+                if inst != self.ownership.instance and not self.trusted_peers([inst]):
+                    continue
                 changed = self.ownership.join(inst) if alive else self.ownership.leave(inst)
                 if changed:
                     membership_changed = True

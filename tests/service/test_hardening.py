@@ -229,3 +229,41 @@ def test_a_packet_is_judged_at_its_arrival_not_at_the_loops_clock_read(tmp_path)
     cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", 23, [1.0]))
     core.run_once()
     assert core.session_status("s1").counters["future"] == 1  # really in the future
+
+
+# ---------------------------------------------------------------- membership -------------
+
+def test_standalone_ignores_stray_service_tokens(tmp_path, caplog):
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+    names = [f"s{i:02d}" for i in range(20)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    core.run_once()
+    fake = [cli.declare_token(keys.service_token_key(f"fake{i}")) for i in range(10)]
+    core.run_once()
+    assert core.served_sessions() == names  # nobody handed over to a forged token
+    assert core.ownership.members == {"a"}
+    assert core.service_status().counters["untrusted_peer"] == 10
+    for f in fake:
+        f.close()
+    core.run_once()
+    fake2 = cli.declare_token(keys.service_token_key("fake0"))  # seen before: warned once
+    core.run_once()
+    assert core.service_status().counters["untrusted_peer"] == 10
+    fake2.close()
+
+
+def test_configured_peers_share_sessions_and_strangers_do_not(tmp_path):
+    bus, clock, col, cli = world()
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=["inst-b"])
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=["inst-a"])
+    c = make_core(bus, clock, tmp_path, "inst-c")  # standalone, not in their lists
+    names = [f"s{i:02d}" for i in range(12)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    for core in (a, b, c):
+        core.run_once()
+    assert a.ownership.members == b.ownership.members == {"inst-a", "inst-b"}
+    assert sorted(a.served_sessions() + b.served_sessions()) == names
+    assert c.served_sessions() == names
