@@ -273,8 +273,10 @@ class Lifecycle:
                                 now)
             return
         self.specs[session] = spec
-        self.persist(spec)
+        failed = self.persist(spec)
         detail = "created" if old is None else "replaced (estimator restarted from the prior)"
+        if failed:
+            detail = f"{detail}; {failed}"
         self.install(session, "active", detail, now, answer=True)
 
     def _sync_in_background(self) -> None:
@@ -293,14 +295,23 @@ class Lifecycle:
             self.install(name, "active", "synced from peers", now,
                          answer=self.ownership.owns(name))
 
-    def persist(self, spec: SessionSpec) -> None:
+    def persist(self, spec: SessionSpec) -> str:
+        """Save ``spec``; "" once durable, else why not (counted ``persist_failed``; the
+        service's ``state_dir_unhealthy`` counter is 1 until a write succeeds again)."""
         if self.store is None:
-            return
+            return ""
         try:
             self.store.save(spec)
         except OSError as exc:
-            self.counters["persist_failed"] += 1
-            event(log, "persist_failed", logging.ERROR, session=spec.session, reason=str(exc))
+            return self._persist_failed(spec.session, exc)
+        self.counters["state_dir_unhealthy"] = 0
+        return ""
+
+    def _persist_failed(self, session: str, exc: OSError) -> str:
+        self.counters["persist_failed"] += 1
+        self.counters["state_dir_unhealthy"] = 1
+        event(log, "persist_failed", logging.ERROR, session=session, reason=str(exc))
+        return f"NOT persisted ({exc.strerror or exc}): it will not survive a restart"
 
     # ================================================================== sessions ======
 
@@ -385,7 +396,14 @@ class Lifecycle:
             self.gone[session] = now
             return
         if self.store is not None:
-            self.store.remove(session)
+            try:
+                self.store.remove(session)
+            except OSError as exc:
+                detail = (f"{detail}; its file could NOT be removed ({exc.strerror or exc}): "
+                          "it comes back at restart")
+                self.counters["persist_failed"] += 1
+                self.counters["state_dir_unhealthy"] = 1
+                event(log, "remove_failed", logging.ERROR, session=session, reason=str(exc))
         if self.keeper is not None:
             self.keeper.forget(session)
         sess = route.sess if route is not None else None

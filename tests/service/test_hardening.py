@@ -267,3 +267,50 @@ def test_configured_peers_share_sessions_and_strangers_do_not(tmp_path):
     assert a.ownership.members == b.ownership.members == {"inst-a", "inst-b"}
     assert sorted(a.served_sessions() + b.served_sessions()) == names
     assert c.served_sessions() == names
+
+
+# ---------------------------------------------------------------- persistence -------------
+
+def test_fifo_and_symlink_named_like_state_files_are_set_aside(tmp_path):
+    import os
+
+    d = tmp_path / "a"
+    d.mkdir()
+    os.mkfifo(d / "s1.msgpack")
+    (d / "s2.msgpack").symlink_to("/dev/zero")
+    os.mkfifo(d / "s3.ckpt")
+    SpecStore(d).save(paper_spec("s3"))
+    (d / "s4.msgpack").write_bytes(b"\x00" * (2 << 20))  # too big
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)  # returns: nothing blocked
+    assert core.served_sessions() == ["s3"]
+    for name in ("s1", "s2", "s4"):
+        assert os.path.lexists(d / f"{name}.msgpack.bad"), name
+
+
+def test_unpersisted_changes_are_answered_as_such(tmp_path):
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+
+    def fail(*a, **k):
+        raise OSError(30, "Read-only file system")
+
+    core.store._write = fail
+    real_remove = core.store.remove
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    st = col.statuses["s1"][-1]
+    assert st.detail.startswith("created; NOT persisted")
+    c = core.service_status().counters
+    assert c["persist_failed"] == 1 and c["state_dir_unhealthy"] == 1
+    core.store.remove = fail
+    cli.delete(keys.config_key("s1"))
+    core.run_once()
+    st = col.statuses["s1"][-1]
+    assert st.state == "removed" and "could NOT be removed" in st.detail
+    core.store.remove = real_remove
+    del core.store._write  # writable again
+    cli.put(keys.config_key("s2"), encode(paper_spec("s2")))
+    core.run_once()
+    assert col.statuses["s2"][-1].detail == "created"
+    assert core.service_status().counters.get("state_dir_unhealthy", 0) == 0
