@@ -356,7 +356,8 @@ class Lifecycle:
             return
         try:
             sess = Session(spec, state, detail, now,
-                           self.settings.error_rate, self.settings.error_burst)
+                           self.settings.error_rate, self.settings.error_burst,
+                           self.settings.max_abs_input)
         except WireError as exc:  # a persisted or synced spec the estimator refuses
             self.ledger.release(session)
             route.sess, route.inbox = None, None

@@ -314,3 +314,28 @@ def test_unpersisted_changes_are_answered_as_such(tmp_path):
     core.run_once()
     assert col.statuses["s2"][-1].detail == "created"
     assert core.service_status().counters.get("state_dir_unhealthy", 0) == 0
+
+
+# ---------------------------------------------------------------- numerical health --------
+
+def test_huge_finite_inputs_are_refused_and_the_session_keeps_publishing(tmp_path):
+    from .helpers import cmd_bytes, meas_bytes
+
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    clock.t = at(20.1)
+    core.run_once()
+    cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", 20, [1e308]))
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 30, [1e308]))
+    core.run_once()
+    c = core.session_status("s1").counters
+    assert c["out_of_range"] == 1 and c["commands_out_of_range"] == 1
+    assert "max_abs_input" in col.errors["s1"][0].reason
+    n = len(col.predictions["s1"])
+    for k in range(21, 25):
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert len(col.predictions["s1"]) >= n + 4
+    assert all(np.all(np.isfinite(p.x)) and np.abs(p.x).max() < 1e6
+               for p in col.predictions["s1"])
