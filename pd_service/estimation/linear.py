@@ -56,19 +56,44 @@ class PropagationTables:
 
 _TABLES: dict[tuple[bytes, bytes, bytes, tuple[int, ...], int], PropagationTables] = {}
 _TABLES_LOCK = threading.Lock()
-_TABLES_MAX = 256
+#: The memo holds at most this many bytes of tables (least recently used dropped first); a
+#: table larger than this is built but not kept. Sessions hold their own reference, so the
+#: memo's bound is on what it keeps alive beyond them.
+_TABLES_MAX_BYTES = [64 * 2**20]
+
+
+def set_tables_max_bytes(limit: int) -> None:
+    """Bound the shared tables' memo to ``limit`` bytes (evicting now if needed)."""
+    with _TABLES_LOCK:
+        _TABLES_MAX_BYTES[0] = int(limit)
+        _evict(0)
+
+
+def tables_nbytes(t: PropagationTables) -> int:
+    return int(t.Apow.nbytes + t.Qsum.nbytes + t.Gfull.nbytes)
+
+
+def _evict(extra: int) -> None:
+    """Drop least recently used tables until ``extra`` more bytes fit (lock held)."""
+    total = sum(tables_nbytes(t) for t in _TABLES.values())
+    while _TABLES and total + extra > _TABLES_MAX_BYTES[0]:
+        total -= tables_nbytes(_TABLES.pop(next(iter(_TABLES))))
 
 
 def tables_for(model: LinearModel, M: int) -> PropagationTables:
-    """Shared :class:`PropagationTables` for ``model`` up to horizon ``M`` (memoised)."""
+    """Shared :class:`PropagationTables` for ``model`` up to horizon ``M`` (memoised, LRU,
+    bounded in bytes: :func:`set_tables_max_bytes`)."""
     key = (model.A.tobytes(), model.B.tobytes(), model.Q.tobytes(), model.B.shape, M)
     with _TABLES_LOCK:
-        t = _TABLES.get(key)
-    if t is None:
-        t = PropagationTables.build(model, M)
-        with _TABLES_LOCK:
-            if len(_TABLES) >= _TABLES_MAX:
-                _TABLES.pop(next(iter(_TABLES)))
+        t = _TABLES.pop(key, None)
+        if t is not None:
+            _TABLES[key] = t  # most recently used last
+            return t
+    t = PropagationTables.build(model, M)
+    size = tables_nbytes(t)
+    with _TABLES_LOCK:
+        if size <= _TABLES_MAX_BYTES[0]:
+            _evict(size)
             _TABLES[key] = t
     return t
 

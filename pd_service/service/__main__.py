@@ -36,7 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--shard", metavar="I/N",
                    help="static sharding instead of rendezvous over live instances")
     s.add_argument("--expire-s", dest="expire_s", type=float,
-                   help="idle time before a session expires (default 600)")
+                   help="idle time before a session expires (default 120)")
+    s.add_argument("--peer", dest="peers", action="append", metavar="INSTANCE",
+                   help="an instance to share sessions with (repeatable; default: none, "
+                        "standalone)")
     s.add_argument("--tick-phase", dest="tick_phase", type=float,
                    help="where in its step a session's tick fires, 0..1 (default 0.5)")
     s.add_argument("--inbox-size", dest="inbox_size", type=int)

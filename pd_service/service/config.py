@@ -5,7 +5,7 @@ Every field of :class:`Settings` can be set at each layer under the same name:
 - file: ``--config FILE`` (or ``PD_SERVICE_CONFIG``); ``.toml`` is read as TOML, anything else
   as JSON; top-level keys are the field names (``expire_s = 900``);
 - environment: ``PD_SERVICE_<FIELD>`` upper case (``PD_SERVICE_EXPIRE_S=900``); list fields
-  (``listen``, ``connect``) are comma-separated;
+  (``listen``, ``connect``, ``peers``) are comma-separated;
 - flags: ``--expire-s 900``, ``--connect EP`` (repeatable), see ``pd-service --help``.
 
 A later layer replaces a field wholesale (a ``--connect`` flag replaces the file's list).
@@ -88,19 +88,52 @@ class Settings(BaseSettings):
     shard: str | None = Field(None, description="Static sharding 'i/N': serve the sessions with "
                               "hash(session) % N == i. Default: rendezvous over live instances.")
 
+    peers: list[str] = Field(default_factory=list, description="The other instances this one "
+                             "shares sessions with (rendezvous, takeover, spec sync); empty: "
+                             "standalone. Liveliness tokens of any other instance are ignored.")
+
     # sessions
-    expire_s: float = Field(600.0, gt=0, description="Idle time after which a session expires.")
+    expire_s: float = Field(120.0, gt=0, description="Idle time after which a session expires.")
+    idle_after_s: float = Field(5.0, gt=0, description="A session with no measurement or "
+                                "command that decoded for this long is idle: it is published only every "
+                                "idle_publish_s instead of every step.")
+    idle_publish_s: float = Field(1.0, gt=0, description="Least time between two predictions "
+                                  "of an idle session.")
     min_period_ms: float = Field(1.0, gt=0, description="Specs with a shorter step period are "
                                  "refused (a 1 ns period would keep the worker busy).")
-    max_sessions: int = Field(10_000, ge=1, description="Specs beyond this many are refused.")
+    max_sessions: int = Field(2_000, ge=1, description="Specs beyond this many are refused.")
     tick_phase: float = Field(0.5, ge=0.0, lt=1.0,
                               description="When in its step a session's tick fires (fraction "
                                           "of the period).")
+
+    # admission (pd_service.service.admission): what a spec may cost
+    max_session_bytes: int = Field(64 * 2**20, ge=2**20, description="Largest memory one "
+                                   "session's tables and buffers may need (bytes).")
+    max_session_cpu: float = Field(0.25, gt=0, description="Largest nominal CPU one session "
+                                   "may need, fraction of a core (µs per step / period).")
+    memory_budget_bytes: int = Field(256 * 2**20, ge=2**20, description="Memory all the "
+                                     "sessions run here may need together (bytes; shared "
+                                     "tables counted once).")
+    cpu_budget: float = Field(0.8, gt=0, description="Nominal CPU all the sessions run here "
+                              "may need together, fraction of a core (one worker thread).")
+    tables_max_bytes: int = Field(64 * 2**20, ge=0, description="Bytes of shared propagation "
+                                  "tables kept in the memo beyond the sessions using them.")
+
+    max_abs_input: float = Field(1e12, gt=0, description="Largest magnitude of a measured "
+                                 "value or command entry accepted (out_of_range otherwise).")
 
     # work queues and limits
     inbox_size: int = Field(256, ge=1, description="Per-session inbox (messages); oldest dropped.")
     unknown_inbox_size: int = Field(1024, ge=1, description="Shared inbox of unknown sessions.")
     control_inbox_size: int = Field(4096, ge=1, description="Inbox of configs and presence events.")
+    config_rate: float = Field(2.0, gt=0, description="Config changes (put or delete) per "
+                               "second per session; more are refused (config_rate_limited).")
+    config_burst: int = Field(5, ge=1, description="Config change burst per session.")
+    config_rate_total: float = Field(20.0, gt=0, description="Config changes per second, all "
+                                     "sessions together.")
+    config_burst_total: int = Field(40, ge=1, description="Config change burst, all sessions.")
+    config_slice: int = Field(2, ge=1, description="Config changes applied per worker round "
+                              "(between two rounds of data and publications).")
     batch_budget: int = Field(16, ge=1, description="Messages of one session per round.")
     error_rate: float = Field(20.0, gt=0, description="ErrorReports per second per session.")
     error_burst: int = Field(20, ge=1, description="ErrorReport burst per session.")
@@ -133,6 +166,14 @@ class Settings(BaseSettings):
     def _check_instance(cls, v: str) -> str:
         if not re.fullmatch(NAME_PATTERN, v):
             raise ValueError(f"must match {NAME_PATTERN}")
+        return v
+
+    @field_validator("peers")
+    @classmethod
+    def _check_peers(cls, v: list[str]) -> list[str]:
+        for p in v:
+            if not re.fullmatch(NAME_PATTERN, p):
+                raise ValueError(f"{p!r} must match {NAME_PATTERN}")
         return v
 
     @field_validator("shard")
@@ -198,7 +239,7 @@ class Settings(BaseSettings):
         return tuple(sources)
 
 
-_LIST_FIELDS = {"listen", "connect"}
+_LIST_FIELDS = {"listen", "connect", "peers"}
 
 
 @dataclass(slots=True)

@@ -26,6 +26,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
+from pd_service.estimation.linear import set_tables_max_bytes
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Handle, Transport
 from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
@@ -71,6 +72,7 @@ class ServiceCore:
         self.now_ns = now_ns
         self.mono_ns = mono_ns
         self.lock = threading.RLock()
+        set_tables_max_bytes(settings.tables_max_bytes)
         self.wake = threading.Event()
         self.ownership = Ownership(self.instance, settings.shard_tuple)
         self.counters: Counter[str] = Counter()
@@ -78,7 +80,7 @@ class ServiceCore:
         self.publisher = Publisher(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())
         self.dispatch = Dispatch(settings, self.counters, self.publisher, self.ownership,
-                                 self.wake)
+                                 self.wake, now_ns)
         self.keeper = StateKeeper(settings, store, self.ownership, self.counters,
                                   self.publisher)
         self.lifecycle = Lifecycle(transport, settings, store=store, ownership=self.ownership,
@@ -114,6 +116,7 @@ class ServiceCore:
         peers = [k.rsplit("/", 1)[-1] for k in t.get_liveliness(keys.ALL_SERVICES,
                                                                  timeout=s.sync_timeout_s)]
         peers = [p for p in peers if p != self.instance]
+        peers = self.lifecycle.trusted_peers(peers)
         specs, origin = self.lifecycle.recover(peers)
         now = self.now_ns()
         with self.lock:
@@ -168,7 +171,7 @@ class ServiceCore:
         while True:
             with self.lock:
                 now = self.now_ns()
-                if d.control:
+                if d.control or d.configs:
                     self.lifecycle.process_control(now)
                 touched: list[Session] = []
                 if d.unknown:

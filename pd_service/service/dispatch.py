@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from pd_service.logs import LOGGER_NAME
@@ -34,8 +36,10 @@ from .session import COMMAND, SENSOR, Refusal, Session
 
 log = logging.getLogger(LOGGER_NAME)
 
-#: One received message: (stream SENSOR/COMMAND, key, payload, recv_mono_ns, kind put/delete).
-Item = tuple[int, str, bytes, int, str]
+#: One received message: (stream SENSOR/COMMAND, key, payload, recv_mono_ns, kind put/delete,
+#: the core's wall clock read when it arrived (ns): a packet is judged "future" or on time
+#: against that, not against the worker's later loop time).
+Item = tuple[int, str, bytes, int, str, int]
 
 
 @dataclass(eq=False, slots=True)
@@ -82,8 +86,10 @@ class Dispatch:
     rest on the worker, under the core's lock."""
 
     def __init__(self, settings: Settings, counters: Counter[str], publisher: Publisher,
-                 ownership: Ownership, wake: threading.Event) -> None:
+                 ownership: Ownership, wake: threading.Event,
+                 now_ns: Callable[[], int] = time.time_ns) -> None:
         self.settings = settings
+        self.now_ns = now_ns
         self.counters = counters
         self.pub = publisher
         self.ownership = ownership
@@ -91,6 +97,8 @@ class Dispatch:
         self.routes: dict[str, Route] = {}
         self.ready: deque[Route] = deque()
         self.control: deque[Control] = deque(maxlen=settings.control_inbox_size)
+        #: Config changes, apart from presence events (a config flood cannot push those out).
+        self.configs: deque[ConfigChange] = deque(maxlen=settings.control_inbox_size)
         self.unknown: deque[tuple[str, Item]] = deque(maxlen=settings.unknown_inbox_size)
         self.control_drops = 0
         self.unknown_drops = 0
@@ -110,7 +118,7 @@ class Dispatch:
         if len(parts) < 3:
             return
         route = self.routes.get(parts[1])
-        item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind)
+        item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind, self.now_ns())
         if route is None:
             q = self.unknown
             if len(q) == q.maxlen:
@@ -130,7 +138,7 @@ class Dispatch:
             self.wake.set()
 
     def on_config_sample(self, sample: Sample) -> None:
-        q = self.control
+        q = self.configs
         if len(q) == q.maxlen:
             self.control_drops += 1
         q.append(ConfigChange(sample))
@@ -148,7 +156,7 @@ class Dispatch:
     # ================================================================== worker ========
 
     def has_work(self) -> bool:
-        return bool(self.ready or self.control or self.unknown)
+        return bool(self.ready or self.control or self.configs or self.unknown)
 
     def mark_ready(self, route: Route) -> None:
         """Queue ``route`` for the next round if its inbox holds messages."""
@@ -169,6 +177,8 @@ class Dispatch:
             sess, inbox = route.sess, route.inbox
             if sess is None or inbox is None:
                 continue
+            if sess.idle:
+                self.pub.wake(sess, now)
             if route.flood != route.flood_seen:
                 self._note_flood(route, sess, now)
             now_step = sess.step_now(now)
@@ -188,7 +198,9 @@ class Dispatch:
 
     def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """Give one message to its session; count it, or refuse it (reported)."""
-        stream, key, payload, recv_mono, kind = item
+        stream, key, payload, recv_mono, kind, recv_now = item
+        if recv_now > now:  # arrived after the loop read its clock: judge it at its arrival
+            now_step = sess.step_now(recv_now)
         refusal: Refusal | None
         try:
             if kind != "put":

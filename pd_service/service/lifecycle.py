@@ -21,6 +21,7 @@ from pd_service.transport import Sample, Transport
 from pd_service.wire import SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
+from .admission import Ledger, Refused, spec_cost
 from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
 from .failover import StateKeeper
@@ -28,6 +29,7 @@ from .ownership import Ownership
 from .persist import SpecStore
 from .publish import Publisher
 from .session import Origin, Refusal, Session
+from .stats import TokenBucket
 from .status import SessionState, state_of
 
 log = logging.getLogger(LOGGER_NAME)
@@ -35,6 +37,8 @@ log = logging.getLogger(LOGGER_NAME)
 #: How long a removed or expired session's name is remembered (ns): a late sync from a peer
 #: does not bring it back, and a repeated delete is not answered twice.
 _GONE_MEMO_NS = 10_000_000_000
+#: Per-session config rate buckets kept (oldest forgotten first).
+_MAX_CONFIG_BUCKETS = 10_000
 
 
 def spawn_thread(fn: Callable[[], None]) -> None:
@@ -59,10 +63,35 @@ class Lifecycle:
         self.keeper = keeper
         self.specs: dict[str, SessionSpec] = {}
         self.gone: dict[str, int] = {}
+        #: Costs of the sessions run here, against the budgets (pd_service.service.admission).
+        self.ledger = Ledger(settings.max_session_bytes, settings.max_session_cpu,
+                             settings.memory_budget_bytes, settings.cpu_budget)
+        #: Sessions known but not run here because they do not fit: name -> reason.
+        self.refused: dict[str, str] = {}
+        self._config_buckets: dict[str, TokenBucket] = {}
+        self._untrusted_seen: set[str] = set()
+        self._config_total = TokenBucket(settings.config_rate_total,
+                                         settings.config_burst_total, 0)
         #: Set at close: no more background syncs.
         self.closed = False
 
     # ================================================================== start =========
+
+    def trusted_peers(self, instances: list[str]) -> list[str]:
+        """The ``instances`` listed in the ``peers`` setting; a warning, once per name, for
+        each other one (a stray or forged ``pd/@service/*`` token is never a member)."""
+        trusted = set(self.settings.peers)
+        out = []
+        for inst in instances:
+            if inst in trusted:
+                out.append(inst)
+            elif inst not in self._untrusted_seen and inst != self.ownership.instance:
+                if len(self._untrusted_seen) < 1000:
+                    self._untrusted_seen.add(inst)
+                self.counters["untrusted_peer"] += 1
+                event(log, "untrusted_peer", logging.WARNING, instance=inst,
+                      detail="liveliness token of an instance not in the peers setting: ignored")
+        return out
 
     def recover(self, peers: list[str]
                 ) -> tuple[dict[str, SessionSpec], dict[str, SessionState]]:
@@ -128,19 +157,29 @@ class Lifecycle:
             d.control_drops = 0
         q = d.control
         membership_changed = False
+        # Config changes: rate-limited per session and service-wide, at most config_slice
+        # per round, so that replacing specs in a loop costs its sender, not the others.
+        cq = d.configs
+        for _ in range(min(len(cq), self.settings.config_slice)):
+            change = cq.popleft()
+            if not self._config_allowed(change.sample, now):
+                continue
+            try:
+                self.apply_config(change.sample, now)
+            except Exception:  # pragma: no cover - defensive
+                log.exception("config handling failed")
+                self.counters["internal_error"] += 1
         while q:
             item = q.popleft()
-            if isinstance(item, ConfigChange):
-                try:
-                    self.apply_config(item.sample, now)
-                except Exception:  # pragma: no cover - defensive
-                    log.exception("config handling failed")
-                    self.counters["internal_error"] += 1
+            if isinstance(item, ConfigChange):  # pragma: no cover - configs have their queue
+                cq.append(item)
             elif isinstance(item, PeerSpecs):
                 self.apply_sync(item.specs, now)
             elif isinstance(item, Membership):
                 inst = item.key.rsplit("/", 1)[-1]
                 alive = item.alive
+                if inst != self.ownership.instance and not self.trusted_peers([inst]):
+                    continue
                 changed = self.ownership.join(inst) if alive else self.ownership.leave(inst)
                 if changed:
                     membership_changed = True
@@ -152,6 +191,29 @@ class Lifecycle:
                         self._spawn(self._sync_in_background)
         if membership_changed and self.ownership.shard is None:
             self.reassign(now)
+
+    def _config_allowed(self, sample: Sample, now: int) -> bool:
+        """Take a token from the sender session's bucket and the service's; refuse
+        (counted ``config_rate_limited``, reported within the error budget) if either is
+        empty."""
+        session = sample.key.split("/")[1] if sample.key.count("/") == 2 else ""
+        s = self.settings
+        b = self._config_buckets.get(session)
+        if b is None:
+            if len(self._config_buckets) >= _MAX_CONFIG_BUCKETS:  # forget the oldest
+                self._config_buckets.pop(next(iter(self._config_buckets)))
+            b = self._config_buckets[session] = TokenBucket(s.config_rate, s.config_burst, now)
+        if b.allow(now) and self._config_total.allow(now):
+            return True
+        self.counters["config_rate_limited"] += 1
+        self.counters["config_refused"] += 1
+        if session and self.ownership.owns(session) and self.pub.unknown_limiter.allow(now) \
+                and self.pub.total_limiter.allow(now):
+            self.pub.error(keys.error_key(session), session, sample.key,
+                           f"config change refused: more than {s.config_rate:g} per second "
+                           f"for this session or {s.config_rate_total:g} per second for "
+                           "this service (config_rate, config_rate_total)", None, now)
+        return False
 
     def apply_config(self, sample: Sample, now: int) -> None:
         """A put (checked, then installed) or delete (removed) on ``pd/<session>/config``."""
@@ -180,7 +242,13 @@ class Lifecycle:
                 raise WireError(f"SessionSpec.session: this service already holds "
                                 f"{self.settings.max_sessions} sessions (max_sessions)")
             if self.ownership.owns(session):
-                # Let the estimator check the spec before anything changes.
+                # Its cost against the budgets first (nothing allocated yet), then let the
+                # estimator check the spec before anything changes.
+                try:
+                    self.ledger.check(session, spec_cost(spec))
+                except Refused as ref:
+                    self.counters["admission_refused"] += 1
+                    raise WireError(ref.reason) from None
                 Session(spec, "active", "", now, 1.0, 1)
         except WireError as exc:
             event(log, "config_refused", session=session, reason=exc.reason)
@@ -205,8 +273,10 @@ class Lifecycle:
                                 now)
             return
         self.specs[session] = spec
-        self.persist(spec)
+        failed = self.persist(spec)
         detail = "created" if old is None else "replaced (estimator restarted from the prior)"
+        if failed:
+            detail = f"{detail}; {failed}"
         self.install(session, "active", detail, now, answer=True)
 
     def _sync_in_background(self) -> None:
@@ -225,14 +295,23 @@ class Lifecycle:
             self.install(name, "active", "synced from peers", now,
                          answer=self.ownership.owns(name))
 
-    def persist(self, spec: SessionSpec) -> None:
+    def persist(self, spec: SessionSpec) -> str:
+        """Save ``spec``; "" once durable, else why not (counted ``persist_failed``; the
+        service's ``state_dir_unhealthy`` counter is 1 until a write succeeds again)."""
         if self.store is None:
-            return
+            return ""
         try:
             self.store.save(spec)
         except OSError as exc:
-            self.counters["persist_failed"] += 1
-            event(log, "persist_failed", logging.ERROR, session=spec.session, reason=str(exc))
+            return self._persist_failed(spec.session, exc)
+        self.counters["state_dir_unhealthy"] = 0
+        return ""
+
+    def _persist_failed(self, session: str, exc: OSError) -> str:
+        self.counters["persist_failed"] += 1
+        self.counters["state_dir_unhealthy"] = 1
+        event(log, "persist_failed", logging.ERROR, session=session, reason=str(exc))
+        return f"NOT persisted ({exc.strerror or exc}): it will not survive a restart"
 
     # ================================================================== sessions ======
 
@@ -249,20 +328,43 @@ class Lifecycle:
         if old is not None:
             old.alive = False
         if not self.ownership.owns(session):
+            self.ledger.release(session)
+            self.refused.pop(session, None)
             route.sess, route.inbox = None, None
             routes[session] = route
             if old is not None:
                 event(log, "session_handed_over", session=session,
                       owner=self.ownership.owner(session) or "")
             return
+        spec = self.specs[session]
         try:
-            sess = Session(self.specs[session], state, detail, now,
-                           self.settings.error_rate, self.settings.error_burst)
+            cost = spec_cost(spec)
+            self.ledger.admit(session, cost)
+        except (Refused, WireError) as exc:  # e.g. a persisted spec over today's budget
+            self.ledger.release(session)
+            self.counters["admission_refused"] += 1
+            event(log, "session_refused", logging.WARNING, session=session, reason=exc.reason)
+            if state == "restored":  # a persisted spec that no longer fits: set aside
+                self.specs.pop(session, None)
+                routes.pop(session, None)
+                if self.store is not None:
+                    self.store.set_aside(session, exc.reason)
+                return
+            route.sess, route.inbox = None, None
+            routes[session] = route
+            self.refused[session] = exc.reason
+            return
+        try:
+            sess = Session(spec, state, detail, now,
+                           self.settings.error_rate, self.settings.error_burst,
+                           self.settings.max_abs_input)
         except WireError as exc:  # a persisted or synced spec the estimator refuses
+            self.ledger.release(session)
             route.sess, route.inbox = None, None
             routes[session] = route
             event(log, "session_failed", logging.ERROR, session=session, reason=exc.reason)
             return
+        self.refused.pop(session, None)
         if resume != "prior" and self.keeper is not None:
             self.keeper.resume(sess, resume, now)
             if sess.origin != "prior":
@@ -286,6 +388,8 @@ class Lifecycle:
         """Forget ``session`` (its spec, stored file and route); answer if we own it."""
         spec = self.specs.pop(session, None)
         route = self.dispatch.routes.pop(session, None)
+        self.ledger.release(session)
+        self.refused.pop(session, None)
         owned = self.ownership.owns(session)
         if spec is None:
             if answer and owned and session not in self.gone:
@@ -293,7 +397,14 @@ class Lifecycle:
             self.gone[session] = now
             return
         if self.store is not None:
-            self.store.remove(session)
+            try:
+                self.store.remove(session)
+            except OSError as exc:
+                detail = (f"{detail}; its file could NOT be removed ({exc.strerror or exc}): "
+                          "it comes back at restart")
+                self.counters["persist_failed"] += 1
+                self.counters["state_dir_unhealthy"] = 1
+                event(log, "remove_failed", logging.ERROR, session=session, reason=str(exc))
         if self.keeper is not None:
             self.keeper.forget(session)
         sess = route.sess if route is not None else None

@@ -2,13 +2,16 @@
 
 Writes are atomic and durable: write ``.<session>.msgpack.tmp``, fsync it, rename it over the
 old file, fsync the directory. A crash leaves either the old or the new spec, never half of
-one. Unreadable files found at startup are renamed ``*.bad`` and reported, never fatal.
+one. Only regular files of at most ``MAX_FILE_BYTES`` are read at startup (never a symlink,
+a FIFO or a device: startup never blocks); anything else, and unreadable files, are renamed
+``*.bad`` and reported, never fatal.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import stat
 from pathlib import Path
 
 from pd_service.logs import LOGGER_NAME, event
@@ -20,6 +23,33 @@ log = logging.getLogger(LOGGER_NAME)
 SUFFIX = ".msgpack"
 #: Checkpoint files: ``<session>.ckpt`` (an encoded SessionState).
 STATE_SUFFIX = ".ckpt"
+#: Largest state file read (a spec or a checkpoint is far smaller); larger ones are refused.
+MAX_FILE_BYTES = 1 << 20
+
+
+def read_regular(path: Path, limit: int = MAX_FILE_BYTES) -> bytes:
+    """The bytes of ``path`` if it is a regular file (not a symlink, FIFO, device...) of at
+    most ``limit`` bytes; OSError naming why otherwise. Never blocks: opened O_NONBLOCK and
+    O_NOFOLLOW, checked with fstat before reading."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise OSError(f"not a regular file (mode {stat.filemode(st.st_mode)})")
+        if st.st_size > limit:
+            raise OSError(f"{st.st_size} bytes, more than {limit}")
+        chunks, total = [], 0
+        while total <= limit:
+            b = os.read(fd, 65536)
+            if not b:
+                break
+            chunks.append(b)
+            total += len(b)
+        if total > limit:
+            raise OSError(f"more than {limit} bytes")
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 class SpecStore:
@@ -46,7 +76,7 @@ class SpecStore:
     def load_state(self, session: str) -> bytes | None:
         """The session's checkpoint bytes, or None if there is none (or it is unreadable)."""
         try:
-            return self.state_path(session).read_bytes()
+            return read_regular(self.state_path(session))
         except OSError:
             return None
 
@@ -78,6 +108,16 @@ class SpecStore:
             return
         self._sync_dir()
 
+    def set_aside(self, session: str, reason: str) -> None:
+        """Rename a persisted spec that will not be run to ``<file>.refused`` (kept for the
+        operator, never read again) and log why."""
+        p = self.path(session)
+        try:
+            p.rename(p.with_name(p.name + ".refused"))
+        except OSError:
+            pass
+        event(log, "spec_set_aside", logging.WARNING, file=str(p), reason=reason)
+
     def load_all(self) -> tuple[dict[str, SessionSpec], list[str]]:
         """Every readable spec by session, and the names of the files that were not readable
         (renamed to ``*.bad``)."""
@@ -85,8 +125,10 @@ class SpecStore:
         bad: list[str] = []
         for p in sorted(self.dir.glob(f"*{SUFFIX}")):
             try:
+                if p.is_symlink() or not p.is_file():  # lstat / stat: no open, no block
+                    raise OSError("not a regular file")
                 session = check_name(p.name[: -len(SUFFIX)], "session")
-                spec = decode(p.read_bytes(), SessionSpec)
+                spec = decode(read_regular(p), SessionSpec)
                 if spec.session != session:
                     raise WireError(f"file holds session {spec.session!r}")
                 specs[session] = spec

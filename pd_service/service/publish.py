@@ -55,8 +55,9 @@ class Publisher:
         self.latency = latency
         self.mono_ns = mono_ns
         self.outbox: list[Out] = []
-        #: (deadline ns, tie-break, step, session), a heap ordered by deadline.
-        self.ticks: list[tuple[int, int, int, Session]] = []
+        #: (deadline ns, tie-break, the session's tick generation, step, session), a heap
+        #: ordered by deadline.
+        self.ticks: list[tuple[int, int, int, int, Session]] = []
         self._tick_seq = itertools.count()
         #: ErrorReports about sessions nobody serves (unknown names, refused new specs).
         self.unknown_limiter = TokenBucket(settings.error_rate, settings.error_burst, now)
@@ -173,12 +174,19 @@ class Publisher:
 
     def schedule(self, sess: Session, after_step: int) -> None:
         """Queue the session's next tick: the first step k > after_step with
-        k % publish_every == 0, at time epoch + k * period + tick_phase * period."""
+        k % publish_every == 0, at time epoch + k * period + tick_phase * period. The
+        session's earlier entry, if any, is void (``tick_gen``)."""
         spec = sess.spec
         pe = spec.publish_every
         k = max(0, (after_step // pe + 1) * pe)
         deadline = spec.time_of(k) + int(self.settings.tick_phase * spec.period_ns)
-        heapq.heappush(self.ticks, (deadline, next(self._tick_seq), k, sess))
+        sess.tick_gen += 1
+        heapq.heappush(self.ticks, (deadline, next(self._tick_seq), sess.tick_gen, k, sess))
+
+    def wake(self, sess: Session, now: int) -> None:
+        """An idle session got a message: tick it every step again from now on."""
+        sess.idle = False
+        self.schedule(sess, sess.step_now(now) - 1)
 
     def next_tick_ns(self) -> int | None:
         return self.ticks[0][0] if self.ticks else None
@@ -187,16 +195,24 @@ class Publisher:
         """Publish for every session whose tick is due and has not published this step."""
         heap = self.ticks
         due: list[Session] = []
+        idle_ns = int(self.settings.idle_after_s * 1e9)
         while heap and heap[0][0] <= now:
-            _, _, k, sess = heapq.heappop(heap)
-            if not sess.alive:
+            _, _, gen, k, sess = heapq.heappop(heap)
+            if not sess.alive or gen != sess.tick_gen:
                 continue
             cur = sess.step_now(now)
-            if cur > k:
+            if cur > k and not sess.idle:
                 sess.counters["tick_overruns"] += 1
                 self.counters["tick_overruns"] += 1
             if cur >= 0 and sess.last_pub_step != cur:
                 due.append(sess)
-            self.schedule(sess, max(cur, k))
+            if now - sess.last_activity_ns > idle_ns:
+                # idle: next tick after idle_publish_s (cost O(active sessions) per step)
+                sess.idle = True
+                skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.spec.period_ns)
+                self.schedule(sess, max(cur, k) + skip - 1)
+            else:
+                sess.idle = False
+                self.schedule(sess, max(cur, k))
         if due:
             self.publish_many(due, now)

@@ -28,6 +28,8 @@ steps_missed               due steps (multiples of publish_every) that got no pr
                            all, e.g. while the worker was stalled: counted when the next
                            prediction is published
 errors_suppressed          ErrorReports not sent because of the rate limit
+out_of_range               a value of z (``commands_out_of_range``: u) above the
+                           service's ``max_abs_input`` in magnitude
 internal_error             an unexpected exception while handling one message
 =========================  =================================================================
 """
@@ -37,6 +39,8 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 from typing import Literal
+
+import numpy as np
 
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
@@ -105,8 +109,10 @@ class Session:
     """A served session. ``state`` is "active" or "restored" (how it started)."""
 
     def __init__(self, spec: SessionSpec, state: str, detail: str, now_ns: int,
-                 error_rate: float, error_burst: int) -> None:
+                 error_rate: float, error_burst: int, max_abs: float = 1e12) -> None:
         self.spec = spec
+        #: Largest |z_i| and |u_i| accepted (out_of_range otherwise).
+        self.max_abs = max_abs
         self.name = spec.session
         # WireError for a spec it refuses; a linear model's numerics are batched across
         # sessions (pd_service.service.stacked), equal to ObserverPredictor to rounding
@@ -123,6 +129,10 @@ class Session:
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
         self.alive = True
+        #: Tick bookkeeping (pd_service.service.publish): the generation of the live heap
+        #: entry (older entries are skipped) and whether the session is ticking as idle.
+        self.tick_gen = 0
+        self.idle = False
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
         self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
         self.pred_key = keys.prediction_key(self.name)
@@ -178,6 +188,9 @@ class Session:
             seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
             stamp = "step" if msg.step is not None else "t_ns"
         self.last_activity_ns = now_ns
+        if z.size and float(np.max(np.abs(z))) > self.max_abs:
+            return Refusal("out_of_range", f"Measurement.z: a value exceeds {self.max_abs:g} "
+                           "in magnitude (max_abs_input)", seq)
         if now_step < 0:
             return Refusal("future", f"Measurement.{stamp}: sample step {s} is in the future; "
                            f"the session starts at its epoch (now step {now_step})", seq)
@@ -223,6 +236,9 @@ class Session:
             seq, j, u = msg.seq, command_step(msg, spec), msg.u
             stamp = "step" if msg.step is not None else "issued_ns"
         self.last_activity_ns = now_ns
+        if u.size and float(np.max(np.abs(u))) > self.max_abs:
+            return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
+                           f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         est = self.est
         try:
             ok = est.add_command(j, u, now=now_step if now_step >= 0 else None)

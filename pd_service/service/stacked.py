@@ -82,7 +82,9 @@ class Node:
 
 
 _INTERNED: dict[tuple[tuple[int, ...], bytes], np.ndarray] = {}
-_INTERN_MAX = 4096
+#: The interned matrices take at most this many bytes (oldest dropped first).
+_INTERN_MAX_BYTES = 8 * 2**20
+_interned_bytes = [0]
 
 
 def _intern(arr: np.ndarray) -> np.ndarray:
@@ -91,11 +93,12 @@ def _intern(arr: np.ndarray) -> np.ndarray:
     key = (arr.shape, arr.tobytes())
     got = _INTERNED.get(key)
     if got is None:
-        if len(_INTERNED) >= _INTERN_MAX:
-            _INTERNED.pop(next(iter(_INTERNED)))
         got = np.array(arr, dtype=np.float64)
         got.setflags(write=False)
+        while _INTERNED and _interned_bytes[0] + got.nbytes > _INTERN_MAX_BYTES:
+            _interned_bytes[0] -= _INTERNED.pop(next(iter(_INTERNED))).nbytes
         _INTERNED[key] = got
+        _interned_bytes[0] += got.nbytes
     return got
 
 

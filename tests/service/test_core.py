@@ -30,6 +30,9 @@ from pd_service.wire import (
 
 from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec, storm
 
+#: Two instances that share sessions must list each other (the ``peers`` setting).
+PAIR = ["inst-a", "inst-b"]
+
 
 def make_core(bus, clock, tmp_path, instance="a", **kw) -> ServiceCore:
     settings = Settings(instance=instance, **kw)
@@ -432,13 +435,13 @@ def test_two_instances_split_sessions_and_take_over(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col = Collector().attach(bus.transport())
     cli = bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a")
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
     names = [f"s{i:02d}" for i in range(20)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
     a.run_once()
     assert a.served_sessions() == names
-    b = make_core(bus, clock, tmp_path, "inst-b")  # fetches the specs from inst-a
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR)  # fetches the specs from inst-a
     assert sorted(b.known_specs()) == names
     assert sorted(p.name for p in (tmp_path / "inst-b").glob("*.msgpack")) == \
         [f"{s}.msgpack" for s in names]
@@ -493,13 +496,13 @@ def test_static_shards_split_without_coordination(tmp_path):
 def test_starting_instance_merges_disk_and_peer_specs(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a")
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
     SpecStore(tmp_path / "inst-b").save(paper_spec("only-on-disk"))
     SpecStore(tmp_path / "inst-b").save(paper_spec("both", max_delay=20))  # older version
     cli.put(keys.config_key("both"), encode(paper_spec("both")))
     cli.put(keys.config_key("fresh"), encode(paper_spec("fresh")))
     a.run_once()
-    b = make_core(bus, clock, tmp_path, "inst-b")
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR)
     assert sorted(b.known_specs()) == ["both", "fresh", "only-on-disk"]
     assert b.known_specs()["both"].max_delay == 12  # the peers' version wins
     assert SpecStore(tmp_path / "inst-b").load_all()[0]["both"].max_delay == 12
@@ -513,13 +516,13 @@ def test_instance_that_missed_peers_at_start_syncs_when_they_appear(tmp_path):
     when inst-a's token shows up, inst-b fetches the specs it missed and takes its share."""
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a")
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
     names = [f"s{i:02d}" for i in range(12)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
     a.run_once()
     a._token.close()  # hide inst-a
-    b = make_core(bus, clock, tmp_path, "inst-b")
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR)
     assert b.known_specs() == {}
     a.run_once()
     a._token = a.t.declare_token(keys.service_token_key("inst-a"))  # inst-a visible again

@@ -17,7 +17,7 @@ from pd_service.transport import InMemoryBus
 from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
 
 from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
-from .test_core import make_core
+from .test_core import PAIR, make_core
 
 
 class Driver:
@@ -153,8 +153,8 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
 def test_takeover_resumes_from_the_replica_exactly(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a", replica_interval_s=0.3)
-    b = make_core(bus, clock, tmp_path, "inst-b", replica_interval_s=0.3)
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=0.3)
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=0.3)
     names = [f"s{i:02d}" for i in range(12)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
@@ -185,7 +185,7 @@ def test_takeover_resumes_from_the_replica_exactly(tmp_path):
 def test_a_replica_for_another_spec_is_refused(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a")
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
     a.run_once()
     other = build_estimator(paper_spec("s1", max_delay=20))

@@ -224,9 +224,9 @@ def test_restart_restores_sessions(own_net, tmp_path):
 def test_two_instances_split_sessions_and_take_over(own_net, tmp_path):
     t, col, pres, port, _ = own_net
     peer = f"tcp/127.0.0.1:{port}"
-    a = Daemon("inst-x", tmp_path / "inst-x", [peer]).start()
+    a = Daemon("inst-x", tmp_path / "inst-x", [peer], ["--peer", "inst-y"]).start()
     assert pres.wait("inst-x"), a.log()
-    b = Daemon("inst-y", tmp_path / "inst-y", [peer, a.endpoint]).start()
+    b = Daemon("inst-y", tmp_path / "inst-y", [peer, a.endpoint], ["--peer", "inst-x"]).start()
     try:
         assert pres.wait("inst-y"), b.log()
         epoch = time.time_ns()
