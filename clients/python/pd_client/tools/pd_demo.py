@@ -324,7 +324,8 @@ def run_ros2(args: argparse.Namespace, link_config: Path) -> int:
                 print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
             recorder = start("record", "-m", "pd_client.tools", "record",
                              f"--session={ROS2_SESSION}", "--out", str(out), "--idle-timeout",
-                             "3", "--states", ROS2_STATES, "--warmup", "50", *mcap, *zenoh_args)
+                             "3", "--until-step", str(args.steps), "--states", ROS2_STATES,
+                             "--warmup", "50", *mcap, *zenoh_args)
             if viz and args.viz_port >= 0:
                 start("viz", "-m", "pd_client.tools", "viz", f"--session={ROS2_SESSION}",
                       "--port", str(args.viz_port), *zenoh_args)
@@ -385,7 +386,7 @@ def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
                              ("mean_var_x", "mean variance x", "m^2"),
                              ("mean_var_yaw", "mean variance yaw", "rad^2")]:
         v = row.get(key)
-        print(f"{label:28}" + ("-" if v is None else f"{v:12.4f} {unit}"))
+        print(f"{label:28}" + ("-" if v is None else f"{v:12.3g} {unit}"))
     print(f"{'predictions compared':28}{row.get('rows', 0):12d}")
     sessions = bridge.get("sessions") if isinstance(bridge, dict) else None
     counters = sessions.get(ROS2_SESSION, {}).get("counters") if isinstance(sessions, dict) \
@@ -393,8 +394,9 @@ def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
     if isinstance(counters, dict):
         refusals = {k: v for k, v in counters.items() if k.startswith("refused_")}
         print(f"pd-ros2: {counters.get('received', 0)} ROS messages in, "
-              f"{counters.get('forwarded', 0)} forwarded, {counters.get('refused', 0)} refused "
-              f"{refusals or ''}; {counters.get('predictions_republished', 0)} predictions "
+              f"{counters.get('forwarded', 0)} forwarded, {counters.get('refused', 0)} refused"
+              f"{' ' + str(refusals) if refusals else ''}; "
+              f"{counters.get('predictions_republished', 0)} predictions "
               f"republished as {counters.get('outputs_published', 0)} ROS messages")
     else:
         print("pd-ros2: no status reply")
