@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test demo bench lint schemas clean browser
+.PHONY: venv test demo demo-ros2 bench lint schemas clean browser
 
 $(STAMP): pyproject.toml clients/python/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,6 +19,10 @@ venv: $(STAMP)
 # log foxglove-sdk and mcap (`viz`), both installed above.
 demo: $(STAMP)
 	$(VENV)/bin/pd-demo
+
+# The ROS 2 variant (rosbags, in the dev extra): docs/ros2.md.
+demo-ros2: $(STAMP)
+	$(VENV)/bin/pd-demo --ros2
 
 test: $(STAMP) browser
 	$(PY) -m pytest -q

@@ -20,6 +20,16 @@ Starts, each as its own process on a free loopback port:
 and prints a side-by-side summary: RMS prediction error and mean predicted variance of p1 and
 p2 with the range finder (``paper``) and with the camera only (``paper-cam``). Ctrl-C stops
 every process cleanly.
+
+``pd-demo --ros2`` (needs the ``ros2`` extra) runs the ROS 2 variant: the simulated
+differential-drive robot as a ROS 2 node (``pd-robot-sim --scenario diffdrive --ros2``: Odometry,
+Imu and a delayed pose fix in rmw_zenoh's format) over pd-link's ``link-ros2.toml`` (shipped in
+``pd_client/tools/data/``, ``deploy/link-ros2.toml`` links to it), ``pd-ros2`` bridging it to
+the daemon and publishing the predicted Odometry / pose / TF back on ROS topics, and
+``pd-operator --ros2`` sending the Twist commands on ``cmd_vel``; pd-record, pd-viz and pd-web
+as above, for session ``bot``. Summary: RMS prediction error of x, y and yaw against the truth,
+the number of predictions compared, and the bridge's counters (predictions republished as ROS
+messages, refusals). See docs/ros2.md.
 """
 
 from __future__ import annotations
@@ -51,6 +61,8 @@ from .record_csv import read_csv
 
 TOOL = "pd-demo"
 SESSIONS = ("paper", "paper-cam")
+ROS2_SESSION = "bot"
+ROS2_STATES = "x,y,yaw"
 LEAD, RANGER_DELAY = 10, 12  # the paper's uplink and range-finder delays, steps
 
 
@@ -106,9 +118,10 @@ class Proc:
 
 
 @contextlib.contextmanager
-def packaged_link_config() -> Iterator[Path]:
-    """A file path of the paper's link rules shipped with the package (``data/link-paper.toml``)."""
-    with resources.as_file(resources.files("pd_client.tools").joinpath("data", "link-paper.toml")) as p:
+def packaged_link_config(name: str = "link-paper.toml") -> Iterator[Path]:
+    """A file path of link rules shipped with the package (``data/link-paper.toml``, or
+    ``data/link-ros2.toml`` for the ROS 2 demo)."""
+    with resources.as_file(resources.files("pd_client.tools").joinpath("data", name)) as p:
         yield p
 
 
@@ -147,8 +160,12 @@ def open_probe(endpoint: str, procs: list[Proc], timeout: float = 30.0) -> Trans
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0])
-    ap.add_argument("--steps", type=int, default=420,
-                    help="simulated steps, 50 ms each (default 420: about 30 s with start-up)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="simulated steps, 50 ms each (default 420: about 30 s with start-up); "
+                         "with --ros2 20 ms each (default 1000: one 20 s drive cycle)")
+    ap.add_argument("--ros2", action="store_true",
+                    help="the ROS 2 variant: a differential-drive robot speaking rmw_zenoh, "
+                         "pd-ros2 and a Twist operator (needs the ros2 extra)")
     ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
     ap.add_argument("--link-config", type=Path,
                     help="link emulator rules (default: the paper's link, shipped with pd-client)")
@@ -161,12 +178,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--web-linger", type=float, default=10.0,
                     help="seconds the live view keeps serving the final state after the run")
     args = ap.parse_args(argv)
+    if args.steps is None:
+        args.steps = 1000 if args.ros2 else 420
+    if args.ros2 and importlib.util.find_spec("rosbags") is None:
+        print(f"{TOOL}: --ros2 needs the ros2 extra: pip install 'pd-service[ros2]'",
+              file=sys.stderr)
+        return 2
     if args.link_config is not None and not args.link_config.is_file():
         print(f"{TOOL}: link config {args.link_config} not found", file=sys.stderr)
         return 2
     with contextlib.ExitStack() as stack:
-        link_config = args.link_config or stack.enter_context(packaged_link_config())
-        return run(args, link_config)
+        link_config = args.link_config or stack.enter_context(
+            packaged_link_config("link-ros2.toml" if args.ros2 else "link-paper.toml"))
+        return run_ros2(args, link_config) if args.ros2 else run(args, link_config)
 
 
 def run(args: argparse.Namespace, link_config: Path) -> int:
@@ -252,6 +276,138 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
     if interrupted:
         return 130
     return report(out)
+
+
+def run_ros2(args: argparse.Namespace, link_config: Path) -> int:
+    """The ROS 2 variant: daemon, pd-link, pd-ros2, recorder (+ viz, web), operator and robot
+    speaking ROS 2; then the report of :func:`report_ros2`."""
+    out = Path(args.out if args.out != "out/demo" else "out/demo-ros2")
+    if (out / "state").exists():
+        shutil.rmtree(out / "state")
+    out.mkdir(parents=True, exist_ok=True)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    zenoh_args = ["--connect", endpoint]
+    procs: list[Proc] = []
+
+    def start(name: str, *a: str) -> Proc:
+        p = Proc(name, list(a), quiet=args.quiet)
+        procs.append(p)
+        return p
+
+    interrupted = False
+    bridge: dict[str, object] | None = None
+    t0 = time.monotonic()
+    try:
+        print(f"{TOOL}: ROS 2 variant; daemon on {endpoint}, output in {out}/", flush=True)
+        start("service", "-m", "pd_service", "--listen", endpoint, "--state-dir",
+              str(out / "state"), "--instance", "demo")
+        probe = open_probe(endpoint, procs)
+        try:
+            wait_for("the daemon", lambda: bool(probe.get_liveliness(keys.ALL_SERVICES, 0.5)),
+                     30.0, procs)
+            start("link", "-m", "pd_service.link", "--config", str(link_config), *zenoh_args,
+                  "--instance", "demo", "--stats-interval", "10")
+            start("pd-ros2", "-m", "pd_service.ros2", "--instance", "demo", "--session",
+                  ROS2_SESSION, *zenoh_args)
+            wait_for("the link emulator",
+                     lambda: any(r.ok for r in probe.get(keys.link_stats_key("demo"), timeout=0.5)),
+                     30.0, procs)
+            wait_for("pd-ros2", lambda: any(r.ok for r in probe.get(
+                keys.ros2_status_key("demo"), timeout=0.5)), 30.0, procs)
+            viz = has_viz()
+            mcap = ["--mcap", str(out / "run.mcap")] if viz else []
+            web_url = None
+            if args.web_port:
+                port = web_port(args.web_port)
+                start("web", "-m", "pd_client.tools", "web", "--port", str(port), *zenoh_args)
+                web_url = f"http://127.0.0.1:{port}/"
+                print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
+            recorder = start("record", "-m", "pd_client.tools", "record",
+                             f"--session={ROS2_SESSION}", "--out", str(out), "--idle-timeout",
+                             "3", "--until-step", str(args.steps), "--states", ROS2_STATES,
+                             "--warmup", "50", *mcap, *zenoh_args)
+            if viz and args.viz_port >= 0:
+                start("viz", "-m", "pd_client.tools", "viz", f"--session={ROS2_SESSION}",
+                      "--port", str(args.viz_port), *zenoh_args)
+                print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{args.viz_port}",
+                      flush=True)
+            start("operator", "-m", "pd_client.tools", "operator", "--scenario", "diffdrive",
+                  "--session", ROS2_SESSION, "--ros2", "--steps", str(args.steps), *zenoh_args)
+            sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "diffdrive",
+                        "--session", ROS2_SESSION, "--create-session", "--ros2",
+                        "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
+            sim.popen.wait()
+            if sim.popen.returncode != 0:
+                raise RuntimeError(f"the simulator exited with code {sim.popen.returncode}")
+            print(f"{TOOL}: simulation done after {time.monotonic() - t0:.1f} s; "
+                  "waiting for the recorder", flush=True)
+            bridge = next((json.loads(r.payload) for r in probe.get(
+                keys.ros2_status_key("demo"), timeout=3.0) if r.ok), None)
+        finally:
+            probe.close()
+        try:
+            recorder.popen.wait(60)
+        except subprocess.TimeoutExpired:
+            recorder.stop()
+        if web_url is not None and args.web_linger > 0:
+            print(f"{TOOL}: the live view at {web_url} shows the final state for "
+                  f"{args.web_linger:g} s more (Ctrl-C to skip)", flush=True)
+            try:
+                time.sleep(args.web_linger)
+            except KeyboardInterrupt:
+                pass
+    except KeyboardInterrupt:
+        interrupted = True
+        print(f"\n{TOOL}: interrupted, stopping every process", flush=True)
+    except RuntimeError as exc:
+        print(f"{TOOL}: {exc}", file=sys.stderr, flush=True)
+        interrupted = True
+    finally:
+        for p in reversed(procs):
+            p.stop()
+    if interrupted:
+        return 130
+    return report_ros2(out, bridge)
+
+
+def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
+    """The ROS 2 demo's summary: pd-record's accuracy of x, y, yaw and the bridge's counters."""
+    path = out / "summary.json"
+    if not path.exists():
+        print(f"{TOOL}: no summary was written ({path} missing)", file=sys.stderr)
+        return 1
+    row = json.loads(path.read_text()).get(ROS2_SESSION, {})
+    print()
+    print("=" * 68)
+    print("pd-service ROS 2 demo: predicted pose 100 ms ahead (lead 5 steps) of the")
+    print("differential-drive robot, over link-ros2.toml, after 1 s of warm-up")
+    for key, label, unit in [("rms_x", "RMS error x", "m"), ("rms_y", "RMS error y", "m"),
+                             ("rms_yaw", "RMS error yaw", "rad"),
+                             ("mean_var_x", "mean variance x", "m^2"),
+                             ("mean_var_yaw", "mean variance yaw", "rad^2")]:
+        v = row.get(key)
+        print(f"{label:28}" + ("-" if v is None else f"{v:12.3g} {unit}"))
+    print(f"{'predictions compared':28}{row.get('rows', 0):12d}")
+    sessions = bridge.get("sessions") if isinstance(bridge, dict) else None
+    counters = sessions.get(ROS2_SESSION, {}).get("counters") if isinstance(sessions, dict) \
+        else None
+    if isinstance(counters, dict):
+        refusals = {k: v for k, v in counters.items() if k.startswith("refused_")}
+        print(f"pd-ros2: {counters.get('received', 0)} ROS messages in, "
+              f"{counters.get('forwarded', 0)} forwarded, {counters.get('refused', 0)} refused"
+              f"{' ' + str(refusals) if refusals else ''}; "
+              f"{counters.get('predictions_republished', 0)} predictions "
+              f"republished as {counters.get('outputs_published', 0)} ROS messages")
+    else:
+        print("pd-ros2: no status reply")
+    if (out / "run.mcap").exists():
+        print(f"MCAP of the run: {out / 'run.mcap'} (pd-replay {out / 'run.mcap'})")
+    pngs = sorted(out.glob("*.png"))
+    print("PNG plots:" if pngs else "PNG plots: none (matplotlib not installed)")
+    for p in pngs:
+        print(f"  {p}")
+    print("=" * 68)
+    return 0
 
 
 def ranger_window(out: Path) -> dict[str, dict[str, float]]:

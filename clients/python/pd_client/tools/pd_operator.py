@@ -2,6 +2,7 @@
 
     pd-operator --scenario paper --session paper --session paper-cam
     pd-operator --scenario omni --session omni      # wheel torques of the omni robot
+    pd-operator --scenario diffdrive --session bot --ros2   # Twist on cmd_vel (rmw_zenoh)
 
 At each step k of the session clock (wall time ``epoch_ns + k * period_ns``) it sends, to
 every session, the scenario's command for apply step k + lead: the step at which a command
@@ -9,6 +10,12 @@ sent now reaches the robot over an uplink of ``lead`` steps. The session specs a
 from their config keys (the service and ``pd-robot-sim --create-session`` serve them); when
 a session is re-created (a new SessionSpec put), it follows the new clock. With ``--steps N``
 it stops after sending the command for apply step N. Progress lines go to stderr.
+``--ros2`` (one session, whose spec binds a command topic, e.g. ``--scenario diffdrive``): the
+operator is a ROS 2 node ``operator`` that publishes the same commands as ``geometry_msgs/Twist``
+(or the bound TwistStamped) on the bound topic in rmw_zenoh's format (``--domain-id``,
+``--namespace``), without an apply step: pd-ros2 forwards it to the service, which applies it
+from the arrival step + lead, and pd-link carries it to ``pd-robot-sim --ros2``, which applies
+it on arrival (docs/ros2.md).
 Exit codes: 0 done or stopped by SIGINT/SIGTERM, 1 runtime error, 2 bad command line.
 """
 
@@ -19,6 +26,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
 from pd_service.transport import Sample, Transport
@@ -29,6 +37,11 @@ from .._base import try_decode
 from ..admin import Admin
 from ..operator import Operator
 from . import common
+from .pd_robot_sim import ros2_options
+
+if TYPE_CHECKING:
+    from .ros2_operator import Ros2OperatorNode
+    from .ros2_robot import Ros2Options
 
 TOOL = "pd-operator"
 
@@ -45,6 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "length; 0: run until stopped)")
     ap.add_argument("--spec-timeout", type=float, default=30.0,
                     help="seconds to wait for the session specs (default 30)")
+    ap.add_argument("--ros2", action="store_true",
+                    help="send Twist messages on the session's bound command topic in "
+                         "rmw_zenoh's format (needs the ros2 extra and ROS 2 bindings)")
+    ap.add_argument("--domain-id", type=int, default=None,
+                    help="with --ros2: ROS domain id (default: $ROS_DOMAIN_ID or 0)")
+    ap.add_argument("--namespace", default="/",
+                    help="with --ros2: the node's ROS namespace (default /)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap
@@ -61,8 +81,14 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         ap.error(str(exc))
     steps = scenario.default_steps if args.steps is None else args.steps
     names = args.session or [scenario.name]
+    try:
+        ros2 = ros2_options(args, prefix=None)
+    except ValueError as exc:
+        ap.error(str(exc))
+    if ros2 is not None and len(names) != 1:
+        ap.error("--ros2: exactly one --session")
     return common.run_on_transport(
-        TOOL, args, lambda transport: _run(transport, scenario, names, steps, args, stop))
+        TOOL, args, lambda transport: _run(transport, scenario, names, steps, args, stop, ros2))
 
 
 class _Followed:
@@ -93,7 +119,8 @@ class _Followed:
 
 
 def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
-         args: argparse.Namespace, stop: threading.Event) -> int:
+         args: argparse.Namespace, stop: threading.Event, ros2: Ros2Options | None = None
+         ) -> int:
     specs: list[SessionSpec] = []
     with Admin(transport) as admin:
         for name in names:
@@ -106,7 +133,18 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
             if r != scenario.nu:
                 return common.fail(TOOL, f"session {name}: {r} inputs, scenario "
                                        f"{scenario.name!r} has {scenario.nu}", 2)
+            if ros2 is not None and (spec.ros2 is None or spec.ros2.commands is None):
+                return common.fail(TOOL, f"session {name}: --ros2 needs a spec whose ROS 2 "
+                                       "bindings have a command topic", 2)
             specs.append(spec)
+    ros_node: Ros2OperatorNode | None = None
+    if ros2 is not None:
+        from .ros2_operator import Ros2OperatorNode
+
+        assert specs[0].ros2 is not None and specs[0].ros2.commands is not None
+        ros_node = Ros2OperatorNode(transport, specs[0].ros2.commands, options=ros2)
+        common.progress(TOOL, f"ROS 2 node {ros_node.node.name} publishing "
+                            f"{ros_node.binding.msg_type} on {ros_node.key}")
     followed = _Followed(transport, specs)
     ops = {s.session: Operator(transport, s.session, spec=s) for s in specs}
     finished: dict[str, bool] = dict.fromkeys(ops, False)
@@ -138,7 +176,10 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
                 assert op.spec is not None
                 j = op.spec.step_of(clock.time_of(k)) + op.spec.lead
                 if steps == 0 or j <= steps:
-                    op.send(scenario.command(j), step=j)
+                    if ros_node is not None:  # no apply step: it applies on arrival
+                        ros_node.send(scenario.command(j))
+                    else:
+                        op.send(scenario.command(j), step=j)
                     sent += 1
                     finished[name] = j == steps
             if args.progress and time.monotonic() - last_report >= args.progress:
@@ -154,6 +195,8 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
         common.progress(TOOL, f"{'stopped' if stop.is_set() else 'done'}: sent {sent} commands")
     finally:
         followed.close()
+        if ros_node is not None:
+            ros_node.close()
         for op in ops.values():
             op.close()
     return 0

@@ -252,7 +252,7 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         for _, sensors in sessions:
             scenario.select(sensors)
         scenario.period_ns(args.time_scale)
-        ros2 = _ros2_options(args)
+        ros2 = ros2_options(args, prefix=None if args.direct else "robot")
     except ValueError as exc:
         ap.error(str(exc))
     steps = scenario.default_steps if args.steps is None else args.steps
@@ -316,9 +316,10 @@ def _run(args: argparse.Namespace, scenario: Scenario,
     return 0
 
 
-def _ros2_options(args: argparse.Namespace) -> Ros2Options | None:
-    """The ROS 2 settings of the command line (None without --ros2); ValueError for a domain
-    id or namespace ROS 2 refuses, or without the ros2 extra."""
+def ros2_options(args: argparse.Namespace, prefix: str | None) -> Ros2Options | None:
+    """The ROS 2 settings of the command line (``--ros2``, ``--domain-id``, ``--namespace``;
+    None without --ros2) with the key ``prefix``; ValueError for a domain id or namespace
+    ROS 2 refuses, or without the ros2 extra."""
     if not args.ros2:
         return None
     try:
@@ -338,8 +339,7 @@ def _ros2_options(args: argparse.Namespace) -> Ros2Options | None:
     if not 0 <= domain <= 232:
         raise ValueError(f"--domain-id: {domain} is outside 0..232")
     check_namespace(args.namespace)
-    return Ros2Options(domain_id=domain, namespace=args.namespace,
-                       prefix=None if args.direct else "robot")
+    return Ros2Options(domain_id=domain, namespace=args.namespace, prefix=prefix)
 
 
 def _model_label(spec: SessionSpec) -> str:
