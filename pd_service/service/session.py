@@ -37,32 +37,20 @@ internal_error             an unexpected exception while handling one message
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
 from typing import Literal
-
-import numpy as np
 
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
+from pd_service.intake import Intake, Refusal
 from pd_service.wire import (
-    Command,
-    Measurement,
     SessionSpec,
-    WireError,
-    decode,
     keys,
 )
 from pd_service.wire.convert import (
-    check_command,
-    check_measurement,
-    command_dim,
-    command_step,
     encode_prediction,
-    measurement_step,
 )
 from pd_service.wire.state import spec_fingerprint
 
-from .fastpath import read_command, read_measurement
 from .stacked import Node, StackedObserverPredictor
 from .stats import LatencyWindow, TokenBucket
 
@@ -74,49 +62,18 @@ Origin = Literal["prior", "checkpoint", "replica"]
 #: Per-session latency samples kept (µs, packet receipt -> prediction published).
 SESSION_LATENCY_WINDOW = 512
 
-_CHECK_REASONS = {  # WireError prefix from wire.convert.check_* -> counter name
-    "Measurement.session": "key_mismatch",
-    "Measurement.sensor": "unknown_sensor",
-    "Measurement.z": "wrong_dims",
-    "Measurement.R": "wrong_dims",
-    "Measurement.t_ns": "before_epoch",
-    "Command.session": "commands_key_mismatch",
-    "Command.u": "commands_wrong_dims",
-    "Command.issued_ns": "commands_before_epoch",
-}
-
-
-@dataclass(frozen=True, slots=True)
-class Refusal:
-    """Why one message was refused: counter name, one readable line, the sender's seq."""
-
-    reason: str
-    text: str
-    seq: int | None = None
-
-
-def _decode_reason(exc: WireError, prefix: str) -> Refusal:
-    """A message that failed to decode: counted by the error's kind, its seq echoed."""
-    return Refusal(prefix + exc.kind, exc.reason, exc.seq)
-
-
-def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
-    head = exc.reason.split(":", 1)[0]
-    return Refusal(_CHECK_REASONS.get(head, default), exc.reason, seq)
-
-
 class Session:
     """A served session. ``state`` is "active" or "restored" (how it started)."""
 
     def __init__(self, spec: SessionSpec, state: str, detail: str, now_ns: int,
                  error_rate: float, error_burst: int, max_abs: float = 1e12) -> None:
         self.spec = spec
-        #: Largest |z_i| and |u_i| accepted (out_of_range otherwise).
-        self.max_abs = max_abs
         self.name = spec.session
         # WireError for a spec it refuses; a linear model's numerics are batched across
         # sessions (pd_service.service.stacked), equal to ObserverPredictor to rounding
         self.est: Estimator = build_estimator(spec, StackedObserverPredictor)
+        #: The per-message rules (pd_service.intake), shared with the offline replay.
+        self.intake = Intake(spec, self.est, max_abs)
         self.state = state
         self.detail = detail
         self.counters: Counter[str] = Counter()
@@ -133,8 +90,6 @@ class Session:
         #: entry (older entries are skipped) and whether the session is ticking as idle.
         self.tick_gen = 0
         self.idle = False
-        self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
-        self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
         self.pred_key = keys.prediction_key(self.name)
         self.error_key = keys.error_key(self.name)
         self.status_key = keys.status_key(self.name)
@@ -162,100 +117,21 @@ class Session:
 
     def on_measurement(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
         """Offer one Measurement received on ``key``; None if accepted."""
-        sensor = key.rsplit("/", 1)[-1]
-        fast = read_measurement(payload, self.name, sensor, self.dims)
-        if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
-            seq, s, t_ns, z = fast
-            stamp = "step" if s is not None else "t_ns"
-            if s is None:
-                s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
-            R = None
-        else:  # full decode and checks: exact refusal reasons
-            try:
-                msg = decode(payload, Measurement)
-            except WireError as exc:
-                return _decode_reason(exc, "")
+        refusal = self.intake.measurement(key, payload, now_step)
+        if self.intake.decoded:
             self.last_activity_ns = now_ns
-            if msg.sensor != sensor or msg.session != self.name:
-                field = "session" if msg.session != self.name else "sensor"
-                return Refusal("key_mismatch", f"Measurement.{field}: session/sensor "
-                               f"{msg.session!r}/{msg.sensor!r} does not match the key {key!r}",
-                               msg.seq)
-            try:
-                check_measurement(msg, self.spec)
-            except WireError as exc:
-                return _check_reason(exc, msg.seq, "invalid")
-            seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
-            stamp = "step" if msg.step is not None else "t_ns"
-        self.last_activity_ns = now_ns
-        if z.size and float(np.max(np.abs(z))) > self.max_abs:
-            return Refusal("out_of_range", f"Measurement.z: a value exceeds {self.max_abs:g} "
-                           "in magnitude (max_abs_input)", seq)
-        if now_step < 0:
-            return Refusal("future", f"Measurement.{stamp}: sample step {s} is in the future; "
-                           f"the session starts at its epoch (now step {now_step})", seq)
-        est = self.est
-        try:
-            ok = est.add_measurement(sensor, s, z, now=now_step, R=R)
-        except ValueError as exc:
-            return Refusal("invalid", f"Measurement.z: {exc}", seq)
-        if ok:
+        if refusal is None:
             self.counters["accepted"] += 1
-            return None
-        lo = now_step - est.max_delay
-        if s > now_step:
-            return Refusal("future", f"Measurement.{stamp}: sample step {s} is after the current "
-                           f"step {now_step}", seq)
-        if s < lo or s < est.committed_step:
-            return Refusal("late", f"Measurement.{stamp}: sample step {s} is older than the "
-                           f"window [{max(lo, est.committed_step)}, {now_step}] "
-                           f"(max_delay {est.max_delay})", seq)
-        return Refusal("duplicate", f"Measurement.{stamp}: sensor {sensor!r} already has a "
-                       f"sample for step {s}", seq)
+        return refusal
 
     def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
         """Offer one Command; None if accepted."""
-        spec = self.spec
-        fast = read_command(payload, self.name, self.r)
-        if fast is not None and (fast[1] is not None
-                                 or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
-            seq, j, issued, u = fast
-            stamp = "step" if j is not None else "issued_ns"
-            if j is None:
-                j = spec.step_of(issued) + spec.lead  # type: ignore[arg-type]
-        else:
-            try:
-                msg = decode(payload, Command)
-            except WireError as exc:
-                return _decode_reason(exc, "commands_")
+        refusal = self.intake.command(key, payload, now_step)
+        if self.intake.decoded:
             self.last_activity_ns = now_ns
-            try:
-                check_command(msg, spec, self.r)
-            except WireError as exc:
-                return _check_reason(exc, msg.seq, "commands_invalid")
-            seq, j, u = msg.seq, command_step(msg, spec), msg.u
-            stamp = "step" if msg.step is not None else "issued_ns"
-        self.last_activity_ns = now_ns
-        if u.size and float(np.max(np.abs(u))) > self.max_abs:
-            return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
-                           f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
-        est = self.est
-        try:
-            ok = est.add_command(j, u, now=now_step if now_step >= 0 else None)
-        except (ValueError, IndexError) as exc:
-            return Refusal("commands_invalid", f"Command.u: {exc}", seq)
-        if ok:
+        if refusal is None:
             self.counters["commands_accepted"] += 1
-            return None
-        ref = est.now if est.now is not None else 0
-        if j < est.committed_step:
-            return Refusal("commands_late", f"Command.{stamp}: apply step {j} is already final "
-                           f"(first open step {est.committed_step})", seq)
-        if j > ref + est.lead + est.max_delay + 1:
-            return Refusal("commands_future", f"Command.{stamp}: apply step {j} is more than "
-                           f"max_delay + 1 steps past the predicted step {ref + est.lead}", seq)
-        return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
-                       "already stored", seq)
+        return refusal
 
     # --- output ------------------------------------------------------------------------
 

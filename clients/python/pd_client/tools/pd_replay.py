@@ -45,21 +45,13 @@ import numpy as np
 
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
+from pd_service.intake import COMMAND_OUTCOMES, MAX_ABS_INPUT, MEASUREMENT_OUTCOMES, Intake
 from pd_service.wire import (
-    Command,
-    Measurement,
     Prediction,
     SessionSpec,
     WireError,
     decode,
     encode,
-)
-from pd_service.wire.convert import (
-    check_command,
-    check_measurement,
-    command_dim,
-    command_step,
-    measurement_step,
 )
 
 from ..truth import Truth
@@ -71,18 +63,8 @@ from .record_csv import DEFAULT_WARMUP
 TOOL = "pd-replay"
 
 #: The daemon's per-session counters of handled sensor packets / commands, by outcome.
-SENSOR_REASONS = ("accepted", "late", "future", "duplicate", "malformed", "non_finite",
-                  "key_mismatch", "unknown_sensor", "wrong_dims", "before_epoch", "invalid")
-COMMAND_REASONS = ("commands_accepted", "commands_late", "commands_future",
-                   "commands_duplicate", "commands_malformed", "commands_non_finite",
-                   "commands_key_mismatch", "commands_wrong_dims", "commands_before_epoch",
-                   "commands_invalid")
-_CHECK_REASONS = {  # WireError prefix of wire.convert.check_* -> the daemon's counter
-    "Measurement.session": "key_mismatch", "Measurement.sensor": "unknown_sensor",
-    "Measurement.z": "wrong_dims", "Measurement.R": "wrong_dims",
-    "Measurement.t_ns": "before_epoch", "Command.session": "commands_key_mismatch",
-    "Command.u": "commands_wrong_dims", "Command.issued_ns": "commands_before_epoch",
-}
+SENSOR_REASONS = MEASUREMENT_OUTCOMES
+COMMAND_REASONS = COMMAND_OUTCOMES
 
 
 def handled(counters: dict[str, int], reasons: Iterable[str]) -> int:
@@ -90,84 +72,35 @@ def handled(counters: dict[str, int], reasons: Iterable[str]) -> int:
 
 
 class OfflineSession:
-    """One session's estimator with the daemon's per-message handling (decode, checks,
-    step mapping, window at ``now``), refusals counted by the daemon's reason names."""
+    """One session's estimator behind the daemon's own per-message rules
+    (:class:`pd_service.intake.Intake`: decode, checks, step mapping, window at ``now``),
+    outcomes counted by the daemon's reason names."""
 
-    def __init__(self, spec: SessionSpec) -> None:
+    def __init__(self, spec: SessionSpec, max_abs: float = MAX_ABS_INPUT) -> None:
         self.spec = spec
         self.est: Estimator = build_estimator(spec)
-        self.r = command_dim(spec)
+        self.intake = Intake(spec, self.est, max_abs)
         self.counters: Counter[str] = Counter()
-
-    def _decode_refusal(self, exc: WireError, prefix: str) -> str:
-        return prefix + ("non_finite" if "finite" in exc.reason else "malformed")
 
     def measurement(self, rec: Record, now: int) -> str:
         """Handle one sensor packet at the daemon's step ``now``; returns the outcome."""
-        reason = self._measurement(rec, now)
+        if rec.kind != "put":
+            reason = "malformed"
+        else:
+            refusal = self.intake.measurement(rec.key, rec.payload, now)
+            reason = "accepted" if refusal is None else refusal.reason
         self.counters[reason] += 1
         return reason
-
-    def _measurement(self, rec: Record, now: int) -> str:
-        if rec.kind != "put":
-            return "malformed"
-        try:
-            msg = decode(rec.payload, Measurement)
-        except WireError as exc:
-            return self._decode_refusal(exc, "")
-        sensor = rec.key.rsplit("/", 1)[-1]
-        if msg.sensor != sensor or msg.session != self.spec.session:
-            return "key_mismatch"
-        try:
-            check_measurement(msg, self.spec)
-        except WireError as exc:
-            return _CHECK_REASONS.get(exc.reason.split(":", 1)[0], "invalid")
-        if now < 0:
-            return "future"
-        s = measurement_step(msg, self.spec)
-        est = self.est
-        try:
-            ok = est.add_measurement(sensor, s, msg.z, now=now, R=msg.R)
-        except ValueError:
-            return "invalid"
-        if ok:
-            return "accepted"
-        if s > now:
-            return "future"
-        if s < now - est.max_delay or s < est.committed_step:
-            return "late"
-        return "duplicate"
 
     def command(self, rec: Record, now: int) -> str:
-        reason = self._command(rec, now)
+        """Handle one command at the daemon's step ``now``; returns the outcome."""
+        if rec.kind != "put":
+            reason = "commands_malformed"
+        else:
+            refusal = self.intake.command(rec.key, rec.payload, now)
+            reason = "commands_accepted" if refusal is None else refusal.reason
         self.counters[reason] += 1
         return reason
-
-    def _command(self, rec: Record, now: int) -> str:
-        if rec.kind != "put":
-            return "commands_malformed"
-        try:
-            msg = decode(rec.payload, Command)
-        except WireError as exc:
-            return self._decode_refusal(exc, "commands_")
-        try:
-            check_command(msg, self.spec, self.r)
-        except WireError as exc:
-            return _CHECK_REASONS.get(exc.reason.split(":", 1)[0], "commands_invalid")
-        j = command_step(msg, self.spec)
-        est = self.est
-        try:
-            ok = est.add_command(j, msg.u, now=now if now >= 0 else None)
-        except (ValueError, IndexError):
-            return "commands_invalid"
-        if ok:
-            return "commands_accepted"
-        ref = est.now if est.now is not None else 0
-        if j < est.committed_step:
-            return "commands_late"
-        if j > ref + est.lead + est.max_delay + 1:
-            return "commands_future"
-        return "commands_duplicate"
 
     def predict(self, now: int) -> PredictedState:
         return self.est.predict(now)

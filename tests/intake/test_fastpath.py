@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pd_service.service.fastpath import read_command, read_measurement
+from pd_service.intake.fastpath import read_command, read_measurement
 from pd_service.wire import Command, Measurement, WireError, decode
 from pd_service.wire.convert import (
     check_command,
@@ -18,7 +18,7 @@ from pd_service.wire.convert import (
     measurement_step,
 )
 
-from .helpers import paper_spec
+from tests.service.helpers import paper_spec
 
 SPEC = paper_spec("s1", epoch_ns=1_000)
 DIMS = {"camera": 2, "ranger": 1}

@@ -1,0 +1,181 @@
+"""How one message enters a session's estimator: decode (fast path first), checks against
+the spec, step mapping, magnitude bounds, the estimator's window, and the refusal reason.
+
+One implementation for the daemon (:class:`pd_service.service.session.Session`) and for the
+offline replay of a recording (``pd-replay``), so both accept and refuse exactly alike.
+No clock reads: the caller passes the session's current step ``now_step``. Nothing raises for
+bad input: every refusal is a :class:`Refusal` (counter name, one readable line, the
+sender's seq when it could be read).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pd_service.estimation import Estimator
+from pd_service.wire import Command, Measurement, SessionSpec, WireError, decode
+from pd_service.wire.convert import (
+    check_command,
+    check_measurement,
+    command_dim,
+    command_step,
+    measurement_step,
+)
+
+from .fastpath import read_command, read_measurement
+
+#: Largest |z_i| and |u_i| accepted by default (the daemon's ``max_abs_input``).
+MAX_ABS_INPUT = 1e12
+
+#: Every outcome of :meth:`Intake.measurement` (``accepted`` or a refusal's counter name) and
+#: of :meth:`Intake.command`: what the daemon counts per session for each message it handled.
+MEASUREMENT_OUTCOMES = ("accepted", "late", "future", "duplicate", "malformed", "non_finite",
+                        "key_mismatch", "unknown_sensor", "wrong_dims", "before_epoch",
+                        "out_of_range", "invalid")
+COMMAND_OUTCOMES = tuple("commands_" + o for o in MEASUREMENT_OUTCOMES
+                         if o != "unknown_sensor")
+
+_CHECK_REASONS = {  # WireError prefix from wire.convert.check_* -> counter name
+    "Measurement.session": "key_mismatch",
+    "Measurement.sensor": "unknown_sensor",
+    "Measurement.z": "wrong_dims",
+    "Measurement.R": "wrong_dims",
+    "Measurement.t_ns": "before_epoch",
+    "Command.session": "commands_key_mismatch",
+    "Command.u": "commands_wrong_dims",
+    "Command.issued_ns": "commands_before_epoch",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """Why one message was refused: counter name, one readable line, the sender's seq."""
+
+    reason: str
+    text: str
+    seq: int | None = None
+
+
+def _decode_reason(exc: WireError, prefix: str) -> Refusal:
+    """A message that failed to decode: counted by the error's kind, its seq echoed."""
+    return Refusal(prefix + exc.kind, exc.reason, exc.seq)
+
+
+def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
+    head = exc.reason.split(":", 1)[0]
+    return Refusal(_CHECK_REASONS.get(head, default), exc.reason, seq)
+
+
+class Intake:
+    """A session's estimator behind the per-message rules. ``decoded`` tells whether the last
+    message offered could be read as a message of this session (activity, for idle
+    detection), whatever its outcome."""
+
+    def __init__(self, spec: SessionSpec, est: Estimator, max_abs: float = MAX_ABS_INPUT) -> None:
+        self.spec = spec
+        self.est = est
+        self.name = spec.session
+        #: Largest |z_i| and |u_i| accepted (out_of_range otherwise).
+        self.max_abs = max_abs
+        self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
+        self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
+        self.decoded = False
+
+    def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
+        """Offer one Measurement received on ``key``; None if accepted."""
+        self.decoded = False
+        sensor = key.rsplit("/", 1)[-1]
+        fast = read_measurement(payload, self.name, sensor, self.dims)
+        if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
+            seq, s, t_ns, z = fast
+            stamp = "step" if s is not None else "t_ns"
+            if s is None:
+                s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
+            R = None
+        else:  # full decode and checks: exact refusal reasons
+            try:
+                msg = decode(payload, Measurement)
+            except WireError as exc:
+                return _decode_reason(exc, "")
+            self.decoded = True
+            if msg.sensor != sensor or msg.session != self.name:
+                field = "session" if msg.session != self.name else "sensor"
+                return Refusal("key_mismatch", f"Measurement.{field}: session/sensor "
+                               f"{msg.session!r}/{msg.sensor!r} does not match the key {key!r}",
+                               msg.seq)
+            try:
+                check_measurement(msg, self.spec)
+            except WireError as exc:
+                return _check_reason(exc, msg.seq, "invalid")
+            seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
+            stamp = "step" if msg.step is not None else "t_ns"
+        self.decoded = True
+        if z.size and float(np.max(np.abs(z))) > self.max_abs:
+            return Refusal("out_of_range", f"Measurement.z: a value exceeds {self.max_abs:g} "
+                           "in magnitude (max_abs_input)", seq)
+        if now_step < 0:
+            return Refusal("future", f"Measurement.{stamp}: sample step {s} is in the future; "
+                           f"the session starts at its epoch (now step {now_step})", seq)
+        est = self.est
+        try:
+            ok = est.add_measurement(sensor, s, z, now=now_step, R=R)
+        except ValueError as exc:
+            return Refusal("invalid", f"Measurement.z: {exc}", seq)
+        if ok:
+            return None
+        lo = now_step - est.max_delay
+        if s > now_step:
+            return Refusal("future", f"Measurement.{stamp}: sample step {s} is after the current "
+                           f"step {now_step}", seq)
+        if s < lo or s < est.committed_step:
+            return Refusal("late", f"Measurement.{stamp}: sample step {s} is older than the "
+                           f"window [{max(lo, est.committed_step)}, {now_step}] "
+                           f"(max_delay {est.max_delay})", seq)
+        return Refusal("duplicate", f"Measurement.{stamp}: sensor {sensor!r} already has a "
+                       f"sample for step {s}", seq)
+
+    def command(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
+        """Offer one Command; None if accepted."""
+        self.decoded = False
+        spec = self.spec
+        fast = read_command(payload, self.name, self.r)
+        if fast is not None and (fast[1] is not None
+                                 or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
+            seq, j, issued, u = fast
+            stamp = "step" if j is not None else "issued_ns"
+            if j is None:
+                j = spec.step_of(issued) + spec.lead  # type: ignore[arg-type]
+        else:
+            try:
+                msg = decode(payload, Command)
+            except WireError as exc:
+                return _decode_reason(exc, "commands_")
+            self.decoded = True
+            try:
+                check_command(msg, spec, self.r)
+            except WireError as exc:
+                return _check_reason(exc, msg.seq, "commands_invalid")
+            seq, j, u = msg.seq, command_step(msg, spec), msg.u
+            stamp = "step" if msg.step is not None else "issued_ns"
+        self.decoded = True
+        if u.size and float(np.max(np.abs(u))) > self.max_abs:
+            return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
+                           f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
+        est = self.est
+        try:
+            ok = est.add_command(j, u, now=now_step if now_step >= 0 else None)
+        except (ValueError, IndexError) as exc:
+            return Refusal("commands_invalid", f"Command.u: {exc}", seq)
+        if ok:
+            return None
+        ref = est.now if est.now is not None else 0
+        if j < est.committed_step:
+            return Refusal("commands_late", f"Command.{stamp}: apply step {j} is already final "
+                           f"(first open step {est.committed_step})", seq)
+        if j > ref + est.lead + est.max_delay + 1:
+            return Refusal("commands_future", f"Command.{stamp}: apply step {j} is more than "
+                           f"max_delay + 1 steps past the predicted step {ref + est.lead}", seq)
+        return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
+                       "already stored", seq)
