@@ -16,7 +16,9 @@ going back to the prior.
   (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.
 
 An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
-(``checkpoint_too_large``). Worker thread only, except :meth:`StateKeeper.on_replica`
+(``checkpoint_too_large``). On a graceful stop the owner sends every served session's
+newest state to its successor before it withdraws its presence (:meth:`StateKeeper.handover`),
+so a planned handover loses nothing that was accepted. Worker thread only, except :meth:`StateKeeper.on_replica`
 (transport threads: it only stores the bytes).
 """
 
@@ -73,13 +75,17 @@ class StateKeeper:
 
     # ================================================================== outgoing ======
 
+    def _replicating(self) -> bool:
+        """Replicas are on, rendezvous ownership, and someone to send them to."""
+        return self.settings.replica_interval_s > 0 and len(self.ownership.members) > 1 \
+            and self.ownership.shard is None
+
     def after_round(self, sessions: list[Session], now: int) -> None:
         """Checkpoint / replicate the sessions that committed new steps, rate-bounded."""
         s = self.settings
         ck_ns, rep_ns = int(s.checkpoint_interval_s * 1e9), int(s.replica_interval_s * 1e9)
         want_ck = self.store is not None and s.checkpoint_interval_s > 0
-        want_rep = s.replica_interval_s > 0 and len(self.ownership.members) > 1 \
-            and self.ownership.shard is None
+        want_rep = self._replicating()
         for sess in sessions:
             if not sess.alive:
                 continue
@@ -99,11 +105,27 @@ class StateKeeper:
                 self._write(sess, data)
             if rep:
                 sess.last_replica_ns = now
-                succ = self.ownership.successor(sess.name)
-                if succ is not None:
-                    self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
-                    self.counters["replicas_sent"] += 1
-                    self.counters["replica_bytes"] += len(data)
+                self._send(sess, data)
+
+    def handover(self, sessions: list[Session], now: int) -> None:
+        """Graceful stop: the newest state of every served session to its successor, not
+        rate-bounded (the caller flushes the outbox before withdrawing its presence)."""
+        if not self._replicating():
+            return
+        for sess in sessions:
+            if not sess.alive:
+                continue
+            data = self.encode_state(sess, now)
+            if data is not None:
+                self._send(sess, data)
+                self.counters["replicas_handover"] += 1
+
+    def _send(self, sess: Session, data: bytes) -> None:
+        succ = self.ownership.successor(sess.name)
+        if succ is not None:
+            self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
+            self.counters["replicas_sent"] += 1
+            self.counters["replica_bytes"] += len(data)
 
     def encode_state(self, sess: Session, now: int) -> bytes | None:
         """The session's SessionState, encoded (None if too large or not exportable)."""
