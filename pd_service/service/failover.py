@@ -1,9 +1,9 @@
 """Checkpoints and replicas of the sessions' estimator state: restart and takeover without
 going back to the prior.
 
-- **Checkpoint** (restart): after a round, a session whose estimator committed new steps
-  since its last checkpoint, and whose last checkpoint is at least ``checkpoint_interval_s``
-  old, writes its :class:`~pd_service.wire.state.SessionState` to the state directory
+- **Checkpoint** (restart): after a round, a session whose estimator changed (committed
+  new steps, accepted packets or commands) since its last checkpoint, and whose last
+  checkpoint is at least ``checkpoint_interval_s`` old, writes its :class:`~pd_service.wire.state.SessionState` to the state directory
   (``<session>.ckpt``, atomic like the specs). A restarted daemon resumes each restored
   session from it.
 - **Replica** (takeover): at the same moments, rate-bounded by ``replica_interval_s``, the
@@ -59,6 +59,14 @@ def replicas_for(instance: str) -> str:
            "/replica/*"
 
 
+def state_mark(sess: Session) -> tuple[int, int, int]:
+    """What changes the exported state (committed step, packets and commands accepted):
+    a session whose mark did not move since its last state is not written again. Not the
+    committed step alone: nothing commits during a session's first window."""
+    c = sess.counters
+    return sess.est.committed_step, c["accepted"], c["commands_accepted"]
+
+
 class StateKeeper:
     """Writes checkpoints, sends replicas, keeps received replicas, resumes sessions."""
 
@@ -81,7 +89,8 @@ class StateKeeper:
             and self.ownership.shard is None
 
     def after_round(self, sessions: list[Session], now: int) -> None:
-        """Checkpoint / replicate the sessions that committed new steps, rate-bounded."""
+        """Checkpoint / replicate the sessions whose estimator changed (committed new steps
+        or accepted packets or commands) since their last state, rate-bounded."""
         s = self.settings
         ck_ns, rep_ns = int(s.checkpoint_interval_s * 1e9), int(s.replica_interval_s * 1e9)
         want_ck = self.store is not None and s.checkpoint_interval_s > 0
@@ -89,8 +98,8 @@ class StateKeeper:
         for sess in sessions:
             if not sess.alive:
                 continue
-            committed = sess.est.committed_step
-            if committed <= sess.saved_committed:
+            mark = state_mark(sess)
+            if mark == sess.saved_mark:
                 continue
             ck = want_ck and now - sess.last_checkpoint_ns >= ck_ns
             rep = want_rep and now - sess.last_replica_ns >= rep_ns
@@ -99,7 +108,7 @@ class StateKeeper:
             data = self.encode_state(sess, now)
             if data is None:
                 continue
-            sess.saved_committed = committed
+            sess.saved_mark = mark
             if ck:
                 sess.last_checkpoint_ns = now
                 self._write(sess, data)
@@ -212,7 +221,7 @@ class StateKeeper:
         sess.counters.update({k: v for k, v in msg.session_counters.items()
                               if k not in sess.counters})
         sess.published, sess.seq = msg.published, msg.seq
-        sess.saved_committed = sess.est.committed_step
+        sess.saved_mark = state_mark(sess)
         self.counters[f"resumed_from_{source}"] += 1
         event(log, "session_resumed", session=sess.name, source=source,
               step=msg.now_step if msg.now_step is not None else -1,
