@@ -3,8 +3,9 @@ going back to the prior.
 
 - **Checkpoint** (restart): after a round, a session whose estimator changed (committed
   new steps, accepted packets or commands) since its last checkpoint, and whose last
-  checkpoint is at least ``checkpoint_interval_s`` old, writes its :class:`~pd_service.wire.state.SessionState` to the state directory
-  (``<session>.ckpt``, atomic like the specs). A restarted daemon resumes each restored
+  checkpoint is at least ``checkpoint_interval_s`` old, writes its
+  :class:`~pd_service.wire.state.SessionState` to the state directory (``<session>.ckpt``,
+  atomic like the specs). A restarted daemon resumes each restored
   session from it.
 - **Replica** (takeover): at the same moments, rate-bounded by ``replica_interval_s``, the
   owner puts the same message on ``pd/@service/<successor>/replica/<session>``, the successor
@@ -17,9 +18,10 @@ going back to the prior.
 
 An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
 (``checkpoint_too_large``). On a graceful stop the owner sends every served session's
-newest state to its successor before it withdraws its presence (:meth:`StateKeeper.handover`),
-so a planned handover loses nothing that was accepted. Worker thread only, except :meth:`StateKeeper.on_replica`
-(transport threads: it only stores the bytes).
+newest state to its successor before it withdraws its presence
+(:meth:`StateKeeper.handover`), so a planned handover loses nothing that was accepted.
+Worker thread only, except :meth:`StateKeeper.on_replica` (transport threads: it only
+stores the bytes).
 """
 
 from __future__ import annotations

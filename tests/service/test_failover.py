@@ -242,3 +242,13 @@ def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
         d.check(k, d.off)
     st = status(cli, s)
     assert st.instance == "inst-b" and st.origin == "replica" and st.origin_step == 39
+
+
+def test_a_session_in_its_first_window_is_checkpointed(tmp_path):
+    """Nothing commits before max_delay steps; accepted packets alone make a checkpoint."""
+    bus, clock, col, cli, d = _checkpointed(tmp_path, steps=8)  # max_delay 12
+    msg = decode((tmp_path / "a" / "s1.ckpt").read_bytes(), SessionState)
+    assert msg.committed_step == 0 and msg.packets
+    b = make_core(bus, clock, tmp_path)
+    assert b.counters["resumed_from_checkpoint"] == 1
+    assert status(cli, "s1").origin == "checkpoint"
