@@ -138,11 +138,16 @@ class ServiceCore:
         self.wake.set()
 
     def close(self) -> None:
-        """Withdraw presence first (peers take over at once), then undeclare everything."""
+        """Hand the served sessions' states to their successors, withdraw presence (peers
+        take over at once), then undeclare everything. The worker must be stopped."""
         if self._closed:
             return
         self._closed = True
         self.lifecycle.closed = True
+        with self.lock:
+            self.keeper.handover([r.sess for r in self._routes.values() if r.sess is not None],
+                                 self.now_ns())
+            self.publisher.flush()
         if self._token is not None:
             self._token.close()
         for h in reversed(self._handles):

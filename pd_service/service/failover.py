@@ -1,10 +1,11 @@
 """Checkpoints and replicas of the sessions' estimator state: restart and takeover without
 going back to the prior.
 
-- **Checkpoint** (restart): after a round, a session whose estimator committed new steps
-  since its last checkpoint, and whose last checkpoint is at least ``checkpoint_interval_s``
-  old, writes its :class:`~pd_service.wire.state.SessionState` to the state directory
-  (``<session>.ckpt``, atomic like the specs). A restarted daemon resumes each restored
+- **Checkpoint** (restart): after a round, a session whose estimator changed (committed
+  new steps, accepted packets or commands) since its last checkpoint, and whose last
+  checkpoint is at least ``checkpoint_interval_s`` old, writes its
+  :class:`~pd_service.wire.state.SessionState` to the state directory (``<session>.ckpt``,
+  atomic like the specs). A restarted daemon resumes each restored
   session from it.
 - **Replica** (takeover): at the same moments, rate-bounded by ``replica_interval_s``, the
   owner puts the same message on ``pd/@service/<successor>/replica/<session>``, the successor
@@ -16,8 +17,11 @@ going back to the prior.
   (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.
 
 An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
-(``checkpoint_too_large``). Worker thread only, except :meth:`StateKeeper.on_replica`
-(transport threads: it only stores the bytes).
+(``checkpoint_too_large``). On a graceful stop the owner sends every served session's
+newest state to its successor before it withdraws its presence
+(:meth:`StateKeeper.handover`), so a planned handover loses nothing that was accepted.
+Worker thread only, except :meth:`StateKeeper.on_replica` (transport threads: it only
+stores the bytes).
 """
 
 from __future__ import annotations
@@ -57,6 +61,14 @@ def replicas_for(instance: str) -> str:
            "/replica/*"
 
 
+def state_mark(sess: Session) -> tuple[int, int, int]:
+    """What changes the exported state (committed step, packets and commands accepted):
+    a session whose mark did not move since its last state is not written again. Not the
+    committed step alone: nothing commits during a session's first window."""
+    c = sess.counters
+    return sess.est.committed_step, c["accepted"], c["commands_accepted"]
+
+
 class StateKeeper:
     """Writes checkpoints, sends replicas, keeps received replicas, resumes sessions."""
 
@@ -73,18 +85,23 @@ class StateKeeper:
 
     # ================================================================== outgoing ======
 
+    def _replicating(self) -> bool:
+        """Replicas are on, rendezvous ownership, and someone to send them to."""
+        return self.settings.replica_interval_s > 0 and len(self.ownership.members) > 1 \
+            and self.ownership.shard is None
+
     def after_round(self, sessions: list[Session], now: int) -> None:
-        """Checkpoint / replicate the sessions that committed new steps, rate-bounded."""
+        """Checkpoint / replicate the sessions whose estimator changed (committed new steps
+        or accepted packets or commands) since their last state, rate-bounded."""
         s = self.settings
         ck_ns, rep_ns = int(s.checkpoint_interval_s * 1e9), int(s.replica_interval_s * 1e9)
         want_ck = self.store is not None and s.checkpoint_interval_s > 0
-        want_rep = s.replica_interval_s > 0 and len(self.ownership.members) > 1 \
-            and self.ownership.shard is None
+        want_rep = self._replicating()
         for sess in sessions:
             if not sess.alive:
                 continue
-            committed = sess.est.committed_step
-            if committed <= sess.saved_committed:
+            mark = state_mark(sess)
+            if mark == sess.saved_mark:
                 continue
             ck = want_ck and now - sess.last_checkpoint_ns >= ck_ns
             rep = want_rep and now - sess.last_replica_ns >= rep_ns
@@ -93,17 +110,33 @@ class StateKeeper:
             data = self.encode_state(sess, now)
             if data is None:
                 continue
-            sess.saved_committed = committed
+            sess.saved_mark = mark
             if ck:
                 sess.last_checkpoint_ns = now
                 self._write(sess, data)
             if rep:
                 sess.last_replica_ns = now
-                succ = self.ownership.successor(sess.name)
-                if succ is not None:
-                    self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
-                    self.counters["replicas_sent"] += 1
-                    self.counters["replica_bytes"] += len(data)
+                self._send(sess, data)
+
+    def handover(self, sessions: list[Session], now: int) -> None:
+        """Graceful stop: the newest state of every served session to its successor, not
+        rate-bounded (the caller flushes the outbox before withdrawing its presence)."""
+        if not self._replicating():
+            return
+        for sess in sessions:
+            if not sess.alive:
+                continue
+            data = self.encode_state(sess, now)
+            if data is not None:
+                self._send(sess, data)
+                self.counters["replicas_handover"] += 1
+
+    def _send(self, sess: Session, data: bytes) -> None:
+        succ = self.ownership.successor(sess.name)
+        if succ is not None:
+            self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
+            self.counters["replicas_sent"] += 1
+            self.counters["replica_bytes"] += len(data)
 
     def encode_state(self, sess: Session, now: int) -> bytes | None:
         """The session's SessionState, encoded (None if too large or not exportable)."""
@@ -190,7 +223,7 @@ class StateKeeper:
         sess.counters.update({k: v for k, v in msg.session_counters.items()
                               if k not in sess.counters})
         sess.published, sess.seq = msg.published, msg.seq
-        sess.saved_committed = sess.est.committed_step
+        sess.saved_mark = state_mark(sess)
         self.counters[f"resumed_from_{source}"] += 1
         event(log, "session_resumed", session=sess.name, source=source,
               step=msg.now_step if msg.now_step is not None else -1,

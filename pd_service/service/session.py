@@ -98,7 +98,7 @@ class Session:
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
         self.fingerprint = spec_fingerprint(spec)
-        self.saved_committed = 0
+        self.saved_mark: tuple[int, int, int] = (0, 0, 0)
         self.last_checkpoint_ns = -(1 << 62)
         self.last_replica_ns = -(1 << 62)
 

@@ -329,3 +329,43 @@ def test_daemon_gets_commands_from_the_operator_only(endpoint: str, daemon, tmp_
         ok, why = health.check(str(ZENOH_DIR / "robot.json5"), None, 5.0, [endpoint])
         assert ok, why
     assert daemon.poll() is None, "the daemon died"
+
+
+REPLICA_KEY = "pd/@service/pd-b/replica/s1"
+REPLICAS = "pd/@service/pd-b/replica/*"
+
+
+@pytest.mark.parametrize("acl", [True, False], ids=["acl-on", "control-acl-off"])
+def test_replicas_pass_between_service_instances_only(endpoint: str, acl: bool) -> None:
+    """A session's state replica (pd/@service/<successor>/replica/<s>) goes from one service
+    instance to another; no other role reads one or writes one (control: ACL off, they do)."""
+    others = ("operator", "robot", "link", "display")
+    with open_router(endpoint, acl=acl), contextlib.ExitStack() as stack:
+        owner = stack.enter_context(open_client("service", endpoint))
+        successor = stack.enter_context(open_client("service", endpoint))
+        c = {role: stack.enter_context(open_client(role, endpoint)) for role in others}
+        got = Collector()
+        successor.subscribe(REPLICAS, got)
+        spies = {role: Collector() for role in others}
+        for role in others:
+            c[role].subscribe(REPLICAS, spies[role])
+
+        def delivered() -> bool:
+            owner.put(REPLICA_KEY, b"sync")
+            return got.wait_count(b"sync", 1, 0.05) and (
+                acl or all(s.wait_count(b"sync", 1, 0.05) for s in spies.values()))
+        wait_for(delivered, TIMEOUT_S, "the owner's replica to reach its successor")
+        for i in range(ROUNDS):
+            for role in others:
+                c[role].put(REPLICA_KEY, b"forged-%s-%d" % (role.encode(), i))
+            owner.put(REPLICA_KEY, b"replica-%d" % i)
+        assert got.wait_count(b"replica-", ROUNDS, TIMEOUT_S), "replicas were lost"
+        if acl:
+            got.wait_count(b"forged-", 1, NEGATIVE_WAIT_S)
+            assert got.count(b"forged-") == 0, "another role wrote a replica"
+            # (a spy does see its own forged puts: a session delivers to itself locally)
+            leaked = {r: s.count(b"replica-") + s.count(b"sync") for r, s in spies.items()}
+            assert not any(leaked.values()), f"replicas read by other roles: {leaked}"
+        else:
+            assert got.wait_count(b"forged-", ROUNDS * len(others), TIMEOUT_S)
+            assert all(s.wait_count(b"replica-", ROUNDS, TIMEOUT_S) for s in spies.values())

@@ -211,3 +211,44 @@ def test_checkpoints_are_bounded_in_rate(tmp_path):
         d.step([a], k)
     assert 4 <= a.counters["checkpoints"] <= 6
     assert isinstance(a, ServiceCore)
+
+
+def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
+    """SIGTERM path: the owner's close() sends every served session's state to its
+    successor before withdrawing its presence, so nothing it accepted is lost."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    # replicas every 100 s: only the handover can carry the newest state
+    a = make_core(bus, clock, tmp_path, "inst-a", replica_interval_s=100.0)
+    b = make_core(bus, clock, tmp_path, "inst-b", replica_interval_s=100.0)
+    names = [f"s{i:02d}" for i in range(12)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    for c in (a, b, a, b):
+        c.run_once()
+    s = next(n for n in names if n in a.served_sessions())
+    d = Driver(cli, clock, col, s)
+    for k in range(40):
+        d.step([a, b], k)
+    periodic = b.keeper.replicas[s][0]  # the one periodic replica, taken early on
+    a.close()
+    assert a.counters["replicas_handover"] == len(a.served_sessions())
+    held = decode(b.keeper.replicas[s][1], SessionState)
+    assert held.now_step == 39 > periodic
+    b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
+    b.run_once()
+    for k in range(40, 60):  # d.off saw everything: the takeover lost nothing
+        d.step([b], k)
+        d.check(k, d.off)
+    st = status(cli, s)
+    assert st.instance == "inst-b" and st.origin == "replica" and st.origin_step == 39
+
+
+def test_a_session_in_its_first_window_is_checkpointed(tmp_path):
+    """Nothing commits before max_delay steps; accepted packets alone make a checkpoint."""
+    bus, clock, col, cli, d = _checkpointed(tmp_path, steps=8)  # max_delay 12
+    msg = decode((tmp_path / "a" / "s1.ckpt").read_bytes(), SessionState)
+    assert msg.committed_step == 0 and msg.packets
+    b = make_core(bus, clock, tmp_path)
+    assert b.counters["resumed_from_checkpoint"] == 1
+    assert status(cli, "s1").origin == "checkpoint"
