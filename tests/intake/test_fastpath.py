@@ -17,7 +17,6 @@ from pd_service.wire.convert import (
     command_step,
     measurement_step,
 )
-
 from tests.service.helpers import paper_spec
 
 SPEC = paper_spec("s1", epoch_ns=1_000)

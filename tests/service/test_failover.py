@@ -219,8 +219,8 @@ def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
     # replicas every 100 s: only the handover can carry the newest state
-    a = make_core(bus, clock, tmp_path, "inst-a", replica_interval_s=100.0)
-    b = make_core(bus, clock, tmp_path, "inst-b", replica_interval_s=100.0)
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=100.0)
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=100.0)
     names = [f"s{i:02d}" for i in range(12)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))

@@ -271,6 +271,10 @@ def test_kill_and_restart_resumes_from_the_checkpoint(world):
         assert d2.stop() == 0, d2.log()
 
 
+#: The two instances trust each other (explicit membership: standalone otherwise).
+PEERS = ["--peer", "inst-x", "--peer", "inst-y"]
+
+
 def test_owner_killed_survivor_resumes_from_its_replicas(world):
     t, col, pres, peer, root = world
     max_delay = 60
@@ -284,9 +288,10 @@ def test_owner_killed_survivor_resumes_from_its_replicas(world):
             replicas.setdefault(st.session, {})[st.now_step or 0] = st
 
     t.subscribe(f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/*/replica/*", on_replica)
-    x = Daemon("inst-x", root / "inst-x", [peer], ["--config", str(conf)]).start()
+    conf_args = ["--config", str(conf)]
+    x = Daemon("inst-x", root / "inst-x", [peer], [*conf_args, *PEERS]).start()
     assert pres.wait("inst-x", timeout=WAIT_S), x.log()
-    y = Daemon("inst-y", root / "inst-y", [peer, x.endpoint], ["--config", str(conf)]).start()
+    y = Daemon("inst-y", root / "inst-y", [peer, x.endpoint], [*conf_args, *PEERS]).start()
     try:
         assert pres.wait("inst-y", timeout=WAIT_S), y.log()
         names = [f"fo{i:02d}" for i in range(20)]
