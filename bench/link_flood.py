@@ -5,12 +5,14 @@
 
 Setup, all on loopback: this process opens a Zenoh peer listening on a free port; pd-link
 (``python -m pd_service.link``, default limits) connects to it.  Its rules: every robot sensor
-key ``robot/flood/sensor/*`` delayed by 1 h (the configuration raises ``limits.max_delay`` to
-2 h to allow it), a victim stream ``robot/victim/sensor/s`` delayed by 20 ms.
+key ``robot/flood<j>/sensor/*`` delayed by 1 h, one rule per j < ``--rules`` (the configuration
+raises ``limits.max_delay`` to 2 h to allow it), a victim stream ``robot/victim/sensor/s``
+delayed by 20 ms.  Each rule may hold ``limits / (rules + 3)`` (victim rule and the two
+directions' unmatched traffic included): more flooded rules, closer to the whole limit.
 
 Phases (a bounded loop each):
-1. flood: ``--messages`` puts of ``--size`` bytes on one 1 h-delayed key, as fast as Zenoh takes
-   them (congestion control BLOCK);
+1. flood: ``--messages`` puts of ``--size`` bytes, round-robin over the 1 h-delayed rules' keys,
+   as fast as Zenoh takes them (congestion control BLOCK);
 2. keys: ``--keys`` puts, each on a new key ``robot/k<i>/sensor/s`` (passthrough: every one
    needs its own output publisher), with the victim stream sent every 10th put.
 
@@ -71,12 +73,14 @@ def main() -> int:
     ap.add_argument("--messages", type=int, default=300_000, help="flood puts (phase 1)")
     ap.add_argument("--size", type=int, default=1000, help="flood payload, bytes")
     ap.add_argument("--keys", type=int, default=20_000, help="distinct keys (phase 2)")
+    ap.add_argument("--rules", type=int, default=1, help="1 h-delayed rules flooded at once")
     args = ap.parse_args()
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     doc = {"limits": {"max_delay": "7200s"},
            "downlink": [{"name": "victim", "match": VICTIM_IN, "delay": VICTIM_DELAY_MS},
-                        {"name": "hour", "match": "robot/flood/sensor/*", "delay": "3600s"}]}
+                        *({"name": f"hour{j}", "match": f"robot/flood{j}/sensor/*",
+                           "delay": "3600s"} for j in range(args.rules))]}
     victim_ms: list[float] = []
     lock = threading.Lock()
 
@@ -96,8 +100,10 @@ def main() -> int:
              "--instance", INSTANCE, "--log-level", "WARNING"],
             cwd=ROOT, env=os.environ | {"PYTHONPATH": str(ROOT)})
         try:
-            flood = session.declare_publisher(keys.robot_sensor_key("flood", "cam"),
-                                              congestion_control=zenoh.CongestionControl.BLOCK)
+            floods = [session.declare_publisher(keys.robot_sensor_key(f"flood{j}", "cam"),
+                                                congestion_control=zenoh.CongestionControl.BLOCK)
+                      for j in range(args.rules)]
+            flood = floods[0]
             deadline = time.monotonic() + 30
             while True:
                 try:
@@ -119,8 +125,8 @@ def main() -> int:
             record("start")
             payload = b"x" * args.size
             t0 = time.monotonic()
-            for _ in range(args.messages):
-                flood.put(payload)
+            for i in range(args.messages):
+                floods[i % args.rules].put(payload)
             flood_s = time.monotonic() - t0
             record("after flood")
             victim = session.declare_publisher(VICTIM_IN)
@@ -139,7 +145,8 @@ def main() -> int:
 
     print("pd-link memory under a 1 h-delay flood (pd-link as its own process, Zenoh loopback, "
           f"default limits); {args.messages} x {args.size} B flood in {flood_s:.1f} s, "
-          f"{args.keys} keys in {keys_s:.1f} s; {os.cpu_count()} CPUs")
+          f"{args.keys} keys in {keys_s:.1f} s; {args.rules} flooded rule(s); "
+          f"{os.cpu_count()} CPUs")
     print(f"{'phase':<12} {'RSS MB':>8} {'held':>7} {'held MB':>8} {'dropped_cap':>12} "
           f"{'overflow':>9} {'keys':>6} {'evicted':>8} {'publishers':>10}")
     for phase, rss, st in rows:

@@ -553,7 +553,7 @@ class Limits:
                 "max_keys": self.max_keys}  # fmt: skip
 
 
-HELD_OVERHEAD_BYTES = 256  # a held message's heap entry, tuple and ints (CPython, measured ~250)
+HELD_OVERHEAD_BYTES = 640  # a held message's RSS beyond its payload (~690 B measured, bench/link_flood.py)
 
 _DEFAULT_LIMITS = Limits()
 
