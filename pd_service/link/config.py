@@ -58,6 +58,7 @@ from pd_service.wire import keys
 
 from .model import (
     NS_PER_MS,
+    TABLE_LIMIT,
     DelaySpec,
     Distribution,
     FourStateLoss,
@@ -66,7 +67,6 @@ from .model import (
     LossSpec,
     Outage,
     OutageMode,
-    TABLE_LIMIT,
     RandomLoss,
     Rate,
 )

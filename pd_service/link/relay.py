@@ -72,7 +72,8 @@ class RuleStats:
     """Counters of one rule (or of the unmatched traffic of one direction).
 
     Each counter has a single writer thread (worker: received/dropped/duplicated/reordered/
-    corrupted/stalled/dropped_capacity; timer: forwarded and the delay samples), so no lock is needed for them.
+    corrupted/stalled/dropped_capacity; timer: forwarded and the delay samples), so no lock is
+    needed for them; ``held``/``held_bytes`` are guarded by the relay's ``_cond``.
     """
 
     def __init__(self, direction: str, name: str, match: str | None) -> None:

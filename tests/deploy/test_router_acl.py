@@ -171,11 +171,11 @@ def test_deployment_traffic_passes_the_acl(endpoint: str) -> None:
         c["link"].subscribe(keys.ROBOT_ALL_SENSORS, subs["link_robot_sensor"])
         c["service"].subscribe(keys.ALL_SENSORS, subs["service_sensor"])
         c["link"].subscribe(keys.ALL_COMMANDS, subs["link_cmd"])
-        c["robot"].subscribe(keys.ROBOT_ALL_COMMANDS, subs["robot_cmd"])
+        c["robot"].subscribe(keys.robot_command_key("paper"), subs["robot_cmd"])  # own session
         c["display"].subscribe(keys.ALL_PREDICTIONS, subs["display_pred"])
-        c["operator"].subscribe(keys.ALL_PREDICTIONS, subs["operator_pred"])
+        c["operator"].subscribe(keys.prediction_key("paper"), subs["operator_pred"])
         c["display"].subscribe("robot/*/truth", subs["display_truth"])
-        c["operator"].subscribe(keys.ALL_STATUS, subs["operator_status"])
+        c["operator"].subscribe(keys.status_key("paper"), subs["operator_status"])
         c["service"].queryable(keys.ALL_STATUS, lambda q: q.reply(q.key, b"status"))
         c["service"].queryable(keys.service_status_key("pd-a"),
                                lambda q: q.reply(keys.service_status_key("pd-a"), b"svc"))

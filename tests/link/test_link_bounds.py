@@ -4,14 +4,13 @@ the configured delay, and the LRU of per-key routes, models and publishers."""
 from __future__ import annotations
 
 import pytest
+from test_link_memory import MS, Link  # tests/link is on sys.path (no package)
 
 from pd_service.errors import ConfigError
 from pd_service.link.config import HELD_OVERHEAD_BYTES, Limits, load_config, parse_config
 from pd_service.link.relay import LinkRelay
 from pd_service.transport import InMemoryBus, InMemoryTransport
 from pd_service.wire import keys
-
-from test_link_memory import MS, Link  # tests/link is on sys.path (no package)
 
 HOUR = "3600s"
 
