@@ -58,6 +58,7 @@ from pd_service.wire import keys
 
 from .model import (
     NS_PER_MS,
+    TABLE_LIMIT,
     DelaySpec,
     Distribution,
     FourStateLoss,
@@ -502,6 +503,74 @@ RuleList = Annotated[list[_RuleDoc], BeforeValidator(_rule_tables), AfterValidat
 # --- the whole configuration -----------------------------------------------------------
 
 
+_SIZE_UNITS = {"b": 1, "kb": 1000, "kib": 1024, "mb": 1000**2, "mib": 1024**2,
+               "gb": 1000**3, "gib": 1024**3}
+_SIZE_RE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([a-zA-Z]*)\s*$")
+
+
+def parse_size(value: Any) -> int:
+    """A size in bytes: an integer, or a string with a unit (``"64MiB"``, ``"500kB"``, ``"10b"``)."""
+    if isinstance(value, bool):
+        raise ConfigError(f"expected a size in bytes, got {value!r}")
+    if isinstance(value, int):
+        number = float(value)
+    elif isinstance(value, str) and (m := _SIZE_RE.match(value)) is not None:
+        unit = (m.group(2) or "b").lower()
+        if unit not in _SIZE_UNITS:
+            raise ConfigError(f"unknown size unit {m.group(2)!r} (b, kB, KiB, MB, MiB, GB, GiB)")
+        number = float(m.group(1)) * _SIZE_UNITS[unit]
+    else:
+        raise ConfigError(f"expected a size in bytes (e.g. 65536 or '64MiB'), got {value!r}")
+    if not math.isfinite(number) or number < 1:
+        raise ConfigError(f"size must be >= 1 byte, got {value!r}")
+    return int(number)
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """What one pd-link process may hold, whatever the rules and the traffic.
+
+    ``max_held_messages``, ``max_held_bytes``: messages waiting for their release time (the
+    heap) and their bytes (payload + attachment + :data:`HELD_OVERHEAD_BYTES` per message for
+    the entry's own objects).  A message that would exceed either is dropped and counted
+    (``dropped_capacity``).
+    ``max_delay_ns``: a rule whose largest delay (``delay + jitter * max t``) exceeds this is refused when the
+    configuration is read (file or rules query).
+    ``max_keys``: input keys relayed at once, each with its route, per-key model and output
+    publisher; beyond it the least recently used key is forgotten (its publisher undeclared,
+    its model state restarted when it comes back) and counted (``keys_evicted``).
+    """
+
+    max_held_messages: int = 100_000
+    max_held_bytes: int = 64 * 1024 * 1024
+    max_delay_ns: int = 60_000_000_000
+    max_keys: int = 1024
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"max_held_messages": self.max_held_messages,
+                "max_held_bytes": self.max_held_bytes,
+                "max_delay": format_ns(self.max_delay_ns),
+                "max_keys": self.max_keys}  # fmt: skip
+
+
+HELD_OVERHEAD_BYTES = 640  # a held message's RSS beyond its payload (~690 B measured, bench/link_flood.py)
+
+_DEFAULT_LIMITS = Limits()
+
+
+class _LimitsDoc(_Doc):
+    """The ``[limits]`` table (every field optional, defaults of :class:`Limits`)."""
+
+    max_held_messages: Annotated[int, Field(ge=1)] = _DEFAULT_LIMITS.max_held_messages
+    max_held_bytes: Annotated[int, PlainValidator(parse_size)] = _DEFAULT_LIMITS.max_held_bytes
+    max_delay: Duration = _DEFAULT_LIMITS.max_delay_ns
+    max_keys: Annotated[int, Field(ge=1)] = _DEFAULT_LIMITS.max_keys
+
+    def limits(self) -> Limits:
+        return Limits(self.max_held_messages, self.max_held_bytes, self.max_delay,
+                      self.max_keys)  # fmt: skip
+
+
 class _ConfigDoc(_Doc):
     """The document.  Fields are validated in this order: ``step_ms`` is known (through the
     validation context) before the rules' durations in steps are read."""
@@ -509,6 +578,7 @@ class _ConfigDoc(_Doc):
     seed: int = 0
     step_ms: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
     mapping: Annotated[list[KeyMapping], Field(min_length=1)] | None = None
+    limits: _LimitsDoc | None = None
     downlink: RuleList = []
     uplink: RuleList = []
 
@@ -529,6 +599,7 @@ class LinkConfig:
     mappings: tuple[KeyMapping, ...] = DEFAULT_MAPPINGS
     downlink: tuple[Rule, ...] = ()
     uplink: tuple[Rule, ...] = ()
+    limits: Limits = _DEFAULT_LIMITS
 
     def rules(self, direction: Direction) -> tuple[Rule, ...]:
         return self.downlink if direction == "downlink" else self.uplink
@@ -546,6 +617,7 @@ class LinkConfig:
         if self.step_ms is not None:
             out["step_ms"] = self.step_ms
         out["mapping"] = [m.to_dict() for m in self.mappings]
+        out["limits"] = self.limits.to_dict()
         out["downlink"] = [r.to_dict() for r in self.downlink]
         out["uplink"] = [r.to_dict() for r in self.uplink]
         return out
@@ -559,7 +631,10 @@ def parse_config(doc: Any, *, base: LinkConfig | None = None) -> LinkConfig:
     the field).
 
     With ``base`` (runtime replacement): ``seed`` and ``step_ms`` default to the base's, and
-    ``mapping`` may be omitted or must equal the base's (subscriptions are fixed at start).
+    ``mapping`` and ``limits`` may be omitted or must equal the base's (subscriptions and
+    limits are fixed at start: a rules query cannot raise them).
+
+    A rule whose largest delay ``delay + jitter * max t`` exceeds ``limits.max_delay`` is refused.
     """
     if not isinstance(doc, Mapping):
         raise ConfigError("the configuration must be a table / JSON object")
@@ -574,8 +649,24 @@ def parse_config(doc: Any, *, base: LinkConfig | None = None) -> LinkConfig:
         if base is not None and tuple(d.mapping) != base.mappings:
             raise ConfigError("mapping cannot be changed at runtime; restart pd-link")
         mappings = tuple(d.mapping)
+    limits = _DEFAULT_LIMITS if base is None else base.limits
+    if d.limits is not None:
+        if base is not None and d.limits.limits() != base.limits:
+            raise ConfigError("limits cannot be changed at runtime; restart pd-link")
+        limits = d.limits.limits()
+    for direction in DIRECTIONS:
+        for i, r in enumerate(getattr(d, direction)):
+            # the largest delay the rule can draw: t <= 1 (uniform) or TABLE_LIMIT (tables)
+            worst = r.delay + math.ceil(r.jitter * (1.0 if r.distribution == "uniform"
+                                                    else TABLE_LIMIT))
+            if worst > limits.max_delay_ns:
+                raise ConfigError(
+                    f"{direction}[{i}] ({r.name}).delay: the largest delay the rule can draw, "
+                    f"{format_ns(worst)}, "
+                    f"exceeds limits.max_delay = {format_ns(limits.max_delay_ns)} (raise "
+                    "limits.max_delay in the configuration file to allow it)")
     return LinkConfig(d.seed, d.step_ms, mappings, tuple(r.rule() for r in d.downlink),
-                      tuple(r.rule() for r in d.uplink))  # fmt: skip
+                      tuple(r.rule() for r in d.uplink), limits)  # fmt: skip
 
 
 def _describe(err: Any, doc: Mapping[str, Any]) -> str:

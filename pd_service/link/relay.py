@@ -13,7 +13,15 @@ Threads::
 the relay deterministically.
 
 * Payload bytes are relayed verbatim (never decoded); encoding and attachment are kept.
-* One publisher per output key, declared once and cached (reliable: it blocks, never drops).
+* One publisher per output key, declared on its first release and kept in an LRU of
+  ``limits.max_keys`` publishers (reliable: it blocks, never drops); the least recently used
+  one is undeclared when a new key needs a place.
+* Bounded memory (:class:`~pd_service.link.config.Limits`): at most ``max_held_messages``
+  messages and ``max_held_bytes`` bytes wait for release, each rule (and the unmatched traffic
+  of each direction) at most an equal share of them, ``limits / (rules + 2)``, so a flood under
+  one rule never takes another's room (over its share, a message is dropped and counted as
+  ``dropped_capacity``, per rule and in total), and at most ``max_keys`` routes,
+  per-key models and publishers are kept (LRU; evictions counted as ``keys_evicted``).
 * Queryables: :func:`keys.link_rules_key` (GET -> current rules as JSON; GET with a payload ->
   replace the rules, answer the new rules or an error) and :func:`keys.link_stats_key`
   (per-rule counters and delay quantiles as JSON).
@@ -32,7 +40,7 @@ import json
 import logging
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -44,7 +52,14 @@ from pd_service.transport.base import Handle, Publisher, Query, Sample, Transpor
 from pd_service.transport.keyexpr import intersects
 from pd_service.wire import keys
 
-from .config import KeyMapping, LinkConfig, Rule, decode_document, parse_config
+from .config import (
+    HELD_OVERHEAD_BYTES,
+    KeyMapping,
+    LinkConfig,
+    Rule,
+    decode_document,
+    parse_config,
+)
 from .model import Decision, LinkModel
 
 log = logging.getLogger("pd_service.link")
@@ -57,7 +72,8 @@ class RuleStats:
     """Counters of one rule (or of the unmatched traffic of one direction).
 
     Each counter has a single writer thread (worker: received/dropped/duplicated/reordered/
-    corrupted/stalled; timer: forwarded and the delay samples), so no lock is needed for them.
+    corrupted/stalled/dropped_capacity; timer: forwarded and the delay samples), so no lock is
+    needed for them; ``held``/``held_bytes`` are guarded by the relay's ``_cond``.
     """
 
     def __init__(self, direction: str, name: str, match: str | None) -> None:
@@ -72,6 +88,9 @@ class RuleStats:
         self.reordered = 0
         self.corrupted = 0
         self.stalled = 0
+        self.dropped_capacity = 0  # over its share of limits.max_held_messages / _bytes
+        self.held = 0  # messages of this rule waiting for release (guarded by the relay's _cond)
+        self.held_bytes = 0  # their bytes (idem)
         self._lock = threading.Lock()
         self._delay_ns: deque[int] = deque(maxlen=_RESERVOIR)
         self._late_ns: deque[int] = deque(maxlen=_RESERVOIR)
@@ -112,9 +131,12 @@ class RuleStats:
             "match": self.match,
             "received": self.received,
             "forwarded": self.forwarded,
-            "dropped": self.dropped_loss + self.dropped_outage,
+            "dropped": self.dropped_loss + self.dropped_outage + self.dropped_capacity,
             "dropped_loss": self.dropped_loss,
             "dropped_outage": self.dropped_outage,
+            "dropped_capacity": self.dropped_capacity,
+            "held": self.held,
+            "held_bytes": self.held_bytes,
             "duplicated": self.duplicated,
             "reordered": self.reordered,
             "corrupted": self.corrupted,
@@ -127,10 +149,10 @@ class RuleStats:
 
 @dataclass(slots=True)
 class _Route:
-    """Where one input key goes and what is applied to it (cached per rule generation)."""
+    """Where one input key goes and what is applied to it (cached per rule generation).
+    The output publisher is looked up by ``out_key`` at release time (its own LRU)."""
 
     out_key: str
-    publisher: Publisher
     model: LinkModel | None  # None: passthrough (no rule matched)
     stats: RuleStats
 
@@ -143,8 +165,11 @@ class _Generation:
     config: LinkConfig
     epoch_ns: int
     stats: dict[tuple[str, int], RuleStats]  # (direction, rule index or -1 for unmatched)
-    routes: dict[tuple[int, str], _Route | None] = field(default_factory=dict)
-    models: dict[tuple[str, int, str], LinkModel] = field(default_factory=dict)
+    # LRU (most recent last), each at most limits.max_keys entries
+    share: tuple[int, int] = (0, 0)  # what one rule may hold: (messages, bytes)
+    routes: OrderedDict[tuple[int, str], _Route | None] = field(default_factory=OrderedDict)
+    models: OrderedDict[tuple[str, int, str], LinkModel] = field(default_factory=OrderedDict)
+    shared_models: dict[tuple[str, int], LinkModel] = field(default_factory=dict)
 
 
 def _new_generation(number: int, config: LinkConfig, epoch_ns: int) -> _Generation:
@@ -153,7 +178,11 @@ def _new_generation(number: int, config: LinkConfig, epoch_ns: int) -> _Generati
         for i, rule in enumerate(config.rules(direction)):
             stats[(direction, i)] = RuleStats(direction, rule.name, rule.match)
         stats[(direction, -1)] = RuleStats(direction, "(unmatched)", None)
-    return _Generation(number, config, epoch_ns, stats)
+    # each rule (and the unmatched traffic of each direction) may hold an equal share of the
+    # limits, so that a flood under one rule never takes the room of another
+    n, lim = len(stats), config.limits
+    share = (max(1, lim.max_held_messages // n), max(1, lim.max_held_bytes // n))
+    return _Generation(number, config, epoch_ns, stats, share)
 
 
 class LinkRelay:
@@ -165,10 +194,9 @@ class LinkRelay:
     ``express``: Zenoh's express flag on the output publishers (no batching).  Off by default:
     at 10,000 msg/s on loopback it doubled pd-link's CPU (64 % vs 29 % of a core) without
     lowering the latency (bench/link.py).
-    ``max_inbox``: messages waiting for the worker beyond this are dropped (and counted).
+    ``max_inbox``: messages waiting for the worker beyond this are dropped (and counted as
+    ``overflow``).
     """
-
-    MAX_ROUTES = 100_000
 
     def __init__(
         self,
@@ -178,7 +206,7 @@ class LinkRelay:
         *,
         spin_ns: int = 100_000,
         stats_interval_s: float = 10.0,
-        max_inbox: int = 1_000_000,
+        max_inbox: int = 100_000,
         express: bool = False,
         clock: Callable[[], int] = time.monotonic_ns,
     ) -> None:
@@ -198,13 +226,20 @@ class LinkRelay:
         self._cond = threading.Condition(threading.Lock())
         self._seq = itertools.count()
         self._stopping = False
+        self._limits = config.limits
+        self._held = 0  # messages in the heap (guarded by _cond)
+        self._held_bytes = 0  # their bytes, HELD_OVERHEAD_BYTES each included (idem)
 
-        self._publishers: dict[str, Publisher] = {}
+        # output publishers, LRU (most recent last); used by the releasing thread only
+        self._publishers: OrderedDict[str, Publisher] = OrderedDict()
         self._handles: list[Handle] = []
         self._threads: list[threading.Thread] = []
         self.overflow = 0  # inbox full
         self.unmapped = 0  # key that the mapping cannot translate
         self.loops = 0  # output key would be received again by one of our subscriptions
+        self.dropped_capacity = 0  # held messages or bytes at their limit (all rules)
+        self.keys_evicted = 0  # routes and per-key models forgotten (LRU over max_keys)
+        self.publishers_evicted = 0  # publishers undeclared (LRU over max_keys)
         self._warned: set[str] = set()
         self._started_ns = clock()
         self._last_log_ns = self._started_ns
@@ -256,6 +291,8 @@ class LinkRelay:
         self._wake.set()
         with self._cond:
             pending = len(self._heap)
+            self._heap.clear()
+            self._held = self._held_bytes = 0
             self._cond.notify_all()
         for t in self._threads:
             t.join(timeout=5.0)
@@ -307,17 +344,24 @@ class LinkRelay:
     def stats(self) -> dict[str, Any]:
         gen = self._gen
         with self._cond:
-            pending = len(self._heap)
+            pending, held_bytes = len(self._heap), self._held_bytes
         return {
             "instance": self.instance,
             "generation": gen.number,
             "uptime_s": round((self._clock() - self._started_ns) / 1e9, 3),
             "rules_age_s": round((self._clock() - gen.epoch_ns) / 1e9, 3),
             "pending": pending,
+            "pending_bytes": held_bytes,
             "inbox": len(self._inbox),
             "overflow": self.overflow,
             "unmapped": self.unmapped,
             "loops": self.loops,
+            "dropped_capacity": self.dropped_capacity,
+            "keys": len(gen.routes),
+            "keys_evicted": self.keys_evicted,
+            "publishers": len(self._publishers),
+            "publishers_evicted": self.publishers_evicted,
+            "limits": self._limits.to_dict(),
             "rules": [s.snapshot() for s in gen.stats.values()],
         }
 
@@ -404,13 +448,16 @@ class LinkRelay:
                 encoding: str | None, attachment: bytes | None, is_delete: bool) -> None:  # fmt: skip
         gen = self._gen
         route_key = (mapping_index, key)
+        routes = gen.routes
         try:
-            route = gen.routes[route_key]
+            route = routes[route_key]
+            routes.move_to_end(route_key)
         except KeyError:
             route = self._route(gen, mapping_index, key)
-            if len(gen.routes) >= self.MAX_ROUTES:
-                gen.routes.clear()
-            gen.routes[route_key] = route
+            routes[route_key] = route
+            if len(routes) > self._limits.max_keys:
+                routes.popitem(last=False)
+                self.keys_evicted += 1
         if route is None:
             return
         if route.model is None:  # no rule: forward as is
@@ -437,37 +484,60 @@ class LinkRelay:
             self._warn_once(f"loop:{key}", "output key would loop back into pd-link; dropped",
                             key=key, out_key=out_key)  # fmt: skip
             return None
-        publisher = self._publishers.get(out_key)
-        if publisher is None:
-            publisher = self._transport.publisher(out_key, express=self._express)
-            self._publishers[out_key] = publisher
         direction = mapping.direction
         found = gen.config.rule_for(direction, key)
         if found is None:
-            return _Route(out_key, publisher, None, gen.stats[(direction, -1)])
+            return _Route(out_key, None, gen.stats[(direction, -1)])
         index, rule = found
-        return _Route(out_key, publisher, self._model(gen, direction, index, rule, key),
+        return _Route(out_key, self._model(gen, direction, index, rule, key),
                       gen.stats[(direction, index)])  # fmt: skip
 
     def _model(self, gen: _Generation, direction: str, index: int, rule: Rule,
                key: str) -> LinkModel:  # fmt: skip
-        scope = "" if rule.shared else key
-        mkey = (direction, index, scope)
-        model = gen.models.get(mkey)
+        if rule.shared:  # one per rule: bounded by the rule count
+            model = gen.shared_models.get((direction, index))
+            if model is None:
+                seed = f"{gen.config.seed}/{direction}/{rule.name}/*"
+                model = LinkModel(rule.params, seed=seed, epoch_ns=gen.epoch_ns)
+                gen.shared_models[(direction, index)] = model
+            return model
+        mkey = (direction, index, key)
+        models = gen.models
+        model = models.get(mkey)
         if model is None:
-            seed = f"{gen.config.seed}/{direction}/{rule.name}/{scope or '*'}"
+            seed = f"{gen.config.seed}/{direction}/{rule.name}/{key}"
             model = LinkModel(rule.params, seed=seed, epoch_ns=gen.epoch_ns)
-            gen.models[mkey] = model
+            models[mkey] = model
+            if len(models) > self._limits.max_keys:
+                models.popitem(last=False)
+        else:
+            models.move_to_end(mkey)
         return model
 
     def _push(self, release_ns: int, route: _Route, payload: bytes, encoding: str | None,
               attachment: bytes | None, is_delete: bool, arrival_ns: int) -> None:  # fmt: skip
+        size = len(payload) + (len(attachment) if attachment else 0) + HELD_OVERHEAD_BYTES
         item = (release_ns, next(self._seq), route, payload, encoding, attachment, is_delete,
-                arrival_ns)  # fmt: skip
+                arrival_ns, size)  # fmt: skip
+        limits, st = self._limits, route.stats
+        share_msgs, share_bytes = self._gen.share
         with self._cond:
-            heapq.heappush(self._heap, item)
-            if self._heap[0] is item:
-                self._cond.notify()
+            if (self._held >= limits.max_held_messages
+                    or self._held_bytes + size > limits.max_held_bytes
+                    or st.held >= share_msgs or st.held_bytes + size > share_bytes):
+                full = True
+            else:
+                full = False
+                self._held += 1
+                self._held_bytes += size
+                st.held += 1
+                st.held_bytes += size
+                heapq.heappush(self._heap, item)
+                if self._heap[0] is item:
+                    self._cond.notify()
+        if full:
+            route.stats.dropped_capacity += 1
+            self.dropped_capacity += 1
 
     # timer: heap -> publish ----------------------------------------------------------------
 
@@ -512,23 +582,49 @@ class LinkRelay:
         """The heap's items due at ``now``, earliest first (call with ``_cond`` held)."""
         heap, batch = self._heap, []
         while heap and heap[0][0] <= now:
-            batch.append(heapq.heappop(heap))
+            item = heapq.heappop(heap)
+            size, st = item[-1], item[2].stats
+            self._held -= 1
+            self._held_bytes -= size
+            st.held -= 1
+            st.held_bytes -= size
+            batch.append(item)
         return batch
 
     def _publish(self, batch: list[tuple[Any, ...]]) -> None:
         clock = self._clock
-        for release_ns, _, route, payload, encoding, attachment, is_delete, arrival in batch:
+        for release_ns, _, route, payload, encoding, attachment, is_delete, arrival, _n in batch:
             t = clock()
             try:
+                publisher = self._publisher(route.out_key)
                 if is_delete:
-                    route.publisher.delete(attachment=attachment)
+                    publisher.delete(attachment=attachment)
                 else:
-                    route.publisher.put(payload, encoding=encoding, attachment=attachment)
+                    publisher.put(payload, encoding=encoding, attachment=attachment)
             except Exception as e:
                 self._warn_once(f"put:{route.out_key}", "publish failed",
                                 key=route.out_key, error=str(e))  # fmt: skip
                 continue
             route.stats.record_release(t - arrival, t - release_ns)
+
+    def _publisher(self, out_key: str) -> Publisher:
+        """The output key's publisher from the LRU, declared on a miss (the least recently
+        used one undeclared beyond ``limits.max_keys``).  Releasing thread only."""
+        pubs = self._publishers
+        pub = pubs.get(out_key)
+        if pub is not None:
+            pubs.move_to_end(out_key)
+            return pub
+        if len(pubs) >= self._limits.max_keys:  # undeclare first: never more than max_keys
+            _, old = pubs.popitem(last=False)
+            self.publishers_evicted += 1
+            try:
+                old.close()
+            except Exception as e:
+                self._warn_once("undeclare", "cannot undeclare a publisher", error=str(e))
+        pub = self._transport.publisher(out_key, express=self._express)
+        pubs[out_key] = pub
+        return pub
 
     # logging -------------------------------------------------------------------------------
 
@@ -545,15 +641,20 @@ class LinkRelay:
                 "generation": self._gen.number,
                 "direction": snap["direction"], "rule": snap["name"],
                 "received": snap["received"], "forwarded": snap["forwarded"],
-                "dropped": snap["dropped"], "duplicated": snap["duplicated"],
+                "dropped": snap["dropped"], "dropped_capacity": snap["dropped_capacity"],
+                "duplicated": snap["duplicated"],
                 "reordered": snap["reordered"], "corrupted": snap["corrupted"],
                 "stalled": snap["stalled"],
                 "delay_p50_ms": snap["delay_ms"]["p50"], "delay_p99_ms": snap["delay_ms"]["p99"],
                 "late_p99_ms": snap["lateness_ms"]["p99"],
             }})  # fmt: skip
-        if self.overflow or self.unmapped or self.loops:
+        if self.overflow or self.unmapped or self.loops or self.dropped_capacity:
+            with self._cond:
+                held, held_bytes = self._held, self._held_bytes
             log.warning("refused", extra={"fields": {
-                "overflow": self.overflow, "unmapped": self.unmapped, "loops": self.loops}})
+                "overflow": self.overflow, "unmapped": self.unmapped, "loops": self.loops,
+                "dropped_capacity": self.dropped_capacity, "held": held,
+                "held_bytes": held_bytes, "keys_evicted": self.keys_evicted}})
 
     def _warn_once(self, tag: str, msg: str, **fields: Any) -> None:
         if tag in self._warned or len(self._warned) > 1000:

@@ -23,7 +23,7 @@ from pd_service.transport import ZenohTransport, zenoh_config
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
 ZENOH_DIR = DEPLOY / "zenoh"
-ROLES = ("operator", "robot", "service", "link", "display")
+ROLES = ("admin", "operator", "robot", "service", "link", "display")
 
 T = TypeVar("T")
 
@@ -48,14 +48,15 @@ def read_users(path: Path = ZENOH_DIR / "users.txt") -> dict[str, str]:
     return users
 
 
-def open_router(endpoint: str, *, acl: bool = True) -> ZenohTransport:
-    """A router session configured by deploy/zenoh/router.json5, listening on ``endpoint``.
+def open_router(endpoint: str, *, acl: bool = True, file: Path = ZENOH_DIR / "router.json5",
+                users: Path = ZENOH_DIR / "users.txt") -> ZenohTransport:
+    """A router session configured by ``file`` (deploy/zenoh/router.json5), listening on
+    ``endpoint``, its user list ``users``.
 
     ``acl=False`` turns access control off (authentication stays on): the control case that
     shows a test would notice a message the ACL failed to stop."""
-    conf = zenoh_config(file=ZENOH_DIR / "router.json5", listen=[endpoint])
-    conf.insert_json5("transport/auth/usrpwd/dictionary_file",
-                      json.dumps(str(ZENOH_DIR / "users.txt")))
+    conf = zenoh_config(file=file, listen=[endpoint])
+    conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
     if not acl:
         conf.insert_json5("access_control/enabled", "false")
     return ZenohTransport(conf)
@@ -90,8 +91,13 @@ def wait_for(probe: Callable[[], T], timeout: float, what: str, interval: float 
 
 def load_healthcheck() -> ModuleType:
     """deploy/healthcheck.py as a module (it is a script copied into the image)."""
-    spec = importlib.util.spec_from_file_location("pd_deploy_healthcheck",
-                                                  DEPLOY / "healthcheck.py")
+    return load_deploy_script("healthcheck.py")
+
+
+def load_deploy_script(name: str) -> ModuleType:
+    """A script of deploy/ (healthcheck.py, make_acl.py) as a module."""
+    spec = importlib.util.spec_from_file_location(f"pd_deploy_{name.removesuffix('.py')}",
+                                                  DEPLOY / name)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

@@ -29,7 +29,15 @@ import zenoh
 from pd_service.link.config import load_config
 from pd_service.transport.keyexpr import intersects
 
-from ._support import DEPLOY, REPO, ROLES, ZENOH_DIR, load_healthcheck, read_users
+from ._support import (
+    DEPLOY,
+    REPO,
+    ROLES,
+    ZENOH_DIR,
+    load_deploy_script,
+    load_healthcheck,
+    read_users,
+)
 
 ZENOH_VERSION = importlib.metadata.version("eclipse-zenoh")
 JSON5_FILES = sorted(DEPLOY.rglob("*.json5"))
@@ -78,6 +86,7 @@ def test_deploy_has_the_expected_files() -> None:
     names = {p.relative_to(DEPLOY).as_posix() for p in DEPLOY.rglob("*") if p.is_file()}
     want = {"compose.yml", "Dockerfile", "README.md", "healthcheck.py", "link-paper.toml",
             "systemd/pd-service.service", "zenoh/router.json5", "zenoh/users.txt",
+            "make_acl.py", "sessions.toml",
             *(f"zenoh/{r}.json5" for r in ROLES)}
     assert want <= names
 
@@ -113,6 +122,14 @@ def test_role_config_is_an_authenticated_client_of_the_router(role: str) -> None
 
 def acl() -> dict[str, Any]:
     return json5(ZENOH_DIR / "router.json5")["access_control"]
+
+
+def test_router_json5_is_what_the_generator_makes_of_sessions_toml(monkeypatch) -> None:
+    monkeypatch.chdir(REPO)  # the header names the sessions file as given
+    make_acl = load_deploy_script("make_acl.py")
+    assert make_acl.main(["deploy/sessions.toml", "--check", str(ZENOH_DIR / "router.json5")]
+                         ) == 0, "run: python deploy/make_acl.py deploy/sessions.toml " \
+                                 "> deploy/zenoh/router.json5"
 
 
 def test_router_requires_auth_and_denies_by_default() -> None:
@@ -161,25 +178,36 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
 
 
 @pytest.mark.parametrize(("message", "flow", "key", "who"), [
-    ("put", "ingress", "pd/s1/cmd", {"operator"}),
-    ("delete", "ingress", "pd/s1/cmd", {"operator"}),
-    ("put", "ingress", "robot/s1/sensor/camera", {"robot"}),
-    ("put", "ingress", "robot/s1/truth", {"robot"}),
-    ("put", "ingress", "pd/s1/prediction", {"service"}),
-    ("put", "ingress", "pd/s1/error", {"service"}),
-    ("put", "ingress", "pd/s1/status", {"service"}),
-    ("put", "ingress", "pd/s1/sensor/camera", {"link", "robot"}),   # robot: direct mode
-    ("put", "ingress", "robot/s1/cmd", {"link"}),
-    ("put", "ingress", "pd/s1/config", {"operator", "robot"}),      # robot: sim sessions
+    # deploy/sessions.toml: session "paper" (robot "robot", operator "operator", direct,
+    # robot_creates); "other" is a session nobody was given
+    ("put", "ingress", "pd/paper/cmd", {"operator"}),
+    ("delete", "ingress", "pd/paper/cmd", {"operator"}),
+    ("put", "ingress", "pd/other/cmd", set()),
+    ("put", "ingress", "robot/paper/sensor/camera", {"robot"}),
+    ("put", "ingress", "robot/other/sensor/camera", set()),
+    ("put", "ingress", "robot/paper/truth", {"robot"}),
+    ("put", "ingress", "pd/paper/prediction", {"service"}),
+    ("put", "ingress", "pd/paper/error", {"service"}),
+    ("put", "ingress", "pd/paper/status", {"service"}),
+    ("put", "ingress", "pd/paper/sensor/camera", {"link", "robot"}),   # robot: direct mode
+    ("put", "ingress", "pd/other/sensor/camera", {"link"}),
+    ("put", "ingress", "robot/paper/cmd", {"link"}),
+    ("put", "ingress", "pd/paper/config", {"admin", "robot"}),      # robot: robot_creates
+    ("put", "ingress", "pd/other/config", {"admin"}),
+    ("delete", "ingress", "pd/other/config", {"admin", "service"}),  # service: expiry
     ("put", "ingress", "pd/@service/pd-a", {"service"}),
     ("liveliness_token", "ingress", "pd/@service/pd-a", {"service"}),
-    ("declare_queryable", "ingress", "pd/s1/status", {"service"}),
+    ("declare_queryable", "ingress", "pd/paper/status", {"service"}),
     ("declare_queryable", "ingress", "pd/@service/pd-a/status", {"service"}),
     ("declare_queryable", "ingress", "pd/@link/paper/rules", {"link"}),
-    ("query", "ingress", "pd/@link/paper/rules", {"operator"}),     # a payload replaces rules
-    ("put", "egress", "pd/s1/cmd", {"service", "link", "robot"}),
-    ("put", "egress", "robot/s1/truth", {"display"}),
-    ("put", "egress", "robot/s1/cmd", {"robot"}),
+    ("query", "ingress", "pd/@link/paper/rules", {"admin"}),       # a payload replaces rules
+    ("put", "ingress", "pd/@link/paper/rules", {"admin"}),
+    ("put", "egress", "pd/paper/cmd", {"service", "link", "robot"}),
+    ("put", "egress", "pd/paper/prediction", {"admin", "operator", "display", "robot"}),
+    ("put", "egress", "pd/other/prediction", {"admin", "display"}),
+    ("put", "egress", "robot/paper/truth", {"display"}),
+    ("put", "egress", "robot/paper/cmd", {"robot"}),
+    ("put", "egress", "robot/other/cmd", set()),
 ])
 def test_who_may_do_what(message: str, flow: str, key: str, who: set[str]) -> None:
     assert allowed_users(message, flow, key) == who

@@ -115,11 +115,11 @@ def publish_race(sub: Collector, key: str, allowed: ZenohTransport, other: Zenoh
 
 CASES = {
     # name: (subscriber role, its key expression, key published, allowed role, refused role)
-    "commands": ("service", keys.ALL_COMMANDS, keys.command_key("s1"), "operator", "robot"),
-    "robot-data": ("link", keys.ROBOT_ALL_SENSORS, keys.robot_sensor_key("s1", "camera"),
+    "commands": ("service", keys.ALL_COMMANDS, keys.command_key("paper"), "operator", "robot"),
+    "robot-data": ("link", keys.ROBOT_ALL_SENSORS, keys.robot_sensor_key("paper", "camera"),
                    "robot", "operator"),
-    "truth": ("display", "robot/*/truth", keys.truth_key("s1"), "robot", "link"),
-    "predictions": ("display", keys.ALL_PREDICTIONS, keys.prediction_key("s1"), "service",
+    "truth": ("display", "robot/*/truth", keys.truth_key("paper"), "robot", "link"),
+    "predictions": ("display", keys.ALL_PREDICTIONS, keys.prediction_key("paper"), "service",
                     "operator"),
 }
 
@@ -171,11 +171,11 @@ def test_deployment_traffic_passes_the_acl(endpoint: str) -> None:
         c["link"].subscribe(keys.ROBOT_ALL_SENSORS, subs["link_robot_sensor"])
         c["service"].subscribe(keys.ALL_SENSORS, subs["service_sensor"])
         c["link"].subscribe(keys.ALL_COMMANDS, subs["link_cmd"])
-        c["robot"].subscribe(keys.ROBOT_ALL_COMMANDS, subs["robot_cmd"])
+        c["robot"].subscribe(keys.robot_command_key("paper"), subs["robot_cmd"])  # own session
         c["display"].subscribe(keys.ALL_PREDICTIONS, subs["display_pred"])
-        c["operator"].subscribe(keys.ALL_PREDICTIONS, subs["operator_pred"])
+        c["operator"].subscribe(keys.prediction_key("paper"), subs["operator_pred"])
         c["display"].subscribe("robot/*/truth", subs["display_truth"])
-        c["operator"].subscribe(keys.ALL_STATUS, subs["operator_status"])
+        c["operator"].subscribe(keys.status_key("paper"), subs["operator_status"])
         c["service"].queryable(keys.ALL_STATUS, lambda q: q.reply(q.key, b"status"))
         c["service"].queryable(keys.service_status_key("pd-a"),
                                lambda q: q.reply(keys.service_status_key("pd-a"), b"svc"))
@@ -184,14 +184,14 @@ def test_deployment_traffic_passes_the_acl(endpoint: str) -> None:
         c["service"].declare_token(keys.service_token_key("pd-a"))
 
         flows = [  # (publisher, key, collector)
-            ("robot", keys.robot_sensor_key("s1", "camera"), "link_robot_sensor"),
-            ("link", keys.sensor_key("s1", "camera"), "service_sensor"),
-            ("operator", keys.command_key("s1"), "link_cmd"),
-            ("link", keys.robot_command_key("s1"), "robot_cmd"),
-            ("service", keys.prediction_key("s1"), "display_pred"),
-            ("service", keys.prediction_key("s1"), "operator_pred"),
-            ("robot", keys.truth_key("s1"), "display_truth"),
-            ("service", keys.status_key("s1"), "operator_status"),
+            ("robot", keys.robot_sensor_key("paper", "camera"), "link_robot_sensor"),
+            ("link", keys.sensor_key("paper", "camera"), "service_sensor"),
+            ("operator", keys.command_key("paper"), "link_cmd"),
+            ("link", keys.robot_command_key("paper"), "robot_cmd"),
+            ("service", keys.prediction_key("paper"), "display_pred"),
+            ("service", keys.prediction_key("paper"), "operator_pred"),
+            ("robot", keys.truth_key("paper"), "display_truth"),
+            ("service", keys.status_key("paper"), "operator_status"),
         ]
         for role, key, name in flows:
             def delivered(role=role, key=key, name=name) -> bool:
@@ -200,7 +200,7 @@ def test_deployment_traffic_passes_the_acl(endpoint: str) -> None:
             wait_for(delivered, TIMEOUT_S, f"{role}'s put on {key} to reach {name}")
 
         for role in ("operator", "display"):
-            for selector, want in ((keys.status_key("s1"), b"status"),
+            for selector, want in ((keys.status_key("paper"), b"status"),
                                    (keys.all_service_status(), b"svc"),
                                    (keys.link_stats_key("paper"), b"stats")):
                 got = wait_for(lambda role=role, selector=selector: [
@@ -276,9 +276,9 @@ def test_daemon_gets_commands_from_the_operator_only(endpoint: str, daemon, tmp_
     """The robot's command on pd/<s>/cmd never reaches the daemon (its counters, read from
     its status queryables, show neither an acceptance nor a refusal of it), the operator's
     does, and the robot's own measurement does (so the robot was connected and heard)."""
-    session = "acl"
+    session = "paper"  # deploy/sessions.toml's session
     with open_router(endpoint), open_client("operator", endpoint) as operator, \
-            open_client("robot", endpoint) as robot:
+            open_client("robot", endpoint) as robot, open_client("admin", endpoint) as admin:
         def daemon_alive() -> bool:
             if daemon.poll() is not None:
                 raise AssertionError("the daemon exited:\n"
@@ -287,7 +287,7 @@ def test_daemon_gets_commands_from_the_operator_only(endpoint: str, daemon, tmp_
                 keys.ALL_SERVICES, timeout=0.5)
         wait_for(daemon_alive, 30.0, "the daemon's liveliness token")
 
-        operator.put(keys.config_key(session), encode(small_spec(session, time.time_ns())))
+        admin.put(keys.config_key(session), encode(small_spec(session, time.time_ns())))
         st = wait_for(lambda: session_status(operator, session), TIMEOUT_S,
                       "the daemon to serve the session")
         assert st.state == "active"

@@ -1,0 +1,306 @@
+#!/usr/bin/env python3
+"""Generate the Zenoh router configuration (access control scoped by session) of a pd-service
+deployment from a short list of sessions and users.
+
+    python deploy/make_acl.py deploy/sessions.toml > deploy/zenoh/router.json5
+    python deploy/make_acl.py deploy/sessions.toml --check deploy/zenoh/router.json5
+
+The input (TOML; every list of users may name several users, a user may have several roles)::
+
+    admins = ["admin"]        # create, replace, delete ANY session: pd/<s>/config
+    link_admins = ["admin"]   # read and replace pd-link's rules: pd/@link/<i>/rules
+    services = ["service"]    # the pd-service daemon instances (pd/@service/** is theirs only)
+    links = ["link"]          # the link emulator (bridges robot/<s>/... <-> pd/<s>/...)
+    displays = ["display"]    # read-only: predictions, errors, statuses, specs, truth, stats
+    users_file = "/etc/zenoh/users.txt"   # optional (router's path of the user:password list)
+    listen = ["tcp/[::]:7447"]            # optional
+
+    [[session]]
+    name = "paper"
+    robot = "robot"           # puts robot/paper/sensor/*, robot/paper/truth; gets robot/paper/cmd
+    operator = "operator"     # puts pd/paper/cmd; reads pd/paper/{prediction,error,status,config}
+    direct = true             # optional: the robot also puts pd/paper/sensor/* and gets
+                              # pd/paper/cmd (no link emulator in between)
+    robot_creates = true      # optional: the robot may create/replace/delete THIS session's
+                              # spec (pd-robot-sim --create-session); default: admins only
+
+Only stdlib; the output is JSON (valid JSON5) behind a comment header.  Rules come in the pairs
+of Zenoh's model: what a client may send in (``ingress``: put, declare_subscriber, query,
+declare_queryable, reply, liveliness_token) and what the router may deliver to it (``egress``).
+Exit status 2 with a message for a bad input file; with ``--check FILE``, 1 if FILE differs
+from what would be generated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import tomllib
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # keys.check_name's alphabet
+_USER = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+_ROLE_LISTS = ("admins", "link_admins", "services", "links", "displays")
+_TOP = {*_ROLE_LISTS, "users_file", "listen", "session"}
+_SESSION = {"name", "robot", "operator", "direct", "robot_creates"}
+RESULTS = ("prediction", "error", "status")
+
+
+class InputError(ValueError):
+    """The sessions file is not valid (the message names the field)."""
+
+
+def _users(doc: dict[str, Any], field: str) -> list[str]:
+    value = doc.get(field, [])
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(u, str) for u in value):
+        raise InputError(f"{field}: expected a list of user names")
+    for u in value:
+        if not _USER.match(u):
+            raise InputError(f"{field}: bad user name {u!r}")
+    return value
+
+
+def read_sessions(doc: dict[str, Any]) -> dict[str, Any]:
+    """Check a decoded sessions file; returns it normalised (lists, booleans, defaults)."""
+    unknown = set(doc) - _TOP
+    if unknown:
+        raise InputError(f"unknown field(s) {sorted(unknown)} (known: {sorted(_TOP)})")
+    out: dict[str, Any] = {f: _users(doc, f) for f in _ROLE_LISTS}
+    if not out["services"]:
+        raise InputError("services: at least one user (the pd-service daemon)")
+    out["users_file"] = doc.get("users_file", "/etc/zenoh/users.txt")
+    listen = doc.get("listen", ["tcp/[::]:7447"])
+    out["listen"] = [listen] if isinstance(listen, str) else listen
+    sessions = doc.get("session", [])
+    if not isinstance(sessions, list) or not sessions:
+        raise InputError("session: at least one [[session]] table")
+    seen: set[str] = set()
+    out["session"] = []
+    for i, s in enumerate(sessions):
+        where = f"session[{i}]"
+        if not isinstance(s, dict):
+            raise InputError(f"{where}: expected a table")
+        if set(s) - _SESSION:
+            raise InputError(f"{where}: unknown field(s) {sorted(set(s) - _SESSION)}")
+        name = s.get("name")
+        if not isinstance(name, str) or not _NAME.match(name):
+            raise InputError(f"{where}.name: a session name ([A-Za-z0-9_.-], no wildcard), "
+                             f"got {name!r}")
+        if name in seen:
+            raise InputError(f"{where}.name: {name!r} listed twice")
+        seen.add(name)
+        entry = {"name": name, "robot": _users(s, "robot"), "operator": _users(s, "operator"),
+                 "direct": s.get("direct", False), "robot_creates": s.get("robot_creates", False)}
+        for flag in ("direct", "robot_creates"):
+            if not isinstance(entry[flag], bool):
+                raise InputError(f"{where}.{flag}: true or false")
+        out["session"].append(entry)
+    return out
+
+
+def _rule(rid: str, flows: Iterable[str], messages: Iterable[str], key_exprs: Iterable[str]
+          ) -> dict[str, Any]:
+    return {"id": rid, "permission": "allow", "flows": list(flows), "messages": list(messages),
+            "key_exprs": sorted(set(key_exprs))}
+
+
+# rules every deployment has (not scoped by session): (id, flows, messages, key_exprs)
+_FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
+    # A Zenoh 1.x client with a declared publisher drops a put locally while it knows of no
+    # matching subscriber; it learns of subscribers through declarations that cross the router
+    # as egress "declare_subscriber".  Reveals key expressions, never data.
+    "learn-subscribers": (("egress",), ("declare_subscriber",), ("pd/**", "robot/**")),
+    # admins: create = put, remove = delete; serve the spec to queries; follow the result
+    "admin-specs-in": (("ingress",), ("put", "delete", "declare_subscriber", "query",
+                                      "declare_queryable", "reply"), ("pd/*/config",)),
+    "admin-specs-out": (("egress",), ("put", "delete", "query", "reply"), ("pd/*/config",)),
+    "admin-results-ask": (("ingress",), ("declare_subscriber", "query"),
+                          tuple(f"pd/*/{r}" for r in RESULTS)),
+    "admin-results-get": (("egress",), ("put", "delete", "reply"),
+                          tuple(f"pd/*/{r}" for r in RESULTS)),
+    # which daemon instances are alive and their status (read-only for everybody but services)
+    "watch-services-ask": (("ingress",), ("declare_liveliness_subscriber", "liveliness_query",
+                                          "query"), ("pd/@service/*", "pd/@service/*/status")),
+    "watch-services-get": (("egress",), ("liveliness_token", "reply"),
+                           ("pd/@service/*", "pd/@service/*/status")),
+    "read-link-stats-ask": (("ingress",), ("query",), ("pd/@link/*/stats",)),
+    "read-link-stats-get": (("egress",), ("reply",), ("pd/@link/*/stats",)),
+    # a query on .../rules with a payload replaces pd-link's rules: link admins only
+    "admin-link-rules-ask": (("ingress",), ("query", "put"), ("pd/@link/*/rules",)),
+    "admin-link-rules-get": (("egress",), ("reply",), ("pd/@link/*/rules",)),
+    # the daemon: every session (it serves them all)
+    "service-write": (("ingress",), ("put", "delete"), tuple(f"pd/*/{r}" for r in RESULTS)),
+    "service-retire-specs": (("ingress",), ("delete",), ("pd/*/config",)),
+    "service-ask": (("ingress",), ("declare_subscriber", "query", "declare_queryable", "reply"),
+                    ("pd/*/config", "pd/*/sensor/*", "pd/*/cmd", "pd/*/status")),
+    "service-get": (("egress",), ("put", "delete", "reply", "query"),
+                    ("pd/*/config", "pd/*/sensor/*", "pd/*/cmd", "pd/*/status")),
+    # daemon instances among themselves: liveliness tokens (session membership), status,
+    # peer queries, replicated state.  ONLY services: a token here takes sessions over.
+    "service-coordination": (("ingress", "egress"), (
+        "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
+        "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"),
+        ("pd/@service/**",)),
+    # the link emulator: every session
+    "link-ask": (("ingress",), ("declare_subscriber",), ("robot/*/sensor/*", "pd/*/cmd")),
+    "link-get": (("egress",), ("put", "delete"), ("robot/*/sensor/*", "pd/*/cmd")),
+    "link-write": (("ingress",), ("put", "delete"), ("pd/*/sensor/*", "robot/*/cmd")),
+    "link-serve-in": (("ingress",), ("declare_queryable", "reply"),
+                      ("pd/@link/*/rules", "pd/@link/*/stats")),
+    "link-serve-out": (("egress",), ("query",), ("pd/@link/*/rules", "pd/@link/*/stats")),
+    # displays: read-only, every session
+    "display-ask": (("ingress",), ("declare_subscriber", "query"),
+                    (*(f"pd/*/{r}" for r in RESULTS), "pd/*/config", "robot/*/truth")),
+    "display-get": (("egress",), ("put", "delete", "reply"),
+                    (*(f"pd/*/{r}" for r in RESULTS), "pd/*/config", "robot/*/truth")),
+}
+
+_ROLE_RULES = {
+    "admins": ("admin-specs-in", "admin-specs-out", "admin-results-ask", "admin-results-get",
+               "watch-services-ask", "watch-services-get"),
+    "link_admins": ("admin-link-rules-ask", "admin-link-rules-get",
+                    "read-link-stats-ask", "read-link-stats-get"),
+    "services": ("service-write", "service-retire-specs", "service-ask", "service-get",
+                 "service-coordination"),
+    "links": ("link-ask", "link-get", "link-write", "link-serve-in", "link-serve-out",
+              "read-link-stats-ask", "read-link-stats-get"),
+    "displays": ("display-ask", "display-get", "watch-services-ask", "watch-services-get",
+                 "read-link-stats-ask", "read-link-stats-get"),
+}
+
+
+def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[dict[str, Any]]
+                   ) -> tuple[list[dict[str, Any]], list[str]]:
+    """The rules of one user scoped to its sessions, and the fixed rules it also needs."""
+    rules: list[dict[str, Any]] = []
+    fixed: list[str] = []
+    if robot_of:
+        names = [s["name"] for s in robot_of]
+        direct = [s["name"] for s in robot_of if s["direct"]]
+        creates = [s["name"] for s in robot_of if s["robot_creates"]]
+        rules += [
+            _rule(f"robot-{user}-write", ["ingress"], ["put", "delete"],
+                  [*(f"robot/{s}/sensor/*" for s in names), *(f"robot/{s}/truth" for s in names),
+                   *(f"pd/{s}/sensor/*" for s in direct)]),
+            _rule(f"robot-{user}-ask", ["ingress"], ["declare_subscriber", "query"],
+                  [*(f"robot/{s}/cmd" for s in names), *(f"pd/{s}/cmd" for s in direct),
+                   *(f"pd/{s}/config" for s in names)]),
+            _rule(f"robot-{user}-get", ["egress"], ["put", "delete", "reply"],
+                  [*(f"robot/{s}/cmd" for s in names), *(f"pd/{s}/cmd" for s in direct),
+                   *(f"pd/{s}/config" for s in names)]),
+        ]
+        if creates:
+            results = [f"pd/{s}/{r}" for s in creates for r in RESULTS]
+            rules += [  # put/delete/serve its sessions' specs; follow the daemon's answer
+                _rule(f"robot-{user}-create-in", ["ingress"],
+                      ["put", "delete", "declare_queryable", "reply"],
+                      [f"pd/{s}/config" for s in creates]),
+                _rule(f"robot-{user}-create-out", ["egress"], ["query"],
+                      [f"pd/{s}/config" for s in creates]),
+                _rule(f"robot-{user}-results-ask", ["ingress"], ["declare_subscriber", "query"],
+                      results),
+                _rule(f"robot-{user}-results-get", ["egress"], ["put", "delete", "reply"],
+                      results),
+            ]
+            fixed += ["watch-services-ask", "watch-services-get"]
+    if operator_of:
+        names = [s["name"] for s in operator_of]
+        readable = [f"pd/{s}/{r}" for s in names for r in (*RESULTS, "config")]
+        rules += [
+            _rule(f"operator-{user}-write", ["ingress"], ["put", "delete"],
+                  [f"pd/{s}/cmd" for s in names]),
+            _rule(f"operator-{user}-ask", ["ingress"], ["declare_subscriber", "query"], readable),
+            _rule(f"operator-{user}-get", ["egress"], ["put", "delete", "reply"], readable),
+        ]
+        fixed += ["watch-services-ask", "watch-services-get", "read-link-stats-ask",
+                  "read-link-stats-get"]
+    return rules, fixed
+
+
+def build(sessions: dict[str, Any]) -> dict[str, Any]:
+    """The router configuration (a dict) for a checked sessions description."""
+    per_user_fixed: dict[str, list[str]] = {}
+    for role, rule_ids in _ROLE_RULES.items():
+        for u in sessions[role]:
+            per_user_fixed.setdefault(u, []).extend(rule_ids)
+    robot_of: dict[str, list[dict[str, Any]]] = {}
+    operator_of: dict[str, list[dict[str, Any]]] = {}
+    for s in sessions["session"]:
+        for u in s["robot"]:
+            robot_of.setdefault(u, []).append(s)
+        for u in s["operator"]:
+            operator_of.setdefault(u, []).append(s)
+    users = sorted({*per_user_fixed, *robot_of, *operator_of})
+    scoped: list[dict[str, Any]] = []
+    policies: list[dict[str, Any]] = []
+    for u in users:
+        rules, fixed = _session_rules(u, robot_of.get(u, []), operator_of.get(u, []))
+        scoped += rules
+        wanted = ["learn-subscribers", *per_user_fixed.get(u, []), *fixed]
+        ids = list(dict.fromkeys([*wanted, *(r["id"] for r in rules)]))
+        policies.append({"id": f"user-{u}", "subjects": [f"user-{u}"], "rules": ids})
+    used = {rid for p in policies for rid in p["rules"]}
+    fixed_rules = [_rule(rid, *spec) for rid, spec in _FIXED.items() if rid in used]
+    return {
+        "mode": "router",
+        "listen": {"endpoints": sessions["listen"]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"dictionary_file": sessions["users_file"]}}},
+        "adminspace": {"enabled": False, "permissions": {"read": False, "write": False}},
+        "access_control": {
+            "enabled": True,
+            "default_permission": "deny",
+            "rules": fixed_rules + scoped,
+            "subjects": [{"id": f"user-{u}", "usernames": [u]} for u in users],
+            "policies": policies,
+        },
+    }
+
+
+HEADER = """\
+// Zenoh router (zenohd) of a pd-service deployment: user/password authentication and access
+// control scoped by session.  GENERATED by deploy/make_acl.py from {source}; do not edit:
+// change the sessions file and run
+//     python deploy/make_acl.py {source} > router.json5
+// Zenoh 1.10.x syntax.  Deny by default; a message crosses the router only if a rule allows it
+// for the SENDER's user on the way in (ingress) AND for the RECEIVER's user on the way out
+// (egress).  Access control applies only to traffic THROUGH this router: every process must
+// connect to it as a client (deploy/README.md, "Security model").  Keys: pd_service/wire/keys.py.
+"""
+
+
+def render(sessions: dict[str, Any], source: str) -> str:
+    return HEADER.format(source=source) + json.dumps(build(sessions), indent=2) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="make_acl.py", description=__doc__.split("\n\n")[0])
+    ap.add_argument("sessions", help="the sessions file (.toml)")
+    ap.add_argument("--check", metavar="FILE",
+                    help="exit 1 if FILE differs from the generated configuration")
+    args = ap.parse_args(argv)
+    path = Path(args.sessions)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        text = render(read_sessions(doc), path.as_posix())
+    except (OSError, tomllib.TOMLDecodeError, InputError) as e:
+        print(f"make_acl.py: {path}: {e}", file=sys.stderr)
+        return 2
+    if args.check:
+        same = Path(args.check).read_text(encoding="utf-8") == text
+        if not same:
+            print(f"make_acl.py: {args.check} is not what {path} generates", file=sys.stderr)
+        return 0 if same else 1
+    sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
