@@ -187,3 +187,26 @@ def test_import_pd_client_is_light(forbidden: str) -> None:
     code = f"import pd_client, sys; print({forbidden!r} in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False", f"import pd_client loads {forbidden}"
+
+
+def _short(layer: str) -> str:
+    return layer.removeprefix("pd_service.") if layer != "pd_service" else layer
+
+
+def layer_table() -> list[str]:
+    """The rows of docs/architecture.md's layer table, as ``ALLOWED`` and ``THIRD_PARTY`` say."""
+    rows = []
+    for layer, allowed in ALLOWED.items():
+        project = ", ".join(sorted(_short(a) for a in allowed)) or "nothing"
+        third = THIRD_PARTY.get(layer)
+        party = "any" if third is None else " + ".join(sorted(third) + ["stdlib"])
+        rows.append(f"| `{layer}` | {project} | {party} |")
+    return rows
+
+
+def test_architecture_doc_states_the_enforced_table() -> None:
+    """docs/architecture.md's table is this test's table, row for row (regenerate it with
+    ``python -c "from tests.test_layers import layer_table; print(*layer_table(), sep='\\n')"``)."""
+    doc = (ROOT / "docs" / "architecture.md").read_text(encoding="utf-8").splitlines()
+    rows = [line for line in doc if line.startswith("| `pd_")]
+    assert rows == layer_table()
