@@ -58,7 +58,6 @@ from pd_service.wire import (  # noqa: E402
     Prediction,
     SensorSpec,
     SessionSpec,
-    decode,
     encode,
     keys,
 )

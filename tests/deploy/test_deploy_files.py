@@ -178,8 +178,8 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
 
 
 @pytest.mark.parametrize(("message", "flow", "key", "who"), [
-    # deploy/sessions.toml: session "paper" (robot "robot", operator "operator", direct,
-    # robot_creates); "other" is a session nobody was given
+    # deploy/sessions.toml: session "paper" (robot "robot", operator "operator", direct;
+    # created by the admin); "other" is a session nobody was given
     ("put", "ingress", "pd/paper/cmd", {"operator"}),
     ("delete", "ingress", "pd/paper/cmd", {"operator"}),
     ("put", "ingress", "pd/other/cmd", set()),
@@ -192,7 +192,8 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
     ("put", "ingress", "pd/paper/sensor/camera", {"link", "robot"}),   # robot: direct mode
     ("put", "ingress", "pd/other/sensor/camera", {"link"}),
     ("put", "ingress", "robot/paper/cmd", {"link"}),
-    ("put", "ingress", "pd/paper/config", {"admin", "robot"}),      # robot: robot_creates
+    ("put", "ingress", "pd/paper/config", {"admin"}),            # the robot may not create
+    ("delete", "ingress", "pd/paper/config", {"admin", "service"}),  # service: expiry
     ("put", "ingress", "pd/other/config", {"admin"}),
     ("delete", "ingress", "pd/other/config", {"admin", "service"}),  # service: expiry
     ("put", "ingress", "pd/@service/pd-a", {"service"}),
