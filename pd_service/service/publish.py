@@ -19,11 +19,13 @@ from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from pd_service.estimation import PredictedState
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Transport
 from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
 from .config import Settings
+from .health import unhealthy
 from .session import Refusal, Session
 from .stacked import Node, resolve
 from .stats import LatencyWindow, TokenBucket
@@ -121,8 +123,11 @@ class Publisher:
                 continue
             try:
                 items.append((sess, k, sess.predict(k)))
-            except Exception as exc:
-                self._publish_failed(sess, exc, now)
+            except Exception as exc:  # e.g. a backend's Cholesky of a broken covariance
+                recovered = self._recover(sess, k, f"prediction failed: "
+                                          f"{type(exc).__name__}: {exc}", now)
+                if recovered is not None:
+                    items.append((sess, k, recovered))
         nodes = [p.x for _, _, p in items if isinstance(p.x, Node)]
         if nodes:
             try:
@@ -132,6 +137,14 @@ class Publisher:
         for sess, k, pred in items:
             missed = sess.steps_missed_before(k)
             try:
+                pred = sess.resolved(pred)
+                bad = unhealthy(pred.x, pred.P)
+                if bad is not None:
+                    got = self._recover(sess, k, bad, now)
+                    if got is None:
+                        continue
+                    pred = got
+                sess.keep_snapshot(pred, k)
                 data = sess.pack(pred, k, now)
             except Exception as exc:  # e.g. a non-finite estimate: report, never crash
                 self._publish_failed(sess, exc, now)
@@ -142,6 +155,51 @@ class Publisher:
                 self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
             self.outbox.append(Out(sess.pred_key, data, sess, recv))
+
+    def _recover(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
+        """The estimate of ``sess`` at step ``k`` is unusable (``why``): restore its snapshot,
+        else its prior, and predict again. Returns the healthy prediction (resolved), or
+        None (reported as ``internal_error``) if even the prior gives none; after such a
+        failure no new attempt for ``sess.retry_after`` steps. Counted (``unhealthy``,
+        ``recovered``, ``recovered_from_<source>``), logged and reported."""
+        sess.counters["unhealthy"] += 1
+        self.counters["unhealthy"] += 1
+        failed = sess.health_failed_step
+        if failed is not None and k - failed < sess.retry_after:
+            sess.pending_recv.clear()
+            self.refuse(sess, sess.pred_key, Refusal("internal_error", why), now)
+            return None
+        sources = ("snapshot", "prior") if sess.snapshot is not None else ("prior",)
+        problem = why
+        for source in sources:
+            try:
+                sess.recover(source)
+                pred = sess.resolved(sess.predict(k))
+                bad = unhealthy(pred.x, pred.P)
+            except Exception as exc:
+                bad = f"{type(exc).__name__}: {exc}"
+            if bad is None:
+                sess.health_failed_step = None
+                for c in (sess.counters, self.counters):
+                    c["recovered"] += 1
+                    c[f"recovered_from_{source}"] += 1
+                text = f"estimate recovered from its {source} at step {k}: {why}"
+                event(log, "session_recovered", logging.WARNING, session=sess.name,
+                      source=source, step=k, reason=why)
+                if sess.limiter.allow(now) and self.total_limiter.allow(now):
+                    self.error(sess.error_key, sess.name, sess.pred_key, text, None, now)
+                else:
+                    sess.counters["errors_suppressed"] += 1
+                    self.counters["errors_suppressed"] += 1
+                return pred
+            problem = f"{problem}; from its {source}: {bad}"
+        sess.health_failed_step = k
+        event(log, "session_unrecoverable", logging.ERROR, session=sess.name, step=k,
+              reason=problem)
+        sess.pending_recv.clear()
+        self.refuse(sess, sess.pred_key, Refusal(
+            "internal_error", f"no healthy estimate, not even from the prior: {problem}"), now)
+        return None
 
     def _publish_failed(self, sess: Session, exc: Exception, now: int) -> None:
         sess.pending_recv.clear()

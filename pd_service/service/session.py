@@ -31,6 +31,10 @@ errors_suppressed          ErrorReports not sent because of the rate limit
 out_of_range               a value of z (``commands_out_of_range``: u) above the
                            service's ``max_abs_input`` in magnitude
 internal_error             an unexpected exception while handling one message
+unhealthy                  predictions found non-finite or not positive semi-definite
+                           (pd_service.service.health)
+recovered                  recoveries that gave a healthy estimate again, of which
+                           ``recovered_from_snapshot`` / ``recovered_from_prior``
 =========================  =================================================================
 """
 
@@ -38,6 +42,8 @@ from __future__ import annotations
 
 from collections import Counter
 from typing import Literal
+
+import numpy as np
 
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
@@ -51,6 +57,7 @@ from pd_service.wire.convert import (
 )
 from pd_service.wire.state import spec_fingerprint
 
+from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
 from .stacked import Node, StackedObserverPredictor
 from .stats import LatencyWindow, TokenBucket
 
@@ -101,6 +108,14 @@ class Session:
         self.saved_mark: tuple[int, int, int] = (0, 0, 0)
         self.last_checkpoint_ns = -(1 << 62)
         self.last_replica_ns = -(1 << 62)
+        # numerical health (pd_service.service.health): the in-memory snapshot of the last
+        # healthy estimator state, taken every SNAPSHOT_EVERY_S of session time
+        per_s = max(1, int(1e9 // spec.period_ns))
+        self.snap_every = max(1, int(SNAPSHOT_EVERY_S * per_s))
+        self.retry_after = max(1, int(RETRY_AFTER_S * per_s))
+        self.snapshot: object | None = None  # an EstimatorState
+        self.snapshot_step: int | None = None
+        self.health_failed_step: int | None = None
 
     # --- time --------------------------------------------------------------------------
 
@@ -168,6 +183,38 @@ class Session:
         self.published += 1
         self.last_pub_step = now_step
         return data
+
+    # --- numerical health (pd_service.service.health) ---------------------------------
+
+    @staticmethod
+    def resolved(pred: PredictedState) -> PredictedState:
+        """``pred`` with arrays for x and P (a stacked pending Node resolved alone)."""
+        node: object = pred.x
+        if isinstance(node, Node):
+            return PredictedState(pred.step, *node.value(), pred.newest_step)
+        return pred
+
+    def keep_snapshot(self, pred: PredictedState, now_step: int) -> None:
+        """After a healthy prediction: keep the estimator's state in memory if the last
+        snapshot is SNAPSHOT_EVERY_S old and P passes the thorough test."""
+        last = self.snapshot_step
+        if last is not None and now_step - last < self.snap_every:
+            return
+        export = getattr(self.est, "export_state", None)
+        if export is None or not thoroughly_healthy(np.asarray(pred.P)):
+            return
+        self.snapshot, self.snapshot_step = export(), now_step
+
+    def recover(self, source: str) -> None:
+        """Restore the estimator to its snapshot (``source`` "snapshot") or rebuild it from
+        the spec's prior ("prior"). StateError (ValueError) if the snapshot does not fit."""
+        if source == "snapshot":
+            snap, self.snapshot = self.snapshot, None  # a snapshot that failed is not reused
+            self.est.restore_state(snap)  # type: ignore[attr-defined]  # a ReplayEstimator
+            return
+        self.est = build_estimator(self.spec, StackedObserverPredictor)
+        self.intake.est = self.est
+        self.snapshot = self.snapshot_step = None
 
     def prediction(self, now_step: int, made_ns: int) -> bytes:
         """predict + pack for one session alone."""

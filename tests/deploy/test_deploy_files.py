@@ -178,8 +178,8 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
 
 
 @pytest.mark.parametrize(("message", "flow", "key", "who"), [
-    # deploy/sessions.toml: session "paper" (robot "robot", operator "operator", direct,
-    # robot_creates); "other" is a session nobody was given
+    # deploy/sessions.toml: session "paper" (robot "robot", operator "operator", direct;
+    # created by the admin); "other" is a session nobody was given
     ("put", "ingress", "pd/paper/cmd", {"operator"}),
     ("delete", "ingress", "pd/paper/cmd", {"operator"}),
     ("put", "ingress", "pd/other/cmd", set()),
@@ -192,7 +192,8 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
     ("put", "ingress", "pd/paper/sensor/camera", {"link", "robot"}),   # robot: direct mode
     ("put", "ingress", "pd/other/sensor/camera", {"link"}),
     ("put", "ingress", "robot/paper/cmd", {"link"}),
-    ("put", "ingress", "pd/paper/config", {"admin", "robot"}),      # robot: robot_creates
+    ("put", "ingress", "pd/paper/config", {"admin"}),            # the robot may not create
+    ("delete", "ingress", "pd/paper/config", {"admin", "service"}),  # service: expiry
     ("put", "ingress", "pd/other/config", {"admin"}),
     ("delete", "ingress", "pd/other/config", {"admin", "service"}),  # service: expiry
     ("put", "ingress", "pd/@service/pd-a", {"service"}),
@@ -203,7 +204,7 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
     ("query", "ingress", "pd/@link/paper/rules", {"admin"}),       # a payload replaces rules
     ("put", "ingress", "pd/@link/paper/rules", {"admin"}),
     ("put", "egress", "pd/paper/cmd", {"service", "link", "robot"}),
-    ("put", "egress", "pd/paper/prediction", {"admin", "operator", "display", "robot"}),
+    ("put", "egress", "pd/paper/prediction", {"admin", "operator", "display"}),
     ("put", "egress", "pd/other/prediction", {"admin", "display"}),
     ("put", "egress", "robot/paper/truth", {"display"}),
     ("put", "egress", "robot/paper/cmd", {"robot"}),
@@ -234,7 +235,8 @@ def test_compose_references_exist() -> None:
     for name, svc in services.items():
         for dep in svc.get("depends_on") or {}:
             assert dep in services, f"{name} depends on unknown service {dep}"
-        assert svc.get("healthcheck", {}).get("test"), f"{name} has no health check"
+        if svc.get("restart") != "no":  # a one-shot service (exits when done) has none
+            assert svc.get("healthcheck", {}).get("test"), f"{name} has no health check"
         mounts: dict[str, Path | None] = {}
         for v in svc.get("volumes") or []:
             source, target = v.split(":")[:2]
@@ -245,7 +247,8 @@ def test_compose_references_exist() -> None:
                 assert source in named_volumes, f"{name}: unknown volume {source}"
                 mounts[target] = None
         # every file a command names under /etc is provided by a bind mount
-        words = list(svc.get("command") or []) + list(svc["healthcheck"]["test"][1:])
+        words = list(svc.get("command") or []) + list(
+            svc.get("healthcheck", {}).get("test", [None])[1:])
         for w in words:
             if isinstance(w, str) and w.startswith("/etc/"):
                 assert any(w == t or w.startswith(t.rstrip("/") + "/") for t in mounts), \
@@ -274,6 +277,8 @@ def test_compose_commands_exist_and_parse() -> None:
         assert cmd[0] in scripts, f"{name}: {cmd[0]} is not a console script of the image"
         assert scripts[cmd[0]].split(":")[0] == TOOL_MODULES[cmd[0]], cmd[0]
         parse_tool_args(cmd)
+        if svc.get("restart") == "no":  # one shot: no health check
+            continue
         test = svc["healthcheck"]["test"]
         assert test[0] == "CMD"
         parse_tool_args(test[1:])

@@ -218,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--create-session", action="store_true",
                     help="put the SessionSpec(s) (epoch = now) and serve them while running")
+    ap.add_argument("--create-only", action="store_true",
+                    help="with --create-session: create the session(s), wait for the service's "
+                         "answer and exit (run as the admin user where only admins may create)")
     ap.add_argument("--close-on-exit", action="store_true",
                     help="with --create-session: delete the session(s) on exit")
     ap.add_argument("--no-wait-service", action="store_true",
@@ -287,6 +290,8 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                                     f"(model {_model_label(spec)}, sensors "
                                     f"{', '.join(s.name for s in spec.sensors)}, "
                                     f"period {spec.period_ns / 1e6:g} ms, lead {spec.lead})")
+            if args.create_only:
+                return 0
         else:
             specs = []
             for name, _ in sessions:

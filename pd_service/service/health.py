@@ -1,0 +1,52 @@
+"""Numerical health of a session's estimate: the checks, and the in-memory snapshot it is
+recovered to.
+
+A prediction's mean ``x`` (n,) and covariance ``P`` (n, n) are checked before it is
+published (:func:`unhealthy`, every prediction, a few µs):
+
+- every entry of ``x`` and ``P`` finite;
+- ``min_i P_ii >= 0`` (a covariance's diagonal is a variance; a negative one means ``P`` lost
+  positive semi-definiteness; zero is allowed: a state may be known exactly).
+
+Before a state is kept as the session's snapshot it passes the thorough test
+(:func:`thoroughly_healthy`, once per :data:`SNAPSHOT_EVERY_S` of session time):
+``lambda_min(P) >= -1e-9 * max(1, max_i |P_ii|)`` (symmetric eigenvalues, O(n^3)).
+
+A session whose prediction fails a check (or whose prediction raises) is restored to its
+snapshot (``ReplayEstimator.restore_state`` of an ``export_state`` taken at a healthy
+step), or to its spec's prior when there is none or that does not help; see
+:meth:`pd_service.service.publish.Publisher.publish_many`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Session time between two snapshots of a healthy estimator (s).
+SNAPSHOT_EVERY_S = 1.0
+
+#: After a recovery that failed even from the prior, no new attempt for this long (session
+#: time, s): the session reports ``internal_error`` meanwhile (rate-limited).
+RETRY_AFTER_S = 1.0
+
+
+def unhealthy(x: np.ndarray, P: np.ndarray) -> str | None:
+    """Why (x (n,), P (n, n)) may not be published, or None. Cheap: O(n^2) reads."""
+    if not (np.isfinite(x).all() and np.isfinite(P).all()):
+        return "non-finite estimate (NaN or infinity in x or P)"
+    if P.size and P.diagonal().min() < 0.0:
+        return "covariance not positive semi-definite (a negative variance on its diagonal)"
+    return None
+
+
+def thoroughly_healthy(P: np.ndarray) -> bool:
+    """P (n, n) finite with no eigenvalue below ``-1e-9 * max(1, max_i |P_ii|)``."""
+    if not P.size:
+        return True
+    if not np.isfinite(P).all():
+        return False
+    scale = max(1.0, float(np.abs(P.diagonal()).max()))
+    try:
+        return float(np.linalg.eigvalsh(0.5 * (P + P.T)).min()) >= -1e-9 * scale
+    except np.linalg.LinAlgError:
+        return False

@@ -1,0 +1,159 @@
+"""Numerical health (pd_service.service.health): a session whose estimate turns non-finite or
+loses positive semi-definiteness is reported, recovered (snapshot, else prior) and counted,
+on the in-memory core with an injected clock."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pd_service.estimation.nonlinear import unscented
+from pd_service.service import health, stacked
+from pd_service.transport import InMemoryBus
+from pd_service.wire import encode, keys
+
+from .helpers import Clock, Collector, meas_bytes, paper_spec
+from .test_core import at, make_core
+from .test_nonlinear import omni_spec
+
+LEAD = paper_spec("x").lead
+
+
+def world():
+    bus = InMemoryBus()
+    return bus, Clock(0), Collector().attach(bus.transport()), bus.transport()
+
+
+class Poison:
+    """Wraps a numerics function: the next ``times`` calls return a NaN state (``make_bad``
+    of the real result), the others the real one."""
+
+    def __init__(self, real, make_bad, times: int = 0) -> None:
+        self.real, self.make_bad, self.times = real, make_bad, times
+
+    def __call__(self, *a, **k):
+        out = self.real(*a, **k)
+        if self.times > 0:
+            self.times -= 1
+            return self.make_bad(a, out)
+        return out
+
+
+def nan_node(args, out):
+    nd = args[0]
+    nd.x = np.full_like(nd.x, np.nan)
+    return out
+
+
+def drive(core, cli, clock, session, steps, sensor="ranger", z=(1.0,)):
+    for k in steps:
+        clock.t = at(k + 0.1)
+        cli.put(keys.sensor_key(session, sensor), meas_bytes(session, sensor, k, list(z), k))
+        core.run_once()
+        clock.t = at(k + 0.6)
+        core.run_once()
+
+
+def test_check_is_cheap_and_catches_what_it_should():
+    P = np.eye(4)
+    assert health.unhealthy(np.zeros(4), P) is None
+    assert "non-finite" in health.unhealthy(np.array([0, np.nan, 0, 0.0]), P)
+    assert "non-finite" in health.unhealthy(np.zeros(4), np.full((4, 4), np.inf))
+    Pn = P.copy()
+    Pn[2, 2] = -1e-3
+    assert "positive" in health.unhealthy(np.zeros(4), Pn)
+    assert health.unhealthy(np.zeros(2), np.zeros((2, 2))) is None  # a known state is fine
+    assert health.thoroughly_healthy(P)
+    assert not health.thoroughly_healthy(np.array([[1.0, 2.0], [2.0, 1.0]]))  # eig -1
+
+
+def test_a_poisoned_posterior_is_recovered_from_the_snapshot(tmp_path, monkeypatch):
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    cli.put(keys.config_key("calm"), encode(paper_spec("calm")))
+    core.run_once()
+    drive(core, cli, clock, "s1", range(0, 40))
+    sess = core._routes["s1"].sess
+    assert sess.snapshot is not None
+    # the next propagation writes NaN into the posterior of the next measured step: without
+    # recovery every later prediction of s1 would be NaN (internal_error every step)
+    poison = Poison(stacked._propagate_one, nan_node, times=1)
+    monkeypatch.setattr(stacked, "_propagate_one", poison)
+    drive(core, cli, clock, "s1", range(40, 80))
+    assert poison.times == 0
+    c = core.session_status("s1").counters
+    assert c["unhealthy"] >= 1 and c["recovered"] >= 1 and c["recovered_from_snapshot"] >= 1
+    assert c.get("internal_error", 0) == 0
+    s = core.service_status().counters
+    assert s["recovered"] == c["recovered"]
+    preds = col.predictions["s1"]
+    assert set(range(40, 80)) <= {p.step - LEAD for p in preds}  # one per step, none lost
+    assert all(np.isfinite(p.x).all() and np.isfinite(p.P).all() for p in preds)
+    assert any("recovered from its snapshot" in e.reason for e in col.errors["s1"])
+    # the innocent session never noticed
+    assert set(range(1, 80)) <= {p.step - LEAD for p in col.predictions["calm"]}
+    assert core.session_status("calm").counters.get("recovered", 0) == 0
+
+
+def test_without_a_snapshot_the_session_restarts_from_its_prior(tmp_path, monkeypatch):
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    drive(core, cli, clock, "s1", range(0, 10))
+    sess = core._routes["s1"].sess
+    sess.snapshot = None
+    monkeypatch.setattr(sess, "keep_snapshot", lambda pred, k: None)
+    monkeypatch.setattr(stacked, "_propagate_one",
+                        Poison(stacked._propagate_one, nan_node, times=1))
+    drive(core, cli, clock, "s1", range(10, 30))
+    c = core.session_status("s1").counters
+    assert c["recovered_from_prior"] >= 1 and c.get("internal_error", 0) == 0
+    assert set(range(10, 30)) <= {p.step - LEAD for p in col.predictions["s1"]}
+    assert core._routes["s1"].sess.intake.est is core._routes["s1"].sess.est
+
+
+def test_unrecoverable_is_reported_then_retried_not_every_step(tmp_path, monkeypatch):
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    drive(core, cli, clock, "s1", range(0, 10))
+    poison = Poison(stacked._propagate_one, nan_node, times=10**9)
+    monkeypatch.setattr(stacked, "_propagate_one", poison)
+    drive(core, cli, clock, "s1", range(10, 30))  # 1 s at 50 ms
+    c = core.session_status("s1").counters
+    assert c["internal_error"] >= 10 and c.get("recovered", 0) == 0
+    assert c["unhealthy"] >= 10
+    assert any("not even from the prior" in e.reason for e in col.errors["s1"])
+    poison.times = 0  # the numerics are well again: recovered at the next attempt
+    drive(core, cli, clock, "s1", range(30, 60))
+    assert core.session_status("s1").counters["recovered"] >= 1
+    assert set(range(52, 60)) <= {p.step - LEAD for p in col.predictions["s1"]}
+
+
+@pytest.mark.parametrize("times", [1, 3])
+def test_unscented_session_with_a_nan_propagation_is_recovered(tmp_path, monkeypatch, times):
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("u1"), encode(omni_spec("u1")))
+    core.run_once()
+    lead = omni_spec("u1").lead
+    drive(core, cli, clock, "u1", range(0, 30), sensor="pose", z=(0.0, 0.0, 0.0))
+
+    def bad(args, out):
+        return dataclasses.replace(out, x=np.full_like(out.x, np.nan))
+
+    poison = Poison(unscented.UnscentedBackend.propagate, bad, times=times)
+    monkeypatch.setattr(unscented.UnscentedBackend, "propagate",
+                        lambda self, *a: poison(self, *a))
+    drive(core, cli, clock, "u1", range(30, 60), sensor="pose", z=(0.0, 0.0, 0.0))
+    c = core.session_status("u1").counters
+    assert poison.times == 0, c
+    assert c.get("recovered", 0) >= 1 and c.get("internal_error", 0) == 0, c
+    preds = col.predictions["u1"]
+    assert set(range(30, 60)) <= {p.step - lead for p in preds}
+    assert all(np.isfinite(p.x).all() for p in preds)
