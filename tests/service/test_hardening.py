@@ -263,7 +263,8 @@ def test_configured_peers_share_sessions_and_strangers_do_not(tmp_path):
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
     for core in (a, b, c):
-        core.run_once()
+        while core.has_work():  # run_once may stop early after its time budget (under load)
+            core.run_once()
     assert a.ownership.members == b.ownership.members == {"inst-a", "inst-b"}
     assert sorted(a.served_sessions() + b.served_sessions()) == names
     assert c.served_sessions() == names
