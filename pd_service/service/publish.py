@@ -20,13 +20,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from pd_service.logs import LOGGER_NAME, event
+from pd_service.ratelimit import TokenBucket
 from pd_service.transport import Transport
 from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
 from .config import Settings
 from .session import Refusal, Session
 from .stacked import Node, resolve
-from .stats import LatencyWindow, TokenBucket
+from .stats import LatencyWindow
 from .status import SessionState, session_status
 
 log = logging.getLogger(LOGGER_NAME)

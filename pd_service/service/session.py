@@ -42,6 +42,7 @@ from typing import Literal
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
 from pd_service.intake import Intake, Refusal
+from pd_service.ratelimit import TokenBucket
 from pd_service.wire import (
     SessionSpec,
     keys,
@@ -52,7 +53,7 @@ from pd_service.wire.convert import (
 from pd_service.wire.state import spec_fingerprint
 
 from .stacked import Node, StackedObserverPredictor
-from .stats import LatencyWindow, TokenBucket
+from .stats import LatencyWindow
 
 SENSOR, COMMAND = 0, 1
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import threading
 import time
@@ -327,15 +326,9 @@ def ros2_options(args: argparse.Namespace, prefix: str | None) -> Ros2Options | 
     except ImportError as exc:
         raise ValueError(f"--ros2 needs the ros2 extra (pip install 'pd-service[ros2]'): "
                          f"{exc}") from None
-    from pd_service.ros2.keys import check_namespace
+    from pd_service.ros2.keys import check_namespace, domain_id
 
-    domain = args.domain_id
-    if domain is None:
-        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
-        try:
-            domain = int(env) if env else 0
-        except ValueError:
-            raise ValueError(f"ROS_DOMAIN_ID={env!r} is not a number") from None
+    domain = domain_id(args.domain_id)
     if not 0 <= domain <= 232:
         raise ValueError(f"--domain-id: {domain} is outside 0..232")
     check_namespace(args.namespace)
