@@ -37,7 +37,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.ros2.bridge": {"pd_service.ros2", "pd_service.wire", "pd_service.errors",
                                "pd_service.logs", "pd_service.transport", "pd_service.ratelimit"},
     "pd_service.ros2.__main__": {"pd_service.ros2.bridge", "pd_service.errors", "pd_service.logs",
-                                 "pd_service.transport", "pd_service.cli"},
+                                 "pd_service.transport", "pd_service.cli", "pd_service.ros2"},
     "pd_service.service": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
                            "pd_service.logs", "pd_service.transport", "pd_service.backends",
                            "pd_service.checkpoint", "pd_service.intake", "pd_service.ratelimit"},

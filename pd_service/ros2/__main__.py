@@ -65,8 +65,8 @@ def settings_from_args(args: argparse.Namespace) -> BridgeSettings:
     from .bridge import BridgeSettings
     from .keys import domain_id
 
-    return BridgeSettings(domain_id=domain_id(args.domain_id), namespace=args.namespace, key_format=args.key_format,
-                          node_name=args.node_name,
+    return BridgeSettings(domain_id=domain_id(args.domain_id), namespace=args.namespace,
+                          key_format=args.key_format, node_name=args.node_name,
                           sessions=frozenset(args.session) if args.session else None,
                           instance=args.instance, attachment_layout=args.attachment_layout)
 

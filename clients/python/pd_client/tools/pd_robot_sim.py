@@ -228,13 +228,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--publish-every", type=int, default=1)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
-    ap.add_argument("--ros2", action="store_true",
-                    help="be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
-                         "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
-    ap.add_argument("--domain-id", type=int, default=None,
-                    help="with --ros2: ROS domain id (default: $ROS_DOMAIN_ID or 0)")
-    ap.add_argument("--namespace", default="/",
-                    help="with --ros2: the node's ROS namespace (default /)")
+    common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
+                                    "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap
