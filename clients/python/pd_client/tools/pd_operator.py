@@ -59,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--spec-timeout", type=float, default=30.0,
                     help="seconds to wait for the session specs (default 30)")
     common.add_ros2_args(ap, "send Twist messages on the session's bound command topic in "
-                                    "rmw_zenoh's format (needs the ros2 extra and ROS 2 bindings)")
+                             "rmw_zenoh's format (needs the ros2 extra and ROS 2 bindings)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap

@@ -229,7 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
-                                    "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
+                             "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap
