@@ -24,8 +24,10 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.estimation": set(),
     "pd_service.errors": set(),
     "pd_service.logs": set(),
+    "pd_service.ratelimit": set(),
     "pd_service.wire": {"pd_service.estimation", "pd_service.errors"},
     "pd_service.transport": set(),
+    "pd_service.cli": {"pd_service.errors", "pd_service.logs", "pd_service.transport"},
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.intake": {"pd_service.estimation", "pd_service.wire"},
     "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
@@ -33,14 +35,14 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.ros2": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     # the pd-ros2 bridge on top of the pure building blocks: they never import it
     "pd_service.ros2.bridge": {"pd_service.ros2", "pd_service.wire", "pd_service.errors",
-                               "pd_service.logs", "pd_service.transport"},
+                               "pd_service.logs", "pd_service.transport", "pd_service.ratelimit"},
     "pd_service.ros2.__main__": {"pd_service.ros2.bridge", "pd_service.errors", "pd_service.logs",
-                                 "pd_service.transport"},
+                                 "pd_service.transport", "pd_service.cli", "pd_service.ros2"},
     "pd_service.service": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
                            "pd_service.logs", "pd_service.transport", "pd_service.backends",
-                           "pd_service.checkpoint", "pd_service.intake"},
+                           "pd_service.checkpoint", "pd_service.intake", "pd_service.ratelimit"},
     "pd_service.link": {"pd_service.errors", "pd_service.logs", "pd_service.transport",
-                        "pd_service.wire"},
+                        "pd_service.wire", "pd_service.cli"},
     "pd_service.__main__": {"pd_service.service"},
     "pd_service": set(),
     "pd_client.tools": {"pd_client", "pd_service.estimation", "pd_service.wire",
@@ -55,6 +57,7 @@ THIRD_PARTY: dict[str, set[str] | None] = {
     "pd_service.estimation": {"numpy"},
     "pd_service.errors": set(),
     "pd_service.logs": set(),
+    "pd_service.ratelimit": set(),
 }
 
 STDLIB = set(sys.stdlib_module_names) | {"__future__"}

@@ -16,13 +16,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any
 
+from pd_service.cli import EXIT_NO_ZENOH, open_zenoh, stop_on_signals, wait_for_stop
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, setup_logging
 from pd_service.transport.options import LINK, add_zenoh_args, options_from_args
@@ -78,36 +76,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.switch_interval_us > 0:
         sys.setswitchinterval(args.switch_interval_us / 1e6)
 
-    from pd_service.transport.zenoh_transport import ZenohTransport
-
     from .relay import LinkRelay
 
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        log.info("signal received, stopping", extra={"fields": {"signal": signum}})
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    stop = stop_on_signals(log)
     try:
         conf = options_from_args(args).config(LINK)
     except Exception as e:
         log.error("bad Zenoh configuration", extra={"fields": {"error": str(e)}})
         return 2
-    try:
-        transport = ZenohTransport(conf)
-    except Exception as e:
-        log.error("cannot open Zenoh session", extra={"fields": {"error": str(e)}})
-        return 1
+    transport = open_zenoh(conf, log)
+    if transport is None:
+        return EXIT_NO_ZENOH
     with transport:
         relay = LinkRelay(transport, config, args.instance, spin_ns=args.spin_us * 1000,
                           stats_interval_s=args.stats_interval,
                           express=args.express)  # fmt: skip
         relay.start()
         try:
-            while not stop.wait(timeout=0.5):
-                pass
+            wait_for_stop(stop)
         finally:
             relay.close()
             log.info("pd-link stopped", extra={"fields": {"instance": args.instance}})

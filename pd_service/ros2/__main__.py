@@ -15,13 +15,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
-import signal
 import sys
-import threading
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from pd_service.cli import EXIT_NO_ZENOH, open_zenoh, stop_on_signals, wait_for_stop
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, setup_logging
 from pd_service.transport.options import TOOL, add_zenoh_args, options_from_args
@@ -65,16 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
 def settings_from_args(args: argparse.Namespace) -> BridgeSettings:
     """The bridge settings of a parsed command line; raises ConfigError."""
     from .bridge import BridgeSettings
+    from .keys import domain_id
 
-    domain = args.domain_id
-    if domain is None:
-        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
-        try:
-            domain = int(env) if env else 0
-        except ValueError:
-            raise ConfigError(f"ROS_DOMAIN_ID={env!r} is not a number") from None
-    return BridgeSettings(domain_id=domain, namespace=args.namespace, key_format=args.key_format,
-                          node_name=args.node_name,
+    return BridgeSettings(domain_id=domain_id(args.domain_id), namespace=args.namespace,
+                          key_format=args.key_format, node_name=args.node_name,
                           sessions=frozenset(args.session) if args.session else None,
                           instance=args.instance, attachment_layout=args.attachment_layout)
 
@@ -95,27 +87,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.error("bad configuration", extra={"fields": {"error": str(exc)}})
         return 2
 
-    from pd_service.transport.zenoh_transport import ZenohTransport
-
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        log.info("signal received, stopping", extra={"fields": {"signal": signum}})
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
-    try:
-        transport = ZenohTransport(conf)
-    except Exception as exc:
-        log.error("cannot open Zenoh session", extra={"fields": {"error": str(exc)}})
-        return 1
+    stop = stop_on_signals(log)
+    transport = open_zenoh(conf, log)
+    if transport is None:
+        return EXIT_NO_ZENOH
     with transport:
         bridge = Ros2Bridge(transport, settings)
         bridge.start()
         try:
-            while not stop.wait(timeout=0.5):
-                pass
+            wait_for_stop(stop)
         finally:
             bridge.close()
             log.info("pd-ros2 stopped", extra={"fields": {"instance": settings.instance}})

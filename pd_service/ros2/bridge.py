@@ -48,6 +48,7 @@ from pydantic import ValidationError
 
 from pd_service.errors import ConfigError
 from pd_service.logs import event
+from pd_service.ratelimit import TokenBucket
 from pd_service.ros2.attachment import (
     Attachment,
     AttachmentLayout,
@@ -150,25 +151,6 @@ class BridgeSettings:
             raise ConfigError(str(exc)) from None
         if not (self.error_rate > 0 and self.error_burst >= 1 and self.inbox_size >= 1):
             raise ConfigError("error_rate must be > 0, error_burst and inbox_size >= 1")
-
-
-class TokenBucket:
-    """At most ``rate`` events per second on average, bursts of ``burst``:
-    tokens = min(burst, tokens + rate * dt); an event takes one token if there is one."""
-
-    __slots__ = ("rate", "burst", "tokens", "t_ns")
-
-    def __init__(self, rate: float, burst: int, now_ns: int) -> None:
-        self.rate, self.burst, self.tokens, self.t_ns = float(rate), float(burst), float(burst), now_ns
-
-    def allow(self, now_ns: int) -> bool:
-        dt = max(0, now_ns - self.t_ns) * 1e-9
-        self.t_ns = max(self.t_ns, now_ns)
-        self.tokens = min(self.burst, self.tokens + self.rate * dt)
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
 
 
 class _Refusal(Exception):

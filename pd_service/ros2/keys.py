@@ -24,10 +24,12 @@ the bridge's namespace (also without leading ``/``) when one is configured: ``/c
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass
 from typing import Literal
 
+from pd_service.errors import ConfigError
 from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.wire.ros2 import check_topic_name
 
@@ -53,6 +55,18 @@ def check_namespace(namespace: str) -> str:
     if not _NAMESPACE.match(namespace):
         raise ValueError(f"{namespace!r} is not an absolute ROS 2 namespace ('/' or '/a/b')")
     return namespace
+
+
+def domain_id(given: int | None) -> int:
+    """The ROS domain id: ``given``, else ``$ROS_DOMAIN_ID``, else 0 (ROS 2's rule). Raises
+    ConfigError (a ValueError) when the variable is not a number."""
+    if given is not None:
+        return given
+    env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    try:
+        return int(env) if env else 0
+    except ValueError:
+        raise ConfigError(f"ROS_DOMAIN_ID={env!r} is not a number") from None
 
 
 def fully_qualified_name(namespace: str, name: str) -> str:

@@ -17,6 +17,7 @@ from collections import Counter, deque
 from collections.abc import Callable
 
 from pd_service.logs import LOGGER_NAME, event
+from pd_service.ratelimit import TokenBucket
 from pd_service.transport import Sample, Transport
 from pd_service.wire import SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
@@ -29,7 +30,6 @@ from .ownership import Ownership
 from .persist import SpecStore
 from .publish import Publisher
 from .session import Origin, Refusal, Session
-from .stats import TokenBucket
 from .status import SessionState, state_of
 
 log = logging.getLogger(LOGGER_NAME)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 from pd_service.estimation import PredictedState
 from pd_service.logs import LOGGER_NAME, event
+from pd_service.ratelimit import TokenBucket
 from pd_service.transport import Transport
 from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
@@ -28,7 +29,7 @@ from .config import Settings
 from .health import unhealthy
 from .session import Refusal, Session
 from .stacked import Node, resolve
-from .stats import LatencyWindow, TokenBucket
+from .stats import LatencyWindow
 from .status import SessionState, session_status
 
 log = logging.getLogger(LOGGER_NAME)

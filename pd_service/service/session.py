@@ -48,6 +48,7 @@ import numpy as np
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
 from pd_service.intake import Intake, Refusal
+from pd_service.ratelimit import TokenBucket
 from pd_service.wire import (
     SessionSpec,
     keys,
@@ -59,7 +60,7 @@ from pd_service.wire.state import spec_fingerprint
 
 from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
 from .stacked import Node, StackedObserverPredictor
-from .stats import LatencyWindow, TokenBucket
+from .stats import LatencyWindow
 
 SENSOR, COMMAND = 0, 1
 

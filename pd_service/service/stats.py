@@ -1,4 +1,4 @@
-"""Small accounting helpers of the daemon: latency windows and a token-bucket rate limiter."""
+"""Small accounting helpers of the daemon: latency windows and their percentiles."""
 
 from __future__ import annotations
 
@@ -49,27 +49,3 @@ class LatencyWindow:
     def percentiles(self) -> tuple[float, float]:
         """(p50, p99) in µs; (0, 0) when empty."""
         return percentiles(self._buf)
-
-
-class TokenBucket:
-    """At most ``rate`` events per second on average, bursts of ``burst``.
-
-    ``allow(now_ns)``: tokens = min(burst, tokens + rate * dt); take one if >= 1.
-    """
-
-    __slots__ = ("rate", "burst", "tokens", "t_ns")
-
-    def __init__(self, rate: float, burst: int, now_ns: int) -> None:
-        self.rate = float(rate)
-        self.burst = float(burst)
-        self.tokens = float(burst)
-        self.t_ns = now_ns
-
-    def allow(self, now_ns: int) -> bool:
-        dt = max(0, now_ns - self.t_ns) * 1e-9
-        self.t_ns = max(self.t_ns, now_ns)
-        self.tokens = min(self.burst, self.tokens + self.rate * dt)
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False

@@ -37,6 +37,16 @@ def add_tool_args(ap: argparse.ArgumentParser) -> None:
     add_zenoh_args(ap, TOOL)
 
 
+def add_ros2_args(ap: argparse.ArgumentParser, ros2_help: str) -> None:
+    """``--ros2`` (described by ``ros2_help``), ``--domain-id`` and ``--namespace``: a tool
+    that can speak ROS 2 in rmw_zenoh's format (read with ``pd_robot_sim.ros2_options``)."""
+    ap.add_argument("--ros2", action="store_true", help=ros2_help)
+    ap.add_argument("--domain-id", type=int, default=None,
+                    help="with --ros2: ROS domain id (default: $ROS_DOMAIN_ID or 0)")
+    ap.add_argument("--namespace", default="/",
+                    help="with --ros2: the node's ROS namespace (default /)")
+
+
 def add_progress_arg(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--progress", type=float, default=2.0,
                     help="seconds between progress lines on stderr (0: none)")

@@ -49,6 +49,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -190,100 +191,18 @@ def main(argv: list[str] | None = None) -> int:
     with contextlib.ExitStack() as stack:
         link_config = args.link_config or stack.enter_context(
             packaged_link_config("link-ros2.toml" if args.ros2 else "link-paper.toml"))
-        return run_ros2(args, link_config) if args.ros2 else run(args, link_config)
+        return run(args, link_config)
 
 
 def run(args: argparse.Namespace, link_config: Path) -> int:
-    """Start the processes, wait for the simulation to end, stop them, print the report."""
-    out = Path(args.out)
+    """Start the processes, wait for the simulation to end, stop them, print the report: the
+    paper demo, or with ``args.ros2`` the ROS 2 variant (pd-ros2 beside pd-link, a
+    differential-drive robot and a Twist operator, and the report of :func:`report_ros2`
+    with the bridge's counters, queried before the probe session closes)."""
+    ros2 = args.ros2
+    out = Path("out/demo-ros2" if ros2 and args.out == "out/demo" else args.out)
     if (out / "state").exists():
         shutil.rmtree(out / "state")  # a fresh daemon: no sessions restored from a past run
-    out.mkdir(parents=True, exist_ok=True)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    zenoh_args = ["--connect", endpoint]
-    procs: list[Proc] = []
-
-    def start(name: str, *a: str, quiet: bool = False) -> Proc:
-        p = Proc(name, list(a), quiet=quiet or args.quiet)
-        procs.append(p)
-        return p
-
-    interrupted = False
-    t0 = time.monotonic()
-    try:
-        print(f"{TOOL}: daemon on {endpoint}, output in {out}/", flush=True)
-        start("service", "-m", "pd_service", "--listen", endpoint, "--state-dir",
-              str(out / "state"), "--instance", "demo")
-        probe = open_probe(endpoint, procs)
-        try:
-            wait_for("the daemon", lambda: bool(probe.get_liveliness(keys.ALL_SERVICES, 0.5)),
-                     30.0, procs)
-            start("link", "-m", "pd_service.link", "--config", str(link_config), *zenoh_args,
-                  "--instance", "demo", "--stats-interval", "10")
-            wait_for("the link emulator",
-                     lambda: any(r.ok for r in probe.get(keys.link_stats_key("demo"), timeout=0.5)),
-                     30.0, procs)
-        finally:
-            probe.close()
-        viz = has_viz()
-        mcap = ["--mcap", str(out / "run.mcap")] if viz else []
-        web_url = None
-        if args.web_port:
-            port = web_port(args.web_port)
-            start("web", "-m", "pd_client.tools", "web", "--port", str(port), *zenoh_args)
-            web_url = f"http://127.0.0.1:{port}/"
-            print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
-        recorder = start("record", "-m", "pd_client.tools", "record", *[f"--session={s}" for s in SESSIONS],
-                         "--out", str(out), "--idle-timeout", "3", "--states", "p1,p2", *mcap,
-                         *zenoh_args)
-        if viz and args.viz_port >= 0:  # a live view; the demo goes on without it if it fails
-            start("viz", "-m", "pd_client.tools", "viz", *[f"--session={s}" for s in SESSIONS],
-                  "--port", str(args.viz_port), *zenoh_args)
-            print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{args.viz_port} "
-                  "(open it in Foxglove: docs/visualize.md)", flush=True)
-        elif not viz:
-            print(f"{TOOL}: no live view / MCAP: pip install 'pd-client[viz]'", flush=True)
-        start("operator", "-m", "pd_client.tools", "operator", *[f"--session={s}" for s in SESSIONS],
-              "--steps", str(args.steps), *zenoh_args)
-        sim = start("sim", "-m", "pd_client.tools", "sim", "--session", "paper",
-                    "--session", "paper-cam:camera", "--create-session", "--close-on-exit",
-                    "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
-        sim.popen.wait()
-        if sim.popen.returncode != 0:
-            raise RuntimeError(f"the simulator exited with code {sim.popen.returncode}")
-        print(f"{TOOL}: simulation done after {time.monotonic() - t0:.1f} s; "
-              "waiting for the recorder", flush=True)
-        try:
-            recorder.popen.wait(60)
-        except subprocess.TimeoutExpired:
-            recorder.stop()
-        if web_url is not None and args.web_linger > 0:
-            print(f"{TOOL}: the live view at {web_url} shows the final state for "
-                  f"{args.web_linger:g} s more (Ctrl-C to skip)", flush=True)
-            try:
-                time.sleep(args.web_linger)
-            except KeyboardInterrupt:
-                pass
-    except KeyboardInterrupt:
-        interrupted = True
-        print(f"\n{TOOL}: interrupted, stopping every process", flush=True)
-    except RuntimeError as exc:
-        print(f"{TOOL}: {exc}", file=sys.stderr, flush=True)
-        interrupted = True
-    finally:
-        for p in reversed(procs):
-            p.stop()
-    if interrupted:
-        return 130
-    return report(out)
-
-
-def run_ros2(args: argparse.Namespace, link_config: Path) -> int:
-    """The ROS 2 variant: daemon, pd-link, pd-ros2, recorder (+ viz, web), operator and robot
-    speaking ROS 2; then the report of :func:`report_ros2`."""
-    out = Path(args.out if args.out != "out/demo" else "out/demo-ros2")
-    if (out / "state").exists():
-        shutil.rmtree(out / "state")
     out.mkdir(parents=True, exist_ok=True)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     zenoh_args = ["--connect", endpoint]
@@ -298,22 +217,28 @@ def run_ros2(args: argparse.Namespace, link_config: Path) -> int:
     bridge: dict[str, object] | None = None
     t0 = time.monotonic()
     try:
-        print(f"{TOOL}: ROS 2 variant; daemon on {endpoint}, output in {out}/", flush=True)
-        start("service", "-m", "pd_service", "--listen", endpoint, "--state-dir",
-              str(out / "state"), "--instance", "demo")
-        probe = open_probe(endpoint, procs)
-        try:
+        with contextlib.ExitStack() as probe_open:
+            print(f"{TOOL}: {'ROS 2 variant; ' if ros2 else ''}daemon on {endpoint}, "
+                  f"output in {out}/", flush=True)
+            start("service", "-m", "pd_service", "--listen", endpoint, "--state-dir",
+                  str(out / "state"), "--instance", "demo")
+            probe = open_probe(endpoint, procs)
+            probe_open.callback(probe.close)
             wait_for("the daemon", lambda: bool(probe.get_liveliness(keys.ALL_SERVICES, 0.5)),
                      30.0, procs)
             start("link", "-m", "pd_service.link", "--config", str(link_config), *zenoh_args,
                   "--instance", "demo", "--stats-interval", "10")
-            start("pd-ros2", "-m", "pd_service.ros2", "--instance", "demo", "--session",
-                  ROS2_SESSION, *zenoh_args)
+            if ros2:
+                start("pd-ros2", "-m", "pd_service.ros2", "--instance", "demo", "--session",
+                      ROS2_SESSION, *zenoh_args)
             wait_for("the link emulator",
                      lambda: any(r.ok for r in probe.get(keys.link_stats_key("demo"), timeout=0.5)),
                      30.0, procs)
-            wait_for("pd-ros2", lambda: any(r.ok for r in probe.get(
-                keys.ros2_status_key("demo"), timeout=0.5)), 30.0, procs)
+            if ros2:
+                wait_for("pd-ros2", lambda: any(r.ok for r in probe.get(
+                    keys.ros2_status_key("demo"), timeout=0.5)), 30.0, procs)
+            else:
+                probe_open.close()
             viz = has_viz()
             mcap = ["--mcap", str(out / "run.mcap")] if viz else []
             web_url = None
@@ -322,29 +247,41 @@ def run_ros2(args: argparse.Namespace, link_config: Path) -> int:
                 start("web", "-m", "pd_client.tools", "web", "--port", str(port), *zenoh_args)
                 web_url = f"http://127.0.0.1:{port}/"
                 print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
-            recorder = start("record", "-m", "pd_client.tools", "record",
-                             f"--session={ROS2_SESSION}", "--out", str(out), "--idle-timeout",
-                             "3", "--until-step", str(args.steps), "--states", ROS2_STATES,
-                             "--warmup", "50", *mcap, *zenoh_args)
-            if viz and args.viz_port >= 0:
-                start("viz", "-m", "pd_client.tools", "viz", f"--session={ROS2_SESSION}",
+            sessions = [f"--session={s}" for s in ((ROS2_SESSION,) if ros2 else SESSIONS)]
+            recorder = start("record", "-m", "pd_client.tools", "record", *sessions,
+                             "--out", str(out), "--idle-timeout", "3",
+                             *(["--until-step", str(args.steps)] if ros2 else []),
+                             "--states", ROS2_STATES if ros2 else "p1,p2",
+                             *(["--warmup", "50"] if ros2 else []), *mcap, *zenoh_args)
+            if viz and args.viz_port >= 0:  # a live view; the demo goes on without it if it fails
+                start("viz", "-m", "pd_client.tools", "viz", *sessions,
                       "--port", str(args.viz_port), *zenoh_args)
-                print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{args.viz_port}",
-                      flush=True)
-            start("operator", "-m", "pd_client.tools", "operator", "--scenario", "diffdrive",
-                  "--session", ROS2_SESSION, "--ros2", "--steps", str(args.steps), *zenoh_args)
-            sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "diffdrive",
-                        "--session", ROS2_SESSION, "--create-session", "--ros2",
-                        "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
+                print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{args.viz_port}"
+                      + ("" if ros2 else " (open it in Foxglove: docs/visualize.md)"), flush=True)
+            elif not viz and not ros2:
+                print(f"{TOOL}: no live view / MCAP: pip install 'pd-client[viz]'", flush=True)
+            if ros2:
+                start("operator", "-m", "pd_client.tools", "operator", "--scenario", "diffdrive",
+                      "--session", ROS2_SESSION, "--ros2", "--steps", str(args.steps),
+                      *zenoh_args)
+                sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "diffdrive",
+                            "--session", ROS2_SESSION, "--create-session", "--ros2",
+                            "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
+            else:
+                start("operator", "-m", "pd_client.tools", "operator", *sessions,
+                      "--steps", str(args.steps), *zenoh_args)
+                sim = start("sim", "-m", "pd_client.tools", "sim", "--session", "paper",
+                            "--session", "paper-cam:camera", "--create-session",
+                            "--close-on-exit", "--steps", str(args.steps), "--seed",
+                            str(args.seed), *zenoh_args)
             sim.popen.wait()
             if sim.popen.returncode != 0:
                 raise RuntimeError(f"the simulator exited with code {sim.popen.returncode}")
             print(f"{TOOL}: simulation done after {time.monotonic() - t0:.1f} s; "
                   "waiting for the recorder", flush=True)
-            bridge = next((json.loads(r.payload) for r in probe.get(
-                keys.ros2_status_key("demo"), timeout=3.0) if r.ok), None)
-        finally:
-            probe.close()
+            if ros2:
+                bridge = next((json.loads(r.payload) for r in probe.get(
+                    keys.ros2_status_key("demo"), timeout=3.0) if r.ok), None)
         try:
             recorder.popen.wait(60)
         except subprocess.TimeoutExpired:
@@ -367,16 +304,36 @@ def run_ros2(args: argparse.Namespace, link_config: Path) -> int:
             p.stop()
     if interrupted:
         return 130
-    return report_ros2(out, bridge)
+    return report_ros2(out, bridge) if ros2 else report(out)
+
+
+def read_summary(out: Path) -> dict[str, Any] | None:
+    """pd-record's ``<out>/summary.json``; None (said on stderr) when it was not written."""
+    path = out / "summary.json"
+    if not path.exists():
+        print(f"{TOOL}: no summary was written ({path} missing)", file=sys.stderr)
+        return None
+    summary: dict[str, Any] = json.loads(path.read_text())
+    return summary
+
+
+def print_outputs(out: Path) -> None:
+    """The report's last lines: the MCAP file and the PNG plots of the run, and the rule."""
+    if (out / "run.mcap").exists():
+        print(f"MCAP of the run: {out / 'run.mcap'} (pd-replay {out / 'run.mcap'})")
+    pngs = sorted(out.glob("*.png"))
+    print("PNG plots:" if pngs else "PNG plots: none (matplotlib not installed)")
+    for p in pngs:
+        print(f"  {p}")
+    print("=" * 68)
 
 
 def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
     """The ROS 2 demo's summary: pd-record's accuracy of x, y, yaw and the bridge's counters."""
-    path = out / "summary.json"
-    if not path.exists():
-        print(f"{TOOL}: no summary was written ({path} missing)", file=sys.stderr)
+    summary = read_summary(out)
+    if summary is None:
         return 1
-    row = json.loads(path.read_text()).get(ROS2_SESSION, {})
+    row = summary.get(ROS2_SESSION, {})
     print()
     print("=" * 68)
     print("pd-service ROS 2 demo: predicted pose 100 ms ahead (lead 5 steps) of the")
@@ -400,13 +357,7 @@ def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
               f"republished as {counters.get('outputs_published', 0)} ROS messages")
     else:
         print("pd-ros2: no status reply")
-    if (out / "run.mcap").exists():
-        print(f"MCAP of the run: {out / 'run.mcap'} (pd-replay {out / 'run.mcap'})")
-    pngs = sorted(out.glob("*.png"))
-    print("PNG plots:" if pngs else "PNG plots: none (matplotlib not installed)")
-    for p in pngs:
-        print(f"  {p}")
-    print("=" * 68)
+    print_outputs(out)
     return 0
 
 
@@ -452,11 +403,9 @@ def print_table(title: str, data: Mapping[str, Mapping[str, float]]) -> None:
 
 
 def report(out: Path) -> int:
-    path = out / "summary.json"
-    if not path.exists():
-        print(f"{TOOL}: no summary was written ({path} missing)", file=sys.stderr)
+    summary = read_summary(out)
+    if summary is None:
         return 1
-    summary = json.loads(path.read_text())
     print()
     print("=" * 68)
     print_table("pd-service demo: predicted x(k + 10) over the paper's link, whole run "
@@ -467,13 +416,7 @@ def report(out: Path) -> int:
         print()
         print_table(f"... while the range finder reports (target steps {w['first']}-{w['last']})",
                     window)
-    if (out / "run.mcap").exists():
-        print(f"MCAP of the run: {out / 'run.mcap'} (pd-replay {out / 'run.mcap'})")
-    pngs = sorted(out.glob("*.png"))
-    print("PNG plots:" if pngs else "PNG plots: none (matplotlib not installed)")
-    for p in pngs:
-        print(f"  {p}")
-    print("=" * 68)
+    print_outputs(out)
     return 0
 
 

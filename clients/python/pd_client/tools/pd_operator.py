@@ -58,13 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "length; 0: run until stopped)")
     ap.add_argument("--spec-timeout", type=float, default=30.0,
                     help="seconds to wait for the session specs (default 30)")
-    ap.add_argument("--ros2", action="store_true",
-                    help="send Twist messages on the session's bound command topic in "
-                         "rmw_zenoh's format (needs the ros2 extra and ROS 2 bindings)")
-    ap.add_argument("--domain-id", type=int, default=None,
-                    help="with --ros2: ROS domain id (default: $ROS_DOMAIN_ID or 0)")
-    ap.add_argument("--namespace", default="/",
-                    help="with --ros2: the node's ROS namespace (default /)")
+    common.add_ros2_args(ap, "send Twist messages on the session's bound command topic in "
+                             "rmw_zenoh's format (needs the ros2 extra and ROS 2 bindings)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap

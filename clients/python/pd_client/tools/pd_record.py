@@ -256,11 +256,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     sessions = args.session or ["paper"]
-    try:
-        transport = common.open_transport(args)
-    except PdClientError as exc:
-        return common.fail(TOOL, exc)
-    try:
+    recorded: list[Recorder] = []
+
+    def body(transport: Transport) -> int:
         try:
             recorder = Recorder(transport, sessions, args.out)
         except PdClientError as exc:
@@ -276,8 +274,13 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         if mcap is not None:
             mcap.close()
             print(f"mcap: {mcap.path} ({mcap.log.messages} messages)")
-    finally:
-        transport.close()
+        recorded.append(recorder)
+        return 0
+
+    code = common.run_on_transport(TOOL, args, body)
+    if not recorded:
+        return code
+    recorder = recorded[0]
     return finish(recorder.paths, args.out, args.warmup,
                   args.states.split(",") if args.states else None, plots=not args.no_plots)
 

@@ -254,9 +254,7 @@ def write_outputs(results: Sequence[ReplayResult], recs: dict[str, SessionRecord
 # --- command line ----------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap = common.tool_parser(TOOL, __doc__)
     ap.add_argument("mcap", help="recording written by pd-record --mcap")
     ap.add_argument("--spec", help="SessionSpec JSON file to replay with instead")
     ap.add_argument("--session", action="append", metavar="NAME",

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 import threading
 import time
@@ -232,13 +231,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--publish-every", type=int, default=1)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
-    ap.add_argument("--ros2", action="store_true",
-                    help="be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
-                         "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
-    ap.add_argument("--domain-id", type=int, default=None,
-                    help="with --ros2: ROS domain id (default: $ROS_DOMAIN_ID or 0)")
-    ap.add_argument("--namespace", default="/",
-                    help="with --ros2: the node's ROS namespace (default /)")
+    common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
+                             "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
     common.add_progress_arg(ap)
     common.add_tool_args(ap)
     return ap
@@ -332,15 +326,9 @@ def ros2_options(args: argparse.Namespace, prefix: str | None) -> Ros2Options | 
     except ImportError as exc:
         raise ValueError(f"--ros2 needs the ros2 extra (pip install 'pd-service[ros2]'): "
                          f"{exc}") from None
-    from pd_service.ros2.keys import check_namespace
+    from pd_service.ros2.keys import check_namespace, domain_id
 
-    domain = args.domain_id
-    if domain is None:
-        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
-        try:
-            domain = int(env) if env else 0
-        except ValueError:
-            raise ValueError(f"ROS_DOMAIN_ID={env!r} is not a number") from None
+    domain = domain_id(args.domain_id)
     if not 0 <= domain <= 232:
         raise ValueError(f"--domain-id: {domain} is outside 0..232")
     check_namespace(args.namespace)

@@ -400,9 +400,7 @@ def _xy(value: str) -> tuple[int, int]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap = common.tool_parser(TOOL, __doc__)
     ap.add_argument("--session", action="append", metavar="NAME",
                     help="session to show (repeatable; default: all the daemons serve)")
     ap.add_argument("--host", default="127.0.0.1",
@@ -426,31 +424,28 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         import foxglove  # noqa: F401
     except ImportError:
         return common.fail(TOOL, "needs foxglove-sdk: pip install 'pd-client[viz]'", 2)
+    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop))
+
+
+def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event) -> int:
+    sessions = args.session or served_sessions(transport)
+    if not sessions:
+        return common.fail(TOOL, "no session given and none served by a live daemon")
     try:
-        transport = common.open_transport(args)
-    except PdClientError as exc:
-        return common.fail(TOOL, exc)
+        for s in sessions:
+            keys.check_name(s, "session")
+        server = VizServer(transport, sessions, args.host, args.port, args.xy,
+                           args.status_every)
+    except (keys.KeyError_, PdClientError) as exc:
+        return common.fail(TOOL, exc, 2)
+    except RuntimeError as exc:  # the port is taken
+        return common.fail(TOOL, f"cannot serve on {args.host}:{args.port}: {exc}")
+    print(f"{TOOL}: Foxglove WebSocket server on {server.url} "
+          f"(sessions: {', '.join(sessions)})", flush=True)
     try:
-        sessions = args.session or served_sessions(transport)
-        if not sessions:
-            return common.fail(TOOL, "no session given and none served by a live daemon")
-        try:
-            for s in sessions:
-                keys.check_name(s, "session")
-            server = VizServer(transport, sessions, args.host, args.port, args.xy,
-                               args.status_every)
-        except (keys.KeyError_, PdClientError) as exc:
-            return common.fail(TOOL, exc, 2)
-        except RuntimeError as exc:  # the port is taken
-            return common.fail(TOOL, f"cannot serve on {args.host}:{args.port}: {exc}")
-        print(f"{TOOL}: Foxglove WebSocket server on {server.url} "
-              f"(sessions: {', '.join(sessions)})", flush=True)
-        try:
-            stop.wait(args.duration)
-        finally:
-            server.close()
+        stop.wait(args.duration)
     finally:
-        transport.close()
+        server.close()
     return 0
 
 

@@ -30,7 +30,7 @@ from pd_service.transport import Transport
 from pd_service.transport.base import Handle, Publisher
 from pd_service.wire.ros2 import CommandBinding
 
-from .ros2_robot import Ros2Options, session_id_of
+from .ros2_robot import Ros2Options, close_quietly, session_id_of
 
 NODE_NAME = "operator"
 
@@ -91,15 +91,8 @@ class Ros2OperatorNode:
         self._publisher.put(payload, attachment=encode_attachment(att))
 
     def close(self) -> None:
-        for h in reversed(self._handles):
-            try:
-                h.close()
-            except Exception:  # the transport may already be closed
-                pass
+        close_quietly(reversed(self._handles))
         self._handles.clear()
         if self._publisher is not None:
-            try:
-                self._publisher.close()
-            except Exception:
-                pass
+            close_quietly([self._publisher])
             self._publisher = None

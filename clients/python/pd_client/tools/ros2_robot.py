@@ -38,7 +38,7 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,6 +93,15 @@ DEFAULT_FRAMES: dict[str, str] = {
 }
 _POSE_INDEX = {"x": 0, "y": 1, "yaw": 5}
 _TWIST_INDEX = {"vx": 0, "vy": 1, "yaw_rate": 5}
+
+
+def close_quietly(closables: Iterable[Handle | Publisher]) -> None:
+    """Close each of ``closables``, ignoring errors (the transport may already be closed)."""
+    for c in closables:
+        try:
+            c.close()
+        except Exception:
+            pass
 
 
 @dataclass(frozen=True)
@@ -282,15 +291,7 @@ class Ros2RobotNode:
             self._on_command(u)
 
     def close(self) -> None:
-        for h in reversed(self._handles):
-            try:
-                h.close()
-            except Exception:  # the transport may already be closed
-                pass
+        close_quietly(reversed(self._handles))
         self._handles.clear()
-        for p in self._publishers.values():
-            try:
-                p.close()
-            except Exception:
-                pass
+        close_quietly(self._publishers.values())
         self._publishers.clear()
