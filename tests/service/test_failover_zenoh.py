@@ -18,6 +18,9 @@ daemon is down (what is sent then is lost). Checks, per resumed session:
 Packets accepted after the last checkpoint / replica and those sent while nobody served the
 session are lost, so right after a restart the covariance is larger than the reference's
 (each lost step of the paper's ranger and camera adds a few %): the test prints the ratios.
+How many steps are lost depends on the replica interval against the step (here 0.1 s replicas
+for 100 ms steps; with 0.25 s replicas a loaded machine once lost enough steps for a ratio of
+2.09 against the issue's bar of 2).
 
 No wall-time asserts; everything waits on events (liveliness, predictions) with generous
 timeouts. Run alone with ``pytest tests/service/test_failover_zenoh.py -m integration -s``.
@@ -188,7 +191,7 @@ def ratios(preds: list[Prediction], feed: Feed, ref: list[np.ndarray]) -> np.nda
 
 
 def write_config(path: Path) -> Path:
-    path.write_text("checkpoint_interval_s = 0.2\nreplica_interval_s = 0.25\n")
+    path.write_text("checkpoint_interval_s = 0.2\nreplica_interval_s = 0.1\n")
     return path
 
 
