@@ -97,7 +97,7 @@ class Settings(BaseSettings):
     idle_after_s: float = Field(5.0, gt=0, description="A session with no measurement or "
                                 "command that decoded for this long is idle: it is published only every "
                                 "idle_publish_s instead of every step.")
-    idle_publish_s: float = Field(1.0, gt=0, description="Least time between two predictions "
+    idle_publish_s: float = Field(10.0, gt=0, description="Least time between two predictions "
                                   "of an idle session.")
     min_period_ms: float = Field(1.0, gt=0, description="Specs with a shorter step period are "
                                  "refused (a 1 ns period would keep the worker busy).")

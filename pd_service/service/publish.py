@@ -15,6 +15,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
+import zlib
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -266,9 +267,13 @@ class Publisher:
             if cur >= 0 and sess.last_pub_step != cur:
                 due.append(sess)
             if now - sess.last_activity_ns > idle_ns:
-                # idle: next tick after idle_publish_s (cost O(active sessions) per step)
-                sess.idle = True
+                # idle: next tick after idle_publish_s (cost O(active sessions) per step),
+                # at a phase of its own so idle sessions sharing an epoch do not all predict
+                # in the same tick (2,000 of them did, starving the active ones)
                 skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.spec.period_ns)
+                if not sess.idle:
+                    skip += zlib.crc32(sess.name.encode()) % skip
+                sess.idle = True
                 self.schedule(sess, max(cur, k) + skip - 1)
             else:
                 sess.idle = False

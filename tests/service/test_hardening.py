@@ -209,6 +209,26 @@ def test_idle_sessions_tick_rarely_and_wake_on_traffic(tmp_path):
     assert set(range(100, 110)) <= {p.step - lead for p in col.predictions["idle"]}
 
 
+def test_idle_sessions_spread_their_ticks(tmp_path):
+    """Idle sessions sharing an epoch predict at phases of their own, not all in one tick."""
+    from collections import Counter
+
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path, idle_after_s=1.0, idle_publish_s=1.0)
+    names = [f"i{i:02d}" for i in range(40)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    while core.has_work():
+        core.run_once()
+    lead = paper_spec("x").lead
+    for k in range(0, 120):  # 6 s at 50 ms, idle from 1 s on
+        clock.t = at(k + 0.6)
+        core.run_once()
+    late = Counter(p.step - lead for s in names for p in col.predictions[s] if p.step - lead > 25)
+    assert sum(late.values()) >= 40  # every idle session still predicts now and then
+    assert max(late.values()) <= 10, late  # not all 40 in the same step
+
+
 # ---------------------------------------------------------------- receive time ------------
 
 def test_a_packet_is_judged_at_its_arrival_not_at_the_loops_clock_read(tmp_path):
