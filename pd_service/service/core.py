@@ -148,6 +148,7 @@ class ServiceCore:
             self.keeper.handover([r.sess for r in self._routes.values() if r.sess is not None],
                                  self.now_ns())
             self.publisher.flush()
+        self.keeper.close()
         if self._token is not None:
             self._token.close()
         for h in reversed(self._handles):

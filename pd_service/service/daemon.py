@@ -25,7 +25,7 @@ from pd_service.transport import Transport
 
 from .config import Settings
 from .core import ServiceCore
-from .persist import SpecStore
+from .persist import SpecStore, StateWriter
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -60,6 +60,8 @@ class Daemon:
         self.transport = transport
         store = SpecStore(self.settings.effective_state_dir)
         self.core = ServiceCore(transport, self.settings, store=store)
+        # checkpoints are written by a thread of their own: the worker never waits for fsync
+        self.core.keeper.writer = StateWriter(store)
         self.core.start()
         self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)
         self._worker.start()

@@ -39,7 +39,7 @@ from pd_service.wire.state import SessionState
 
 from .config import Settings
 from .ownership import Ownership
-from .persist import SpecStore
+from .persist import SpecStore, StateWriter
 from .publish import Out, Publisher
 from .session import Origin, Session
 
@@ -80,6 +80,8 @@ class StateKeeper:
         self.counters = counters
         self.pub = publisher
         self._lock = threading.Lock()
+        #: Writes checkpoints off the worker thread (the daemon's); None: written in place.
+        self.writer: StateWriter | None = None
         #: session -> (now_step of the state, encoded SessionState), newest received
         self.replicas: dict[str, tuple[int, bytes]] = {}
 
@@ -97,6 +99,8 @@ class StateKeeper:
         ck_ns, rep_ns = int(s.checkpoint_interval_s * 1e9), int(s.replica_interval_s * 1e9)
         want_ck = self.store is not None and s.checkpoint_interval_s > 0
         want_rep = self._replicating()
+        if self.writer is not None:
+            self._count_written()
         for sess in sessions:
             if not sess.alive:
                 continue
@@ -159,8 +163,30 @@ class StateKeeper:
             return None
         return data
 
+    def _count_written(self) -> None:
+        """Count the checkpoints the writer thread finished (worker thread)."""
+        assert self.writer is not None
+        done = self.writer.done
+        while done:
+            session, size, exc = done.popleft()
+            if exc is not None:
+                self.counters["checkpoint_failed"] += 1
+                event(log, "checkpoint_failed", logging.ERROR, session=session, reason=str(exc))
+            else:
+                self.counters["checkpoints"] += 1
+                self.counters["checkpoint_bytes"] += size
+
+    def close(self) -> None:
+        """Write the pending checkpoints and stop the writer thread (if any)."""
+        if self.writer is not None:
+            self.writer.close()
+            self._count_written()
+
     def _write(self, sess: Session, data: bytes) -> None:
         assert self.store is not None
+        if self.writer is not None:
+            self.writer.submit(sess.name, data)
+            return
         try:
             self.store.save_state(sess.name, data)
         except OSError as exc:
@@ -172,7 +198,9 @@ class StateKeeper:
 
     def forget(self, session: str) -> None:
         """The session is gone: its checkpoint and replica too."""
-        if self.store is not None:
+        if self.writer is not None:
+            self.writer.remove(session)
+        elif self.store is not None:
             self.store.remove_state(session)
         with self._lock:
             self.replicas.pop(session, None)

@@ -12,6 +12,8 @@ from __future__ import annotations
 import logging
 import os
 import stat
+import threading
+from collections import deque
 from pathlib import Path
 
 from pd_service.logs import LOGGER_NAME, event
@@ -87,7 +89,7 @@ class SpecStore:
             return
         self._sync_dir()
 
-    def _write(self, final: Path, data: bytes) -> None:
+    def _write(self, final: Path, data: bytes, sync_dir: bool = True) -> None:
         tmp = final.with_name(f".{final.name}.tmp")
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         try:
@@ -99,7 +101,8 @@ class SpecStore:
         finally:
             os.close(fd)
         os.replace(tmp, final)
-        self._sync_dir()
+        if sync_dir:
+            self._sync_dir()
 
     def remove(self, session: str) -> None:
         try:
@@ -152,3 +155,81 @@ class SpecStore:
             pass
         finally:
             os.close(fd)
+
+
+class StateWriter:
+    """Writes checkpoints on a thread of its own, so the worker never waits for the disk.
+
+    The worker hands over encoded states with :meth:`submit` (a dict insert; a newer state of
+    the same session replaces one not yet written); the thread writes them as
+    :meth:`SpecStore.save_state` does (tmp + fsync + rename), then fsyncs the directory once
+    per batch. Outcomes ``(session, bytes, error or None)`` wait in :attr:`done` for the
+    worker to count them. :meth:`remove` deletes a checkpoint after any pending or running
+    write of it; :meth:`close` writes what is pending, then stops the thread.
+    """
+
+    def __init__(self, store: SpecStore) -> None:
+        self.store = store
+        self.done: deque[tuple[str, int, OSError | None]] = deque()
+        self._cond = threading.Condition()
+        self._pending: dict[str, bytes] = {}
+        self._writing: str | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="pd-service-ckpt", daemon=True)
+        self._thread.start()
+
+    def submit(self, session: str, data: bytes) -> None:
+        with self._cond:
+            self._pending[session] = data
+            self._cond.notify()
+
+    def remove(self, session: str) -> None:
+        """Drop a pending write of ``session`` and delete its checkpoint file."""
+        with self._cond:
+            self._pending.pop(session, None)
+            while self._writing == session:
+                self._cond.wait()
+            self.store.remove_state(session)
+
+    def flush(self) -> None:
+        """Return once every state submitted so far is written."""
+        with self._cond:
+            while self._pending or self._writing is not None:
+                self._cond.wait()
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(timeout=30.0)
+
+    def _run(self) -> None:
+        store = self.store
+        while True:
+            with self._cond:
+                while not self._pending and not self._closed:
+                    self._cond.wait()
+                if not self._pending:
+                    return
+                batch = 0
+            while True:
+                with self._cond:
+                    if not self._pending:
+                        self._writing = None
+                        self._cond.notify_all()
+                        break
+                    session = next(iter(self._pending))
+                    data = self._pending.pop(session)
+                    self._writing = session
+                try:
+                    store._write(store.state_path(session), data, sync_dir=False)
+                    err: OSError | None = None
+                    batch += 1
+                except OSError as exc:
+                    err = exc
+                self.done.append((session, len(data), err))
+                with self._cond:
+                    self._writing = None
+                    self._cond.notify_all()
+            if batch:
+                store._sync_dir()

@@ -252,3 +252,26 @@ def test_a_session_in_its_first_window_is_checkpointed(tmp_path):
     b = make_core(bus, clock, tmp_path)
     assert b.counters["resumed_from_checkpoint"] == 1
     assert status(cli, "s1").origin == "checkpoint"
+
+
+def test_state_writer_writes_newest_and_removes(tmp_path):
+    """The daemon's checkpoint thread: the newest submitted state of a session is on disk
+    after flush, a removal deletes it even with a write pending, failures are reported."""
+    from pd_service.service.persist import SpecStore, StateWriter
+
+    store = SpecStore(tmp_path)
+    w = StateWriter(store)
+    try:
+        for i in range(50):
+            w.submit("alpha", b"state-%d" % i)
+        w.submit("beta", b"b")
+        w.flush()
+        assert store.load_state("alpha") == b"state-49"
+        assert store.load_state("beta") == b"b"
+        assert all(err is None for _, _, err in w.done)
+        w.submit("beta", b"b2")
+        w.remove("beta")
+        w.flush()
+        assert store.load_state("beta") is None
+    finally:
+        w.close()
