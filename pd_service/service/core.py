@@ -184,7 +184,7 @@ class ServiceCore:
                     handled += d.process_unknown(now, touched)
                 handled += d.round(now, touched)
                 if touched:
-                    pub.publish_many([s for s in touched if s.alive], now)
+                    pub.publish_many([s for s in touched if s.alive], now, data=True)
                 pub.run_ticks(now)
                 if touched:
                     self.keeper.after_round(touched, now)
