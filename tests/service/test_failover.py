@@ -275,3 +275,17 @@ def test_state_writer_writes_newest_and_removes(tmp_path):
         assert store.load_state("beta") is None
     finally:
         w.close()
+
+
+def test_store_rewrites_keep_one_file_and_remove_cleans_up(tmp_path):
+    """Rewriting a checkpoint or a spec leaves the newest content under the final name
+    (exchanged with the hidden .tmp where the OS allows); removal deletes both."""
+    from pd_service.service.persist import SpecStore
+
+    store = SpecStore(tmp_path)
+    for i in range(5):
+        store.save_state("gamma", b"v%d" % i)
+        assert store.load_state("gamma") == b"v%d" % i
+    store.remove_state("gamma")
+    assert store.load_state("gamma") is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
