@@ -68,6 +68,8 @@ def as_covariance(value: object, field: str, size: int | None = None) -> np.ndar
 
 def as_step(value: object, field: str) -> int:
     """Return ``value`` as a Python int (numpy integers accepted, bools and floats refused)."""
+    if type(value) is int:  # the usual case, first (bool is a subclass, not this type)
+        return value
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise ValueError(f"{field}: expected an integer step, got {type(value).__name__}")
     return int(value)
