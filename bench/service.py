@@ -224,6 +224,9 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT) -> dict:
                 "--listen", f"tcp/127.0.0.1:{dport}"]
         if j > 0:
             cmd += ["--connect", ep]
+        others = [i for i in instances if i != inst]
+        if others:  # explicit membership: each instance trusts the others' tokens
+            cmd += [x for o in others for x in ("--peer", o)]
         denv = dict(env, PD_SERVICE_PROFILE=f"{state}/{inst}.prof") if args.profile else env
         daemons.append(subprocess.Popen(cmd, env=denv, cwd=root))
     probe = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=endpoints))
