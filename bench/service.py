@@ -17,6 +17,8 @@ Printed per N, over the measurement interval (after a warm-up):
   us/sess-step  daemon CPU (all threads, utime + stime from /proc) per session and step:
                 CPU seconds / (N * interval / 50 ms), in µs
   overruns, flood, late, refused: daemon counters over the interval
+  behind        more than 1 % of the input refused as late: the daemon did not keep up, and
+                its CPU per session-step is then not the cost of the load
 After the table, one JSON object per N with the same figures (and the repetition spread
 when --repeat > 1: each figure is the median of the runs, ``*_runs`` lists them all).
 
@@ -323,6 +325,9 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT) -> dict:
         "accepted": delta("accepted"),
         "in_rate": (delta("accepted") + delta("commands_accepted") + delta("refused")) / wall,
     }
+    # behind: more than 1 % of the input refused as late (the daemon could not keep up; its
+    # CPU per session-step then counts work it did not finish, not the cost of the load)
+    res["saturated"] = res["late"] > 0.01 * res["in_rate"] * wall
     if args.profile:
         import pstats
 
@@ -388,7 +393,8 @@ def main() -> None:
                       f"{r['rx_rate']:>9.1f} {r['p50_us']:>8.0f} {r['p99_us']:>9.0f} "
                       f"{r['cpu_daemon']:>9.0f}% {r['us_per_session_step']:>12.1f} "
                       f"{r['cpu_gen']:>7.0f}% {r['overruns']:>8} {r['flood']:>6} "
-                      f"{r['late']:>6} {r['refused']:>7}", flush=True)
+                      f"{r['late']:>6} {r['refused']:>7}" + ("  behind" if r["saturated"] else ""),
+                      flush=True)
         for label, rs in runs.items():
             summary.append(_summarise(label, n, args.instances, rs))
     for obj in summary:
@@ -399,7 +405,8 @@ def _summarise(label: str, n: int, instances: int, rs: list[dict]) -> dict:
     """Median of each figure over the runs, plus every run's value and the spread."""
     import statistics
 
-    out: dict = {"build": label, "n": n, "instances": instances, "runs": len(rs)}
+    out: dict = {"build": label, "n": n, "instances": instances, "runs": len(rs),
+                 "saturated_runs": sum(1 for r in rs if r["saturated"])}
     for key in ("pred_rate", "rx_rate", "p50_us", "p99_us", "cpu_daemon", "us_per_session_step",
                 "cpu_gen", "in_rate", "overruns", "late", "refused", "flood"):
         vals = [float(r[key]) for r in rs]
