@@ -13,6 +13,7 @@ Specs are persisted as they change, so there is nothing else to flush at shutdow
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import signal
@@ -63,6 +64,13 @@ class Daemon:
         # checkpoints are written by a thread of their own: the worker never waits for fsync
         self.core.keeper.writer = StateWriter(store)
         self.core.start()
+        # Garbage collection: what exists after startup (modules, schemas, restored
+        # sessions) is never scanned again, and the young generation is collected every
+        # 10,000 allocations instead of 700 (the worker allocates ~100 tracked objects per
+        # session-step, nearly all freed by reference counting): at 1,000 sessions the
+        # collector's time fell from ~150 ms to ~30 ms per 3 s of load (bench/worker.py).
+        gc.freeze()
+        gc.set_threshold(10_000, 10, 10)
         self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)
         self._worker.start()
         return self.core
