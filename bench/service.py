@@ -188,12 +188,14 @@ def run_loadgen(args: argparse.Namespace) -> None:
 # ------------------------------------------------------------------ driver --------------
 
 def query_status(t, instance: str):
+    """The instance's ServiceStatus; an overloaded daemon may answer late: three tries."""
     from pd_service.wire import ServiceStatus, decode, keys
 
-    for r in t.get(keys.service_status_key(instance), timeout=5.0):
-        if r.ok:
-            return decode(r.payload, ServiceStatus)
-    return None
+    for _ in range(3):
+        for r in t.get(keys.service_status_key(instance), timeout=5.0):
+            if r.ok:
+                return decode(r.payload, ServiceStatus)
+    raise RuntimeError(f"{instance} did not answer its status query (overloaded?)")
 
 
 BENCH_ENV = {
@@ -386,7 +388,11 @@ def main() -> None:
         runs: dict[str, list[dict]] = {label: [] for label, _ in roots}
         for _ in range(args.repeat):
             for label, root in roots:  # alternate the builds: same load on the machine
-                r = one_run(n, args, root)
+                try:
+                    r = one_run(n, args, root)
+                except RuntimeError as exc:  # e.g. a daemon too overloaded to answer
+                    print(f"{label[-24:]:>24} {n:>5} run failed: {exc}", flush=True)
+                    continue
                 runs[label].append(r)
                 tag = f"{label[-24:]:>24} " if len(roots) > 1 else ""
                 print(tag + f"{r['n']:>5} {r['in_rate']:>9.0f} {r['pred_rate']:>11.1f} "
@@ -396,7 +402,8 @@ def main() -> None:
                       f"{r['late']:>6} {r['refused']:>7}" + ("  behind" if r["saturated"] else ""),
                       flush=True)
         for label, rs in runs.items():
-            summary.append(_summarise(label, n, args.instances, rs))
+            if rs:
+                summary.append(_summarise(label, n, args.instances, rs))
     for obj in summary:
         print(json.dumps(obj), flush=True)
 

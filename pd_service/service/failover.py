@@ -45,6 +45,11 @@ from .session import Origin, Session
 
 log = logging.getLogger(LOGGER_NAME)
 
+#: Most session states encoded after one round (~150 µs each for the paper's session):
+#: sessions created together fall due together, and encoding them all at once stalled the
+#: worker for tens of ms once per checkpoint interval (p99 40 ms at 200 sessions).
+STATES_PER_ROUND = 8
+
 #: Most replicas held (sessions); the oldest received is dropped beyond it.
 MAX_REPLICAS = 100_000
 
@@ -82,6 +87,7 @@ class StateKeeper:
         self._lock = threading.Lock()
         #: Writes checkpoints off the worker thread (the daemon's); None: written in place.
         self.writer: StateWriter | None = None
+        self._rotate = 0  # where the next long after_round list starts (round-robin)
         #: session -> (now_step of the state, encoded SessionState), newest received
         self.replicas: dict[str, tuple[int, bytes]] = {}
 
@@ -101,7 +107,11 @@ class StateKeeper:
         want_rep = self._replicating()
         if self.writer is not None:
             self._count_written()
-        for sess in sessions:
+        budget = STATES_PER_ROUND
+        if len(sessions) > budget:  # a long list (the sweep): start where the last one stopped
+            start = self._rotate % len(sessions)
+            sessions = sessions[start:] + sessions[:start]
+        for i, sess in enumerate(sessions):
             if not sess.alive:
                 continue
             mark = state_mark(sess)
@@ -111,6 +121,10 @@ class StateKeeper:
             rep = want_rep and now - sess.last_replica_ns >= rep_ns
             if not (ck or rep):
                 continue
+            if budget == 0:  # the rest stay due: later rounds and the sweep take them
+                self._rotate += i
+                break
+            budget -= 1
             data = self.encode_state(sess, now)
             if data is None:
                 continue

@@ -289,3 +289,29 @@ def test_store_rewrites_keep_one_file_and_remove_cleans_up(tmp_path):
     store.remove_state("gamma")
     assert store.load_state("gamma") is None
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_states_due_together_are_spread_over_rounds(tmp_path):
+    """Sessions that fall due for a checkpoint in the same round are encoded at most
+    STATES_PER_ROUND per round (a burst stalled the worker); the others stay due and are
+    all taken by the following rounds and sweeps, none starved."""
+    from pd_service.service.failover import STATES_PER_ROUND
+
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=1.0)
+    names = [f"s{i:02d}" for i in range(3 * STATES_PER_ROUND + 1)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    a.run_once()
+    clock.t = int(0.1 * PERIOD_NS)
+    for s in names:
+        cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 0, [5.0]))
+    a.run_once()  # one round touches every session: all due at once
+    assert a.counters["checkpoints"] == STATES_PER_ROUND
+    for j in range(1, 4):  # sweeps every 250 ms take the rest, a budget each (all within
+        clock.t = int(0.1 * PERIOD_NS) + j * 260_000_000  # the 1 s interval: once each)
+        a.run_once()
+        assert a.counters["checkpoints"] == min(len(names), (j + 1) * STATES_PER_ROUND)
+    assert a.counters["checkpoints"] == len(names)
+    assert all((tmp_path / "a" / f"{s}.ckpt").exists() for s in names)
