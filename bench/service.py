@@ -14,14 +14,27 @@ Printed per N, over the measurement interval (after a warm-up):
                 subscribed to sessions 0-9 (their phase is early in the step)
   p50/p99 us    packet receipt -> prediction put, inside the daemon (ServiceStatus window)
   daemon CPU    % of one core (utime + stime from /proc), generator CPU likewise
+  us/sess-step  daemon CPU (all threads, utime + stime from /proc) per session and step:
+                CPU seconds / (N * interval / 50 ms), in µs
   overruns, flood, late, refused: daemon counters over the interval
+  behind        more than 1 % of the input refused as late: the daemon did not keep up, and
+                its CPU per session-step is then not the cost of the load
+After the table, one JSON object per N with the same figures (and the repetition spread
+when --repeat > 1: each figure is the median of the runs, ``*_runs`` lists them all).
 
 Usage: python bench/service.py [--sessions 10,100,500,1000] [--duration 10] [--warmup 3]
        [--instances 1]    several daemon instances (rendezvous split), one process each
+       [--repeat 1]       run each N this many times, report medians and the runs
+       [--root DIR]       benchmark the pd_service of another checkout (daemon's PYTHONPATH),
+                          e.g. a `git worktree` of the baseline, side by side (--compare)
+       [--compare DIR]    alternate runs of this checkout and DIR (same N, same session)
        [--profile]        cProfile the daemon's worker thread, print the top functions
        [--threads]        print the CPU seconds of the daemon's busiest threads
        [--declare-keys]   load generator declares its key expressions
-Settings reach the daemon through the environment, e.g. PD_SERVICE_BATCH_BUDGET=32.
+Settings reach the daemon through the environment, e.g. PD_SERVICE_BATCH_BUDGET=32. The
+benchmark raises admission's limits unless they are set: PD_SERVICE_CPU_BUDGET=1000,
+PD_SERVICE_MEMORY_BUDGET_BYTES=8 GiB, PD_SERVICE_CONFIG_RATE_TOTAL and _BURST_TOTAL=100000,
+PD_SERVICE_MAX_SESSIONS=100000 (so N sessions are admitted, and created in seconds).
 """
 
 from __future__ import annotations
@@ -175,15 +188,24 @@ def run_loadgen(args: argparse.Namespace) -> None:
 # ------------------------------------------------------------------ driver --------------
 
 def query_status(t, instance: str):
+    """The instance's ServiceStatus; an overloaded daemon may answer late: three tries."""
     from pd_service.wire import ServiceStatus, decode, keys
 
-    for r in t.get(keys.service_status_key(instance), timeout=5.0):
-        if r.ok:
-            return decode(r.payload, ServiceStatus)
-    return None
+    for _ in range(3):
+        for r in t.get(keys.service_status_key(instance), timeout=5.0):
+            if r.ok:
+                return decode(r.payload, ServiceStatus)
+    raise RuntimeError(f"{instance} did not answer its status query (overloaded?)")
 
 
-def one_run(n: int, args: argparse.Namespace) -> dict:
+BENCH_ENV = {
+    "PD_SERVICE_CPU_BUDGET": "1000", "PD_SERVICE_MEMORY_BUDGET_BYTES": str(8 * 2**30),
+    "PD_SERVICE_CONFIG_RATE_TOTAL": "100000", "PD_SERVICE_CONFIG_BURST_TOTAL": "100000",
+    "PD_SERVICE_MAX_SESSIONS": "100000",
+}
+
+
+def one_run(n: int, args: argparse.Namespace, root: Path = ROOT) -> dict:
     from pd_service.transport import ZenohTransport, zenoh_config
 
     port = free_port()
@@ -192,6 +214,10 @@ def one_run(n: int, args: argparse.Namespace) -> dict:
     env = dict(os.environ, PD_SERVICE_LATENCY_WINDOW="200000", PD_SERVICE_LOG_LEVEL="WARNING",
                PD_SERVICE_INBOX_SIZE="1024")
     env.pop("PD_SERVICE_CONFIG", None)
+    for k, v in BENCH_ENV.items():
+        env.setdefault(k, v)
+    if root != ROOT:  # the daemon imports pd_service from that checkout
+        env["PYTHONPATH"] = os.pathsep.join([str(root)] + [p for p in [env.get("PYTHONPATH")] if p])
     daemons = []
     instances = [f"bench-{j}" for j in range(args.instances)]
     endpoints: list[str] = []
@@ -202,8 +228,11 @@ def one_run(n: int, args: argparse.Namespace) -> dict:
                 "--listen", f"tcp/127.0.0.1:{dport}"]
         if j > 0:
             cmd += ["--connect", ep]
+        others = [i for i in instances if i != inst]
+        if others:  # explicit membership: each instance trusts the others' tokens
+            cmd += [x for o in others for x in ("--peer", o)]
         denv = dict(env, PD_SERVICE_PROFILE=f"{state}/{inst}.prof") if args.profile else env
-        daemons.append(subprocess.Popen(cmd, env=denv, cwd=ROOT))
+        daemons.append(subprocess.Popen(cmd, env=denv, cwd=root))
     probe = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=endpoints))
     try:
         deadline = time.monotonic() + 30
@@ -288,6 +317,9 @@ def one_run(n: int, args: argparse.Namespace) -> dict:
         "p99_us": p99,
         "cpu_daemon": 100 * sum(b - a for a, b in zip(c0, c1, strict=True)) / wall,
         "cpu_gen": 100 * (g1 - g0) / wall,
+        # µs of daemon CPU (all processes, all threads) per session and 50 ms step
+        "us_per_session_step": 1e6 * sum(b - a for a, b in zip(c0, c1, strict=True))
+        / (n * wall / (PERIOD_NS / 1e9)),
         "overruns": delta("tick_overruns"),
         "flood": delta("flood"),
         "late": delta("late_total"),
@@ -295,12 +327,18 @@ def one_run(n: int, args: argparse.Namespace) -> dict:
         "accepted": delta("accepted"),
         "in_rate": (delta("accepted") + delta("commands_accepted") + delta("refused")) / wall,
     }
+    # behind: more than 1 % of the input refused as late (the daemon could not keep up; its
+    # CPU per session-step then counts work it did not finish, not the cost of the load)
+    res["saturated"] = res["late"] > 0.01 * res["in_rate"] * wall
     if args.profile:
         import pstats
 
         for inst in instances:
             print(f"--- cProfile of {inst}'s worker thread (by own time, top 25) ---")
-            pstats.Stats(f"{state}/{inst}.prof").sort_stats("tottime").print_stats(25)
+            st = pstats.Stats(f"{state}/{inst}.prof")
+            st.sort_stats("tottime").print_stats(25)
+            print(f"--- cProfile of {inst}'s worker thread (cumulative, top 40) ---")
+            st.sort_stats("cumulative").print_stats(40)
     shutil.rmtree(state, ignore_errors=True)
     return res
 
@@ -312,6 +350,9 @@ def main() -> None:
     ap.add_argument("--warmup", type=float, default=3.0)
     ap.add_argument("--instances", type=int, default=1)
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--root", default="", help="checkout whose pd_service the daemon runs")
+    ap.add_argument("--compare", default="", help="second checkout, runs alternate")
     ap.add_argument("--threads", action="store_true", help="print the daemon's busiest threads")
     ap.add_argument("--declare-keys", dest="declare_keys", action="store_true",
                     help="load generator declares its key expressions (zenoh declare_keyexpr)")
@@ -329,18 +370,57 @@ def main() -> None:
         return
     print(f"pd-service load test: paper scenario, 20 Hz steps (cmd 20 Hz, ranger 20 Hz, camera "
           f"10 Hz), {args.instances} daemon instance(s), {os.cpu_count()} CPUs, "
-          f"{args.duration:g} s measured after {args.warmup:g} s warm-up")
+          f"{args.duration:g} s measured after {args.warmup:g} s warm-up, "
+          f"{args.repeat} run(s) per N")
+    roots = [("this", ROOT)]
+    if args.root:
+        roots = [(args.root, Path(args.root).resolve())]
+    if args.compare:
+        roots.append((args.compare, Path(args.compare).resolve()))
     hdr = (f"{'N':>5} {'in msg/s':>9} {'pred/s/sess':>11} {'rx/s/sess':>9} {'p50 us':>8} "
-           f"{'p99 us':>9} {'daemon CPU':>10} {'gen CPU':>8} {'overruns':>8} {'flood':>6} "
-           f"{'late':>6} {'refused':>7}")
+           f"{'p99 us':>9} {'daemon CPU':>10} {'us/sess-step':>12} {'gen CPU':>8} "
+           f"{'overruns':>8} {'flood':>6} {'late':>6} {'refused':>7}")
+    if len(roots) > 1:
+        hdr = f"{'build':>24} " + hdr
     print(hdr)
+    summary = []
     for n in [int(x) for x in args.sessions.split(",")]:
-        r = one_run(n, args)
-        print(f"{r['n']:>5} {r['in_rate']:>9.0f} {r['pred_rate']:>11.1f} {r['rx_rate']:>9.1f} "
-              f"{r['p50_us']:>8.0f} {r['p99_us']:>9.0f} {r['cpu_daemon']:>9.0f}% "
-              f"{r['cpu_gen']:>7.0f}% {r['overruns']:>8} {r['flood']:>6} {r['late']:>6} "
-              f"{r['refused']:>7}", flush=True)
+        runs: dict[str, list[dict]] = {label: [] for label, _ in roots}
+        for _ in range(args.repeat):
+            for label, root in roots:  # alternate the builds: same load on the machine
+                try:
+                    r = one_run(n, args, root)
+                except RuntimeError as exc:  # e.g. a daemon too overloaded to answer
+                    print(f"{label[-24:]:>24} {n:>5} run failed: {exc}", flush=True)
+                    continue
+                runs[label].append(r)
+                tag = f"{label[-24:]:>24} " if len(roots) > 1 else ""
+                print(tag + f"{r['n']:>5} {r['in_rate']:>9.0f} {r['pred_rate']:>11.1f} "
+                      f"{r['rx_rate']:>9.1f} {r['p50_us']:>8.0f} {r['p99_us']:>9.0f} "
+                      f"{r['cpu_daemon']:>9.0f}% {r['us_per_session_step']:>12.1f} "
+                      f"{r['cpu_gen']:>7.0f}% {r['overruns']:>8} {r['flood']:>6} "
+                      f"{r['late']:>6} {r['refused']:>7}" + ("  behind" if r["saturated"] else ""),
+                      flush=True)
+        for label, rs in runs.items():
+            if rs:
+                summary.append(_summarise(label, n, args.instances, rs))
+    for obj in summary:
+        print(json.dumps(obj), flush=True)
 
+
+def _summarise(label: str, n: int, instances: int, rs: list[dict]) -> dict:
+    """Median of each figure over the runs, plus every run's value and the spread."""
+    import statistics
+
+    out: dict = {"build": label, "n": n, "instances": instances, "runs": len(rs),
+                 "saturated_runs": sum(1 for r in rs if r["saturated"])}
+    for key in ("pred_rate", "rx_rate", "p50_us", "p99_us", "cpu_daemon", "us_per_session_step",
+                "cpu_gen", "in_rate", "overruns", "late", "refused", "flood"):
+        vals = [float(r[key]) for r in rs]
+        out[key] = round(statistics.median(vals), 2)
+        if len(vals) > 1:
+            out[key + "_runs"] = [round(v, 2) for v in vals]
+    return out
 
 if __name__ == "__main__":
     main()

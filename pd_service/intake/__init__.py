@@ -58,6 +58,14 @@ class Refusal:
     seq: int | None = None
 
 
+def _max_abs(v: np.ndarray) -> float:
+    """max |v_i| of a finite vector (both paths refused non-finite values before); Python
+    floats for a few values: cheaper than numpy's reductions (~0.4 µs instead of ~3 µs)."""
+    if v.size > 16:
+        return float(np.max(np.abs(v)))
+    return float(max(map(abs, v.ravel().tolist())))
+
+
 def _decode_reason(exc: WireError, prefix: str) -> Refusal:
     """A message that failed to decode: counted by the error's kind, its seq echoed."""
     return Refusal(prefix + exc.kind, exc.reason, exc.seq)
@@ -112,7 +120,7 @@ class Intake:
             seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
             stamp = "step" if msg.step is not None else "t_ns"
         self.decoded = True
-        if z.size and float(np.max(np.abs(z))) > self.max_abs:
+        if z.size and _max_abs(z) > self.max_abs:
             return Refusal("out_of_range", f"Measurement.z: a value exceeds {self.max_abs:g} "
                            "in magnitude (max_abs_input)", seq)
         if now_step < 0:
@@ -160,7 +168,7 @@ class Intake:
             seq, j, u = msg.seq, command_step(msg, spec), msg.u
             stamp = "step" if msg.step is not None else "issued_ns"
         self.decoded = True
-        if u.size and float(np.max(np.abs(u))) > self.max_abs:
+        if u.size and _max_abs(u) > self.max_abs:
             return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
                            f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         est = self.est

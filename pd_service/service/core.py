@@ -148,6 +148,7 @@ class ServiceCore:
             self.keeper.handover([r.sess for r in self._routes.values() if r.sess is not None],
                                  self.now_ns())
             self.publisher.flush()
+        self.keeper.close()
         if self._token is not None:
             self._token.close()
         for h in reversed(self._handles):
@@ -183,7 +184,7 @@ class ServiceCore:
                     handled += d.process_unknown(now, touched)
                 handled += d.round(now, touched)
                 if touched:
-                    pub.publish_many([s for s in touched if s.alive], now)
+                    pub.publish_many([s for s in touched if s.alive], now, data=True)
                 pub.run_ticks(now)
                 if touched:
                     self.keeper.after_round(touched, now)

@@ -13,6 +13,7 @@ Specs are persisted as they change, so there is nothing else to flush at shutdow
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import signal
@@ -25,7 +26,7 @@ from pd_service.transport import Transport
 
 from .config import Settings
 from .core import ServiceCore
-from .persist import SpecStore
+from .persist import SpecStore, StateWriter
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -60,7 +61,16 @@ class Daemon:
         self.transport = transport
         store = SpecStore(self.settings.effective_state_dir)
         self.core = ServiceCore(transport, self.settings, store=store)
+        # checkpoints are written by a thread of their own: the worker never waits for fsync
+        self.core.keeper.writer = StateWriter(store)
         self.core.start()
+        # Garbage collection: what exists after startup (modules, schemas, restored
+        # sessions) is never scanned again, and the young generation is collected every
+        # 10,000 allocations instead of 700 (the worker allocates ~100 tracked objects per
+        # session-step, nearly all freed by reference counting): at 1,000 sessions the
+        # collector's time fell from ~150 ms to ~30 ms per 3 s of load (bench/worker.py).
+        gc.freeze()
+        gc.set_threshold(10_000, 10, 10)
         self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)
         self._worker.start()
         return self.core

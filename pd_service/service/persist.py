@@ -1,18 +1,23 @@
 """Session specs on disk: one ``<session>.msgpack`` file per session (the wire encoding).
 
 Writes are atomic and durable: write ``.<session>.msgpack.tmp``, fsync it, rename it over the
-old file, fsync the directory. A crash leaves either the old or the new spec, never half of
-one. Only regular files of at most ``MAX_FILE_BYTES`` are read at startup (never a symlink,
-a FIFO or a device: startup never blocks); anything else, and unreadable files, are renamed
-``*.bad`` and reported, never fatal.
+old file (exchange the two where Linux allows: the old content stays in the ``.tmp`` file,
+reused by the next write), fsync the directory. A crash leaves either the old or the new
+spec, never half of one. Only regular files of at most ``MAX_FILE_BYTES`` are read at
+startup (never a symlink, a FIFO or a device: startup never blocks); anything else, and
+unreadable files, are renamed ``*.bad`` and reported, never fatal.
 """
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import stat
+import threading
+from collections import deque
 from pathlib import Path
+from typing import Any
 
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.wire import SessionSpec, WireError, decode, encode
@@ -25,6 +30,32 @@ SUFFIX = ".msgpack"
 STATE_SUFFIX = ".ckpt"
 #: Largest state file read (a spec or a checkpoint is far smaller); larger ones are refused.
 MAX_FILE_BYTES = 1 << 20
+
+
+_RENAME_EXCHANGE = 2
+_renameat2: Any = None
+
+
+def _exchange(tmp: Path, final: Path) -> bool:
+    """Swap ``tmp`` and ``final`` atomically (Linux ``renameat2(RENAME_EXCHANGE)``): the old
+    content stays in ``tmp``, whose inode the next write truncates and reuses, so rewriting
+    a checkpoint creates and deletes no inode (on ext4 a new inode per write cost ~0.5 ms of
+    kernel time). False where unsupported (no such file yet, other OS or file system): the
+    caller renames instead."""
+    global _renameat2
+    if _renameat2 is None:
+        try:
+            fn = ctypes.CDLL(None, use_errno=True).renameat2
+            fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p,
+                           ctypes.c_uint]
+            _renameat2 = fn
+        except (OSError, AttributeError):
+            _renameat2 = False
+    if not _renameat2 or not final.exists():
+        return False
+    at_fdcwd = -100
+    return _renameat2(at_fdcwd, os.fsencode(tmp), at_fdcwd, os.fsencode(final),
+                      _RENAME_EXCHANGE) == 0
 
 
 def read_regular(path: Path, limit: int = MAX_FILE_BYTES) -> bytes:
@@ -81,15 +112,20 @@ class SpecStore:
             return None
 
     def remove_state(self, session: str) -> None:
+        path = self.state_path(session)
         try:
-            self.state_path(session).unlink()
+            path.with_name(f".{path.name}.tmp").unlink()  # the previous state (exchanged)
+        except FileNotFoundError:
+            pass
+        try:
+            path.unlink()
         except FileNotFoundError:
             return
         self._sync_dir()
 
-    def _write(self, final: Path, data: bytes) -> None:
+    def _write(self, final: Path, data: bytes, sync_dir: bool = True) -> None:
         tmp = final.with_name(f".{final.name}.tmp")
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
         try:
             view = memoryview(data)
             while view:
@@ -98,12 +134,19 @@ class SpecStore:
             os.fsync(fd)
         finally:
             os.close(fd)
-        os.replace(tmp, final)
-        self._sync_dir()
+        if not _exchange(tmp, final):
+            os.replace(tmp, final)
+        if sync_dir:
+            self._sync_dir()
 
     def remove(self, session: str) -> None:
+        path = self.path(session)
         try:
-            self.path(session).unlink()
+            path.with_name(f".{path.name}.tmp").unlink()  # the previous spec (exchanged)
+        except FileNotFoundError:
+            pass
+        try:
+            path.unlink()
         except FileNotFoundError:
             return
         self._sync_dir()
@@ -152,3 +195,81 @@ class SpecStore:
             pass
         finally:
             os.close(fd)
+
+
+class StateWriter:
+    """Writes checkpoints on a thread of its own, so the worker never waits for the disk.
+
+    The worker hands over encoded states with :meth:`submit` (a dict insert; a newer state of
+    the same session replaces one not yet written); the thread writes them as
+    :meth:`SpecStore.save_state` does (tmp + fsync + rename), then fsyncs the directory once
+    per batch. Outcomes ``(session, bytes, error or None)`` wait in :attr:`done` for the
+    worker to count them. :meth:`remove` deletes a checkpoint after any pending or running
+    write of it; :meth:`close` writes what is pending, then stops the thread.
+    """
+
+    def __init__(self, store: SpecStore) -> None:
+        self.store = store
+        self.done: deque[tuple[str, int, OSError | None]] = deque()
+        self._cond = threading.Condition()
+        self._pending: dict[str, bytes] = {}
+        self._writing: str | None = None
+        self._closed = False
+        self._thread = threading.Thread(target=self._run, name="pd-service-ckpt", daemon=True)
+        self._thread.start()
+
+    def submit(self, session: str, data: bytes) -> None:
+        with self._cond:
+            self._pending[session] = data
+            self._cond.notify()
+
+    def remove(self, session: str) -> None:
+        """Drop a pending write of ``session`` and delete its checkpoint file."""
+        with self._cond:
+            self._pending.pop(session, None)
+            while self._writing == session:
+                self._cond.wait()
+            self.store.remove_state(session)
+
+    def flush(self) -> None:
+        """Return once every state submitted so far is written."""
+        with self._cond:
+            while self._pending or self._writing is not None:
+                self._cond.wait()
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self._thread.join(timeout=30.0)
+
+    def _run(self) -> None:
+        store = self.store
+        while True:
+            with self._cond:
+                while not self._pending and not self._closed:
+                    self._cond.wait()
+                if not self._pending:
+                    return
+                batch = 0
+            while True:
+                with self._cond:
+                    if not self._pending:
+                        self._writing = None
+                        self._cond.notify_all()
+                        break
+                    session = next(iter(self._pending))
+                    data = self._pending.pop(session)
+                    self._writing = session
+                try:
+                    store._write(store.state_path(session), data, sync_dir=False)
+                    err: OSError | None = None
+                    batch += 1
+                except OSError as exc:
+                    err = exc
+                self.done.append((session, len(data), err))
+                with self._cond:
+                    self._writing = None
+                    self._cond.notify_all()
+            if batch:
+                store._sync_dir()

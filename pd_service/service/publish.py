@@ -5,6 +5,11 @@ Everything the worker publishes during a round is appended to the outbox and sen
 Prediction is published for every session that accepted a measurement in the round
 (coalesced: one per session per round) and at every session's tick: the first step
 ``k > after`` with ``k % publish_every == 0`` fires at ``epoch + (k + tick_phase) * period``.
+A session whose data came after the tick phase in step ``k - 1`` (and published) gets
+its tick for step ``k`` late, at ``DATA_TICK_PHASE`` of the step: its data, arriving again
+after ``tick_phase``, give the step's one prediction instead of a second one after the
+tick's (the tick still publishes if they do not come). Data arriving before the tick
+phase need no such delay: the tick finds the step published.
 
 Refusals are counted per session and service-wide and reported as ErrorReports, limited per
 session (``error_rate``/``error_burst``) and service-wide (``error_rate_total``).
@@ -35,6 +40,9 @@ from .status import SessionState, session_status
 
 log = logging.getLogger(LOGGER_NAME)
 
+#: Where in its step the tick of a data-driven session fires (fraction of the period).
+DATA_TICK_PHASE = 0.95
+
 
 @dataclass(slots=True)
 class Out:
@@ -45,6 +53,11 @@ class Out:
     payload: bytes | None
     sess: Session | None = None
     recv: list[int] = field(default_factory=list)
+
+
+def tick_ns(settings: Settings, sess: Session) -> int:
+    """Where in its step the session's tick fires (ns after the step's start)."""
+    return int(settings.tick_phase * sess.spec.period_ns)
 
 
 class Publisher:
@@ -59,9 +72,9 @@ class Publisher:
         self.latency = latency
         self.mono_ns = mono_ns
         self.outbox: list[Out] = []
-        #: (deadline ns, tie-break, the session's tick generation, step, session), a heap
-        #: ordered by deadline.
-        self.ticks: list[tuple[int, int, int, int, Session]] = []
+        #: (deadline ns, tie-break, the session's tick generation, step, deferred, session),
+        #: a heap ordered by deadline; ``deferred``: the late tick of a data-driven session.
+        self.ticks: list[tuple[int, int, int, int, bool, Session]] = []
         self._tick_seq = itertools.count()
         #: ErrorReports about sessions nobody serves (unknown names, refused new specs).
         self.unknown_limiter = TokenBucket(settings.error_rate, settings.error_burst, now)
@@ -114,9 +127,10 @@ class Publisher:
 
     # --- predictions ----------------------------------------------------------------------
 
-    def publish_many(self, sessions: list[Session], now: int) -> None:
+    def publish_many(self, sessions: list[Session], now: int, data: bool = False) -> None:
         """Publish a Prediction of now + lead for each session: the estimators' pending
-        arithmetic is resolved together (stacked), then each message is packed."""
+        arithmetic is resolved together (stacked), then each message is packed. ``data``:
+        the publications answer accepted measurements (the session is data-driven)."""
         items = []
         for sess in sessions:
             k = sess.step_now(now)
@@ -147,7 +161,7 @@ class Publisher:
                         continue
                     pred = got
                 sess.keep_snapshot(pred, k)
-                data = sess.pack(pred, k, now)
+                payload = sess.pack(pred, k, now)
             except Exception as exc:  # e.g. a non-finite estimate: report, never crash
                 self._publish_failed(sess, exc, now)
                 continue
@@ -156,7 +170,9 @@ class Publisher:
                 sess.counters["steps_missed"] += missed
                 self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
-            self.outbox.append(Out(sess.pred_key, data, sess, recv))
+            self.outbox.append(Out(sess.pred_key, payload, sess, recv))
+            if data and now - sess.spec.time_of(k) >= tick_ns(self.settings, sess):
+                sess.late_data_step = k
 
     def _recover(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
         """The estimate of ``sess`` at step ``k`` is unusable (``why``): restore its snapshot,
@@ -239,9 +255,9 @@ class Publisher:
         spec = sess.spec
         pe = spec.publish_every
         k = max(0, (after_step // pe + 1) * pe)
-        deadline = spec.time_of(k) + int(self.settings.tick_phase * spec.period_ns)
+        deadline = spec.time_of(k) + tick_ns(self.settings, sess)
         sess.tick_gen += 1
-        heapq.heappush(self.ticks, (deadline, next(self._tick_seq), sess.tick_gen, k, sess))
+        heapq.heappush(self.ticks, (deadline, next(self._tick_seq), sess.tick_gen, k, False, sess))
 
     def wake(self, sess: Session, now: int) -> None:
         """An idle session got a message: tick it every step again from now on."""
@@ -257,15 +273,24 @@ class Publisher:
         due: list[Session] = []
         idle_ns = int(self.settings.idle_after_s * 1e9)
         while heap and heap[0][0] <= now:
-            _, _, gen, k, sess = heapq.heappop(heap)
+            _, _, gen, k, deferred, sess = heapq.heappop(heap)
             if not sess.alive or gen != sess.tick_gen:
                 continue
             cur = sess.step_now(now)
+            if deferred:  # a data-driven session's late tick: publish unless data came
+                last = sess.last_pub_step
+                if cur >= 0 and (last is None or last < k):
+                    due.append(sess)
+                continue
             if cur > k and not sess.idle:
                 sess.counters["tick_overruns"] += 1
                 self.counters["tick_overruns"] += 1
+            defer = False
             if cur >= 0 and sess.last_pub_step != cur:
-                due.append(sess)
+                if cur == k and sess.late_data_step == k - 1:
+                    defer = True
+                else:
+                    due.append(sess)
             if now - sess.last_activity_ns > idle_ns:
                 # idle: next tick after idle_publish_s (cost O(active sessions) per step),
                 # at a phase of its own so idle sessions sharing an epoch do not all predict
@@ -275,8 +300,14 @@ class Publisher:
                     skip += zlib.crc32(sess.name.encode()) % skip
                 sess.idle = True
                 self.schedule(sess, max(cur, k) + skip - 1)
+                if defer:
+                    due.append(sess)
             else:
                 sess.idle = False
                 self.schedule(sess, max(cur, k))
+                if defer:
+                    spec = sess.spec
+                    heapq.heappush(heap, (spec.time_of(k) + int(DATA_TICK_PHASE * spec.period_ns),
+                                          next(self._tick_seq), sess.tick_gen, k, True, sess))
         if due:
             self.publish_many(due, now)

@@ -89,6 +89,9 @@ class Session:
         self.published = 0
         self.now_step: int | None = None
         self.last_pub_step: int | None = None
+        #: Step of the newest prediction published on data that came after the step's tick
+        #: phase (pd_service.service.publish: the next tick waits for such data).
+        self.late_data_step: int | None = None
         self.last_activity_ns = now_ns
         self.latency = LatencyWindow(SESSION_LATENCY_WINDOW)
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)

@@ -230,6 +230,37 @@ def test_ticks_publish_every_step_and_measurements_publish_at_once(world, tmp_pa
     assert core.service_status().counters["tick_overruns"] >= 1
 
 
+def test_data_driven_session_publishes_once_per_step(world, tmp_path):
+    """Data every step after tick_phase: one prediction per step (on data), not the tick's
+    and then the data's; when the data stop, the late tick still publishes that step."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    clock.t = at(0.6)
+    core.run_once()  # tick of step 0
+    n0 = len(col.predictions["s1"])
+    for k in range(1, 8):
+        clock.t = at(k + 0.55)  # the regular tick phase (0.5) has passed, no data yet
+        core.run_once()
+        clock.t = at(k + 0.7)
+        cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", k, [5.0]))
+        core.run_once()
+    got = col.predictions["s1"][n0:]
+    # step 1 (no data in step 0): its tick, then the data; from step 2 on the tick waits
+    # and the data give the step's only prediction
+    assert [p.step - 10 for p in got] == [1, 1, 2, 3, 4, 5, 6, 7]
+    assert all(p.newest_step == p.step - 10 for p in got[1:])
+    clock.t = at(8.7)  # no data in step 8: nothing yet, the late tick publishes at 0.95
+    core.run_once()
+    assert len(col.predictions["s1"]) == n0 + 8
+    clock.t = at(8.96)
+    core.run_once()
+    assert len(col.predictions["s1"]) == n0 + 9
+    assert col.predictions["s1"][-1].step == 18
+    assert core.service_status().counters.get("steps_missed", 0) == 0
+
+
 def test_publish_every_and_epoch_in_the_future(world, tmp_path):
     bus, clock, col, cli = world
     core = make_core(bus, clock, tmp_path)

@@ -1,0 +1,107 @@
+#!/usr/bin/env python3
+"""The daemon's worker alone: N paper sessions in a ServiceCore on an InMemoryBus (no Zenoh,
+no threads, no checkpoints), fed the load of bench/service.py step by step on a simulated
+clock; prints the worker's CPU per session-step (process time, message building included).
+
+What bench/service.py measures minus Zenoh, the callbacks' GIL hand-offs and the disk: the
+floor of the per-session-step cost of the Python worker.
+
+Usage: python bench/worker.py [--sessions 200] [--steps 100] [--profile]
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import pstats
+import time
+
+import msgpack
+import numpy as np
+
+from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_paper
+from pd_service.service.config import Settings
+from pd_service.service.core import ServiceCore
+from pd_service.transport import InMemoryBus
+from pd_service.transport.base import Sample
+from pd_service.wire import encode, keys
+
+PERIOD_NS = 50_000_000
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--sessions", type=int, default=200)
+    ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--profile", action="store_true")
+    args = ap.parse_args()
+    n = args.sessions
+    clock = [10**18]
+    t = InMemoryBus().transport()
+    settings = Settings(instance="w", cpu_budget=1000, config_rate_total=1e6,
+                        config_burst_total=10**6, memory_budget_bytes=8 * 2**30,
+                        max_sessions=10**5, checkpoint_interval_s=0)
+    core = ServiceCore(t, settings, now_ns=lambda: clock[0], mono_ns=lambda: clock[0])
+    core.start()
+    epoch = clock[0]
+    names = [f"w{i:05d}" for i in range(n)]
+    d = core.dispatch
+
+    def sample(key: str, payload: bytes) -> Sample:
+        return Sample(key, payload, "put", clock[0], clock[0])
+
+    for s in names:
+        spec = paper_scenario().spec(s, epoch, max_delay=RANGER_DELAY)
+        d.on_config_sample(sample(keys.config_key(s), encode(spec)))
+        core.run_once()
+    run = simulate_paper(400, np.random.default_rng(1))
+    cam = {smp.step: smp.z.tolist() for smp in run.samples if smp.sensor == "camera"}
+    x = run.truth
+    pack = msgpack.Packer(use_bin_type=True).pack
+
+    def step(k: int) -> None:
+        """Session i sends at phase 0.9 i / n of step k; the worker runs every 20 sessions."""
+        r = k % 400
+        z_r = [float(x[r, 2] - x[r, 0])]
+        z_c = cam.get((k - 10) % 400) if (k - 10) % 2 == 0 else None
+        u = [0.5 if 0 < (k + 10) % 400 <= 80 else 0.0]
+        for i, s in enumerate(names):
+            clock[0] = epoch + k * PERIOD_NS + (PERIOD_NS * 9 // 10) * i // n
+            d.on_command_sample(sample(keys.command_key(s), pack(
+                {"v": 1, "session": s, "seq": k, "step": k + 10, "u": {"shape": [1], "data": u}})))
+            d.on_sensor_sample(sample(keys.sensor_key(s, "ranger"), pack(
+                {"v": 1, "session": s, "sensor": "ranger", "seq": k, "step": k - 12,
+                 "z": {"shape": [1], "data": z_r}})))
+            if z_c is not None:
+                d.on_sensor_sample(sample(keys.sensor_key(s, "camera"), pack(
+                    {"v": 1, "session": s, "sensor": "camera", "seq": k, "step": k - 10,
+                     "z": {"shape": [2], "data": z_c}})))
+            if i % 20 == 19:
+                core.run_once()
+        clock[0] = epoch + k * PERIOD_NS + PERIOD_NS * 96 // 100
+        core.run_once()
+
+    for k in range(20):  # warm-up: the window fills
+        step(k)
+    pub0 = core.counters["published"]
+    prof = cProfile.Profile() if args.profile else None
+    t0 = time.process_time()
+    if prof:
+        prof.enable()
+    for k in range(20, 20 + args.steps):
+        step(k)
+    if prof:
+        prof.disable()
+    cpu = time.process_time() - t0
+    pubs = (core.counters["published"] - pub0) / (n * args.steps)
+    print(f"sessions {n}, steps {args.steps}: {1e6 * cpu / (n * args.steps):.1f} µs of CPU per "
+          f"session-step, {pubs:.2f} predictions per session-step, "
+          f"late {core.counters['late_total']}")
+    if prof:
+        st = pstats.Stats(prof)
+        st.sort_stats("tottime").print_stats(25)
+        st.sort_stats("cumulative").print_stats(30)
+
+
+if __name__ == "__main__":
+    main()
