@@ -112,16 +112,7 @@ class SpecStore:
             return None
 
     def remove_state(self, session: str) -> None:
-        path = self.state_path(session)
-        try:
-            path.with_name(f".{path.name}.tmp").unlink()  # the previous state (exchanged)
-        except FileNotFoundError:
-            pass
-        try:
-            path.unlink()
-        except FileNotFoundError:
-            return
-        self._sync_dir()
+        self._remove(self.state_path(session))
 
     def _write(self, final: Path, data: bytes, sync_dir: bool = True) -> None:
         tmp = final.with_name(f".{final.name}.tmp")
@@ -140,9 +131,12 @@ class SpecStore:
             self._sync_dir()
 
     def remove(self, session: str) -> None:
-        path = self.path(session)
+        self._remove(self.path(session))
+
+    def _remove(self, path: Path) -> None:
+        """Delete a spec or state file and its exchanged previous version (``.<name>.tmp``)."""
         try:
-            path.with_name(f".{path.name}.tmp").unlink()  # the previous spec (exchanged)
+            path.with_name(f".{path.name}.tmp").unlink()
         except FileNotFoundError:
             pass
         try:
