@@ -70,6 +70,22 @@ def query_json(session, key: str, payload: bytes | None = None) -> dict:
     return json.loads(r.ok.payload.to_bytes())
 
 
+def wait_for_link(session, pub, timeout_s: float, instance: str = INSTANCE) -> None:
+    """Wait until pd-link ``instance`` answers its stats query and its subscriber matches
+    ``pub`` (also used by bench/link_flood.py)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            query_json(session, keys.link_stats_key(instance))
+            if pub.matching_status.matching:
+                return
+        except RuntimeError:
+            pass
+        if time.monotonic() > deadline:
+            raise RuntimeError("pd-link did not come up")
+        time.sleep(0.05)
+
+
 def cpu_seconds(pid: int | None) -> float:
     """utime + stime of a process (this one if pid is None), seconds."""
     if pid is None:
@@ -219,17 +235,7 @@ def main() -> int:
         pub = session.declare_publisher(IN_KEY, express=args.express,
                                         congestion_control=zenoh.CongestionControl.BLOCK)
         try:
-            deadline = time.monotonic() + 20
-            while True:  # wait until pd-link answers and its subscriber is known
-                try:
-                    query_json(session, keys.link_stats_key(INSTANCE))
-                    if pub.matching_status.matching:
-                        break
-                except RuntimeError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise RuntimeError("pd-link did not come up")
-                time.sleep(0.05)
+            wait_for_link(session, pub, 20.0)
             relay_pid = proc.pid if proc is not None else None
             run_rate(session, pub, received, 500, 1.0, args.delay_ms, args.size, relay_pid)
             rows = [run_rate(session, pub, received, rate, args.seconds, args.delay_ms,

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
+from link import query_json, wait_for_link  # bench/link.py (bench/ is on sys.path)
 
 from pd_service.transport import zenoh_config
 from pd_service.wire import keys
@@ -59,13 +60,6 @@ def rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     raise RuntimeError("no VmRSS")
-
-
-def query_json(session: zenoh.Session, key: str) -> dict:
-    for r in session.get(key, timeout=10.0):
-        if r.ok is not None:
-            return json.loads(r.ok.payload.to_bytes())
-    raise RuntimeError(f"no reply from {key}")
 
 
 def main() -> int:
@@ -104,17 +98,7 @@ def main() -> int:
                                                 congestion_control=zenoh.CongestionControl.BLOCK)
                       for j in range(args.rules)]
             flood = floods[0]
-            deadline = time.monotonic() + 30
-            while True:
-                try:
-                    query_json(session, keys.link_stats_key(INSTANCE))
-                    if flood.matching_status.matching:
-                        break
-                except RuntimeError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise RuntimeError("pd-link did not come up")
-                time.sleep(0.05)
+            wait_for_link(session, flood, 30.0, INSTANCE)
             time.sleep(1.0)
 
             def record(phase: str) -> None:
