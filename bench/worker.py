@@ -33,9 +33,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--sessions", type=int, default=200)
     ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--every", type=int, default=20,
+                    help="the worker runs after every this many sessions' messages (the "
+                         "daemon's batches are as large as what arrived meanwhile)")
     ap.add_argument("--profile", action="store_true")
     args = ap.parse_args()
     n = args.sessions
+    every = args.every
     clock = [10**18]
     t = InMemoryBus().transport()
     settings = Settings(instance="w", cpu_budget=1000, config_rate_total=1e6,
@@ -60,7 +64,8 @@ def main() -> None:
     pack = msgpack.Packer(use_bin_type=True).pack
 
     def step(k: int) -> None:
-        """Session i sends at phase 0.9 i / n of step k; the worker runs every 20 sessions."""
+        """Session i sends at phase 0.9 i / n of step k; the worker runs every --every
+        sessions."""
         r = k % 400
         z_r = [float(x[r, 2] - x[r, 0])]
         z_c = cam.get((k - 10) % 400) if (k - 10) % 2 == 0 else None
@@ -76,7 +81,7 @@ def main() -> None:
                 d.on_sensor_sample(sample(keys.sensor_key(s, "camera"), pack(
                     {"v": 1, "session": s, "sensor": "camera", "seq": k, "step": k - 10,
                      "z": {"shape": [2], "data": z_c}})))
-            if i % 20 == 19:
+            if i % every == every - 1:
                 core.run_once()
         clock[0] = epoch + k * PERIOD_NS + PERIOD_NS * 96 // 100
         core.run_once()
@@ -94,7 +99,7 @@ def main() -> None:
         prof.disable()
     cpu = time.process_time() - t0
     pubs = (core.counters["published"] - pub0) / (n * args.steps)
-    print(f"sessions {n}, steps {args.steps}: {1e6 * cpu / (n * args.steps):.1f} µs of CPU per "
+    print(f"sessions {n}, steps {args.steps}, worker every {every} sessions: {1e6 * cpu / (n * args.steps):.1f} µs of CPU per "
           f"session-step, {pubs:.2f} predictions per session-step, "
           f"late {core.counters['late_total']}")
     if prof:

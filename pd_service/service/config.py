@@ -152,6 +152,11 @@ class Settings(BaseSettings):
     checkpoint_max_bytes: int = Field(
         65536, ge=1024, le=65536, description="Largest encoded session state written or sent.")
 
+    round_interval_us: float = Field(
+        1000.0, ge=0, description="Least time between the starts of two worker loops while "
+                                  "messages keep arriving, µs: what arrives meanwhile is "
+                                  "handled (and its predictions resolved) as one batch. Adds "
+                                  "at most this much to a message's wait; 0: no pause.")
     switch_interval_us: float = Field(
         200.0, gt=0, description="Python's GIL switch interval (sys.setswitchinterval), µs: "
                                  "how long a Zenoh callback may wait for the worker to yield "

@@ -28,7 +28,7 @@ from collections.abc import Callable
 
 from pd_service.estimation.linear import set_tables_max_bytes
 from pd_service.logs import LOGGER_NAME, event
-from pd_service.transport import Handle, Transport
+from pd_service.transport import Drain, Handle, Transport
 from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 
 from .config import Settings
@@ -49,6 +49,8 @@ _EXPIRY_CHECK_NS = 1_000_000_000
 _SWEEP_NS = 250_000_000
 #: A single run_once() call returns after this long even if work remains (ns).
 _RUN_BUDGET_NS = 50_000_000
+#: Most samples taken from one drained subscription per loop of run_once.
+_DRAIN_LIMIT = 4096
 
 
 class ServiceCore:
@@ -95,6 +97,7 @@ class ServiceCore:
         self._next_expiry_ns = 0
         self._next_sweep_ns = 0
         self._handles: list[Handle] = []
+        self._drains: list[Drain] = []
         self._token: Handle | None = None
         self._closed = False
 
@@ -121,8 +124,12 @@ class ServiceCore:
         now = self.now_ns()
         with self.lock:
             self.lifecycle.install_recovered(specs, origin, now)
-        self._handles.append(t.subscribe(keys.ALL_SENSORS, d.on_sensor_sample))
-        self._handles.append(t.subscribe(keys.ALL_COMMANDS, d.on_command_sample))
+        # Data arrives through drained queues: the worker takes samples in batches at the
+        # start of each loop (no GIL hand-off per sample while it is busy).
+        self._drains = [t.subscribe_drained(keys.ALL_SENSORS, d.on_sensor_sample, self.wake.set),
+                        t.subscribe_drained(keys.ALL_COMMANDS, d.on_command_sample,
+                                            self.wake.set)]
+        self._handles.extend(self._drains)
         self._handles.append(t.queryable(keys.ALL_STATUS, q.on_status_query))
         self._handles.append(t.queryable(keys.ALL_CONFIGS, q.on_config_query))
         self._handles.append(t.queryable(keys.service_status_key(self.instance),
@@ -165,7 +172,7 @@ class ServiceCore:
     # ================================================================== worker ========
 
     def has_work(self) -> bool:
-        return self.dispatch.has_work()
+        return self.dispatch.has_work() or any(dr.pending for dr in self._drains)
 
     def run_once(self) -> int:
         """Process what is pending: control, unknown sessions, rounds of session inboxes
@@ -175,6 +182,8 @@ class ServiceCore:
         handled = 0
         t_end = self.mono_ns() + _RUN_BUDGET_NS
         while True:
+            for dr in self._drains:  # into the inboxes (callbacks' path), lock not needed
+                dr.drain(_DRAIN_LIMIT)
             with self.lock:
                 now = self.now_ns()
                 if d.control or d.configs:
@@ -196,7 +205,7 @@ class ServiceCore:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS
                 pub.flush()
-            if not d.has_work() or self.mono_ns() >= t_end:
+            if not self.has_work() or self.mono_ns() >= t_end:
                 return handled
 
     def next_deadline_ns(self) -> int:

@@ -92,13 +92,24 @@ class Daemon:
         core = self.core
         assert core is not None
         wake, stop = core.wake, self._stop
+        interval = self.settings.round_interval_us * 1e-6  # s
         while not stop.is_set():
+            t0 = time.monotonic()
+            handled = 0
             try:
-                core.run_once()
+                handled = core.run_once()
             except Exception as exc:  # the loop must survive anything
                 log.exception("worker round failed")
                 self._worker_error = exc
                 core.counters["internal_error"] += 1
+            if handled:
+                # Batches: after a loop that handled messages, wait out the round interval,
+                # so that what arrives meanwhile is handled (and its predictions resolved,
+                # stacked) together; a loop that took longer goes on at once. The messages
+                # just handled were not delayed; the next ones wait at most the interval.
+                rest = interval - (time.monotonic() - t0)
+                if rest > 0:
+                    time.sleep(rest)
             if core.has_work():
                 continue
             timeout = (core.next_deadline_ns() - time.time_ns()) / 1e9

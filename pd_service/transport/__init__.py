@@ -1,6 +1,6 @@
 """Messaging adapters: Zenoh for real use, an in-memory bus for tests (same interface)."""
 
-from .base import Handle, Publisher, Query, Reply, Sample, Transport
+from .base import Drain, Handle, Publisher, Query, Reply, Sample, Transport
 from .memory import InMemoryBus, InMemoryTransport
 from .options import (
     DAEMON,
@@ -24,6 +24,7 @@ __all__ = [
     "add_zenoh_args",
     "options_from_args",
     "DEFAULT_ENDPOINT",
+    "Drain",
     "Handle",
     "InMemoryBus",
     "InMemoryTransport",

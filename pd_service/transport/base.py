@@ -51,6 +51,23 @@ class Handle(Protocol):
     def close(self) -> None: ...
 
 
+class Drain(Protocol):
+    """A subscription whose samples wait in a queue until the owner drains them on its own
+    thread (:meth:`Transport.subscribe_drained`)."""
+
+    @property
+    def pending(self) -> bool:
+        """True if samples may be waiting: call :meth:`drain` again."""
+        ...
+
+    def drain(self, limit: int) -> int:
+        """Hand up to ``limit`` waiting samples to the callback, on the calling thread;
+        returns how many."""
+        ...
+
+    def close(self) -> None: ...
+
+
 class Publisher(Protocol):
     """A declared publisher on one key: reliable, it waits rather than drop a message when
     the network is congested. ``encoding`` None: the default (Zenoh's ``zenoh/bytes``)."""
@@ -73,6 +90,15 @@ class Transport(Protocol):
         ...
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle: ...
+
+    def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
+                          wake: Callable[[], None]) -> Drain:
+        """Like :meth:`subscribe`, but the samples wait in a queue and reach ``callback`` on
+        the thread that calls :meth:`Drain.drain`. ``wake`` is called (from a transport
+        thread) when a sample arrives while nobody is draining: the owner should drain
+        soon. ``Sample.recv_ns`` / ``recv_mono_ns`` are then the clocks read when the
+        sample was taken from the queue (one read per drain), or when it woke the owner."""
+        ...
 
     def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...
 

@@ -26,6 +26,21 @@ class _Handle:
             pass
 
 
+class _Drain:
+    """A drained subscription on the bus: delivery is synchronous, nothing ever waits."""
+
+    pending = False
+
+    def __init__(self, handle: _Handle) -> None:
+        self._handle = handle
+
+    def drain(self, limit: int) -> int:
+        return 0
+
+    def close(self) -> None:
+        self._handle.close()
+
+
 @dataclass
 class _MemQuery:
     key: str
@@ -102,6 +117,12 @@ class InMemoryTransport(HandleOwner):
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         return self._register(self.bus.subs, (keyexpr, callback))
+
+    def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
+                          wake: Callable[[], None]) -> _Drain:
+        """In memory, samples reach ``callback`` at once (as with :meth:`subscribe`): the
+        drain never holds anything."""
+        return _Drain(self.subscribe(keyexpr, callback))
 
     # queries
     def queryable(self, keyexpr: str, handler: Callable) -> _Handle:

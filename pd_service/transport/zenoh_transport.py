@@ -7,9 +7,9 @@ logged by Zenoh, so every callback here is wrapped to log and swallow errors its
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
-from typing import Literal
 
 import zenoh
 
@@ -18,6 +18,8 @@ from .options import zenoh_config
 
 log = logging.getLogger("pd_service.transport")
 _DEFAULT_ENCODING = zenoh.Encoding.ZENOH_BYTES
+#: Samples a drained subscription holds before Zenoh waits for its owner (see _Drain).
+DRAIN_CAPACITY = 65_536
 
 
 class _Handle:
@@ -48,6 +50,102 @@ class _Publisher:
 
     def close(self) -> None:
         self._handle.close()
+
+
+def _convert(s: zenoh.Sample, now: int, mono: int) -> Sample:
+    enc, att = s.encoding, s.attachment
+    return Sample(str(s.key_expr), s.payload.to_bytes(),
+                  "delete" if s.kind == zenoh.SampleKind.DELETE else "put", now, mono,
+                  None if enc == _DEFAULT_ENCODING else str(enc),
+                  None if att is None else att.to_bytes())
+
+
+class _Drain:
+    """A subscription into a FIFO channel that the owner drains on its own thread.
+
+    Zenoh's threads push samples into the channel without the GIL. While the owner is
+    busy it takes them in batches (``try_recv``), so a loaded daemon pays no GIL hand-off
+    per sample. When the owner has emptied the queue, a watcher thread blocks in ``recv``
+    (GIL released); the first sample that arrives is handed over by the watcher itself,
+    which wakes the owner and parks until the owner has drained the queue again::
+
+        watcher:  wait(go) -> recv() -> callback(sample) -> clear(go), wake()
+        owner:    drain(), only while go is clear: try_recv ... until empty -> set(go)
+
+    Only one of the two takes samples at a time, so they reach the callback in the order
+    Zenoh delivered them.
+
+    The channel is bounded (``capacity`` samples); a full channel makes Zenoh wait (it
+    never drops silently), which happens only if the owner falls far behind.
+    """
+
+    def __init__(self, session: zenoh.Session, keyexpr: str,
+                 callback: Callable[[Sample], None], wake: Callable[[], None],
+                 capacity: int) -> None:
+        self._cb, self._wake, self._keyexpr = callback, wake, keyexpr
+        self._sub = session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(capacity))
+        # the receiver itself: receiving through it does not borrow the subscriber, so
+        # undeclare() works while the watcher waits (and makes its recv() raise)
+        self._rx = self._sub.handler
+        self._go = threading.Event()
+        self._go.set()
+        self._closed = False
+        self._thread = threading.Thread(target=self._watch, name=f"drain {keyexpr}",
+                                        daemon=True)
+        self._thread.start()
+
+    @property
+    def pending(self) -> bool:
+        return not self._go.is_set()
+
+    def _watch(self) -> None:
+        rx, go = self._rx, self._go
+        while True:
+            go.wait()
+            if self._closed:
+                return
+            try:
+                s = rx.recv()
+            except Exception:  # the channel closed: the subscriber was undeclared
+                return
+            self._deliver(s, time.time_ns(), time.monotonic_ns())
+            go.clear()  # only now may the owner take the next ones: the order is kept
+            self._wake()
+
+    def _deliver(self, s: zenoh.Sample, now: int, mono: int) -> None:
+        try:
+            self._cb(_convert(s, now, mono))
+        except Exception:
+            log.exception("subscriber callback failed for %s", self._keyexpr)
+
+    def drain(self, limit: int) -> int:
+        if self._go.is_set():  # the watcher is receiving: it hands the next sample over
+            return 0
+        try_recv, deliver = self._rx.try_recv, self._deliver
+        now, mono = time.time_ns(), time.monotonic_ns()
+        n = 0
+        while n < limit:
+            try:
+                s = try_recv()
+            except Exception:  # closed
+                return n
+            if s is None:
+                self._go.set()
+                return n
+            deliver(s, now, mono)
+            n += 1
+        return n
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._sub.undeclare()
+        except Exception:  # already closed with the session
+            pass
+        self._go.set()
+        self._thread.join(timeout=5.0)
 
 
 class _ZQuery:
@@ -91,17 +189,17 @@ class ZenohTransport(HandleOwner):
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         def on_sample(s: zenoh.Sample) -> None:
             try:
-                kind: Literal["put", "delete"] = (
-                    "delete" if s.kind == zenoh.SampleKind.DELETE else "put")
-                enc, att = s.encoding, s.attachment
-                callback(Sample(str(s.key_expr), s.payload.to_bytes(), kind,
-                                time.time_ns(), time.monotonic_ns(),
-                                None if enc == _DEFAULT_ENCODING else str(enc),
-                                None if att is None else att.to_bytes()))
+                callback(_convert(s, time.time_ns(), time.monotonic_ns()))
             except Exception:
                 log.exception("subscriber callback failed for %s", keyexpr)
 
         return self._keep(self.session.declare_subscriber(keyexpr, on_sample))
+
+    def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
+                          wake: Callable[[], None]) -> _Drain:
+        d = _Drain(self.session, keyexpr, callback, wake, DRAIN_CAPACITY)
+        self._handles.append(d)
+        return d
 
     def queryable(self, keyexpr: str, handler: Callable) -> _Handle:
         def on_query(q: zenoh.Query) -> None:
