@@ -30,10 +30,10 @@ import logging
 import threading
 from collections import Counter
 
-from pd_service.checkpoint import Refused, restore, to_message
+from pd_service.checkpoint import Refused, encode_state, restore
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Sample
-from pd_service.wire import WireError, decode, encode, keys
+from pd_service.wire import WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 from pd_service.wire.state import SessionState
 
@@ -161,12 +161,11 @@ class StateKeeper:
         export = getattr(sess.est, "export_state", None)
         if export is None:
             return None
-        msg = to_message(export(), session=sess.name, instance=self.settings.instance,
-                         fingerprint=sess.fingerprint, made_ns=now,
-                         session_counters=dict(sess.counters), published=sess.published,
-                         seq=sess.seq)
         try:
-            data = encode(msg)
+            data = encode_state(export(), session=sess.name, instance=self.settings.instance,
+                                fingerprint=sess.fingerprint, made_ns=now,
+                                session_counters=dict(sess.counters),
+                                published=sess.published, seq=sess.seq)
         except WireError as exc:
             self.counters["checkpoint_too_large"] += 1
             event(log, "checkpoint_too_large", logging.WARNING, session=sess.name,

@@ -17,6 +17,7 @@ import hashlib
 import math
 from typing import Annotated, Any
 
+import msgpack
 import numpy as np
 from pydantic import (
     Field,
@@ -30,7 +31,7 @@ from pydantic_core import PydanticCustomError
 
 from .arrays import NON_FINITE_ERROR, Matrix, Vector, psd_problem, to_wire
 from .base import WireModel
-from .codec import encode
+from .codec import MAX_MESSAGE_BYTES, encode
 from .messages import Counters, Int64, Message, Name, NonNegInt
 
 #: Layout version of the estimator state (``pd_service.estimation.STATE_VERSION``).
@@ -174,3 +175,36 @@ class SessionState(Message):
                 raise PydanticCustomError("wire_invalid", f"packet step {p.step} outside "
                                           f"[{self.committed_step}, {hi}]")
         return self
+
+
+def tensor_fields(a: np.ndarray) -> dict[str, Any]:
+    """The wire form of a float64 array, as :data:`Tensor` dumps it."""
+    return {"shape": list(a.shape), "data": a.ravel().tolist()}
+
+
+def pack_state_fields(obj: dict[str, Any]) -> bytes | None:
+    """msgpack of a SessionState's fields in wire order (``SessionState.model_dump()``
+    form, built by the caller without the models), or None if a number is not finite or
+    the message would need the codec's compact form: the caller then takes the validated
+    path (``encode(SessionState(...))``), which also explains the refusal."""
+    for value in obj.values():
+        if not _finite(value):
+            return None
+    data: bytes = msgpack.packb(obj, use_bin_type=True)
+    return data if len(data) <= MAX_MESSAGE_BYTES else None
+
+
+def _finite(value: Any) -> bool:
+    """True if every float inside ``value`` (dicts, lists, tensors' data) is finite."""
+    if type(value) is float:
+        return math.isfinite(value)
+    if type(value) is dict:
+        if "data" in value and type(value["data"]) is list:
+            try:
+                return math.isfinite(math.fsum(value["data"]))
+            except OverflowError:  # finite values whose sum overflows: look at each
+                return all(math.isfinite(v) for v in value["data"])
+        return all(_finite(v) for v in value.values())
+    if type(value) is list:
+        return all(_finite(v) for v in value)
+    return True

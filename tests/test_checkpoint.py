@@ -1,0 +1,60 @@
+"""pd_service.checkpoint: the fast state encoding equals the validated one, byte for byte."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pd_service.backends import build_estimator
+from pd_service.checkpoint import encode_state, to_message
+from pd_service.estimation import EstimatorState
+from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario
+from pd_service.service.stacked import StackedObserverPredictor
+from pd_service.wire import SessionState, WireError, decode, encode
+
+
+def _fed(name: str, stacked: bool = False, steps: int = 40) -> EstimatorState:
+    """An estimator of scenario ``name`` fed its simulated samples (delayed by 2 steps)
+    and commands, exported."""
+    scn = get_scenario(name)
+    spec = scn.spec(name, 0)
+    est = build_estimator(spec, StackedObserverPredictor) if stacked else build_estimator(spec)
+    sim = ScenarioSim(scn, seed=3, loss=0.2)
+    names = {s.name for s in spec.sensors}
+    held: list = []
+    for k in range(steps):
+        u = scn.command(k)
+        est.add_command(k, u, now=k)
+        held += [d for d in sim.sample() if d.sensor in names and not d.lost]
+        for d in [d for d in held if d.step <= k - 2]:
+            est.add_measurement(d.sensor, d.step, d.z, now=k)
+        held = [d for d in held if d.step > k - 2]
+        est.predict(k)
+        sim.advance(u)
+    return est.export_state()
+
+
+KW = dict(session="s1", instance="inst-a", fingerprint="ab" * 32, made_ns=123,
+          session_counters={"accepted": 7, "flood": 0}, published=9, seq=9)
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_fast_encoding_equals_the_validated_one(name):
+    st = _fed(name)
+    data = encode_state(st, **KW)  # type: ignore[arg-type]
+    assert data == encode(to_message(st, **KW))  # type: ignore[arg-type]
+    msg = decode(data, SessionState)
+    assert msg.packets or msg.commands
+
+
+def test_fast_encoding_of_the_stacked_estimator():
+    st = _fed("paper", stacked=True)
+    assert encode_state(st, **KW) == encode(to_message(st, **KW))  # type: ignore[arg-type]
+
+
+def test_a_non_finite_state_takes_the_validated_path_and_is_refused():
+    st = _fed("paper")
+    st.base["P"] = st.base["P"].copy()
+    st.base["P"][0, 0] = np.inf
+    with pytest.raises(WireError):
+        encode_state(st, **KW)  # type: ignore[arg-type]
