@@ -96,8 +96,9 @@ class Transport(Protocol):
         """Like :meth:`subscribe`, but the samples wait in a queue and reach ``callback`` on
         the thread that calls :meth:`Drain.drain`. ``wake`` is called (from a transport
         thread) when a sample arrives while nobody is draining: the owner should drain
-        soon. ``Sample.recv_ns`` / ``recv_mono_ns`` are then the clocks read when the
-        sample was taken from the queue (one read per drain), or when it woke the owner."""
+        soon. ``Sample.recv_ns`` is then the wall clock read when the sample was taken from
+        the queue (one read per drain) and ``recv_mono_ns`` the monotonic time of the
+        previous look at the queue (so latencies include the wait in it)."""
         ...
 
     def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...
