@@ -93,6 +93,10 @@ class Session:
         #: phase (pd_service.service.publish: the next tick waits for such data).
         self.late_data_step: int | None = None
         self.last_activity_ns = now_ns
+        #: Whether a measurement or command of this session decoded since it was (re)started
+        #: (created, replaced, restored, synced or taken over): until then it is idle
+        #: (pd_service.service.publish), however recent its start.
+        self.heard = False
         self.latency = LatencyWindow(SESSION_LATENCY_WINDOW)
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
@@ -139,6 +143,7 @@ class Session:
         refusal = self.intake.measurement(key, payload, now_step)
         if self.intake.decoded:
             self.last_activity_ns = now_ns
+            self.heard = True
         if refusal is None:
             self.counters["accepted"] += 1
         return refusal
@@ -148,6 +153,7 @@ class Session:
         refusal = self.intake.command(key, payload, now_step)
         if self.intake.decoded:
             self.last_activity_ns = now_ns
+            self.heard = True
         if refusal is None:
             self.counters["commands_accepted"] += 1
         return refusal

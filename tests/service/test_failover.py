@@ -303,7 +303,8 @@ def test_states_due_together_are_spread_over_rounds(tmp_path):
     names = [f"s{i:02d}" for i in range(3 * STATES_PER_ROUND + 1)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
-    a.run_once()
+    while a.has_work():  # one run_once returns after ~50 ms of (fsynced) configs
+        a.run_once()
     clock.t = int(0.1 * PERIOD_NS)
     for s in names:
         cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 0, [5.0]))
