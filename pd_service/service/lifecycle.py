@@ -275,6 +275,8 @@ class Lifecycle:
         self.specs[session] = spec
         failed = self.persist(spec)
         detail = "created" if old is None else "replaced (estimator restarted from the prior)"
+        if old is not None and self.keeper is not None:
+            self.keeper.forget(session)  # the old spec's checkpoint and replica: never resumed
         if failed:
             detail = f"{detail}; {failed}"
         self.install(session, "active", detail, now, answer=True)

@@ -4,6 +4,8 @@ time, explicit membership."""
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 
 from pd_service.estimation import linear as linear_mod
@@ -243,10 +245,10 @@ def test_a_new_session_is_idle_until_its_first_message(tmp_path):
         assert np.allclose(col.predictions[s][0].x, x0)
     for k in range(1, 30):
         tick(k)
-    for s in names:  # idle from the start: the next one only after idle_publish_s (20 steps)
-        assert steps(s)[:1] == [0] and all(k >= 20 for k in steps(s)[1:]), (s, steps(s))
-        assert len(steps(s)) <= 2
-    assert core.service_status().counters["published"] <= 2 * len(names)
+    for s in names:  # idle from the start: then only at its phase, once per 20 steps
+        phase = zlib.crc32(s.encode()) % 20
+        assert steps(s) == [0] + [k for k in range(1, 30) if k % 20 == phase], (s, steps(s))
+    assert core.service_status().counters["published"] <= 3 * len(names)
     n = {s: len(steps(s)) for s in names}
     clock.t = at(30.1)
     cli.put(keys.sensor_key("by_meas", "ranger"), meas_bytes("by_meas", "ranger", 29, [1.0]))
@@ -314,7 +316,8 @@ def test_a_restored_session_is_idle_until_traffic(tmp_path):
         clock.t = at(k + 0.6)
         b.run_once()
     got = [p.step - lead for p in col.predictions["s1"][n:]]
-    assert got == [21]  # one at once, none per step (idle_publish_s = 20 steps)
+    phase = zlib.crc32(b"s1") % 20  # one at once, then at its phase (idle_publish_s = 20 steps)
+    assert got == [21] + [k for k in range(22, 35) if k % 20 == phase]
     assert col.predictions["s1"][n].newest_step is not None  # from the checkpoint
     clock.t = at(35.1)
     cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", 34, [1.0], 99))
