@@ -194,6 +194,17 @@ class Session:
         self.last_pub_step = now_step
         return data
 
+    def prior_alone(self) -> bool:
+        """The estimate is the spec's prior propagated, nothing else: the session started
+        from the prior and accepted no packet and no command. Such a state needs no
+        checkpoint, replica or snapshot: restarting from the prior gives the same."""
+        if self.origin != "prior":
+            return False
+        if not self.heard:  # nothing decoded: nothing accepted
+            return True
+        c = self.counters
+        return not c.get("accepted") and not c.get("commands_accepted")
+
     # --- numerical health (pd_service.service.health) ---------------------------------
 
     @staticmethod
@@ -206,9 +217,10 @@ class Session:
 
     def keep_snapshot(self, pred: PredictedState, now_step: int) -> None:
         """After a healthy prediction: keep the estimator's state in memory if the last
-        snapshot is SNAPSHOT_EVERY_S old and P passes the thorough test."""
+        snapshot is SNAPSHOT_EVERY_S old and P passes the thorough test (not while the
+        estimate is its prior alone: recovering to the prior gives the same)."""
         last = self.snapshot_step
-        if last is not None and now_step - last < self.snap_every:
+        if last is not None and now_step - last < self.snap_every or self.prior_alone():
             return
         export = getattr(self.est, "export_state", None)
         if export is None or not thoroughly_healthy(np.asarray(pred.P)):

@@ -341,12 +341,15 @@ def test_a_session_nobody_sent_to_writes_no_state_and_a_replace_drops_the_old_on
     assert all(len(col.predictions[s]) >= 2 for s in mine)
     assert a.counters["checkpoints"] == 0 and a.counters["replicas_sent"] == 0
     assert not list((tmp_path / "inst-a").glob("*.ckpt"))
+    # nor an in-memory health snapshot (recovery to the prior gives the same)
+    assert all(a._routes[s].sess.snapshot is None for s in mine)
     # traffic: now there is something to keep
     s = mine[0]
     d = Driver(cli, clock, col, s)
     for k in range(60, 70):
         d.step([a], k)
     assert (tmp_path / "inst-a" / f"{s}.ckpt").exists() and a.counters["replicas_sent"] >= 1
+    assert a._routes[s].sess.snapshot is not None
     cli.put(keys.config_key(s), encode(paper_spec(s, max_delay=20)))  # replaced
     a.run_once()
     assert "replaced" in status(cli, s).detail
