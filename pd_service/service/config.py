@@ -94,11 +94,12 @@ class Settings(BaseSettings):
 
     # sessions
     expire_s: float = Field(120.0, gt=0, description="Idle time after which a session expires.")
-    idle_after_s: float = Field(5.0, gt=0, description="A session with no measurement or "
-                                "command that decoded for this long is idle: it is published only every "
-                                "idle_publish_s instead of every step.")
-    idle_publish_s: float = Field(10.0, gt=0, description="Least time between two predictions "
-                                  "of an idle session.")
+    idle_after_s: float = Field(5.0, gt=0, description="A session is idle (published only "
+                                "every idle_publish_s instead of every step) until its first "
+                                "measurement or command that decodes, and again after this "
+                                "long without one.")
+    idle_publish_s: float = Field(10.0, gt=0, description="An idle session gets one prediction "
+                                  "per this period, at a step phase of its own.")
     min_period_ms: float = Field(1.0, gt=0, description="Specs with a shorter step period are "
                                  "refused (a 1 ns period would keep the worker busy).")
     max_sessions: int = Field(2_000, ge=1, description="Specs beyond this many are refused.")

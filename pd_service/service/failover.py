@@ -16,6 +16,8 @@ going back to the prior.
   (:mod:`pd_service.checkpoint`): the session starts from its prior, the refusal is counted
   (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.
 
+A session whose estimate is its prior alone (:meth:`Session.prior_alone`: started from
+the prior, nothing accepted) writes and sends no state: resuming from the prior gives the same.
 An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
 (``checkpoint_too_large``). On a graceful stop the owner sends every served session's
 newest state to its successor before it withdraws its presence
@@ -112,7 +114,7 @@ class StateKeeper:
             start = self._rotate % len(sessions)
             sessions = sessions[start:] + sessions[:start]
         for i, sess in enumerate(sessions):
-            if not sess.alive:
+            if not sess.alive or sess.prior_alone():
                 continue
             mark = state_mark(sess)
             if mark == sess.saved_mark:
@@ -142,7 +144,7 @@ class StateKeeper:
         if not self._replicating():
             return
         for sess in sessions:
-            if not sess.alive:
+            if not sess.alive or sess.prior_alone():
                 continue
             data = self.encode_state(sess, now)
             if data is not None:

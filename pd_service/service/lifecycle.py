@@ -229,6 +229,7 @@ class Lifecycle:
             self.remove(session, "removed", "config deleted", now, answer=True)
             return
         routes = self.dispatch.routes
+        checked: Session | None = None
         try:
             spec = decode(sample.payload, SessionSpec)
             if spec.session != session:
@@ -249,7 +250,9 @@ class Lifecycle:
                 except Refused as ref:
                     self.counters["admission_refused"] += 1
                     raise WireError(ref.reason) from None
-                Session(spec, "active", "", now, 1.0, 1)
+                st = self.settings
+                checked = Session(spec, "active", "", now, st.error_rate, st.error_burst,
+                                  st.max_abs_input)  # installed below: built once
         except WireError as exc:
             event(log, "config_refused", session=session, reason=exc.reason)
             route = routes.get(session)
@@ -275,9 +278,11 @@ class Lifecycle:
         self.specs[session] = spec
         failed = self.persist(spec)
         detail = "created" if old is None else "replaced (estimator restarted from the prior)"
+        if old is not None and self.keeper is not None:
+            self.keeper.forget(session)  # the old spec's checkpoint and replica: never resumed
         if failed:
             detail = f"{detail}; {failed}"
-        self.install(session, "active", detail, now, answer=True)
+        self.install(session, "active", detail, now, answer=True, built=checked)
 
     def _sync_in_background(self) -> None:
         specs = self.fetch_peer_specs()
@@ -316,10 +321,12 @@ class Lifecycle:
     # ================================================================== sessions ======
 
     def install(self, session: str, state: SessionState, detail: str, now: int,
-                answer: bool, resume: Origin = "prior") -> None:
+                answer: bool, resume: Origin = "prior", built: Session | None = None) -> None:
         """(Re)start ``session`` from its spec if we own it, else route it elsewhere;
         ``resume``: continue from its checkpoint or the replica held for it, if it passes
-        (pd_service.service.failover), else from the spec's prior."""
+        (pd_service.service.failover), else from the spec's prior. ``built``: a session
+        just built from this spec at ``now`` (by the config check), used instead of a new
+        one."""
         routes = self.dispatch.routes
         route = routes.get(session)
         if route is None:
@@ -355,9 +362,13 @@ class Lifecycle:
             self.refused[session] = exc.reason
             return
         try:
-            sess = Session(spec, state, detail, now,
-                           self.settings.error_rate, self.settings.error_burst,
-                           self.settings.max_abs_input)
+            if built is not None and built.spec is spec:
+                sess = built
+                sess.state, sess.detail = state, detail
+            else:
+                sess = Session(spec, state, detail, now,
+                               self.settings.error_rate, self.settings.error_burst,
+                               self.settings.max_abs_input)
         except WireError as exc:  # a persisted or synced spec the estimator refuses
             self.ledger.release(session)
             route.sess, route.inbox = None, None

@@ -11,6 +11,14 @@ after ``tick_phase``, give the step's one prediction instead of a second one aft
 tick's (the tick still publishes if they do not come). Data arriving before the tick
 phase need no such delay: the tick finds the step published.
 
+A session is *idle* until its first measurement or command that decodes (from its start:
+created, replaced, restored, synced or taken over) and again after ``idle_after_s`` without
+one: its first tick still publishes (a display sees the prior at once), then it is ticked only
+at the steps ``k`` with ``k % skip == crc32(name) % skip`` (``skip``: ``idle_publish_s`` in
+steps), one prediction per ``idle_publish_s`` at a phase of its own, so a session with no
+traffic costs no CPU per step; its next message wakes it (:meth:`wake`): published at once
+if a measurement was accepted, and ticked every step again.
+
 Refusals are counted per session and service-wide and reported as ErrorReports, limited per
 session (``error_rate``/``error_burst``) and service-wide (``error_rate_total``).
 """
@@ -291,15 +299,17 @@ class Publisher:
                     defer = True
                 else:
                     due.append(sess)
-            if now - sess.last_activity_ns > idle_ns:
-                # idle: next tick after idle_publish_s (cost O(active sessions) per step),
-                # at a phase of its own so idle sessions sharing an epoch do not all predict
-                # in the same tick (2,000 of them did, starving the active ones)
+            if not sess.heard or now - sess.last_activity_ns > idle_ns:
+                # idle (no message since it was started, or none for idle_after_s): ticked
+                # only at the steps k = phase (mod skip), one per idle_publish_s (cost
+                # O(active sessions) per step); the phase is the session's own, so idle
+                # sessions sharing an epoch do not all predict in the same tick (2,000 of
+                # them did, starving the active ones)
                 skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.spec.period_ns)
-                if not sess.idle:
-                    skip += zlib.crc32(sess.name.encode()) % skip
+                base = max(cur, k)
+                nxt = base + 1 + (zlib.crc32(sess.name.encode()) - base - 1) % skip
                 sess.idle = True
-                self.schedule(sess, max(cur, k) + skip - 1)
+                self.schedule(sess, nxt - 1)
                 if defer:
                     due.append(sess)
             else:

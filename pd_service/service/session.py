@@ -93,6 +93,10 @@ class Session:
         #: phase (pd_service.service.publish: the next tick waits for such data).
         self.late_data_step: int | None = None
         self.last_activity_ns = now_ns
+        #: Whether a measurement or command of this session decoded since it was (re)started
+        #: (created, replaced, restored, synced or taken over): until then it is idle
+        #: (pd_service.service.publish), however recent its start.
+        self.heard = False
         self.latency = LatencyWindow(SESSION_LATENCY_WINDOW)
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
@@ -139,6 +143,7 @@ class Session:
         refusal = self.intake.measurement(key, payload, now_step)
         if self.intake.decoded:
             self.last_activity_ns = now_ns
+            self.heard = True
         if refusal is None:
             self.counters["accepted"] += 1
         return refusal
@@ -148,6 +153,7 @@ class Session:
         refusal = self.intake.command(key, payload, now_step)
         if self.intake.decoded:
             self.last_activity_ns = now_ns
+            self.heard = True
         if refusal is None:
             self.counters["commands_accepted"] += 1
         return refusal
@@ -188,6 +194,17 @@ class Session:
         self.last_pub_step = now_step
         return data
 
+    def prior_alone(self) -> bool:
+        """The estimate is the spec's prior propagated, nothing else: the session started
+        from the prior and accepted no packet and no command. Such a state needs no
+        checkpoint, replica or snapshot: restarting from the prior gives the same."""
+        if self.origin != "prior":
+            return False
+        if not self.heard:  # nothing decoded: nothing accepted
+            return True
+        c = self.counters
+        return not c.get("accepted") and not c.get("commands_accepted")
+
     # --- numerical health (pd_service.service.health) ---------------------------------
 
     @staticmethod
@@ -200,9 +217,10 @@ class Session:
 
     def keep_snapshot(self, pred: PredictedState, now_step: int) -> None:
         """After a healthy prediction: keep the estimator's state in memory if the last
-        snapshot is SNAPSHOT_EVERY_S old and P passes the thorough test."""
+        snapshot is SNAPSHOT_EVERY_S old and P passes the thorough test (not while the
+        estimate is its prior alone: recovering to the prior gives the same)."""
         last = self.snapshot_step
-        if last is not None and now_step - last < self.snap_every:
+        if last is not None and now_step - last < self.snap_every or self.prior_alone():
             return
         export = getattr(self.est, "export_state", None)
         if export is None or not thoroughly_healthy(np.asarray(pred.P)):

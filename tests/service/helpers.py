@@ -49,6 +49,13 @@ def cmd_bytes(session: str, step: int, u, seq: int = 0) -> bytes:
                           u=np.atleast_1d(np.asarray(u, dtype=float))))
 
 
+def cmd_now_bytes(session: str, issued_ns: int, u=(0.0,), seq: int = 0) -> bytes:
+    """A Command stamped with the time it is issued (apply step now + lead): traffic that
+    wakes an idle session."""
+    return encode(Command(session=session, seq=seq, issued_ns=issued_ns,
+                          u=np.atleast_1d(np.asarray(u, dtype=float))))
+
+
 class Clock:
     """A settable wall clock (ns) for ServiceCore(now_ns=clock)."""
 

@@ -206,6 +206,11 @@ def test_ticks_publish_every_step_and_measurements_publish_at_once(world, tmp_pa
     core = make_core(bus, clock, tmp_path)
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
     core.run_once()  # created at t=0: first tick is due at 0.5 period
+    # traffic first (a session nobody has sent to is idle): a command does not publish
+    # by itself, but from it on the session ticks every step
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 10, [0.0]))
+    core.run_once()
+    assert col.predictions["s1"] == []
     for k in range(5):
         clock.t = at(k + 0.6)
         core.run_once()
@@ -236,6 +241,7 @@ def test_data_driven_session_publishes_once_per_step(world, tmp_path):
     bus, clock, col, cli = world
     core = make_core(bus, clock, tmp_path)
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 10, [0.0]))  # traffic: not idle
     core.run_once()
     clock.t = at(0.6)
     core.run_once()  # tick of step 0
@@ -513,8 +519,9 @@ def test_static_shards_split_without_coordination(tmp_path):
     names = [f"s{i:02d}" for i in range(20)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
-    a.run_once()
-    b.run_once()
+    while a.has_work() or b.has_work():  # one run_once returns after ~50 ms of configs
+        a.run_once()
+        b.run_once()
     sa, sb = set(a.served_sessions()), set(b.served_sessions())
     assert sa.isdisjoint(sb) and sa | sb == set(names) and sa and sb
     b.close()
@@ -672,6 +679,7 @@ def test_steps_that_got_no_prediction_are_counted(world, tmp_path, publish_every
     bus, clock, col, cli = world
     core = make_core(bus, clock, tmp_path)
     cli.put(keys.config_key("s1"), encode(paper_spec("s1", publish_every=publish_every)))
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 10, [0.0]))  # traffic: not idle
     core.run_once()
     for k in range(3):
         clock.t = at(k + 0.6)

@@ -4,6 +4,8 @@ time, explicit membership."""
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 
 from pd_service.estimation import linear as linear_mod
@@ -179,14 +181,17 @@ def test_config_flood_does_not_delay_another_sessions_predictions(tmp_path):
 # ---------------------------------------------------------------- idle sessions -----------
 
 def test_idle_sessions_tick_rarely_and_wake_on_traffic(tmp_path):
-    from .helpers import meas_bytes
+    """"once" sent one command at its start: every step until idle_after_s (1 s = 20 steps)
+    without traffic, then a prediction every idle_publish_s; traffic wakes it again."""
+    from .helpers import cmd_bytes, meas_bytes
 
     bus, clock, col, cli = world()
     core = make_core(bus, clock, tmp_path, idle_after_s=1.0, idle_publish_s=1.0)
-    for s in ("busy", "idle"):
+    for s in ("busy", "once"):
         cli.put(keys.config_key(s), encode(paper_spec(s)))
-    core.run_once()
     lead = paper_spec("x").lead
+    cli.put(keys.command_key("once"), cmd_bytes("once", lead, [0.0]))
+    core.run_once()
     for k in range(0, 100):  # 5 s at 50 ms
         clock.t = at(k + 0.1)
         cli.put(keys.sensor_key("busy", "ranger"), meas_bytes("busy", "ranger", k, [1.0], k))
@@ -194,19 +199,133 @@ def test_idle_sessions_tick_rarely_and_wake_on_traffic(tmp_path):
         clock.t = at(k + 0.6)
         core.run_once()
     busy = {p.step - lead for p in col.predictions["busy"]}
-    idle = [p.step - lead for p in col.predictions["idle"]]
+    once = [p.step - lead for p in col.predictions["once"]]
     assert set(range(100)) <= busy
-    assert set(range(21)) <= set(idle)  # every step until idle (1 s = 20 steps)
-    late = [k for k in idle if k > 21]
+    assert set(range(21)) <= set(once)  # every step until idle (1 s = 20 steps)
+    late = [k for k in once if k > 21]
     assert 3 <= len(late) <= 5 and all(b - a >= 20 for a, b in zip(late, late[1:], strict=False))
     # traffic wakes it: every step again
     for k in range(100, 110):
         clock.t = at(k + 0.1)
-        cli.put(keys.sensor_key("idle", "ranger"), meas_bytes("idle", "ranger", k, [1.0], k))
+        cli.put(keys.sensor_key("once", "ranger"), meas_bytes("once", "ranger", k, [1.0], k))
         core.run_once()
         clock.t = at(k + 0.6)
         core.run_once()
-    assert set(range(100, 110)) <= {p.step - lead for p in col.predictions["idle"]}
+    assert set(range(100, 110)) <= {p.step - lead for p in col.predictions["once"]}
+
+
+def test_a_new_session_is_idle_until_its_first_message(tmp_path):
+    """Created and never sent to: one prediction at its first tick (the prior, at once),
+    then one per idle_publish_s, never one per step; its first measurement is published at
+    once and it ticks every step from then on; a first command alone wakes the ticks; bytes
+    that do not decode are no traffic."""
+    from .helpers import cmd_bytes, meas_bytes
+
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path, idle_publish_s=1.0)  # idle_after_s: default 5 s
+    names = ("by_meas", "by_cmd", "garbage", "never")
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    while core.has_work():
+        core.run_once()
+    lead = paper_spec("x").lead
+
+    def steps(s):
+        return [p.step - lead for p in col.predictions[s]]
+
+    def tick(k):
+        clock.t = at(k + 0.6)
+        core.run_once()
+
+    assert all(steps(s) == [] for s in names)  # not before the first tick...
+    tick(0)
+    x0 = paper_spec("x").x0
+    for s in names:  # ...then at once: the prior, nothing measured yet
+        assert steps(s) == [0] and col.predictions[s][0].newest_step is None
+        assert np.allclose(col.predictions[s][0].x, x0)
+    for k in range(1, 30):
+        tick(k)
+    for s in names:  # idle from the start: then only at its phase, once per 20 steps
+        phase = zlib.crc32(s.encode()) % 20
+        assert steps(s) == [0] + [k for k in range(1, 30) if k % 20 == phase], (s, steps(s))
+    assert core.service_status().counters["published"] <= 3 * len(names)
+    n = {s: len(steps(s)) for s in names}
+    clock.t = at(30.1)
+    cli.put(keys.sensor_key("by_meas", "ranger"), meas_bytes("by_meas", "ranger", 29, [1.0]))
+    cli.put(keys.command_key("by_cmd"), cmd_bytes("by_cmd", 30 + lead, [0.0]))
+    cli.put(keys.sensor_key("garbage", "ranger"), b"\x00not msgpack")
+    core.run_once()
+    assert steps("by_meas")[n["by_meas"]:] == [30]  # published at once
+    assert col.predictions["by_meas"][-1].newest_step == 29
+    assert len(steps("by_cmd")) == n["by_cmd"]  # a command alone publishes at the tick
+    for k in range(30, 45):
+        tick(k)
+    for s in ("by_meas", "by_cmd"):  # awake: every step
+        assert set(range(30, 45)) <= set(steps(s)), (s, steps(s))
+    # a refused undecodable message is no traffic: the session stays idle
+    assert len([k for k in steps("garbage") if 31 <= k < 45]) <= 1
+    assert len([k for k in steps("never") if 30 <= k < 45]) <= 1
+    assert core.session_status("garbage").counters["malformed"] == 1
+
+
+def test_a_message_that_arrived_before_its_session_wakes_it(tmp_path):
+    """A measurement that waited in the unknown inbox while the config was applied is the
+    session's first message: published, and every step from then on."""
+    from .helpers import meas_bytes
+
+    bus, clock, col, cli = world()
+    core = make_core(bus, clock, tmp_path, idle_publish_s=1.0)
+    lead = paper_spec("x").lead
+    # the measurement's callback runs before the config is applied (both in one run_once)
+    clock.t = at(3.1)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", 2, [1.0]))
+    core.run_once()
+    assert core.session_status("s1").counters["accepted"] == 1
+    for k in range(3, 10):
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert set(range(3, 10)) <= {p.step - lead for p in col.predictions["s1"]}
+
+
+def test_a_restored_session_is_idle_until_traffic(tmp_path):
+    """Restart: a session restored from the state directory (its estimate from its
+    checkpoint) gives one prediction at once, then is idle until its first message."""
+    from .helpers import cmd_bytes, meas_bytes
+
+    bus, clock, col, cli = world()
+    lead = paper_spec("x").lead
+    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    a.run_once()
+    for k in range(20):
+        clock.t = at(k + 0.1)
+        cli.put(keys.command_key("s1"), cmd_bytes("s1", k + lead, [0.1], k))
+        cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", k, [1.0], k))
+        a.run_once()
+        clock.t = at(k + 0.6)
+        a.run_once()
+    assert a.counters["checkpoints"] >= 1
+    a.t.close()  # a crash
+    clock.t = at(21.1)
+    b = make_core(bus, clock, tmp_path, idle_publish_s=1.0)
+    st = b.session_status("s1")
+    assert st.state == "restored" and st.origin == "checkpoint"
+    n = len(col.predictions["s1"])
+    for k in range(21, 35):
+        clock.t = at(k + 0.6)
+        b.run_once()
+    got = [p.step - lead for p in col.predictions["s1"][n:]]
+    phase = zlib.crc32(b"s1") % 20  # one at once, then at its phase (idle_publish_s = 20 steps)
+    assert got == [21] + [k for k in range(22, 35) if k % 20 == phase]
+    assert col.predictions["s1"][n].newest_step is not None  # from the checkpoint
+    clock.t = at(35.1)
+    cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", 34, [1.0], 99))
+    b.run_once()
+    for k in range(35, 45):
+        clock.t = at(k + 0.6)
+        b.run_once()
+    assert set(range(35, 45)) <= {p.step - lead for p in col.predictions["s1"][n:]}
 
 
 def test_idle_sessions_spread_their_ticks(tmp_path):

@@ -14,7 +14,7 @@ from pd_service.service import health, stacked
 from pd_service.transport import InMemoryBus
 from pd_service.wire import encode, keys
 
-from .helpers import Clock, Collector, meas_bytes, paper_spec
+from .helpers import Clock, Collector, cmd_bytes, meas_bytes, paper_spec
 from .test_core import at, make_core
 from .test_nonlinear import omni_spec
 
@@ -74,6 +74,8 @@ def test_a_poisoned_posterior_is_recovered_from_the_snapshot(tmp_path, monkeypat
     core = make_core(bus, clock, tmp_path)
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
     cli.put(keys.config_key("calm"), encode(paper_spec("calm")))
+    # one command: "calm" ticks every step (80 steps < idle_after_s) without more traffic
+    cli.put(keys.command_key("calm"), cmd_bytes("calm", LEAD, [0.0]))
     core.run_once()
     drive(core, cli, clock, "s1", range(0, 40))
     sess = core._routes["s1"].sess

@@ -22,7 +22,7 @@ from pd_service.scenarios.paper import (
 )
 from pd_service.wire import Prediction, SessionSpec, encode, keys
 
-from .helpers import Collector, cmd_bytes, meas_bytes, paper_spec, storm
+from .helpers import Collector, cmd_bytes, cmd_now_bytes, meas_bytes, paper_spec, storm
 from .procs import (
     Daemon,
     Presence,
@@ -209,12 +209,18 @@ def test_restart_restores_sessions(own_net, tmp_path):
     d2 = Daemon("inst-r", tmp_path / "inst-r", [f"tcp/127.0.0.1:{port}"]).start()
     try:
         assert pres.wait("inst-r"), d2.log()
-        assert col.wait_for(lambda c: all(len(c.predictions[s]) > counts[s] + 3
-                                          for s in names)), "publishing did not resume"
+        # a restored session nobody has sent to yet is idle: one prediction at restart...
+        assert col.wait_for(lambda c: all(len(c.predictions[s]) > counts[s]
+                                          for s in names)), "no prediction at restart"
         for s in names:
             st = query_session_status(t, s)
             assert st.state == "restored" and st.instance == "inst-r"
             assert col.predictions[s][counts[s]].seq == 0  # a new estimator and sequence
+        # ...and one every step again from its first message on
+        for s in names:
+            t.put(keys.command_key(s), cmd_now_bytes(s, time.time_ns()))
+        assert col.wait_for(lambda c: all(len(c.predictions[s]) > counts[s] + 3
+                                          for s in names)), "publishing did not resume"
         assert "event=session_restored" in d2.log()
     finally:
         assert d2.stop() == 0, d2.log()
@@ -246,6 +252,9 @@ def test_two_instances_split_sessions_and_take_over(own_net, tmp_path):
         assert col.wait_for(lambda c: all(c.statuses[s][-1].instance == "inst-x"
                                           and "taken over" in c.statuses[s][-1].detail
                                           for s in by_y)), a.log()
+        # a taken-over session is idle until its next message: from it on, every step
+        for s in by_y:
+            t.put(keys.command_key(s), cmd_now_bytes(s, time.time_ns()))
         counts = {s: len(col.predictions[s]) for s in by_y}
         assert col.wait_for(lambda c: all(len(c.predictions[s]) > counts[s] + 3 for s in by_y))
         assert set(query_service_status(t, "inst-x").sessions) == set(names)
