@@ -102,8 +102,9 @@ def main() -> None:
         prof.disable()
     cpu = time.process_time() - t0
     pubs = (core.counters["published"] - pub0) / (n * args.steps)
-    print(f"sessions {n}, steps {args.steps}, worker every {every} sessions: {1e6 * cpu / (n * args.steps):.1f} µs of CPU per "
-          f"session-step, {pubs:.2f} predictions per session-step, "
+    print(f"sessions {n}, steps {args.steps}, worker every {every} sessions: "
+          f"{1e6 * cpu / (n * args.steps):.1f} µs of CPU per session-step, "
+          f"{pubs:.2f} predictions per session-step, "
           f"late {core.counters['late_total']}")
     if prof:
         st = pstats.Stats(prof)
