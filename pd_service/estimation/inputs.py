@@ -99,17 +99,19 @@ class InputBuffer:
         if d <= 0:
             return
         cap = self.capacity
-        tail = self._buf[self._off + cap - 1].copy() if self.hold else np.zeros(self.nu)
+        buf = self._buf
+        tail = buf[self._off + cap - 1].copy() if self.hold else 0.0
         if d >= cap:
-            self._buf[:cap] = tail
+            buf[:cap] = tail
             self._off = 0
         else:
-            if self._off + d + cap > self._buf.shape[0]:
-                self._buf[: cap - d] = self._buf[self._off + d : self._off + cap]
+            if self._off + d + cap > buf.shape[0]:
+                buf[: cap - d] = buf[self._off + d : self._off + cap]
                 self._off = 0
             else:
                 self._off += d
-            self._buf[self._off + cap - d : self._off + cap] = tail
+            buf[self._off + cap - d : self._off + cap] = tail
         self.origin = origin
-        k = bisect.bisect_left(self._cmd_steps, origin)
-        del self._cmd_steps[:k]
+        cmds = self._cmd_steps
+        if cmds and cmds[0] < origin:
+            del cmds[: bisect.bisect_left(cmds, origin)]

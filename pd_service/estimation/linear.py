@@ -12,8 +12,10 @@ keeps one copy).
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -27,12 +29,19 @@ LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 @dataclass(frozen=True, eq=False)
 class PropagationTables:
     """Precomputed powers for horizons 0..M. Shapes: Apow (M+1, n, n), Qsum (M+1, n, n),
-    Gfull (n, M*nu) with column blocks [A^{M-1}B, ..., A^0 B]."""
+    Gfull (n, M*nu) with column blocks [A^{M-1}B, ..., A^0 B].
+
+    ``jumps[m]`` = (A^m, (A^m)^T / 2 contiguous, Qs(m), [A^{m-1}B ... B] (n, m*nu)): the
+    arrays of a jump of m steps (views, and one halved transposed copy: halving is exact),
+    read by the hot path with one list index. With ``M = A^m P (A^m)^T / 2``, ``M + M^T``
+    is A^m P (A^m)^T made exactly symmetric at the cost of one addition.
+    """
 
     M: int
     Apow: np.ndarray
     Qsum: np.ndarray
     Gfull: np.ndarray
+    jumps: tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], ...] = ()
 
     @classmethod
     def build(cls, model: LinearModel, M: int) -> PropagationTables:
@@ -49,9 +58,12 @@ class PropagationTables:
         Gfull = np.empty((n, M * nu))
         for j in range(M):  # block j multiplies u(a + j) in an M-step jump: A^{M-1-j} B
             Gfull[:, j * nu : (j + 1) * nu] = Apow[M - 1 - j] @ B
-        for arr in (Apow, Qsum, Gfull):
+        ApowT2 = 0.5 * np.swapaxes(Apow, 1, 2)  # C-contiguous: a new array
+        for arr in (Apow, Qsum, Gfull, ApowT2):
             arr.setflags(write=False)
-        return cls(M, Apow, Qsum, Gfull)
+        jumps = tuple((Apow[m], ApowT2[m], Qsum[m], Gfull[:, (M - m) * nu :])
+                      for m in range(M + 1))
+        return cls(M, Apow, Qsum, Gfull, jumps)
 
 
 _TABLES: dict[tuple[bytes, bytes, bytes, tuple[int, ...], int], PropagationTables] = {}
@@ -70,7 +82,8 @@ def set_tables_max_bytes(limit: int) -> None:
 
 
 def tables_nbytes(t: PropagationTables) -> int:
-    return int(t.Apow.nbytes + t.Qsum.nbytes + t.Gfull.nbytes)
+    """Bytes of a table's arrays (the halved transposed powers included, views once)."""
+    return int(2 * t.Apow.nbytes + t.Qsum.nbytes + t.Gfull.nbytes)
 
 
 def _evict(extra: int) -> None:
@@ -141,47 +154,229 @@ def kalman_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray,
     return x, 0.5 * (P + P.T)
 
 
+class Gaussian(NamedTuple):
+    """State of :class:`LinearBackend`: mean ``x`` (n,) and covariance ``P`` (n, n), plus what
+    re-running its mean recursion with the same covariance needs.
+
+    A state the backend computed from a parent state by :meth:`LinearBackend.advance` (a jump
+    of ``m`` steps, then an update on ``npk`` packets) records ``src``, the parent's covariance
+    *object*, and the gain of its update: ``kind`` 0 (no packet), 1 (one unit row
+    ``H = e_j``: ``K`` (n,), ``z`` a float), 2 (one row ``H = h`` (n,): ``K`` (n,), ``z`` a
+    float) or 3 (``H`` (r, n), ``K`` (n, r), ``z`` (r,)). Arrays are never written after
+    creation. (A NamedTuple: built with ``tuple.__new__`` on the hot path, ~4x cheaper than
+    a class with ``__init__``.)
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    src: np.ndarray | None = None
+    m: int = 0
+    npk: int = 0
+    kind: int = 0
+    K: np.ndarray | None = None
+    H: np.ndarray | None = None
+    z: Any = None
+    j: int = -1
+
+
+_new = tuple.__new__
+
+
+#: One sensor (or one stacked set of sensors) prepared for the update: (kind, H (r, n) or
+#: h (n,), H^T (n, r), R (r, r), r_scalar, j) with kind and j as in :class:`Gaussian`.
+_Rows = tuple[int, np.ndarray, np.ndarray, np.ndarray, float, int]
+
+
+def _rows(H: np.ndarray, R: np.ndarray) -> _Rows:
+    """Prepare measurement rows H (r, n) with noise R (r, r) for :meth:`LinearBackend.advance`."""
+    H = np.array(H, dtype=np.float64)
+    HT = np.ascontiguousarray(H.T)
+    if H.shape[0] == 1:
+        h = np.ascontiguousarray(H[0])
+        nz = np.flatnonzero(h)
+        unit = nz.size == 1 and h[nz[0]] == 1.0
+        return (1 if unit else 2), h, HT, R, float(R[0, 0]), int(nz[0]) if unit else -1
+    return 3, H, HT, R, 0.0, -1
+
+
+def _chol_inv(S: np.ndarray) -> np.ndarray | None:
+    """L^{-1} for the Cholesky factor S = L L^T of a 2 x 2 or 3 x 3 S (lower triangle read),
+    by closed formulas (no LAPACK call); None for another size or when a pivot is not
+    clearly positive (S singular or nearly so: the caller then uses LU / pinv)."""
+    r = S.shape[0]
+    if r == 2:
+        (a, _), (b, d) = S.tolist()
+        if not a > 0.0:
+            return None
+        l11 = math.sqrt(a)
+        l21 = b / l11
+        q = d - l21 * l21
+        if not q > _PIVOT * d:
+            return None
+        l22 = math.sqrt(q)
+        return np.array(((1.0 / l11, 0.0), (-l21 / (l11 * l22), 1.0 / l22)))
+    if r == 3:
+        (a, _, _), (b, e, _), (c, f, i) = S.tolist()
+        if not a > 0.0:
+            return None
+        l11 = math.sqrt(a)
+        l21, l31 = b / l11, c / l11
+        q2 = e - l21 * l21
+        if not q2 > _PIVOT * e:
+            return None
+        l22 = math.sqrt(q2)
+        l32 = (f - l31 * l21) / l22
+        q3 = i - l31 * l31 - l32 * l32
+        if not q3 > _PIVOT * i:
+            return None
+        l33 = math.sqrt(q3)
+        return np.array(((1.0 / l11, 0.0, 0.0),
+                         (-l21 / (l11 * l22), 1.0 / l22, 0.0),
+                         ((l21 * l32 - l22 * l31) / (l11 * l22 * l33), -l32 / (l22 * l33),
+                          1.0 / l33)))
+    return None
+
+
+#: A Cholesky pivot must exceed this fraction of its diagonal entry (else LU / pinv).
+_PIVOT = 1e-10
+
+
 class LinearBackend:
-    """Kalman filter steps for :class:`ReplayEstimator`; state = (x, P)."""
+    """Kalman filter steps for :class:`ReplayEstimator`; state = :class:`Gaussian`.
+
+    :meth:`advance` is the replay's fused step (jump, then update). The covariance recursion
+    does not depend on the values of z and u, only on the parent covariance, the jump m and
+    which packets (sensors, R) were applied; a step whose ``old`` posterior was computed from
+    the same covariance object with the same m and packet count re-runs only the mean::
+
+        x- = A^m x + [A^{m-1}B ... B] [u(a); ...; u(a+m-1)]      x+ = x- + K (z - H x-)
+
+    with the stored gain K, and keeps the stored covariance object.
+    """
 
     def __init__(self, model: LinearModel, sensors: list[Sensor], horizon: int) -> None:
         self.model = model
         self.sensors = sensors
         self.tables = tables_for(model, horizon)
         self._nu = model.nu
-        self._stacked: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray]] = {}
+        self._M = self.tables.M
+        self._jumps = self.tables.jumps
+        self._single = [_rows(s.H, s.R) for s in sensors]
+        self._stacked: dict[tuple[int, ...], _Rows] = {}
 
-    def propagate(self, state: LinearState, step: int, m: int, U: np.ndarray) -> LinearState:
-        return propagate(self.tables, self._nu, state[0], state[1], U)
+    def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:
+        return self.advance(state, m, U, [], None)
 
-    def update(self, state: LinearState, step: int, packets: list[Packet]) -> LinearState:
-        if len(packets) == 1:
+    def update(self, state: Gaussian, step: int, packets: list[Packet]) -> Gaussian:
+        return self.advance(state, 0, U=np.empty((0, self._nu)), packets=packets, old=None)
+
+    def advance(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+                old: Gaussian | None) -> Gaussian:
+        """x(a) -> x(a + m) with inputs U (m, nu), then conditioned on ``packets`` (sorted
+        by sensor, possibly none). If ``old`` (the previous result of this step) was computed
+        from the same covariance object, jump and packet count, only the mean is recomputed
+        (same gain, same covariance object); otherwise the full step::
+
+            P- = A^m P (A^m)^T + Qs(m)
+            S = H P- H^T + R = L L^T,   W = P- H^T L^{-T},   K = W L^{-1} = P- H^T S^{-1}
+            x+ = x- + K (z - H x-),   P+ = P- - W W^T
+            one row h:  s = h P- h^T + r,  K = P- h / s,  W = P- h / sqrt(s)  (K = 0 if s <= 0)
+
+        Every covariance is kept exactly symmetric (the filter's covariance recursion is not
+        stable against antisymmetric rounding errors): A^m P (A^m)^T is formed as M + M^T
+        with M = A^m P (A^m)^T / 2, and the downdate W W^T is symmetric by construction. A
+        2 x 2 or 3 x 3 S is factored by closed formulas; a larger or (nearly) singular S
+        goes through LU, or the pseudo-inverse, and an explicit symmetrisation, as
+        :func:`kalman_update`.
+        """
+        x, P = state[0], state[1]
+        npk = len(packets)
+        reuse = old is not None and old[2] is P and old[3] == m and old[4] == npk
+        Pp = P
+        if m == 0:
+            xp = x
+        elif m <= self._M:
+            A, AT2, Qs, G = self._jumps[m]
+            xp = A.dot(x)
+            if self._nu:
+                xp += G.dot(U.reshape(-1))
+            if not reuse:
+                M = A.dot(P).dot(AT2)  # A^m P (A^m)^T / 2
+                Pp = M + M.T
+                Pp += Qs
+        else:  # a jump longer than the tables (idle session): in table-sized chunks
+            xp, Pp = propagate(self.tables, self._nu, x, P, U)
+            Pp = (Pp + Pp.T) * 0.5
+        if reuse:  # covariance and gain unchanged: the mean recursion only
+            _, Pold, _, _, _, kind, K, H, z, j = old  # type: ignore[misc]
+            if kind == 1:
+                xp = xp + K * (z - xp[j])
+            elif kind == 2:
+                xp = xp + K * (z - H.dot(xp))
+            elif kind == 3:
+                xp = xp + K.dot(z - H.dot(xp))
+            return _new(Gaussian, (xp, Pold, P, m, npk, kind, K, H, z, j))
+        if not npk:
+            return _new(Gaussian, (xp, Pp, P, m, 0, 0, None, None, None, -1))
+        if npk == 1:
             p = packets[0]
-            sensor = self.sensors[p.sensor]
-            R = sensor.R if p.R is None else p.R
-            return kalman_update(state[0], state[1], sensor.H, R, p.z)
-        # Several sensors sampled this step: stack the rows that are present, M*(tau) of
-        # eq. (24): H* = [H_i; H_j; ...], R* = diag(R_i, R_j, ...).
-        key = tuple(p.sensor for p in packets)
-        stacked = self._stacked.get(key)
-        if stacked is None:
-            H = np.vstack([self.sensors[i].H for i in key])
-            stacked = (H, block_diag([self.sensors[i].R for i in key]))
-            self._stacked[key] = stacked
-        H, R = stacked
-        if any(p.R is not None for p in packets):
-            R = block_diag([self.sensors[p.sensor].R if p.R is None else p.R for p in packets])
-        z = np.concatenate([p.z for p in packets])
-        return kalman_update(state[0], state[1], H, R, z)
+            kind, H, HT, R, r, j = self._single[p.sensor]
+            z = p.z
+            if p.R is not None:
+                R = p.R
+                r = float(R[0, 0])
+        else:  # several sensors this step: M*(tau) of eq. (24), H* = [H_i; H_j; ..]
+            key = tuple(p.sensor for p in packets)
+            rows = self._stacked.get(key)
+            if rows is None:
+                rows = _rows(np.vstack([self.sensors[i].H for i in key]),
+                             block_diag([self.sensors[i].R for i in key]))
+                self._stacked[key] = rows
+            kind, H, HT, R, r, j = rows
+            if any(p.R is not None for p in packets):
+                R = block_diag([self.sensors[p.sensor].R if p.R is None else p.R
+                                for p in packets])
+            z = np.concatenate([p.z for p in packets])
+        if kind != 3:  # one row: s = h P- h^T + r is a scalar
+            zs = z.item(0)
+            if kind == 1:
+                PHt = Pp[:, j]
+                s = Pp.item(j, j) + r
+                innov = zs - xp.item(j)
+            else:
+                PHt = Pp.dot(H)
+                s = float(H.dot(PHt)) + r
+                innov = zs - H.dot(xp)
+            if not s > 0.0:  # h P- h^T + r = 0: the sample tells nothing new (K = 0)
+                return _new(Gaussian, (xp, Pp, P, m, npk, kind, PHt * 0.0, H, zs, j))
+            K = PHt / s
+            w = PHt * (1.0 / math.sqrt(s))  # K (P- h)^T = w w^T, exactly symmetric
+            return _new(Gaussian, (xp + K * innov, Pp - w[:, None].dot(w[None, :]), P, m,
+                                   npk, kind, K, H, zs, j))
+        PHt = Pp.dot(HT)
+        S = H.dot(PHt) + R
+        Li = _chol_inv(S)
+        if Li is not None:  # S = L L^T, W = P- H^T L^-T: K = W L^-1, K (P- H^T)^T = W W^T
+            W = PHt.dot(Li.T)
+            K = W.dot(Li)
+            Pn = Pp - W.dot(W.T)  # exactly symmetric (numpy computes W W^T with syrk)
+        else:
+            try:
+                K = np.linalg.solve(S, PHt.T).T
+            except np.linalg.LinAlgError:
+                K = PHt.dot(np.linalg.pinv(S))
+            Pn = Pp - K.dot(PHt.T)
+            Pn = (Pn + Pn.T) * 0.5
+        return _new(Gaussian, (xp + K.dot(z - H.dot(xp)), Pn, P, m, npk, 3, K, H, z, -1))
 
-    def moments(self, state: LinearState) -> LinearState:
-        return state
+    def moments(self, state: Gaussian) -> LinearState:
+        return state.x, state.P
 
-    def export_state(self, state: LinearState) -> dict[str, np.ndarray]:
-        return {"x": state[0].copy(), "P": state[1].copy()}
+    def export_state(self, state: Gaussian) -> dict[str, np.ndarray]:
+        return {"x": state.x.copy(), "P": state.P.copy()}
 
-    def import_state(self, arrays: dict[str, np.ndarray]) -> LinearState:
-        return import_gaussian(arrays, self.model.n)
+    def import_state(self, arrays: dict[str, np.ndarray]) -> Gaussian:
+        return Gaussian(*import_gaussian(arrays, self.model.n))
 
 
 def import_gaussian(arrays: dict[str, np.ndarray], n: int) -> LinearState:

@@ -67,6 +67,10 @@ class Packet:
     R: np.ndarray | None
 
 
+def _by_sensor(p: Packet) -> int:
+    return p.sensor
+
+
 @dataclass(frozen=True, slots=True)
 class PredictedState:
     """Estimate of x(step): mean ``x`` (n,), covariance ``P`` (n, n).
@@ -101,6 +105,23 @@ class Backend(Protocol[S]):
 
     def import_state(self, arrays: dict[str, np.ndarray]) -> S:
         """The state :meth:`export_state` described; StateError if the arrays do not fit."""
+        ...
+
+
+class FusedBackend(Backend[S], Protocol):
+    """A backend with a fused replay step that may reuse a previous result's covariance.
+
+    :class:`ReplayEstimator` calls :meth:`advance` instead of ``propagate`` + ``update`` when
+    the backend has it.
+    """
+
+    def advance(self, state: S, m: int, U: np.ndarray, packets: list[Packet],
+                old: S | None) -> S:
+        """x(a) -> x(a + m) (m >= 0, inputs U (m, nu)), then conditioned on ``packets``
+        (sorted by sensor, possibly none). ``old`` is this step's previous result if no
+        packet changed at or before the step since it was computed (only commands did), else
+        None; the backend may then reuse its covariance and gain, if it verifies they were
+        computed from the same parent covariance."""
         ...
 
 
@@ -156,10 +177,14 @@ class ReplayEstimator(Generic[S]):
         self._packets: dict[int, list[Packet]] = {}
         self._steps: list[int] = []  # measured steps >= c, sorted
         self._chk: dict[int, S] = {}  # posterior at measured steps < dirty
-        self._dirty: int | None = None  # earliest step whose posterior is stale
+        self._dirty: int | None = None  # earliest step whose posterior (mean) is stale
+        self._cdirty: int | None = None  # earliest step whose covariance is stale (>= dirty)
+        self._pred: S | None = None  # the last prediction's backend state (fused backends)
         self._counters: Counter[str] = Counter({k: 0 for k in COUNTER_NAMES})
         self._cache: tuple[int, PredictedState] | None = None
         self._newest_committed: int | None = None
+        # Only a subclass that overrides _on_commit is handed the committed steps.
+        self._hooked = type(self)._on_commit is not ReplayEstimator._on_commit
 
     # --- public API --------------------------------------------------------------------
 
@@ -208,17 +233,23 @@ class ReplayEstimator(Generic[S]):
             self._counters["late"] += 1
             return False
         bucket = self._packets.get(step)
-        if bucket is not None and any(p.sensor == idx for p in bucket):
-            self._counters["duplicate"] += 1
-            return False
+        if bucket is not None:
+            for p in bucket:
+                if p.sensor == idx:
+                    self._counters["duplicate"] += 1
+                    return False
         zv.setflags(write=False)
         pkt = Packet(idx, zv, Rm)
         if bucket is None:
             self._packets[step] = [pkt]
-            bisect.insort(self._steps, step)
+            steps = self._steps
+            if not steps or step > steps[-1]:
+                steps.append(step)
+            else:
+                bisect.insort(steps, step)
         else:
             bucket.append(pkt)
-            bucket.sort(key=lambda p: p.sensor)
+            bucket.sort(key=_by_sensor)
         self._invalidate(step)
         self._counters["accepted"] += 1
         return True
@@ -239,7 +270,7 @@ class ReplayEstimator(Generic[S]):
         ref = self._now if self._now is not None else 0
         if not self._inputs.admit(step, uv, self._c, ref + self._cmd_ahead, self._counters):
             return False
-        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        self._invalidate(step + 1, cov=False)  # u(step) first moves x(step + 1)
         return True
 
     def predict(self, now: int) -> PredictedState:
@@ -251,7 +282,11 @@ class ReplayEstimator(Generic[S]):
         self._replay(None)
         step, state = self._newest()
         target = now + self.lead
-        if target > step:
+        advance = getattr(self._backend, "advance", None)
+        if advance is not None:
+            m = target - step
+            state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred)
+        elif target > step:
             state = self._propagate(state, step, target - step)
         x, P = self._backend.moments(state)
         pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
@@ -331,7 +366,8 @@ class ReplayEstimator(Generic[S]):
         self._packets = packets
         self._steps = sorted(packets)
         self._chk = {}
-        self._dirty = c if self._steps else None
+        self._dirty = self._cdirty = c if self._steps else None
+        self._pred = None
         self._counters = Counter({k: 0 for k in COUNTER_NAMES})
         self._counters.update({k: int(v) for k, v in st.counters.items()})
         self._cache = None
@@ -366,9 +402,13 @@ class ReplayEstimator(Generic[S]):
             raise ValueError(f"now: went backwards ({now} < {self._now})")
         return now
 
-    def _invalidate(self, step: int) -> None:
+    def _invalidate(self, step: int, cov: bool = True) -> None:
+        """Mark posteriors from ``step`` on as stale: means only (``cov`` False: a command,
+        which moves means but not covariances) or means and covariances (a packet)."""
         if self._dirty is None or step < self._dirty:
             self._dirty = step
+        if cov and (self._cdirty is None or step < self._cdirty):
+            self._cdirty = step
         self._cache = None
 
     def _propagate(self, state: S, step: int, m: int) -> S:
@@ -382,26 +422,46 @@ class ReplayEstimator(Generic[S]):
         return self._base_step, self._base
 
     def _replay(self, limit: int | None) -> None:
-        """Recompute the posteriors of measured steps in [dirty, limit)."""
+        """Recompute the posteriors of measured steps in [dirty, limit).
+
+        A step below the covariance mark keeps its covariance (only commands changed
+        since): a fused backend is handed the old posterior to reuse it."""
         dirty = self._dirty
         if dirty is None or (limit is not None and dirty >= limit):
             return
         steps = self._steps
         i = bisect.bisect_left(steps, dirty)
         j = len(steps) if limit is None else bisect.bisect_left(steps, limit)
+        chk = self._chk
         if i > 0:
             a = steps[i - 1]
-            state = self._chk[a]
+            state = chk[a]
         else:
             a, state = self._base_step, self._base
         backend = self._backend
-        for s in steps[i:j]:
-            if s > a:
-                state = self._propagate(state, a, s - a)
-            state = backend.update(state, s, self._packets[s])
-            self._chk[s] = state
-            a = s
-        self._dirty = None if limit is None or j == len(steps) else limit
+        packets = self._packets
+        advance = getattr(backend, "advance", None)
+        if advance is not None:
+            cdirty = self._cdirty
+            inputs = self._inputs
+            for s in steps[i:j]:
+                old = chk.get(s) if cdirty is None or s < cdirty else None
+                state = advance(state, s - a, inputs.slice(a, s - a), packets[s], old)
+                chk[s] = state
+                a = s
+        else:
+            for s in steps[i:j]:
+                if s > a:
+                    state = self._propagate(state, a, s - a)
+                state = backend.update(state, s, packets[s])
+                chk[s] = state
+                a = s
+        if limit is None or j == len(steps):
+            self._dirty = self._cdirty = None
+        else:
+            self._dirty = limit
+            if self._cdirty is not None and self._cdirty < limit:
+                self._cdirty = limit
 
     def _advance(self, now: int) -> None:
         """Take ``now`` as the current step; commit steps that can no longer change."""
@@ -416,13 +476,15 @@ class ReplayEstimator(Generic[S]):
         k = bisect.bisect_left(steps, new_c)
         if k:
             final = steps[:k]
-            committed = [(s, self._chk[s], self._packets[s]) for s in final]
-            self._base_step, self._base = final[-1], self._chk[final[-1]]
+            chk, packets = self._chk, self._packets
+            committed = ([(s, chk[s], packets[s]) for s in final] if self._hooked else None)
+            self._base_step, self._base = final[-1], chk[final[-1]]
             self._newest_committed = final[-1]
             for s in final:
-                del self._chk[s], self._packets[s]
+                del chk[s], packets[s]
             del steps[:k]
-            self._on_commit(committed)
+            if committed is not None:
+                self._on_commit(committed)
         self._c = new_c
         self._inputs.advance(self._base_step)
         if new_c - self._base_step > self._base_lag:
