@@ -162,7 +162,8 @@ class Gaussian(NamedTuple):
     of ``m`` steps, then an update on ``npk`` packets) records ``src``, the parent's covariance
     *object*, and the gain of its update: ``kind`` 0 (no packet), 1 (one unit row
     ``H = e_j``: ``K`` (n,), ``z`` a float), 2 (one row ``H = h`` (n,): ``K`` (n,), ``z`` a
-    float) or 3 (``H`` (r, n), ``K`` (n, r), ``z`` (r,)). Arrays are never written after
+    float), 3 (``H`` (r, n), ``K`` (n, r), ``z`` (r,)) or 4 (as 3, with unit rows: ``H x =
+    x[j]`` for the slice ``j``). Arrays are never written after
     creation. (A NamedTuple: built with ``tuple.__new__`` on the hot path, ~4x cheaper than
     a class with ``__init__``.)
     """
@@ -176,7 +177,7 @@ class Gaussian(NamedTuple):
     K: np.ndarray | None = None
     H: np.ndarray | None = None
     z: Any = None
-    j: int = -1
+    j: Any = -1
 
 
 _new = tuple.__new__
@@ -184,18 +185,27 @@ _new = tuple.__new__
 
 #: One sensor (or one stacked set of sensors) prepared for the update: (kind, H (r, n) or
 #: h (n,), H^T (n, r), R (r, r), r_scalar, j) with kind and j as in :class:`Gaussian`.
-_Rows = tuple[int, np.ndarray, np.ndarray, np.ndarray, float, int]
+_Rows = tuple[int, np.ndarray, np.ndarray, np.ndarray, float, Any]
 
 
 def _rows(H: np.ndarray, R: np.ndarray) -> _Rows:
-    """Prepare measurement rows H (r, n) with noise R (r, r) for :meth:`LinearBackend.advance`."""
+    """Prepare measurement rows H (r, n) with noise R (r, r) for :meth:`LinearBackend.advance`:
+    kind 1 (one unit row e_j), 2 (one row), 4 (r >= 2 unit rows e_i at evenly spaced
+    increasing indices: H x = x[j] for a slice j) or 3 (any other H)."""
     H = np.array(H, dtype=np.float64)
+    H.setflags(write=False)
     HT = np.ascontiguousarray(H.T)
-    if H.shape[0] == 1:
+    r = H.shape[0]
+    nz = [np.flatnonzero(row) for row in H]
+    unit = all(k.size == 1 and row[k[0]] == 1.0 for k, row in zip(nz, H, strict=True))
+    if r == 1:
         h = np.ascontiguousarray(H[0])
-        nz = np.flatnonzero(h)
-        unit = nz.size == 1 and h[nz[0]] == 1.0
-        return (1 if unit else 2), h, HT, R, float(R[0, 0]), int(nz[0]) if unit else -1
+        return (1 if unit else 2), h, HT, R, float(R[0, 0]), int(nz[0][0]) if unit else -1
+    if unit:
+        idx = [int(k[0]) for k in nz]
+        d = idx[1] - idx[0]
+        if d > 0 and idx == list(range(idx[0], idx[-1] + 1, d)):
+            return 4, H, HT, R, 0.0, slice(idx[0], idx[-1] + 1, d)
     return 3, H, HT, R, 0.0, -1
 
 
@@ -315,6 +325,8 @@ class LinearBackend:
                 xp = xp + K * (z - H.dot(xp))
             elif kind == 3:
                 xp = xp + K.dot(z - H.dot(xp))
+            elif kind == 4:
+                xp = xp + K.dot(z - xp[j])
             return _new(Gaussian, (xp, Pold, P, m, npk, kind, K, H, z, j))
         if not npk:
             return _new(Gaussian, (xp, Pp, P, m, 0, 0, None, None, None, -1))
@@ -326,18 +338,20 @@ class LinearBackend:
                 R = p.R
                 r = float(R[0, 0])
         else:  # several sensors this step: M*(tau) of eq. (24), H* = [H_i; H_j; ..]
-            key = tuple(p.sensor for p in packets)
+            key = tuple([p.sensor for p in packets])
             rows = self._stacked.get(key)
             if rows is None:
                 rows = _rows(np.vstack([self.sensors[i].H for i in key]),
                              block_diag([self.sensors[i].R for i in key]))
                 self._stacked[key] = rows
             kind, H, HT, R, r, j = rows
-            if any(p.R is not None for p in packets):
-                R = block_diag([self.sensors[p.sensor].R if p.R is None else p.R
-                                for p in packets])
+            for p in packets:
+                if p.R is not None:
+                    R = block_diag([self.sensors[q.sensor].R if q.R is None else q.R
+                                    for q in packets])
+                    break
             z = np.concatenate([p.z for p in packets])
-        if kind != 3:  # one row: s = h P- h^T + r is a scalar
+        if kind <= 2:  # one row: s = h P- h^T + r is a scalar
             zs = z.item(0)
             if kind == 1:
                 PHt = Pp[:, j]
@@ -353,8 +367,14 @@ class LinearBackend:
             w = PHt * (1.0 / math.sqrt(s))  # K (P- h)^T = w w^T, exactly symmetric
             return _new(Gaussian, (xp + K * innov, Pp - w[:, None].dot(w[None, :]), P, m,
                                    npk, kind, K, H, zs, j))
-        PHt = Pp.dot(HT)
-        S = H.dot(PHt) + R
+        if kind == 4:  # unit rows: P- H^T, H P- H^T and H x- are slices
+            PHt = Pp[:, j]
+            S = PHt[j] + R
+            Hx = xp[j]
+        else:
+            PHt = Pp.dot(HT)
+            S = H.dot(PHt) + R
+            Hx = H.dot(xp)
         Li = _chol_inv(S)
         if Li is not None:  # S = L L^T, W = P- H^T L^-T: K = W L^-1, K (P- H^T)^T = W W^T
             W = PHt.dot(Li.T)
@@ -367,7 +387,7 @@ class LinearBackend:
                 K = PHt.dot(np.linalg.pinv(S))
             Pn = Pp - K.dot(PHt.T)
             Pn = (Pn + Pn.T) * 0.5
-        return _new(Gaussian, (xp + K.dot(z - H.dot(xp)), Pn, P, m, npk, 3, K, H, z, -1))
+        return _new(Gaussian, (xp + K.dot(z - Hx), Pn, P, m, npk, kind, K, H, z, j))
 
     def moments(self, state: Gaussian) -> LinearState:
         return state.x, state.P
