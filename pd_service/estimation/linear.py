@@ -8,6 +8,14 @@ Propagating m steps at once, with no per-step Python work::
 ``A^m``, ``Qs(m)`` and the stacked input matrix are computed once per model and horizon and
 shared by every estimator with the same model (a daemon with 1,000 sessions of one robot type
 keeps one copy).
+
+:class:`LinearBackend` is the ObserverPredictor's backend: one fused step per measured step
+(:meth:`LinearBackend.advance`: jump, then the Kalman update on the step's packets), written
+for 4 x 4 matrices where each numpy call costs ~0.3-1 µs of overhead: ``ndarray.dot`` (about
+half the cost of ``@`` on tiny arrays), closed-form 2 x 2 / 3 x 3 Cholesky factors instead of
+LAPACK, slices for unit-row sensors, and covariances kept exactly symmetric without a
+symmetrisation pass. :func:`propagate` and :func:`kalman_update` are the plain forms (the
+baselines use them).
 """
 
 from __future__ import annotations
@@ -174,8 +182,8 @@ class Gaussian(NamedTuple):
     m: int = 0
     npk: int = 0
     kind: int = 0
-    K: np.ndarray | None = None
-    H: np.ndarray | None = None
+    K: Any = None  # np.ndarray or None (Any: the hot path reads it without narrowing)
+    H: Any = None  # np.ndarray or None
     z: Any = None
     j: Any = -1
 

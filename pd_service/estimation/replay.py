@@ -23,10 +23,25 @@ This is the paper's re-organized innovation recursion generalised to time stamps
 The result equals a Kalman filter run from step 0 over every accepted packet in stamp order,
 then predicted forward: the engine only chooses *which* steps to recompute.
 
+Covariances do not depend on measured values or inputs, only on *which* packets arrived at
+which steps (for a linear model). So the engine keeps two stale marks: ``dirty`` (the first
+step whose posterior mean is stale: a packet or a command landed there) and ``cdirty`` (the
+first step whose covariance is stale: only a packet moves it). A step in [dirty, cdirty)
+keeps its covariance and gain; only its mean is re-run::
+
+    x-(s) = A^m x(a) + [A^{m-1}B ... B] [u(a); ...; u(s-1)],    x(s) = x-(s) + K(s) (z(s) - H x-(s))
+
 Work and memory per call are bounded by the window (max_delay + lead steps), never by the
 number of elapsed steps. A backend supplies two pure functions over its own state type:
 ``propagate(state, step, m, U)`` (x(step) -> x(step + m) with inputs U (m, nu)) and
-``update(state, step, packets)``; see :class:`Backend`.
+``update(state, step, packets)``; see :class:`Backend`. A backend may instead supply the fused
+step ``advance(state, m, U, packets, old)`` (:class:`FusedBackend`): the jump and the update
+in one call, given the step's previous posterior ``old`` when its covariance is still valid.
+:class:`~.linear.LinearBackend` does, and reuses ``old``'s covariance and gain only when
+``old`` was computed from the very same parent covariance object, jump and packet count (an
+identity check that also covers a base rolled forward); the prediction to now + lead is a
+fused step with no packets, given the previous prediction as ``old``, so its covariance is
+reused while the newest posterior's covariance and the horizon are unchanged.
 """
 
 from __future__ import annotations
