@@ -100,9 +100,8 @@ class InputBuffer:
             return
         cap = self.capacity
         buf = self._buf
-        tail = buf[self._off + cap - 1].copy() if self.hold else 0.0
         if d >= cap:
-            buf[:cap] = tail
+            buf[:cap] = buf[self._off + cap - 1].copy() if self.hold else 0.0
             self._off = 0
         else:
             if self._off + d + cap > buf.shape[0]:
@@ -110,7 +109,9 @@ class InputBuffer:
                 self._off = 0
             else:
                 self._off += d
-            buf[self._off + cap - d : self._off + cap] = tail
+            end = self._off + cap
+            # the new steps continue u of the old last step (row end - d - 1, not overwritten)
+            buf[end - d : end] = buf[end - d - 1] if self.hold else 0.0
         self.origin = origin
         cmds = self._cmd_steps
         if cmds and cmds[0] < origin:
