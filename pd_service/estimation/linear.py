@@ -170,8 +170,10 @@ class Gaussian(NamedTuple):
     A state the backend computed from a parent state by :meth:`LinearBackend.advance` (a jump
     of ``m`` steps, then an update on ``npk`` packets) records ``src``, the parent's covariance
     *object*, and the gain of its update: ``kind`` 0 (no packet), 1 (one unit row
-    ``H = e_j``: ``K`` (n,), ``z`` a float), 2 (one row ``H = h`` (n,): ``K`` (n,), ``z`` a
-    float) or 3 (``H`` (r, n), ``K`` (n, r), ``z`` (r,)). Arrays are never written after
+    ``H = e_j``), 2 (one row ``H = h`` (n,)) or 3 (``H`` (r, n), ``K`` (n, r), ``z`` (r,)).
+    For one row, ``z`` is a float and the gain is ``K c`` with ``K`` = P- h / sqrt(s) (n,)
+    and ``c`` = 1 / sqrt(s), s = h P- h^T + r (x+ = x- + K (c (z - h x-)): one vector
+    operation less than forming P- h / s). Arrays are never written after
     creation. (A NamedTuple: built with ``tuple.__new__`` on the hot path, ~4x cheaper than
     a class with ``__init__``.)
     """
@@ -186,6 +188,7 @@ class Gaussian(NamedTuple):
     H: Any = None  # np.ndarray or None
     z: Any = None
     j: int = -1
+    c: float = 0.0
 
 
 _new = tuple.__new__
@@ -293,7 +296,7 @@ class LinearBackend:
             P- = A^m P (A^m)^T + Qs(m)
             S = H P- H^T + R = L L^T,   W = P- H^T L^{-T},   K = W L^{-1} = P- H^T S^{-1}
             x+ = x- + K (z - H x-),   P+ = P- - W W^T
-            one row h:  s = h P- h^T + r,  K = P- h / s,  W = P- h / sqrt(s)  (K = 0 if s <= 0)
+            one row h:  s = h P- h^T + r,  W = P- h / sqrt(s),  K = W / sqrt(s)  (K = 0 if s <= 0)
 
         Every covariance is kept exactly symmetric (the filter's covariance recursion is not
         stable against antisymmetric rounding errors): A^m P (A^m)^T is formed as M + M^T
@@ -321,16 +324,16 @@ class LinearBackend:
             xp, Pp = propagate(self.tables, self._nu, x, P, U)
             Pp = (Pp + Pp.T) * 0.5
         if reuse:  # covariance and gain unchanged: the mean recursion only
-            _, Pold, _, _, _, kind, K, H, z, j = old  # type: ignore[misc]
+            _, Pold, _, _, _, kind, K, H, z, j, c = old  # type: ignore[misc]
             if kind == 1:
-                xp = xp + K * (z - xp[j])
+                xp = xp + K * (c * (z - xp[j]))
             elif kind == 2:
-                xp = xp + K * (z - H.dot(xp))
+                xp = xp + K * (c * (z - H.dot(xp)))
             elif kind == 3:
                 xp = xp + K.dot(z - H.dot(xp))
-            return _new(Gaussian, (xp, Pold, P, m, npk, kind, K, H, z, j))
+            return _new(Gaussian, (xp, Pold, P, m, npk, kind, K, H, z, j, c))
         if not npk:
-            return _new(Gaussian, (xp, Pp, P, m, 0, 0, None, None, None, -1))
+            return _new(Gaussian, (xp, Pp, P, m, 0, 0, None, None, None, -1, 0.0))
         if npk == 1:
             p = packets[0]
             kind, H, HT, R, r, j = self._single[p.sensor]
@@ -363,11 +366,11 @@ class LinearBackend:
                 s = float(H.dot(PHt)) + r
                 innov = zs - H.dot(xp)
             if not s > 0.0:  # h P- h^T + r = 0: the sample tells nothing new (K = 0)
-                return _new(Gaussian, (xp, Pp, P, m, npk, kind, PHt * 0.0, H, zs, j))
-            K = PHt / s
-            w = PHt * (1.0 / math.sqrt(s))  # K (P- h)^T = w w^T, exactly symmetric
-            return _new(Gaussian, (xp + K * innov, Pp - w[:, None].dot(w[None, :]), P, m,
-                                   npk, kind, K, H, zs, j))
+                return _new(Gaussian, (xp, Pp, P, m, npk, kind, PHt * 0.0, H, zs, j, 0.0))
+            c = 1.0 / math.sqrt(s)
+            w = PHt * c  # K = w c, and K (P- h)^T = w w^T, exactly symmetric
+            return _new(Gaussian, (xp + w * (c * innov), Pp - w[:, None].dot(w[None, :]), P,
+                                   m, npk, kind, w, H, zs, j, c))
         PHt = Pp.dot(HT)
         S = H.dot(PHt) + R
         Li = _chol_inv(S)
@@ -382,7 +385,7 @@ class LinearBackend:
                 K = PHt.dot(np.linalg.pinv(S))
             Pn = Pp - K.dot(PHt.T)
             Pn = (Pn + Pn.T) * 0.5
-        return _new(Gaussian, (xp + K.dot(z - H.dot(xp)), Pn, P, m, npk, 3, K, H, z, -1))
+        return _new(Gaussian, (xp + K.dot(z - H.dot(xp)), Pn, P, m, npk, 3, K, H, z, -1, 0.0))
 
     def moments(self, state: Gaussian) -> LinearState:
         return state.x, state.P
