@@ -73,6 +73,14 @@ class InputBuffer:
             raise IndexError(f"steps [{step}, {step + m}) outside the input window")
         return view
 
+    def window(self, first: int, last: int) -> tuple[np.ndarray, int]:
+        """(buf, off) with u(t) = buf[t - off] for first <= t < last: the slices of several
+        propagations over [first, last) without a method call each. IndexError if that
+        range leaves the input window."""
+        if first < self.origin or last > self.origin + self.capacity:
+            raise IndexError(f"steps [{first}, {last}) outside the input window")
+        return self._buf, self.origin - self._off
+
     def export(self) -> tuple[int, np.ndarray, list[tuple[int, np.ndarray]]]:
         """(origin, u(origin) (nu,), [(step, u (nu,)) of every explicit command >= origin]):
         enough for :meth:`restore` to rebuild u(t) over the whole buffer."""

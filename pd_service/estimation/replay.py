@@ -49,7 +49,7 @@ from __future__ import annotations
 import bisect
 from collections import Counter
 from dataclasses import dataclass
-from typing import Generic, Protocol, TypeVar
+from typing import Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 
@@ -72,14 +72,17 @@ COUNTER_NAMES = (
 )
 
 
-@dataclass(frozen=True, slots=True)
-class Packet:
+class Packet(NamedTuple):
     """One accepted measurement. ``sensor`` indexes the estimator's sensor list;
-    ``z`` has shape (m,); ``R`` is a per-sample (m, m) override or None."""
+    ``z`` has shape (m,) (read-only); ``R`` is a per-sample (m, m) override or None.
+    (A NamedTuple: immutable, and built with ``tuple.__new__`` on the hot path.)"""
 
     sensor: int
     z: np.ndarray
     R: np.ndarray | None
+
+
+_new_tuple = tuple.__new__
 
 
 def _by_sensor(p: Packet) -> int:
@@ -236,11 +239,13 @@ class ReplayEstimator(Generic[S]):
         if idx is None:
             raise ValueError(f"sensor: unknown sensor {sensor!r} (known: {list(self._index)})")
         m = self._dims[idx]
-        step = as_step(step, "step")
+        if type(step) is not int:
+            step = as_step(step, "step")
         now = self._check_now(now)
         zv = as_vector(z, "z", m)
         Rm = None if R is None else as_covariance(R, "R", m)
-        self._advance(now)
+        if now != self._now:
+            self._advance(now)
         if step > now:
             self._counters["future"] += 1
             return False
@@ -254,7 +259,7 @@ class ReplayEstimator(Generic[S]):
                     self._counters["duplicate"] += 1
                     return False
         zv.setflags(write=False)
-        pkt = Packet(idx, zv, Rm)
+        pkt = _new_tuple(Packet, (idx, zv, Rm))
         if bucket is None:
             self._packets[step] = [pkt]
             steps = self._steps
@@ -265,7 +270,12 @@ class ReplayEstimator(Generic[S]):
         else:
             bucket.append(pkt)
             bucket.sort(key=_by_sensor)
-        self._invalidate(step)
+        # _invalidate(step), inlined: means and covariances from step on are stale
+        if self._dirty is None or step < self._dirty:
+            self._dirty = step
+        if self._cdirty is None or step < self._cdirty:
+            self._cdirty = step
+        self._cache = None
         self._counters["accepted"] += 1
         return True
 
@@ -277,11 +287,13 @@ class ReplayEstimator(Generic[S]):
         steps past the predicted step ``now + lead``, ("commands_duplicate") if a command
         for ``step`` is already stored. ``now`` defaults to the newest one seen.
         """
-        step = as_step(step, "step")
+        if type(step) is not int:
+            step = as_step(step, "step")
         uv = as_vector(u, "u", self._nu)
         if now is not None:
             now = self._check_now(now)
-            self._advance(now)
+            if now != self._now:
+                self._advance(now)
         ref = self._now if self._now is not None else 0
         if not self._inputs.admit(step, uv, self._c, ref + self._cmd_ahead, self._counters):
             return False
@@ -291,7 +303,8 @@ class ReplayEstimator(Generic[S]):
     def predict(self, now: int) -> PredictedState:
         """LMMSE estimate of x(now + lead) from x0, P0, the commands and accepted packets."""
         now = self._check_now(now)
-        self._advance(now)
+        if now != self._now:
+            self._advance(now)
         if self._cache is not None and self._cache[0] == now:
             return self._cache[1]
         self._replay(None)
@@ -412,7 +425,8 @@ class ReplayEstimator(Generic[S]):
     # --- internals ---------------------------------------------------------------------
 
     def _check_now(self, now: object) -> int:
-        now = as_step(now, "now")
+        if type(now) is not int:
+            now = as_step(now, "now")
         if self._now is not None and now < self._now:
             raise ValueError(f"now: went backwards ({now} < {self._now})")
         return now
@@ -458,12 +472,14 @@ class ReplayEstimator(Generic[S]):
         advance = getattr(backend, "advance", None)
         if advance is not None:
             cdirty = self._cdirty
-            inputs = self._inputs
-            for s in steps[i:j]:
-                old = chk.get(s) if cdirty is None or s < cdirty else None
-                state = advance(state, s - a, inputs.slice(a, s - a), packets[s], old)
-                chk[s] = state
-                a = s
+            todo = steps[i:j]
+            if todo:
+                buf, off = self._inputs.window(a, todo[-1])
+                for s in todo:
+                    old = chk.get(s) if cdirty is None or s < cdirty else None
+                    state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
+                    chk[s] = state
+                    a = s
         else:
             for s in steps[i:j]:
                 if s > a:
