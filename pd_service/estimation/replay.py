@@ -301,7 +301,10 @@ class ReplayEstimator(Generic[S]):
         return True
 
     def predict(self, now: int) -> PredictedState:
-        """LMMSE estimate of x(now + lead) from x0, P0, the commands and accepted packets."""
+        """LMMSE estimate of x(now + lead) from x0, P0, the commands and accepted packets.
+
+        With a fused backend the returned arrays are read-only (the covariance may be the
+        previous prediction's, reused): copy them to modify."""
         now = self._check_now(now)
         if now != self._now:
             self._advance(now)
@@ -314,9 +317,14 @@ class ReplayEstimator(Generic[S]):
         if advance is not None:
             m = target - step
             state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred)
-        elif target > step:
-            state = self._propagate(state, step, target - step)
-        x, P = self._backend.moments(state)
+            x, P = self._backend.moments(state)
+            # shared with the engine (a reused covariance, a checkpoint): read-only
+            x.setflags(write=False)
+            P.setflags(write=False)
+        else:
+            if target > step:
+                state = self._propagate(state, step, target - step)
+            x, P = self._backend.moments(state)
         pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
         self._cache = (now, pred)
         return pred
