@@ -168,34 +168,44 @@ class Gaussian(NamedTuple):
     re-running its mean recursion with the same covariance needs.
 
     A state the backend computed from a parent state by :meth:`LinearBackend.advance` (a jump
-    of ``m`` steps, then an update on ``npk`` packets) records ``src``, the parent's covariance
-    *object*, and the gain of its update: ``kind`` 0 (no packet), 1 (one unit row
-    ``H = e_j``), 2 (one row ``H = h`` (n,)) or 3 (``H`` (r, n), ``K`` (n, r), ``z`` (r,)).
-    For one row, ``z`` is a float and the gain is ``K c`` with ``K`` = P- h / sqrt(s) (n,)
-    and ``c`` = 1 / sqrt(s), s = h P- h^T + r (x+ = x- + K (c (z - h x-)): one vector
-    operation less than forming P- h / s). Arrays are never written after
-    creation. (A NamedTuple: built with ``tuple.__new__`` on the hot path, ~4x cheaper than
-    a class with ``__init__``.)
+    of ``m`` steps, then one Kalman update per packet, in sensor order) records ``src``, the
+    parent's covariance *object*, ``sensors``, the sensor indices of the packets applied, and
+    ``stages``, one :data:`Stage` per packet: the gain that maps the prior mean to the
+    posterior mean. Arrays are never written after creation. (A NamedTuple: built with
+    ``tuple.__new__`` on the hot path, ~4x cheaper than a class with ``__init__``.)
     """
 
     x: np.ndarray
     P: np.ndarray
     src: np.ndarray | None = None
     m: int = 0
-    npk: int = 0
-    kind: int = 0
-    K: Any = None  # np.ndarray or None (Any: the hot path reads it without narrowing)
-    H: Any = None  # np.ndarray or None
-    z: Any = None
-    j: int = -1
-    c: float = 0.0
+    sensors: tuple[int, ...] = ()
+    stages: tuple[Stage, ...] = ()
 
+
+#: One packet's mean update ``(kind, K, H, z, j, c)``: kind 1 (one unit row ``H = e_j``),
+#: 2 (one row ``H = h`` (n,)): ``z`` a float, x+ = x- + K (c (z - h x-)) with ``K`` =
+#: P- h / sqrt(s) (n,), ``c`` = 1 / sqrt(s), s = h P- h^T + r (one vector operation less than
+#: forming P- h / s); kind 3 (``H`` (r, n)): x+ = x- + K (z - H x-), ``K`` (n, r), z (r,).
+Stage = tuple[int, Any, Any, Any, int, float]
 
 _new = tuple.__new__
 
 
-#: One sensor (or one stacked set of sensors) prepared for the update: (kind, H (r, n) or
-#: h (n,), H^T (n, r), R (r, r), r_scalar, j) with kind and j as in :class:`Gaussian`.
+def _remean(x: np.ndarray, stages: tuple[Stage, ...]) -> np.ndarray:
+    """The mean recursion of ``stages`` from the prior mean ``x`` (no covariance work)."""
+    for kind, K, H, z, j, c in stages:
+        if kind == 1:
+            x = x + K * (c * (z - x[j]))
+        elif kind == 2:
+            x = x + K * (c * (z - H.dot(x)))
+        else:
+            x = x + K.dot(z - H.dot(x))
+    return x
+
+
+#: One sensor prepared for the update: (kind, H (r, n) or h (n,), H^T (n, r), R (r, r),
+#: r_scalar, j) with kind and j as in :data:`Stage`.
 _Rows = tuple[int, np.ndarray, np.ndarray, np.ndarray, float, int]
 
 
@@ -278,7 +288,6 @@ class LinearBackend:
         self._M = self.tables.M
         self._jumps = self.tables.jumps
         self._single = [_rows(s.H, s.R) for s in sensors]
-        self._stacked: dict[tuple[int, ...], _Rows] = {}
 
     def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:
         return self.advance(state, m, U, [], None)
@@ -288,26 +297,39 @@ class LinearBackend:
 
     def advance(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
                 old: Gaussian | None) -> Gaussian:
-        """x(a) -> x(a + m) with inputs U (m, nu), then conditioned on ``packets`` (sorted
-        by sensor, possibly none). If ``old`` (the previous result of this step) was computed
-        from the same covariance object, jump and packet count, only the mean is recomputed
-        (same gain, same covariance object); otherwise the full step::
+        """x(a) -> x(a + m) with inputs U (m, nu), then one Kalman update per packet in
+        ``packets`` (sorted by sensor, possibly none; sequential updates equal the stacked one
+        of eq. (24), R* being block diagonal). ``old`` (this step's previous result, or None)
+        was computed from the same covariance object and jump: its covariance after its
+        packets is reused if they are the first of ``packets`` (a packet that joins a step
+        costs only its own update); the mean is re-run through its stored gains::
 
             P- = A^m P (A^m)^T + Qs(m)
             S = H P- H^T + R = L L^T,   W = P- H^T L^{-T},   K = W L^{-1} = P- H^T S^{-1}
             x+ = x- + K (z - H x-),   P+ = P- - W W^T
-            one row h:  s = h P- h^T + r,  W = P- h / sqrt(s),  K = W / sqrt(s)  (K = 0 if s <= 0)
+            one row h:  s = h P- h^T + r,  W = P- h / sqrt(s),  K = W / sqrt(s)  (0 if s <= 0)
 
         Every covariance is kept exactly symmetric (the filter's covariance recursion is not
         stable against antisymmetric rounding errors): A^m P (A^m)^T is formed as M + M^T
         with M = A^m P (A^m)^T / 2, and the downdate W W^T is symmetric by construction. A
         2 x 2 or 3 x 3 S is factored by closed formulas; a larger or (nearly) singular S
         goes through LU, or the pseudo-inverse, and an explicit symmetrisation, as
-        :func:`kalman_update`.
+        :func:`kalman_update`. The result depends only on the parent state, the inputs and
+        the packets, not on whether ``old`` was reused (the same operations either way).
         """
         x, P = state[0], state[1]
         npk = len(packets)
-        reuse = old is not None and old[2] is P and old[3] == m and old[4] == npk
+        done: tuple[int, ...] = ()
+        reuse = False
+        if old is not None and old[2] is P and old[3] == m:
+            done = old[4]
+            k = len(done)
+            if k == 0:
+                reuse = True
+            elif k <= npk and packets[0].sensor == done[0]:
+                reuse = k == 1 or tuple([p.sensor for p in packets[:k]]) == done
+            if not reuse:
+                done = ()  # old applied other packets first: start from the prior
         Pp = P
         if m == 0:
             xp = x
@@ -323,69 +345,63 @@ class LinearBackend:
         else:  # a jump longer than the tables (idle session): in table-sized chunks
             xp, Pp = propagate(self.tables, self._nu, x, P, U)
             Pp = (Pp + Pp.T) * 0.5
-        if reuse:  # covariance and gain unchanged: the mean recursion only
-            _, Pold, _, _, _, kind, K, H, z, j, c = old  # type: ignore[misc]
-            if kind == 1:
-                xp = xp + K * (c * (z - xp[j]))
-            elif kind == 2:
-                xp = xp + K * (c * (z - H.dot(xp)))
-            elif kind == 3:
-                xp = xp + K.dot(z - H.dot(xp))
-            return _new(Gaussian, (xp, Pold, P, m, npk, kind, K, H, z, j, c))
+        stages: tuple[Stage, ...] = ()
+        if reuse:  # the covariance after old's packets is unchanged: their means only
+            assert old is not None
+            stages = old[5]
+            if stages:
+                xp = _remean(xp, stages)
+            if len(done) == npk:
+                return _new(Gaussian, (xp, old[1], P, m, done, stages))
+            Pp = old[1]
         if not npk:
-            return _new(Gaussian, (xp, Pp, P, m, 0, 0, None, None, None, -1, 0.0))
-        if npk == 1:
-            p = packets[0]
-            kind, H, HT, R, r, j = self._single[p.sensor]
+            return _new(Gaussian, (xp, Pp, P, m, (), ()))
+        single = self._single
+        for i in range(len(done), npk):
+            p = packets[i]
+            kind, H, HT, R, r, j = single[p.sensor]
             z = p.z
             if p.R is not None:
                 R = p.R
                 r = float(R[0, 0])
-        else:  # several sensors this step: M*(tau) of eq. (24), H* = [H_i; H_j; ..]
-            key = tuple([p.sensor for p in packets])
-            rows = self._stacked.get(key)
-            if rows is None:
-                rows = _rows(np.vstack([self.sensors[i].H for i in key]),
-                             block_diag([self.sensors[i].R for i in key]))
-                self._stacked[key] = rows
-            kind, H, HT, R, r, j = rows
-            for p in packets:
-                if p.R is not None:
-                    R = block_diag([self.sensors[q.sensor].R if q.R is None else q.R
-                                    for q in packets])
-                    break
-            z = np.concatenate([p.z for p in packets])
-        if kind <= 2:  # one row: s = h P- h^T + r is a scalar
-            zs = z.item(0)
-            if kind == 1:
-                PHt = Pp[:, j]
-                s = Pp.item(j, j) + r
-                innov = zs - xp.item(j)
+            if kind <= 2:  # one row: s = h P- h^T + r is a scalar
+                zs = z.item(0)
+                if kind == 1:
+                    PHt = Pp[:, j]
+                    s = Pp.item(j, j) + r
+                    innov = zs - xp.item(j)
+                else:
+                    PHt = Pp.dot(H)
+                    s = float(H.dot(PHt)) + r
+                    innov = zs - H.dot(xp)
+                if not s > 0.0:  # h P- h^T + r = 0: the sample tells nothing new (K = 0)
+                    stages += ((kind, PHt * 0.0, H, zs, j, 0.0),)
+                    continue
+                c = 1.0 / math.sqrt(s)
+                w = PHt * c  # K = w c, and K (P- h)^T = w w^T, exactly symmetric
+                xp = xp + w * (c * innov)
+                Pp = Pp - w[:, None].dot(w[None, :])
+                stages += ((kind, w, H, zs, j, c),)
+                continue
+            PHt = Pp.dot(HT)
+            S = H.dot(PHt) + R
+            Li = _chol_inv(S)
+            if Li is not None:  # S = L L^T, W = P- H^T L^-T: K = W L^-1, K (P- H^T)^T = W W^T
+                W = PHt.dot(Li.T)
+                K = W.dot(Li)
+                Pn = Pp - W.dot(W.T)  # exactly symmetric (numpy computes W W^T with syrk)
             else:
-                PHt = Pp.dot(H)
-                s = float(H.dot(PHt)) + r
-                innov = zs - H.dot(xp)
-            if not s > 0.0:  # h P- h^T + r = 0: the sample tells nothing new (K = 0)
-                return _new(Gaussian, (xp, Pp, P, m, npk, kind, PHt * 0.0, H, zs, j, 0.0))
-            c = 1.0 / math.sqrt(s)
-            w = PHt * c  # K = w c, and K (P- h)^T = w w^T, exactly symmetric
-            return _new(Gaussian, (xp + w * (c * innov), Pp - w[:, None].dot(w[None, :]), P,
-                                   m, npk, kind, w, H, zs, j, c))
-        PHt = Pp.dot(HT)
-        S = H.dot(PHt) + R
-        Li = _chol_inv(S)
-        if Li is not None:  # S = L L^T, W = P- H^T L^-T: K = W L^-1, K (P- H^T)^T = W W^T
-            W = PHt.dot(Li.T)
-            K = W.dot(Li)
-            Pn = Pp - W.dot(W.T)  # exactly symmetric (numpy computes W W^T with syrk)
-        else:
-            try:
-                K = np.linalg.solve(S, PHt.T).T
-            except np.linalg.LinAlgError:
-                K = PHt.dot(np.linalg.pinv(S))
-            Pn = Pp - K.dot(PHt.T)
-            Pn = (Pn + Pn.T) * 0.5
-        return _new(Gaussian, (xp + K.dot(z - H.dot(xp)), Pn, P, m, npk, 3, K, H, z, -1, 0.0))
+                try:
+                    K = np.linalg.solve(S, PHt.T).T
+                except np.linalg.LinAlgError:
+                    K = PHt.dot(np.linalg.pinv(S))
+                Pn = Pp - K.dot(PHt.T)
+                Pn = (Pn + Pn.T) * 0.5
+            xp = xp + K.dot(z - H.dot(xp))
+            Pp = Pn
+            stages += ((3, K, H, z, -1, 0.0),)
+        sensors = (packets[0].sensor,) if npk == 1 else tuple([p.sensor for p in packets])
+        return _new(Gaussian, (xp, Pp, P, m, sensors, stages))
 
     def moments(self, state: Gaussian) -> LinearState:
         return state.x, state.P

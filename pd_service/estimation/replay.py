@@ -23,25 +23,33 @@ This is the paper's re-organized innovation recursion generalised to time stamps
 The result equals a Kalman filter run from step 0 over every accepted packet in stamp order,
 then predicted forward: the engine only chooses *which* steps to recompute.
 
-Covariances do not depend on measured values or inputs, only on *which* packets arrived at
-which steps (for a linear model). So the engine keeps two stale marks: ``dirty`` (the first
-step whose posterior mean is stale: a packet or a command landed there) and ``cdirty`` (the
-first step whose covariance is stale: only a packet moves it). A step in [dirty, cdirty)
-keeps its covariance and gain; only its mean is re-run::
-
-    x-(s) = A^m x(a) + [A^{m-1}B ... B] [u(a); ...; u(s-1)],    x(s) = x-(s) + K(s) (z(s) - H x-(s))
-
 Work and memory per call are bounded by the window (max_delay + lead steps), never by the
 number of elapsed steps. A backend supplies two pure functions over its own state type:
 ``propagate(state, step, m, U)`` (x(step) -> x(step + m) with inputs U (m, nu)) and
-``update(state, step, packets)``; see :class:`Backend`. A backend may instead supply the fused
-step ``advance(state, m, U, packets, old)`` (:class:`FusedBackend`): the jump and the update
-in one call, given the step's previous posterior ``old`` when its covariance is still valid.
-:class:`~.linear.LinearBackend` does, and reuses ``old``'s covariance and gain only when
-``old`` was computed from the very same parent covariance object, jump and packet count (an
-identity check that also covers a base rolled forward); the prediction to now + lead is a
-fused step with no packets, given the previous prediction as ``old``, so its covariance is
-reused while the newest posterior's covariance and the horizon are unchanged.
+``update(state, step, packets)``; see :class:`Backend`.
+
+A backend may instead supply the fused step ``advance(state, m, U, packets, old)``
+(:class:`FusedBackend`): the jump and the updates in one call, offered ``old``, the step's
+previous (now stale) posterior. Covariances do not depend on measured values or inputs, only
+on the parent covariance, the jump and *which* packets were applied (for a linear model), so
+:class:`~.linear.LinearBackend` keys its reuse on exactly that: if ``old`` was computed from
+the very same parent covariance *object* with the same jump m,
+
+* and from the same packets (only commands changed since: a late command), it keeps ``old``'s
+  covariance and gains and re-runs the means only::
+
+      x-(s) = A^m x(a) + [A^{m-1}B ... B] [u(a); ...; u(s-1)],   x(s) = x-(s) + K(s) (z(s) - H x-(s))
+
+* from the first of this step's packets (a packet joined the step, in sensor order), it keeps
+  the covariance after those and pays only for the new packets' updates.
+
+The object identity makes the key cheap and safe: a packet at an earlier step, a
+base rolled forward or a restore all produce new parent covariance objects. A model that
+changes (:meth:`ReplayEstimator.invalidate_from`) is never reused across. The prediction to
+now + lead is a fused step with no packets, offered the previous prediction, so its
+covariance is reused while the newest posterior's covariance and the horizon are unchanged.
+The reused results are bit-identical to a recompute (the same operations on the same
+operands; tested).
 """
 
 from __future__ import annotations
@@ -136,10 +144,10 @@ class FusedBackend(Backend[S], Protocol):
     def advance(self, state: S, m: int, U: np.ndarray, packets: list[Packet],
                 old: S | None) -> S:
         """x(a) -> x(a + m) (m >= 0, inputs U (m, nu)), then conditioned on ``packets``
-        (sorted by sensor, possibly none). ``old`` is this step's previous result if no
-        packet changed at or before the step since it was computed (only commands did), else
-        None; the backend may then reuse its covariance and gain, if it verifies they were
-        computed from the same parent covariance."""
+        (sorted by sensor, possibly none). ``old`` is this step's previous, stale result
+        (None if there is none, or if the model changed since); the backend may reuse what
+        of it it can verify still holds (e.g. a covariance computed from the same parent
+        covariance object, jump and packets)."""
         ...
 
 
@@ -196,7 +204,7 @@ class ReplayEstimator(Generic[S]):
         self._steps: list[int] = []  # measured steps >= c, sorted
         self._chk: dict[int, S] = {}  # posterior at measured steps < dirty
         self._dirty: int | None = None  # earliest step whose posterior (mean) is stale
-        self._cdirty: int | None = None  # earliest step whose covariance is stale (>= dirty)
+        self._noreuse: int | None = None  # from here on, stale posteriors are not reusable
         self._pred: S | None = None  # the last prediction's backend state (fused backends)
         self._counters: Counter[str] = Counter({k: 0 for k in COUNTER_NAMES})
         self._cache: tuple[int, PredictedState] | None = None
@@ -270,11 +278,9 @@ class ReplayEstimator(Generic[S]):
         else:
             bucket.append(pkt)
             bucket.sort(key=_by_sensor)
-        # _invalidate(step), inlined: means and covariances from step on are stale
+        # _invalidate(step), inlined: posteriors from step on are stale
         if self._dirty is None or step < self._dirty:
             self._dirty = step
-        if self._cdirty is None or step < self._cdirty:
-            self._cdirty = step
         self._cache = None
         self._counters["accepted"] += 1
         return True
@@ -297,7 +303,7 @@ class ReplayEstimator(Generic[S]):
         ref = self._now if self._now is not None else 0
         if not self._inputs.admit(step, uv, self._c, ref + self._cmd_ahead, self._counters):
             return False
-        self._invalidate(step + 1, cov=False)  # u(step) first moves x(step + 1)
+        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
         return True
 
     def predict(self, now: int) -> PredictedState:
@@ -402,7 +408,7 @@ class ReplayEstimator(Generic[S]):
         self._packets = packets
         self._steps = sorted(packets)
         self._chk = {}
-        self._dirty = self._cdirty = c if self._steps else None
+        self._dirty = self._noreuse = c if self._steps else None
         self._pred = None
         self._counters = Counter({k: 0 for k in COUNTER_NAMES})
         self._counters.update({k: int(v) for k, v in st.counters.items()})
@@ -427,8 +433,9 @@ class ReplayEstimator(Generic[S]):
         in step order. Default: nothing. Adaptive backends override it."""
 
     def invalidate_from(self, step: int) -> None:
-        """Mark every open-window posterior from ``step`` on as stale (e.g. after adaptation)."""
-        self._invalidate(max(step, self._c))
+        """Mark every open-window posterior from ``step`` on as stale (e.g. after adaptation:
+        nothing computed before is reused)."""
+        self._invalidate(max(step, self._c), reusable=False)
 
     # --- internals ---------------------------------------------------------------------
 
@@ -439,14 +446,16 @@ class ReplayEstimator(Generic[S]):
             raise ValueError(f"now: went backwards ({now} < {self._now})")
         return now
 
-    def _invalidate(self, step: int, cov: bool = True) -> None:
-        """Mark posteriors from ``step`` on as stale: means only (``cov`` False: a command,
-        which moves means but not covariances) or means and covariances (a packet)."""
+    def _invalidate(self, step: int, reusable: bool = True) -> None:
+        """Mark posteriors from ``step`` on as stale. ``reusable`` False (the model itself
+        changed, :meth:`invalidate_from`): a fused backend is not offered them either."""
         if self._dirty is None or step < self._dirty:
             self._dirty = step
-        if cov and (self._cdirty is None or step < self._cdirty):
-            self._cdirty = step
+        if not reusable and (self._noreuse is None or step < self._noreuse):
+            self._noreuse = step
         self._cache = None
+        if not reusable:
+            self._pred = None
 
     def _propagate(self, state: S, step: int, m: int) -> S:
         return self._backend.propagate(state, step, m, self._inputs.slice(step, m))
@@ -461,8 +470,7 @@ class ReplayEstimator(Generic[S]):
     def _replay(self, limit: int | None) -> None:
         """Recompute the posteriors of measured steps in [dirty, limit).
 
-        A step below the covariance mark keeps its covariance (only commands changed
-        since): a fused backend is handed the old posterior to reuse it."""
+        A fused backend is offered each step's stale posterior, to reuse what still holds."""
         dirty = self._dirty
         if dirty is None or (limit is not None and dirty >= limit):
             return
@@ -479,12 +487,12 @@ class ReplayEstimator(Generic[S]):
         packets = self._packets
         advance = getattr(backend, "advance", None)
         if advance is not None:
-            cdirty = self._cdirty
+            noreuse = self._noreuse
             todo = steps[i:j]
             if todo:
                 buf, off = self._inputs.window(a, todo[-1])
                 for s in todo:
-                    old = chk.get(s) if cdirty is None or s < cdirty else None
+                    old = chk.get(s) if noreuse is None or s < noreuse else None
                     state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
                     chk[s] = state
                     a = s
@@ -496,11 +504,11 @@ class ReplayEstimator(Generic[S]):
                 chk[s] = state
                 a = s
         if limit is None or j == len(steps):
-            self._dirty = self._cdirty = None
+            self._dirty = self._noreuse = None
         else:
             self._dirty = limit
-            if self._cdirty is not None and self._cdirty < limit:
-                self._cdirty = limit
+            if self._noreuse is not None and self._noreuse < limit:
+                self._noreuse = limit
 
     def _advance(self, now: int) -> None:
         """Take ``now`` as the current step; commit steps that can no longer change."""

@@ -146,7 +146,7 @@ def test_a_command_only_change_keeps_every_covariance_and_gain() -> None:
     assert [s for s in op._steps if s > j]
     for s in op._steps:
         new, old = op._chk[s], before[s]
-        assert new.P is old.P and new.K is old.K  # the same objects: nothing recomputed
+        assert new.P is old.P and new.stages is old.stages  # the same objects: not recomputed
         assert (new is old) == (s <= j)  # posteriors after the command's step are new
         assert s <= j or not np.array_equal(new.x, old.x)
     assert pred.P is pred0.P  # the predicted covariance too
@@ -246,3 +246,26 @@ def test_zero_innovation_variance_leaves_the_state() -> None:
     pred = op.predict(0)
     assert np.array_equal(pred.x, [1.0, 2.0]) and np.array_equal(pred.P, np.diag([0.0, 1.0]))
     assert isinstance(op._chk[0], Gaussian)
+
+
+def test_a_packet_joining_a_step_pays_only_its_own_update() -> None:
+    """The ranger sample joins a step whose camera sample is already applied: the camera's
+    update (covariance and gain) is kept, and the result has the bits of a recompute."""
+    ops = [with_backend(paper_op(), reuse) for reuse in (True, False)]
+    for op in ops:
+        drive(op, 40, np.random.default_rng(5), {}, [])
+    old = ops[0]._chk[28]
+    assert old.sensors == (0,)  # the camera sample of step 28 (ranger stamps <= 27 so far)
+    for op in ops:
+        assert op.add_measurement("ranger", step=28, z=[4.0], now=39)
+    pa, pb = ops[0].predict(39), ops[1].predict(39)
+    new = ops[0]._chk[28]
+    assert new.sensors == (0, 1) and new.stages[0] is old.stages[0]
+    assert np.array_equal(pa.x, pb.x) and np.array_equal(pa.P, pb.P)
+    # a sample of a lower sensor index than those applied: recomputed from the prior
+    assert ops[0].add_measurement("camera", step=27, z=[0.1, 5.0], now=39)
+    before = ops[0]._chk[27]
+    assert before.sensors == (1,)
+    ops[0].predict(39)
+    after = ops[0]._chk[27]
+    assert after.sensors == (0, 1) and after.stages[1] is not before.stages[0]
