@@ -270,14 +270,17 @@ _PIVOT = 1e-10
 class LinearBackend:
     """Kalman filter steps for :class:`ReplayEstimator`; state = :class:`Gaussian`.
 
-    :meth:`advance` is the replay's fused step (jump, then update). The covariance recursion
-    does not depend on the values of z and u, only on the parent covariance, the jump m and
-    which packets (sensors, R) were applied; a step whose ``old`` posterior was computed from
-    the same covariance object with the same m and packet count re-runs only the mean::
+    :meth:`advance` is the replay's fused step (jump, then one update per packet). The
+    covariance recursion does not depend on the values of z and u, only on the parent
+    covariance, the jump m and which packets (sensors, R) were applied; a step whose ``old``
+    posterior was computed from the same covariance object with the same m re-runs only the
+    mean through the packets ``old`` applied::
 
         x- = A^m x + [A^{m-1}B ... B] [u(a); ...; u(a+m-1)]      x+ = x- + K (z - H x-)
 
-    with the stored gain K, and keeps the stored covariance object.
+    with the stored gains K, keeps the covariance after them, and updates only with packets
+    that joined the step since (if ``old``'s packets are the first of the step's, in sensor
+    order; otherwise the step is recomputed from the prior).
     """
 
     def __init__(self, model: LinearModel, sensors: list[Sensor], horizon: int) -> None:
