@@ -1,9 +1,10 @@
 """The replay's covariance reuse and the fast kernels of LinearBackend.
 
 A replay that only commands triggered keeps every covariance and gain (the same objects) and
-recomputes means; that must give the very bits a full recompute gives. Covariances stay
-exactly symmetric, and a long run stays on the batch re-filter (a covariance recursion that
-lets antisymmetric rounding grow drifts away only after hundreds of steps).
+recomputes means; a packet that joins a step keeps the update of the step's earlier packets;
+both must give the very bits a full recompute gives. Covariances stay exactly symmetric, and
+a long run stays on the batch re-filter (a covariance recursion that lets antisymmetric
+rounding grow drifts away only after hundreds of steps).
 """
 
 from __future__ import annotations
