@@ -6,11 +6,17 @@ Every check raises ``ValueError`` whose message starts with the field name, so a
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: Relative tolerance for symmetry and positive semi-definiteness of covariances:
 #: ``|M - M^T| <= PSD_RTOL * max(1, max|M|)`` and ``min eig(M) >= -PSD_RTOL * max(1, max|M|)``.
 PSD_RTOL = 1e-9
+
+#: Vectors up to this length are checked for NaN / infinity element by element in Python.
+_SHORT = 8
+_isfinite = math.isfinite
 
 
 def as_vector(value: object, field: str, size: int | None = None) -> np.ndarray:
@@ -25,9 +31,15 @@ def as_vector(value: object, field: str, size: int | None = None) -> np.ndarray:
         raise ValueError(f"{field}: expected a vector, got shape {arr.shape}")
     if size is not None and arr.shape[0] != size:
         raise ValueError(f"{field}: expected length {size}, got {arr.shape[0]}")
-    if not np.isfinite(arr).all():  # the method: ~1 µs less than np.all per call
+    if arr.shape[0] <= _SHORT:
+        # a short vector: math.isfinite over a list is ~3x cheaper than np.isfinite().all()
+        for v in arr.tolist():
+            if not _isfinite(v):
+                raise ValueError(f"{field}: contains NaN or infinity")
+    elif not np.isfinite(arr).all():
         raise ValueError(f"{field}: contains NaN or infinity")
     return arr
+
 
 
 def as_matrix(value: object, field: str, shape: tuple[int | None, int | None]) -> np.ndarray:

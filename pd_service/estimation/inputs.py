@@ -73,6 +73,14 @@ class InputBuffer:
             raise IndexError(f"steps [{step}, {step + m}) outside the input window")
         return view
 
+    def window(self, first: int, last: int) -> tuple[np.ndarray, int]:
+        """(buf, off) with u(t) = buf[t - off] for first <= t < last: the slices of several
+        propagations over [first, last) without a method call each. IndexError if that
+        range leaves the input window."""
+        if first < self.origin or last > self.origin + self.capacity:
+            raise IndexError(f"steps [{first}, {last}) outside the input window")
+        return self._buf, self.origin - self._off
+
     def export(self) -> tuple[int, np.ndarray, list[tuple[int, np.ndarray]]]:
         """(origin, u(origin) (nu,), [(step, u (nu,)) of every explicit command >= origin]):
         enough for :meth:`restore` to rebuild u(t) over the whole buffer."""
@@ -99,17 +107,20 @@ class InputBuffer:
         if d <= 0:
             return
         cap = self.capacity
-        tail = self._buf[self._off + cap - 1].copy() if self.hold else np.zeros(self.nu)
+        buf = self._buf
         if d >= cap:
-            self._buf[:cap] = tail
+            buf[:cap] = buf[self._off + cap - 1].copy() if self.hold else 0.0
             self._off = 0
         else:
-            if self._off + d + cap > self._buf.shape[0]:
-                self._buf[: cap - d] = self._buf[self._off + d : self._off + cap]
+            if self._off + d + cap > buf.shape[0]:
+                buf[: cap - d] = buf[self._off + d : self._off + cap]
                 self._off = 0
             else:
                 self._off += d
-            self._buf[self._off + cap - d : self._off + cap] = tail
+            end = self._off + cap
+            # the new steps continue u of the old last step (row end - d - 1, not overwritten)
+            buf[end - d : end] = buf[end - d - 1] if self.hold else 0.0
         self.origin = origin
-        k = bisect.bisect_left(self._cmd_steps, origin)
-        del self._cmd_steps[:k]
+        cmds = self._cmd_steps
+        if cmds and cmds[0] < origin:
+            del cmds[: bisect.bisect_left(cmds, origin)]

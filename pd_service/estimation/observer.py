@@ -5,12 +5,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from .checks import as_covariance, as_vector
-from .linear import LinearBackend, LinearState
+from .linear import Gaussian, LinearBackend
 from .model import LinearModel, Sensor, check_sensors
 from .replay import ReplayEstimator
 
 
-class ObserverPredictor(ReplayEstimator[LinearState]):
+class ObserverPredictor(ReplayEstimator[Gaussian]):
     """Exact LMMSE predictor of x(now + lead) from delayed, multi-rate, lossy packets.
 
     Example::
@@ -42,7 +42,7 @@ class ObserverPredictor(ReplayEstimator[LinearState]):
         P = as_covariance(P0, "P0", model.n)
         super().__init__(
             backend=None,  # type: ignore[arg-type]  # set below, once the horizon is known
-            initial=(x, P),
+            initial=Gaussian(x, P),
             sensor_dims={s.name: s.m for s in sensors},
             nu=model.nu,
             lead=lead,

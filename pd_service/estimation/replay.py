@@ -27,6 +27,29 @@ Work and memory per call are bounded by the window (max_delay + lead steps), nev
 number of elapsed steps. A backend supplies two pure functions over its own state type:
 ``propagate(state, step, m, U)`` (x(step) -> x(step + m) with inputs U (m, nu)) and
 ``update(state, step, packets)``; see :class:`Backend`.
+
+A backend may instead supply the fused step ``advance(state, m, U, packets, old)``
+(:class:`FusedBackend`): the jump and the updates in one call, offered ``old``, the step's
+previous (now stale) posterior. Covariances do not depend on measured values or inputs, only
+on the parent covariance, the jump and *which* packets were applied (for a linear model), so
+:class:`~.linear.LinearBackend` keys its reuse on exactly that: if ``old`` was computed from
+the very same parent covariance *object* with the same jump m,
+
+* and from the same packets (only commands changed since: a late command), it keeps ``old``'s
+  covariance and gains and re-runs the means only::
+
+      x-(s) = A^m x(a) + [A^{m-1}B ... B] [u(a); ...; u(s-1)],   x(s) = x-(s) + K(s) (z(s) - H x-(s))
+
+* from the first of this step's packets (a packet joined the step, in sensor order), it keeps
+  the covariance after those and pays only for the new packets' updates.
+
+The object identity makes the key cheap and safe: a packet at an earlier step, a
+base rolled forward or a restore all produce new parent covariance objects. A model that
+changes (:meth:`ReplayEstimator.invalidate_from`) is never reused across. The prediction to
+now + lead is a fused step with no packets, offered the previous prediction, so its
+covariance is reused while the newest posterior's covariance and the horizon are unchanged.
+The reused results are bit-identical to a recompute (the same operations on the same
+operands; tested).
 """
 
 from __future__ import annotations
@@ -34,7 +57,7 @@ from __future__ import annotations
 import bisect
 from collections import Counter
 from dataclasses import dataclass
-from typing import Generic, Protocol, TypeVar
+from typing import Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 
@@ -57,14 +80,21 @@ COUNTER_NAMES = (
 )
 
 
-@dataclass(frozen=True, slots=True)
-class Packet:
+class Packet(NamedTuple):
     """One accepted measurement. ``sensor`` indexes the estimator's sensor list;
-    ``z`` has shape (m,); ``R`` is a per-sample (m, m) override or None."""
+    ``z`` has shape (m,) (read-only); ``R`` is a per-sample (m, m) override or None.
+    (A NamedTuple: immutable, and built with ``tuple.__new__`` on the hot path.)"""
 
     sensor: int
     z: np.ndarray
     R: np.ndarray | None
+
+
+_new_tuple = tuple.__new__
+
+
+def _by_sensor(p: Packet) -> int:
+    return p.sensor
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +131,23 @@ class Backend(Protocol[S]):
 
     def import_state(self, arrays: dict[str, np.ndarray]) -> S:
         """The state :meth:`export_state` described; StateError if the arrays do not fit."""
+        ...
+
+
+class FusedBackend(Backend[S], Protocol):
+    """A backend with a fused replay step that may reuse a previous result's covariance.
+
+    :class:`ReplayEstimator` calls :meth:`advance` instead of ``propagate`` + ``update`` when
+    the backend has it.
+    """
+
+    def advance(self, state: S, m: int, U: np.ndarray, packets: list[Packet],
+                old: S | None) -> S:
+        """x(a) -> x(a + m) (m >= 0, inputs U (m, nu)), then conditioned on ``packets``
+        (sorted by sensor, possibly none). ``old`` is this step's previous, stale result
+        (None if there is none, or if the model changed since); the backend may reuse what
+        of it it can verify still holds (e.g. a covariance computed from the same parent
+        covariance object, jump and packets)."""
         ...
 
 
@@ -156,10 +203,14 @@ class ReplayEstimator(Generic[S]):
         self._packets: dict[int, list[Packet]] = {}
         self._steps: list[int] = []  # measured steps >= c, sorted
         self._chk: dict[int, S] = {}  # posterior at measured steps < dirty
-        self._dirty: int | None = None  # earliest step whose posterior is stale
+        self._dirty: int | None = None  # earliest step whose posterior (mean) is stale
+        self._noreuse: int | None = None  # from here on, stale posteriors are not reusable
+        self._pred: S | None = None  # the last prediction's backend state (fused backends)
         self._counters: Counter[str] = Counter({k: 0 for k in COUNTER_NAMES})
         self._cache: tuple[int, PredictedState] | None = None
         self._newest_committed: int | None = None
+        # Only a subclass that overrides _on_commit is handed the committed steps.
+        self._hooked = type(self)._on_commit is not ReplayEstimator._on_commit
 
     # --- public API --------------------------------------------------------------------
 
@@ -196,11 +247,13 @@ class ReplayEstimator(Generic[S]):
         if idx is None:
             raise ValueError(f"sensor: unknown sensor {sensor!r} (known: {list(self._index)})")
         m = self._dims[idx]
-        step = as_step(step, "step")
+        if type(step) is not int:
+            step = as_step(step, "step")
         now = self._check_now(now)
         zv = as_vector(z, "z", m)
         Rm = None if R is None else as_covariance(R, "R", m)
-        self._advance(now)
+        if now != self._now:
+            self._advance(now)
         if step > now:
             self._counters["future"] += 1
             return False
@@ -208,18 +261,27 @@ class ReplayEstimator(Generic[S]):
             self._counters["late"] += 1
             return False
         bucket = self._packets.get(step)
-        if bucket is not None and any(p.sensor == idx for p in bucket):
-            self._counters["duplicate"] += 1
-            return False
+        if bucket is not None:
+            for p in bucket:
+                if p.sensor == idx:
+                    self._counters["duplicate"] += 1
+                    return False
         zv.setflags(write=False)
-        pkt = Packet(idx, zv, Rm)
+        pkt = _new_tuple(Packet, (idx, zv, Rm))
         if bucket is None:
             self._packets[step] = [pkt]
-            bisect.insort(self._steps, step)
+            steps = self._steps
+            if not steps or step > steps[-1]:
+                steps.append(step)
+            else:
+                bisect.insort(steps, step)
         else:
             bucket.append(pkt)
-            bucket.sort(key=lambda p: p.sensor)
-        self._invalidate(step)
+            bucket.sort(key=_by_sensor)
+        # _invalidate(step), inlined: posteriors from step on are stale
+        if self._dirty is None or step < self._dirty:
+            self._dirty = step
+        self._cache = None
         self._counters["accepted"] += 1
         return True
 
@@ -231,11 +293,13 @@ class ReplayEstimator(Generic[S]):
         steps past the predicted step ``now + lead``, ("commands_duplicate") if a command
         for ``step`` is already stored. ``now`` defaults to the newest one seen.
         """
-        step = as_step(step, "step")
+        if type(step) is not int:
+            step = as_step(step, "step")
         uv = as_vector(u, "u", self._nu)
         if now is not None:
             now = self._check_now(now)
-            self._advance(now)
+            if now != self._now:
+                self._advance(now)
         ref = self._now if self._now is not None else 0
         if not self._inputs.admit(step, uv, self._c, ref + self._cmd_ahead, self._counters):
             return False
@@ -243,17 +307,30 @@ class ReplayEstimator(Generic[S]):
         return True
 
     def predict(self, now: int) -> PredictedState:
-        """LMMSE estimate of x(now + lead) from x0, P0, the commands and accepted packets."""
+        """LMMSE estimate of x(now + lead) from x0, P0, the commands and accepted packets.
+
+        With a fused backend the returned arrays are read-only (the covariance may be the
+        previous prediction's, reused): copy them to modify."""
         now = self._check_now(now)
-        self._advance(now)
+        if now != self._now:
+            self._advance(now)
         if self._cache is not None and self._cache[0] == now:
             return self._cache[1]
         self._replay(None)
         step, state = self._newest()
         target = now + self.lead
-        if target > step:
-            state = self._propagate(state, step, target - step)
-        x, P = self._backend.moments(state)
+        advance = getattr(self._backend, "advance", None)
+        if advance is not None:
+            m = target - step
+            state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred)
+            x, P = self._backend.moments(state)
+            # shared with the engine (a reused covariance, a checkpoint): read-only
+            x.setflags(write=False)
+            P.setflags(write=False)
+        else:
+            if target > step:
+                state = self._propagate(state, step, target - step)
+            x, P = self._backend.moments(state)
         pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
         self._cache = (now, pred)
         return pred
@@ -331,7 +408,8 @@ class ReplayEstimator(Generic[S]):
         self._packets = packets
         self._steps = sorted(packets)
         self._chk = {}
-        self._dirty = c if self._steps else None
+        self._dirty = self._noreuse = c if self._steps else None
+        self._pred = None
         self._counters = Counter({k: 0 for k in COUNTER_NAMES})
         self._counters.update({k: int(v) for k, v in st.counters.items()})
         self._cache = None
@@ -355,21 +433,29 @@ class ReplayEstimator(Generic[S]):
         in step order. Default: nothing. Adaptive backends override it."""
 
     def invalidate_from(self, step: int) -> None:
-        """Mark every open-window posterior from ``step`` on as stale (e.g. after adaptation)."""
-        self._invalidate(max(step, self._c))
+        """Mark every open-window posterior from ``step`` on as stale (e.g. after adaptation:
+        nothing computed before is reused)."""
+        self._invalidate(max(step, self._c), reusable=False)
 
     # --- internals ---------------------------------------------------------------------
 
     def _check_now(self, now: object) -> int:
-        now = as_step(now, "now")
+        if type(now) is not int:
+            now = as_step(now, "now")
         if self._now is not None and now < self._now:
             raise ValueError(f"now: went backwards ({now} < {self._now})")
         return now
 
-    def _invalidate(self, step: int) -> None:
+    def _invalidate(self, step: int, reusable: bool = True) -> None:
+        """Mark posteriors from ``step`` on as stale. ``reusable`` False (the model itself
+        changed, :meth:`invalidate_from`): a fused backend is not offered them either."""
         if self._dirty is None or step < self._dirty:
             self._dirty = step
+        if not reusable and (self._noreuse is None or step < self._noreuse):
+            self._noreuse = step
         self._cache = None
+        if not reusable:
+            self._pred = None
 
     def _propagate(self, state: S, step: int, m: int) -> S:
         return self._backend.propagate(state, step, m, self._inputs.slice(step, m))
@@ -382,26 +468,47 @@ class ReplayEstimator(Generic[S]):
         return self._base_step, self._base
 
     def _replay(self, limit: int | None) -> None:
-        """Recompute the posteriors of measured steps in [dirty, limit)."""
+        """Recompute the posteriors of measured steps in [dirty, limit).
+
+        A fused backend is offered each step's stale posterior, to reuse what still holds."""
         dirty = self._dirty
         if dirty is None or (limit is not None and dirty >= limit):
             return
         steps = self._steps
         i = bisect.bisect_left(steps, dirty)
         j = len(steps) if limit is None else bisect.bisect_left(steps, limit)
+        chk = self._chk
         if i > 0:
             a = steps[i - 1]
-            state = self._chk[a]
+            state = chk[a]
         else:
             a, state = self._base_step, self._base
         backend = self._backend
-        for s in steps[i:j]:
-            if s > a:
-                state = self._propagate(state, a, s - a)
-            state = backend.update(state, s, self._packets[s])
-            self._chk[s] = state
-            a = s
-        self._dirty = None if limit is None or j == len(steps) else limit
+        packets = self._packets
+        advance = getattr(backend, "advance", None)
+        if advance is not None:
+            noreuse = self._noreuse
+            todo = steps[i:j]
+            if todo:
+                buf, off = self._inputs.window(a, todo[-1])
+                for s in todo:
+                    old = chk.get(s) if noreuse is None or s < noreuse else None
+                    state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
+                    chk[s] = state
+                    a = s
+        else:
+            for s in steps[i:j]:
+                if s > a:
+                    state = self._propagate(state, a, s - a)
+                state = backend.update(state, s, packets[s])
+                chk[s] = state
+                a = s
+        if limit is None or j == len(steps):
+            self._dirty = self._noreuse = None
+        else:
+            self._dirty = limit
+            if self._noreuse is not None and self._noreuse < limit:
+                self._noreuse = limit
 
     def _advance(self, now: int) -> None:
         """Take ``now`` as the current step; commit steps that can no longer change."""
@@ -416,13 +523,15 @@ class ReplayEstimator(Generic[S]):
         k = bisect.bisect_left(steps, new_c)
         if k:
             final = steps[:k]
-            committed = [(s, self._chk[s], self._packets[s]) for s in final]
-            self._base_step, self._base = final[-1], self._chk[final[-1]]
+            chk, packets = self._chk, self._packets
+            committed = ([(s, chk[s], packets[s]) for s in final] if self._hooked else None)
+            self._base_step, self._base = final[-1], chk[final[-1]]
             self._newest_committed = final[-1]
             for s in final:
-                del self._chk[s], self._packets[s]
+                del chk[s], packets[s]
             del steps[:k]
-            self._on_commit(committed)
+            if committed is not None:
+                self._on_commit(committed)
         self._c = new_c
         self._inputs.advance(self._base_step)
         if new_c - self._base_step > self._base_lag:

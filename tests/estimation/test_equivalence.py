@@ -1,8 +1,9 @@
 """ObserverPredictor and AugmentedStateKF equal a from-scratch batch re-filter (property test).
 
-Random systems (n 1..6, 1..4 sensors of dimension 1..3), max_delay 0..30, sample intervals
-1..5, ~20% of samples lost, random per-packet delays (some beyond the window), shuffled
-arrival inside each step, per-sample R overrides, duplicates, and future stamps.
+Random systems (n 1..6, 1..4 sensors of dimension 1..3, some with rows of the identity),
+max_delay 0..30, sample intervals 1..5, ~20% of samples lost, random per-packet delays (some
+beyond the window), shuffled arrival inside each step, per-sample R overrides, duplicates,
+and future stamps.
 """
 
 from __future__ import annotations
@@ -41,9 +42,13 @@ def random_case(seed: int):
     if rng.random() < 0.2:  # singular Q, as in the paper's example
         Q[0, :] = Q[:, 0] = 0.0
     sensors, meta = [], []
+    unit_rng = np.random.default_rng([seed, 1])  # its own stream: rng's draws stay as they were
     for i in range(int(rng.integers(1, 5))):
         m = int(rng.integers(1, 4))
-        sensors.append(Sensor(name=f"s{i}", H=rng.standard_normal((m, n)), R=spd(rng, m, 0.01, 1.0)))
+        H = rng.standard_normal((m, n))
+        if m <= n and unit_rng.random() < 0.3:  # rows of the identity: the unit-row path
+            H = np.eye(n)[unit_rng.choice(n, size=m, replace=False)]
+        sensors.append(Sensor(name=f"s{i}", H=H, R=spd(rng, m, 0.01, 1.0)))
         meta.append((int(rng.integers(1, 6)), int(rng.integers(0, 31))))  # interval, nominal delay
     max_delay = int(rng.integers(0, 31))
     lead = int(rng.integers(0, 11))
