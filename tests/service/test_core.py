@@ -43,6 +43,16 @@ def make_core(bus, clock, tmp_path, instance="a", **kw) -> ServiceCore:
     return core
 
 
+def settle(*cores: ServiceCore) -> None:
+    """Run each core until it has no work left (one run_once returns after ~50 ms of work,
+    e.g. of fsynced configs under load)."""
+    for c in cores:
+        c.run_once()
+    while any(c.has_work() for c in cores):
+        for c in cores:
+            c.run_once()
+
+
 @pytest.fixture
 def world(tmp_path):
     bus = InMemoryBus()
@@ -476,35 +486,32 @@ def test_two_instances_split_sessions_and_take_over(tmp_path):
     names = [f"s{i:02d}" for i in range(20)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
-    a.run_once()
+    settle(a)
     assert a.served_sessions() == names
     b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR)  # fetches the specs from inst-a
     assert sorted(b.known_specs()) == names
     assert sorted(p.name for p in (tmp_path / "inst-b").glob("*.msgpack")) == \
         [f"{s}.msgpack" for s in names]
-    a.run_once()  # sees inst-b's token: hands its share over
-    b.run_once()
+    settle(a, b)  # a sees inst-b's token: hands its share over
     sa, sb = set(a.served_sessions()), set(b.served_sessions())
     assert sa.isdisjoint(sb) and sa | sb == set(names)
     assert 4 <= len(sb) <= 16  # a real split (rendezvous hash of 20 names)
     # both keep every spec; a new config reaches both, exactly one serves it
     cli.put(keys.config_key("late-one"), encode(paper_spec("late-one")))
-    a.run_once()
-    b.run_once()
+    settle(a, b)
     assert ("late-one" in a.served_sessions()) != ("late-one" in b.served_sessions())
     assert len(col.statuses["late-one"]) == 1  # answered once, by the owner
     # sensor data is handled only by the owner
     clock.t = at(5.2)
     for s in names:
         cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 3, [1.0]))
-    a.run_once()
-    b.run_once()
+    settle(a, b)
     ca, cb = a.service_status().counters, b.service_status().counters
     assert ca["accepted"] + cb["accepted"] == 20 and ca["accepted"] == len(sa)
     # inst-b goes away: inst-a takes its sessions over and says so
     moved = b.served_sessions()
     b.close()
-    a.run_once()
+    settle(a)
     assert set(a.served_sessions()) == set(names) | {"late-one"}
     for s in moved:
         assert "taken over" in col.statuses[s][-1].detail
