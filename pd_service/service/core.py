@@ -123,6 +123,22 @@ class ServiceCore:
             self.lifecycle.install_recovered(specs, origin, now)
         self._handles.append(t.subscribe(keys.ALL_SENSORS, d.on_sensor_sample))
         self._handles.append(t.subscribe(keys.ALL_COMMANDS, d.on_command_sample))
+        if s.recover_samples > 0:
+            # What the senders kept while no daemon received it (their caches). Read after
+            # the live subscriptions and handled before the worker runs, behind the live
+            # messages that arrived meanwhile (a message both received live and read back
+            # is refused as the recovered copy, quietly): the first prediction has it all.
+            for ke, cb in ((keys.ALL_SENSORS, d.on_recovered_sensor),
+                           (keys.ALL_COMMANDS, d.on_recovered_command)):
+                self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
+                                               timeout=s.recover_timeout_s))
+        with self.lock:
+            now = self.now_ns()
+            touched: list[Session] = []
+            recovered = d.take_held(now, touched)
+            if touched:
+                self.publisher.publish_many([x for x in touched if x.alive], now, data=True)
+                self.publisher.flush()
         self._handles.append(t.queryable(keys.ALL_STATUS, q.on_status_query))
         self._handles.append(t.queryable(keys.ALL_CONFIGS, q.on_config_query))
         self._handles.append(t.queryable(keys.service_status_key(self.instance),
@@ -134,7 +150,7 @@ class ServiceCore:
             served = sum(1 for r in self._routes.values() if r.sess is not None)
         event(log, "ready", instance=self.instance, sessions_known=len(specs),
               sessions_served=served, restored=sum(1 for o in origin.values() if o == "restored"),
-              peers=",".join(sorted(peers)))
+              peers=",".join(sorted(peers)), recovered=recovered)
         self.wake.set()
 
     def close(self) -> None:

@@ -32,7 +32,7 @@ from pd_service.wire.keys import KeyError_, check_name
 from .config import Settings
 from .ownership import Ownership
 from .publish import Publisher
-from .session import COMMAND, SENSOR, Refusal, Session
+from .session import COMMAND, RECOVERED, SENSOR, Refusal, Session
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -102,6 +102,11 @@ class Dispatch:
         self.unknown: deque[tuple[str, Item]] = deque(maxlen=settings.unknown_inbox_size)
         self.control_drops = 0
         self.unknown_drops = 0
+        #: Recovered messages held while the core starts (None: after the start, they go to
+        #: the inboxes, where they never push out a live message). Appended by callbacks
+        #: under ``_held_lock`` (the start's hand-over and a late sender's cache may race).
+        self.held: list[tuple[int, Sample]] | None = []
+        self._held_lock = threading.Lock()
 
     # ================================================================== callbacks ======
     # Transport threads. No lock, no decoding, no blocking: split the key, append, wake.
@@ -111,6 +116,57 @@ class Dispatch:
 
     def on_command_sample(self, sample: Sample) -> None:
         self._enqueue(COMMAND, sample)
+
+    def on_recovered_sensor(self, sample: Sample) -> None:
+        """A measurement read back from a sender's cache (``Transport.recover``)."""
+        self._recovered(SENSOR + RECOVERED, sample)
+
+    def on_recovered_command(self, sample: Sample) -> None:
+        self._recovered(COMMAND + RECOVERED, sample)
+
+    def _recovered(self, stream: int, sample: Sample) -> None:
+        with self._held_lock:
+            if self.held is not None:
+                self.held.append((stream, sample))
+                return
+        parts = sample.key.split("/", 2)
+        route = self.routes.get(parts[1]) if len(parts) == 3 else None
+        inbox = route.inbox if route is not None else None
+        if route is None or inbox is None or len(inbox) == inbox.maxlen:
+            # unknown, served elsewhere, or a full inbox: a repeat is likely and a live
+            # message must not make room for it
+            self.counters["recovered_dropped"] += 1
+            return
+        inbox.append((stream, sample.key, sample.payload, sample.recv_mono_ns, sample.kind,
+                      self.now_ns()))
+        if not route.ready:
+            route.ready = True
+            self.ready.append(route)
+            self.wake.set()
+
+    def take_held(self, now: int, touched: list[Session]) -> int:
+        """Worker (the core's start, under its lock): the live messages that arrived during
+        the start, then the recovered ones held meanwhile (so that a message both received
+        live and read back is refused as the recovered copy, quietly); from now on
+        recovered messages go to the inboxes. Returns the number of recovered messages."""
+        while self.ready:
+            self.round(now, touched)
+        with self._held_lock:
+            held, self.held = self.held or [], None
+        for stream, sample in held:
+            route = self.routes.get(sample.key.split("/", 2)[1]) \
+                if sample.key.count("/") >= 2 else None
+            sess = route.sess if route is not None else None
+            if sess is None or route is None or route.inbox is None:
+                self.counters["recovered_dropped"] += 1
+                continue
+            had = bool(sess.pending_recv)
+            self._handle_recovered(sess, (stream, sample.key, sample.payload,
+                                          sample.recv_mono_ns, sample.kind, now),
+                                   sess.step_now(now), now)
+            if sess.pending_recv and not had:
+                touched.append(sess)
+        return len(held)
 
     def _enqueue(self, stream: int, sample: Sample) -> None:
         key = sample.key
@@ -199,6 +255,9 @@ class Dispatch:
     def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """Give one message to its session; count it, or refuse it (reported)."""
         stream, key, payload, recv_mono, kind, recv_now = item
+        if stream >= RECOVERED:
+            self._handle_recovered(sess, item, now_step, now)
+            return
         if recv_now > now:  # arrived after the loop read its clock: judge it at its arrival
             now_step = sess.step_now(recv_now)
         refusal: Refusal | None
@@ -223,6 +282,42 @@ class Dispatch:
             refusal = Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")
         if refusal is not None:  # always: every accepted path returned above
             self.pub.refuse(sess, key, refusal, now)
+
+    def _handle_recovered(self, sess: Session, item: Item, now_step: int, now: int) -> None:
+        """A message read back from a sender's cache: judged like a live one (its sample
+        stamp against the window: too old is refused, never applied as current), but a
+        refusal is expected (it repeats a packet the checkpoint or the live stream already
+        gave, or it is older than the window) and is only counted, as
+        ``recovered_<reason>`` and ``recovered_refused``, never reported nor added to
+        ``refused``. Accepted ones count in ``accepted`` and ``recovered_accepted``."""
+        stream, key, payload, recv_mono, kind, recv_now = item
+        if recv_now > now:
+            now_step = sess.step_now(recv_now)
+        refusal: Refusal | None
+        try:
+            if kind != "put":
+                refusal = Refusal("malformed", "")
+            elif stream == SENSOR + RECOVERED:
+                refusal = sess.on_measurement(key, payload, now_step, now)
+                if refusal is None:
+                    self.counters["accepted"] += 1
+                    self.counters["recovered_accepted"] += 1
+                    sess.counters["recovered_accepted"] += 1
+                    sess.pending_recv.append(recv_mono)
+                    return
+            else:
+                refusal = sess.on_command(key, payload, now_step, now)
+                if refusal is None:
+                    self.counters["commands_accepted"] += 1
+                    self.counters["recovered_commands_accepted"] += 1
+                    sess.counters["recovered_commands_accepted"] += 1
+                    return
+        except Exception as exc:
+            log.debug("internal error in session %s (recovered)", sess.name, exc_info=True)
+            refusal = Refusal("internal_error", f"{type(exc).__name__}: {exc}")
+        for c in (sess.counters, self.counters):
+            c[f"recovered_{refusal.reason}"] += 1
+            c["recovered_refused"] += 1
 
     def _note_flood(self, route: Route, sess: Session, now: int) -> None:
         seen = route.flood
@@ -258,6 +353,10 @@ class Dispatch:
                     self.handle(sess, item, sess.step_now(now), now)
                     if sess.pending_recv and not had:
                         touched.append(sess)
+                continue
+            if item[0] >= RECOVERED:  # read back from a cache: a session gone, say
+                self.counters["recovered_unknown_session"] += 1
+                self.counters["recovered_refused"] += 1
                 continue
             self.counters["unknown_session"] += 1
             self.counters["refused"] += 1
