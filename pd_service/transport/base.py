@@ -11,7 +11,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, Protocol, Self
 
-
 #: Samples a sender keeps per key by default (``Transport.publisher(key, cache=...)``) so that
 #: a restarted daemon reads back what it missed: a stream of one sample per step covers
 #: 256 steps (12.8 s at 20 Hz; the paper's window is max_delay 12 + lead 10 steps). About

@@ -97,7 +97,7 @@ class ZenohTransport(HandleOwner):
         adv = zenoh.ext.declare_advanced_publisher(
             self.session, key, express=express, congestion_control=block,
             cache=zenoh.ext.CacheConfig(max_samples=cache), publisher_detection=True,
-            sample_miss_detection=zenoh.ext.MissDetectionConfig())
+            sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
         return _Publisher(adv, self._keep(adv))
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:

@@ -23,8 +23,9 @@ class CountingTransport(InMemoryTransport):
         self.open_publishers = 0
         self.most_open = 0
 
-    def publisher(self, key: str, *, express: bool = False):  # type: ignore[no-untyped-def]
-        pub = super().publisher(key, express=express)
+    def publisher(self, key: str, *, express: bool = False,  # type: ignore[no-untyped-def]
+                  cache: int = 0):
+        pub = super().publisher(key, express=express, cache=cache)
         owner = self
         self.open_publishers += 1
         self.most_open = max(self.most_open, self.open_publishers)
