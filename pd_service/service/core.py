@@ -199,6 +199,10 @@ class ServiceCore:
                 if d.unknown:
                     handled += d.process_unknown(now, touched)
                 handled += d.round(now, touched)
+                if d.released:
+                    handled += d.process_released(now, touched)
+                if d.recovered:
+                    handled += d.process_recovered(now, touched)
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
                 pub.run_ticks(now)

@@ -379,3 +379,35 @@ def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
         # estimate is less certain than the uninterrupted run's
         assert c["recovered_accepted"] + c["recovered_duplicate"] == 4
         assert float(np.trace(got.P)) > float(np.trace(want.P)) * (1 + 1e-6)
+
+
+def test_takeover_reads_back_what_the_senders_kept(tmp_path):
+    """The owner dies; what it accepted after its last replica and what was sent until the
+    survivor took over come back from the senders' caches: the survivor continues exactly
+    as the run that never stopped, quietly refusing the repeats."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col = Collector().attach(bus.transport())
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=0.3)
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=0.3)
+    names = [f"s{i:02d}" for i in range(12)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    for c in (a, b, a, b):
+        c.run_once()
+    s = next(n for n in names if n in a.served_sessions())
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    for k in range(40):
+        d.step([a, b], k)
+    a.t.close()  # a dies: nothing more replicated
+    d.step([b], 40)  # b does not serve s yet: it drops these (its caches keep them)
+    errors_before = len(col.errors[s])
+    b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
+    b.run_once()  # takes s over, reads the caches back
+    for k in range(41, 60):
+        d.step([b], k)
+        d.check(k, d.off)  # as if it never stopped
+    c = b.counters
+    assert status(cli, s).origin == "replica"
+    assert c["recovered_accepted"] > 0 and c["recovered_duplicate"] > 0
+    assert c["refused"] == 0 and len(col.errors[s]) == errors_before
