@@ -271,6 +271,8 @@ def test_kill_and_restart_resumes_from_the_checkpoint_and_the_senders_caches(wor
     d.stop(signal.SIGKILL)
     assert pres.wait("inst-r", alive=False, timeout=WAIT_S)
     state = decode((root / "inst-r" / "ck.ckpt").read_bytes(), SessionState)
+    # down for 2 s more (20 steps, a fifth of the window): the feed goes on, nobody hears it
+    sleep_until(t_kill + 2_000_000_000)
     d2 = Daemon("inst-r", root / "inst-r", [peer], ["--config", str(conf)]).start()
     try:
         assert pres.wait("inst-r", timeout=WAIT_S), d2.log()
