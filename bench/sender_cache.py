@@ -74,6 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--messages", type=int, default=20_000)
     ap.add_argument("--rate", type=float, default=4000.0, help="messages/s sent")
     ap.add_argument("--cache", type=int, default=256)
+    ap.add_argument("--rounds", type=int, default=2, help="modes run this many times, in turn")
+    ap.add_argument("--modes", default="put,publisher,cached",
+                    help="comma-separated; also 'cached-nodetect' (no liveliness token: no "
+                         "late-sender detection) and 'cached-ts' (timestamps instead of "
+                         "sequence numbers; needs timestamping in the sender's config)")
     args = ap.parse_args(argv)
 
     from pd_service.transport import ZenohTransport, zenoh_config
@@ -87,12 +92,24 @@ def main(argv: list[str] | None = None) -> int:
     payload = b"x" * 80
     period = 1.0 / args.rate
     print(f"{args.keys} keys, {args.messages} messages at {args.rate:.0f}/s, 80-byte payload")
-    print(f"{'mode':<10} {'sender µs/put':>14} {'receiver µs CPU/msg':>20}")
-    for mode in ("put", "publisher", "cached", "put"):
-        t = ZenohTransport(zenoh_config(mode="peer", listen=[],
-                                        connect=[f"tcp/127.0.0.1:{port}"], multicast=False))
+    print(f"{'mode':<16} {'sender µs/put':>14} {'receiver µs CPU/msg':>20}")
+    for mode in args.modes.split(",") * args.rounds:
+        conf = zenoh_config(mode="peer", listen=[], connect=[f"tcp/127.0.0.1:{port}"],
+                            multicast=False)
+        if mode == "cached-ts":
+            conf.insert_json5("timestamping/enabled", "true")
+        t = ZenohTransport(conf)
         if mode == "put":
             puts = [lambda p, k=k: t.put(k, p) for k in keys]
+        elif mode in ("cached-nodetect", "cached-ts"):
+            import zenoh.ext as ze
+            miss = None if mode == "cached-ts" else ze.MissDetectionConfig(
+                heartbeat=None, sporadic_heartbeat=None)
+            advs = [ze.declare_advanced_publisher(
+                t.session, k, cache=ze.CacheConfig(max_samples=args.cache),
+                publisher_detection=mode == "cached-ts", sample_miss_detection=miss)
+                for k in keys]
+            puts = [a.put for a in advs]
         else:
             pubs = [t.publisher(k, cache=args.cache if mode == "cached" else 0) for k in keys]
             puts = [p.put for p in pubs]
@@ -111,8 +128,11 @@ def main(argv: list[str] | None = None) -> int:
             spent += time.perf_counter() - t0
         res = json.loads(rx.stdout.readline())
         assert res["n"] == args.messages, res
-        print(f"{mode:<10} {spent / args.messages * 1e6:>14.2f} "
+        print(f"{mode:<16} {spent / args.messages * 1e6:>14.2f} "
               f"{res['cpu_s'] / (args.messages - 1) * 1e6:>20.2f}")
+        if mode in ("cached-nodetect", "cached-ts"):
+            for a in advs:
+                a.undeclare()
         t.close()
         time.sleep(0.5)
     rx.stdin.close()
