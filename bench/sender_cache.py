@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             conf.insert_json5("timestamping/enabled", "true")
         t = ZenohTransport(conf)
         if mode == "put":
-            puts = [lambda p, k=k: t.put(k, p) for k in keys]
+            puts = [lambda p, k=k, t=t: t.put(k, p) for k in keys]
         elif mode in ("cached-nodetect", "cached-ts"):
             import zenoh.ext as ze
             miss = None if mode == "cached-ts" else ze.MissDetectionConfig(

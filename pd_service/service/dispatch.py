@@ -411,10 +411,6 @@ class Dispatch:
                     if sess.pending_recv and not had:
                         touched.append(sess)
                 continue
-            if item[0] >= RECOVERED:  # read back from a cache: a session gone, say
-                self.counters["recovered_unknown_session"] += 1
-                self.counters["recovered_refused"] += 1
-                continue
             self.counters["unknown_session"] += 1
             self.counters["refused"] += 1
             try:
