@@ -312,9 +312,6 @@ class Dispatch:
     def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """Give one message to its session; count it, or refuse it (reported)."""
         stream, key, payload, recv_mono, kind, recv_now = item
-        if stream >= RECOVERED:
-            self._handle_recovered(sess, item, now_step, now)
-            return
         if recv_now > now:  # arrived after the loop read its clock: judge it at its arrival
             now_step = sess.step_now(recv_now)
         refusal: Refusal | None
