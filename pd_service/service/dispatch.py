@@ -215,7 +215,7 @@ class Dispatch:
         """Worker (the core's start, under its lock): the live messages that arrived during
         the start, then the recovered ones held meanwhile (so that a message both received
         live and read back is refused as the recovered copy, quietly); from now on
-        recovered messages go to the inboxes. Returns the number of recovered messages."""
+        recovered messages go to ``recovered``. Returns the number of recovered messages."""
         while self.ready:
             self.round(now, touched)
         with self._held_lock:
