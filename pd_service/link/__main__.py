@@ -23,6 +23,7 @@ from dataclasses import replace
 from pd_service.cli import EXIT_NO_ZENOH, open_zenoh, stop_on_signals, wait_for_stop
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, setup_logging
+from pd_service.transport.base import DEFAULT_SENDER_CACHE
 from pd_service.transport.options import LINK, add_zenoh_args, options_from_args
 from pd_service.wire import keys
 
@@ -46,6 +47,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--switch-interval-us", type=int, default=1000,
                    help="Python thread switch interval (the timer thread waits at most this "
                         "for the GIL); 0 keeps Python's default of 5000")
+    p.add_argument("--cache", type=int, default=DEFAULT_SENDER_CACHE, metavar="N",
+                   help="samples each output publisher of a key the service reads (sensors, "
+                        "commands) keeps for a restarted service to read back; 0: none "
+                        "(default: %(default)s)")
     p.add_argument("--express", action=argparse.BooleanOptionalAction, default=False,
                    help="publish with Zenoh's express flag (no batching; about twice the CPU "
                         "at high rates, no latency gain measured on loopback)")
@@ -90,7 +95,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     with transport:
         relay = LinkRelay(transport, config, args.instance, spin_ns=args.spin_us * 1000,
                           stats_interval_s=args.stats_interval,
-                          express=args.express)  # fmt: skip
+                          express=args.express, cache=max(0, args.cache))  # fmt: skip
         relay.start()
         try:
             wait_for_stop(stop)

@@ -74,7 +74,14 @@ from pd_service.ros2.keys import (
     topic_keyexpr,
 )
 from pd_service.ros2.messages import MESSAGE_TYPES, RosMessage, decode, encode, type_hash
-from pd_service.transport.base import Handle, Publisher, Query, Sample, Transport
+from pd_service.transport.base import (
+    DEFAULT_SENDER_CACHE,
+    Handle,
+    Publisher,
+    Query,
+    Sample,
+    Transport,
+)
 from pd_service.wire import (
     Command,
     ErrorReport,
@@ -128,6 +135,9 @@ class BridgeSettings:
     error_burst: int = 20
     inbox_size: int = 4096
     query_timeout_s: float = 2.0
+    #: Samples each native publisher (``pd/<s>/sensor/<name>``, ``pd/<s>/cmd``) keeps for a
+    #: restarted service to read back (``Transport.publisher(key, cache=...)``); 0: none.
+    cache: int = DEFAULT_SENDER_CACHE
 
     def __post_init__(self) -> None:
         if not 0 <= self.domain_id <= 232:
@@ -194,6 +204,7 @@ class _Input:
     token: Handle | None = None
     endpoint: TopicEndpoint | None = None
     seq: int = 0
+    publisher: Publisher | None = None  # on native_key, with the bridge's cache
 
 
 @dataclass(eq=False)
@@ -466,6 +477,7 @@ class Ros2Bridge:
         else:
             keyexpr, dds, hsh = bridge_keyexpr(fq), None, None
         inp = _Input(sess, sensor, binding, fq, keyexpr, native_key, dds, hsh)
+        inp.publisher = self.t.publisher(native_key, cache=self.settings.cache)
         sess.inputs.append(inp)
         if self.node is not None:
             inp.endpoint = TopicEndpoint(self.node, self._entity(), "MS", fq, binding.msg_type,
@@ -499,7 +511,7 @@ class Ros2Bridge:
         sess.closed = True
         handles: list[Handle | None] = [sess.prediction_handle]
         for inp in sess.inputs:
-            handles += [inp.handle, inp.token]
+            handles += [inp.handle, inp.token, inp.publisher]
         for out in sess.outputs:
             handles += [out.token, out.publisher]
         for h in handles:
@@ -560,7 +572,10 @@ class Ros2Bridge:
         except _Refusal as r:
             self._refuse(sess, sample.key, r, seq)
             return
-        self.t.put(inp.native_key, payload)
+        if inp.publisher is not None:
+            inp.publisher.put(payload)
+        else:
+            self.t.put(inp.native_key, payload)
         c["forwarded"] += 1
         c["commands_forwarded" if inp.sensor is None else "sensor_forwarded"] += 1
 

@@ -150,6 +150,13 @@ class Settings(BaseSettings):
     replica_interval_s: float = Field(
         1.0, ge=0, description="Least time between two replicas of one session sent to its "
                                "successor instance; 0: none.")
+    recover_samples: int = Field(
+        256, ge=0, le=100_000, description="At start, and when a sender (re)appears, read back "
+                                           "at most this many samples per cached sender key "
+                                           "(sensors and commands) that it kept while no "
+                                           "daemon received them; 0: none.")
+    recover_timeout_s: float = Field(
+        2.0, gt=0, description="Longest wait at start for the senders' caches to answer.")
     checkpoint_max_bytes: int = Field(
         65536, ge=1024, le=65536, description="Largest encoded session state written or sent.")
 

@@ -130,6 +130,25 @@ class ServiceCore:
                         t.subscribe_drained(keys.ALL_COMMANDS, d.on_command_sample,
                                             self.wake.set)]
         self._handles.extend(self._drains)
+        if s.recover_samples > 0:
+            # What the senders kept while no daemon received it (their caches). Read after
+            # the live subscriptions and handled before the worker runs, behind the live
+            # messages that arrived meanwhile (a message both received live and read back
+            # is refused as the recovered copy, quietly): the first prediction has it all.
+            for ke, cb in ((keys.ALL_SENSORS, d.on_recovered_sensor),
+                           (keys.ALL_COMMANDS, d.on_recovered_command)):
+                self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
+                                               timeout=s.recover_timeout_s))
+        for dr in self._drains:  # the live messages that arrived meanwhile, first
+            while dr.pending and dr.drain(_DRAIN_LIMIT):
+                pass
+        with self.lock:
+            now = self.now_ns()
+            touched: list[Session] = []
+            recovered = d.take_held(now, touched)
+            if touched:
+                self.publisher.publish_many([x for x in touched if x.alive], now, data=True)
+                self.publisher.flush()
         self._handles.append(t.queryable(keys.ALL_STATUS, q.on_status_query))
         self._handles.append(t.queryable(keys.ALL_CONFIGS, q.on_config_query))
         self._handles.append(t.queryable(keys.service_status_key(self.instance),
@@ -141,7 +160,7 @@ class ServiceCore:
             served = sum(1 for r in self._routes.values() if r.sess is not None)
         event(log, "ready", instance=self.instance, sessions_known=len(specs),
               sessions_served=served, restored=sum(1 for o in origin.values() if o == "restored"),
-              peers=",".join(sorted(peers)))
+              peers=",".join(sorted(peers)), recovered=recovered)
         self.wake.set()
 
     def close(self) -> None:
@@ -192,6 +211,10 @@ class ServiceCore:
                 if d.unknown:
                     handled += d.process_unknown(now, touched)
                 handled += d.round(now, touched)
+                if d.released:
+                    handled += d.process_released(now, touched)
+                if d.recovered:
+                    handled += d.process_recovered(now, touched)
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
                 pub.run_ticks(now)

@@ -32,7 +32,7 @@ from pd_service.wire.keys import KeyError_, check_name
 from .config import Settings
 from .ownership import Ownership
 from .publish import Publisher
-from .session import COMMAND, SENSOR, Refusal, Session
+from .session import COMMAND, RECOVERED, SENSOR, Refusal, Session
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -102,6 +102,18 @@ class Dispatch:
         self.unknown: deque[tuple[str, Item]] = deque(maxlen=settings.unknown_inbox_size)
         self.control_drops = 0
         self.unknown_drops = 0
+        #: Recovered messages held while the core starts (None: after the start, they go to
+        #: ``recovered``, apart from the inboxes: they never push out a live message).
+        #: Appended by callbacks under ``_held_lock`` (the start's hand-over and a late
+        #: sender's cache may race).
+        self.held: list[tuple[int, Sample]] | None = []
+        self._held_lock = threading.Lock()
+        #: Recovered messages after the start: (stream, sample, wall clock at arrival).
+        self.recovered: deque[tuple[int, Sample, int]] = deque(
+            maxlen=settings.unknown_inbox_size * 64)
+        self.recovered_drops = 0
+        #: Read-backs finished off the worker for parked sessions: (sessions, messages).
+        self.released: deque[tuple[list[str], list[tuple[int, Sample]]]] = deque()
 
     # ================================================================== callbacks ======
     # Transport threads. No lock, no decoding, no blocking: split the key, append, wake.
@@ -111,6 +123,106 @@ class Dispatch:
 
     def on_command_sample(self, sample: Sample) -> None:
         self._enqueue(COMMAND, sample)
+
+    def on_recovered_sensor(self, sample: Sample) -> None:
+        """A measurement read back from a sender's cache (``Transport.recover``)."""
+        self._recovered(SENSOR + RECOVERED, sample)
+
+    def on_recovered_command(self, sample: Sample) -> None:
+        self._recovered(COMMAND + RECOVERED, sample)
+
+    def _recovered(self, stream: int, sample: Sample) -> None:
+        with self._held_lock:
+            if self.held is not None:
+                self.held.append((stream, sample))
+                return
+        q = self.recovered
+        if len(q) == q.maxlen:
+            self.recovered_drops += 1
+        q.append((stream, sample, self.now_ns()))
+        self.wake.set()
+
+    def process_recovered(self, now: int, touched: list[Session]) -> int:
+        """Worker: the recovered messages that arrived after the start (a sender that
+        appeared, a takeover's read-back), after the round's live messages."""
+        q = self.recovered
+        if self.recovered_drops:
+            self.counters["recovered_dropped"] += self.recovered_drops
+            self.recovered_drops = 0
+        n = 0
+        while q:
+            stream, sample, recv_now = q.popleft()
+            n += 1
+            self._offer_recovered(stream, sample, recv_now, now, touched)
+        return n
+
+    def _offer_recovered(self, stream: int, sample: Sample, recv_now: int, now: int,
+                         touched: list[Session]) -> None:
+        parts = sample.key.split("/", 2)
+        route = self.routes.get(parts[1]) if len(parts) == 3 else None
+        sess = route.sess if route is not None else None
+        if sess is None or route is None or route.inbox is None:
+            # unknown, or served by another instance: nothing to do with it here
+            self.counters["recovered_ignored"] += 1
+            return
+        had = bool(sess.pending_recv)
+        self._handle_recovered(sess, (stream, sample.key, sample.payload, sample.recv_mono_ns,
+                                      sample.kind, recv_now), sess.step_now(now), now)
+        if sess.pending_recv and not had:
+            touched.append(sess)
+
+    def park(self, route: Route) -> None:
+        """Worker: keep ``route``'s live messages in its inbox, out of the rounds, until
+        :meth:`process_released` (its senders' caches are being read)."""
+        route.ready = True  # set and not queued: the callbacks do not queue it either
+
+    def post_released(self, sessions: list[str], items: list[tuple[int, Sample]]) -> None:
+        """Any thread: the read-back of parked ``sessions`` is done (``items``: what it
+        gave, ``(stream, sample)``)."""
+        self.released.append((sessions, items))
+        self.wake.set()
+
+    def process_released(self, now: int, touched: list[Session]) -> int:
+        """Worker: for each finished read-back, the parked sessions' live messages (all,
+        no round budget), then the recovered ones, before anything is published: a
+        prediction never sees a recovered packet without the live ones received before
+        it, and a message both received live and read back is refused as the recovered
+        copy, quietly. Then the sessions rejoin the rounds."""
+        n = 0
+        while self.released:
+            names, items = self.released.popleft()
+            for name in names:
+                route = self.routes.get(name)
+                if route is None:
+                    continue
+                sess, inbox = route.sess, route.inbox
+                if sess is not None and inbox is not None:
+                    now_step = sess.step_now(now)
+                    had = bool(sess.pending_recv)
+                    while inbox:
+                        self.handle(sess, inbox.popleft(), now_step, now)
+                        n += 1
+                    if sess.pending_recv and not had:
+                        touched.append(sess)
+                route.ready = False
+                self.mark_ready(route)
+            for stream, sample in items:
+                self._offer_recovered(stream, sample, now, now, touched)
+                n += 1
+        return n
+
+    def take_held(self, now: int, touched: list[Session]) -> int:
+        """Worker (the core's start, under its lock): the live messages that arrived during
+        the start, then the recovered ones held meanwhile (so that a message both received
+        live and read back is refused as the recovered copy, quietly); from now on
+        recovered messages go to ``recovered``. Returns the number of recovered messages."""
+        while self.ready:
+            self.round(now, touched)
+        with self._held_lock:
+            held, self.held = self.held or [], None
+        for stream, sample in held:
+            self._offer_recovered(stream, sample, now, now, touched)
+        return len(held)
 
     def _enqueue(self, stream: int, sample: Sample) -> None:
         key = sample.key
@@ -156,7 +268,8 @@ class Dispatch:
     # ================================================================== worker ========
 
     def has_work(self) -> bool:
-        return bool(self.ready or self.control or self.configs or self.unknown)
+        return bool(self.ready or self.control or self.configs or self.unknown
+                    or self.recovered or self.released)
 
     def mark_ready(self, route: Route) -> None:
         """Queue ``route`` for the next round if its inbox holds messages."""
@@ -223,6 +336,42 @@ class Dispatch:
             refusal = Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")
         if refusal is not None:  # always: every accepted path returned above
             self.pub.refuse(sess, key, refusal, now)
+
+    def _handle_recovered(self, sess: Session, item: Item, now_step: int, now: int) -> None:
+        """A message read back from a sender's cache: judged like a live one (its sample
+        stamp against the window: too old is refused, never applied as current), but a
+        refusal is expected (it repeats a packet the checkpoint or the live stream already
+        gave, or it is older than the window) and is only counted, as
+        ``recovered_<reason>`` and ``recovered_refused``, never reported nor added to
+        ``refused``. Accepted ones count in ``accepted`` and ``recovered_accepted``."""
+        stream, key, payload, recv_mono, kind, recv_now = item
+        if recv_now > now:
+            now_step = sess.step_now(recv_now)
+        refusal: Refusal | None
+        try:
+            if kind != "put":
+                refusal = Refusal("malformed", "")
+            elif stream == SENSOR + RECOVERED:
+                refusal = sess.on_measurement(key, payload, now_step, now)
+                if refusal is None:
+                    self.counters["accepted"] += 1
+                    self.counters["recovered_accepted"] += 1
+                    sess.counters["recovered_accepted"] += 1
+                    sess.pending_recv.append(recv_mono)
+                    return
+            else:
+                refusal = sess.on_command(key, payload, now_step, now)
+                if refusal is None:
+                    self.counters["commands_accepted"] += 1
+                    self.counters["recovered_commands_accepted"] += 1
+                    sess.counters["recovered_commands_accepted"] += 1
+                    return
+        except Exception as exc:
+            log.debug("internal error in session %s (recovered)", sess.name, exc_info=True)
+            refusal = Refusal("internal_error", f"{type(exc).__name__}: {exc}")
+        for c in (sess.counters, self.counters):
+            c[f"recovered_{refusal.reason}"] += 1
+            c["recovered_refused"] += 1
 
     def _note_flood(self, route: Route, sess: Session, now: int) -> None:
         seen = route.flood

@@ -29,7 +29,7 @@ from .failover import StateKeeper
 from .ownership import Ownership
 from .persist import SpecStore
 from .publish import Publisher
-from .session import Origin, Refusal, Session
+from .session import COMMAND, RECOVERED, SENSOR, Origin, Refusal, Session
 from .status import SessionState, state_of
 
 log = logging.getLogger(LOGGER_NAME)
@@ -440,10 +440,38 @@ class Lifecycle:
         for name in [n for n, t in self.gone.items() if now - t > _GONE_MEMO_NS]:
             del self.gone[name]
 
+    def recover_taken(self, names: list[str]) -> None:
+        """Off the worker (``spawn``): read back what the senders of sessions just taken
+        over kept (what the previous owner accepted after its last replica, what was sent
+        while nobody served them); the samples reach the worker as recovered messages."""
+        s = self.settings
+        items: list[tuple[int, Sample]] = []
+        lock = threading.Lock()
+
+        def keep(stream: int) -> Callable[[Sample], None]:
+            def on(sample: Sample) -> None:
+                with lock:
+                    items.append((stream, sample))
+            return on
+
+        try:
+            for name in names:
+                for ke, stream in ((keys.ALL_SENSORS.replace("*", name, 1), SENSOR),
+                                   (keys.command_key(name), COMMAND)):
+                    self.t.recover(ke, keep(stream + RECOVERED), max_samples=s.recover_samples,
+                                   timeout=s.recover_timeout_s).close()
+        except Exception as exc:  # the transport is closing, say
+            event(log, "recover_failed", logging.WARNING, sessions=",".join(names),
+                  reason=str(exc))
+        with lock:
+            got = list(items)
+        self.dispatch.post_released(names, got)
+
     def reassign(self, now: int) -> None:
         """Membership changed: start the sessions we now own, stop those we no longer own."""
         members = ",".join(sorted(self.ownership.members))
         routes = self.dispatch.routes
+        taken: list[str] = []
         for name in self.specs:
             route = routes.get(name)
             running = route is not None and route.sess is not None
@@ -451,5 +479,10 @@ class Lifecycle:
             if owns and not running:
                 self.install(name, "active", f"taken over (members {members})", now,
                              answer=True, resume="replica")
+                if self.settings.recover_samples > 0 and not self.closed:
+                    taken.append(name)
+                    self.dispatch.park(routes[name])
             elif running and not owns:
                 self.install(name, "active", "", now, answer=False)
+        if taken:
+            self._spawn(lambda: self.recover_taken(taken))

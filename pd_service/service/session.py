@@ -63,6 +63,8 @@ from .stacked import Node, StackedObserverPredictor
 from .stats import LatencyWindow
 
 SENSOR, COMMAND = 0, 1
+#: Added to SENSOR / COMMAND for a message read back from a sender's cache (recovered).
+RECOVERED = 2
 
 #: Where a session's estimate started from (``SessionStatus.origin``).
 Origin = Literal["prior", "checkpoint", "replica"]

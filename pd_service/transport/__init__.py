@@ -1,6 +1,6 @@
 """Messaging adapters: Zenoh for real use, an in-memory bus for tests (same interface)."""
 
-from .base import Drain, Handle, Publisher, Query, Reply, Sample, Transport
+from .base import DEFAULT_SENDER_CACHE, Drain, Handle, Publisher, Query, Reply, Sample, Transport
 from .memory import InMemoryBus, InMemoryTransport
 from .options import (
     DAEMON,
@@ -16,6 +16,7 @@ from .options import (
 from .zenoh_transport import ZenohTransport
 
 __all__ = [
+    "DEFAULT_SENDER_CACHE",
     "DAEMON",
     "LINK",
     "TOOL",

@@ -11,12 +11,21 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, Protocol, Self
 
+#: Samples a sender keeps per key by default (``Transport.publisher(key, cache=...)``) so that
+#: a restarted daemon reads back what it missed: a stream of one sample per step covers
+#: 256 steps (12.8 s at 20 Hz; the paper's window is max_delay 12 + lead 10 steps). About
+#: 256 x the payload (~30 KB for a 4-D measurement) per key.
+DEFAULT_SENDER_CACHE = 256
+
 
 @dataclass(frozen=True, slots=True)
 class Sample:
     """A received publication. ``recv_ns``: wall clock at receipt (time.time_ns());
     ``recv_mono_ns``: monotonic clock at receipt (for latency); ``encoding`` (None: the
-    default, Zenoh's ``zenoh/bytes``) and ``attachment`` as the publisher set them."""
+    default, Zenoh's ``zenoh/bytes``) and ``attachment`` as the publisher set them.
+    ``recovered``: True for a sample read back from a sender's cache
+    (:meth:`Transport.recover`), not received live: it may repeat one received live or be
+    older than the receiver can use."""
 
     key: str
     payload: bytes
@@ -25,6 +34,7 @@ class Sample:
     recv_mono_ns: int
     encoding: str | None = None
     attachment: bytes | None = None
+    recovered: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,8 +95,11 @@ class Transport(Protocol):
 
     def delete(self, key: str) -> None: ...
 
-    def publisher(self, key: str, *, express: bool = False) -> Publisher:
-        """``express``: send at once, without batching (Zenoh's express flag)."""
+    def publisher(self, key: str, *, express: bool = False, cache: int = 0) -> Publisher:
+        """``express``: send at once, without batching (Zenoh's express flag). ``cache`` > 0:
+        the publisher keeps its last ``cache`` samples, which a receiver that was away
+        (restarted, or not yet connected) reads back with :meth:`recover` (Zenoh: a zenoh-ext
+        advanced publisher with a cache, publisher detection and sequence numbers)."""
         ...
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle: ...
@@ -99,6 +112,17 @@ class Transport(Protocol):
         soon. ``Sample.recv_ns`` is then the wall clock read when the sample was taken from
         the queue (one read per drain) and ``recv_mono_ns`` the monotonic time of the
         previous look at the queue (so latencies include the wait in it)."""
+
+    def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
+                max_samples: int, timeout: float = 2.0) -> Handle:
+        """Read back what cached publishers (``publisher(key, cache=N)``) on keys matching
+        ``keyexpr`` hold: at most ``max_samples`` of each, oldest first, as samples with
+        ``recovered`` True. The caches present now are read before this returns (each
+        answered, or ``timeout`` s passed); until the handle is closed, the cache of every
+        cached publisher that appears later (a sender that connects or reconnects) is read
+        too, its samples given to ``callback`` on a transport thread. A recovered sample
+        may repeat one received live: the receiver must tell (the daemon refuses it as a
+        duplicate, counted apart from live refusals)."""
         ...
 
     def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...

@@ -7,8 +7,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 from .base import HandleOwner, Reply, Sample
@@ -54,20 +55,42 @@ class _MemQuery:
         self.replies.append(Reply(self.key, bytes(payload), False))
 
 
-@dataclass
+@dataclass(eq=False)
 class _Publisher:
+    """``cache`` set: the publisher's last samples, readable by ``recover`` while it is open
+    (like a zenoh-ext advanced publisher's cache)."""
+
     transport: InMemoryTransport
     key: str
+    cache: deque[Sample] | None = None
 
     def put(self, payload: bytes, *, encoding: str | None = None,
             attachment: bytes | None = None) -> None:
-        self.transport._deliver(self.key, bytes(payload), "put", encoding, attachment)
+        s = self.transport._deliver(self.key, bytes(payload), "put", encoding, attachment)
+        if self.cache is not None:
+            with self.transport.bus.lock:
+                self.cache.append(s)
 
     def delete(self, *, attachment: bytes | None = None) -> None:
-        self.transport._deliver(self.key, b"", "delete", None, attachment)
+        s = self.transport._deliver(self.key, b"", "delete", None, attachment)
+        if self.cache is not None:
+            with self.transport.bus.lock:
+                self.cache.append(s)
 
     def close(self) -> None:
-        pass
+        bus = self.transport.bus
+        with bus.lock:
+            if self in bus.cached:
+                bus.cached.remove(self)
+
+
+def _recovered(pub: _Publisher, n: int) -> list[Sample]:
+    """The last ``n`` samples of ``pub``'s cache, oldest first, marked recovered, with the
+    time they are read back as their receipt time."""
+    assert pub.cache is not None
+    now, mono = time.time_ns(), time.monotonic_ns()
+    return [replace(s, recv_ns=now, recv_mono_ns=mono, recovered=True)
+            for s in list(pub.cache)[-n:]] if n > 0 else []
 
 
 class InMemoryBus:
@@ -79,6 +102,9 @@ class InMemoryBus:
         self.queryables: list[tuple[str, Callable]] = []
         self.tokens: list[str] = []
         self.live_subs: list[tuple[str, Callable[[str, bool], None]]] = []
+        #: open publishers with a cache, and who reads the caches of new ones (recover)
+        self.cached: list[_Publisher] = []
+        self.recoverers: list[tuple[str, Callable[[Sample], None], int]] = []
         self.transports = 0  # how many transports were made on this bus (their session ids)
 
     def transport(self) -> InMemoryTransport:
@@ -104,16 +130,27 @@ class InMemoryTransport(HandleOwner):
     def delete(self, key: str) -> None:
         self._deliver(key, b"", "delete")
 
-    def publisher(self, key: str, *, express: bool = False) -> _Publisher:
-        return _Publisher(self, key)
+    def publisher(self, key: str, *, express: bool = False, cache: int = 0) -> _Publisher:
+        if cache <= 0:
+            return _Publisher(self, key)
+        pub = _Publisher(self, key, deque(maxlen=cache))
+        with self.bus.lock:
+            self.bus.cached.append(pub)
+            watchers = [(cb, n) for ke, cb, n in self.bus.recoverers if intersects(ke, key)]
+        self._handles.append(pub)
+        for cb, n in watchers:  # a new cached publisher: its (empty) cache is read
+            for s in _recovered(pub, n):
+                cb(s)
+        return pub
 
     def _deliver(self, key: str, payload: bytes, kind: Literal["put", "delete"],
-                 encoding: str | None = None, attachment: bytes | None = None) -> None:
+                 encoding: str | None = None, attachment: bytes | None = None) -> Sample:
         with self.bus.lock:
             targets = [cb for ke, cb in self.bus.subs if intersects(ke, key)]
         s = Sample(key, payload, kind, time.time_ns(), time.monotonic_ns(), encoding, attachment)
         for cb in targets:
             cb(s)
+        return s
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         return self._register(self.bus.subs, (keyexpr, callback))
@@ -123,6 +160,18 @@ class InMemoryTransport(HandleOwner):
         """In memory, samples reach ``callback`` at once (as with :meth:`subscribe`): the
         drain never holds anything."""
         return _Drain(self.subscribe(keyexpr, callback))
+
+    def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
+                max_samples: int, timeout: float = 2.0) -> _Handle:
+        """The caches of the open cached publishers matching ``keyexpr`` (last
+        ``max_samples`` of each, oldest first), at once; later ones when declared."""
+        with self.bus.lock:
+            h = self._register(self.bus.recoverers, (keyexpr, callback, max_samples))
+            pubs = [p for p in self.bus.cached if intersects(keyexpr, p.key)]
+            held = [s for p in pubs for s in _recovered(p, max_samples)]
+        for s in held:
+            callback(s)
+        return h
 
     # queries
     def queryable(self, keyexpr: str, handler: Callable) -> _Handle:

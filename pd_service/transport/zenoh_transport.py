@@ -10,8 +10,10 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from typing import Literal
 
 import zenoh
+import zenoh.ext
 
 from .base import HandleOwner, Reply, Sample
 from .options import zenoh_config
@@ -38,7 +40,8 @@ class _Handle:
 class _Publisher:
     __slots__ = ("_pub", "_handle")
 
-    def __init__(self, pub: zenoh.Publisher, handle: _Handle) -> None:
+    def __init__(self, pub: zenoh.Publisher | zenoh.ext.AdvancedPublisher,
+                 handle: _Handle) -> None:
         self._pub, self._handle = pub, handle
 
     def put(self, payload: bytes, *, encoding: str | None = None,
@@ -93,8 +96,9 @@ class _Drain:
         # the receiver itself: receiving through it does not borrow the subscriber, so
         # undeclare() works while the watcher waits (and makes its recv() raise)
         self._rx = self._sub.handler
+        # parked at first: the owner's first drain() takes what arrived since the
+        # declaration (before anything read back is handled), then hands over to the watcher
         self._go = threading.Event()
-        self._go.set()
         self._closed = False
         self._seen_mono = time.monotonic_ns()  # last look at the queue
         self._thread = threading.Thread(target=self._watch, name=f"drain {keyexpr}",
@@ -190,11 +194,21 @@ class ZenohTransport(HandleOwner):
     def delete(self, key: str) -> None:
         self.session.delete(key)
 
-    def publisher(self, key: str, *, express: bool = False) -> _Publisher:
+    def publisher(self, key: str, *, express: bool = False, cache: int = 0) -> _Publisher:
         # BLOCK: a message must not be lost by Zenoh's own queue
-        pub = self.session.declare_publisher(key, express=express,
-                                             congestion_control=zenoh.CongestionControl.BLOCK)
-        return _Publisher(pub, self._keep(pub))
+        block = zenoh.CongestionControl.BLOCK
+        if cache <= 0:
+            pub = self.session.declare_publisher(key, express=express, congestion_control=block)
+            return _Publisher(pub, self._keep(pub))
+        # zenoh-ext advanced publisher: a cache answering queries on <key>/@adv/pub/..., a
+        # liveliness token on the same key (publisher detection: late receivers find it) and
+        # sequence numbers (sample_miss_detection; unlike timestamps they need no
+        # 'timestamping' in the session's config)
+        adv = zenoh.ext.declare_advanced_publisher(
+            self.session, key, express=express, congestion_control=block,
+            cache=zenoh.ext.CacheConfig(max_samples=cache), publisher_detection=True,
+            sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
+        return _Publisher(adv, self._keep(adv))
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         def on_sample(s: zenoh.Sample) -> None:
@@ -210,6 +224,51 @@ class ZenohTransport(HandleOwner):
         d = _Drain(self.session, keyexpr, callback, wake, DRAIN_CAPACITY)
         self._handles.append(d)
         return d
+
+    def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
+                max_samples: int, timeout: float = 2.0) -> _Handle:
+        # zenoh-ext 1.10's layout: a cached publisher on K answers queries and holds its
+        # liveliness token on K/@adv/pub/<zid>/<eid>/<meta>; "_max=N" asks for its last N
+        # samples (tests/transport pins this against a real advanced publisher)
+        caches = f"{keyexpr}/@adv/pub/**"
+
+        def on_reply(r: zenoh.Reply) -> None:
+            ok = r.ok
+            if ok is None:
+                return
+            try:
+                kind: Literal["put", "delete"] = (
+                    "delete" if ok.kind == zenoh.SampleKind.DELETE else "put")
+                enc, att = ok.encoding, ok.attachment
+                callback(Sample(str(ok.key_expr), ok.payload.to_bytes(), kind,
+                                time.time_ns(), time.monotonic_ns(),
+                                None if enc == _DEFAULT_ENCODING else str(enc),
+                                None if att is None else att.to_bytes(), True))
+            except Exception:
+                log.exception("recovery callback failed for %s", keyexpr)
+
+        def query(selector: str, handler: Callable[[zenoh.Reply], None] | None) -> object:
+            return self.session.get(
+                f"{selector}?_max={max_samples}", handler, target=zenoh.QueryTarget.ALL,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout)
+
+        def on_token(s: zenoh.Sample) -> None:  # a cached publisher appeared (again)
+            if s.kind != zenoh.SampleKind.PUT:
+                return
+            try:
+                query(str(s.key_expr), on_reply)  # callback form: returns at once
+            except Exception:
+                log.exception("recovery query failed for %s", s.key_expr)
+
+        # watch first (new tokens only), then read the present caches: a publisher that
+        # appears in between is read twice (its samples repeat, which the receiver tells),
+        # never missed
+        handle = self._keep(self.session.liveliness().declare_subscriber(
+            caches, on_token, history=False))
+        for r in query(caches, None):  # type: ignore[attr-defined]
+            on_reply(r)
+        return handle
 
     def queryable(self, keyexpr: str, handler: Callable) -> _Handle:
         def on_query(q: zenoh.Query) -> None:

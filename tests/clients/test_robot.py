@@ -175,3 +175,25 @@ def test_connect_classmethod_owns_its_transport(bus, monkeypatch):
     shared = bus.transport()
     Robot(shared, "s1").close()
     assert not shared._closed  # a shared transport stays open
+
+
+def test_robot_and_operator_keep_their_last_samples_for_a_restarted_service(bus):
+    from pd_client import Operator
+    t = bus.transport()
+    with Robot(t, "s1", direct=True, cache=2) as robot, Operator(t, "s1", cache=3) as op:
+        for k in range(4):
+            robot.publish("camera", [1.0, float(k)], step=k)
+            op.send([float(k)], step=k + 10)
+        got: list = []
+        bus.transport().recover("pd/*/sensor/*", got.append, max_samples=100)
+        assert [decode(s.payload, Measurement).step for s in got] == [2, 3]
+        got.clear()
+        bus.transport().recover("pd/*/cmd", got.append, max_samples=100)
+        assert [decode(s.payload, Command).step for s in got] == [11, 12, 13]
+    got.clear()  # closed with the clients: nothing kept
+    bus.transport().recover("pd/**", got.append, max_samples=100)
+    assert got == []
+    with Robot(t, "s2", direct=True, cache=0) as robot:  # cache=0: plain publishers
+        robot.publish("camera", [1.0, 2.0], step=1)
+        bus.transport().recover("pd/*/sensor/*", got.append, max_samples=100)
+        assert got == []

@@ -23,8 +23,9 @@ class CountingTransport(InMemoryTransport):
         self.open_publishers = 0
         self.most_open = 0
 
-    def publisher(self, key: str, *, express: bool = False):  # type: ignore[no-untyped-def]
-        pub = super().publisher(key, express=express)
+    def publisher(self, key: str, *, express: bool = False,  # type: ignore[no-untyped-def]
+                  cache: int = 0):
+        pub = super().publisher(key, express=express, cache=cache)
         owner = self
         self.open_publishers += 1
         self.most_open = max(self.most_open, self.open_publishers)
@@ -177,3 +178,26 @@ def test_shipped_link_configs_fit_the_default_limits():
     deploy = Path(__file__).resolve().parents[2] / "deploy"
     for name in ("link-paper.toml", "link-ros2.toml"):
         assert load_config(deploy / name).limits == Limits()
+
+
+def test_outputs_to_the_service_keep_their_last_samples():
+    """Sensor outputs (pd/<s>/sensor/<name>) keep a cache a restarted service reads back;
+    outputs the service does not read (robot/<s>/cmd) keep none."""
+    bus = InMemoryBus()
+    now = [0]
+    relay = LinkRelay(bus.transport(), parse_config({"downlink": [{"name": "d", "delay": 0}],
+                                                     "uplink": [{"name": "u", "delay": 0}]}),
+                      "cache", cache=3, clock=lambda: now[0]).attach()
+    client = bus.transport()
+    for i in range(5):
+        now[0] = i * MS
+        client.put(keys.robot_sensor_key("s", "cam"), f"z{i}".encode())
+        client.put(keys.command_key("s"), f"u{i}".encode())
+        relay.step()
+    got: list = []
+    client.recover("pd/*/sensor/*", got.append, max_samples=10)
+    assert [s.payload for s in got] == [b"z2", b"z3", b"z4"] and all(s.recovered for s in got)
+    got.clear()
+    client.recover("robot/*/cmd", got.append, max_samples=10)
+    assert got == []
+    relay.close()

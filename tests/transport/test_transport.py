@@ -106,6 +106,8 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
         got: list[bytes] = []
         woke = threading.Event()
         d = t1.subscribe_drained("pd/*/sensor/*", lambda s: got.append(s.payload), woke.set)
+        assert d.pending and d.drain(10) == 0  # parked at first: the owner looks once
+        assert not d.pending  # empty: the watcher waits in recv from now on
         t1.declare_token("pd/@service/a")
         for _ in range(100):  # t2 sees t1's declarations (an event, not a sleep)
             if t2.get_liveliness("pd/@service/*", timeout=0.2):
@@ -129,3 +131,79 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
         assert not d.pending  # the queue is empty: the watcher waits in recv
         d.close()  # undeclares while the watcher waits: it must return, not hang
         assert not d.pending or d.drain(10) == 0
+
+
+# ---------------------------------------------------------------- sender caches ----------
+
+def test_in_memory_cached_publisher_is_recovered() -> None:
+    bus = InMemoryBus()
+    snd, rcv = bus.transport(), bus.transport()
+    cam = snd.publisher("pd/s/sensor/cam", cache=3)
+    plain = snd.publisher("pd/s/sensor/ranger")
+    for i in range(5):
+        cam.put(f"c{i}".encode())
+        plain.put(f"r{i}".encode())
+    snd.put("pd/s/cmd", b"not cached")
+    got: list = []
+    h = rcv.recover("pd/*/sensor/*", got.append, max_samples=2)
+    # the last max_samples of each cached publisher, oldest first; plain puts keep nothing
+    assert [(s.key, s.payload, s.recovered) for s in got] == \
+        [("pd/s/sensor/cam", b"c3", True), ("pd/s/sensor/cam", b"c4", True)]
+    got.clear()
+    cam2 = snd.publisher("pd/t/sensor/cam", cache=3)  # a later one is watched
+    cam2.put(b"x")
+    assert got == []  # declared with an empty cache, and live samples are not recovered
+    cam.close()  # a closed publisher's cache is gone
+    got2: list = []
+    rcv.recover("pd/*/sensor/*", got2.append, max_samples=10)
+    assert [s.payload for s in got2] == [b"x"]
+    h.close()
+
+
+@pytest.mark.integration
+def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() -> None:
+    """Pins zenoh-ext 1.10's cache layout (<key>/@adv/pub/..., '_max'): read at once from a
+    connected sender, and from one that connects only after ``recover`` was declared."""
+    p1, p2 = free_port(), free_port()
+    a = b = c = None
+    try:
+        a = ZenohTransport(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{p1}"],
+                                        multicast=False))
+        pub = a.publisher("pd/s/sensor/cam", cache=4)
+        for i in range(6):
+            pub.put(f"m{i}".encode())
+        # c: a sender whose peer (b, on p2) is not there yet; it keeps retrying
+        c = ZenohTransport(zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{p2}"],
+                                        multicast=False, listen=[]))
+        pub_c = c.publisher("pd/u/sensor/ranger", cache=4)
+        other = c.publisher("pd/u/cmd", cache=4)  # not matched by pd/*/sensor/*
+        for i in range(2):
+            pub_c.put(f"r{i}".encode())
+            other.put(b"no")
+        b = ZenohTransport(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{p2}"],
+                                        connect=[f"tcp/127.0.0.1:{p1}"], multicast=False))
+        got: list = []
+        cond = threading.Condition()
+
+        def on(s) -> None:
+            with cond:
+                got.append((s.key, s.payload, s.recovered))
+                cond.notify_all()
+
+        for _ in range(100):  # the routes to a's cache: wait on its token (an event)
+            if b.get_liveliness("pd/s/sensor/*/@adv/pub/**", timeout=0.5):
+                break
+        h = b.recover("pd/*/sensor/*", on, max_samples=3)
+        at_once = list(got)
+        # a's cache was read before recover returned: its last 3, oldest first
+        assert at_once[:3] == [("pd/s/sensor/cam", f"m{i}".encode(), True) for i in (3, 4, 5)]
+        with cond:
+            assert cond.wait_for(lambda: len(got) >= 5, timeout=30), got
+        rest = sorted(x for x in got if x[0] != "pd/s/sensor/cam")
+        assert rest == [("pd/u/sensor/ranger", b"r0", True), ("pd/u/sensor/ranger", b"r1", True)]
+        print(f"\nlate sender read {'after' if len(at_once) == 3 else 'before'} recover returned")
+        h.close()
+    finally:
+        for t in (c, b, a):
+            if t is not None:
+                t.close()

@@ -11,7 +11,15 @@ from typing import Any, Self, TypeVar
 import numpy as np
 from pydantic import ValidationError
 
-from pd_service.transport import TOOL, Handle, Sample, Transport, ZenohOptions, ZenohTransport
+from pd_service.transport import (
+    TOOL,
+    Handle,
+    Publisher,
+    Sample,
+    Transport,
+    ZenohOptions,
+    ZenohTransport,
+)
 from pd_service.transport.options import Mode
 from pd_service.wire import Message, SessionSpec, WireError, decode, keys
 from pd_service.wire.codec import validation_reason
@@ -134,6 +142,20 @@ class ClientBase:
             raise
         obj._owns_transport = True
         return obj
+
+    def _sender(self, key: str, cache: int) -> Publisher:
+        """This client's publisher for ``key`` (declared on first use, closed with the
+        client); ``cache`` > 0: it keeps its last ``cache`` samples, which a restarted
+        service reads back (``Transport.publisher``)."""
+        pubs: dict[str, Publisher] = self.__dict__.setdefault("_pubs", {})
+        pub = pubs.get(key)
+        if pub is None:
+            with self._lock:
+                pub = pubs.get(key)
+                if pub is None:
+                    pub = pubs[key] = self.transport.publisher(key, cache=cache)
+                    self._handles.append(pub)
+        return pub
 
     def _subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle:
         h = self.transport.subscribe(keyexpr, callback)

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pd_service.transport import Transport
+from pd_service.transport import DEFAULT_SENDER_CACHE, Transport
 from pd_service.wire import Command, SessionSpec, WireError, encode, keys
 from pd_service.wire.convert import check_command
 
@@ -27,11 +27,15 @@ class Operator(ClientBase):
 
     ``spec`` (optional): the session's SessionSpec; with it, ``u`` is checked against the
     model's input dimension before sending, and :meth:`now_step` / :meth:`send_now` work.
+
+    ``cache``: the command publisher keeps its last ``cache`` commands (0: none), which a
+    restarted service reads back: commands sent while no service ran are not lost.
     """
 
     def __init__(self, transport: Transport, session: str, *,
-                 spec: SessionSpec | None = None) -> None:
+                 spec: SessionSpec | None = None, cache: int = DEFAULT_SENDER_CACHE) -> None:
         super().__init__(transport)
+        self.cache = cache
         self.session = session_name(session, spec)
         self.spec = spec
         self._key = keys.command_key(session)
@@ -52,7 +56,7 @@ class Operator(ClientBase):
                 check_command(msg, self.spec)
             except WireError as exc:
                 raise InvalidMessage(exc.reason) from None
-        self.transport.put(self._key, encode(msg))
+        self._sender(self._key, self.cache).put(encode(msg))
         self.seq += 1
         return msg
 

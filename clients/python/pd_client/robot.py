@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
-from pd_service.transport import Sample, Transport
+from pd_service.transport import DEFAULT_SENDER_CACHE, Sample, Transport
 from pd_service.wire import Command, Measurement, SessionSpec, WireError, encode, keys
 from pd_service.wire.convert import check_measurement, command_step
 
@@ -41,11 +41,17 @@ class Robot(ClientBase):
     against the session (known sensor, dimension) before they are sent, truth gets its
     ``t_ns`` from the step, and :meth:`apply_step` can resolve commands stamped with
     ``issued_ns``.
+
+    ``cache``: each sensor's publisher keeps its last ``cache`` samples (0: none), which a
+    restarted service reads back (direct mode; through the link emulator, pd-link's own
+    publishers keep them): samples sent while no service ran are not lost.
     """
 
     def __init__(self, transport: Transport, session: str, *, spec: SessionSpec | None = None,
-                 direct: bool = False, queue_size: int = 1024) -> None:
+                 direct: bool = False, queue_size: int = 1024,
+                 cache: int = DEFAULT_SENDER_CACHE) -> None:
         super().__init__(transport)
+        self.cache = cache
         self.session = session_name(session, spec)
         self.spec = spec
         self.direct = direct
@@ -87,7 +93,7 @@ class Robot(ClientBase):
                 check_measurement(msg, self.spec)
             except WireError as exc:
                 raise InvalidMessage(exc.reason) from None
-        self.transport.put(key, encode(msg))
+        self._sender(key, self.cache).put(encode(msg))
         self._seq[sensor] = msg.seq + 1
         self.published += 1
         return msg
