@@ -228,8 +228,9 @@ class ZenohTransport(HandleOwner):
     def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
                 max_samples: int, timeout: float = 2.0) -> _Handle:
         # zenoh-ext 1.10's layout: a cached publisher on K answers queries and holds its
-        # liveliness token on K/@adv/pub/<zid>/<eid>/<meta>; "_max=N" asks for its last N
-        # samples (tests/transport pins this against a real advanced publisher)
+        # liveliness token on K/@adv/pub/<zid>/<eid>/<meta> (the queryable's key too); "_max=N"
+        # asks for its last N samples (tests/transport pins this against a real advanced
+        # publisher)
         caches = f"{keyexpr}/@adv/pub/**"
 
         def on_reply(r: zenoh.Reply) -> None:
@@ -247,8 +248,8 @@ class ZenohTransport(HandleOwner):
             except Exception:
                 log.exception("recovery callback failed for %s", keyexpr)
 
-        def query(selector: str, handler: Callable[[zenoh.Reply], None] | None) -> object:
-            return self.session.get(
+        def query(selector: str, handler: Callable[[zenoh.Reply], None]) -> None:
+            self.session.get(
                 f"{selector}?_max={max_samples}", handler, target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE,
                 accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout)
@@ -263,11 +264,30 @@ class ZenohTransport(HandleOwner):
 
         # watch first (new tokens only), then read the present caches: a publisher that
         # appears in between is read twice (its samples repeat, which the receiver tells),
-        # never missed
+        # never missed.  The present caches are found by their tokens and each is queried on
+        # its own key, never with one wildcard query: a router's access control scoped by
+        # session (deploy/make_acl.py) lets a query reach a sender only on its sessions' keys
         handle = self._keep(self.session.liveliness().declare_subscriber(
             caches, on_token, history=False))
-        for r in query(caches, None):  # type: ignore[attr-defined]
-            on_reply(r)
+        present = dict.fromkeys(str(r.ok.key_expr) for r in self.session.liveliness().get(
+            caches, timeout=timeout) if r.ok is not None)
+        left = [len(present)]
+        done = threading.Condition()
+
+        def finished() -> None:  # a query's replies are all in, or its timeout passed
+            with done:
+                left[0] -= 1
+                done.notify_all()
+
+        for key in present:  # all in flight at once: the wait is the slowest cache's
+            try:
+                query(key, zenoh.handlers.Callback(on_reply, finished))
+            except Exception:
+                log.exception("recovery query failed for %s", key)
+                finished()
+        with done:  # each query ends by its own timeout; the margin only guards a lost drop
+            if not done.wait_for(lambda: left[0] <= 0, timeout + 5.0):
+                log.warning("recovery of %s: %d cache queries did not end", keyexpr, left[0])
         return handle
 
     def queryable(self, keyexpr: str, handler: Callable) -> _Handle:
