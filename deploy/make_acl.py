@@ -24,6 +24,11 @@ The input (TOML; every list of users may name several users, a user may have sev
     robot_creates = true      # optional: the robot may create/replace/delete THIS session's
                               # spec (pd-robot-sim --create-session); default: admins only
 
+Sender caches (zenoh-ext advanced publishers: a queryable and a liveliness token on
+``<key>/@adv/pub/**``): a direct robot and an operator may serve them on their sessions'
+``pd/<s>/sensor/*`` and ``pd/<s>/cmd``, links on every session's; only services may query them
+and watch their tokens (deploy/README.md, "Sender caches").
+
 Only stdlib; the output is JSON (valid JSON5) behind a comment header.  Rules come in the pairs
 of Zenoh's model: what a client may send in (``ingress``: put, declare_subscriber, query,
 declare_queryable, reply, liveliness_token) and what the router may deliver to it (``egress``).
@@ -48,6 +53,14 @@ _ROLE_LISTS = ("admins", "link_admins", "services", "links", "displays")
 _TOP = {*_ROLE_LISTS, "users_file", "listen", "session"}
 _SESSION = {"name", "robot", "operator", "direct", "robot_creates"}
 RESULTS = ("prediction", "error", "status")
+#: zenoh-ext 1.10's advanced publisher on K keeps its cache behind a queryable and a liveliness
+#: token on K/@adv/pub/<zid>/<eid>/<meta>; "@adv" is a verbatim chunk, which no wildcard matches
+ADV = "@adv/pub/**"
+
+
+def _cache(key: str) -> str:
+    """The key expression of the sender caches of the publishers on ``key``."""
+    return f"{key}/{ADV}"
 
 
 class InputError(ValueError):
@@ -147,6 +160,15 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
         "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
         "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"),
         ("pd/@service/**",)),
+    # sender caches (zenoh-ext advanced publishers) read back by the daemon after a restart,
+    # a takeover, or when a sender appears: it watches their liveliness tokens and queries each
+    # on its token's key; the replies carry the cached samples' own keys (pd/<s>/sensor/<name>,
+    # pd/<s>/cmd), which "service-get" already lets out to it
+    "service-recover-ask": (("ingress",), ("query", "declare_liveliness_subscriber",
+                                           "liveliness_query"),
+                            (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
+    "service-recover-get": (("egress",), ("liveliness_token",),
+                            (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
     # the link emulator: every session
     "link-ask": (("ingress",), ("declare_subscriber",), ("robot/*/sensor/*", "pd/*/cmd")),
     "link-get": (("egress",), ("put", "delete"), ("robot/*/sensor/*", "pd/*/cmd")),
@@ -154,6 +176,11 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
     "link-serve-in": (("ingress",), ("declare_queryable", "reply"),
                       ("pd/@link/*/rules", "pd/@link/*/stats")),
     "link-serve-out": (("egress",), ("query",), ("pd/@link/*/rules", "pd/@link/*/stats")),
+    # the caches of its outputs to the daemon (pd-link --cache N); see _cache_rules
+    "link-cache-in": (("ingress",), ("declare_queryable", "liveliness_token"),
+                      (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
+    "link-cache-reply": (("ingress",), ("reply",), ("pd/*/sensor/*", "pd/*/cmd")),
+    "link-cache-out": (("egress",), ("query",), (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
     # displays: read-only, every session
     "display-ask": (("ingress",), ("declare_subscriber", "query"),
                     (*(f"pd/*/{r}" for r in RESULTS), "pd/*/config", "robot/*/truth")),
@@ -167,9 +194,10 @@ _ROLE_RULES = {
     "link_admins": ("admin-link-rules-ask", "admin-link-rules-get",
                     "read-link-stats-ask", "read-link-stats-get"),
     "services": ("service-write", "service-retire-specs", "service-ask", "service-get",
-                 "service-coordination"),
+                 "service-coordination", "service-recover-ask", "service-recover-get"),
     "links": ("link-ask", "link-get", "link-write", "link-serve-in", "link-serve-out",
-              "read-link-stats-ask", "read-link-stats-get"),
+              "link-cache-in", "link-cache-reply", "link-cache-out", "read-link-stats-ask",
+              "read-link-stats-get"),
     "displays": ("display-ask", "display-get", "watch-services-ask", "watch-services-get",
                  "read-link-stats-ask", "read-link-stats-get"),
 }
@@ -195,6 +223,8 @@ def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[
                   [*(f"robot/{s}/cmd" for s in names), *(f"pd/{s}/cmd" for s in direct),
                    *(f"pd/{s}/config" for s in names)]),
         ]
+        if direct:  # the caches of its sensor publishers, read back by the daemon
+            rules += _cache_rules(f"robot-{user}", [f"pd/{s}/sensor/*" for s in direct])
         if creates:
             results = [f"pd/{s}/{r}" for s in creates for r in RESULTS]
             rules += [  # put/delete/serve its sessions' specs; follow the daemon's answer
@@ -218,9 +248,25 @@ def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[
             _rule(f"operator-{user}-ask", ["ingress"], ["declare_subscriber", "query"], readable),
             _rule(f"operator-{user}-get", ["egress"], ["put", "delete", "reply"], readable),
         ]
+        rules += _cache_rules(f"operator-{user}", [f"pd/{s}/cmd" for s in names])
         fixed += ["watch-services-ask", "watch-services-get", "read-link-stats-ask",
                   "read-link-stats-get"]
     return rules, fixed
+
+
+def _cache_rules(prefix: str, keys: list[str]) -> list[dict[str, Any]]:
+    """A scoped user's sender caches on ``keys`` (keys it publishes): declare their
+    queryables and liveliness tokens (``<key>/@adv/pub/**``), receive the daemon's queries on
+    them, reply with the cached samples.  The router checks a reply against the key of the
+    sample it carries (``keys``), a query against the key it was sent on: the daemon queries
+    each cache on its own key, so no rule needs a wildcard across sessions."""
+    caches = [_cache(k) for k in keys]
+    return [
+        _rule(f"{prefix}-cache-in", ["ingress"], ["declare_queryable", "liveliness_token"],
+              caches),
+        _rule(f"{prefix}-cache-reply", ["ingress"], ["reply"], keys),
+        _rule(f"{prefix}-cache-out", ["egress"], ["query"], caches),
+    ]
 
 
 def build(sessions: dict[str, Any]) -> dict[str, Any]:

@@ -209,6 +209,26 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
     ("put", "egress", "robot/paper/truth", {"display"}),
     ("put", "egress", "robot/paper/cmd", {"robot"}),
     ("put", "egress", "robot/other/cmd", set()),
+    # sender caches (zenoh-ext advanced publishers, <key>/@adv/pub/<zid>/<eid>/<meta>): the
+    # direct robot and pd-link serve sensor caches, the operator and pd-link command caches,
+    # only the daemon reads them (queries on a token's key; replies carry the samples' keys)
+    ("declare_queryable", "ingress", "pd/paper/sensor/camera/@adv/pub/z/1/_", {"robot", "link"}),
+    ("liveliness_token", "ingress", "pd/paper/sensor/camera/@adv/pub/z/1/_", {"robot", "link"}),
+    ("declare_queryable", "ingress", "pd/other/sensor/camera/@adv/pub/z/1/_", {"link"}),
+    ("declare_queryable", "ingress", "pd/paper/cmd/@adv/pub/z/1/_", {"operator", "link"}),
+    ("liveliness_token", "ingress", "pd/other/cmd/@adv/pub/z/1/_", {"link"}),
+    ("declare_queryable", "ingress", "robot/paper/sensor/camera/@adv/pub/z/1/_", set()),
+    ("query", "egress", "pd/paper/sensor/camera/@adv/pub/z/1/_", {"robot", "link"}),
+    ("query", "egress", "pd/paper/cmd/@adv/pub/z/1/_", {"operator", "link"}),
+    ("reply", "ingress", "pd/paper/sensor/camera", {"robot", "link", "service"}),
+    ("reply", "ingress", "pd/other/sensor/camera", {"link", "service"}),
+    ("reply", "ingress", "pd/paper/cmd", {"operator", "link", "service"}),
+    ("query", "ingress", "pd/paper/sensor/camera/@adv/pub/z/1/_", {"service"}),
+    ("query", "ingress", "pd/paper/cmd/@adv/pub/z/1/_", {"service"}),
+    ("declare_liveliness_subscriber", "ingress", "pd/*/sensor/*/@adv/pub/**", {"service"}),
+    ("liveliness_query", "ingress", "pd/*/cmd/@adv/pub/**", {"service"}),
+    ("liveliness_token", "egress", "pd/paper/sensor/camera/@adv/pub/z/1/_", {"service"}),
+    ("reply", "egress", "pd/paper/sensor/camera", {"service"}),
 ])
 def test_who_may_do_what(message: str, flow: str, key: str, who: set[str]) -> None:
     assert allowed_users(message, flow, key) == who

@@ -16,8 +16,9 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import zenoh
 
-from pd_service.transport import ZenohTransport
+from pd_service.transport import Sample, ZenohTransport
 from pd_service.wire import keys
 
 from ._support import free_port, load_deploy_script, open_client, open_router, wait_for
@@ -36,6 +37,7 @@ displays = ["display"]
 name = "a"
 robot = "robot-a"
 operator = "op-a"
+direct = true
 
 [[session]]
 name = "b"
@@ -62,9 +64,12 @@ def generated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
 
 @contextlib.contextmanager
-def system(generated: tuple[Path, Path], acl: bool, *users: str) -> Iterator[dict[str, ZenohTransport]]:
+def system(generated: tuple[Path, Path], acl: bool, *users: str,
+           router: Path | None = None) -> Iterator[dict[str, ZenohTransport]]:
+    """The router (``router``: another configuration file) and a client per user."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router, users_file = generated
+    router = router or generated[0]
+    users_file = generated[1]
     with open_router(endpoint, acl=acl, file=router, users=users_file), \
             contextlib.ExitStack() as stack:  # fmt: skip
         yield {u: stack.enter_context(open_client(ROLE_FILE[u], endpoint, user=u,
@@ -178,6 +183,140 @@ def test_only_services_declare_membership_tokens(generated, acl: bool) -> None:
         if acl:  # a daemon's liveliness query sees only the services' tokens too
             assert sorted(c["service"].get_liveliness(keys.ALL_SERVICES, timeout=1.0)) == [
                 keys.service_token_key("real"), keys.service_token_key("real2")]
+
+
+class Recovered:
+    """``Transport.recover`` callback: keeps (key, payload), signals each arrival."""
+
+    def __init__(self) -> None:
+        self.got: list[tuple[str, bytes]] = []
+        self.cond = threading.Condition()
+
+    def __call__(self, s: Sample) -> None:
+        assert s.recovered
+        with self.cond:
+            self.got.append((s.key, s.payload))
+            self.cond.notify_all()
+
+    def wait_for(self, want: set[tuple[str, bytes]], timeout: float) -> bool:
+        with self.cond:
+            return self.cond.wait_for(lambda: want <= set(self.got), timeout)
+
+    def payloads(self) -> set[bytes]:
+        with self.cond:
+            return {p for _, p in self.got}
+
+
+def cache_tokens(t: ZenohTransport, keyexpr: str) -> list[str]:
+    """The liveliness tokens of the sender caches on ``keyexpr`` that ``t`` sees."""
+    return t.get_liveliness(f"{keyexpr}/@adv/pub/**", timeout=1.0)
+
+
+def read_cache(t: ZenohTransport, token: str) -> list[tuple[str, bytes]]:
+    """Query one sender cache on its token's key, as the daemon does (all its samples)."""
+    return [(str(r.ok.key_expr), r.ok.payload.to_bytes()) for r in t.session.get(
+        f"{token}?_max=16", consolidation=zenoh.ConsolidationMode.NONE,
+        accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=NEGATIVE_WAIT_S) if r.ok is not None]
+
+
+def test_service_reads_back_sender_caches(generated) -> None:
+    """The daemon's read-back through the router: the caches of a direct robot (sensors), an
+    operator (commands) and pd-link (its outputs) are read at once, oldest first, and a cache
+    declared later is read when its token appears (Transport.recover, as ServiceCore.start
+    calls it)."""
+    with system(generated, True, "service", "robot-b", "op-a", "link") as c:
+        sent: set[tuple[str, bytes]] = set()
+        for user, key in (("robot-b", keys.sensor_key("b", "camera")),
+                          ("op-a", keys.command_key("a")),
+                          ("link", keys.sensor_key("a", "ranger"))):
+            pub = c[user].publisher(key, cache=8)
+            for i in range(3):
+                pub.put(f"{user}-{i}".encode())
+                sent.add((key, f"{user}-{i}".encode()))
+        wait_for(lambda: len(cache_tokens(c["service"], "pd/*/sensor/*")) == 2
+                 and len(cache_tokens(c["service"], "pd/*/cmd")) == 1,
+                 TIMEOUT_S, "the daemon to see the three caches' tokens")
+        got = Recovered()
+        c["service"].recover(keys.ALL_SENSORS, got, max_samples=8, timeout=TIMEOUT_S)
+        c["service"].recover(keys.ALL_COMMANDS, got, max_samples=8, timeout=TIMEOUT_S)
+        with got.cond:  # read before recover returned, each cache in its order
+            assert sorted(got.got) == sorted(sent)
+            for key in {k for k, _ in sent}:
+                assert [p for k, p in got.got if k == key] == sorted(
+                    p for k, p in sent if k == key)
+        late = c["robot-b"].publisher(keys.sensor_key("b", "late"), cache=8)
+        late.put(b"robot-b-late")
+        assert got.wait_for({(keys.sensor_key("b", "late"), b"robot-b-late")}, TIMEOUT_S)
+
+
+def over_broad(router: Path, out: Path) -> Path:
+    """``router`` with a WRONG cache rule for robot-a: every cache message, both ways, on
+    every session's sensor caches and samples (what a rule not scoped by session would
+    give).  The control that shows the negative test notices such a rule."""
+    head, body = router.read_text(encoding="utf-8").split("\n{", 1)
+    conf = json.loads("{" + body)
+    acl = conf["access_control"]
+    acl["rules"].append({
+        "id": "too-broad", "permission": "allow", "flows": ["ingress", "egress"],
+        "messages": ["declare_queryable", "liveliness_token", "reply", "query",
+                     "declare_liveliness_subscriber", "liveliness_query"],
+        "key_exprs": ["pd/*/sensor/*/@adv/pub/**", "pd/*/sensor/*"]})
+    next(p for p in acl["policies"] if p["id"] == "user-robot-a")["rules"].append("too-broad")
+    out.write_text(json.dumps(conf), encoding="utf-8")
+    return out
+
+
+@pytest.mark.parametrize("variant", ["acl-on", "control-acl-off", "control-over-broad"])
+def test_robot_cannot_read_or_fake_another_sessions_cache(generated, tmp_path: Path,
+                                                           variant: str) -> None:
+    """Robot A (a direct robot, whose own sensor cache the daemon reads) neither sees nor
+    reads robot B's cache (liveliness, a query on the cache's own key, Transport.recover),
+    nor declares a cache on B's keys that the daemon would read back.  Controls: access
+    control off, and robot A given an over-broad cache rule: the same sequence leaks."""
+    router = over_broad(generated[0], tmp_path / "broad.json5") \
+        if variant == "control-over-broad" else None
+    leaks = variant != "acl-on"
+    with system(generated, variant != "control-acl-off", "service", "robot-a", "robot-b",
+                router=router) as c:
+        theirs = c["robot-b"].publisher(keys.sensor_key("b", "camera"), cache=8)
+        for i in range(3):
+            theirs.put(f"b-{i}".encode())
+        # a cache on B's key declared by robot A, then robot A's own: when the daemon sees
+        # the second token, the router has handled the first declaration (same link, in order)
+        fake = c["robot-a"].publisher(keys.sensor_key("b", "fake"), cache=8)
+        fake.put(b"fake-0")
+        mine = c["robot-a"].publisher(keys.sensor_key("a", "camera"), cache=8)
+        mine.put(b"a-0")
+        wait_for(lambda: {t.split("/@adv/")[0] for t in cache_tokens(c["service"], "pd/*/sensor/*")}
+                 >= {keys.sensor_key("a", "camera"), keys.sensor_key("b", "camera")},
+                 TIMEOUT_S, "the daemon to see robot A's and robot B's caches")
+        got = Recovered()
+        c["service"].recover(keys.ALL_SENSORS, got, max_samples=8, timeout=TIMEOUT_S)
+        assert {b"a-0", b"b-0", b"b-1", b"b-2"} <= got.payloads()  # the rightful caches
+        if leaks:
+            assert got.wait_for({(keys.sensor_key("b", "fake"), b"fake-0")}, TIMEOUT_S)
+        else:  # read at once: every cache the daemon could see was read before recover returned
+            assert b"fake-0" not in got.payloads()
+            assert keys.sensor_key("b", "fake") not in {
+                t.split("/@adv/")[0] for t in cache_tokens(c["service"], "pd/*/sensor/*")}
+
+        # robot A reads B's cache: its tokens, a query on the cache's own key, recover (its
+        # own cache on B's key, "fake", it sees and reads locally, without the router)
+        token_b = next(t for t in cache_tokens(c["service"], "pd/b/sensor/camera"))
+        seen = cache_tokens(c["robot-a"], "pd/b/sensor/*")
+        replies = read_cache(c["robot-a"], token_b)
+        stolen = Recovered()
+        c["robot-a"].recover("pd/b/sensor/*", stolen, max_samples=8, timeout=NEGATIVE_WAIT_S)
+        if leaks:
+            assert token_b in seen
+            assert [p for _, p in replies] == [b"b-0", b"b-1", b"b-2"]
+            assert {b"b-0", b"b-1", b"b-2"} <= stolen.payloads()
+        else:
+            assert token_b not in seen
+            assert replies == []
+            assert stolen.payloads() & {b"b-0", b"b-1", b"b-2"} == set()
+            # the same query by the daemon is answered: the cache is there
+            assert [p for _, p in read_cache(c["service"], token_b)] == [b"b-0", b"b-1", b"b-2"]
 
 
 def test_generator_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
