@@ -47,10 +47,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--switch-interval-us", type=int, default=1000,
                    help="Python thread switch interval (the timer thread waits at most this "
                         "for the GIL); 0 keeps Python's default of 5000")
-    p.add_argument("--cache", type=int, default=DEFAULT_SENDER_CACHE, metavar="N",
+    p.add_argument("--cache", type=int, default=0, metavar="N",
                    help="samples each output publisher of a key the service reads (sensors, "
-                        "commands) keeps for a restarted service to read back; 0: none "
-                        "(default: %(default)s)")
+                        "commands) keeps for a restarted service to read back (e.g. "
+                        f"{DEFAULT_SENDER_CACHE}); 0: none (default: none: each cached key "
+                        "declares a queryable and a token, which made 20,000 churned keys "
+                        "stall the other streams for seconds, bench/link_flood.py)")
     p.add_argument("--express", action=argparse.BooleanOptionalAction, default=False,
                    help="publish with Zenoh's express flag (no batching; about twice the CPU "
                         "at high rates, no latency gain measured on loopback)")
