@@ -104,8 +104,9 @@ class SpecStore:
         """Write a session's checkpoint (encoded SessionState) atomically, without fsync: it
         survives a crash of the daemon (kill -9: the kernel holds the data), not
         necessarily a power loss, after which a checkpoint may be older or unreadable
-        (then refused as corrupt at restart: the session starts from its prior). An fsync
-        per checkpoint cost ~10 % of the daemon's CPU at 200 sessions (bench/service.py)."""
+        (then refused as corrupt at restart: the session starts from its prior). Checkpoints
+        with an fsync each cost ~15-25 µs per session-step at 200 sessions (bench/service.py,
+        single runs): ~10 % of the daemon's CPU."""
         self._write(self.state_path(session), data, sync=False)
 
     def load_state(self, session: str) -> bytes | None:
