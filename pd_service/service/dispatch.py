@@ -311,31 +311,9 @@ class Dispatch:
 
     def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """Give one message to its session; count it, or refuse it (reported)."""
-        stream, key, payload, recv_mono, kind, recv_now = item
-        if recv_now > now:  # arrived after the loop read its clock: judge it at its arrival
-            now_step = sess.step_now(recv_now)
-        refusal: Refusal | None
-        try:
-            if kind != "put":
-                refusal = Refusal(
-                    "malformed" if stream == SENSOR else "commands_malformed",
-                    f"{kind} is not supported on {key!r}: publish a message with put")
-            elif stream == SENSOR:
-                refusal = sess.on_measurement(key, payload, now_step, now)
-                if refusal is None:
-                    self.counters["accepted"] += 1
-                    sess.pending_recv.append(recv_mono)
-                    return
-            else:
-                refusal = sess.on_command(key, payload, now_step, now)
-                if refusal is None:
-                    self.counters["commands_accepted"] += 1
-                    return
-        except Exception as exc:  # isolation: nothing one session sends escapes the worker
-            log.debug("internal error in session %s", sess.name, exc_info=True)
-            refusal = Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")
-        if refusal is not None:  # always: every accepted path returned above
-            self.pub.refuse(sess, key, refusal, now)
+        refusal = self._offer(sess, item, now_step, now)
+        if refusal is not None:
+            self.pub.refuse(sess, item[1], refusal, now)
 
     def _handle_recovered(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """A message read back from a sender's cache: judged like a live one (its sample
@@ -344,34 +322,43 @@ class Dispatch:
         gave, or it is older than the window) and is only counted, as
         ``recovered_<reason>`` and ``recovered_refused``, never reported nor added to
         ``refused``. Accepted ones count in ``accepted`` and ``recovered_accepted``."""
+        refusal = self._offer(sess, item, now_step, now, "recovered_")
+        if refusal is not None:
+            for c in (sess.counters, self.counters):
+                c[f"recovered_{refusal.reason}"] += 1
+                c["recovered_refused"] += 1
+
+    def _offer(self, sess: Session, item: Item, now_step: int, now: int,
+               also: str = "") -> Refusal | None:
+        """One message into its session (the stream's RECOVERED bit ignored); None if
+        accepted (counted as ``accepted`` / ``commands_accepted``, and ``also`` + that name
+        when ``also`` is set). A packet is judged at its arrival if that came after the
+        loop read its clock."""
         stream, key, payload, recv_mono, kind, recv_now = item
         if recv_now > now:
             now_step = sess.step_now(recv_now)
-        refusal: Refusal | None
         try:
             if kind != "put":
-                refusal = Refusal("malformed", "")
-            elif stream == SENSOR + RECOVERED:
+                return Refusal("malformed" if stream & ~RECOVERED == SENSOR
+                               else "commands_malformed",
+                               f"{kind} is not supported on {key!r}: publish a message with put")
+            if stream & ~RECOVERED == SENSOR:
                 refusal = sess.on_measurement(key, payload, now_step, now)
+                name = "accepted"
                 if refusal is None:
-                    self.counters["accepted"] += 1
-                    self.counters["recovered_accepted"] += 1
-                    sess.counters["recovered_accepted"] += 1
                     sess.pending_recv.append(recv_mono)
-                    return
             else:
                 refusal = sess.on_command(key, payload, now_step, now)
-                if refusal is None:
-                    self.counters["commands_accepted"] += 1
-                    self.counters["recovered_commands_accepted"] += 1
-                    sess.counters["recovered_commands_accepted"] += 1
-                    return
-        except Exception as exc:
-            log.debug("internal error in session %s (recovered)", sess.name, exc_info=True)
-            refusal = Refusal("internal_error", f"{type(exc).__name__}: {exc}")
-        for c in (sess.counters, self.counters):
-            c[f"recovered_{refusal.reason}"] += 1
-            c["recovered_refused"] += 1
+                name = "commands_accepted"
+        except Exception as exc:  # isolation: nothing one session sends escapes the worker
+            log.debug("internal error in session %s", sess.name, exc_info=True)
+            return Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")
+        if refusal is None:
+            self.counters[name] += 1
+            if also:
+                self.counters[also + name] += 1
+                sess.counters[also + name] += 1
+        return refusal
 
     def _note_flood(self, route: Route, sess: Session, now: int) -> None:
         seen = route.flood
