@@ -8,7 +8,9 @@ sample of the last max_delay steps present, a command every step).
     python bench/checkpoint.py [--reps 200] [--interval-s 1.0]
 
 Prints a table, then one JSON line. CPU is process time (time.process_time) per state,
-averaged over ``--reps``; the disk write (fsync) is not included (it depends on the disk).
+averaged over ``--reps``, with the daemon's encoder (``checkpoint.encode_state``) and, side
+by side, through the validated models (``encode(to_message(...))``: the same bytes); the
+disk write is not included (it depends on the disk; checkpoints are not fsynced).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import time
 import numpy as np
 
 from pd_service.backends import build_estimator
-from pd_service.checkpoint import to_message
+from pd_service.checkpoint import encode_state, to_message
 from pd_service.estimation import LinearModel, Sensor
 from pd_service.scenarios.paper import paper_scenario
 from pd_service.service.stacked import StackedObserverPredictor
@@ -55,13 +57,19 @@ def big_case():
 
 
 def measure(est, fp, reps):
+    """(bytes, CPU s per state with the daemon's encoder, CPU s with the validated models)."""
     est.predict(est.now)
+    kw = dict(session="bench", instance="bench", fingerprint=fp, made_ns=0)
     t0 = time.process_time()
     for _ in range(reps):
-        data = encode(to_message(est.export_state(), session="bench", instance="bench",
-                                 fingerprint=fp, made_ns=0))
-    cpu = (time.process_time() - t0) / reps
-    return len(data), cpu
+        data = encode_state(est.export_state(), **kw)
+    fast = (time.process_time() - t0) / reps
+    t0 = time.process_time()
+    for _ in range(reps):
+        slow = encode(to_message(est.export_state(), **kw))
+    models = (time.process_time() - t0) / reps
+    assert slow == data  # the same bytes either way
+    return len(data), fast, models
 
 
 def main() -> None:
@@ -71,14 +79,17 @@ def main() -> None:
     args = ap.parse_args()
     rows = []
     for name, est, fp in (paper_case(), big_case()):
-        size, cpu = measure(est, fp, args.reps)
+        size, cpu, models = measure(est, fp, args.reps)
         rows.append({"case": name, "bytes": size, "cpu_us": cpu * 1e6,
+                     "cpu_us_models": models * 1e6,
                      "bytes_per_s": size / args.interval_s,
                      "cpu_fraction": cpu / args.interval_s})
-    print(f"{'case':40s} {'bytes/state':>11s} {'CPU us/state':>12s} {'bytes/s':>9s} "
-          f"{'CPU %/session':>13s}   (one state per {args.interval_s:g} s; x2 with a replica)")
+    print(f"{'case':40s} {'bytes/state':>11s} {'CPU us/state':>12s} {'via models':>10s} "
+          f"{'bytes/s':>9s} {'CPU %/session':>13s}   (one state per {args.interval_s:g} s; "
+          "x2 bytes with a replica)")
     for r in rows:
-        print(f"{r['case']:40s} {r['bytes']:11d} {r['cpu_us']:12.1f} {r['bytes_per_s']:9.0f} "
+        print(f"{r['case']:40s} {r['bytes']:11d} {r['cpu_us']:12.1f} "
+              f"{r['cpu_us_models']:10.1f} {r['bytes_per_s']:9.0f} "
               f"{100 * r['cpu_fraction']:13.4f}")
     print(json.dumps({"interval_s": args.interval_s, "cases": rows}))
 
