@@ -17,7 +17,7 @@ from pd_service.transport import InMemoryBus
 from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
 
 from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
-from .test_core import PAIR, make_core
+from .test_core import PAIR, make_core, settle
 
 
 class Driver:
@@ -67,6 +67,18 @@ class Driver:
 def status(cli, s):
     return decode(cli.get(keys.status_key(s))[0].payload, SessionStatus)
 
+
+
+def two_instances(bus, clock, tmp_path, cli, sessions: int = 12, **kw):
+    """inst-a and inst-b (explicit peers, settings ``kw``) sharing ``sessions`` paper
+    sessions s00, s01, ...; returns (a, b, names) once both have applied every config."""
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, **kw)
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, **kw)
+    names = [f"s{i:02d}" for i in range(sessions)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(a, b)
+    return a, b, names
 
 def test_restart_resumes_from_the_checkpoint_exactly(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
@@ -153,13 +165,7 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
 def test_takeover_resumes_from_the_replica_exactly(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=0.3)
-    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=0.3)
-    names = [f"s{i:02d}" for i in range(12)]
-    for s in names:
-        cli.put(keys.config_key(s), encode(paper_spec(s)))
-    for c in (a, b, a, b):
-        c.run_once()
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
     owner_of = {s: ("inst-a" if s in a.served_sessions() else "inst-b") for s in names}
     s = next(n for n in names if owner_of[n] == "inst-a")  # a serves it, b is its successor
     assert a.ownership.successor(s) == "inst-b"
@@ -219,13 +225,7 @@ def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
     # replicas every 100 s: only the handover can carry the newest state
-    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=100.0)
-    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=100.0)
-    names = [f"s{i:02d}" for i in range(12)]
-    for s in names:
-        cli.put(keys.config_key(s), encode(paper_spec(s)))
-    for c in (a, b, a, b):
-        c.run_once()
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=100.0)
     s = next(n for n in names if n in a.served_sessions())
     d = Driver(cli, clock, col, s)
     for k in range(40):
@@ -427,13 +427,7 @@ def test_takeover_reads_back_what_the_senders_kept(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col = Collector().attach(bus.transport())
     cli = bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=0.3)
-    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=0.3)
-    names = [f"s{i:02d}" for i in range(12)]
-    for s in names:
-        cli.put(keys.config_key(s), encode(paper_spec(s)))
-    for c in (a, b, a, b):
-        c.run_once()
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
     s = next(n for n in names if n in a.served_sessions())
     d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
     for k in range(40):
