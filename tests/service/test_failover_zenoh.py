@@ -331,41 +331,72 @@ def test_kill_and_restart_resumes_from_the_checkpoint_and_the_senders_caches(wor
 PEERS = ["--peer", "inst-x", "--peer", "inst-y"]
 
 
+class Replicas:
+    """Every replica put on the service's replica keys, by session and then by now_step."""
+
+    def __init__(self, t) -> None:
+        self.lock = threading.Lock()
+        self.by_session: dict[str, dict[int, SessionState]] = {}
+        t.subscribe(f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/*/replica/*", self._on)
+
+    def _on(self, sample: Sample) -> None:
+        st = decode(sample.payload, SessionState)
+        with self.lock:
+            self.by_session.setdefault(st.session, {})[st.now_step or 0] = st
+
+    def steps(self, session: str) -> list[int]:
+        with self.lock:
+            return list(self.by_session.get(session, {}))
+
+    def at(self, session: str, step: int) -> SessionState:
+        with self.lock:
+            return self.by_session[session][step]
+
+
+def start_pair(root: Path, peer: str, conf: Path, pres: Presence) -> tuple[Daemon, Daemon]:
+    """inst-x, then inst-y (connected to the test's peer and to inst-x), both present."""
+    args = ["--config", str(conf), *PEERS]
+    x = Daemon("inst-x", root / "inst-x", [peer], args).start()
+    assert pres.wait("inst-x", timeout=WAIT_S), x.log()
+    y = Daemon("inst-y", root / "inst-y", [peer, x.endpoint], args).start()
+    if not pres.wait("inst-y", timeout=WAIT_S):
+        log = y.log()
+        y.stop()
+        x.stop()
+        raise AssertionError(log)
+    return x, y
+
+
+def open_feeds(t, col, prefix: str, n: int, seed: int, steps: int,
+               max_delay: int) -> tuple[dict[str, Feed], dict[str, str]]:
+    """n sessions ``<prefix>00``... configured; their feeds and owner instances."""
+    names = [f"{prefix}{i:02d}" for i in range(n)]
+    epoch = time.time_ns() + 3_000_000_000
+    feeds = {s: make_feed(s, epoch, seed=seed + i, steps=steps, max_delay=max_delay)
+             for i, s in enumerate(names)}
+    for s in names:
+        t.put(keys.config_key(s), encode(feeds[s].spec))
+    assert col.wait_for(lambda c: all(c.statuses[s] for s in names), WAIT_S)
+    return feeds, {s: col.statuses[s][-1].instance for s in names}
+
+
 def test_owner_killed_survivor_resumes_from_its_replicas(world):
     t, col, pres, peer, root = world
     max_delay = 60
     conf = write_config(root / "svc.toml")
-    replicas: dict[str, dict[int, SessionState]] = {}
-    lock = threading.Lock()
-
-    def on_replica(sample: Sample) -> None:
-        st = decode(sample.payload, SessionState)
-        with lock:
-            replicas.setdefault(st.session, {})[st.now_step or 0] = st
-
-    t.subscribe(f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/*/replica/*", on_replica)
-    conf_args = ["--config", str(conf)]
-    x = Daemon("inst-x", root / "inst-x", [peer], [*conf_args, *PEERS]).start()
-    assert pres.wait("inst-x", timeout=WAIT_S), x.log()
-    y = Daemon("inst-y", root / "inst-y", [peer, x.endpoint], [*conf_args, *PEERS]).start()
+    replicas = Replicas(t)
+    x, y = start_pair(root, peer, conf, pres)
     try:
-        assert pres.wait("inst-y", timeout=WAIT_S), y.log()
-        names = [f"fo{i:02d}" for i in range(20)]
-        epoch = time.time_ns() + 3_000_000_000
         kill_at, steps = 50, 150
-        feeds = {s: make_feed(s, epoch, seed=100 + i, steps=steps, max_delay=max_delay)
-                 for i, s in enumerate(names)}
-        for s in names:
-            t.put(keys.config_key(s), encode(feeds[s].spec))
-        assert col.wait_for(lambda c: all(c.statuses[s] for s in names), WAIT_S)
-        owners = {s: col.statuses[s][-1].instance for s in names}
+        feeds, owners = open_feeds(t, col, "fo", 20, 100, steps, max_delay)
+        names = list(feeds)
         lost = [s for s in names if owners[s] == "inst-y"]
         kept = [s for s in names if owners[s] == "inst-x"]
         assert lost and kept, owners
         pub = Publisher(t, list(feeds.values()))
         pub.start()
         # kill once every session of inst-y has been replicated past kill_at
-        assert col.wait_for(lambda c: all(any(k >= kill_at for k in replicas.get(s, {}))
+        assert col.wait_for(lambda c: all(any(k >= kill_at for k in replicas.steps(s))
                                           for s in lost), WAIT_S), y.log()
         t_kill = time.time_ns()
         y.stop(signal.SIGKILL)
@@ -378,8 +409,7 @@ def test_owner_killed_survivor_resumes_from_its_replicas(world):
             st = query_session_status(t, s)
             assert st is not None and st.instance == "inst-x", st
             assert st.origin == "replica" and st.origin_step is not None, st
-            with lock:
-                state = replicas[s][st.origin_step]
+            state = replicas.at(s, st.origin_step)
             assert state.instance == "inst-y"
             mine = after(col, s, t_kill)
             check_resumed(mine, feed, state)
@@ -414,30 +444,12 @@ def test_sigterm_hands_the_final_state_to_the_successor(world):
     # replicas rarely (10 s): the only replica that can be recent is the final one
     conf = root / "svc.toml"
     conf.write_text("checkpoint_interval_s = 0.2\nreplica_interval_s = 10.0\n")
-    replicas: dict[str, list[SessionState]] = {}
-    lock = threading.Lock()
-
-    def on_replica(sample: Sample) -> None:
-        st = decode(sample.payload, SessionState)
-        with lock:
-            replicas.setdefault(st.session, []).append(st)
-
-    t.subscribe(f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/*/replica/*", on_replica)
-    conf_args = ["--config", str(conf)]
-    x = Daemon("inst-x", root / "inst-x", [peer], [*conf_args, *PEERS]).start()
-    assert pres.wait("inst-x", timeout=WAIT_S), x.log()
-    y = Daemon("inst-y", root / "inst-y", [peer, x.endpoint], [*conf_args, *PEERS]).start()
+    replicas = Replicas(t)
+    x, y = start_pair(root, peer, conf, pres)
     try:
-        assert pres.wait("inst-y", timeout=WAIT_S), y.log()
-        names = [f"gt{i:02d}" for i in range(10)]
-        epoch = time.time_ns() + 3_000_000_000
         stop_at, steps = 50, 130
-        feeds = {s: make_feed(s, epoch, seed=300 + i, steps=steps, max_delay=max_delay)
-                 for i, s in enumerate(names)}
-        for s in names:
-            t.put(keys.config_key(s), encode(feeds[s].spec))
-        assert col.wait_for(lambda c: all(c.statuses[s] for s in names), WAIT_S)
-        owners = {s: col.statuses[s][-1].instance for s in names}
+        feeds, owners = open_feeds(t, col, "gt", 10, 300, steps, max_delay)
+        names = list(feeds)
         moved = [s for s in names if owners[s] == "inst-y"]
         assert moved and len(moved) < len(names), owners
         pub = Publisher(t, list(feeds.values()), cache=DEFAULT_SENDER_CACHE)
@@ -455,8 +467,7 @@ def test_sigterm_hands_the_final_state_to_the_successor(world):
             feed = feeds[s]
             st = query_session_status(t, s)
             assert st is not None and st.instance == "inst-x" and st.origin == "replica", st
-            with lock:
-                final = max(replicas[s], key=lambda r: r.now_step or 0)
+            final = replicas.at(s, max(replicas.steps(s)))
             assert final.instance == "inst-y" and final.made_ns >= t_stop  # sent at the stop
             assert st.origin_step == final.now_step, (st, final.now_step)
             mine = sorted(after(col, s, t_stop), key=lambda p: p.seq)
