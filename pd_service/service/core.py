@@ -49,6 +49,8 @@ _EXPIRY_CHECK_NS = 1_000_000_000
 _SWEEP_NS = 250_000_000
 #: A single run_once() call returns after this long even if work remains (ns).
 _RUN_BUDGET_NS = 50_000_000
+#: Longest wait (s) at a graceful stop for a successor to answer after the hand-over.
+_HANDOVER_ACK_S = 2.0
 #: Most samples taken from one drained subscription per loop of run_once.
 _DRAIN_LIMIT = 4096
 
@@ -171,9 +173,19 @@ class ServiceCore:
         self._closed = True
         self.lifecycle.closed = True
         with self.lock:
-            self.keeper.handover([r.sess for r in self._routes.values() if r.sess is not None],
-                                 self.now_ns())
+            succs = self.keeper.handover(
+                [r.sess for r in self._routes.values() if r.sess is not None], self.now_ns())
             self.publisher.flush()
+        # A barrier before the token goes: Zenoh sends the token's withdrawal as a control
+        # message, which may overtake the replicas just put (data priority), and a successor
+        # taking over before they arrived would resume from an older replica. A query to
+        # each successor travels behind the replicas and its reply comes after they were
+        # received (bounded wait; a successor that does not answer is not waited for).
+        for succ in sorted(succs):
+            try:
+                self.t.get(keys.service_status_key(succ), timeout=_HANDOVER_ACK_S)
+            except Exception:  # pragma: no cover - transport closing
+                log.debug("handover barrier to %s failed", succ, exc_info=True)
         self.keeper.close()
         if self._token is not None:
             self._token.close()

@@ -138,25 +138,31 @@ class StateKeeper:
                 sess.last_replica_ns = now
                 self._send(sess, data)
 
-    def handover(self, sessions: list[Session], now: int) -> None:
+    def handover(self, sessions: list[Session], now: int) -> set[str]:
         """Graceful stop: the newest state of every served session to its successor, not
-        rate-bounded (the caller flushes the outbox before withdrawing its presence)."""
+        rate-bounded (the caller flushes the outbox before withdrawing its presence).
+        Returns the successors sent to."""
+        sent: set[str] = set()
         if not self._replicating():
-            return
+            return sent
         for sess in sessions:
             if not sess.alive or sess.prior_alone():
                 continue
             data = self.encode_state(sess, now)
             if data is not None:
-                self._send(sess, data)
+                succ = self._send(sess, data)
+                if succ is not None:
+                    sent.add(succ)
                 self.counters["replicas_handover"] += 1
+        return sent
 
-    def _send(self, sess: Session, data: bytes) -> None:
+    def _send(self, sess: Session, data: bytes) -> str | None:
         succ = self.ownership.successor(sess.name)
         if succ is not None:
             self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
             self.counters["replicas_sent"] += 1
             self.counters["replica_bytes"] += len(data)
+        return succ
 
     def encode_state(self, sess: Session, now: int) -> bytes | None:
         """The session's SessionState, encoded (None if too large or not exportable)."""
