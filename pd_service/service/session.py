@@ -54,7 +54,7 @@ from pd_service.wire import (
     keys,
 )
 from pd_service.wire.convert import (
-    encode_prediction,
+    PredictionEncoder,
 )
 from pd_service.wire.state import spec_fingerprint
 
@@ -108,6 +108,7 @@ class Session:
         self.tick_gen = 0
         self.idle = False
         self.pred_key = keys.prediction_key(self.name)
+        self.encoder = PredictionEncoder(spec, self.name)
         self.error_key = keys.error_key(self.name)
         self.status_key = keys.status_key(self.name)
         # where the estimate came from ("prior", "checkpoint", "replica") and the step of
@@ -189,8 +190,7 @@ class Session:
         node: object = pred.x  # typed ndarray; the stacked engine puts its Node there
         if isinstance(node, Node):  # stacked: resolves alone if still pending
             pred = PredictedState(pred.step, *node.value(), pred.newest_step)
-        data = encode_prediction(pred, self.spec, self.name, self.seq, made_ns,
-                                 self.counters_snapshot())
+        data = self.encoder.encode(pred, self.seq, made_ns, self.counters_snapshot())
         self.seq += 1
         self.published += 1
         self.last_pub_step = now_step

@@ -8,8 +8,8 @@ it fits its session. Builds no estimator (that is :mod:`pd_service.backends`).
   (raise :class:`WireError` naming the field);
 - :func:`check_key`: does the message agree with the key it arrived on?
 - :func:`prediction_from`: estimator output -> Prediction message;
-- :func:`encode_prediction`: estimator output -> the same Prediction's bytes, directly
-  (the daemon's hot path: no model object).
+- :class:`PredictionEncoder` / :func:`encode_prediction`: estimator output -> the same
+  Prediction's bytes, directly (the daemon's hot path: no model object).
 
 Time: ``step_of(t_ns) = floor((t_ns - epoch_ns) / period_ns)`` in exact integer arithmetic.
 """
@@ -236,6 +236,64 @@ def prediction_from(
     return Prediction.model_construct(**_fields(pred, spec, session, seq, made_ns, counters, x, P))
 
 
+class PredictionEncoder:
+    """One session's Prediction encoder: ``encode(prediction_from(...))``, byte for byte,
+    without building the model (the daemon's publish loop; about 2x cheaper than packing a
+    dict of the fields).
+
+    The msgpack map is written as its parts: the constant ones (the map header, the keys,
+    ``v``, ``session``, the shapes of x and P) are packed once, here; per message only seq,
+    step, t_ns (``epoch_ns + step * period_ns``), the data of x (n,) and P (n, n) (row-major
+    floats), newest_step, made_ns and the counters are packed. Same checks as
+    :func:`prediction_from`: shapes and finite values; raises WireError otherwise (also when
+    the message cannot fit in ``MAX_MESSAGE_BYTES``, even in the codec's compact form).
+    """
+
+    def __init__(self, spec: SessionSpec, session: str) -> None:
+        pk = msgpack.Packer(use_bin_type=True).pack
+        n = spec.n
+        self.spec, self.session, self.n = spec, session, n
+        self._epoch, self._period = spec.epoch_ns, spec.period_ns
+        # a fixmap of the 10 fields, in the order of Prediction's fields (_fields)
+        self._head = b"\x8a" + pk("v") + pk(1) + pk("session") + pk(session) + pk("seq")
+        self._k_step, self._k_t = pk("step"), pk("t_ns")
+        self._k_x = pk("x") + b"\x82" + pk("shape") + pk([n]) + pk("data")
+        self._k_P = pk("P") + b"\x82" + pk("shape") + pk([n, n]) + pk("data")
+        self._k_newest, self._k_made, self._k_counters = pk("newest_step"), pk("made_ns"), \
+            pk("counters")
+        self._pack = msgpack.Packer(use_bin_type=True).pack
+
+    def encode(self, pred: PredictedMoments, seq: int, made_ns: int,
+               counters: Mapping[str, int]) -> bytes:
+        """The Prediction of x(pred.step) ~ (pred.x, pred.P), encoded."""
+        x, P = _checked(pred, self.n)
+        xs = x.tolist()
+        ps = P.ravel().tolist()
+        # finite check: fsum of finite values is finite unless it overflows (then look
+        # closer); fsum raises ValueError for inf + -inf
+        try:
+            finite = math.isfinite(math.fsum(xs)) and math.isfinite(math.fsum(ps))
+        except (OverflowError, ValueError):
+            finite = False
+        if not finite and not (np.isfinite(x).all() and np.isfinite(P).all()):
+            raise _not_finite()
+        if type(counters) is not dict:
+            counters = {str(k): int(v) for k, v in counters.items()}
+        pk = self._pack
+        step = int(pred.step)
+        newest = pred.newest_step
+        data = b"".join((
+            self._head, pk(int(seq)), self._k_step, pk(step),
+            self._k_t, pk(self._epoch + step * self._period),
+            self._k_x, pk(xs), self._k_P, pk(ps),
+            self._k_newest, pk(None if newest is None else int(newest)),
+            self._k_made, pk(int(made_ns)), self._k_counters, pk(counters)))
+        if len(data) > MAX_MESSAGE_BYTES:  # the codec's compact form, or its refusal
+            data = encode(prediction_from(pred, self.spec, self.session, seq, made_ns,
+                                          counters))
+        return data
+
+
 def encode_prediction(
     pred: PredictedMoments,
     spec: SessionSpec,
@@ -244,26 +302,6 @@ def encode_prediction(
     made_ns: int,
     counters: Mapping[str, int],
 ) -> bytes:
-    """``encode(prediction_from(...))``, byte for byte, without building the model.
-
-    For the daemon's publish loop (about 3x cheaper). Same checks as
-    :func:`prediction_from`: shapes and finite values; raises WireError otherwise (also
-    when the message cannot fit in ``MAX_MESSAGE_BYTES``, even in the codec's compact form).
-    """
-    n = spec.n
-    x, P = _checked(pred, n)
-    xs = x.tolist()
-    ps = P.ravel().tolist()
-    # finite check: fsum of finite values is finite unless it overflows (then look closer)
-    try:
-        finite = math.isfinite(math.fsum(xs)) and math.isfinite(math.fsum(ps))
-    except OverflowError:
-        finite = False
-    if not finite and not (np.isfinite(x).all() and np.isfinite(P).all()):
-        raise _not_finite()
-    obj = _fields(pred, spec, session, seq, made_ns, counters,
-                  {"shape": [n], "data": xs}, {"shape": [n, n], "data": ps})
-    data: bytes = msgpack.packb(obj, use_bin_type=True)
-    if len(data) > MAX_MESSAGE_BYTES:  # the codec's compact form, or its refusal
-        data = encode(prediction_from(pred, spec, session, seq, made_ns, counters))
-    return data
+    """``encode(prediction_from(...))``, byte for byte: :class:`PredictionEncoder` for one
+    message (the daemon keeps one encoder per session)."""
+    return PredictionEncoder(spec, session).encode(pred, seq, made_ns, counters)

@@ -69,6 +69,27 @@ def test_check_is_cheap_and_catches_what_it_should():
     assert not health.thoroughly_healthy(np.array([[1.0, 2.0], [2.0, 1.0]]))  # eig -1
 
 
+@pytest.mark.parametrize("n", [4, 17])  # Python floats (n^2 <= 256) and numpy's reductions
+def test_check_agrees_with_numpy_on_both_paths(n):
+    rng = np.random.default_rng(n)
+    for _ in range(200):
+        x = rng.normal(size=n) * 10.0 ** rng.integers(-300, 300)
+        P = np.diag(np.abs(rng.normal(size=n))) * 10.0 ** rng.integers(-300, 300)
+        if rng.random() < 0.3:
+            P[rng.integers(n), rng.integers(n)] = rng.choice([np.nan, np.inf, -np.inf, -1.0, 1e308])
+        if rng.random() < 0.2:
+            x[rng.integers(n)] = rng.choice([np.nan, np.inf, -np.inf, 1e308])
+        if rng.random() < 0.1:  # inf and -inf together: fsum raises, not overflows
+            P[0, 1], P[1, 0] = np.inf, -np.inf
+        finite = np.isfinite(x).all() and np.isfinite(P).all()
+        want = None if finite and P.diagonal().min() >= 0 else (
+            "non-finite" if not finite else "positive")
+        got = health.unhealthy(x, P)
+        assert (got is None) == (want is None), (x, P, got)
+        if want is not None:
+            assert want in got
+
+
 def test_a_poisoned_posterior_is_recovered_from_the_snapshot(tmp_path, monkeypatch):
     bus, clock, col, cli = world()
     core = make_core(bus, clock, tmp_path)

@@ -10,6 +10,7 @@ from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.estimation.checks import PSD_RTOL as ESTIMATION_PSD_RTOL
 from pd_service.wire import PSD_RTOL, Prediction, WireError, decode, encode
 from pd_service.wire.convert import (
+    PredictionEncoder,
     check_command,
     check_key,
     check_measurement,
@@ -142,6 +143,29 @@ def test_prediction_from():
     assert fast == encode(full)
 
 
+@pytest.mark.parametrize("session", ["s1", "a-session-name-longer-than-31-bytes_" + "x" * 26])
+def test_one_encoder_gives_the_models_bytes_for_every_message(session):
+    """The daemon's per-session PredictionEncoder, reused: every field that varies (seq,
+    step, newest_step None or not, made_ns, counters, values) across the msgpack size
+    classes of ints and strings, byte for byte equal to the validated model's encoding."""
+    spec = paper_spec(epoch_ns=EPOCH).model_copy(update={"session": session})
+    enc = PredictionEncoder(spec, session)
+    rng = np.random.default_rng(7)
+    for i in range(300):
+        x = rng.normal(size=4) * 10.0 ** rng.integers(-20, 20)
+        A = rng.normal(size=(4, 4))
+        P = A @ A.T * 10.0 ** rng.integers(-20, 20)
+        step = int(rng.choice([0, 1, 127, 128, 255, 65_535, 2**31, 2**32 + 1]))
+        newest = None if i % 3 == 0 else int(rng.integers(0, step + 1))
+        counters = {f"c{j}": int(rng.choice([0, 1, 200, 70_000, 2**33])) for j in range(i % 20)}
+        fake = type("P", (), {"step": step, "x": x, "P": P, "newest_step": newest})()
+        seq, made = int(rng.choice([0, 5, 300, 2**35])), EPOCH + int(rng.integers(0, 10**9))
+        want = encode(Prediction(session=session, seq=seq, step=step,
+                                 t_ns=EPOCH + step * PERIOD_NS, x=x, P=P, newest_step=newest,
+                                 made_ns=made, counters=counters))
+        assert enc.encode(fake, seq, made, counters) == want
+
+
 def test_prediction_from_copies_and_freezes():
     spec, op, pred = _estimate()
     x_src = np.array(pred.x)
@@ -164,6 +188,9 @@ def test_prediction_from_refuses_bad_estimates():
     fake = type("P", (), {"step": 1, "x": bad_x, "P": pred.P, "newest_step": None})()
     with pytest.raises(WireError, match="not finite"):
         prediction_from(fake, spec, "s1", 0, 0, {})
+    with pytest.raises(WireError, match="not finite"):
+        encode_prediction(fake, spec, "s1", 0, 0, {})
+    bad_x[1], bad_x[2] = np.inf, -np.inf  # fsum raises ValueError here, not OverflowError
     with pytest.raises(WireError, match="not finite"):
         encode_prediction(fake, spec, "s1", 0, 0, {})
     big = type("P", (), {"step": 1, "x": np.full(4, 1e308), "P": np.diag(np.full(4, 1e308)),
