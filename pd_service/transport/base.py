@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal, Protocol, Self
+from typing import Literal, NamedTuple, Protocol, Self
 
 #: Samples a sender keeps per key by default (``Transport.publisher(key, cache=...)``) so that
 #: a restarted daemon reads back what it missed: a stream of one sample per step covers
@@ -18,14 +18,14 @@ from typing import Literal, Protocol, Self
 DEFAULT_SENDER_CACHE = 256
 
 
-@dataclass(frozen=True, slots=True)
-class Sample:
+class Sample(NamedTuple):
     """A received publication. ``recv_ns``: wall clock at receipt (time.time_ns());
     ``recv_mono_ns``: monotonic clock at receipt (for latency); ``encoding`` (None: the
     default, Zenoh's ``zenoh/bytes``) and ``attachment`` as the publisher set them.
     ``recovered``: True for a sample read back from a sender's cache
     (:meth:`Transport.recover`), not received live: it may repeat one received live or be
-    older than the receiver can use."""
+    older than the receiver can use. (A NamedTuple: built per received message, ~3x
+    cheaper than a frozen dataclass.)"""
 
     key: str
     payload: bytes

@@ -9,7 +9,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Literal
 
 from .base import HandleOwner, Reply, Sample
@@ -89,7 +89,7 @@ def _recovered(pub: _Publisher, n: int) -> list[Sample]:
     time they are read back as their receipt time."""
     assert pub.cache is not None
     now, mono = time.time_ns(), time.monotonic_ns()
-    return [replace(s, recv_ns=now, recv_mono_ns=mono, recovered=True)
+    return [s._replace(recv_ns=now, recv_mono_ns=mono, recovered=True)
             for s in list(pub.cache)[-n:]] if n > 0 else []
 
 
