@@ -28,6 +28,8 @@ Usage: python bench/service.py [--sessions 10,100,500,1000] [--duration 10] [--w
        [--root DIR]       benchmark the pd_service of another checkout (daemon's PYTHONPATH),
                           e.g. a `git worktree` of the baseline, side by side (--compare)
        [--compare DIR]    alternate runs of this checkout and DIR (same N, same session)
+       [--compare-pure]   alternate runs of this checkout compiled and as pure Python
+                          (the daemon with PD_SERVICE_PURE=1; pd_service.native)
        [--profile]        cProfile the daemon's worker thread, print the top functions
        [--threads]        print the CPU seconds of the daemon's busiest threads
        [--declare-keys]   load generator declares its key expressions
@@ -205,7 +207,7 @@ BENCH_ENV = {
 }
 
 
-def one_run(n: int, args: argparse.Namespace, root: Path = ROOT) -> dict:
+def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = False) -> dict:
     from pd_service.transport import ZenohTransport, zenoh_config
 
     port = free_port()
@@ -216,6 +218,8 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT) -> dict:
     env.pop("PD_SERVICE_CONFIG", None)
     for k, v in BENCH_ENV.items():
         env.setdefault(k, v)
+    if pure:  # the daemon runs the hot modules from their .py files
+        env["PD_SERVICE_PURE"] = "1"
     if root != ROOT:  # the daemon imports pd_service from that checkout
         env["PYTHONPATH"] = os.pathsep.join([str(root)] + [p for p in [env.get("PYTHONPATH")] if p])
     daemons = []
@@ -353,6 +357,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--root", default="", help="checkout whose pd_service the daemon runs")
     ap.add_argument("--compare", default="", help="second checkout, runs alternate")
+    ap.add_argument("--compare-pure", dest="compare_pure", action="store_true",
+                    help="alternate compiled and pure-Python runs of this checkout")
     ap.add_argument("--threads", action="store_true", help="print the daemon's busiest threads")
     ap.add_argument("--declare-keys", dest="declare_keys", action="store_true",
                     help="load generator declares its key expressions (zenoh declare_keyexpr)")
@@ -372,11 +378,16 @@ def main() -> None:
           f"10 Hz), {args.instances} daemon instance(s), {os.cpu_count()} CPUs, "
           f"{args.duration:g} s measured after {args.warmup:g} s warm-up, "
           f"{args.repeat} run(s) per N")
-    roots = [("this", ROOT)]
+    from pd_service import native
+
+    print(f"hot path of this checkout: {native.STATUS}")
+    roots = [("this", ROOT, False)]
     if args.root:
-        roots = [(args.root, Path(args.root).resolve())]
+        roots = [(args.root, Path(args.root).resolve(), False)]
     if args.compare:
-        roots.append((args.compare, Path(args.compare).resolve()))
+        roots.append((args.compare, Path(args.compare).resolve(), False))
+    if args.compare_pure:
+        roots.append(("this, pure Python", roots[0][1], True))
     hdr = (f"{'N':>5} {'in msg/s':>9} {'pred/s/sess':>11} {'rx/s/sess':>9} {'p50 us':>8} "
            f"{'p99 us':>9} {'daemon CPU':>10} {'us/sess-step':>12} {'gen CPU':>8} "
            f"{'overruns':>8} {'flood':>6} {'late':>6} {'refused':>7}")
@@ -385,11 +396,11 @@ def main() -> None:
     print(hdr)
     summary = []
     for n in [int(x) for x in args.sessions.split(",")]:
-        runs: dict[str, list[dict]] = {label: [] for label, _ in roots}
+        runs: dict[str, list[dict]] = {label: [] for label, _, _ in roots}
         for _ in range(args.repeat):
-            for label, root in roots:  # alternate the builds: same load on the machine
+            for label, root, pure in roots:  # alternate the builds: same load on the machine
                 try:
-                    r = one_run(n, args, root)
+                    r = one_run(n, args, root, pure)
                 except RuntimeError as exc:  # e.g. a daemon too overloaded to answer
                     print(f"{label[-24:]:>24} {n:>5} run failed: {exc}", flush=True)
                     continue

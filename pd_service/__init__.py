@@ -6,3 +6,6 @@ it): ``estimation`` (pure numpy) <- ``wire`` (schemas, codec, keys) <- ``transpo
 """
 
 __version__ = "0.1.0"
+
+# PD_SERVICE_PURE=1: the mypyc-compiled hot modules (setup.py) run from their .py files
+from . import native as _native  # noqa: E402,F401  (installs the switch before any import)

@@ -13,8 +13,12 @@ import bisect
 from collections import Counter
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 
 
+# copy.deepcopy of an estimator, compiled (setup.py), needs serializable; with mypy 2.4.1,
+# serializable alone makes the compiled class skip __init__, with both flags it does not
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class InputBuffer:
     """u(t) for t in [origin, origin + capacity). Shapes: each u is (nu,)."""
 

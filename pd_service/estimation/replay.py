@@ -60,6 +60,7 @@ from dataclasses import dataclass
 from typing import Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 
 from .checks import as_covariance, as_step, as_vector
 from .inputs import InputBuffer
@@ -151,6 +152,8 @@ class FusedBackend(Backend[S], Protocol):
         ...
 
 
+# compiled by mypyc (setup.py); the backends' estimators subclass it in interpreted code
+@mypyc_attr(allow_interpreted_subclasses=True, serializable=True)
 class ReplayEstimator(Generic[S]):
     """Accept window, counters, command buffer and replay around a :class:`Backend`.
 
@@ -171,10 +174,13 @@ class ReplayEstimator(Generic[S]):
         initial: S,
         sensor_dims: dict[str, int],
         nu: int,
-        lead: int,
-        max_delay: int,
+        lead: object,
+        max_delay: object,
         command_hold: str = "hold",
     ) -> None:
+        # lead, max_delay, step and now are declared object where the caller's value is
+        # checked here (as_step): compiled (mypyc), a narrower type would refuse a numpy int
+        # or a float with a TypeError before the check could name the field
         lead = as_step(lead, "lead")
         max_delay = as_step(max_delay, "max_delay")
         if lead < 0:
@@ -234,7 +240,7 @@ class ReplayEstimator(Generic[S]):
         return self._c
 
     def add_measurement(
-        self, sensor: str, step: int, z: object, now: int, R: object | None = None
+        self, sensor: object, step: object, z: object, now: object, R: object | None = None
     ) -> bool:
         """Offer the sample of ``sensor`` taken at ``step``; True iff accepted.
 
@@ -247,20 +253,19 @@ class ReplayEstimator(Generic[S]):
         if idx is None:
             raise ValueError(f"sensor: unknown sensor {sensor!r} (known: {list(self._index)})")
         m = self._dims[idx]
-        if type(step) is not int:
-            step = as_step(step, "step")
-        now = self._check_now(now)
+        k = step if type(step) is int else as_step(step, "step")
+        t = self._check_now(now)
         zv = as_vector(z, "z", m)
         Rm = None if R is None else as_covariance(R, "R", m)
-        if now != self._now:
-            self._advance(now)
-        if step > now:
+        if t != self._now:
+            self._advance(t)
+        if k > t:
             self._counters["future"] += 1
             return False
-        if step < now - self.max_delay or step < self._c:
+        if k < t - self.max_delay or k < self._c:
             self._counters["late"] += 1
             return False
-        bucket = self._packets.get(step)
+        bucket = self._packets.get(k)
         if bucket is not None:
             for p in bucket:
                 if p.sensor == idx:
@@ -269,23 +274,23 @@ class ReplayEstimator(Generic[S]):
         zv.setflags(write=False)
         pkt = _new_tuple(Packet, (idx, zv, Rm))
         if bucket is None:
-            self._packets[step] = [pkt]
+            self._packets[k] = [pkt]
             steps = self._steps
-            if not steps or step > steps[-1]:
-                steps.append(step)
+            if not steps or k > steps[-1]:
+                steps.append(k)
             else:
-                bisect.insort(steps, step)
+                bisect.insort(steps, k)
         else:
             bucket.append(pkt)
             bucket.sort(key=_by_sensor)
-        # _invalidate(step), inlined: posteriors from step on are stale
-        if self._dirty is None or step < self._dirty:
-            self._dirty = step
+        # _invalidate(k), inlined: posteriors from k on are stale
+        if self._dirty is None or k < self._dirty:
+            self._dirty = k
         self._cache = None
         self._counters["accepted"] += 1
         return True
 
-    def add_command(self, step: int, u: object, now: int | None = None) -> bool:
+    def add_command(self, step: object, u: object, now: object | None = None) -> bool:
         """Offer the command u that applies from ``step`` on; True iff accepted.
 
         Refused ("commands_late") if ``step`` is already final (before
@@ -293,32 +298,31 @@ class ReplayEstimator(Generic[S]):
         steps past the predicted step ``now + lead``, ("commands_duplicate") if a command
         for ``step`` is already stored. ``now`` defaults to the newest one seen.
         """
-        if type(step) is not int:
-            step = as_step(step, "step")
+        k = step if type(step) is int else as_step(step, "step")
         uv = as_vector(u, "u", self._nu)
         if now is not None:
-            now = self._check_now(now)
-            if now != self._now:
-                self._advance(now)
+            t = self._check_now(now)
+            if t != self._now:
+                self._advance(t)
         ref = self._now if self._now is not None else 0
-        if not self._inputs.admit(step, uv, self._c, ref + self._cmd_ahead, self._counters):
+        if not self._inputs.admit(k, uv, self._c, ref + self._cmd_ahead, self._counters):
             return False
-        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        self._invalidate(k + 1)  # u(k) first moves x(k + 1)
         return True
 
-    def predict(self, now: int) -> PredictedState:
+    def predict(self, now: object) -> PredictedState:
         """LMMSE estimate of x(now + lead) from x0, P0, the commands and accepted packets.
 
         With a fused backend the returned arrays are read-only (the covariance may be the
         previous prediction's, reused): copy them to modify."""
-        now = self._check_now(now)
-        if now != self._now:
-            self._advance(now)
-        if self._cache is not None and self._cache[0] == now:
+        t = self._check_now(now)
+        if t != self._now:
+            self._advance(t)
+        if self._cache is not None and self._cache[0] == t:
             return self._cache[1]
         self._replay(None)
         step, state = self._newest()
-        target = now + self.lead
+        target = t + self.lead
         advance = getattr(self._backend, "advance", None)
         if advance is not None:
             m = target - step
@@ -332,7 +336,7 @@ class ReplayEstimator(Generic[S]):
                 state = self._propagate(state, step, target - step)
             x, P = self._backend.moments(state)
         pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
-        self._cache = (now, pred)
+        self._cache = (t, pred)
         return pred
 
     # --- export / restore of the window --------------------------------------------------

@@ -26,6 +26,7 @@ import time
 from collections import Counter
 from collections.abc import Callable
 
+from pd_service import native
 from pd_service.estimation.linear import set_tables_max_bytes
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Drain, Handle, Transport
@@ -115,7 +116,7 @@ class ServiceCore:
         """
         t, s, d, q = self.t, self.settings, self.dispatch, self.queries
         event(log, "starting", instance=self.instance, shard=s.shard or "rendezvous",
-              state_dir=str(self.store.dir) if self.store else "")
+              state_dir=str(self.store.dir) if self.store else "", hot_path=native.STATUS)
         self._handles.append(t.subscribe(keys.ALL_CONFIGS, d.on_config_sample))
         self._handles.append(t.subscribe(replicas_for(self.instance), self.keeper.on_replica))
         peers = [k.rsplit("/", 1)[-1] for k in t.get_liveliness(keys.ALL_SERVICES,

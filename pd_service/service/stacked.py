@@ -35,6 +35,7 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 
 from pd_service.estimation import LinearModel, Packet, ReplayEstimator, Sensor
 from pd_service.estimation.checks import as_covariance, as_vector
@@ -323,6 +324,9 @@ def _update_group(grp: list[Node]) -> None:
 
 # ------------------------------------------------------------------ the estimator -------
 
+# compiled (setup.py): a compiled subclass of a serializable class needs both flags too, else
+# (mypy 2.4.1) its __init__ is skipped
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class StackedObserverPredictor(ReplayEstimator[Node]):
     """:class:`~pd_service.estimation.ObserverPredictor` with lazy, batchable numerics.
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping
-from typing import Any, Protocol
+from typing import Any, Protocol, SupportsInt
 
 import msgpack
 import numpy as np
@@ -45,10 +45,12 @@ from .messages import (
 
 class PredictedMoments(Protocol):
     """What a prediction is made of (e.g. :class:`pd_service.estimation.PredictedState`):
-    x(step) ~ (x (n,), P (n, n)), ``newest_step`` the newest sample that contributed."""
+    x(step) ~ (x (n,), P (n, n)), ``newest_step`` the newest sample that contributed.
+    The steps may be numpy integers (SupportsInt: this module, compiled by mypyc, reads them
+    with int())."""
 
     @property
-    def step(self) -> int: ...
+    def step(self) -> SupportsInt: ...
 
     @property
     def x(self) -> NDArray[np.float64]: ...
@@ -57,7 +59,7 @@ class PredictedMoments(Protocol):
     def P(self) -> NDArray[np.float64]: ...
 
     @property
-    def newest_step(self) -> int | None: ...
+    def newest_step(self) -> SupportsInt | None: ...
 
 
 def plain_params(params: Mapping[str, Any]) -> dict[str, Any]:

@@ -128,8 +128,7 @@ def test_without_a_snapshot_the_session_restarts_from_its_prior(tmp_path, monkey
     core.run_once()
     drive(core, cli, clock, "s1", range(0, 10))
     sess = core._routes["s1"].sess
-    sess.snapshot = None
-    monkeypatch.setattr(sess, "keep_snapshot", lambda pred, k: None)
+    sess.snapshot, sess.snapshot_step, sess.snap_every = None, 0, 10**9  # none from now on
     monkeypatch.setattr(stacked, "_propagate_one",
                         Poison(stacked._propagate_one, nan_node, times=1))
     drive(core, cli, clock, "s1", range(10, 30))

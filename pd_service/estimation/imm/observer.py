@@ -119,7 +119,7 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
         return self.filter.variant
 
     def add_measurement(
-        self, sensor: str, step: int, z: object, now: int, R: object | None = None
+        self, sensor: object, step: object, z: object, now: object, R: object | None = None
     ) -> bool:
         """As :meth:`ReplayEstimator.add_measurement`; a per-sample R must also be positive
         definite (the information form uses R^{-1})."""

@@ -1,0 +1,128 @@
+"""The daemon's hot modules that ``setup.py`` compiles with mypyc, and the switch back to their
+Python source.
+
+The compiled modules are the same source as the .py files beside them; Python imports an
+extension module in place of the .py file when both are there. When ``pd_service`` is first
+imported, this module decides (:data:`STATUS`):
+
+- ``PD_SERVICE_PURE=1`` in the environment: the .py files (the reference the compiled build
+  is tested against, and the fallback should a compiled module ever misbehave);
+- a compiled build whose sources differ from the .py files now there (an edited checkout not
+  rebuilt: ``make venv`` rebuilds): the .py files, with a RuntimeWarning, never stale code;
+- else the compiled modules if built, the .py files if not.
+
+``setup.py`` writes the digest of the sources it compiled to :data:`DIGEST_FILE`.
+:func:`compiled` tells which modules run compiled.
+
+Stdlib only: ``setup.py`` reads :data:`HOT_MODULES` from this file without importing the
+package.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.abc
+import importlib.machinery
+import importlib.util
+import os
+import sys
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+from types import ModuleType
+
+#: The per-message path: decode and checks, the estimator's window, the stacked numerics,
+#: publishing. (Module names; setup.py compiles their files.)
+HOT_MODULES = (
+    "pd_service.estimation.checks",
+    "pd_service.estimation.inputs",
+    "pd_service.estimation.replay",
+    "pd_service.intake",
+    "pd_service.intake.fastpath",
+    "pd_service.service.dispatch",
+    "pd_service.service.health",
+    "pd_service.service.publish",
+    "pd_service.service.session",
+    "pd_service.service.stacked",
+    "pd_service.wire.convert",
+)
+
+#: ``PD_SERVICE_PURE=1``: import the .py files even where an extension is built.
+PURE_ENV = "PD_SERVICE_PURE"
+
+_ROOT = Path(__file__).resolve().parent.parent
+
+#: sha256 of the hot modules' sources that the compiled build was made from (setup.py).
+DIGEST_FILE = Path(__file__).with_name("native.sha256")
+
+
+def source_path(module: str) -> Path:
+    """The .py file of a hot module (a package's ``__init__.py``)."""
+    path = _ROOT.joinpath(*module.split("."))
+    return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+
+
+class _SourceFirst(importlib.abc.MetaPathFinder):
+    """Finds the hot modules' .py files ahead of their extension modules."""
+
+    def find_spec(self, fullname: str, path: Sequence[str] | None = None,
+                  target: ModuleType | None = None) -> importlib.machinery.ModuleSpec | None:
+        if fullname not in HOT_MODULES:
+            return None
+        src = source_path(fullname)
+        package = src.name == "__init__.py"
+        return importlib.util.spec_from_file_location(
+            fullname, src, submodule_search_locations=[str(src.parent)] if package else None)
+
+
+def sources_digest() -> str:
+    """sha256 over the hot modules' names and sources, in :data:`HOT_MODULES` order."""
+    h = hashlib.sha256()
+    for name in HOT_MODULES:
+        h.update(name.encode() + b"\0" + source_path(name).read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _built() -> bool:
+    """Whether a compiled build is installed beside the sources."""
+    here = Path(__file__).parent
+    return any(here.glob("native__mypyc.*"))
+
+
+def use_pure() -> None:
+    """Import the hot modules from their .py files from now on (before they are imported)."""
+    if not any(isinstance(f, _SourceFirst) for f in sys.meta_path):
+        sys.meta_path.insert(0, _SourceFirst())
+
+
+def compiled() -> dict[str, bool]:
+    """Hot module -> whether it runs compiled (imports them)."""
+    out = {}
+    for name in HOT_MODULES:
+        mod = importlib.import_module(name)
+        out[name] = not str(getattr(mod, "__file__", "")).endswith(".py")
+    return out
+
+
+def _decide() -> str:
+    if os.environ.get(PURE_ENV) == "1":
+        use_pure()
+        return f"pure Python ({PURE_ENV}=1)"
+    if not _built():
+        return "pure Python (not compiled: no C compiler at install time, or PD_SERVICE_PURE=1)"
+    try:
+        fresh = DIGEST_FILE.read_text().strip() == sources_digest()
+    except OSError:
+        fresh = False
+    if not fresh:
+        use_pure()
+        warnings.warn("pd_service: the compiled hot path was built from other sources than the "
+                      ".py files now installed; running them as pure Python (rebuild: make "
+                      "venv, or pip install -e .)", RuntimeWarning, stacklevel=2)
+        return "pure Python (the compiled build is stale: rebuild with make venv)"
+    return f"compiled with mypyc ({len(HOT_MODULES)} modules)"
+
+
+#: How the hot modules run: "compiled with mypyc (...)" or "pure Python (why)". (Decided
+#: only as part of the package: setup.py reads this file on its own.)
+STATUS = _decide() if __name__ == "pd_service.native" else "undecided"

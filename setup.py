@@ -1,0 +1,71 @@
+"""Build of pd-service: the package is pure Python; the modules of the daemon's per-message
+path are also compiled to C extensions with mypyc (part of mypy) when a C compiler is there.
+
+The compiled modules are the same source: Python imports the extension in place of the .py
+file. Without a compiler (or with ``PD_SERVICE_PURE=1`` at install time) the package
+installs as pure Python and behaves the same, only slower; ``PD_SERVICE_PURE=1`` at run time
+also makes an installed compiled package use its .py files. The list of modules is
+``pd_service.native.HOT_MODULES``.
+Measured gain: docs/service.md, "Compiled hot path".
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+
+from setuptools import setup
+from setuptools.command.build_ext import build_ext
+
+
+def _native():  # pd_service/native.py, read without importing the package
+    spec = importlib.util.spec_from_file_location("_pd_native", "pd_service/native.py")
+    assert spec is not None and spec.loader is not None
+    native = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(native)
+    return native
+
+
+def _hot_files() -> list[str]:
+    """The files of pd_service.native.HOT_MODULES; writes the digest of their sources beside
+    them (pd_service.native compares it at import: a stale build is never run)."""
+    native = _native()
+    native.DIGEST_FILE.write_text(native.sources_digest() + "\n")
+    return [os.path.relpath(native.source_path(m)) for m in native.HOT_MODULES]
+
+
+def _ext_modules() -> list:
+    if os.environ.get("PD_SERVICE_PURE") == "1":
+        print("pd-service: PD_SERVICE_PURE=1, installing pure Python", file=sys.stderr)
+        return []
+    try:
+        from mypyc.build import mypycify
+
+        # mypyc.ini: the types `make lint` checks, from numpy's and pydantic's own stubs
+        return mypycify(["--config-file", "mypyc.ini", *_hot_files()],
+                        group_name="pd_service.native", opt_level="3")
+    except (Exception, SystemExit) as exc:  # mypyc missing or refusing: pure Python
+        print(f"pd-service: not compiling the hot path ({type(exc).__name__}: {exc}); "
+              "installing pure Python", file=sys.stderr)
+        return []
+
+
+class OptionalBuildExt(build_ext):
+    """build_ext that falls back to pure Python when compiling fails (no C compiler, no
+    Python headers): all of the compiled modules or none (a module's extension needs the
+    shared library of the group)."""
+
+    def run(self) -> None:
+        try:
+            super().run()
+        except Exception as exc:
+            for ext in self.extensions:
+                for path in (self.get_ext_fullpath(ext.name),):
+                    if os.path.exists(path):
+                        os.remove(path)
+            print(f"pd-service: compiling the hot path failed ({type(exc).__name__}: {exc}); "
+                  "installing pure Python", file=sys.stderr)
+
+
+setup(ext_modules=_ext_modules(), cmdclass={"build_ext": OptionalBuildExt})
