@@ -204,7 +204,15 @@ class ServiceCore:
     # ================================================================== worker ========
 
     def has_work(self) -> bool:
-        return self.dispatch.has_work() or any(dr.pending for dr in self._drains)
+        """Messages or control changes wait in the inboxes (not counting samples still in
+        the drains' queues: :meth:`run_once` takes those first)."""
+        return self.dispatch.has_work()
+
+    def arm(self) -> None:
+        """Before the worker waits idle: the drains hand the next sample over themselves
+        (and wake it). A busy worker does not arm them: it drains at its next round."""
+        for dr in self._drains:
+            dr.arm()
 
     def run_once(self) -> int:
         """Process what is pending: control, unknown sessions, rounds of session inboxes
@@ -214,8 +222,9 @@ class ServiceCore:
         handled = 0
         t_end = self.mono_ns() + _RUN_BUDGET_NS
         while True:
+            got = 0
             for dr in self._drains:  # into the inboxes (callbacks' path), lock not needed
-                dr.drain(_DRAIN_LIMIT)
+                got += dr.drain(_DRAIN_LIMIT)
             with self.lock:
                 now = self.now_ns()
                 if d.control or d.configs:
@@ -241,7 +250,7 @@ class ServiceCore:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS
                 pub.flush()
-            if not self.has_work() or self.mono_ns() >= t_end:
+            if not (got or self.has_work()) or self.mono_ns() >= t_end:
                 return handled
 
     def next_deadline_ns(self) -> int:

@@ -107,9 +107,14 @@ class Daemon:
                 # so that what arrives meanwhile is handled (and its predictions resolved,
                 # stacked) together; a loop that took longer goes on at once. The messages
                 # just handled were not delayed; the next ones wait at most the interval.
+                # What arrives meanwhile waits in the drains' queues (not armed: no thread
+                # switch per round); the next loop takes it.
                 rest = interval - (time.monotonic() - t0)
                 if rest > 0:
                     time.sleep(rest)
+                continue
+            # idle: the drains hand the next sample over themselves and wake the worker
+            core.arm()
             if core.has_work():
                 continue
             timeout = (core.next_deadline_ns() - time.time_ns()) / 1e9

@@ -67,12 +67,19 @@ class Drain(Protocol):
 
     @property
     def pending(self) -> bool:
-        """True if samples may be waiting: call :meth:`drain` again."""
+        """True while the owner takes the samples (not armed): samples may be waiting, call
+        :meth:`drain`. False once armed: the next sample is handed over by the drain's own
+        thread, which wakes the owner."""
         ...
 
     def drain(self, limit: int) -> int:
         """Hand up to ``limit`` waiting samples to the callback, on the calling thread;
-        returns how many."""
+        returns how many (0 while armed and not yet handed over)."""
+        ...
+
+    def arm(self) -> None:
+        """The owner is going to wait idle: hand the next sample over on the drain's own
+        thread (and wake the owner); the owner's next :meth:`drain` takes the rest."""
         ...
 
     def close(self) -> None: ...

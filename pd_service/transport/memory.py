@@ -38,6 +38,9 @@ class _Drain:
     def drain(self, limit: int) -> int:
         return 0
 
+    def arm(self) -> None:
+        pass
+
     def close(self) -> None:
         self._handle.close()
 

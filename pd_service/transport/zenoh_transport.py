@@ -68,15 +68,18 @@ class _Drain:
 
     Zenoh's threads push samples into the channel without the GIL. While the owner is
     busy it takes them in batches (``try_recv``), so a loaded daemon pays no GIL hand-off
-    per sample. When the owner has emptied the queue, a watcher thread blocks in ``recv``
-    (GIL released); the first sample that arrives is handed over by the watcher itself,
-    which wakes the owner and parks until the owner has drained the queue again::
+    per sample. Before the owner waits idle it arms the drain: a watcher thread blocks in
+    ``recv`` (GIL released); the first sample that arrives is handed over by the watcher
+    itself, which wakes the owner and parks until the owner arms it again::
 
         watcher:  wait(go) -> recv() -> callback(sample) -> clear(go), wake()
-        owner:    drain(), only while go is clear: try_recv ... until empty -> set(go)
+        owner:    drain(), only while go is clear: try_recv ... until empty
+                  arm() before waiting idle: set(go)
 
     Only one of the two takes samples at a time, so they reach the callback in the order
-    Zenoh delivered them.
+    Zenoh delivered them. A busy owner (it comes back within its round interval) does not
+    arm: no thread switch and no GIL hand-off per round (measured: the two watchers took
+    ~13 µs of CPU per session-step at 500 sessions when every emptied queue armed them).
 
     The channel is bounded (``capacity`` samples); a full channel makes Zenoh wait (it
     never drops silently), which happens only if the owner falls far behind.
@@ -144,11 +147,13 @@ class _Drain:
             except Exception:  # closed
                 return n
             if s is None:
-                self._go.set()
                 return n
             deliver(s, now, mono)
             n += 1
         return n
+
+    def arm(self) -> None:
+        self._go.set()
 
     def close(self) -> None:
         if self._closed:

@@ -97,9 +97,9 @@ def test_zenoh_transport_loopback() -> None:
 
 @pytest.mark.integration
 def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> None:
-    """Samples reach the callback in order, whether the watcher hands one over (owner idle)
-    or the owner drains them in batches; nothing is lost; close() returns while the watcher
-    is blocked in recv."""
+    """Samples reach the callback in order, whether the watcher hands one over (owner idle,
+    armed) or the owner drains them in batches; nothing is lost; an owner that does not arm
+    gets no hand-over; close() returns while the watcher is blocked in recv."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     with ZenohTransport(zenoh_config(listen=[ep])) as t1, \
             ZenohTransport(zenoh_config(mode="client", connect=[ep])) as t2:
@@ -107,11 +107,20 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
         woke = threading.Event()
         d = t1.subscribe_drained("pd/*/sensor/*", lambda s: got.append(s.payload), woke.set)
         assert d.pending and d.drain(10) == 0  # parked at first: the owner looks once
-        assert not d.pending  # empty: the watcher waits in recv from now on
+        assert d.pending  # not armed: the owner keeps taking the samples itself
         t1.declare_token("pd/@service/a")
         for _ in range(100):  # t2 sees t1's declarations (an event, not a sleep)
             if t2.get_liveliness("pd/@service/*", timeout=0.2):
                 break
+        t2.put("pd/s/sensor/-1", b"-1")
+        for _ in range(500):  # not armed: nobody hands it over, it waits for the owner
+            if d.drain(10):
+                break
+            assert not woke.wait(0.01)
+        assert got == [b"-1"]
+        got.clear()
+        d.arm()
+        assert not d.pending  # armed: the watcher waits in recv from now on
         t2.put("pd/s/sensor/x", b"0")
         assert woke.wait(5.0)  # the watcher handed the first one over
         assert got == [b"0"] and d.pending
@@ -121,14 +130,15 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
             if len(got) == 2001:
                 break
             if d.pending:
-                d.drain(64)  # small batches: the watcher takes turns with the owner
+                if not d.drain(64):  # small batches; empty: the watcher takes a turn
+                    d.arm()
             else:
                 woke.wait(0.05)
                 woke.clear()
         assert got == [str(i).encode() for i in range(2001)]
-        while d.pending:
-            assert d.drain(64) == 0
-        assert not d.pending  # the queue is empty: the watcher waits in recv
+        assert d.pending and d.drain(64) == 0
+        d.arm()
+        assert not d.pending  # armed, the queue empty: the watcher waits in recv
         d.close()  # undeclares while the watcher waits: it must return, not hang
         assert not d.pending or d.drain(10) == 0
 
