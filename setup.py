@@ -14,6 +14,8 @@ from __future__ import annotations
 import importlib.util
 import os
 import sys
+import sysconfig
+from pathlib import Path
 
 from setuptools import setup
 from setuptools.command.build_ext import build_ext
@@ -28,10 +30,8 @@ def _native():  # pd_service/native.py, read without importing the package
 
 
 def _hot_files() -> list[str]:
-    """The files of pd_service.native.HOT_MODULES; writes the digest of their sources beside
-    them (pd_service.native compares it at import: a stale build is never run)."""
+    """The files of pd_service.native.HOT_MODULES."""
     native = _native()
-    native.DIGEST_FILE.write_text(native.sources_digest() + "\n")
     return [os.path.relpath(native.source_path(m)) for m in native.HOT_MODULES]
 
 
@@ -54,18 +54,32 @@ def _ext_modules() -> list:
 class OptionalBuildExt(build_ext):
     """build_ext that falls back to pure Python when compiling fails (no C compiler, no
     Python headers): all of the compiled modules or none (a module's extension needs the
-    shared library of the group)."""
+    shared library of the group). Only a build that succeeded writes the digest of the
+    sources it was made from (pd_service/native.sha256, in the source tree and the built
+    package): pd_service.native runs the extensions only when it matches the .py files."""
 
     def run(self) -> None:
+        if not self.extensions:
+            return
+        native = _native()
+        digests = [native.DIGEST_FILE, Path(self.build_lib, "pd_service", "native.sha256")]
+        for path in digests:  # no digest while building: a failure leaves none
+            path.unlink(missing_ok=True)
         try:
             super().run()
         except Exception as exc:
-            for ext in self.extensions:
-                for path in (self.get_ext_fullpath(ext.name),):
-                    if os.path.exists(path):
-                        os.remove(path)
+            suffix = sysconfig.get_config_var("EXT_SUFFIX")
+            for ext in self.extensions:  # built here, or left in place by an older build
+                for path in (Path(self.get_ext_fullpath(ext.name)),
+                             Path(*ext.name.split(".")).with_suffix(suffix)):
+                    path.unlink(missing_ok=True)
             print(f"pd-service: compiling the hot path failed ({type(exc).__name__}: {exc}); "
                   "installing pure Python", file=sys.stderr)
+            return
+        digest = native.sources_digest() + "\n"
+        for path in digests:
+            if path.parent.is_dir():
+                path.write_text(digest)
 
 
 setup(ext_modules=_ext_modules(), cmdclass={"build_ext": OptionalBuildExt})

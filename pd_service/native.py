@@ -39,11 +39,16 @@ HOT_MODULES = (
     "pd_service.estimation.replay",
     "pd_service.intake",
     "pd_service.intake.fastpath",
+    "pd_service.ratelimit",
+    "pd_service.service.core",
     "pd_service.service.dispatch",
+    "pd_service.service.failover",
     "pd_service.service.health",
     "pd_service.service.publish",
     "pd_service.service.session",
     "pd_service.service.stacked",
+    "pd_service.service.stats",
+    "pd_service.transport.zenoh_transport",
     "pd_service.wire.convert",
 )
 

@@ -104,9 +104,9 @@ class _Drain:
         self._go = threading.Event()
         self._closed = False
         self._seen_mono = time.monotonic_ns()  # last look at the queue
-        self._thread = threading.Thread(target=self._watch, name=f"drain {keyexpr}",
+        self._watcher = threading.Thread(target=self._watch, name=f"drain {keyexpr}",
                                         daemon=True)
-        self._thread.start()
+        self._watcher.start()
 
     @property
     def pending(self) -> bool:
@@ -164,7 +164,7 @@ class _Drain:
         except Exception:  # already closed with the session
             pass
         self._go.set()
-        self._thread.join(timeout=5.0)
+        self._watcher.join(timeout=5.0)
 
 
 class _ZQuery:
