@@ -18,6 +18,11 @@ MS = 1_000_000
 
 def query(session, key: str, payload: bytes | None = None):
     replies = list(session.get(key, payload=payload, timeout=5.0))
+    for _ in range(20):  # a read: asked again while the new queryable is not routed yet
+        if replies or payload is not None:
+            break
+        time.sleep(0.1)
+        replies = list(session.get(key, timeout=5.0))
     assert len(replies) == 1, f"expected one reply from {key}, got {len(replies)}"
     r = replies[0]
     if r.ok is not None:
