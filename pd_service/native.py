@@ -21,13 +21,12 @@ package.
 from __future__ import annotations
 
 import hashlib
-import importlib.abc
-import importlib.machinery
-import importlib.util
+import importlib
 import os
 import sys
 import warnings
 from collections.abc import Sequence
+from importlib.machinery import ModuleSpec
 from pathlib import Path
 from types import ModuleType
 
@@ -67,13 +66,16 @@ def source_path(module: str) -> Path:
     return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
 
 
-class _SourceFirst(importlib.abc.MetaPathFinder):
-    """Finds the hot modules' .py files ahead of their extension modules."""
+class _SourceFirst:
+    """Finds the hot modules' .py files ahead of their extension modules (a meta path
+    finder; importlib.abc is not imported for it: it costs ~6 ms at every start)."""
 
     def find_spec(self, fullname: str, path: Sequence[str] | None = None,
-                  target: ModuleType | None = None) -> importlib.machinery.ModuleSpec | None:
+                  target: ModuleType | None = None) -> ModuleSpec | None:
         if fullname not in HOT_MODULES:
             return None
+        import importlib.util
+
         src = source_path(fullname)
         package = src.name == "__init__.py"
         return importlib.util.spec_from_file_location(

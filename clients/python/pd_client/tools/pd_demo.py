@@ -253,6 +253,10 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                              *(["--until-step", str(args.steps)] if ros2 else []),
                              "--states", ROS2_STATES if ros2 else "p1,p2",
                              *(["--warmup", "50"] if ros2 else []), *mcap, *zenoh_args)
+            # the recorder subscribed before the first message is sent: the MCAP holds every
+            # input the daemon handles (pd-replay then reproduces each prediction exactly)
+            wait_for("the recorder", lambda: any("recording" in line for line in recorder.lines),
+                     30.0, procs)
             if viz and args.viz_port >= 0:  # a live view; the demo goes on without it if it fails
                 start("viz", "-m", "pd_client.tools", "viz", *sessions,
                       "--port", str(args.viz_port), *zenoh_args)
