@@ -66,17 +66,23 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def thread_cpu(pid: int) -> list[tuple[float, str]]:
-    """CPU seconds of each thread of a process, busiest first (diagnostics)."""
-    out = []
+def thread_cpu(pid: int) -> dict[str, float]:
+    """CPU seconds of each thread of a process, by "name/tid" (diagnostics)."""
+    out = {}
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
             name = (task / "comm").read_text().strip()
             fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
         except OSError:
             continue
-        out.append((round((int(fields[11]) + int(fields[12])) / CLK_TCK, 2), name))
-    return sorted(out, reverse=True)[:8]
+        out[f"{name}/{task.name}"] = (int(fields[11]) + int(fields[12])) / CLK_TCK
+    return out
+
+
+def busiest(before: dict[str, float], after: dict[str, float], wall: float) -> str:
+    """The 8 busiest threads over an interval, as % of one core."""
+    used = sorted(((after[k] - before.get(k, 0.0), k) for k in after), reverse=True)[:8]
+    return ", ".join(f"{k.split('/')[0]} {100 * v / wall:.0f}%" for v, k in used)
 
 
 def cpu_seconds(pid: int) -> float:
@@ -270,6 +276,7 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
             time.sleep(0.05)
         s0 = [query_status(probe, i) for i in instances]
         c0 = [cpu_seconds(d.pid) for d in daemons]
+        t0 = [thread_cpu(d.pid) for d in daemons] if args.threads else []
         g0 = cpu_seconds(gen.pid)
         d0 = drv["n"]
         w0 = time.monotonic()
@@ -282,8 +289,9 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
         s1 = [query_status(probe, i) for i in instances]
         c1 = [cpu_seconds(d.pid) for d in daemons]
         if args.threads:
-            for d in daemons:
-                print("  daemon threads (cpu s, name):", thread_cpu(d.pid), flush=True)
+            for d, before in zip(daemons, t0, strict=True):
+                print("  daemon's busiest threads (% of a core):",
+                      busiest(before, thread_cpu(d.pid), time.monotonic() - w0), flush=True)
         g1 = cpu_seconds(gen.pid)
         wall = time.monotonic() - w0
         d1 = drv["n"]

@@ -41,6 +41,15 @@ def make_transport(settings: Settings) -> Transport:
     return ZenohTransport(settings.zenoh.config(DAEMON))
 
 
+def _name_os_thread(name: str) -> None:
+    """Give the calling thread a name that top, py-spy and /proc show (Linux; else nothing)."""
+    try:
+        with open(f"/proc/self/task/{threading.get_native_id()}/comm", "w") as f:
+            f.write(name[:15])
+    except OSError:
+        pass
+
+
 class Daemon:
     """Runs a ServiceCore on a transport (Zenoh unless one is given) with a worker thread."""
 
@@ -76,6 +85,7 @@ class Daemon:
         return self.core
 
     def _work(self) -> None:
+        _name_os_thread("pd-worker")
         path = os.environ.get("PD_SERVICE_PROFILE")  # diagnostics: cProfile of the worker
         if not path:
             self._loop()

@@ -287,6 +287,11 @@ def test_store_rewrites_keep_one_file_and_remove_cleans_up(tmp_path):
     for i in range(5):
         store.save_state("gamma", b"v%d" % i)
         assert store.load_state("gamma") == b"v%d" % i
+    # the temp file is overwritten in place, not truncated first: a shorter state after
+    # longer ones must leave nothing of them behind
+    for data in (b"x" * 5000, b"y" * 4000, b"short", b"z" * 6000, b""):
+        store.save_state("gamma", data)
+        assert store.load_state("gamma") == data
     store.remove_state("gamma")
     assert store.load_state("gamma") is None
     assert sorted(p.name for p in tmp_path.iterdir()) == []
