@@ -6,7 +6,10 @@ clock; prints the worker's CPU per session-step (process time, message building 
 What bench/service.py measures minus Zenoh, the callbacks' GIL hand-offs and the disk: the
 floor of the per-session-step cost of the Python worker.
 
-Usage: python bench/worker.py [--sessions 200] [--steps 100] [--profile]
+With --checkpoints the sessions are checkpointed as in the daemon (every second of the
+simulated clock, written by the writer thread to a temporary state dir).
+
+Usage: python bench/worker.py [--sessions 200] [--steps 100] [--checkpoints] [--profile]
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from __future__ import annotations
 import argparse
 import cProfile
 import pstats
+import shutil
+import tempfile
 import time
 
 import msgpack
@@ -22,6 +27,7 @@ import numpy as np
 from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_paper
 from pd_service.service.config import Settings
 from pd_service.service.core import ServiceCore
+from pd_service.service.persist import SpecStore, StateWriter
 from pd_service.transport import InMemoryBus
 from pd_service.transport.base import Sample
 from pd_service.wire import encode, keys
@@ -37,6 +43,8 @@ def main() -> None:
                     help="the worker runs after every this many sessions' messages (the "
                          "daemon's batches are as large as what arrived meanwhile)")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--checkpoints", action="store_true",
+                    help="checkpoint every simulated second, as the daemon does")
     args = ap.parse_args()
     n = args.sessions
     every = args.every
@@ -44,8 +52,13 @@ def main() -> None:
     t = InMemoryBus().transport()
     settings = Settings(instance="w", cpu_budget=1000, config_rate_total=1e6,
                         config_burst_total=10**6, memory_budget_bytes=8 * 2**30,
-                        max_sessions=10**5, checkpoint_interval_s=0)
-    core = ServiceCore(t, settings, now_ns=lambda: clock[0], mono_ns=lambda: clock[0])
+                        max_sessions=10**5,
+                        checkpoint_interval_s=1.0 if args.checkpoints else 0)
+    store = SpecStore(tempfile.mkdtemp(prefix="pd-worker-")) if args.checkpoints else None
+    core = ServiceCore(t, settings, now_ns=lambda: clock[0], mono_ns=lambda: clock[0],
+                       store=store)
+    if store is not None:
+        core.keeper.writer = StateWriter(store)
     core.start()
     epoch = clock[0]
     names = [f"w{i:05d}" for i in range(n)]
@@ -106,6 +119,9 @@ def main() -> None:
           f"{1e6 * cpu / (n * args.steps):.1f} µs of CPU per session-step, "
           f"{pubs:.2f} predictions per session-step, "
           f"late {core.counters['late_total']}")
+    if store is not None:
+        core.keeper.close()
+        shutil.rmtree(store.dir, ignore_errors=True)
     if prof:
         st = pstats.Stats(prof)
         st.sort_stats("tottime").print_stats(25)

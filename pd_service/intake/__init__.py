@@ -10,6 +10,8 @@ sender's seq when it could be read).
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -85,7 +87,10 @@ class Intake:
         self.spec = spec
         self.est = est
         self.name = spec.session
-        #: Largest |z_i| and |u_i| accepted (out_of_range otherwise).
+        #: Largest |z_i| and |u_i| accepted (out_of_range otherwise). Finite: the fast
+        #: path's single comparison per value also refuses NaN and infinities.
+        if not 0 < max_abs < math.inf:
+            raise ValueError(f"max_abs: must be positive and finite, got {max_abs!r}")
         self.max_abs = max_abs
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
         self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
@@ -95,9 +100,9 @@ class Intake:
         """Offer one Measurement received on ``key``; None if accepted."""
         self.decoded = False
         sensor = key.rsplit("/", 1)[-1]
-        fast = read_measurement(payload, self.name, sensor, self.dims)
+        fast = read_measurement(payload, self.name, sensor, self.dims, self.max_abs)
         if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
-            seq, s, t_ns, z = fast
+            seq, s, t_ns, z = fast  # |z_i| <= max_abs checked on the way
             stamp = "step" if s is not None else "t_ns"
             if s is None:
                 s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
@@ -119,10 +124,11 @@ class Intake:
                 return _check_reason(exc, msg.seq, "invalid")
             seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
             stamp = "step" if msg.step is not None else "t_ns"
+            if z.size and _max_abs(z) > self.max_abs:
+                self.decoded = True
+                return Refusal("out_of_range", f"Measurement.z: a value exceeds "
+                               f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         self.decoded = True
-        if z.size and _max_abs(z) > self.max_abs:
-            return Refusal("out_of_range", f"Measurement.z: a value exceeds {self.max_abs:g} "
-                           "in magnitude (max_abs_input)", seq)
         if now_step < 0:
             return Refusal("future", f"Measurement.{stamp}: sample step {s} is in the future; "
                            f"the session starts at its epoch (now step {now_step})", seq)
@@ -148,7 +154,7 @@ class Intake:
         """Offer one Command; None if accepted."""
         self.decoded = False
         spec = self.spec
-        fast = read_command(payload, self.name, self.r)
+        fast = read_command(payload, self.name, self.r, self.max_abs)
         if fast is not None and (fast[1] is not None
                                  or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
             seq, j, issued, u = fast
@@ -167,10 +173,11 @@ class Intake:
                 return _check_reason(exc, msg.seq, "commands_invalid")
             seq, j, u = msg.seq, command_step(msg, spec), msg.u
             stamp = "step" if msg.step is not None else "issued_ns"
+            if u.size and _max_abs(u) > self.max_abs:
+                self.decoded = True
+                return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
+                               f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         self.decoded = True
-        if u.size and _max_abs(u) > self.max_abs:
-            return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
-                           f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         est = self.est
         try:
             ok = est.add_command(j, u, now=now_step if now_step >= 0 else None)

@@ -118,7 +118,9 @@ class Transport(Protocol):
         thread) when a sample arrives while nobody is draining: the owner should drain
         soon. ``Sample.recv_ns`` is then the wall clock read when the sample was taken from
         the queue (one read per drain) and ``recv_mono_ns`` the monotonic time of the
-        previous look at the queue (so latencies include the wait in it)."""
+        previous look at the queue (so latencies include the wait in it). ``encoding`` and
+        ``attachment`` are not read (None): drained streams carry messages whose encoding
+        the protocol fixes (reading the two cost ~0.4 µs per sample on Zenoh)."""
 
     def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
                 max_samples: int, timeout: float = 2.0) -> Handle:

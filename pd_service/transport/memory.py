@@ -161,8 +161,12 @@ class InMemoryTransport(HandleOwner):
     def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
                           wake: Callable[[], None]) -> _Drain:
         """In memory, samples reach ``callback`` at once (as with :meth:`subscribe`): the
-        drain never holds anything."""
-        return _Drain(self.subscribe(keyexpr, callback))
+        drain never holds anything. Encoding and attachment are dropped, as on Zenoh."""
+        def bare(s: Sample) -> None:
+            callback(s if s.encoding is None and s.attachment is None
+                     else s._replace(encoding=None, attachment=None))
+
+        return _Drain(self.subscribe(keyexpr, bare))
 
     def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
                 max_samples: int, timeout: float = 2.0) -> _Handle:

@@ -20,6 +20,7 @@ from .options import zenoh_config
 
 log = logging.getLogger("pd_service.transport")
 _DEFAULT_ENCODING = zenoh.Encoding.ZENOH_BYTES
+_DELETE = zenoh.SampleKind.DELETE
 #: Samples a drained subscription holds before Zenoh waits for its owner (see _Drain).
 DRAIN_CAPACITY = 65_536
 
@@ -129,8 +130,9 @@ class _Drain:
             self._wake()
 
     def _deliver(self, s: zenoh.Sample, now: int, mono: int) -> None:
-        try:
-            self._cb(_convert(s, now, mono))
+        try:  # encoding and attachment not read (Transport.subscribe_drained)
+            self._cb(Sample(str(s.key_expr), s.payload.to_bytes(),
+                            "delete" if s.kind == _DELETE else "put", now, mono))
         except Exception:
             log.exception("subscriber callback failed for %s", self._keyexpr)
 

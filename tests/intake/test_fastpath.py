@@ -9,6 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pd_service.intake import MAX_ABS_INPUT
 from pd_service.intake.fastpath import read_command, read_measurement
 from pd_service.wire import Command, Measurement, WireError, decode
 from pd_service.wire.convert import (
@@ -32,6 +33,8 @@ ODD = [None, True, False, 1, 0, -1, 2**63, 2**63 - 1, -(2**63), -(2**63) - 1, 1.
        {}, {"shape": [2], "data": [1.0, 2.0]}, {"shape": [1], "data": [1]},
        {"shape": [2], "data": [1.0, math.nan]}, {"shape": [2], "data": [1.0, True]},
        {"shape": [2], "data": [1.0, 10**400]}, {"shape": [2], "data": [1.0, 2**1023]},
+       {"shape": [2], "data": [1.0, 1e13]}, {"shape": [2], "data": [-1e12, 10**12]},
+       {"shape": [2], "data": [1.0, -(10**12) - 1]}, {"shape": [1], "data": [-math.inf]},
        {"shape": [2, 1], "data": [1.0, 2.0]}, {"shape": [2], "data": [1.0]},
        {"shape": [1, 1], "data": [0.25]}, {"shape": [2, 2], "data": [1.0, 0.0, 0.0, 1.0]},
        {"shape": [2], "data": [1.0, 2.0], "x": 1}, {"shape": [True], "data": [1.0]}]
@@ -48,6 +51,8 @@ def full_measurement(payload: bytes, sensor: str):
         return None
     if msg.R is not None:
         return "with R"
+    if np.abs(msg.z).max(initial=0.0) > MAX_ABS_INPUT:  # the intake's out_of_range
+        return None
     return msg.seq, measurement_step(msg, SPEC), msg.z
 
 
@@ -57,11 +62,13 @@ def full_command(payload: bytes):
         check_command(msg, SPEC)
     except WireError:
         return None
+    if np.abs(msg.u).max(initial=0.0) > MAX_ABS_INPUT:
+        return None
     return msg.seq, command_step(msg, SPEC), msg.u
 
 
 def fast_measurement(payload: bytes, sensor: str):
-    got = read_measurement(payload, "s1", sensor, DIMS)
+    got = read_measurement(payload, "s1", sensor, DIMS, MAX_ABS_INPUT)
     if got is None or (got[2] is not None and got[2] < SPEC.epoch_ns):
         return None
     seq, step, t_ns, z = got
@@ -69,7 +76,7 @@ def fast_measurement(payload: bytes, sensor: str):
 
 
 def fast_command(payload: bytes):
-    got = read_command(payload, "s1", 1)
+    got = read_command(payload, "s1", 1, MAX_ABS_INPUT)
     if got is None:
         return None
     seq, step, issued, u = got
@@ -83,7 +90,8 @@ def same(a, b) -> bool:
 
 
 def test_plain_messages_take_the_fast_path():
-    for sensor, z in (("camera", [1.5, -2.0]), ("ranger", [3]), ("camera", [0, 1e300])):
+    for sensor, z in (("camera", [1.5, -2.0]), ("ranger", [3]), ("camera", [0, -1e12]),
+                      ("ranger", [10**12])):
         d = dict(MEAS, sensor=sensor, z={"shape": [len(z)], "data": z})
         data = msgpack.packb(d)
         assert same(fast_measurement(data, sensor), full_measurement(data, sensor))
@@ -130,6 +138,23 @@ def test_garbage_goes_to_the_full_path():
     rng = np.random.default_rng(0)
     for n in range(0, 300, 7):
         data = rng.bytes(n)
-        assert read_measurement(data, "s1", "camera", DIMS) is None
-        assert read_command(data, "s1", 1) is None
-    assert read_measurement(b"\x00" * 70_000, "s1", "camera", DIMS) is None
+        assert read_measurement(data, "s1", "camera", DIMS, MAX_ABS_INPUT) is None
+        assert read_command(data, "s1", 1, MAX_ABS_INPUT) is None
+    assert read_measurement(b"\x00" * 70_000, "s1", "camera", DIMS, MAX_ABS_INPUT) is None
+
+
+def test_values_beyond_max_abs_take_the_full_path():
+    """The bound is checked on the way in: a value beyond it, NaN or an infinity sends the
+    message to the full path (which names the reason), an int or float on it does not."""
+    for bad in (1e13, -(10**13), math.nan, math.inf, -math.inf, 10**400):
+        d = dict(MEAS, z={"shape": [2], "data": [1.0, bad]})
+        try:
+            data = msgpack.packb(d)
+        except OverflowError:
+            continue
+        assert read_measurement(data, "s1", "camera", DIMS, MAX_ABS_INPUT) is None, bad
+        c = msgpack.packb(dict(CMD, u={"shape": [1], "data": [bad]}))
+        assert read_command(c, "s1", 1, MAX_ABS_INPUT) is None, bad
+    edge = msgpack.packb(dict(CMD, u={"shape": [1], "data": [-(10**12)]}))
+    assert read_command(edge, "s1", 1, MAX_ABS_INPUT)[3].tolist() == [-1e12]
+    assert read_command(edge, "s1", 1, 1e11) is None
