@@ -6,8 +6,9 @@ time entering numpy. This module keeps the estimator's bookkeeping exactly as it
 timestamp window, commits, command buffer and replay of
 :class:`pd_service.estimation.ReplayEstimator`) and changes only *when* the arithmetic runs:
 
-- :class:`LazyLinearBackend` is a Backend whose ``propagate`` / ``update`` return
-  :class:`Node` objects (an operation plus its parent) instead of computing at once;
+- :class:`LazyLinearBackend` is a fused Backend whose ``advance`` (propagate m steps, then
+  condition on the step's packets) returns a :class:`Node` (an operation plus its parent)
+  instead of computing at once: one node per measured step and one per prediction;
 - :func:`resolve` evaluates the pending chains of many sessions together: chains are
   aligned by depth and, at each depth, the nodes with the same operation and shape are
   computed as one stack (``(S, n, n)`` arrays through ``np.matmul`` / ``np.linalg.solve``);
@@ -44,7 +45,8 @@ from pd_service.estimation.linear import block_diag, import_gaussian, kalman_upd
 #: Longest chain of pending operations before a node is resolved on its own.
 MAX_PENDING_DEPTH = 64
 
-_PROP, _UPD = 1, 2
+#: Node operations: propagate, update, propagate then update (one node per measured step).
+_PROP, _UPD, _ADV = 1, 2, 3
 
 
 #: x and P of a pending node (an empty array: read them after :func:`resolve`).
@@ -55,8 +57,10 @@ _PENDING.setflags(write=False)
 class Node:
     """A Gaussian state (x (n,), P (n, n)), resolved or pending.
 
-    Pending: ``op`` is ``_PROP`` with ``arg = (m, bu)`` (bu = the inputs' contribution to x)
-    or ``_UPD`` with ``arg = (H, R, z)``, applied to ``parent``; ``x`` and ``P`` are empty.
+    Pending: ``op`` is ``_PROP`` with ``arg = (m, bu, tables)`` (bu = the inputs'
+    contribution to x), ``_UPD`` with ``arg = (H, R, z)`` or ``_ADV`` with
+    ``arg = (m, bu, tables, H, R, z)`` (the two in turn), applied to ``parent``; ``x`` and
+    ``P`` are empty.
     Resolved: ``op`` is 0, ``x`` and ``P`` hold the values, ``parent`` is None.
     """
 
@@ -116,22 +120,56 @@ class LazyLinearBackend:
 
     def propagate(self, state: Node, step: int, m: int, U: np.ndarray) -> Node:
         t = self.tables
-        M, nu = t.M, self._nu
+        M = t.M
         node = state
         while m > 0:
             k = min(m, M)
-            Uk = U[:k]
-            # [A^{k-1}B, ..., B] is the last k*nu columns of the full stacked matrix (.dot:
-            # half the call cost of @ on tiny arrays; one bu per node, stacked or not)
-            bu = t.Gfull[:, (M - k) * nu:].dot(Uk.reshape(-1)) if nu else None
             if node.op and node.depth >= MAX_PENDING_DEPTH:
                 resolve([node])
-            node = Node(node, _PROP, (k, bu, t))
+            node = Node(node, _PROP, (k, self._bu(U, k), t))
             U = U[k:]
             m -= k
         return node
 
+    def _bu(self, U: np.ndarray, k: int) -> np.ndarray | None:
+        """[A^{k-1}B, ..., B] [u(a); ...; u(a+k-1)] for the first k rows of U (k <= M): the
+        last k*nu columns of the full stacked matrix (.dot: half the call cost of @ on tiny
+        arrays; one per node, stacked or not). None without inputs."""
+        nu = self._nu
+        if not nu:
+            return None
+        t = self.tables
+        return t.Gfull[:, (t.M - k) * nu:].dot(U[:k].reshape(-1))
+
+    def advance(self, state: Node, m: int, U: np.ndarray, packets: list[Packet],
+                old: Node | None) -> Node:
+        """x(a) -> x(a + m), then conditioned on ``packets``: one node (the propagation of
+        a jump longer than the tables' horizon M goes first, in nodes of M steps, as
+        :meth:`propagate` splits it). The same products as ``update(propagate(...))``, so
+        the same bits. ``old`` is not used (nothing is computed before :func:`resolve`)."""
+        if not packets:
+            return self.propagate(state, 0, m, U)
+        if m <= 0:
+            return self.update(state, 0, packets)
+        M = self.tables.M
+        if m > M:
+            head = M * ((m - 1) // M)
+            state = self.propagate(state, 0, head, U)
+            U, m = U[head:], m - head
+        H, R, z = self._measurement(packets)
+        if state.op and state.depth >= MAX_PENDING_DEPTH:
+            resolve([state])
+        return Node(state, _ADV, (m, self._bu(U, m), self.tables, H, R, z))
+
     def update(self, state: Node, step: int, packets: list[Packet]) -> Node:
+        H, R, z = self._measurement(packets)
+        if state.op and state.depth >= MAX_PENDING_DEPTH:
+            resolve([state])
+        return Node(state, _UPD, (H, R, z))
+
+    def _measurement(self, packets: list[Packet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(H, R, z) of a step's packets (sorted by sensor): one sensor's, or the stacked
+        rows of the sensors present, M*(tau) of eq. (24)."""
         if len(packets) == 1:
             p = packets[0]
             sensor = self.sensors[p.sensor]
@@ -148,9 +186,7 @@ class LazyLinearBackend:
                 R = block_diag([self.sensors[p.sensor].R if p.R is None else p.R
                                  for p in packets])
             z = np.concatenate([p.z for p in packets])
-        if state.op and state.depth >= MAX_PENDING_DEPTH:
-            resolve([state])
-        return Node(state, _UPD, (H, R, z))
+        return H, R, z
 
     def moments(self, state: Node) -> tuple[Node, Node]:
         """The node itself, twice: read ``.x`` / ``.P`` after :func:`resolve`."""
@@ -184,7 +220,7 @@ def resolve(nodes: Iterable[Node]) -> None:
         return
     if len(chains) == 1:  # nothing to stack: plain 2-D products (bit-identical to a slice)
         for nd in chains[0]:
-            (_propagate_one if nd.op == _PROP else _update_one)(nd)
+            _ONE[nd.op](nd)
         return
     # Chains of different sessions never share nodes. Two targets of one estimator can:
     # ``seen`` cuts the second chain where it joins the first; a node whose parent is not
@@ -193,31 +229,33 @@ def resolve(nodes: Iterable[Node]) -> None:
     longest = max(len(c) for c in chains)
     leftovers: list[Node] = []
     while depth < longest:
-        props: dict[int, list[Node]] = {}
-        upds: dict[tuple[int, int], list[Node]] = {}
+        # same operation, same tables / H (objects shared by sessions of one model): one stack
+        groups: dict[tuple[int, int, int], list[Node]] = {}
         for c in chains:
             if depth < len(c):
                 nd = c[depth]
                 if nd.parent is not None and nd.parent.op:  # parent not resolved yet
                     leftovers.append(nd)
                     continue
-                if nd.op == _PROP:
-                    props.setdefault(id(nd.arg[2]), []).append(nd)
+                op, arg = nd.op, nd.arg
+                if op == _PROP:
+                    key = (op, id(arg[2]), 0)
+                elif op == _UPD:
+                    key = (op, id(arg[0]), 0)
                 else:
-                    H = nd.arg[0]
-                    upds.setdefault((id(H), H.shape[0]), []).append(nd)
-        for grp in props.values():
+                    key = (op, id(arg[2]), id(arg[3]))
+                grp = groups.get(key)
+                if grp is None:
+                    groups[key] = [nd]
+                else:
+                    grp.append(nd)
+        for (op, _, _), grp in groups.items():
             if len(grp) <= _SMALL_GROUP:
+                one = _ONE[op]
                 for nd in grp:
-                    _propagate_one(nd)
+                    one(nd)
             else:
-                _propagate_group(grp)
-        for grp in upds.values():
-            if len(grp) <= _SMALL_GROUP:
-                for nd in grp:
-                    _update_one(nd)
-            else:
-                _update_group(grp)
+                _GROUP[op](grp)
         depth += 1
     for nd in leftovers:
         if nd.op:
@@ -232,22 +270,21 @@ def _set(nd: Node, x: np.ndarray, P: np.ndarray) -> None:
     nd.x, nd.P, nd.op, nd.parent, nd.arg = x, P, 0, None, ()
 
 
-def _propagate_one(nd: Node) -> None:
-    """The single-node form of :func:`_propagate_group`, with the same products (so the
-    same bits as the node's slice in a stack)."""
-    m, bu, t = nd.arg
-    x, P = nd.parent.x, nd.parent.P  # type: ignore[union-attr]  # a pending node has a parent
+def _prop(x: np.ndarray, P: np.ndarray, m: int, bu: np.ndarray | None,
+          t: Any) -> tuple[np.ndarray, np.ndarray]:
+    """One propagation, the single form of :func:`_prop_stack` (same products, so the same
+    bits as a slice of the stack)."""
     Am = t.Apow[m]
     xn = (Am @ x[:, None])[:, 0]
     if bu is not None:
         xn = xn + bu
-    _set(nd, xn, Am @ P @ Am.T + t.Qsum[m])
+    return xn, Am @ P @ Am.T + t.Qsum[m]
 
 
-def _update_one(nd: Node) -> None:
-    """The single-node form of :func:`_update_group` (same products, same bits)."""
-    H, R, z = nd.arg
-    x, P = nd.parent.x, nd.parent.P  # type: ignore[union-attr]  # a pending node has a parent
+def _upd(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray,
+         z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One update, the single form of :func:`_upd_stack` (same products, same bits); a
+    singular S: the reference's pinv form."""
     PHt = P @ H.T
     S = H @ PHt + R
     if H.shape[0] == 1:
@@ -257,13 +294,30 @@ def _update_one(nd: Node) -> None:
         try:
             K = np.linalg.solve(S, PHt.T).T
         except np.linalg.LinAlgError:
-            xk, Pk = kalman_update(x, P, H, R, z)
-            _set(nd, xk, Pk)
-            return
+            return kalman_update(x, P, H, R, z)
     innov = z - (H @ x[:, None])[:, 0]
     xn = x + (K @ innov[:, None])[:, 0]
     Pn = P - K @ PHt.T
-    _set(nd, xn, 0.5 * (Pn + Pn.T))
+    return xn, 0.5 * (Pn + Pn.T)
+
+
+def _propagate_one(nd: Node) -> None:
+    m, bu, t = nd.arg
+    x, P = _prop(nd.parent.x, nd.parent.P, m, bu, t)  # type: ignore[union-attr]  # pending: has a parent
+    _set(nd, x, P)
+
+
+def _update_one(nd: Node) -> None:
+    H, R, z = nd.arg
+    x, P = _upd(nd.parent.x, nd.parent.P, H, R, z)  # type: ignore[union-attr]  # pending: has a parent
+    _set(nd, x, P)
+
+
+def _advance_one(nd: Node) -> None:
+    m, bu, t, H, R, z = nd.arg
+    x, P = _prop(nd.parent.x, nd.parent.P, m, bu, t)  # type: ignore[union-attr]  # pending: has a parent
+    x, P = _upd(x, P, H, R, z)
+    _set(nd, x, P)
 
 
 def _stack(arrays: list[np.ndarray]) -> np.ndarray:
@@ -281,26 +335,30 @@ def _finish(grp: Sequence[Node], X: np.ndarray, P: np.ndarray) -> None:
         nd.arg = ()
 
 
-def _propagate_group(grp: list[Node]) -> None:
-    t = grp[0].arg[2]
+def _parents(grp: list[Node]) -> tuple[np.ndarray, np.ndarray]:
+    """The stacked (S, n) means and (S, n, n) covariances of the group's parents."""
     X = _stack([nd.parent.x for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
     P = _stack([nd.parent.P for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
+    return X, P
+
+
+def _prop_stack(grp: list[Node], X: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Propagations of a group whose ``arg`` starts with (m, bu, tables), one tables."""
+    t = grp[0].arg[2]
     ms = np.fromiter((nd.arg[0] for nd in grp), dtype=np.intp, count=len(grp))
     Am = t.Apow[ms]  # (S, n, n)
     Xn = np.matmul(Am, X[:, :, None])[:, :, 0]  # A^m x
     if grp[0].arg[1] is not None:
         Xn = Xn + _stack([nd.arg[1] for nd in grp])  # + [A^{m-1}B ... B] U
-    Pn = np.matmul(np.matmul(Am, P), np.swapaxes(Am, 1, 2)) + t.Qsum[ms]
-    _finish(grp, Xn, Pn)
+    return Xn, np.matmul(np.matmul(Am, P), np.swapaxes(Am, 1, 2)) + t.Qsum[ms]
 
 
-def _update_group(grp: list[Node]) -> None:
-    H = grp[0].arg[0]
+def _upd_stack(H: np.ndarray, R: np.ndarray, Z: np.ndarray, X: np.ndarray,
+               P: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Updates with one H (m, n), R (S, m, m), Z (S, m); None if S is singular somewhere
+    (the caller then goes node by node, with the same products: the others keep their
+    bits)."""
     m = H.shape[0]
-    X = _stack([nd.parent.x for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
-    P = _stack([nd.parent.P for nd in grp])  # type: ignore[union-attr]  # a pending node has a parent
-    R = _stack([nd.arg[1] for nd in grp])
-    Z = _stack([nd.arg[2] for nd in grp])
     PHt = np.matmul(P, H.T)  # (S, n, m)
     S = np.matmul(H, PHt) + R  # (S, m, m)
     if m == 1:
@@ -311,15 +369,46 @@ def _update_group(grp: list[Node]) -> None:
     else:
         try:
             K = np.swapaxes(np.linalg.solve(S, np.swapaxes(PHt, 1, 2)), 1, 2)
-        except np.linalg.LinAlgError:  # a singular S somewhere: that group one by one,
-            for nd in grp:  # with the same products (the others keep their bits)
-                _update_one(nd)
-            return
+        except np.linalg.LinAlgError:
+            return None
     innov = Z - np.matmul(H, X[:, :, None])[:, :, 0]
     Xn = X + np.matmul(K, innov[:, :, None])[:, :, 0]
     Pn = P - np.matmul(K, np.swapaxes(PHt, 1, 2))
-    Pn = 0.5 * (Pn + np.swapaxes(Pn, 1, 2))
+    return Xn, 0.5 * (Pn + np.swapaxes(Pn, 1, 2))
+
+
+def _propagate_group(grp: list[Node]) -> None:
+    X, P = _parents(grp)
+    Xn, Pn = _prop_stack(grp, X, P)
     _finish(grp, Xn, Pn)
+
+
+def _update_group(grp: list[Node]) -> None:
+    X, P = _parents(grp)
+    got = _upd_stack(grp[0].arg[0], _stack([nd.arg[1] for nd in grp]),
+                     _stack([nd.arg[2] for nd in grp]), X, P)
+    if got is None:
+        for nd in grp:
+            _update_one(nd)
+        return
+    _finish(grp, got[0], got[1])
+
+
+def _advance_group(grp: list[Node]) -> None:
+    X, P = _parents(grp)
+    X, P = _prop_stack(grp, X, P)
+    got = _upd_stack(grp[0].arg[3], _stack([nd.arg[4] for nd in grp]),
+                     _stack([nd.arg[5] for nd in grp]), X, P)
+    if got is None:
+        for nd in grp:
+            _advance_one(nd)
+        return
+    _finish(grp, got[0], got[1])
+
+
+#: The single-node and the stacked evaluation of each operation.
+_ONE = {_PROP: _propagate_one, _UPD: _update_one, _ADV: _advance_one}
+_GROUP = {_PROP: _propagate_group, _UPD: _update_group, _ADV: _advance_group}
 
 
 # ------------------------------------------------------------------ the estimator -------

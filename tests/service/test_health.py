@@ -47,6 +47,15 @@ def nan_node(args, out):
     return out
 
 
+def poison_steps(monkeypatch, times: int, op: int = stacked._ADV) -> Poison:
+    """The next ``times`` nodes of operation ``op`` (default: a measured step's propagate
+    then update) of the stacked engine come out NaN (evaluated one by one: the tests'
+    groups are small)."""
+    poison = Poison(stacked._ONE[op], nan_node, times=times)
+    monkeypatch.setitem(stacked._ONE, op, poison)
+    return poison
+
+
 def drive(core, cli, clock, session, steps, sensor="ranger", z=(1.0,)):
     for k in steps:
         clock.t = at(k + 0.1)
@@ -101,10 +110,10 @@ def test_a_poisoned_posterior_is_recovered_from_the_snapshot(tmp_path, monkeypat
     drive(core, cli, clock, "s1", range(0, 40))
     sess = core._routes["s1"].sess
     assert sess.snapshot is not None
-    # the next propagation writes NaN into the posterior of the next measured step: without
-    # recovery every later prediction of s1 would be NaN (internal_error every step)
-    poison = Poison(stacked._propagate_one, nan_node, times=1)
-    monkeypatch.setattr(stacked, "_propagate_one", poison)
+    # the next measured step's node (propagate, then update) writes NaN into its
+    # posterior: without recovery every later prediction of s1 would be NaN
+    # (internal_error every step)
+    poison = poison_steps(monkeypatch, times=1)
     drive(core, cli, clock, "s1", range(40, 80))
     assert poison.times == 0
     c = core.session_status("s1").counters
@@ -129,8 +138,7 @@ def test_without_a_snapshot_the_session_restarts_from_its_prior(tmp_path, monkey
     drive(core, cli, clock, "s1", range(0, 10))
     sess = core._routes["s1"].sess
     sess.snapshot, sess.snapshot_step, sess.snap_every = None, 0, 10**9  # none from now on
-    monkeypatch.setattr(stacked, "_propagate_one",
-                        Poison(stacked._propagate_one, nan_node, times=1))
+    poison_steps(monkeypatch, times=1)
     drive(core, cli, clock, "s1", range(10, 30))
     c = core.session_status("s1").counters
     assert c["recovered_from_prior"] >= 1 and c.get("internal_error", 0) == 0
@@ -144,14 +152,15 @@ def test_unrecoverable_is_reported_then_retried_not_every_step(tmp_path, monkeyp
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
     core.run_once()
     drive(core, cli, clock, "s1", range(0, 10))
-    poison = Poison(stacked._propagate_one, nan_node, times=10**9)
-    monkeypatch.setattr(stacked, "_propagate_one", poison)
+    # every node, the prior's pure propagations too
+    poisons = [poison_steps(monkeypatch, 10**9, op) for op in (stacked._ADV, stacked._PROP)]
     drive(core, cli, clock, "s1", range(10, 30))  # 1 s at 50 ms
     c = core.session_status("s1").counters
     assert c["internal_error"] >= 10 and c.get("recovered", 0) == 0
     assert c["unhealthy"] >= 10
     assert any("not even from the prior" in e.reason for e in col.errors["s1"])
-    poison.times = 0  # the numerics are well again: recovered at the next attempt
+    for poison in poisons:  # the numerics are well again: recovered at the next attempt
+        poison.times = 0
     drive(core, cli, clock, "s1", range(30, 60))
     assert core.session_status("s1").counters["recovered"] >= 1
     assert set(range(52, 60)) <= {p.step - LEAD for p in col.predictions["s1"]}
