@@ -11,7 +11,6 @@ sender's seq when it could be read).
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 
 import numpy as np

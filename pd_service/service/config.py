@@ -120,8 +120,9 @@ class Settings(BaseSettings):
     tables_max_bytes: int = Field(64 * 2**20, ge=0, description="Bytes of shared propagation "
                                   "tables kept in the memo beyond the sessions using them.")
 
-    max_abs_input: float = Field(1e12, gt=0, allow_inf_nan=False, description="Largest magnitude of a measured "
-                                 "value or command entry accepted (out_of_range otherwise).")
+    max_abs_input: float = Field(1e12, gt=0, allow_inf_nan=False,
+                                 description="Largest magnitude of a measured value or command "
+                                             "entry accepted (out_of_range otherwise).")
 
     # work queues and limits
     inbox_size: int = Field(256, ge=1, description="Per-session inbox (messages); oldest dropped.")
