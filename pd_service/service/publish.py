@@ -63,11 +63,6 @@ class Out:
     recv: list[int] = field(default_factory=list)
 
 
-def tick_ns(settings: Settings, sess: Session) -> int:
-    """Where in its step the session's tick fires (ns after the step's start)."""
-    return int(settings.tick_phase * sess.spec.period_ns)
-
-
 class Publisher:
     """The outbox, the tick schedule and the error-report limits. Worker thread only."""
 
@@ -76,6 +71,9 @@ class Publisher:
         self.t = transport
         self.settings = settings
         self.instance = settings.instance
+        # read per session and step: plain attributes, not the (pydantic) settings'
+        self._tick_phase: float = settings.tick_phase
+        self._idle_ns = int(settings.idle_after_s * 1e9)
         self.counters = counters
         self.latency = latency
         self.mono_ns = mono_ns
@@ -179,7 +177,7 @@ class Publisher:
                 self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
             self.outbox.append(Out(sess.pred_key, payload, sess, recv))
-            if data and now - sess.spec.time_of(k) >= tick_ns(self.settings, sess):
+            if data and now - sess.time_of(k) >= int(self._tick_phase * sess.period_ns):
                 sess.late_data_step = k
 
     def _recover(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
@@ -260,10 +258,9 @@ class Publisher:
         """Queue the session's next tick: the first step k > after_step with
         k % publish_every == 0, at time epoch + k * period + tick_phase * period. The
         session's earlier entry, if any, is void (``tick_gen``)."""
-        spec = sess.spec
-        pe = spec.publish_every
+        pe = sess.publish_every
         k = max(0, (after_step // pe + 1) * pe)
-        deadline = spec.time_of(k) + tick_ns(self.settings, sess)
+        deadline = sess.time_of(k) + int(self._tick_phase * sess.period_ns)  # tick_ns
         sess.tick_gen += 1
         heapq.heappush(self.ticks, (deadline, next(self._tick_seq), sess.tick_gen, k, False, sess))
 
@@ -279,7 +276,7 @@ class Publisher:
         """Publish for every session whose tick is due and has not published this step."""
         heap = self.ticks
         due: list[Session] = []
-        idle_ns = int(self.settings.idle_after_s * 1e9)
+        idle_ns = self._idle_ns
         while heap and heap[0][0] <= now:
             _, _, gen, k, deferred, sess = heapq.heappop(heap)
             if not sess.alive or gen != sess.tick_gen:
@@ -305,7 +302,7 @@ class Publisher:
                 # O(active sessions) per step); the phase is the session's own, so idle
                 # sessions sharing an epoch do not all predict in the same tick (2,000 of
                 # them did, starving the active ones)
-                skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.spec.period_ns)
+                skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.period_ns)
                 base = max(cur, k)
                 nxt = base + 1 + (zlib.crc32(sess.name.encode()) - base - 1) % skip
                 sess.idle = True
@@ -316,8 +313,7 @@ class Publisher:
                 sess.idle = False
                 self.schedule(sess, max(cur, k))
                 if defer:
-                    spec = sess.spec
-                    heapq.heappush(heap, (spec.time_of(k) + int(DATA_TICK_PHASE * spec.period_ns),
+                    heapq.heappush(heap, (sess.time_of(k) + int(DATA_TICK_PHASE * sess.period_ns),
                                           next(self._tick_seq), sess.tick_gen, k, True, sess))
         if due:
             self.publish_many(due, now)

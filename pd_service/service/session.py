@@ -79,6 +79,11 @@ class Session:
                  error_rate: float, error_burst: int, max_abs: float = 1e12) -> None:
         self.spec = spec
         self.name = spec.session
+        #: The spec's clock (ns) and publish_every as plain attributes: read several times
+        #: per session and step, where a (pydantic) spec attribute costs a dict lookup.
+        self.epoch_ns: int = spec.epoch_ns
+        self.period_ns: int = spec.period_ns
+        self.publish_every: int = spec.publish_every
         # WireError for a spec it refuses; a linear model's numerics are batched across
         # sessions (pd_service.service.stacked), equal to ObserverPredictor to rounding
         self.est: Estimator = build_estimator(spec, StackedObserverPredictor)
@@ -130,10 +135,14 @@ class Session:
 
     # --- time --------------------------------------------------------------------------
 
+    def time_of(self, step: int) -> int:
+        """Start time of ``step`` (ns): ``spec.time_of``."""
+        return self.epoch_ns + step * self.period_ns
+
     def step_now(self, now_ns: int) -> int:
         """Current step ``floor((now_ns - epoch_ns) / period_ns)``, never going backwards
         (a clock stepped back by NTP holds the step instead of corrupting the estimator)."""
-        k = (now_ns - self.spec.epoch_ns) // self.spec.period_ns
+        k = (now_ns - self.epoch_ns) // self.period_ns
         if self.now_step is not None and k < self.now_step:
             return self.now_step
         self.now_step = k
@@ -177,7 +186,7 @@ class Session:
         last = self.last_pub_step
         if last is None or k <= last + 1:
             return 0
-        pe = self.spec.publish_every
+        pe = self.publish_every
         return (k - 1) // pe - last // pe
 
     def predict(self, now_step: int) -> PredictedState:

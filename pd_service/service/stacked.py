@@ -135,11 +135,11 @@ class LazyLinearBackend:
         """[A^{k-1}B, ..., B] [u(a); ...; u(a+k-1)] for the first k rows of U (k <= M): the
         last k*nu columns of the full stacked matrix (.dot: half the call cost of @ on tiny
         arrays; one per node, stacked or not). None without inputs."""
-        nu = self._nu
-        if not nu:
+        if not self._nu:
             return None
-        t = self.tables
-        return t.Gfull[:, (t.M - k) * nu:].dot(U[:k].reshape(-1))
+        if U.shape[0] != k:
+            U = U[:k]
+        return self.tables.jumps[k][3].dot(U.reshape(-1))  # the view Gfull[:, (M-k)*nu:]
 
     def advance(self, state: Node, m: int, U: np.ndarray, packets: list[Packet],
                 old: Node | None) -> Node:
