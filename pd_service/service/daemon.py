@@ -21,7 +21,7 @@ import sys
 import threading
 import time
 
-from pd_service.logs import LOGGER_NAME, event
+from pd_service.logs import LOGGER_NAME, event, name_os_thread
 from pd_service.transport import Transport
 
 from .config import Settings
@@ -39,15 +39,6 @@ def make_transport(settings: Settings) -> Transport:
     from pd_service.transport import DAEMON, ZenohTransport
 
     return ZenohTransport(settings.zenoh.config(DAEMON))
-
-
-def _name_os_thread(name: str) -> None:
-    """Give the calling thread a name that top, py-spy and /proc show (Linux; else nothing)."""
-    try:
-        with open(f"/proc/self/task/{threading.get_native_id()}/comm", "w") as f:
-            f.write(name[:15])
-    except OSError:
-        pass
 
 
 class Daemon:
@@ -85,7 +76,7 @@ class Daemon:
         return self.core
 
     def _work(self) -> None:
-        _name_os_thread("pd-worker")
+        name_os_thread("pd-worker")
         path = os.environ.get("PD_SERVICE_PROFILE")  # diagnostics: cProfile of the worker
         if not path:
             self._loop()

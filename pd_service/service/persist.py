@@ -19,7 +19,7 @@ from collections import deque
 from pathlib import Path
 from typing import Any
 
-from pd_service.logs import LOGGER_NAME, event
+from pd_service.logs import LOGGER_NAME, event, name_os_thread
 from pd_service.wire import SessionSpec, WireError, decode, encode
 from pd_service.wire.keys import KeyError_, check_name
 
@@ -252,6 +252,7 @@ class StateWriter:
         self._thread.join(timeout=30.0)
 
     def _run(self) -> None:
+        name_os_thread("pd-ckpt")
         store = self.store
         while True:
             with self._cond:
