@@ -32,7 +32,7 @@ Memory stays bounded: a resolved node drops its parent, and a chain deeper than
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
@@ -385,23 +385,25 @@ def _propagate_group(grp: list[Node]) -> None:
 
 def _update_group(grp: list[Node]) -> None:
     X, P = _parents(grp)
-    got = _upd_stack(grp[0].arg[0], _stack([nd.arg[1] for nd in grp]),
-                     _stack([nd.arg[2] for nd in grp]), X, P)
-    if got is None:
-        for nd in grp:
-            _update_one(nd)
-        return
-    _finish(grp, got[0], got[1])
+    _update_and_finish(grp, X, P, 0, _update_one)
 
 
 def _advance_group(grp: list[Node]) -> None:
     X, P = _parents(grp)
     X, P = _prop_stack(grp, X, P)
-    got = _upd_stack(grp[0].arg[3], _stack([nd.arg[4] for nd in grp]),
-                     _stack([nd.arg[5] for nd in grp]), X, P)
+    _update_and_finish(grp, X, P, 3, _advance_one)
+
+
+def _update_and_finish(grp: list[Node], X: np.ndarray, P: np.ndarray, at: int,
+                       one: Callable[[Node], None]) -> None:
+    """Condition the group's (X, P) on (H, R, z) = ``arg[at:at + 3]`` and finish its nodes; a
+    singular S somewhere: each node by ``one`` instead (from its parent, the same products,
+    so the others keep their bits)."""
+    got = _upd_stack(grp[0].arg[at], _stack([nd.arg[at + 1] for nd in grp]),
+                     _stack([nd.arg[at + 2] for nd in grp]), X, P)
     if got is None:
         for nd in grp:
-            _advance_one(nd)
+            one(nd)
         return
     _finish(grp, got[0], got[1])
 
