@@ -127,7 +127,7 @@ class SpecStore:
         # no O_TRUNC: the temp file (the previous exchange's old content) is overwritten in
         # place and cut to the new length. Truncating to zero and renaming over a file makes
         # ext4 start the data's writeback at once (its auto_da_alloc heuristic): measured
-        # ~200 µs of kernel time per checkpoint against ~20 µs this way (persist tests)
+        # ~230 µs of kernel time per checkpoint against ~25 µs this way (docs/service.md)
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
         try:
             view = memoryview(data)

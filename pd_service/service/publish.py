@@ -177,7 +177,7 @@ class Publisher:
                 self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
             self.outbox.append(Out(sess.pred_key, payload, sess, recv))
-            if data and now - sess.time_of(k) >= int(self._tick_phase * sess.period_ns):
+            if data and now - sess.time_of(k) >= self._tick_ns(sess):
                 sess.late_data_step = k
 
     def _recover(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
@@ -260,9 +260,13 @@ class Publisher:
         session's earlier entry, if any, is void (``tick_gen``)."""
         pe = sess.publish_every
         k = max(0, (after_step // pe + 1) * pe)
-        deadline = sess.time_of(k) + int(self._tick_phase * sess.period_ns)  # tick_ns
+        deadline = sess.time_of(k) + self._tick_ns(sess)
         sess.tick_gen += 1
         heapq.heappush(self.ticks, (deadline, next(self._tick_seq), sess.tick_gen, k, False, sess))
+
+    def _tick_ns(self, sess: Session) -> int:
+        """Where in its step the session's tick fires (ns after the step's start)."""
+        return int(self._tick_phase * sess.period_ns)
 
     def wake(self, sess: Session, now: int) -> None:
         """An idle session got a message: tick it every step again from now on."""

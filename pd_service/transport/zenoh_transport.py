@@ -59,7 +59,7 @@ class _Publisher:
 def _convert(s: zenoh.Sample, now: int, mono: int) -> Sample:
     enc, att = s.encoding, s.attachment
     return Sample(str(s.key_expr), s.payload.to_bytes(),
-                  "delete" if s.kind == zenoh.SampleKind.DELETE else "put", now, mono,
+                  "delete" if s.kind == _DELETE else "put", now, mono,
                   None if enc == _DEFAULT_ENCODING else str(enc),
                   None if att is None else att.to_bytes())
 
