@@ -27,6 +27,7 @@ import numpy as np
 from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_paper
 from pd_service.service.config import Settings
 from pd_service.service.core import ServiceCore
+from pd_service.service.daemon import tune_gc
 from pd_service.service.persist import SpecStore, StateWriter
 from pd_service.transport import InMemoryBus
 from pd_service.transport.base import Sample
@@ -60,6 +61,7 @@ def main() -> None:
     if store is not None:
         core.keeper.writer = StateWriter(store)
     core.start()
+    tune_gc()  # as the daemon does after its start
     epoch = clock[0]
     names = [f"w{i:05d}" for i in range(n)]
     d = core.dispatch

@@ -133,7 +133,8 @@ class Intake:
                            f"the session starts at its epoch (now step {now_step})", seq)
         est = self.est
         try:
-            ok = est.add_measurement(sensor, s, z, now=now_step, R=R)
+            # positional: a keyword call costs the compiled method an argument parse
+            ok = est.add_measurement(sensor, s, z, now_step, R)
         except ValueError as exc:
             return Refusal("invalid", f"Measurement.z: {exc}", seq)
         if ok:
@@ -179,7 +180,7 @@ class Intake:
         self.decoded = True
         est = self.est
         try:
-            ok = est.add_command(j, u, now=now_step if now_step >= 0 else None)
+            ok = est.add_command(j, u, now_step if now_step >= 0 else None)
         except (ValueError, IndexError) as exc:
             return Refusal("commands_invalid", f"Command.u: {exc}", seq)
         if ok:

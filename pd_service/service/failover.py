@@ -114,14 +114,13 @@ class StateKeeper:
             start = self._rotate % len(sessions)
             sessions = sessions[start:] + sessions[:start]
         for i, sess in enumerate(sessions):
-            if not sess.alive or sess.prior_alone():
+            # the time checks first: most sessions of a round had their state lately
+            ck = want_ck and now - sess.last_checkpoint_ns >= ck_ns
+            rep = want_rep and now - sess.last_replica_ns >= rep_ns
+            if not (ck or rep) or not sess.alive or sess.prior_alone():
                 continue
             mark = state_mark(sess)
             if mark == sess.saved_mark:
-                continue
-            ck = want_ck and now - sess.last_checkpoint_ns >= ck_ns
-            rep = want_rep and now - sess.last_replica_ns >= rep_ns
-            if not (ck or rep):
                 continue
             if budget == 0:  # the rest stay due: later rounds and the sweep take them
                 self._rotate += i

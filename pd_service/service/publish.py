@@ -40,7 +40,7 @@ from pd_service.transport import Transport
 from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
 from .config import Settings
-from .health import unhealthy
+from .health import inspect
 from .session import Refusal, Session
 from .stacked import Node, resolve
 from .stats import LatencyWindow
@@ -160,14 +160,15 @@ class Publisher:
             missed = sess.steps_missed_before(k)
             try:
                 pred = sess.resolved(pred)
-                bad = unhealthy(pred.x, pred.P)
+                bad, xs, ps = inspect(pred.x, pred.P)
                 if bad is not None:
                     got = self._recover(sess, k, bad, now)
                     if got is None:
                         continue
                     pred = got
+                    xs, ps = pred.x.tolist(), pred.P.ravel().tolist()  # checked by _recover
                 sess.keep_snapshot(pred, k)
-                payload = sess.pack(pred, k, now)
+                payload = sess.pack(pred, xs, ps, k, now)
             except Exception as exc:  # e.g. a non-finite estimate: report, never crash
                 self._publish_failed(sess, exc, now)
                 continue
@@ -199,7 +200,7 @@ class Publisher:
             try:
                 sess.recover(source)
                 pred = sess.resolved(sess.predict(k))
-                bad = unhealthy(pred.x, pred.P)
+                bad = inspect(pred.x, pred.P)[0]
             except Exception as exc:
                 bad = f"{type(exc).__name__}: {exc}"
             if bad is None:

@@ -194,12 +194,13 @@ class Session:
         x and P are a pending Node until :func:`pd_service.service.stacked.resolve`."""
         return self.est.predict(now_step)
 
-    def pack(self, pred: PredictedState, now_step: int, made_ns: int) -> bytes:
-        """Encoded Prediction of a resolved ``pred``; bumps seq and the published count."""
-        node: object = pred.x  # typed ndarray; the stacked engine puts its Node there
-        if isinstance(node, Node):  # stacked: resolves alone if still pending
-            pred = PredictedState(pred.step, *node.value(), pred.newest_step)
-        data = self.encoder.encode(pred, self.seq, made_ns, self.counters_snapshot())
+    def pack(self, pred: PredictedState, xs: list[float], ps: list[float], now_step: int,
+             made_ns: int) -> bytes:
+        """Encoded Prediction of a resolved ``pred`` whose x and P were read and checked as
+        ``xs``, ``ps`` (:func:`pd_service.service.health.inspect`); bumps seq and the
+        published count."""
+        data = self.encoder.encode_values(pred, xs, ps, self.seq, made_ns,
+                                          self.counters_snapshot())
         self.seq += 1
         self.published += 1
         self.last_pub_step = now_step
@@ -248,7 +249,3 @@ class Session:
         self.est = build_estimator(self.spec, StackedObserverPredictor)
         self.intake.est = self.est
         self.snapshot = self.snapshot_step = None
-
-    def prediction(self, now_step: int, made_ns: int) -> bytes:
-        """predict + pack for one session alone."""
-        return self.pack(self.predict(now_step), now_step, made_ns)

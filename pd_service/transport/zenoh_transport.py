@@ -64,6 +64,9 @@ def _convert(s: zenoh.Sample, now: int, mono: int) -> Sample:
                   None if att is None else att.to_bytes())
 
 
+_new_tuple = tuple.__new__
+
+
 class _Drain:
     """A subscription into a FIFO channel that the owner drains on its own thread.
 
@@ -130,9 +133,11 @@ class _Drain:
             self._wake()
 
     def _deliver(self, s: zenoh.Sample, now: int, mono: int) -> None:
-        try:  # encoding and attachment not read (Transport.subscribe_drained)
-            self._cb(Sample(str(s.key_expr), s.payload.to_bytes(),
-                            "delete" if s.kind == _DELETE else "put", now, mono))
+        try:  # encoding and attachment not read (Transport.subscribe_drained); the tuple
+            # built directly: Sample(...) runs the NamedTuple's Python __new__ (~90 ns more)
+            self._cb(_new_tuple(Sample, (str(s.key_expr), s.payload.to_bytes(),
+                                         "delete" if s.kind == _DELETE else "put", now, mono,
+                                         None, None, False)))
         except Exception:
             log.exception("subscriber callback failed for %s", self._keyexpr)
 

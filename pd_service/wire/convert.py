@@ -279,6 +279,17 @@ class PredictionEncoder:
             finite = False
         if not finite and not (np.isfinite(x).all() and np.isfinite(P).all()):
             raise _not_finite()
+        return self.encode_values(pred, xs, ps, seq, made_ns, counters)
+
+    def encode_values(self, pred: PredictedMoments, xs: list[float], ps: list[float],
+                      seq: int, made_ns: int, counters: Mapping[str, int]) -> bytes:
+        """:meth:`encode` of ``pred`` whose x and P the caller has read as Python floats,
+        ``xs`` (n,) and ``ps`` (n * n, row-major), and found finite (the daemon's health
+        check, :func:`pd_service.service.health.inspect`). Their lengths are checked here."""
+        n = self.n
+        if len(xs) != n or len(ps) != n * n:
+            raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
+                            f"got {len(xs)} and {len(ps)} values")
         if type(counters) is not dict:
             counters = {str(k): int(v) for k, v in counters.items()}
         pk = self._pack

@@ -95,6 +95,10 @@ def test_check_agrees_with_numpy_on_both_paths(n):
             "non-finite" if not finite else "positive")
         got = health.unhealthy(x, P)
         assert (got is None) == (want is None), (x, P, got)
+        why, xs, ps = health.inspect(x, P)  # the same answer, and the values read
+        assert why == got
+        np.testing.assert_array_equal(np.array(xs), x)
+        np.testing.assert_array_equal(np.array(ps).reshape(n, n), P)
         if want is not None:
             assert want in got
 

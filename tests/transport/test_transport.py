@@ -5,10 +5,11 @@ from __future__ import annotations
 import re
 import socket
 import threading
+import time
 
 import pytest
 
-from pd_service.transport import InMemoryBus, ZenohTransport, zenoh_config
+from pd_service.transport import InMemoryBus, Sample, ZenohTransport, zenoh_config
 from pd_service.transport.keyexpr import intersects
 
 
@@ -119,6 +120,18 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
             assert not woke.wait(0.01)
         assert got == [b"-1"]
         got.clear()
+        # the drain builds its Sample as a plain tuple: every field, defaults included
+        whole: list[Sample] = []
+        d2 = t1.subscribe_drained("pd/*/cmd", whole.append, lambda: None)
+        t2.put("pd/s/cmd", b"c")
+        for _ in range(500):
+            if d2.drain(10):
+                break
+            time.sleep(0.01)
+        (s,) = whole
+        assert type(s) is Sample and len(s) == len(Sample._fields)
+        assert s._replace(recv_ns=0, recv_mono_ns=0) == Sample("pd/s/cmd", b"c", "put", 0, 0)
+        d2.close()
         d.arm()
         assert not d.pending  # armed: the watcher waits in recv from now on
         t2.put("pd/s/sensor/x", b"0")

@@ -164,6 +164,11 @@ def test_one_encoder_gives_the_models_bytes_for_every_message(session):
                                  t_ns=EPOCH + step * PERIOD_NS, x=x, P=P, newest_step=newest,
                                  made_ns=made, counters=counters))
         assert enc.encode(fake, seq, made, counters) == want
+        # the daemon's path: x and P read as Python floats once (its health check)
+        assert enc.encode_values(fake, x.tolist(), P.ravel().tolist(), seq, made,
+                                 counters) == want
+    with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\)"):
+        enc.encode_values(fake, x.tolist()[:3], P.ravel().tolist(), 0, 0, {})
 
 
 def test_prediction_from_copies_and_freezes():
