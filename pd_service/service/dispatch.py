@@ -41,6 +41,9 @@ log = logging.getLogger(LOGGER_NAME)
 #: against that, not against the worker's later loop time).
 Item = tuple[int, str, bytes, int, str, int]
 
+#: The refusals of a message the session already has.
+_DUPLICATE = frozenset({"duplicate", "commands_duplicate"})
+
 
 @dataclass(eq=False, slots=True)
 class Route:
@@ -310,9 +313,17 @@ class Dispatch:
         return handled
 
     def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
-        """Give one message to its session; count it, or refuse it (reported)."""
+        """Give one message to its session; count it, or refuse it (reported). A live
+        message refused as a duplicate that repeats, byte for byte, one read back from a
+        sender's cache and accepted (the read-back's reply overtook the live sample) is the
+        same message: dropped quietly, counted as ``live_copy_of_recovered``."""
         refusal = self._offer(sess, item, now_step, now)
         if refusal is not None:
+            if sess.recovered_copies and refusal.reason in _DUPLICATE \
+                    and sess.take_recovered_copy(item[2], now_step):
+                for c in (sess.counters, self.counters):
+                    c["live_copy_of_recovered"] += 1
+                return
             self.pub.refuse(sess, item[1], refusal, now)
 
     def _handle_recovered(self, sess: Session, item: Item, now_step: int, now: int) -> None:
@@ -323,10 +334,12 @@ class Dispatch:
         ``recovered_<reason>`` and ``recovered_refused``, never reported nor added to
         ``refused``. Accepted ones count in ``accepted`` and ``recovered_accepted``."""
         refusal = self._offer(sess, item, now_step, now, "recovered_")
-        if refusal is not None:
-            for c in (sess.counters, self.counters):
-                c[f"recovered_{refusal.reason}"] += 1
-                c["recovered_refused"] += 1
+        if refusal is None:
+            sess.keep_recovered_copy(item[2], now_step)
+            return
+        for c in (sess.counters, self.counters):
+            c[f"recovered_{refusal.reason}"] += 1
+            c["recovered_refused"] += 1
 
     def _offer(self, sess: Session, item: Item, now_step: int, now: int,
                also: str = "") -> Refusal | None:

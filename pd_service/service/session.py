@@ -35,6 +35,9 @@ unhealthy                  predictions found non-finite or not positive semi-def
                            (pd_service.service.health)
 recovered                  recoveries that gave a healthy estimate again, of which
                            ``recovered_from_snapshot`` / ``recovered_from_prior``
+live_copy_of_recovered     live messages that repeat one already read back from a sender's
+                           cache and accepted (its reply overtook the live sample): dropped
+                           quietly, neither refused nor reported
 =========================  =================================================================
 """
 
@@ -72,6 +75,10 @@ Origin = Literal["prior", "checkpoint", "replica"]
 #: Per-session latency samples kept (µs, packet receipt -> prediction published).
 SESSION_LATENCY_WINDOW = 512
 
+#: Read-back messages remembered per session until their live copy came (or the window
+#: passed): more than the senders' caches give back at once (DEFAULT_SENDER_CACHE each).
+RECOVERED_COPIES = 1024
+
 class Session:
     """A served session. ``state`` is "active" or "restored" (how it started)."""
 
@@ -107,6 +114,9 @@ class Session:
         self.latency = LatencyWindow(SESSION_LATENCY_WINDOW)
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
+        #: Payloads read back from senders' caches and accepted -> the last step at which
+        #: their live copy is expected (:meth:`take_recovered_copy`).
+        self.recovered_copies: dict[bytes, int] = {}
         self.alive = True
         #: Tick bookkeeping (pd_service.service.publish): the generation of the live heap
         #: entry (older entries are skipped) and whether the session is ticking as idle.
@@ -169,6 +179,25 @@ class Session:
         if refusal is None:
             self.counters["commands_accepted"] += 1
         return refusal
+
+    # --- read-back copies ----------------------------------------------------------------
+
+    def keep_recovered_copy(self, payload: bytes, now_step: int) -> None:
+        """A message read back from a sender's cache was accepted: its live copy, if still
+        on its way, is expected within the window (``max_delay + 1`` steps)."""
+        copies = self.recovered_copies
+        if len(copies) >= RECOVERED_COPIES:  # oldest first: insertion order
+            del copies[next(iter(copies))]
+        copies[payload] = now_step + self.spec.max_delay + 1
+
+    def take_recovered_copy(self, payload: bytes, now_step: int) -> bool:
+        """Whether ``payload`` repeats a message read back and accepted (then forgotten);
+        copies past their step are dropped."""
+        copies = self.recovered_copies
+        until = copies.pop(payload, None)
+        for p in [p for p, u in copies.items() if u < now_step]:
+            del copies[p]
+        return until is not None and until >= now_step
 
     # --- output ------------------------------------------------------------------------
 

@@ -13,7 +13,7 @@ import pytest
 from pd_service.backends import build_estimator
 from pd_service.service import ServiceCore
 from pd_service.service.failover import replica_key
-from pd_service.transport import InMemoryBus
+from pd_service.transport import InMemoryBus, Sample
 from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
 
 from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
@@ -449,3 +449,47 @@ def test_takeover_reads_back_what_the_senders_kept(tmp_path):
     assert status(cli, s).origin == "replica"
     assert c["recovered_accepted"] > 0 and c["recovered_duplicate"] > 0
     assert c["refused"] == 0 and len(col.errors[s]) == errors_before
+
+
+def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
+    """A sender that appears is read back; its cache's reply can overtake the live sample of
+    the same message. The live copy is then the message already accepted: dropped quietly
+    (``live_copy_of_recovered``), neither refused nor reported. A real duplicate (other
+    bytes, same step) is still refused and reported, and a copy is remembered only for the
+    window."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col = Collector().attach(bus.transport())
+    cli = bus.transport()
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    clock.t = 3 * PERIOD_NS
+    d = core.dispatch
+    cmd, meas = cmd_bytes("s1", 5, [0.5]), meas_bytes("s1", "ranger", 2, [1.0])
+
+    def sample(key: str, payload: bytes, recovered: bool = False) -> Sample:
+        return Sample(key, payload, "put", clock.t, clock.t, recovered=recovered)
+
+    d.on_recovered_command(sample(keys.command_key("s1"), cmd, True))
+    d.on_recovered_sensor(sample(keys.sensor_key("s1", "ranger"), meas, True))
+    core.run_once()
+    d.on_command_sample(sample(keys.command_key("s1"), cmd))
+    d.on_sensor_sample(sample(keys.sensor_key("s1", "ranger"), meas))
+    core.run_once()
+    c = core.counters
+    assert c["recovered_accepted"] == 1 and c["recovered_commands_accepted"] == 1
+    assert c["live_copy_of_recovered"] == 2
+    assert c["refused"] == 0 and col.errors["s1"] == []
+    # the same step with other bytes is a duplicate, refused as always
+    d.on_command_sample(sample(keys.command_key("s1"), cmd_bytes("s1", 5, [0.7])))
+    core.run_once()
+    assert c["commands_duplicate"] == 1 and c["refused"] == 1 and len(col.errors["s1"]) == 1
+    # a copy is expected only within the window: later, a repeat is a duplicate again
+    d.on_recovered_sensor(sample(keys.sensor_key("s1", "ranger"),
+                                 meas_bytes("s1", "ranger", 3, [1.0]), True))
+    core.run_once()
+    clock.t = (3 + paper_spec("s1").max_delay + 2) * PERIOD_NS
+    d.on_sensor_sample(sample(keys.sensor_key("s1", "ranger"),
+                              meas_bytes("s1", "ranger", 3, [1.0])))
+    core.run_once()
+    assert c["live_copy_of_recovered"] == 2 and c["refused"] == 2

@@ -307,7 +307,7 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         worst = max(worst, dx if not math.isnan(dx) else 0.0, dp if not math.isnan(dp) else 0.0)
         print(f"{name}: {len(res.replayed)} predictions replayed; vs the daemon's: "
               f"max |dx| {dx:.3g}, max |dP| {dp:.3g}"
-              + (f"; counters diverged at {res.diverged}" if res.diverged else "")
+              + (f"; counters differ at {res.diverged} of them" if res.diverged else "")
               + (f"; {res.missing_inputs} inputs handled by the daemon not in the recording"
                  if res.missing_inputs else "")
               + (f"; {res.spec_changes} later spec change(s) not replayed"
