@@ -27,9 +27,9 @@ from pd_service.wire.state import (
     SessionState,
     StateCommand,
     StatePacket,
+    Tensors,
     pack_state_fields,
     spec_fingerprint,
-    tensor_fields,
 )
 
 __all__ = ["Refused", "encode_state", "from_message", "refusal", "restore", "to_message"]
@@ -73,28 +73,29 @@ def encode_state(st: EstimatorState, *, session: str, instance: str, fingerprint
     x, P = st.mean, st.cov
     if "mu" not in base:
         base.pop("x"), base.pop("P")
-    f64 = np.float64
+    t = Tensors()  # the wire form of each array; whether all were finite
+    P = np.asarray(P, dtype=np.float64)
     obj = {
         "v": 1, "session": session, "instance": instance, "spec_fingerprint": fingerprint,
         "state_version": int(st.version), "kind": st.kind, "made_ns": int(made_ns),
         "now_step": None if st.now is None else int(st.now),
         "committed_step": int(st.committed_step), "base_step": int(st.base_step),
         "newest_committed": None if st.newest_committed is None else int(st.newest_committed),
-        "x": tensor_fields(np.asarray(x, dtype=f64)),
-        "P": tensor_fields(0.5 * (np.asarray(P, dtype=f64) + np.asarray(P, dtype=f64).T)),
-        "base": {k: tensor_fields(np.asarray(v, dtype=f64)) for k, v in base.items()},
-        "packets": [{"step": int(s), "sensor": name, "z": tensor_fields(np.asarray(z, dtype=f64)),
-                     "R": None if R is None else tensor_fields(np.asarray(R, dtype=f64))}
+        "x": t(x),
+        "P": t(0.5 * (P + P.T)),
+        "base": {k: t(v) for k, v in base.items()},
+        "packets": [{"step": int(s), "sensor": name, "z": t(z),
+                     "R": None if R is None else t(R)}
                     for s, name, z, R in st.packets],
-        "u_origin": tensor_fields(np.asarray(st.u_origin, dtype=f64)),
-        "commands": [{"step": int(j), "u": tensor_fields(np.asarray(u, dtype=f64))}
-                     for j, u in st.commands],
+        "u_origin": t(st.u_origin),
+        "commands": [{"step": int(j), "u": u} for (j, _), u in
+                     zip(st.commands, t.rows([u for _, u in st.commands]), strict=True)],
         "counters": {str(k): int(v) for k, v in st.counters.items()},
-        "extras": {k: tensor_fields(np.asarray(v, dtype=f64)) for k, v in st.extras.items()},
+        "extras": {k: t(v) for k, v in st.extras.items()},
         "session_counters": {str(k): int(v) for k, v in (session_counters or {}).items()},
         "published": int(published), "seq": int(seq),
     }
-    data = pack_state_fields(obj)
+    data = pack_state_fields(obj, t.finite)
     if data is None:
         try:
             msg = to_message(st, session=session, instance=instance, fingerprint=fingerprint,

@@ -58,3 +58,39 @@ def test_a_non_finite_state_takes_the_validated_path_and_is_refused():
     st.base["P"][0, 0] = np.inf
     with pytest.raises(WireError):
         encode_state(st, **KW)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("where", ["command", "packet", "x"])
+def test_every_array_is_checked_for_finite_values(where):
+    """The fast path checks each array as it converts it (one stack for the commands):
+    NaN anywhere takes the validated path, which refuses it."""
+    st = _fed("paper")
+    if where == "command":
+        j, u = st.commands[-1]
+        st.commands[-1] = (j, np.full_like(u, np.nan))
+    elif where == "packet":
+        s, name, z, R = st.packets[-1]
+        st.packets[-1] = (s, name, np.full_like(z, np.nan), R)
+    else:
+        st.base["x"] = np.full_like(st.base["x"], np.nan)
+    with pytest.raises(WireError):
+        encode_state(st, **KW)  # type: ignore[arg-type]
+
+
+def test_finite_values_whose_sum_overflows_are_encoded():
+    st = _fed("paper")
+    j, u = st.commands[0]
+    st.commands[0] = (j, np.full_like(u, 1.7e308))
+    st.commands[1] = (st.commands[1][0], np.full_like(u, 1.7e308))
+    s, name, z, R = st.packets[-1]
+    st.packets[-1] = (s, name, np.full(z.shape, 1.7e308), R)
+    assert encode_state(st, **KW) == encode(to_message(st, **KW))  # type: ignore[arg-type]
+
+
+def test_tensors_of_mixed_shapes_are_converted_one_by_one():
+    from pd_service.wire.state import Tensors
+
+    t = Tensors()
+    rows = t.rows([np.zeros(2), np.ones(3)])
+    assert rows == [{"shape": [2], "data": [0.0, 0.0]}, {"shape": [3], "data": [1.0] * 3}]
+    assert t.finite

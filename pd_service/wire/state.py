@@ -177,34 +177,56 @@ class SessionState(Message):
         return self
 
 
-def tensor_fields(a: np.ndarray) -> dict[str, Any]:
-    """The wire form of a float64 array, as :data:`Tensor` dumps it."""
-    return {"shape": list(a.shape), "data": a.ravel().tolist()}
+class Tensors:
+    """Builds the wire forms of float64 arrays (as :data:`Tensor` dumps them) and keeps track of
+    whether every value given was finite: one fsum per array, where a walk over the
+    finished fields cost a checkpoint more than half of its encoding (~20 of 35 µs for a
+    paper session)."""
+
+    __slots__ = ("finite",)
+
+    def __init__(self) -> None:
+        self.finite = True
+
+    def __call__(self, a: Any) -> dict[str, Any]:
+        arr = np.asarray(a, dtype=np.float64)
+        data: list[float] = arr.ravel().tolist()
+        if self.finite:
+            # fsum of finite values is finite unless it overflows (then look at each); it
+            # raises ValueError for inf + -inf
+            try:
+                ok = math.isfinite(math.fsum(data))
+            except OverflowError:
+                ok = False
+            except ValueError:
+                ok = self.finite = False
+            if not ok:
+                self.finite = all(math.isfinite(v) for v in data)
+        return {"shape": list(arr.shape), "data": data}
+
+    def rows(self, arrays: list[Any]) -> list[dict[str, Any]]:
+        """The wire forms of arrays of one shape (e.g. a state's commands), converted as
+        one stack: ~0.2 instead of ~0.8 µs each."""
+        if not arrays:
+            return []
+        try:
+            stack = np.asarray(arrays, dtype=np.float64)
+        except ValueError:  # not all of one shape: one by one
+            return [self(a) for a in arrays]
+        if self.finite and not np.isfinite(stack).all():
+            self.finite = False
+        shape = list(stack.shape[1:])
+        return [{"shape": shape.copy(), "data": row}
+                for row in stack.reshape(len(arrays), -1).tolist()]
 
 
-def pack_state_fields(obj: dict[str, Any]) -> bytes | None:
+def pack_state_fields(obj: dict[str, Any], finite: bool) -> bytes | None:
     """msgpack of a SessionState's fields in wire order (``SessionState.model_dump()``
-    form, built by the caller without the models), or None if a number is not finite or
-    the message would need the codec's compact form: the caller then takes the validated
-    path (``encode(SessionState(...))``), which also explains the refusal."""
-    for value in obj.values():
-        if not _finite(value):
-            return None
+    form, built by the caller without the models, its arrays by :class:`Tensors`), or None
+    if a number is not finite (``finite``: the Tensors' verdict) or the message would need
+    the codec's compact form: the caller then takes the validated path
+    (``encode(SessionState(...))``), which also explains the refusal."""
+    if not finite:
+        return None
     data: bytes = msgpack.packb(obj, use_bin_type=True)
     return data if len(data) <= MAX_MESSAGE_BYTES else None
-
-
-def _finite(value: Any) -> bool:
-    """True if every float inside ``value`` (dicts, lists, tensors' data) is finite."""
-    if type(value) is float:
-        return math.isfinite(value)
-    if type(value) is dict:
-        if "data" in value and type(value["data"]) is list:
-            try:
-                return math.isfinite(math.fsum(value["data"]))
-            except OverflowError:  # finite values whose sum overflows: look at each
-                return all(math.isfinite(v) for v in value["data"])
-        return all(_finite(v) for v in value.values())
-    if type(value) is list:
-        return all(_finite(v) for v in value)
-    return True
