@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pd_service.estimation import Estimator
+from pd_service.estimation.replay import ReplayEstimator
 from pd_service.wire import Command, Measurement, SessionSpec, WireError, decode
 from pd_service.wire.convert import (
     check_command,
@@ -106,6 +107,7 @@ class Intake:
             if s is None:
                 s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
             R = None
+            checked = True  # z: a fresh finite (m,) array
         else:  # full decode and checks: exact refusal reasons
             try:
                 msg = decode(payload, Measurement)
@@ -122,6 +124,7 @@ class Intake:
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "invalid")
             seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
+            checked = False
             stamp = "step" if msg.step is not None else "t_ns"
             if z.size and _max_abs(z) > self.max_abs:
                 self.decoded = True
@@ -133,8 +136,10 @@ class Intake:
                            f"the session starts at its epoch (now step {now_step})", seq)
         est = self.est
         try:
-            # positional: a keyword call costs the compiled method an argument parse
-            ok = est.add_measurement(sensor, s, z, now_step, R)
+            if checked and isinstance(est, ReplayEstimator):
+                ok = est.add_checked_measurement(sensor, s, z, now_step)
+            else:  # positional: a keyword call costs a compiled method an argument parse
+                ok = est.add_measurement(sensor, s, z, now_step, R)
         except ValueError as exc:
             return Refusal("invalid", f"Measurement.z: {exc}", seq)
         if ok:
@@ -161,6 +166,7 @@ class Intake:
             stamp = "step" if j is not None else "issued_ns"
             if j is None:
                 j = spec.step_of(issued) + spec.lead  # type: ignore[arg-type]
+            checked = True  # u: a fresh finite (nu,) array
         else:
             try:
                 msg = decode(payload, Command)
@@ -173,6 +179,7 @@ class Intake:
                 return _check_reason(exc, msg.seq, "commands_invalid")
             seq, j, u = msg.seq, command_step(msg, spec), msg.u
             stamp = "step" if msg.step is not None else "issued_ns"
+            checked = False
             if u.size and _max_abs(u) > self.max_abs:
                 self.decoded = True
                 return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
@@ -180,7 +187,10 @@ class Intake:
         self.decoded = True
         est = self.est
         try:
-            ok = est.add_command(j, u, now_step if now_step >= 0 else None)
+            if checked and isinstance(est, ReplayEstimator):
+                ok = est.add_checked_command(j, u, now_step if now_step >= 0 else None)
+            else:
+                ok = est.add_command(j, u, now_step if now_step >= 0 else None)
         except (ValueError, IndexError) as exc:
             return Refusal("commands_invalid", f"Command.u: {exc}", seq)
         if ok:

@@ -213,3 +213,36 @@ def test_a_state_that_does_not_fit_is_refused_and_changes_nothing(mutate, msg) -
     after = target.predict(0)
     np.testing.assert_array_equal(before.x, after.x)
     assert target.now == 0 and target.committed_step == 0
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow],
+          derandomize=True)
+@given(seed=st.integers(min_value=0, max_value=2**32 - 1))
+def test_checked_entry_points_equal_the_checking_ones(seed: int) -> None:
+    """add_checked_measurement / add_checked_command (the intake fast path's: its values
+    are already fresh finite float64 arrays of the right size) give the very verdicts,
+    counters and bits of add_measurement / add_command."""
+    (model, sensors, max_delay, lead, x0, P0, hold), events = linear_events(seed, 80)
+
+    def make() -> ObserverPredictor:
+        return ObserverPredictor(model, sensors, x0, P0, lead=lead, max_delay=max_delay,
+                                 command_hold="hold" if hold else "zero")
+
+    a, b = make(), make()
+    for k in range(80):
+        for ev in events.get(k, []):
+            if ev[0] == "c":
+                ra = a.add_command(ev[1], ev[2], now=k)
+                rb = b.add_checked_command(ev[1], np.array(ev[2], dtype=float), k)
+            elif ev[4] is None:  # the fast path takes only samples without their own R
+                ra = a.add_measurement(ev[1], ev[2], ev[3], now=k)
+                rb = b.add_checked_measurement(ev[1], ev[2], np.array(ev[3], dtype=float), k)
+            else:
+                ra = a.add_measurement(ev[1], ev[2], ev[3], now=k, R=ev[4])
+                rb = b.add_measurement(ev[1], ev[2], ev[3], now=k, R=ev[4])
+            assert ra == rb
+        pa, pb = a.predict(k), b.predict(k)
+        assert pa.step == pb.step and pa.newest_step == pb.newest_step
+        np.testing.assert_array_equal(pb.x, pa.x)
+        np.testing.assert_array_equal(pb.P, pa.P)
+    assert a.counters == b.counters
