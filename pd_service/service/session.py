@@ -114,9 +114,9 @@ class Session:
         self.latency = LatencyWindow(SESSION_LATENCY_WINDOW)
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
-        #: Payloads read back from senders' caches and accepted -> the last step at which
-        #: their live copy is expected (:meth:`take_recovered_copy`).
-        self.recovered_copies: dict[bytes, int] = {}
+        #: Hashes of payloads read back from senders' caches and accepted -> the last step
+        #: at which their live copy is expected (:meth:`take_recovered_copy`).
+        self.recovered_copies: dict[int, int] = {}
         self.alive = True
         #: Tick bookkeeping (pd_service.service.publish): the generation of the live heap
         #: entry (older entries are skipped) and whether the session is ticking as idle.
@@ -184,19 +184,25 @@ class Session:
 
     def keep_recovered_copy(self, payload: bytes, now_step: int) -> None:
         """A message read back from a sender's cache was accepted: its live copy, if still
-        on its way, is expected within the window (``max_delay + 1`` steps)."""
+        on its way, is expected within the window (``max_delay + 1`` steps). Kept: the
+        payload's hash, not its bytes (a false match could only silence the report of a
+        message refused as a duplicate anyway)."""
         copies = self.recovered_copies
         if len(copies) >= RECOVERED_COPIES:  # oldest first: insertion order
             del copies[next(iter(copies))]
-        copies[payload] = now_step + self.spec.max_delay + 1
+        copies[hash(payload)] = now_step + self.spec.max_delay + 1
 
     def take_recovered_copy(self, payload: bytes, now_step: int) -> bool:
         """Whether ``payload`` repeats a message read back and accepted (then forgotten);
-        copies past their step are dropped."""
+        copies past their step are dropped, oldest first (their steps grow with insertion),
+        so a flood of duplicates costs O(1) each."""
         copies = self.recovered_copies
-        until = copies.pop(payload, None)
-        for p in [p for p, u in copies.items() if u < now_step]:
-            del copies[p]
+        until = copies.pop(hash(payload), None)
+        while copies:
+            first = next(iter(copies))
+            if copies[first] >= now_step:
+                break
+            del copies[first]
         return until is not None and until >= now_step
 
     # --- output ------------------------------------------------------------------------

@@ -13,6 +13,7 @@ import pytest
 from pd_service.backends import build_estimator
 from pd_service.service import ServiceCore
 from pd_service.service.failover import replica_key
+from pd_service.service.session import RECOVERED_COPIES
 from pd_service.transport import InMemoryBus, Sample
 from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
 
@@ -493,3 +494,13 @@ def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
                               meas_bytes("s1", "ranger", 3, [1.0])))
     core.run_once()
     assert c["live_copy_of_recovered"] == 2 and c["refused"] == 2
+    # bounded: at most RECOVERED_COPIES remembered (hashes, oldest dropped first); those
+    # kept before now - max_delay - 1 are past their window and go at the next look-up
+    sess = d.routes["s1"].sess
+    now_step = sess.step_now(clock.t)
+    for i in range(RECOVERED_COPIES + 100):
+        sess.keep_recovered_copy(b"m%d" % i, now_step - 20 + i // 100)  # steps now-20 .. now-9
+    assert len(sess.recovered_copies) == RECOVERED_COPIES
+    assert not sess.take_recovered_copy(b"m0", now_step)  # the oldest went first
+    assert len(sess.recovered_copies) < RECOVERED_COPIES  # expired ones purged
+    assert sess.take_recovered_copy(b"m%d" % (RECOVERED_COPIES + 99), now_step)
