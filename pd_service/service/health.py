@@ -37,14 +37,10 @@ RETRY_AFTER_S = 1.0
 _SMALL = 256
 
 
-def unhealthy(x: np.ndarray, P: np.ndarray) -> str | None:
-    """Why (x (n,), P (n, n)) may not be published, or None. Cheap: O(n^2) reads."""
-    return inspect(x, P)[0]
-
-
 def inspect(x: np.ndarray, P: np.ndarray) -> tuple[str | None, list[float], list[float]]:
-    """:func:`unhealthy`'s answer, with the entries of x and of P (row-major) as Python
-    floats: checked once here, then packed as they are (``PredictionEncoder.encode_values``)."""
+    """Why (x (n,), P (n, n)) may not be published (None if it may), with the entries of x
+    and of P (row-major) as Python floats: read and checked once here, then packed as they
+    are (``PredictionEncoder.encode_values``). Cheap: O(n^2) reads."""
     xs, ps = x.tolist(), P.ravel().tolist()
     if P.size <= _SMALL:
         # fsum of finite values is finite unless it overflows (then numpy looks closer);
