@@ -317,15 +317,14 @@ class ReplayEstimator(Generic[S]):
         """:meth:`add_command` for a caller that has made its checks (the daemon's intake
         fast path): ``step`` an int, ``u`` a finite float64 (nu,) array (copied into the
         input buffer). Skips the conversion and checks of u (~0.5 µs)."""
-        k, uv = step, u
         if now is not None:
             t = self._check_now(now)
             if t != self._now:
                 self._advance(t)
         ref = self._now if self._now is not None else 0
-        if not self._inputs.admit(k, uv, self._c, ref + self._cmd_ahead, self._counters):
+        if not self._inputs.admit(step, u, self._c, ref + self._cmd_ahead, self._counters):
             return False
-        self._invalidate(k + 1)  # u(k) first moves x(k + 1)
+        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
         return True
 
     def predict(self, now: object) -> PredictedState:

@@ -196,10 +196,8 @@ class Tensors:
             # raises ValueError for inf + -inf
             try:
                 ok = math.isfinite(math.fsum(data))
-            except OverflowError:
+            except (OverflowError, ValueError):
                 ok = False
-            except ValueError:
-                ok = self.finite = False
             if not ok:
                 self.finite = all(math.isfinite(v) for v in data)
         return {"shape": list(arr.shape), "data": data}
