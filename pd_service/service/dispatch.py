@@ -187,7 +187,8 @@ class Dispatch:
 
     def process_released(self, now: int, touched: list[Session]) -> int:
         """Worker: for each finished read-back, the parked sessions' live messages (all,
-        no round budget), then the recovered ones, before anything is published: a
+        no round budget; as in a round, they wake an idle session and a flood meanwhile is
+        reported), then the recovered ones, before anything is published: a
         prediction never sees a recovered packet without the live ones received before
         it, and a message both received live and read back is refused as the recovered
         copy, quietly. Then the sessions rejoin the rounds."""
@@ -198,16 +199,9 @@ class Dispatch:
                 route = self.routes.get(name)
                 if route is None:
                     continue
-                sess, inbox = route.sess, route.inbox
-                if sess is not None and inbox is not None:
-                    now_step = sess.step_now(now)
-                    had = bool(sess.pending_recv)
-                    while inbox:
-                        self.handle(sess, inbox.popleft(), now_step, now)
-                        n += 1
-                    if sess.pending_recv and not had:
-                        touched.append(sess)
                 route.ready = False
+                if route.inbox:
+                    n += self._serve(route, now, touched, len(route.inbox))
                 self.mark_ready(route)
             for stream, sample in items:
                 self._offer_recovered(stream, sample, now, now, touched)
@@ -290,27 +284,33 @@ class Dispatch:
         for _ in range(len(ready)):
             route = ready.popleft()
             route.ready = False
-            sess, inbox = route.sess, route.inbox
-            if sess is None or inbox is None:
-                continue
-            if sess.idle:
-                self.pub.wake(sess, now)
-            if route.flood != route.flood_seen:
-                self._note_flood(route, sess, now)
-            now_step = sess.step_now(now)
-            n = 0
-            had_pending = bool(sess.pending_recv)
-            while n < budget and inbox:
-                item = inbox.popleft()
-                n += 1
-                self.handle(sess, item, now_step, now)
-            handled += n
-            if inbox and not route.ready:
+            handled += self._serve(route, now, touched, budget)
+            if route.inbox and not route.ready:
                 route.ready = True
                 ready.append(route)
-            if sess.pending_recv and not had_pending:
-                touched.append(sess)
         return handled
+
+    def _serve(self, route: Route, now: int, touched: list[Session], budget: int) -> int:
+        """Up to ``budget`` of ``route``'s waiting messages into its session: a message wakes
+        an idle session, a flood since the last visit is reported first. Appends the session
+        to ``touched`` if it accepted its first measurement since it last published."""
+        sess, inbox = route.sess, route.inbox
+        if sess is None or inbox is None:
+            return 0
+        if sess.idle:
+            self.pub.wake(sess, now)
+        if route.flood != route.flood_seen:
+            self._note_flood(route, sess, now)
+        now_step = sess.step_now(now)
+        n = 0
+        had_pending = bool(sess.pending_recv)
+        while n < budget and inbox:
+            item = inbox.popleft()
+            n += 1
+            self.handle(sess, item, now_step, now)
+        if sess.pending_recv and not had_pending:
+            touched.append(sess)
+        return n
 
     def handle(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """Give one message to its session; count it, or refuse it (reported). A live

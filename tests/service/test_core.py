@@ -245,6 +245,23 @@ def test_ticks_publish_every_step_and_measurements_publish_at_once(world, tmp_pa
     assert core.service_status().counters["tick_overruns"] >= 1
 
 
+def test_a_message_sent_before_its_config_wakes_the_session(world, tmp_path):
+    """A command that arrives before its session's config waits among the unknown ones and
+    is handed over (accepted, not refused as unknown) once the config is applied; from it
+    on the session ticks every step with no further traffic."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 10, [0.0]))
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    c = core.service_status().counters
+    assert c.get("commands_accepted") == 1 and c.get("unknown_session", 0) == 0
+    for k in range(5):
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert [p.step for p in col.predictions["s1"]] == [10, 11, 12, 13, 14]
+
+
 def test_data_driven_session_publishes_once_per_step(world, tmp_path):
     """Data every step after tick_phase: one prediction per step (on data), not the tick's
     and then the data's; when the data stop, the late tick still publishes that step."""

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pd_service.backends import build_estimator
-from pd_service.service import ServiceCore
+from pd_service.service import ServiceCore, Settings, SpecStore
 from pd_service.service.failover import replica_key
 from pd_service.service.session import RECOVERED_COPIES
 from pd_service.transport import InMemoryBus, Sample
@@ -450,6 +450,46 @@ def test_takeover_reads_back_what_the_senders_kept(tmp_path):
     assert status(cli, s).origin == "replica"
     assert c["recovered_accepted"] > 0 and c["recovered_duplicate"] > 0
     assert c["refused"] == 0 and len(col.errors[s]) == errors_before
+
+
+def test_a_message_during_the_read_back_wakes_the_taken_over_session(tmp_path):
+    """A taken-over session is idle until its next message. A message that arrives while
+    its senders' caches are still being read back is held, handled when the read-back ends,
+    and wakes the session like any other: from then on it publishes every step, with no
+    further traffic (the read-back slow, as on a loaded machine)."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col = Collector().attach(bus.transport())
+    cli = bus.transport()
+    later: list = []
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
+    b = ServiceCore(bus.transport(), Settings(instance="inst-b", peers=PAIR),
+                    store=SpecStore(tmp_path / "inst-b"), now_ns=clock, spawn=later.append)
+    b.start()
+    names = [f"s{i:02d}" for i in range(12)]
+    for n in names:
+        cli.put(keys.config_key(n), encode(paper_spec(n)))
+    settle(a, b)
+    while later:
+        later.pop(0)()
+    settle(a, b)
+    s = next(n for n in names if n in a.served_sessions())
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    for k in range(10):
+        d.step([a, b], k)
+    a.t.close()
+    b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
+    b.run_once()  # takes s over; its read-back is pending
+    assert later and s in b.served_sessions()
+    d.step([b], 10, mirror=False)  # held in the parked inbox
+    while later:  # the read-back ends
+        later.pop(0)()
+    count = len(col.predictions[s])
+    for k in range(11, 16):  # no traffic: the message above woke the session
+        for phase in (0.1, 0.6):
+            clock.t = int((k + phase) * PERIOD_NS)
+            b.run_once()
+    assert len(col.predictions[s]) >= count + 5
+    assert col.predictions[s][-1].step == 15 + d.spec.lead
 
 
 def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):

@@ -256,7 +256,9 @@ def test_two_instances_split_sessions_and_take_over(own_net, tmp_path):
         for s in by_y:
             t.put(keys.command_key(s), cmd_now_bytes(s, time.time_ns()))
         counts = {s: len(col.predictions[s]) for s in by_y}
-        assert col.wait_for(lambda c: all(len(c.predictions[s]) > counts[s] + 3 for s in by_y))
+        assert col.wait_for(lambda c: all(len(c.predictions[s]) > counts[s] + 3 for s in by_y)), (
+            f"{ {s: (counts[s], len(col.predictions[s])) for s in by_y} }\n"
+            f"{ {s: [e.reason for e in col.errors[s]] for s in by_y} }\n{a.log()}")
         assert set(query_service_status(t, "inst-x").sessions) == set(names)
     finally:
         b.stop()
