@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter, deque
 from collections.abc import Callable
 
@@ -447,6 +448,7 @@ class Lifecycle:
         s = self.settings
         items: list[tuple[int, Sample]] = []
         lock = threading.Lock()
+        t0 = time.monotonic()
 
         def keep(stream: int) -> Callable[[Sample], None]:
             def on(sample: Sample) -> None:
@@ -465,6 +467,8 @@ class Lifecycle:
                   reason=str(exc))
         with lock:
             got = list(items)
+        event(log, "read_back", sessions=len(names), samples=len(got),
+              seconds=f"{time.monotonic() - t0:.3f}")
         self.dispatch.post_released(names, got)
 
     def reassign(self, now: int) -> None:
