@@ -12,6 +12,7 @@ import base64
 import json
 import struct
 import time
+from contextlib import ExitStack
 from typing import Any
 
 from websockets.sync.client import connect
@@ -22,8 +23,10 @@ LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
 
 class FoxgloveClient:
     def __init__(self, url: str) -> None:
-        self.ws = connect(url, subprotocols=[SUBPROTOCOL, LEGACY_SUBPROTOCOL],  # type: ignore[list-item]
-                          open_timeout=10)
+        self._stack = ExitStack()  # websockets >= 17.1 wants connect() entered as a context
+        self.ws = self._stack.enter_context(connect(
+            url, subprotocols=[SUBPROTOCOL, LEGACY_SUBPROTOCOL],  # type: ignore[list-item]
+            open_timeout=10))
         self.subprotocol = self.ws.subprotocol
         self.channels: dict[str, dict[str, Any]] = {}  # topic -> advertised channel
         self.server_info: dict[str, Any] | None = None
@@ -78,4 +81,4 @@ class FoxgloveClient:
         return message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))
 
     def close(self) -> None:
-        self.ws.close()
+        self._stack.close()
