@@ -157,9 +157,9 @@ class Settings(BaseSettings):
                                            "(sensors and commands) that it kept while no "
                                            "daemon received them; 0: none.")
     recover_timeout_s: float = Field(
-        2.0, gt=0, description="Longest wait at start for the senders' caches: once to find "
-                               "them (liveliness), once for their answers (so up to twice "
-                               "this).")
+        2.0, gt=0, description="Longest wait for the senders' caches (at start, and per "
+                               "session at a takeover): once to find them (liveliness), once "
+                               "for their answers (so up to twice this).")
     checkpoint_max_bytes: int = Field(
         65536, ge=1024, le=65536, description="Largest encoded session state written or sent.")
 

@@ -16,6 +16,7 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
@@ -40,6 +41,10 @@ log = logging.getLogger(LOGGER_NAME)
 _GONE_MEMO_NS = 10_000_000_000
 #: Per-session config rate buckets kept (oldest forgotten first).
 _MAX_CONFIG_BUCKETS = 10_000
+
+
+#: Takeover read-backs (one session's sensors and commands each) in flight at once.
+READ_BACKS_IN_FLIGHT = 32
 
 
 def spawn_thread(fn: Callable[[], None]) -> None:
@@ -444,32 +449,48 @@ class Lifecycle:
     def recover_taken(self, names: list[str]) -> None:
         """Off the worker (``spawn``): read back what the senders of sessions just taken
         over kept (what the previous owner accepted after its last replica, what was sent
-        while nobody served them); the samples reach the worker as recovered messages."""
+        while nobody served them); the samples reach the worker as recovered messages.
+
+        Up to :data:`READ_BACKS_IN_FLIGHT` sessions are read at once, and each session
+        rejoins the rounds as soon as its own read-back ends: a slow or silent sender (a
+        query waits up to ``recover_timeout_s`` for it) holds its own session only, and
+        taking over N sessions costs ~N / READ_BACKS_IN_FLIGHT round trips, not N."""
         s = self.settings
-        items: list[tuple[int, Sample]] = []
-        lock = threading.Lock()
         t0 = time.monotonic()
+        failed: list[str] = []
 
-        def keep(stream: int) -> Callable[[Sample], None]:
-            def on(sample: Sample) -> None:
-                with lock:
-                    items.append((stream, sample))
-            return on
+        def one(name: str) -> int:
+            items: list[tuple[int, Sample]] = []
+            lock = threading.Lock()
 
-        try:
-            for name in names:
-                for ke, stream in ((keys.ALL_SENSORS.replace("*", name, 1), SENSOR),
-                                   (keys.command_key(name), COMMAND)):
-                    self.t.recover(ke, keep(stream + RECOVERED), max_samples=s.recover_samples,
-                                   timeout=s.recover_timeout_s).close()
-        except Exception as exc:  # the transport is closing, say
-            event(log, "recover_failed", logging.WARNING, sessions=",".join(names),
-                  reason=str(exc))
-        with lock:
-            got = list(items)
-        event(log, "read_back", sessions=len(names), samples=len(got),
+            def keep(stream: int) -> Callable[[Sample], None]:
+                def on(sample: Sample) -> None:
+                    with lock:
+                        items.append((stream, sample))
+                return on
+
+            try:
+                if not self.closed:
+                    for ke, stream in ((keys.ALL_SENSORS.replace("*", name, 1), SENSOR),
+                                       (keys.command_key(name), COMMAND)):
+                        self.t.recover(ke, keep(stream + RECOVERED),
+                                       max_samples=s.recover_samples,
+                                       timeout=s.recover_timeout_s).close()
+            except Exception as exc:  # the transport is closing, say
+                failed.append(f"{name}: {exc}")
+            with lock:
+                got = list(items)
+            self.dispatch.post_released([name], got)
+            return len(got)
+
+        workers = max(1, min(READ_BACKS_IN_FLIGHT, len(names)))
+        with ThreadPoolExecutor(workers, thread_name_prefix="pd-readback") as pool:
+            samples = sum(pool.map(one, names))
+        if failed:
+            event(log, "recover_failed", logging.WARNING, sessions=len(failed),
+                  first=failed[0])
+        event(log, "read_back", sessions=len(names), samples=samples,
               seconds=f"{time.monotonic() - t0:.3f}")
-        self.dispatch.post_released(names, got)
 
     def reassign(self, now: int) -> None:
         """Membership changed: start the sessions we now own, stop those we no longer own."""

@@ -6,6 +6,8 @@ refused (counted, reported) and the session starts from its prior."""
 from __future__ import annotations
 
 import copy
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -490,6 +492,67 @@ def test_a_message_during_the_read_back_wakes_the_taken_over_session(tmp_path):
             b.run_once()
     assert len(col.predictions[s]) >= count + 5
     assert col.predictions[s][-1].step == 15 + d.spec.lead
+
+
+class SlowReadBack:
+    """A transport whose read-back of one session's keys waits for ``gate`` (a sender
+    across a slow link, or one that never answers before the timeout)."""
+
+    def __init__(self, t, session):
+        self._t, self.session, self.gate = t, session, threading.Event()
+
+    def __getattr__(self, name):
+        return getattr(self._t, name)
+
+    def recover(self, keyexpr, callback, **kw):
+        if keyexpr.split("/")[1] == self.session:
+            assert self.gate.wait(10)
+        return self._t.recover(keyexpr, callback, **kw)
+
+
+def test_a_slow_read_back_holds_only_its_own_session(tmp_path):
+    """Sessions taken over together are read back concurrently, and each rejoins the
+    rounds when its own read-back ends: while one sender's cache is slow to answer, the
+    other taken-over sessions already take their messages (the slow one holds its own)."""
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    later: list = []
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
+    names = [f"s{i:02d}" for i in range(12)]
+    for n in names:
+        cli.put(keys.config_key(n), encode(paper_spec(n)))
+    settle(a)
+    taken = a.served_sessions()
+    slow = SlowReadBack(bus.transport(), taken[0])
+    b = ServiceCore(slow, Settings(instance="inst-b", peers=PAIR),
+                    store=SpecStore(tmp_path / "inst-b"), now_ns=clock, spawn=later.append)
+    b.start()
+    settle(a, b)
+    while later:
+        later.pop(0)()
+    a.t.close()
+    b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
+    b.run_once()  # takes them over; the read-back is spawned
+    assert len(later) == 1 and set(taken) <= set(b.served_sessions())
+    reader = threading.Thread(target=later.pop())
+    reader.start()
+    clock.t = int(0.1 * PERIOD_NS)
+    for n in taken:
+        cli.put(keys.command_key(n), cmd_bytes(n, 3, [1.0]))
+
+    def accepted(n):
+        return b.dispatch.routes[n].sess.counters["commands_accepted"]
+
+    deadline = time.monotonic() + 10
+    while not all(accepted(n) for n in taken[1:]) and time.monotonic() < deadline:
+        b.run_once()
+        time.sleep(0.001)
+    assert all(accepted(n) == 1 for n in taken[1:])
+    assert accepted(taken[0]) == 0  # still held: its read-back has not ended
+    slow.gate.set()
+    reader.join(10)
+    b.run_once()
+    assert accepted(taken[0]) == 1
 
 
 def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
