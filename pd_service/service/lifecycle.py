@@ -43,7 +43,7 @@ _GONE_MEMO_NS = 10_000_000_000
 _MAX_CONFIG_BUCKETS = 10_000
 
 
-#: Takeover read-backs (one session's sensors and commands each) in flight at once.
+#: Takeover read-backs (one session's sensors, or its commands) in flight at once.
 READ_BACKS_IN_FLIGHT = 32
 
 
@@ -451,45 +451,52 @@ class Lifecycle:
         over kept (what the previous owner accepted after its last replica, what was sent
         while nobody served them); the samples reach the worker as recovered messages.
 
-        Up to :data:`READ_BACKS_IN_FLIGHT` sessions are read at once, and each session
-        rejoins the rounds as soon as its own read-back ends: a slow or silent sender (a
-        query waits up to ``recover_timeout_s`` for it) holds its own session only, and
-        taking over N sessions costs ~N / READ_BACKS_IN_FLIGHT round trips, not N."""
+        Up to :data:`READ_BACKS_IN_FLIGHT` read-backs (one session's sensors, or its
+        commands) run at once, and a session rejoins the rounds as soon as both of its own
+        end: a slow or silent sender (its query waits up to ``recover_timeout_s``) holds its
+        own session only, and taking over N sessions costs ~2N / READ_BACKS_IN_FLIGHT round
+        trips, not 2N."""
         s = self.settings
         t0 = time.monotonic()
         failed: list[str] = []
+        lock = threading.Lock()
+        #: per session and stream (SENSOR, COMMAND): the samples read back
+        got = {(name, stream): list[tuple[int, Sample]]() for name in names
+               for stream in (SENSOR, COMMAND)}
+        left = dict.fromkeys(names, 2)  # per session: its read-backs not ended
+        total = [0]
 
-        def one(name: str) -> int:
-            items: list[tuple[int, Sample]] = []
-            lock = threading.Lock()
+        def one(task: tuple[str, int]) -> None:
+            name, stream = task
+            items = got[task]
 
-            def keep(stream: int) -> Callable[[Sample], None]:
-                def on(sample: Sample) -> None:
-                    with lock:
-                        items.append((stream, sample))
-                return on
+            def on(sample: Sample) -> None:
+                with lock:
+                    items.append((stream + RECOVERED, sample))
 
+            key = keys.command_key(name) if stream == COMMAND \
+                else keys.ALL_SENSORS.replace("*", name, 1)
             try:
                 if not self.closed:
-                    for ke, stream in ((keys.ALL_SENSORS.replace("*", name, 1), SENSOR),
-                                       (keys.command_key(name), COMMAND)):
-                        self.t.recover(ke, keep(stream + RECOVERED),
-                                       max_samples=s.recover_samples,
-                                       timeout=s.recover_timeout_s).close()
+                    self.t.recover(key, on, max_samples=s.recover_samples,
+                                   timeout=s.recover_timeout_s).close()
             except Exception as exc:  # the transport is closing, say
-                failed.append(f"{name}: {exc}")
+                failed.append(f"{key}: {exc}")
             with lock:
-                got = list(items)
-            self.dispatch.post_released([name], got)
-            return len(got)
+                left[name] -= 1
+                if left[name]:
+                    return
+                done = got[name, SENSOR] + got[name, COMMAND]
+                total[0] += len(done)
+            self.dispatch.post_released([name], done)
 
-        workers = max(1, min(READ_BACKS_IN_FLIGHT, len(names)))
+        tasks = list(got)
+        workers = max(1, min(READ_BACKS_IN_FLIGHT, len(tasks)))
         with ThreadPoolExecutor(workers, thread_name_prefix="pd-readback") as pool:
-            samples = sum(pool.map(one, names))
+            list(pool.map(one, tasks))
         if failed:
-            event(log, "recover_failed", logging.WARNING, sessions=len(failed),
-                  first=failed[0])
-        event(log, "read_back", sessions=len(names), samples=samples,
+            event(log, "recover_failed", logging.WARNING, keys=len(failed), first=failed[0])
+        event(log, "read_back", sessions=len(names), samples=total[0],
               seconds=f"{time.monotonic() - t0:.3f}")
 
     def reassign(self, now: int) -> None:

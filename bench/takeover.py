@@ -1,0 +1,203 @@
+#!/usr/bin/env python3
+"""How long a takeover's read-back holds the sessions taken over.
+
+Two daemon instances (inst-x, inst-y; explicit peers) share N paper sessions. A sender
+process keeps, for every session, one cached publisher (``cache=64``: the SDK's Robot and
+Operator keep such caches) on its ranger key and one on its command key, and has put
+``--steps`` steps of data on each. Then inst-y is killed (SIGKILL: no handover). inst-x takes
+its sessions over, parks them, and reads their senders' caches back
+(``Lifecycle.recover_taken``): until a session's own read-back ends, its live messages wait.
+
+Two sender modes:
+
+* ``live``: the sender answers at once (loopback);
+* ``stalled``: the sender is stopped (SIGSTOP) before the kill: its caches' liveliness tokens
+  stay, their queries go unanswered until ``recover_timeout_s`` (a robot behind a stalled
+  link). This is the case a slow sender makes of every session taken over with it.
+
+Printed per N and mode (medians of --repeat runs, spread in brackets): the sessions taken
+over, the samples read back, the read-back's wall time from inst-x's ``event=read_back`` log
+line, and the time from the kill to that line; then one JSON object.
+
+    .venv/bin/python bench/takeover.py --sessions 50,200 --repeat 3
+    .venv/bin/python bench/takeover.py --sessions 50 --modes stalled --root ../baseline
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+STEP_NS = 50_000_000
+READ_BACK = re.compile(r"ts=(\S+) .*event=read_back sessions=(\d+) samples=(\d+) seconds=(\S+)")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_senders(args: argparse.Namespace) -> None:
+    """Child: cached publishers for every session, ``--steps`` steps of data each, then
+    wait (stdin closed: exit)."""
+    import numpy as np
+
+    from pd_service.transport import ZenohTransport, zenoh_config
+    from pd_service.wire import Command, Measurement, encode, keys
+
+    t = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=[args.connect]))
+    now = (time.time_ns() - args.epoch) // STEP_NS
+    for i in range(args.n):
+        s = f"take{i:04d}"
+        ranger = t.publisher(keys.sensor_key(s, "ranger"), cache=64)
+        cmd = t.publisher(keys.command_key(s), cache=64)
+        for k in range(now - args.steps, now):
+            ranger.put(encode(Measurement(session=s, sensor="ranger", seq=k, step=k - 2,
+                                          z=np.array([5.0]))))
+            cmd.put(encode(Command(session=s, seq=k, step=k + 10, u=np.array([0.1]))))
+    print("ready", flush=True)
+    sys.stdin.read()
+    t.close()
+
+
+def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
+    from pd_service.scenarios.paper import paper_scenario
+    from pd_service.transport import ZenohTransport, zenoh_config
+    from pd_service.wire import encode, keys
+
+    state = Path(tempfile.mkdtemp(prefix="pd-takeover-"))
+    port = free_port()
+    hub_ep = f"tcp/127.0.0.1:{port}"
+    hub = ZenohTransport(zenoh_config(mode="peer", listen=[hub_ep], multicast=False))
+    env = dict(os.environ, PD_SERVICE_LOG_LEVEL="INFO", PD_SERVICE_MAX_SESSIONS="100000",
+               PD_SERVICE_CPU_BUDGET="1000", PD_SERVICE_CONFIG_RATE_TOTAL="100000",
+               PD_SERVICE_CONFIG_BURST_TOTAL="100000")
+    env.pop("PD_SERVICE_CONFIG", None)
+    if root != ROOT:
+        env["PYTHONPATH"] = str(root)
+    procs: dict[str, subprocess.Popen] = {}
+    eps: dict[str, str] = {}
+    statuses: dict[str, str] = {}
+    cond = threading.Condition()
+
+    def on_status(smp) -> None:
+        from pd_service.wire import SessionStatus, decode
+        st = decode(smp.payload, SessionStatus)
+        with cond:
+            statuses[st.session] = st.instance
+            cond.notify_all()
+
+    h = hub.subscribe(keys.ALL_STATUS, on_status)
+    try:
+        for inst, other in (("inst-x", "inst-y"), ("inst-y", "inst-x")):
+            eps[inst] = f"tcp/127.0.0.1:{free_port()}"
+            cmd = [sys.executable, "-m", "pd_service", "--instance", inst, "--state-dir",
+                   str(state / inst), "--listen", eps[inst], "--connect", hub_ep,
+                   "--peer", other] + (["--connect", eps["inst-x"]] if inst == "inst-y" else [])
+            procs[inst] = subprocess.Popen(cmd, env=env, cwd=root, stdout=subprocess.DEVNULL,
+                                           stderr=open(state / f"{inst}.log", "wb"))
+            deadline = time.monotonic() + 30
+            while not hub.get_liveliness(keys.service_token_key(inst), timeout=1.0):
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{inst} did not start: {(state / f'{inst}.log').read_text()}")
+        epoch = time.time_ns()
+        names = [f"take{i:04d}" for i in range(n)]
+        for s in names:
+            hub.put(keys.config_key(s), encode(paper_scenario().spec(s, epoch)))
+        with cond:
+            if not cond.wait_for(lambda: len(statuses) >= n, timeout=120):
+                raise RuntimeError(f"only {len(statuses)} of {n} sessions answered")
+            taken = sum(1 for v in statuses.values() if v == "inst-y")
+        time.sleep(0.5 + args.steps * STEP_NS / 1e9)  # steps of history behind the senders
+        snd = subprocess.Popen([sys.executable, __file__, "--senders", "--n", str(n),
+                                "--connect", hub_ep, "--epoch", str(epoch),
+                                "--steps", str(args.steps)],
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, cwd=ROOT,
+                               env=dict(os.environ))
+        procs["senders"] = snd
+        assert snd.stdout is not None and snd.stdout.readline().strip() == b"ready"
+        time.sleep(1.0)  # the caches' tokens reach both instances
+        if mode == "stalled":
+            snd.send_signal(signal.SIGSTOP)
+        t_kill = time.time()
+        procs["inst-y"].kill()
+        log = state / "inst-x.log"
+        deadline = time.monotonic() + args.timeout
+        m = None
+        while m is None and time.monotonic() < deadline:
+            m = READ_BACK.search(log.read_text(errors="replace"))
+            time.sleep(0.05)
+        if m is None:
+            raise RuntimeError(f"no read_back within {args.timeout} s: {log.read_text()[-2000:]}")
+        done = datetime.strptime(m.group(1), "%Y-%m-%dT%H:%M:%S.%fZ").replace(
+            tzinfo=UTC).timestamp()
+        return {"sessions": n, "mode": mode, "taken": int(m.group(2)), "taken_expected": taken,
+                "samples": int(m.group(3)), "read_back_s": float(m.group(4)),
+                "kill_to_done_s": round(done - t_kill, 3)}
+    finally:
+        h.close()
+        if "senders" in procs:
+            procs["senders"].send_signal(signal.SIGCONT)
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+            p.wait(10)
+        hub.close()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sessions", default="50,200")
+    ap.add_argument("--modes", default="live,stalled")
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--steps", type=int, default=8, help="steps of data in each cache")
+    ap.add_argument("--timeout", type=float, default=900.0, help="longest wait for read_back")
+    ap.add_argument("--root", default=str(ROOT), help="checkout whose daemon runs")
+    ap.add_argument("--senders", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--n", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--connect", default="", help=argparse.SUPPRESS)
+    ap.add_argument("--epoch", type=int, default=0, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.senders:
+        run_senders(args)
+        return
+    root = Path(args.root).resolve()
+    out = []
+    print(f"{'sessions':>8} {'mode':>8} {'taken':>6} {'samples':>8} {'read-back s':>22} "
+          f"{'kill->done s':>22}", flush=True)
+    for n in [int(x) for x in args.sessions.split(",")]:
+        for mode in args.modes.split(","):
+            runs = []
+            for r in range(args.repeat):
+                print(f"  ... N={n} {mode} run {r + 1}/{args.repeat}", file=sys.stderr, flush=True)
+                runs.append(one_run(n, mode, args, root))
+            rb = [x["read_back_s"] for x in runs]
+            kd = [x["kill_to_done_s"] for x in runs]
+            row = {"sessions": n, "mode": mode, "taken": runs[0]["taken"],
+                   "samples": statistics.median(x["samples"] for x in runs),
+                   "read_back_s": statistics.median(rb), "read_back_runs": rb,
+                   "kill_to_done_s": statistics.median(kd), "kill_to_done_runs": kd,
+                   "root": str(root)}
+            out.append(row)
+            print(f"{n:>8} {mode:>8} {row['taken']:>6} {row['samples']:>8.0f} "
+                  f"{row['read_back_s']:>8.3f} ({min(rb):.3f}-{max(rb):.3f}) "
+                  f"{row['kill_to_done_s']:>8.3f} ({min(kd):.3f}-{max(kd):.3f})", flush=True)
+    print(json.dumps(out))
+
+
+if __name__ == "__main__":
+    main()
