@@ -8,19 +8,22 @@ Operator keep such caches) on its ranger key and one on its command key, and has
 its sessions over, parks them, and reads their senders' caches back
 (``Lifecycle.recover_taken``): until a session's own read-back ends, its live messages wait.
 
-Two sender modes:
+Three sender modes:
 
-* ``live``: the sender answers at once (loopback);
-* ``stalled``: the sender is stopped (SIGSTOP) before the kill: its caches' liveliness tokens
-  stay, their queries go unanswered until ``recover_timeout_s`` (a robot behind a stalled
-  link). This is the case a slow sender makes of every session taken over with it.
+* ``live``: the caches answer at once (loopback);
+* ``slow``: each cache answers ``--answer-ms`` late (300 ms: a sender across a slow link;
+  emulated with a token and a queryable on zenoh-ext's cache layout, as loopback here
+  cannot be given a delay);
+* ``stalled``: the sender is stopped (SIGSTOP) before the kill: its caches' tokens stay,
+  their queries go unanswered until ``recover_timeout_s`` (2 s), or until Zenoh's lease
+  declares the sender gone (~10 s), whichever is first.
 
 Printed per N and mode (medians of --repeat runs, spread in brackets): the sessions taken
 over, the samples read back, the read-back's wall time from inst-x's ``event=read_back`` log
 line, and the time from the kill to that line; then one JSON object.
 
     .venv/bin/python bench/takeover.py --sessions 50,200 --repeat 3
-    .venv/bin/python bench/takeover.py --sessions 50 --modes stalled --root ../baseline
+    .venv/bin/python bench/takeover.py --sessions 50 --modes slow --root ../baseline
 """
 
 from __future__ import annotations
@@ -61,17 +64,44 @@ def run_senders(args: argparse.Namespace) -> None:
 
     t = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=[args.connect]))
     now = (time.time_ns() - args.epoch) // STEP_NS
+    held = []
     for i in range(args.n):
         s = f"take{i:04d}"
-        ranger = t.publisher(keys.sensor_key(s, "ranger"), cache=64)
-        cmd = t.publisher(keys.command_key(s), cache=64)
-        for k in range(now - args.steps, now):
-            ranger.put(encode(Measurement(session=s, sensor="ranger", seq=k, step=k - 2,
-                                          z=np.array([5.0]))))
-            cmd.put(encode(Command(session=s, seq=k, step=k + 10, u=np.array([0.1]))))
+        data = {keys.sensor_key(s, "ranger"): [
+                    encode(Measurement(session=s, sensor="ranger", seq=k, step=k - 2,
+                                       z=np.array([5.0]))) for k in range(now - args.steps, now)],
+                keys.command_key(s): [
+                    encode(Command(session=s, seq=k, step=k + 10, u=np.array([0.1])))
+                    for k in range(now - args.steps, now)]}
+        for j, (key, payloads) in enumerate(data.items()):
+            if args.answer_ms > 0:
+                held += emulated_cache(t, key, payloads, args.answer_ms / 1e3, 2 * i + j)
+                continue
+            pub = t.publisher(key, cache=64)
+            for payload in payloads:
+                pub.put(payload)
     print("ready", flush=True)
     sys.stdin.read()
     t.close()
+
+
+def emulated_cache(t, key: str, payloads: list[bytes], delay_s: float, eid: int) -> list:
+    """A sender's cache across a slow link: its token and queryable on zenoh-ext's layout
+    (``<key>/@adv/pub/<zid>/<eid>/...``), answering each query ``delay_s`` late."""
+    import zenoh
+
+    at = f"{key}/@adv/pub/{t.session.info.zid()}/{eid}/_"
+
+    def answer(q: zenoh.Query) -> None:
+        for payload in payloads:
+            q.reply(key, payload)
+        q.drop()
+
+    def on_query(q: zenoh.Query) -> None:
+        threading.Timer(delay_s, answer, (q,)).start()
+
+    return [t.session.declare_queryable(at, on_query),
+            t.session.liveliness().declare_token(at)]
 
 
 def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
@@ -125,7 +155,8 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
         time.sleep(0.5 + args.steps * STEP_NS / 1e9)  # steps of history behind the senders
         snd = subprocess.Popen([sys.executable, __file__, "--senders", "--n", str(n),
                                 "--connect", hub_ep, "--epoch", str(epoch),
-                                "--steps", str(args.steps)],
+                                "--steps", str(args.steps),
+                                "--answer-ms", str(args.answer_ms if mode == "slow" else 0)],
                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, cwd=ROOT,
                                env=dict(os.environ))
         procs["senders"] = snd
@@ -162,9 +193,11 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sessions", default="50,200")
-    ap.add_argument("--modes", default="live,stalled")
+    ap.add_argument("--modes", default="live,slow,stalled")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--steps", type=int, default=8, help="steps of data in each cache")
+    ap.add_argument("--answer-ms", dest="answer_ms", type=float, default=300.0,
+                    help="mode slow: each cache answers this late (ms)")
     ap.add_argument("--timeout", type=float, default=900.0, help="longest wait for read_back")
     ap.add_argument("--root", default=str(ROOT), help="checkout whose daemon runs")
     ap.add_argument("--senders", action="store_true", help=argparse.SUPPRESS)
