@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from pd_service.transport import ZenohTransport, zenoh_config
@@ -111,6 +112,20 @@ def query_service_status(t: ZenohTransport, instance: str) -> ServiceStatus | No
         if r.ok:
             return decode(r.payload, ServiceStatus)
     return None
+
+
+def await_service_status(t: ZenohTransport, instance: str,
+                         pred: Callable[[ServiceStatus], bool],
+                         timeout: float = 10.0) -> ServiceStatus | None:
+    """The instance's status once ``pred`` holds for it (asked again until ``timeout``: an
+    instance applies a config the others already answered a moment later), else the last
+    one it gave."""
+    deadline = time.monotonic() + timeout
+    while True:
+        st = query_service_status(t, instance)
+        if (st is not None and pred(st)) or time.monotonic() > deadline:
+            return st
+        time.sleep(0.05)
 
 
 def sleep_until(t_ns: int) -> None:

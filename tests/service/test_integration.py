@@ -26,6 +26,7 @@ from .helpers import Collector, cmd_bytes, cmd_now_bytes, meas_bytes, paper_spec
 from .procs import (
     Daemon,
     Presence,
+    await_service_status,
     client,
     free_port,
     query_service_status,
@@ -243,8 +244,9 @@ def test_two_instances_split_sessions_and_take_over(own_net, tmp_path):
         by_x = {s for s, o in owners.items() if o == "inst-x"}
         by_y = {s for s, o in owners.items() if o == "inst-y"}
         assert by_x and by_y and by_x | by_y == set(names)
-        sx = query_service_status(t, "inst-x")
-        sy = query_service_status(t, "inst-y")
+        # each instance knows every spec (the owner answered; the other may apply it later)
+        sx, sy = (await_service_status(t, inst, lambda st: st.counters["sessions_known"]
+                                       == len(names)) for inst in ("inst-x", "inst-y"))
         assert set(sx.sessions) == by_x and set(sy.sessions) == by_y
         assert sx.counters["sessions_known"] == sy.counters["sessions_known"] == len(names)
         # inst-y stops: inst-x takes its sessions over and says so on their status keys
