@@ -181,7 +181,7 @@ def test_only_services_declare_membership_tokens(generated, acl: bool) -> None:
                 assert cond.wait_for(
                     lambda: {keys.service_token_key(f) for f in fakes} <= seen, TIMEOUT_S)
         if acl:  # a daemon's liveliness query sees only the services' tokens too
-            assert sorted(c["service"].get_liveliness(keys.ALL_SERVICES, timeout=1.0)) == [
+            assert sorted(c["service"].get_liveliness(keys.ALL_SERVICES, timeout=TIMEOUT_S)) == [
                 keys.service_token_key("real"), keys.service_token_key("real2")]
 
 
@@ -209,7 +209,7 @@ class Recovered:
 
 def cache_tokens(t: ZenohTransport, keyexpr: str) -> list[str]:
     """The liveliness tokens of the sender caches on ``keyexpr`` that ``t`` sees."""
-    return t.get_liveliness(f"{keyexpr}/@adv/pub/**", timeout=1.0)
+    return t.get_liveliness(f"{keyexpr}/@adv/pub/**", timeout=TIMEOUT_S)
 
 
 def read_cache(t: ZenohTransport, token: str) -> list[tuple[str, bytes]]:
