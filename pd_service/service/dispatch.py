@@ -200,7 +200,7 @@ class Dispatch:
                 if route is None:
                     continue
                 route.ready = False
-                if route.inbox:
+                if route.sess is not None and route.inbox:
                     n += self._serve(route, now, touched, len(route.inbox))
                 self.mark_ready(route)
             for stream, sample in items:
@@ -284,6 +284,8 @@ class Dispatch:
         for _ in range(len(ready)):
             route = ready.popleft()
             route.ready = False
+            if route.sess is None or route.inbox is None:
+                continue
             handled += self._serve(route, now, touched, budget)
             if route.inbox and not route.ready:
                 route.ready = True
@@ -291,12 +293,12 @@ class Dispatch:
         return handled
 
     def _serve(self, route: Route, now: int, touched: list[Session], budget: int) -> int:
-        """Up to ``budget`` of ``route``'s waiting messages into its session: a message wakes
-        an idle session, a flood since the last visit is reported first. Appends the session
-        to ``touched`` if it accepted its first measurement since it last published."""
+        """Up to ``budget`` of ``route``'s waiting messages into its session (a served
+        route: session and inbox set): a message wakes an idle session, a flood since the
+        last visit is reported first. Appends the session to ``touched`` if it accepted its
+        first measurement since it last published."""
         sess, inbox = route.sess, route.inbox
-        if sess is None or inbox is None:
-            return 0
+        assert sess is not None and inbox is not None
         if sess.idle:
             self.pub.wake(sess, now)
         if route.flood != route.flood_seen:
