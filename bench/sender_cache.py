@@ -3,6 +3,8 @@ cost per message, against plain puts and plain declared publishers.
 
     .venv/bin/python bench/sender_cache.py                       # 300 keys, 20,000 messages
     .venv/bin/python bench/sender_cache.py --keys 30 --messages 20000 --rate 4000
+    .venv/bin/python bench/sender_cache.py --keys 1000 --owned 500 --messages 100000 \
+        --rate 20000 --modes put --rounds 1
 
 Setup, on loopback: a receiver process (a Zenoh peer listening on a free port) subscribes to
 ``pd/*/sensor/*`` through ``ZenohTransport.subscribe`` with a callback that only counts, as
@@ -14,6 +16,10 @@ process connects to it and sends ``--messages`` messages of 80 bytes round-robin
 * ``publisher``: one declared plain publisher per key;
 * ``cached``: one cached publisher per key (``cache=256``: the SDK's default now), which adds
   a cache, a queryable and a liveliness token per key and a sequence number per sample.
+
+With ``--owned K`` the receiver subscribes to the first K sessions one by one
+(``pd/<s>/sensor/*``) instead of with one wildcard, and receives only their share: what an
+instance that received only the sessions it owns would pay, and what its senders would.
 
 Printed per mode: the sender's µs per put (wall time inside ``put``), and the receiver's
 process CPU per received message (getrusage between its first and last message: Zenoh's
@@ -35,7 +41,7 @@ import time
 RECEIVER = r"""
 import json, resource, sys, threading, time
 from pd_service.transport import ZenohTransport, zenoh_config
-port, total = int(sys.argv[1]), int(sys.argv[2])
+port, total, owned = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 t = ZenohTransport(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast=False))
 state = {"n": 0, "c0": 0.0, "t0": 0.0}
 done = threading.Event()
@@ -49,7 +55,11 @@ def on(s):
     elif n == total:
         state["c1"], state["t1"] = cpu(), time.monotonic()
         done.set()
-t.subscribe("pd/*/sensor/*", on)
+if owned:  # one subscription per owned session, as an instance receiving only its own
+    for i in range(owned):
+        t.subscribe(f"pd/b{i:04d}/sensor/*", on)
+else:
+    t.subscribe("pd/*/sensor/*", on)
 print("ready", flush=True)
 for line in sys.stdin:
     if line.strip() == "go":
@@ -75,6 +85,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=4000.0, help="messages/s sent")
     ap.add_argument("--cache", type=int, default=256)
     ap.add_argument("--rounds", type=int, default=2, help="modes run this many times, in turn")
+    ap.add_argument("--owned", type=int, default=0,
+                    help="the receiver subscribes to the first OWNED keys' sessions one by one "
+                         "(pd/<s>/sensor/*) instead of to all with one wildcard: what an "
+                         "instance that received only the sessions it owns would pay")
     ap.add_argument("--modes", default="put,publisher,cached",
                     help="comma-separated; also 'cached-nodetect' (no liveliness token: no "
                          "late-sender detection) and 'cached-ts' (timestamps instead of "
@@ -84,15 +98,22 @@ def main(argv: list[str] | None = None) -> int:
     from pd_service.transport import ZenohTransport, zenoh_config
 
     port = free_port()
-    rx = subprocess.Popen([sys.executable, "-c", RECEIVER, str(port), str(args.messages)],
+    owned = min(args.owned, args.keys)
+    # messages go round-robin over the keys: the owned (first) keys' share arrives
+    received = sum(1 for i in range(args.messages) if not owned or i % args.keys < owned)
+    rx = subprocess.Popen([sys.executable, "-c", RECEIVER, str(port), str(received), str(owned)],
                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert rx.stdout is not None and rx.stdin is not None
     assert rx.stdout.readline().strip() == "ready"
     keys = [f"pd/b{i:04d}/sensor/cam" for i in range(args.keys)]
     payload = b"x" * 80
     period = 1.0 / args.rate
-    print(f"{args.keys} keys, {args.messages} messages at {args.rate:.0f}/s, 80-byte payload")
-    print(f"{'mode':<16} {'sender µs/put':>14} {'receiver µs CPU/msg':>20}")
+    print(f"{args.keys} keys, {args.messages} messages at {args.rate:.0f}/s, 80-byte payload; "
+          + (f"receiver subscribes to {owned} sessions one by one ({received} messages)"
+             if owned else "receiver subscribes to all with one wildcard"))
+    print(f"{'mode':<16} {'sender µs/put':>14} {'receiver µs CPU/msg':>20} "
+          f"{'receiver µs CPU/sent':>21}")
+    rows: list[dict] = []
     for mode in args.modes.split(",") * args.rounds:
         conf = zenoh_config(mode="peer", listen=[], connect=[f"tcp/127.0.0.1:{port}"],
                             multicast=False)
@@ -113,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             pubs = [t.publisher(k, cache=args.cache if mode == "cached" else 0) for k in keys]
             puts = [p.put for p in pubs]
-        time.sleep(1.0)  # declarations settle (not measured)
+        time.sleep(1.0 + owned / 250)  # declarations settle (not measured)
         rx.stdin.write("go\n")
         rx.stdin.flush()
         spent = 0.0
@@ -127,9 +148,15 @@ def main(argv: list[str] | None = None) -> int:
             puts[i % len(puts)](payload)
             spent += time.perf_counter() - t0
         res = json.loads(rx.stdout.readline())
-        assert res["n"] == args.messages, res
+        if res["n"] != received:
+            raise SystemExit(f"the receiver got {res['n']} of {received} messages (its "
+                             "subscriptions had not reached the sender?)")
         print(f"{mode:<16} {spent / args.messages * 1e6:>14.2f} "
-              f"{res['cpu_s'] / (args.messages - 1) * 1e6:>20.2f}")
+              f"{res['cpu_s'] / (received - 1) * 1e6:>20.2f} "
+              f"{res['cpu_s'] / args.messages * 1e6:>21.2f}")
+        rows.append({"mode": mode, "owned": owned, "sender_us_per_put": spent / args.messages * 1e6,
+                     "receiver_us_per_received": res["cpu_s"] / (received - 1) * 1e6,
+                     "receiver_us_per_sent": res["cpu_s"] / args.messages * 1e6})
         if mode in ("cached-nodetect", "cached-ts"):
             for a in advs:
                 a.undeclare()
@@ -139,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     rx.wait(10)
     r = resource.getrusage(resource.RUSAGE_SELF)
     print(f"(sender process CPU {r.ru_utime + r.ru_stime:.1f} s)")
+    print(json.dumps(rows))
     return 0
 
 
