@@ -16,7 +16,6 @@ import threading
 import time
 from collections import Counter, deque
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
@@ -490,10 +489,24 @@ class Lifecycle:
                 total[0] += len(done)
             self.dispatch.post_released([name], done)
 
-        tasks = list(got)
-        workers = max(1, min(READ_BACKS_IN_FLIGHT, len(tasks)))
-        with ThreadPoolExecutor(workers, thread_name_prefix="pd-readback") as pool:
-            list(pool.map(one, tasks))
+        tasks = deque(got)
+
+        def work() -> None:
+            while True:
+                try:
+                    task = tasks.popleft()  # atomic: each task is taken once
+                except IndexError:
+                    return
+                one(task)
+
+        # daemon threads (not an executor's, which the interpreter joins at exit): a stop
+        # during a read-back does not wait for the senders' timeouts
+        threads = [threading.Thread(target=work, name="pd-readback", daemon=True)
+                   for _ in range(max(1, min(READ_BACKS_IN_FLIGHT, len(tasks))))]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
         if failed:
             event(log, "recover_failed", logging.WARNING, keys=len(failed), first=failed[0])
         event(log, "read_back", sessions=len(names), samples=total[0],
