@@ -141,6 +141,10 @@ class Daemon:
                 self.transport.close()
             except Exception:  # pragma: no cover
                 log.exception("transport close failed")
+        if self.core is not None:
+            s = self.core.settings
+            if not self.core.lifecycle.join_background(2 * s.recover_timeout_s + 1.0):
+                log.warning("takeover read-backs still running at exit")
 
     def run_forever(self) -> int:
         """Start, serve until SIGTERM / SIGINT, stop cleanly. Returns the exit status."""

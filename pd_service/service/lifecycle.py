@@ -79,6 +79,8 @@ class Lifecycle:
                                          settings.config_burst_total, 0)
         #: Set at close: no more background syncs.
         self.closed = False
+        #: Read-back threads of takeovers (joined at a stop: see :meth:`join_background`).
+        self._readers: list[threading.Thread] = []
 
     # ================================================================== start =========
 
@@ -503,6 +505,7 @@ class Lifecycle:
         # during a read-back does not wait for the senders' timeouts
         threads = [threading.Thread(target=work, name="pd-readback", daemon=True)
                    for _ in range(max(1, min(READ_BACKS_IN_FLIGHT, len(tasks))))]
+        self._readers = [th for th in self._readers if th.is_alive()] + threads
         for th in threads:
             th.start()
         for th in threads:
@@ -511,6 +514,16 @@ class Lifecycle:
             event(log, "recover_failed", logging.WARNING, keys=len(failed), first=failed[0])
         event(log, "read_back", sessions=len(names), samples=total[0],
               seconds=f"{time.monotonic() - t0:.3f}")
+
+    def join_background(self, timeout: float) -> bool:
+        """At a stop (``closed`` set, the transport closed): wait up to ``timeout`` s for the
+        read-back threads still inside a transport call; a process that exits under them
+        can crash in Zenoh's native code. True if none is left."""
+        deadline = time.monotonic() + timeout
+        for th in list(self._readers):
+            if th.ident is not None:  # one not started yet finds ``closed`` set and ends
+                th.join(max(0.0, deadline - time.monotonic()))
+        return not any(th.is_alive() for th in self._readers)
 
     def reassign(self, now: int) -> None:
         """Membership changed: start the sessions we now own, stop those we no longer own."""
