@@ -501,8 +501,9 @@ class Lifecycle:
                     return
                 one(task)
 
-        # daemon threads (not an executor's, which the interpreter joins at exit): a stop
-        # during a read-back does not wait for the senders' timeouts
+        # daemon threads, not an executor's (the interpreter joins those at exit, unbounded):
+        # a stop closes the transport, which ends their calls, then joins them with a bound
+        # (join_background)
         threads = [threading.Thread(target=work, name="pd-readback", daemon=True)
                    for _ in range(max(1, min(READ_BACKS_IN_FLIGHT, len(tasks))))]
         self._readers = [th for th in self._readers if th.is_alive()] + threads
