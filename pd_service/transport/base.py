@@ -129,7 +129,8 @@ class Transport(Protocol):
         ``recovered`` True. The caches present now are read before this returns (each
         answered, or ``timeout`` s passed); until the handle is closed, the cache of every
         cached publisher that appears later (a sender that connects or reconnects) is read
-        too, its samples given to ``callback`` on a transport thread. A recovered sample
+        too, its samples given to ``callback`` on a transport thread. Each cache is read
+        once each time it appears, also when it appears while this call runs. A recovered sample
         may repeat one received live: the receiver must tell (the daemon refuses it as a
         duplicate, counted apart from live refusals)."""
         ...

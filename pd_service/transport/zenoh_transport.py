@@ -266,23 +266,40 @@ class ZenohTransport(HandleOwner):
                 consolidation=zenoh.ConsolidationMode.NONE,
                 accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout)
 
+        # each cache is read once per appearance of its token: a token seen both by the
+        # watch and by the read of the present ones (it appeared in between) is read once
+        read: set[str] = set()
+        read_lock = threading.Lock()
+
+        def first_read(key: str) -> bool:
+            with read_lock:
+                new = key not in read
+                read.add(key)
+                return new
+
         def on_token(s: zenoh.Sample) -> None:  # a cached publisher appeared (again)
+            key = str(s.key_expr)
             if s.kind != zenoh.SampleKind.PUT:
+                with read_lock:  # gone: its next appearance is read again
+                    read.discard(key)
+                return
+            if not first_read(key):
                 return
             try:
-                query(str(s.key_expr), on_reply)  # callback form: returns at once
+                query(key, on_reply)  # callback form: returns at once
             except Exception:
-                log.exception("recovery query failed for %s", s.key_expr)
+                log.exception("recovery query failed for %s", key)
 
         # watch first (new tokens only), then read the present caches: a publisher that
-        # appears in between is read twice (its samples repeat, which the receiver tells),
-        # never missed.  The present caches are found by their tokens and each is queried on
-        # its own key, never with one wildcard query: a router's access control scoped by
-        # session (deploy/make_acl.py) lets a query reach a sender only on its sessions' keys
+        # appears in between is seen by both and read once, never missed.  The present caches
+        # are found by their tokens and each is queried on its own key, never with one
+        # wildcard query: a router's access control scoped by session (deploy/make_acl.py)
+        # lets a query reach a sender only on its sessions' keys
         handle = self._keep(self.session.liveliness().declare_subscriber(
             caches, on_token, history=False))
-        present = dict.fromkeys(str(r.ok.key_expr) for r in self.session.liveliness().get(
-            caches, timeout=timeout) if r.ok is not None)
+        present = [key for key in dict.fromkeys(
+            str(r.ok.key_expr) for r in self.session.liveliness().get(caches, timeout=timeout)
+            if r.ok is not None) if first_read(key)]
         left = [len(present)]
         done = threading.Condition()
 

@@ -232,3 +232,53 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
         for t in (c, b, a):
             if t is not None:
                 t.close()
+
+
+@pytest.mark.integration
+def test_zenoh_cache_appearing_while_recover_starts_is_read_once() -> None:
+    """A sender whose cache appears after ``recover`` began watching for new caches and
+    before it read the present ones is seen by both, and read once (CI caught it read twice,
+    its samples given twice)."""
+    port = free_port()
+    b = ZenohTransport(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"],
+                                    multicast=False))
+    c = ZenohTransport(zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"],
+                                    multicast=False, listen=[]))
+    real = b.session
+    appeared = threading.Event()
+
+    class Liveliness:  # the read of the present caches waits until c's token was watched
+        def __init__(self, inner) -> None:
+            self.inner = inner
+
+        def declare_subscriber(self, *args, **kwargs):
+            return self.inner.declare_subscriber(*args, **kwargs)
+
+        def get(self, *args, **kwargs):
+            pub = c.publisher("pd/u/sensor/ranger", cache=4)
+            pub.put(b"r0")
+            assert appeared.wait(10.0), "the late cache's token never reached the watch"
+            return self.inner.get(*args, **kwargs)
+
+    class Session:
+        def __getattr__(self, name: str):
+            return getattr(real, name)
+
+        def liveliness(self):
+            return Liveliness(real.liveliness())
+
+    watch = b.subscribe_liveliness("pd/*/sensor/*/@adv/pub/**",
+                                   lambda key, alive: alive and appeared.set(), history=False)
+    got: list = []
+    try:
+        b.session = Session()  # type: ignore[assignment]
+        h = b.recover("pd/*/sensor/*", lambda s: got.append(s.payload), max_samples=3)
+        b.session = real
+        time.sleep(0.5)  # room for a second read (the watch's), which answers in ms here
+        assert got == [b"r0"]
+        h.close()
+    finally:
+        b.session = real
+        watch.close()
+        c.close()
+        b.close()
