@@ -181,8 +181,8 @@ def test_only_services_declare_membership_tokens(generated, acl: bool) -> None:
                 assert cond.wait_for(
                     lambda: {keys.service_token_key(f) for f in fakes} <= seen, TIMEOUT_S)
         if acl:  # a daemon's liveliness query sees only the services' tokens too
-            # (the subscriber above sees the querying session's own tokens at once; the
-            # router, which answers the query, may learn of them later on a loaded machine)
+            # (polled: on a loaded machine one answer came back empty after the subscriber
+            # above had seen both tokens, which are the querying session's own)
             real = [keys.service_token_key("real"), keys.service_token_key("real2")]
 
             def answer() -> list[str] | None:
