@@ -50,7 +50,7 @@ _EXPIRY_CHECK_NS = 1_000_000_000
 _SWEEP_NS = 250_000_000
 #: A single run_once() call returns after this long even if work remains (ns).
 _RUN_BUDGET_NS = 50_000_000
-#: Longest wait (s) at a graceful stop for a successor to answer after the hand-over.
+#: Longest wait (s) at a graceful stop for a successor to confirm the states handed over.
 _HANDOVER_ACK_S = 2.0
 #: Most samples taken from one drained subscription per loop of run_once.
 _DRAIN_LIMIT = 4096
@@ -119,6 +119,8 @@ class ServiceCore:
               state_dir=str(self.store.dir) if self.store else "", hot_path=native.STATUS)
         self._handles.append(t.subscribe(keys.ALL_CONFIGS, d.on_config_sample))
         self._handles.append(t.subscribe(replicas_for(self.instance), self.keeper.on_replica))
+        self._handles.append(t.queryable(replicas_for(self.instance),
+                                         self.keeper.on_replica_query))
         peers = [k.rsplit("/", 1)[-1] for k in t.get_liveliness(keys.ALL_SERVICES,
                                                                  timeout=s.sync_timeout_s)]
         peers = [p for p in peers if p != self.instance]
@@ -177,16 +179,15 @@ class ServiceCore:
             succs = self.keeper.handover(
                 [r.sess for r in self._routes.values() if r.sess is not None], self.now_ns())
             self.publisher.flush()
-        # A barrier before the token goes: Zenoh sends the token's withdrawal as a control
-        # message, which may overtake the replicas just put (data priority), and a successor
-        # taking over before they arrived would resume from an older replica. A query to
-        # each successor travels behind the replicas and its reply comes after they were
-        # received (bounded wait; a successor that does not answer is not waited for).
-        for succ in sorted(succs):
-            try:
-                self.t.get(keys.service_status_key(succ), timeout=_HANDOVER_ACK_S)
-            except Exception:  # pragma: no cover - transport closing
-                log.debug("handover barrier to %s failed", succ, exc_info=True)
+        # the token goes only when each successor holds the final states (or the wait
+        # ends): one that took over before they arrived would resume from older replicas
+        for succ, states in sorted(succs.items()):
+            t0 = time.monotonic()
+            missing = self.keeper.confirm_handover(succ, states, _HANDOVER_ACK_S)
+            more = {"first": missing[0]} if missing else {}
+            event(log, "handover", level=logging.WARNING if missing else logging.INFO,
+                  successor=succ, sessions=len(states), unconfirmed=len(missing),
+                  seconds=round(time.monotonic() - t0, 3), **more)
         self.keeper.close()
         if self._token is not None:
             self._token.close()

@@ -20,21 +20,25 @@ A session whose estimate is its prior alone (:meth:`Session.prior_alone`: starte
 the prior, nothing accepted) writes and sends no state: resuming from the prior gives the same.
 An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
 (``checkpoint_too_large``). On a graceful stop the owner sends every served session's
-newest state to its successor before it withdraws its presence
-(:meth:`StateKeeper.handover`), so a planned handover loses nothing that was accepted.
-Worker thread only, except :meth:`StateKeeper.on_replica` (transport threads: it only
-stores the bytes).
+newest state to its successor and waits until the successor says it holds them
+(:meth:`StateKeeper.handover`, :meth:`StateKeeper.confirm_handover`; bounded) before it
+withdraws its presence, so a planned handover loses nothing that was accepted.
+Worker thread only, except :meth:`StateKeeper.on_replica` and
+:meth:`StateKeeper.on_replica_query` (transport threads: they only store or read the bytes)
+and :meth:`StateKeeper.confirm_handover` (the stopping thread, the worker stopped).
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
 
 from pd_service.checkpoint import Refused, encode_state, restore
 from pd_service.logs import LOGGER_NAME, event
-from pd_service.transport import Sample
+from pd_service.transport import Query, Sample
+from pd_service.transport.keyexpr import intersects
 from pd_service.wire import WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 from pd_service.wire.state import SessionState
@@ -54,6 +58,9 @@ STATES_PER_ROUND = 8
 
 #: Most replicas held (sessions); the oldest received is dropped beyond it.
 MAX_REPLICAS = 100_000
+
+#: Pause (s) between two rounds of a hand-over's confirmation (put again, ask again).
+_HANDOVER_RETRY_S = 0.02
 
 
 def replica_key(instance: str, session: str) -> str:
@@ -137,11 +144,12 @@ class StateKeeper:
                 sess.last_replica_ns = now
                 self._send(sess, data)
 
-    def handover(self, sessions: list[Session], now: int) -> set[str]:
+    def handover(self, sessions: list[Session], now: int) -> dict[str, dict[str, bytes]]:
         """Graceful stop: the newest state of every served session to its successor, not
-        rate-bounded (the caller flushes the outbox before withdrawing its presence).
-        Returns the successors sent to."""
-        sent: set[str] = set()
+        rate-bounded (the caller flushes the outbox, then has each successor confirm with
+        :meth:`confirm_handover`, before withdrawing its presence). Returns what was sent:
+        successor -> session -> encoded state."""
+        sent: dict[str, dict[str, bytes]] = {}
         if not self._replicating():
             return sent
         for sess in sessions:
@@ -151,9 +159,47 @@ class StateKeeper:
             if data is not None:
                 succ = self._send(sess, data)
                 if succ is not None:
-                    sent.add(succ)
+                    sent.setdefault(succ, {})[sess.name] = data
                 self.counters["replicas_handover"] += 1
         return sent
+
+    def confirm_handover(self, succ: str, states: dict[str, bytes], timeout: float) -> list[str]:
+        """Ask ``succ`` for the replicas it holds (:meth:`on_replica_query`) until it holds
+        every one of ``states`` (session -> encoded state) byte for byte, putting again those
+        it lacks, for at most ``timeout`` s. Returns the sessions it was not seen to hold
+        (counted as ``replicas_handover_unconfirmed``).
+
+        Why not trust the puts: Zenoh may drop a put on a congested link, may route it
+        otherwise than the query, and sends the withdrawal of the owner's liveliness token
+        (a control message) ahead of queued data; a successor that took over before the
+        final state arrived resumed from an older replica (seen twice in loaded test runs).
+        The answer is the successor's own word that it holds the state."""
+        t = self.pub.t
+        missing = dict(states)
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0.0:
+                break
+            try:
+                replies = t.get(replicas_for(succ), timeout=min(left, 1.0))
+            except Exception:  # pragma: no cover - transport closing
+                log.debug("handover query to %s failed", succ, exc_info=True)
+                replies = []
+            for r in replies:
+                session = r.key.rsplit("/", 1)[-1]
+                if r.ok and missing.get(session) == r.payload:
+                    del missing[session]
+            if not missing:
+                break
+            for session, data in missing.items():  # lost or still on their way: again
+                try:
+                    t.put(replica_key(succ, session), data)
+                except Exception:  # pragma: no cover - transport closing
+                    log.debug("handover put to %s failed", succ, exc_info=True)
+            time.sleep(min(_HANDOVER_RETRY_S, max(0.0, deadline - time.monotonic())))
+        self.counters["replicas_handover_unconfirmed"] += len(missing)
+        return sorted(missing)
 
     def _send(self, sess: Session, data: bytes) -> str | None:
         succ = self.ownership.successor(sess.name)
@@ -246,6 +292,20 @@ class StateKeeper:
                     self.replicas.pop(next(iter(self.replicas)))
                 self.replicas[session] = (step, bytes(sample.payload))
         self.counters["replicas_received"] += 1
+
+    def on_replica_query(self, query: Query) -> None:
+        """Transport thread: answer a query on this instance's replica keys with each
+        replica held there (its key and bytes): how an owner that stops confirms that its
+        final states arrived (:meth:`confirm_handover`)."""
+        own = self.settings.instance
+        with self._lock:
+            held = [(replica_key(own, s), data) for s, (_, data) in self.replicas.items()]
+        for key, data in held:
+            if intersects(query.key, key):
+                try:
+                    query.reply(key, data)
+                except Exception as exc:
+                    log.debug("replica reply failed: %s", exc)
 
     # ================================================================== resume ========
 

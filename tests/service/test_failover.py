@@ -248,6 +248,61 @@ def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
     assert st.instance == "inst-b" and st.origin == "replica" and st.origin_step == 39
 
 
+class DropsReplicas:
+    """A transport that loses ``n`` replica puts (a congested link drops them); ``n`` is 0
+    until set."""
+
+    def __init__(self, t):
+        self._t, self.n, self.dropped = t, 0, 0
+
+    def __getattr__(self, name):
+        return getattr(self._t, name)
+
+    def put(self, key, payload):
+        if "/replica/" in key and self.dropped < self.n:
+            self.dropped += 1
+            return
+        self._t.put(key, payload)
+
+
+def test_a_graceful_stop_puts_a_lost_final_state_again_until_the_successor_holds_it(tmp_path):
+    """The successor's answer, not the put, ends the hand-over: a final state lost on the
+    way is put again, and the owner withdraws only once the successor holds it."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    lossy = DropsReplicas(bus.transport())
+    a = ServiceCore(lossy, Settings(instance="inst-a", peers=PAIR, replica_interval_s=100.0),
+                    store=SpecStore(tmp_path / "inst-a"), now_ns=clock, spawn=lambda fn: fn())
+    a.start()
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=100.0)
+    for n in ("s00", "s01", "s02", "s03"):
+        cli.put(keys.config_key(n), encode(paper_spec(n)))
+    settle(a, b)
+    s = a.served_sessions()[0]  # owned by the lossy one
+    d = Driver(cli, clock, col, s)
+    for k in range(30):
+        d.step([a, b], k)
+    periodic = b.keeper.replicas[s][0]
+    lossy.n = 1  # the next replica put, the final state's, is lost
+    a.close()
+    assert lossy.dropped == 1 and a.counters["replicas_handover"] == 1
+    assert a.counters["replicas_handover_unconfirmed"] == 0
+    held = decode(b.keeper.replicas[s][1], SessionState)
+    assert held.now_step == 29 > periodic
+
+
+def test_a_successor_that_does_not_answer_is_waited_for_a_bounded_time(tmp_path):
+    """No answer (the successor is gone or its link is down): the wait ends after the
+    timeout, the unconfirmed states are counted and named."""
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a, b, names = two_instances(bus, clock, tmp_path, cli, sessions=2)
+    b.t.close()
+    missing = a.keeper.confirm_handover("inst-b", {"s00": b"x", "s01": b"y"}, 0.2)
+    assert missing == ["s00", "s01"]
+    assert a.counters["replicas_handover_unconfirmed"] == 2
+
+
 def test_a_session_in_its_first_window_is_checkpointed(tmp_path):
     """Nothing commits before max_delay steps; accepted packets alone make a checkpoint."""
     bus, clock, col, cli, d = _checkpointed(tmp_path, steps=8)  # max_delay 12

@@ -469,7 +469,7 @@ def test_sigterm_hands_the_final_state_to_the_successor(world):
             assert st is not None and st.instance == "inst-x" and st.origin == "replica", st
             final = replicas.at(s, max(replicas.steps(s)))
             assert final.instance == "inst-y" and final.made_ns >= t_stop  # sent at the stop
-            assert st.origin_step == final.now_step, (st, final.now_step)
+            assert st.origin_step == final.now_step, (st, final.now_step, y.log(), x.log())
             mine = sorted(after(col, s, t_stop), key=lambda p: p.seq)
             mine = [p for p in mine if p.seq >= final.seq]  # the survivor's, not y's last
             n, lost = check_resumed(mine, feed, final)
