@@ -7,6 +7,10 @@ Operator keep such caches) on its ranger key and one on its command key, and has
 ``--steps`` steps of data on each. Then inst-y is killed (SIGKILL: no handover). inst-x takes
 its sessions over, parks them, and reads their senders' caches back
 (``Lifecycle.recover_taken``): until a session's own read-back ends, its live messages wait.
+With ``--signal term`` inst-y is stopped gracefully instead: it hands its sessions' states
+over and waits until inst-x confirms it holds them; the table then adds that hand-over's
+time and what was left unconfirmed (inst-y's ``event=handover`` line), and the time from the
+signal to inst-y's exit.
 
 Three sender modes:
 
@@ -24,6 +28,7 @@ line, and the time from the kill to that line; then one JSON object.
 
     .venv/bin/python bench/takeover.py --sessions 50,200 --repeat 3
     .venv/bin/python bench/takeover.py --sessions 50 --modes slow --root ../baseline
+    .venv/bin/python bench/takeover.py --sessions 50,200 --modes live --signal term
 """
 
 from __future__ import annotations
@@ -45,6 +50,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 STEP_NS = 50_000_000
+HANDOVER = re.compile(r"event=handover successor=inst-x sessions=(\d+) unconfirmed=(\d+) "
+                      r"seconds=([\d.]+) resent=(\d+)")
 READ_BACK = re.compile(r"ts=(\S+) .*event=read_back sessions=(\d+) samples=(\d+) seconds=(\S+)")
 
 
@@ -165,7 +172,19 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
         if mode == "stalled":
             snd.send_signal(signal.SIGSTOP)
         t_kill = time.time()
-        procs["inst-y"].kill()
+        stop: dict = {}
+        if args.signal == "term":
+            procs["inst-y"].send_signal(signal.SIGTERM)
+            procs["inst-y"].wait(60)
+            stop["stop_s"] = round(time.time() - t_kill, 3)
+            hm = HANDOVER.search((state / "inst-y.log").read_text(errors="replace"))
+            if hm is None:
+                raise RuntimeError(f"inst-y logged no handover: "
+                                   f"{(state / 'inst-y.log').read_text()[-2000:]}")
+            stop.update(handed_over=int(hm.group(1)), unconfirmed=int(hm.group(2)),
+                        handover_s=float(hm.group(3)), resent=int(hm.group(4)))
+        else:
+            procs["inst-y"].kill()
         log = state / "inst-x.log"
         deadline = time.monotonic() + args.timeout
         m = None
@@ -181,7 +200,7 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
                                f"{taken}")
         return {"sessions": n, "mode": mode, "taken": taken,
                 "samples": int(m.group(3)), "read_back_s": float(m.group(4)),
-                "kill_to_done_s": round(done - t_kill, 3)}
+                "kill_to_done_s": round(done - t_kill, 3), **stop}
     finally:
         h.close()
         if "senders" in procs:
@@ -203,6 +222,8 @@ def main() -> None:
                     help="mode slow: each cache answers this late (ms)")
     ap.add_argument("--timeout", type=float, default=900.0, help="longest wait for read_back")
     ap.add_argument("--root", default=str(ROOT), help="checkout whose daemon runs")
+    ap.add_argument("--signal", choices=("kill", "term"), default="kill",
+                    help="how inst-y stops: SIGKILL (no handover) or SIGTERM (handover)")
     ap.add_argument("--senders", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--n", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--connect", default="", help=argparse.SUPPRESS)
@@ -213,8 +234,10 @@ def main() -> None:
         return
     root = Path(args.root).resolve()
     out = []
+    term = args.signal == "term"
     print(f"{'sessions':>8} {'mode':>8} {'taken':>6} {'samples':>8} {'read-back s':>22} "
-          f"{'kill->done s':>22}", flush=True)
+          f"{'kill->done s':>22}" + (f" {'handover s':>22} {'resent':>9} {'unconfirmed':>11} "
+                                     f"{'stop s':>22}" if term else ""), flush=True)
     for n in [int(x) for x in args.sessions.split(",")]:
         for mode in args.modes.split(","):
             runs = []
@@ -228,10 +251,21 @@ def main() -> None:
                    "read_back_s": statistics.median(rb), "read_back_runs": rb,
                    "kill_to_done_s": statistics.median(kd), "kill_to_done_runs": kd,
                    "root": str(root)}
+            more = ""
+            if term:
+                ho, st = [x["handover_s"] for x in runs], [x["stop_s"] for x in runs]
+                rs = [x["resent"] for x in runs]
+                row.update(handover_s=statistics.median(ho), handover_runs=ho,
+                           resent_runs=rs, unconfirmed=max(x["unconfirmed"] for x in runs),
+                           stop_s=statistics.median(st), stop_runs=st)
+                more = (f" {row['handover_s']:>8.3f} ({min(ho):.3f}-{max(ho):.3f}) "
+                        f"{','.join(map(str, rs)):>9} {row['unconfirmed']:>11} "
+                        f"{row['stop_s']:>8.3f} ({min(st):.3f}-{max(st):.3f})")
             out.append(row)
             print(f"{n:>8} {mode:>8} {row['taken']:>6} {row['samples']:>8.0f} "
                   f"{row['read_back_s']:>8.3f} ({min(rb):.3f}-{max(rb):.3f}) "
-                  f"{row['kill_to_done_s']:>8.3f} ({min(kd):.3f}-{max(kd):.3f})", flush=True)
+                  f"{row['kill_to_done_s']:>8.3f} ({min(kd):.3f}-{max(kd):.3f})" + more,
+                  flush=True)
     print(json.dumps(out))
 
 

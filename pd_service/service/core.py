@@ -182,12 +182,13 @@ class ServiceCore:
         # the token goes only when each successor holds the final states (or the wait
         # ends): one that took over before they arrived would resume from older replicas
         for succ, states in sorted(succs.items()):
-            t0 = time.monotonic()
+            t0, resent = time.monotonic(), self.counters["replicas_handover_resent"]
             missing = self.keeper.confirm_handover(succ, states, _HANDOVER_ACK_S)
             more = {"first": missing[0]} if missing else {}
             event(log, "handover", level=logging.WARNING if missing else logging.INFO,
                   successor=succ, sessions=len(states), unconfirmed=len(missing),
-                  seconds=round(time.monotonic() - t0, 3), **more)
+                  seconds=round(time.monotonic() - t0, 3),
+                  resent=self.counters["replicas_handover_resent"] - resent, **more)
         self.keeper.close()
         if self._token is not None:
             self._token.close()

@@ -166,8 +166,8 @@ class StateKeeper:
     def confirm_handover(self, succ: str, states: dict[str, bytes], timeout: float) -> list[str]:
         """Ask ``succ`` for the replicas it holds (:meth:`on_replica_query`) until it holds
         every one of ``states`` (session -> encoded state) byte for byte, putting again those
-        it lacks, for at most ``timeout`` s. Returns the sessions it was not seen to hold
-        (counted as ``replicas_handover_unconfirmed``).
+        it lacks (counted as ``replicas_handover_resent``), for at most ``timeout`` s. Returns
+        the sessions it was not seen to hold (counted as ``replicas_handover_unconfirmed``).
 
         Why not trust the puts: Zenoh may drop a put on a congested link, may route it
         otherwise than the query, and sends the withdrawal of the owner's liveliness token
@@ -193,6 +193,7 @@ class StateKeeper:
             if not missing:
                 break
             for session, data in missing.items():  # lost or still on their way: again
+                self.counters["replicas_handover_resent"] += 1
                 try:
                     t.put(replica_key(succ, session), data)
                 except Exception:  # pragma: no cover - transport closing

@@ -287,6 +287,7 @@ def test_a_graceful_stop_puts_a_lost_final_state_again_until_the_successor_holds
     a.close()
     assert lossy.dropped == 1 and a.counters["replicas_handover"] == 1
     assert a.counters["replicas_handover_unconfirmed"] == 0
+    assert a.counters["replicas_handover_resent"] == 1
     held = decode(b.keeper.replicas[s][1], SessionState)
     assert held.now_step == 29 > periodic
 
