@@ -2,7 +2,9 @@
 path are also compiled to C extensions with mypyc (part of mypy) when a C compiler is there.
 
 The compiled modules are the same source: Python imports the extension in place of the .py
-file. Without a compiler (or with ``PD_SERVICE_PURE=1`` at install time) the package
+file. Beside them, small C kernels (``pd_service.native.C_KERNELS``: the Kalman arithmetic of
+the linear backend) are built too, all or nothing with the modules; their numpy forms stay
+the reference. Without a compiler (or with ``PD_SERVICE_PURE=1`` at install time) the package
 installs as pure Python and behaves the same, only slower; ``PD_SERVICE_PURE=1`` at run time
 also makes an installed compiled package use its .py files. The list of modules is
 ``pd_service.native.HOT_MODULES``.
@@ -40,11 +42,18 @@ def _ext_modules() -> list:
         print("pd-service: PD_SERVICE_PURE=1, installing pure Python", file=sys.stderr)
         return []
     try:
+        import numpy
         from mypyc.build import mypycify
+        from setuptools import Extension
 
         # mypyc.ini: the types `make lint` checks, from numpy's and pydantic's own stubs
-        return mypycify(["--config-file", "mypyc.ini", *_hot_files()],
+        exts = mypycify(["--config-file", "mypyc.ini", *_hot_files()],
                         group_name="pd_service.native", opt_level="3")
+        # the C kernels (pd_service.native.C_KERNELS), on numpy's C API (numpy is a build
+        # requirement; an extension built against numpy 2 also runs with numpy 1.26)
+        return exts + [Extension(name, [src], include_dirs=[numpy.get_include()],
+                                 extra_compile_args=["-O2"])
+                       for name, src in _native().C_KERNELS.items()]
     except (Exception, SystemExit) as exc:  # mypyc missing or refusing: pure Python
         print(f"pd-service: not compiling the hot path ({type(exc).__name__}: {exc}); "
               "installing pure Python", file=sys.stderr)

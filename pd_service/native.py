@@ -30,7 +30,7 @@ from importlib.machinery import ModuleSpec
 from pathlib import Path
 from types import ModuleType
 
-#: The per-message path: decode and checks, the estimator's window, the stacked numerics,
+#: The per-message path: decode and checks, the estimator's window and bookkeeping,
 #: publishing. (Module names; setup.py compiles their files.)
 HOT_MODULES = (
     "pd_service.estimation.checks",
@@ -45,11 +45,17 @@ HOT_MODULES = (
     "pd_service.service.health",
     "pd_service.service.publish",
     "pd_service.service.session",
-    "pd_service.service.stacked",
     "pd_service.service.stats",
     "pd_service.transport.zenoh_transport",
     "pd_service.wire.convert",
 )
+
+#: Kernels written in C (module -> source file, relative to the repository): built with the
+#: compiled modules (all or none) and used only where these run compiled (:func:`kernel`);
+#: each has a numpy form beside its caller, the reference it is tested against.
+C_KERNELS = {
+    "pd_service.estimation._kalman": "pd_service/estimation/_kalman.c",
+}
 
 #: ``PD_SERVICE_PURE=1``: import the .py files even where an extension is built.
 PURE_ENV = "PD_SERVICE_PURE"
@@ -83,10 +89,13 @@ class _SourceFirst:
 
 
 def sources_digest() -> str:
-    """sha256 over the hot modules' names and sources, in :data:`HOT_MODULES` order."""
+    """sha256 over the hot modules' names and sources, in :data:`HOT_MODULES` order, then
+    the C kernels' (:data:`C_KERNELS`)."""
     h = hashlib.sha256()
     for name in HOT_MODULES:
         h.update(name.encode() + b"\0" + source_path(name).read_bytes() + b"\0")
+    for name, src in C_KERNELS.items():
+        h.update(name.encode() + b"\0" + _ROOT.joinpath(src).read_bytes() + b"\0")
     return h.hexdigest()
 
 
@@ -109,6 +118,18 @@ def compiled() -> dict[str, bool]:
         mod = importlib.import_module(name)
         out[name] = not str(getattr(mod, "__file__", "")).endswith(".py")
     return out
+
+
+def kernel(name: str) -> ModuleType | None:
+    """The C kernel ``name`` (a key of :data:`C_KERNELS`) when the hot path runs compiled
+    (built, fresh, not ``PD_SERVICE_PURE=1``), else None: the caller then runs its numpy
+    form."""
+    if not STATUS.startswith("compiled"):
+        return None
+    try:
+        return importlib.import_module(name)
+    except ImportError:  # built before this kernel existed: rebuilt by make venv
+        return None
 
 
 def _decide() -> str:

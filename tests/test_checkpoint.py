@@ -6,19 +6,18 @@ import numpy as np
 import pytest
 
 from pd_service.backends import build_estimator
-from pd_service.checkpoint import encode_state, to_message
-from pd_service.estimation import EstimatorState
+from pd_service.checkpoint import encode_state, from_message, to_message
+from pd_service.estimation import EstimatorState, StateError
 from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario
-from pd_service.service.stacked import StackedObserverPredictor
 from pd_service.wire import SessionState, WireError, decode, encode
 
 
-def _fed(name: str, stacked: bool = False, steps: int = 40) -> EstimatorState:
+def _fed(name: str, steps: int = 40) -> EstimatorState:
     """An estimator of scenario ``name`` fed its simulated samples (delayed by 2 steps)
     and commands, exported."""
     scn = get_scenario(name)
     spec = scn.spec(name, 0)
-    est = build_estimator(spec, StackedObserverPredictor) if stacked else build_estimator(spec)
+    est = build_estimator(spec)
     sim = ScenarioSim(scn, seed=3, loss=0.2)
     names = {s.name for s in spec.sensors}
     held: list = []
@@ -47,9 +46,24 @@ def test_fast_encoding_equals_the_validated_one(name):
     assert msg.packets or msg.commands
 
 
-def test_fast_encoding_of_the_stacked_estimator():
-    st = _fed("paper", stacked=True)
-    assert encode_state(st, **KW) == encode(to_message(st, **KW))  # type: ignore[arg-type]
+def test_a_state_of_the_former_stacked_engine_still_restores():
+    """Daemons before 2026-11 ran linear sessions on StackedObserverPredictor, a batched
+    twin with the same state: their checkpoints and replicas restore into ObserverPredictor;
+    any other kind is still refused."""
+    st = _fed("paper")
+    assert st.kind == "ObserverPredictor"
+    spec = get_scenario("paper").spec("paper", 0)
+    old = decode(encode(to_message(st, **KW)), SessionState).model_copy(  # type: ignore[arg-type]
+        update={"kind": "StackedObserverPredictor"})
+    est = build_estimator(spec)
+    est.restore_state(from_message(old, 4))  # type: ignore[attr-defined]
+    want = build_estimator(spec)
+    want.restore_state(st)  # type: ignore[attr-defined]
+    got, ref = est.predict(st.now + 1), want.predict(st.now + 1)
+    assert np.array_equal(got.x, ref.x) and np.array_equal(got.P, ref.P)
+    with pytest.raises(StateError, match="kind"):
+        build_estimator(spec).restore_state(  # type: ignore[attr-defined]
+            from_message(old.model_copy(update={"kind": "AugmentedStateKF"}), 4))
 
 
 def test_a_non_finite_state_takes_the_validated_path_and_is_refused():

@@ -28,9 +28,16 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from pd_service.native import kernel
+
 from .model import LinearModel, Sensor
 from .replay import Packet
 from .state import check_names, take
+
+#: The C form of :meth:`LinearBackend.advance`'s arithmetic (pd_service/estimation/_kalman.c),
+#: None where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
+#: build): the numpy form below is the reference it is tested against.
+_KALMAN = kernel("pd_service.estimation._kalman")
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
@@ -283,6 +290,9 @@ class LinearBackend:
     order; otherwise the step is recomputed from the prior).
     """
 
+    #: The C kernel (a class attribute: estimators are deep-copied, modules are not), or None.
+    _kernel: Any = _KALMAN
+
     def __init__(self, model: LinearModel, sensors: list[Sensor], horizon: int) -> None:
         self.model = model
         self.sensors = sensors
@@ -291,6 +301,7 @@ class LinearBackend:
         self._M = self.tables.M
         self._jumps = self.tables.jumps
         self._single = [_rows(s.H, s.R) for s in sensors]
+        self._G = self.tables.Gfull if self._nu else None  # the kernel reads its last m*nu columns
 
     def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:
         return self.advance(state, m, U, [], None)
@@ -334,8 +345,14 @@ class LinearBackend:
             if not reuse:
                 done = ()  # old applied other packets first: start from the prior
         Pp = P
+        ck = self._kernel
         if m == 0:
             xp = x
+        elif ck is not None and m <= self._M:
+            A, AT2, Qs, G = self._jumps[m]
+            xp, Pj = ck.jump(x, None if reuse else P, A, Qs, self._G, U)
+            if not reuse:
+                Pp = Pj
         elif m <= self._M:
             A, AT2, Qs, G = self._jumps[m]
             xp = A.dot(x)
@@ -353,12 +370,17 @@ class LinearBackend:
             assert old is not None
             stages = old[5]
             if stages:
-                xp = _remean(xp, stages)
+                xp = _remean(xp, stages) if ck is None else ck.remean(xp, stages)
             if len(done) == npk:
                 return _new(Gaussian, (xp, old[1], P, m, done, stages))
             Pp = old[1]
         if not npk:
             return _new(Gaussian, (xp, Pp, P, m, (), ()))
+        sensors = (packets[0].sensor,) if npk == 1 else tuple([p.sensor for p in packets])
+        if ck is not None:
+            got = ck.update(xp, Pp, packets, self._single, len(done), stages)
+            if got is not None:  # else a (nearly) singular S, or sizes beyond the kernel's
+                return _new(Gaussian, (got[0], got[1], P, m, sensors, got[2]))
         single = self._single
         for i in range(len(done), npk):
             p = packets[i]
@@ -403,7 +425,6 @@ class LinearBackend:
             xp = xp + K.dot(z - H.dot(xp))
             Pp = Pn
             stages += ((3, K, H, z, -1, 0.0),)
-        sensors = (packets[0].sensor,) if npk == 1 else tuple([p.sensor for p in packets])
         return _new(Gaussian, (xp, Pp, P, m, sensors, stages))
 
     def moments(self, state: Gaussian) -> LinearState:

@@ -81,6 +81,12 @@ COUNTER_NAMES = (
 )
 
 
+#: Estimator kinds of states written by earlier versions -> the kind that reads them now:
+#: the daemon's linear sessions ran a batched twin of ObserverPredictor until 2026-11 (the
+#: same state: x, P, window), so their checkpoints and replicas still restore.
+_KIND_ALIASES = {"StackedObserverPredictor": "ObserverPredictor"}
+
+
 class Packet(NamedTuple):
     """One accepted measurement. ``sensor`` indexes the estimator's sensor list;
     ``z`` has shape (m,) (read-only); ``R`` is a per-sample (m, m) override or None.
@@ -383,7 +389,8 @@ class ReplayEstimator(Generic[S]):
         st = state
         if st.version != STATE_VERSION:
             raise StateError(f"version: {st.version} is not {STATE_VERSION}")
-        if st.kind != type(self).__name__ or st.n != int(getattr(self, "n", 0)):
+        if (_KIND_ALIASES.get(st.kind, st.kind) != type(self).__name__
+                or st.n != int(getattr(self, "n", 0))):
             raise StateError(f"kind: a {st.kind} with n={st.n} does not fit a "
                              f"{type(self).__name__} with n={getattr(self, 'n', 0)}")
         c, b = int(st.committed_step), int(st.base_step)

@@ -166,8 +166,9 @@ class Settings(BaseSettings):
     round_interval_us: float = Field(
         1000.0, ge=0, description="Least time between the starts of two worker loops while "
                                   "messages keep arriving, µs: what arrives meanwhile is "
-                                  "handled (and its predictions resolved) as one batch. Adds "
-                                  "at most this much to a message's wait; 0: no pause.")
+                                  "handled as one batch (one prediction per session it "
+                                  "touched). Adds at most this much to a message's wait; 0: "
+                                  "no pause.")
     switch_interval_us: float = Field(
         200.0, gt=0, description="Python's GIL switch interval (sys.setswitchinterval), µs: "
                                  "how long a Zenoh callback may wait for the worker to yield "

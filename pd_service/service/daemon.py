@@ -109,8 +109,8 @@ class Daemon:
                 core.counters["internal_error"] += 1
             if handled:
                 # Batches: after a loop that handled messages, wait out the round interval,
-                # so that what arrives meanwhile is handled (and its predictions resolved,
-                # stacked) together; a loop that took longer goes on at once. The messages
+                # so that what arrives meanwhile is handled together (one prediction per
+                # session touched); a loop that took longer goes on at once. The messages
                 # just handled were not delayed; the next ones wait at most the interval.
                 # What arrives meanwhile waits in the drains' queues (not armed: no thread
                 # switch per round); the next loop takes it.

@@ -42,7 +42,6 @@ from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 from .config import Settings
 from .health import inspect
 from .session import Refusal, Session
-from .stacked import Node, resolve
 from .stats import LatencyWindow
 from .status import SessionState, session_status
 
@@ -134,32 +133,23 @@ class Publisher:
     # --- predictions ----------------------------------------------------------------------
 
     def publish_many(self, sessions: list[Session], now: int, data: bool = False) -> None:
-        """Publish a Prediction of now + lead for each session: the estimators' pending
-        arithmetic is resolved together (stacked), then each message is packed. ``data``:
-        the publications answer accepted measurements (the session is data-driven)."""
-        items = []
+        """Publish a Prediction of now + lead for each session. ``data``: the publications
+        answer accepted measurements (the session is data-driven)."""
         for sess in sessions:
             k = sess.step_now(now)
             if k < 0:  # before the session's epoch: nothing to predict yet
                 sess.pending_recv.clear()
                 continue
             try:
-                items.append((sess, k, sess.predict(k)))
+                pred = sess.predict(k)
             except Exception as exc:  # e.g. a backend's Cholesky of a broken covariance
-                recovered = self._recover(sess, k, f"prediction failed: "
-                                          f"{type(exc).__name__}: {exc}", now)
-                if recovered is not None:
-                    items.append((sess, k, recovered))
-        nodes = [p.x for _, _, p in items if isinstance(p.x, Node)]
-        if nodes:
-            try:
-                resolve(nodes)
-            except Exception:  # isolation: fall back to one session at a time (in pack)
-                log.debug("stacked resolve failed; resolving one by one", exc_info=True)
-        for sess, k, pred in items:
+                got = self._recover(sess, k, f"prediction failed: "
+                                    f"{type(exc).__name__}: {exc}", now)
+                if got is None:
+                    continue
+                pred = got
             missed = sess.steps_missed_before(k)
             try:
-                pred = sess.resolved(pred)
                 bad, xs, ps = inspect(pred.x, pred.P)
                 if bad is not None:
                     got = self._recover(sess, k, bad, now)
@@ -183,7 +173,7 @@ class Publisher:
 
     def _recover(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
         """The estimate of ``sess`` at step ``k`` is unusable (``why``): restore its snapshot,
-        else its prior, and predict again. Returns the healthy prediction (resolved), or
+        else its prior, and predict again. Returns the healthy prediction, or
         None (reported as ``internal_error``) if even the prior gives none; after such a
         failure no new attempt for ``sess.retry_after`` steps. Counted (``unhealthy``,
         ``recovered``, ``recovered_from_<source>``), logged and reported."""
@@ -199,7 +189,7 @@ class Publisher:
         for source in sources:
             try:
                 sess.recover(source)
-                pred = sess.resolved(sess.predict(k))
+                pred = sess.predict(k)
                 bad = inspect(pred.x, pred.P)[0]
             except Exception as exc:
                 bad = f"{type(exc).__name__}: {exc}"

@@ -62,7 +62,6 @@ from pd_service.wire.convert import (
 from pd_service.wire.state import spec_fingerprint
 
 from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
-from .stacked import Node, StackedObserverPredictor
 from .stats import LatencyWindow
 
 SENSOR, COMMAND = 0, 1
@@ -91,9 +90,9 @@ class Session:
         self.epoch_ns: int = spec.epoch_ns
         self.period_ns: int = spec.period_ns
         self.publish_every: int = spec.publish_every
-        # WireError for a spec it refuses; a linear model's numerics are batched across
-        # sessions (pd_service.service.stacked), equal to ObserverPredictor to rounding
-        self.est: Estimator = build_estimator(spec, StackedObserverPredictor)
+        # WireError for a spec it refuses (a linear model: ObserverPredictor, whose Kalman
+        # arithmetic runs in C where the hot path is compiled: pd_service.estimation.linear)
+        self.est: Estimator = build_estimator(spec)
         #: The per-message rules (pd_service.intake), shared with the offline replay.
         self.intake = Intake(spec, self.est, max_abs)
         self.state = state
@@ -225,13 +224,12 @@ class Session:
         return (k - 1) // pe - last // pe
 
     def predict(self, now_step: int) -> PredictedState:
-        """The estimator's prediction of x(now_step + lead); with the stacked engine its
-        x and P are a pending Node until :func:`pd_service.service.stacked.resolve`."""
+        """The estimator's prediction of x(now_step + lead)."""
         return self.est.predict(now_step)
 
     def pack(self, pred: PredictedState, xs: list[float], ps: list[float], now_step: int,
              made_ns: int) -> bytes:
-        """Encoded Prediction of a resolved ``pred`` whose x and P were read and checked as
+        """Encoded Prediction of ``pred`` whose x and P were read and checked as
         ``xs``, ``ps`` (:func:`pd_service.service.health.inspect`); bumps seq and the
         published count."""
         data = self.encoder.encode_values(pred, xs, ps, self.seq, made_ns,
@@ -254,14 +252,6 @@ class Session:
 
     # --- numerical health (pd_service.service.health) ---------------------------------
 
-    @staticmethod
-    def resolved(pred: PredictedState) -> PredictedState:
-        """``pred`` with arrays for x and P (a stacked pending Node resolved alone)."""
-        node: object = pred.x
-        if isinstance(node, Node):
-            return PredictedState(pred.step, *node.value(), pred.newest_step)
-        return pred
-
     def keep_snapshot(self, pred: PredictedState, now_step: int) -> None:
         """After a healthy prediction: keep the estimator's state in memory if the last
         snapshot is SNAPSHOT_EVERY_S old and P passes the thorough test (not while the
@@ -281,6 +271,6 @@ class Session:
             snap, self.snapshot = self.snapshot, None  # a snapshot that failed is not reused
             self.est.restore_state(snap)  # type: ignore[attr-defined]  # a ReplayEstimator
             return
-        self.est = build_estimator(self.spec, StackedObserverPredictor)
+        self.est = build_estimator(self.spec)
         self.intake.est = self.est
         self.snapshot = self.snapshot_step = None

@@ -37,7 +37,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -164,11 +164,11 @@ def check_resumed(preds: list[Prediction], feed: Feed, state: SessionState | Non
     prediction counters reveal them. Returns the number of predictions and of packets
     (measurements + commands) put after the state that the daemon never accepted (lost)."""
     spec = feed.spec
-    est = build_estimator(spec)  # ObserverPredictor: the daemon's batched one, unbatched
+    est = build_estimator(spec)  # ObserverPredictor, as the daemon's
     base: dict[str, int] = {}
     if state is not None:
-        assert state.kind == "StackedObserverPredictor"
-        est.restore_state(replace(from_message(state, est.n), kind=type(est).__name__))
+        assert state.kind == "ObserverPredictor"
+        est.restore_state(from_message(state, est.n))
         base = dict(state.session_counters)
     n0, c0 = base.get("accepted", 0), base.get("commands_accepted", 0)
     preds = sorted(preds, key=lambda p: p.seq)

@@ -9,8 +9,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from pd_service.estimation.linear import LinearBackend
 from pd_service.estimation.nonlinear import unscented
-from pd_service.service import health, stacked
+from pd_service.service import health
 from pd_service.transport import InMemoryBus
 from pd_service.wire import encode, keys
 
@@ -41,18 +42,23 @@ class Poison:
         return out
 
 
-def nan_node(args, out):
-    nd = args[0]
-    nd.x = np.full_like(nd.x, np.nan)
-    return out
+def nan_state(args, out):
+    return out._replace(x=np.full_like(out.x, np.nan))
 
 
-def poison_steps(monkeypatch, times: int, op: int = stacked._ADV) -> Poison:
-    """The next ``times`` nodes of operation ``op`` (default: a measured step's propagate
-    then update) of the stacked engine come out NaN (evaluated one by one: the tests'
-    groups are small)."""
-    poison = Poison(stacked._ONE[op], nan_node, times=times)
-    monkeypatch.setitem(stacked._ONE, op, poison)
+def poison_steps(monkeypatch, times: int, measured: bool = True) -> Poison:
+    """The next ``times`` steps of the linear backend (``measured``: only a measured step's
+    propagate then update; else every step, pure propagations too) come out with a NaN
+    mean."""
+    poison = Poison(LinearBackend.advance, nan_state, times=times)
+    real = LinearBackend.advance
+
+    def advance(self, state, m, U, packets, old):
+        if measured and not packets:
+            return real(self, state, m, U, packets, old)
+        return poison(self, state, m, U, packets, old)
+
+    monkeypatch.setattr(LinearBackend, "advance", advance)
     return poison
 
 
@@ -112,7 +118,7 @@ def test_a_poisoned_posterior_is_recovered_from_the_snapshot(tmp_path, monkeypat
     drive(core, cli, clock, "s1", range(0, 40))
     sess = core._routes["s1"].sess
     assert sess.snapshot is not None
-    # the next measured step's node (propagate, then update) writes NaN into its
+    # the next measured step (propagate, then update) writes NaN into its
     # posterior: without recovery every later prediction of s1 would be NaN
     # (internal_error every step)
     poison = poison_steps(monkeypatch, times=1)
@@ -155,7 +161,7 @@ def test_unrecoverable_is_reported_then_retried_not_every_step(tmp_path, monkeyp
     core.run_once()
     drive(core, cli, clock, "s1", range(0, 10))
     # every node, the prior's pure propagations too
-    poisons = [poison_steps(monkeypatch, 10**9, op) for op in (stacked._ADV, stacked._PROP)]
+    poisons = [poison_steps(monkeypatch, 10**9, measured=False)]
     drive(core, cli, clock, "s1", range(10, 30))  # 1 s at 50 ms
     c = core.session_status("s1").counters
     assert c["internal_error"] >= 10 and c.get("recovered", 0) == 0

@@ -1,7 +1,7 @@
 """The daemon serves the nonlinear model kinds next to linear sessions.
 
 One ServiceCore on the in-memory bus with an injected clock serves three sessions at once:
-the paper's linear example ("lin", batched by the stacked engine), an unscented session on
+the paper's linear example ("lin"), an unscented session on
 the registered omni-robot model with MIT-rule adaptation ("u1") and an IMM session
 tracking a turning target from three range-bearing stations ("i1"). Every
 published prediction must equal the offline estimator built by the backend's own factory
@@ -173,8 +173,7 @@ class Feed:
 
     def check(self, k: int) -> None:
         """Every prediction published since the last check (during step k) equals the
-        offline estimator's predict(k): bit for bit (plain estimators), or to rounding (the
-        stacked engine's batched products)."""
+        offline estimator's predict(k): bit for bit (``exact``), else to rounding."""
         new = self.col.predictions[self.s][self.seen:]
         self.seen += len(new)
         for p in new:
@@ -219,7 +218,7 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path):
             lin_arrivals.setdefault(smp.arrival, []).append((smp.sensor, smp.step, smp.z))
     feeds = [
         Feed(cli, col, linear_spec(), linear_offline(), lin_arrivals,
-             lambda j: np.array([paper_command(j)]), exact=False),
+             lambda j: np.array([paper_command(j)])),
         Feed(cli, col, omni_spec(), omni_offline(), _arrivals(rng, steps, omni_samples(rng)),
              lambda j: 0.2 * np.array([math.sin(0.1 * j), math.cos(0.1 * j), 0.1])),
         Feed(cli, col, imm_spec(), imm_offline(), _arrivals(rng, steps, imm_samples(rng))),
@@ -230,9 +229,8 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path):
     assert core.served_sessions() == ["i1", "lin", "u1"]
     assert {f.s: col.statuses[f.s][-1].detail for f in feeds} == \
         {"lin": "created", "u1": "created", "i1": "created"}
-    # the stacked engine batches the linear session only; nonlinear ones run plain
     assert {s: type(core._routes[s].sess.est).__name__ for s in ("lin", "u1", "i1")} == {
-        "lin": "StackedObserverPredictor",
+        "lin": "ObserverPredictor",
         "u1": "UnscentedObserverPredictor", "i1": "ImmObserverPredictor"}
 
     for k in range(steps):

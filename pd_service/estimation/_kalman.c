@@ -1,0 +1,445 @@
+/* The Kalman arithmetic of pd_service.estimation.linear.LinearBackend.advance, in C.
+
+   The same formulas as the numpy form in linear.py (the reference, which the tests compare
+   this against): for the 4 x 4 matrices of a robot each numpy call costs ~0.2-0.8 us of
+   overhead and does ~60 floating-point operations; here one call does the whole step.
+
+       jump:    x- = A^m x + [A^{m-1}B ... B] [u(a); ...; u(a+m-1)]
+                P- = A^m P (A^m)^T + Qs(m)          (upper triangle computed, mirrored:
+                                                     exactly symmetric)
+       update:  one row h:  s = h P- h^T + r,  w = P- h / sqrt(s),  c = 1 / sqrt(s)
+                            x+ = x- + w (c (z - h x-)),  P+ = P- - w w^T   (w = 0 if s <= 0)
+                r rows H:   S = H P- H^T + R = L L^T (Cholesky),  W = P- H^T L^{-T},
+                            K = W L^{-1},  x+ = x- + K (z - H x-),  P+ = P- - W W^T
+
+   A Cholesky pivot not above 1e-10 of its diagonal entry (S singular or nearly so) makes
+   update() return None: the caller then runs the numpy form (LU, or the pseudo-inverse).
+   Arrays are read as float64 and C-contiguous (converted if not); results are new arrays.
+   Sums run in index order, so results are deterministic but not bit for bit numpy's
+   (BLAS orders its sums otherwise): they agree to rounding. No state, no GIL release. */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
+#include <numpy/arrayobject.h>
+#include <math.h>
+#include <string.h>
+
+#define PIVOT 1e-10
+#define MAXN 64  /* state dimension handled here; larger: the numpy form */
+#define MAXR 16  /* rows of one packet handled here; larger: the numpy form */
+
+/* A float64 C-contiguous view of obj (a new reference), or NULL with an exception. */
+static PyArrayObject *as_f64(PyObject *obj) {
+    return (PyArrayObject *)PyArray_FROM_OTF(obj, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
+}
+
+static PyObject *new_vec(npy_intp n, double **data) {
+    npy_intp dims[1] = {n};
+    PyObject *a = PyArray_SimpleNew(1, dims, NPY_DOUBLE);
+    if (a) *data = (double *)PyArray_DATA((PyArrayObject *)a);
+    return a;
+}
+
+static PyObject *new_mat(npy_intp r, npy_intp c, double **data) {
+    npy_intp dims[2] = {r, c};
+    PyObject *a = PyArray_SimpleNew(2, dims, NPY_DOUBLE);
+    if (a) *data = (double *)PyArray_DATA((PyArrayObject *)a);
+    return a;
+}
+
+static int check_size(PyArrayObject *a, npy_intp size, const char *what) {
+    if (PyArray_SIZE(a) != size) {
+        PyErr_Format(PyExc_ValueError, "_kalman: %s has %zd values, expected %zd", what,
+                     (Py_ssize_t)PyArray_SIZE(a), (Py_ssize_t)size);
+        return -1;
+    }
+    return 0;
+}
+
+/* jump(x (n,), P (n, n) or None, A (n, n), Qs (n, n), G (n, >= k) or None, U (k values))
+   -> (x-, P- or None). G is the tables' full stacked input matrix [A^{M-1}B ... B]: its last
+   k columns multiply U (m steps of nu inputs, k = m nu). P None: the mean only. */
+static PyObject *jump(PyObject *self, PyObject *args) {
+    PyObject *ox, *oP, *oA, *oQ, *oG, *oU;
+    if (!PyArg_ParseTuple(args, "OOOOOO", &ox, &oP, &oA, &oQ, &oG, &oU)) return NULL;
+    PyArrayObject *x = NULL, *P = NULL, *A = NULL, *Q = NULL, *G = NULL, *U = NULL;
+    PyObject *xo = NULL, *Po = NULL, *res = NULL;
+    x = as_f64(ox);
+    A = as_f64(oA);
+    if (!x || !A) goto done;
+    npy_intp n = PyArray_SIZE(x);
+    if (n > MAXN || check_size(A, n * n, "A")) {
+        if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "_kalman: state too large");
+        goto done;
+    }
+    const double *a = PyArray_DATA(A), *xv = PyArray_DATA(x);
+    double *xn;
+    xo = new_vec(n, &xn);
+    if (!xo) goto done;
+    for (npy_intp i = 0; i < n; i++) {
+        double acc = 0.0;
+        for (npy_intp k = 0; k < n; k++) acc += a[i * n + k] * xv[k];
+        xn[i] = acc;
+    }
+    if (oG != Py_None) {
+        G = as_f64(oG);
+        U = as_f64(oU);
+        if (!G || !U) goto done;
+        npy_intp k = PyArray_SIZE(U);
+        npy_intp cols = PyArray_NDIM(G) == 2 ? PyArray_DIM(G, 1) : -1;
+        if (PyArray_NDIM(G) != 2 || PyArray_DIM(G, 0) != n || cols < k) {
+            PyErr_SetString(PyExc_ValueError, "_kalman: G is not (n, >= U.size)");
+            goto done;
+        }
+        const double *g = (const double *)PyArray_DATA(G) + (cols - k), *u = PyArray_DATA(U);
+        for (npy_intp i = 0; i < n; i++) {  /* the last k columns: [A^{m-1}B ... B] */
+            double acc = 0.0;
+            for (npy_intp l = 0; l < k; l++) acc += g[i * cols + l] * u[l];
+            xn[i] += acc;
+        }
+    }
+    if (oP == Py_None) {
+        Po = Py_None;
+        Py_INCREF(Po);
+    } else {
+        P = as_f64(oP);
+        Q = as_f64(oQ);
+        if (!P || !Q || check_size(P, n * n, "P") || check_size(Q, n * n, "Qs")) goto done;
+        const double *p = PyArray_DATA(P), *q = PyArray_DATA(Q);
+        double t[MAXN * MAXN];  /* T = A P */
+        for (npy_intp i = 0; i < n; i++)
+            for (npy_intp j = 0; j < n; j++) {
+                double acc = 0.0;
+                for (npy_intp k = 0; k < n; k++) acc += a[i * n + k] * p[k * n + j];
+                t[i * n + j] = acc;
+            }
+        double *pn;
+        Po = new_mat(n, n, &pn);
+        if (!Po) goto done;
+        for (npy_intp i = 0; i < n; i++)  /* (T A^T)_ij, j >= i, + Qs_ij; mirrored */
+            for (npy_intp j = i; j < n; j++) {
+                double acc = 0.0;
+                for (npy_intp k = 0; k < n; k++) acc += t[i * n + k] * a[j * n + k];
+                pn[i * n + j] = pn[j * n + i] = acc + q[i * n + j];
+            }
+    }
+    res = PyTuple_Pack(2, xo, Po);
+done:
+    Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(A); Py_XDECREF(Q); Py_XDECREF(G);
+    Py_XDECREF(U); Py_XDECREF(xo); Py_XDECREF(Po);
+    return res;
+}
+
+/* One Kalman update in place on x (n,) and P (n, n) with r rows H (r, n), R (r, r), z (r,).
+   Writes K (n, r). Returns 0, or 1 when a Cholesky pivot is not clearly positive. */
+static int update_rows(double *x, double *P, npy_intp n, const double *H, const double *R,
+                       const double *z, npy_intp r, double *K) {
+    double PHt[MAXN * MAXR], S[MAXR * MAXR], L[MAXR * MAXR], Li[MAXR * MAXR];
+    double W[MAXN * MAXR];
+    for (npy_intp i = 0; i < n; i++)  /* P H^T (n, r) */
+        for (npy_intp c = 0; c < r; c++) {
+            double acc = 0.0;
+            for (npy_intp k = 0; k < n; k++) acc += P[i * n + k] * H[c * n + k];
+            PHt[i * r + c] = acc;
+        }
+    for (npy_intp a = 0; a < r; a++)  /* S = H P H^T + R, lower triangle read */
+        for (npy_intp b = 0; b <= a; b++) {
+            double acc = 0.0;
+            for (npy_intp k = 0; k < n; k++) acc += H[a * n + k] * PHt[k * r + b];
+            S[a * r + b] = acc + R[a * r + b];
+        }
+    memset(L, 0, sizeof(double) * (size_t)(r * r));
+    for (npy_intp k = 0; k < r; k++) {  /* S = L L^T */
+        double d = S[k * r + k], q = d;
+        for (npy_intp l = 0; l < k; l++) q -= L[k * r + l] * L[k * r + l];
+        if (!(d > 0.0) || !(q > PIVOT * d)) return 1;
+        double lkk = sqrt(q);
+        L[k * r + k] = lkk;
+        for (npy_intp i = k + 1; i < r; i++) {
+            double acc = S[i * r + k];
+            for (npy_intp l = 0; l < k; l++) acc -= L[i * r + l] * L[k * r + l];
+            L[i * r + k] = acc / lkk;
+        }
+    }
+    memset(Li, 0, sizeof(double) * (size_t)(r * r));
+    for (npy_intp j = 0; j < r; j++) {  /* L^{-1} by forward substitution, column j */
+        Li[j * r + j] = 1.0 / L[j * r + j];
+        for (npy_intp i = j + 1; i < r; i++) {
+            double acc = 0.0;
+            for (npy_intp l = j; l < i; l++) acc -= L[i * r + l] * Li[l * r + j];
+            Li[i * r + j] = acc / L[i * r + i];
+        }
+    }
+    for (npy_intp i = 0; i < n; i++)  /* W = P H^T L^{-T} */
+        for (npy_intp c = 0; c < r; c++) {
+            double acc = 0.0;
+            for (npy_intp l = 0; l <= c; l++) acc += PHt[i * r + l] * Li[c * r + l];
+            W[i * r + c] = acc;
+        }
+    for (npy_intp i = 0; i < n; i++)  /* K = W L^{-1} */
+        for (npy_intp c = 0; c < r; c++) {
+            double acc = 0.0;
+            for (npy_intp l = c; l < r; l++) acc += W[i * r + l] * Li[l * r + c];
+            K[i * r + c] = acc;
+        }
+    double innov[MAXR];
+    for (npy_intp c = 0; c < r; c++) {
+        double acc = 0.0;
+        for (npy_intp k = 0; k < n; k++) acc += H[c * n + k] * x[k];
+        innov[c] = z[c] - acc;
+    }
+    for (npy_intp i = 0; i < n; i++) {
+        double acc = 0.0;
+        for (npy_intp c = 0; c < r; c++) acc += K[i * r + c] * innov[c];
+        x[i] += acc;
+    }
+    for (npy_intp i = 0; i < n; i++)  /* P - W W^T, exactly symmetric */
+        for (npy_intp j = i; j < n; j++) {
+            double acc = 0.0;
+            for (npy_intp c = 0; c < r; c++) acc += W[i * r + c] * W[j * r + c];
+            P[i * n + j] = P[j * n + i] = P[i * n + j] - acc;
+        }
+    return 0;
+}
+
+/* update(x (n,), P (n, n), packets, rows, start, stages) -> (x+, P+, stages + new) or None
+
+   packets: a list of Packet tuples (sensor, z, R or None); rows: per sensor the tuple
+   (kind, H or h, H^T, R, r, j) of linear._rows; the packets from index ``start`` on are
+   applied in turn. Each adds a stage (kind, K, H, z, j, c) as linear.Stage describes
+   (kind 1 / 2: K = w, z a float; kind 3: K (n, r), z the packet's array). None: a
+   Cholesky pivot was not clearly positive, or a packet is beyond this kernel's sizes (the
+   caller runs the numpy form from ``start``). */
+static PyObject *update(PyObject *self, PyObject *args) {
+    PyObject *ox, *oP, *packets, *rows, *stages;
+    Py_ssize_t start;
+    if (!PyArg_ParseTuple(args, "OOO!O!nO!", &ox, &oP, &PyList_Type, &packets, &PyList_Type,
+                          &rows, &start, &PyTuple_Type, &stages))
+        return NULL;
+    PyArrayObject *x = as_f64(ox), *P = NULL;
+    PyObject *xo = NULL, *Po = NULL, *added = NULL, *res = NULL;
+    if (!x) return NULL;
+    P = as_f64(oP);
+    npy_intp n = PyArray_SIZE(x);
+    if (!P || check_size(P, n * n, "P")) goto done;
+    if (n > MAXN) { res = Py_None; Py_INCREF(res); goto done; }
+    double *xv, *pv;
+    xo = new_vec(n, &xv);
+    Po = new_mat(n, n, &pv);
+    if (!xo || !Po) goto done;
+    memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
+    memcpy(pv, PyArray_DATA(P), sizeof(double) * (size_t)(n * n));
+    Py_ssize_t np_ = PyList_GET_SIZE(packets);
+    added = PyList_New(0);
+    if (!added) goto done;
+    for (Py_ssize_t i = start; i < np_; i++) {
+        PyObject *pk = PyList_GET_ITEM(packets, i);
+        if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 3) {
+            PyErr_SetString(PyExc_TypeError, "_kalman: a packet is not (sensor, z, R)");
+            goto done;
+        }
+        Py_ssize_t sensor = PyLong_AsSsize_t(PyTuple_GET_ITEM(pk, 0));
+        if (sensor == -1 && PyErr_Occurred()) goto done;
+        if (sensor < 0 || sensor >= PyList_GET_SIZE(rows)) {
+            PyErr_SetString(PyExc_IndexError, "_kalman: sensor index out of range");
+            goto done;
+        }
+        PyObject *row = PyList_GET_ITEM(rows, sensor);
+        if (!PyTuple_Check(row) || PyTuple_GET_SIZE(row) != 6) {
+            PyErr_SetString(PyExc_TypeError, "_kalman: a sensor row is not a 6-tuple");
+            goto done;
+        }
+        long kind = PyLong_AsLong(PyTuple_GET_ITEM(row, 0));
+        PyObject *oH = PyTuple_GET_ITEM(row, 1);
+        PyObject *oR = PyTuple_GET_ITEM(pk, 2);
+        if (oR == Py_None) oR = PyTuple_GET_ITEM(row, 3);
+        PyArrayObject *H = as_f64(oH), *R = as_f64(oR), *Z = as_f64(PyTuple_GET_ITEM(pk, 1));
+        PyObject *stage = NULL;
+        int fail = 0;
+        if (!H || !R || !Z) {
+            fail = -1;
+        } else if (kind == 1 || kind == 2) {
+            const double *h = PyArray_DATA(H);
+            double zs = *(const double *)PyArray_DATA(Z), r = *(const double *)PyArray_DATA(R);
+            long j = PyLong_AsLong(PyTuple_GET_ITEM(row, 5));
+            double *w;
+            PyObject *wo = new_vec(n, &w);
+            if (!wo || check_size(H, n, "h") || check_size(Z, 1, "z") || check_size(R, 1, "R")
+                || (kind == 1 && (j < 0 || j >= n))) {
+                if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "_kalman: bad row");
+                Py_XDECREF(wo);
+                fail = -1;
+            } else {
+                double s, innov;
+                if (kind == 1) {
+                    for (npy_intp k = 0; k < n; k++) w[k] = pv[k * n + j];
+                    s = pv[j * n + j] + r;
+                    innov = zs - xv[j];
+                } else {
+                    double hph = 0.0, hx = 0.0;
+                    for (npy_intp k = 0; k < n; k++) {
+                        double acc = 0.0;
+                        for (npy_intp l = 0; l < n; l++) acc += pv[k * n + l] * h[l];
+                        w[k] = acc;
+                    }
+                    for (npy_intp k = 0; k < n; k++) { hph += h[k] * w[k]; hx += h[k] * xv[k]; }
+                    s = hph + r;
+                    innov = zs - hx;
+                }
+                double c = 0.0;
+                if (!(s > 0.0)) {  /* h P- h^T + r = 0: nothing new (K = 0) */
+                    for (npy_intp k = 0; k < n; k++) w[k] = 0.0;
+                } else {
+                    c = 1.0 / sqrt(s);
+                    double ci = c * innov;
+                    for (npy_intp k = 0; k < n; k++) w[k] *= c;
+                    for (npy_intp k = 0; k < n; k++) xv[k] += w[k] * ci;
+                    for (npy_intp a = 0; a < n; a++)
+                        for (npy_intp b = a; b < n; b++)
+                            pv[a * n + b] = pv[b * n + a] = pv[a * n + b] - w[a] * w[b];
+                }
+                stage = Py_BuildValue("(lNOdld)", kind, wo, oH, zs, j, c);
+                if (!stage) fail = -1;
+            }
+        } else {
+            npy_intp r = PyArray_SIZE(Z);
+            if (r > MAXR) {
+                fail = 1;
+            } else if (check_size(H, r * n, "H") || check_size(R, r * r, "R")) {
+                fail = -1;
+            } else {
+                double *K;
+                PyObject *Ko = new_mat(n, r, &K);
+                if (!Ko) {
+                    fail = -1;
+                } else if (update_rows(xv, pv, n, PyArray_DATA(H), PyArray_DATA(R),
+                                       PyArray_DATA(Z), r, K)) {
+                    Py_DECREF(Ko);
+                    fail = 1;
+                } else {
+                    stage = Py_BuildValue("(lNOOld)", 3L, Ko, oH, PyTuple_GET_ITEM(pk, 1),
+                                          -1L, 0.0);
+                    if (!stage) fail = -1;
+                }
+            }
+        }
+        Py_XDECREF(H); Py_XDECREF(R); Py_XDECREF(Z);
+        if (fail < 0) goto done;
+        if (fail > 0) { res = Py_None; Py_INCREF(res); goto done; }
+        int err = PyList_Append(added, stage);
+        Py_DECREF(stage);
+        if (err) goto done;
+    }
+    {
+        PyObject *tail = PyList_AsTuple(added);
+        if (!tail) goto done;
+        PyObject *all = PySequence_Concat(stages, tail);
+        Py_DECREF(tail);
+        if (!all) goto done;
+        res = Py_BuildValue("(OON)", xo, Po, all);
+    }
+done:
+    Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(xo); Py_XDECREF(Po); Py_XDECREF(added);
+    return res;
+}
+
+/* remean(x (n,), stages) -> x+: the mean recursion of the stages (linear._remean). */
+static PyObject *remean(PyObject *self, PyObject *args) {
+    PyObject *ox, *stages;
+    if (!PyArg_ParseTuple(args, "OO!", &ox, &PyTuple_Type, &stages)) return NULL;
+    PyArrayObject *x = as_f64(ox);
+    if (!x) return NULL;
+    npy_intp n = PyArray_SIZE(x);
+    double *xv;
+    PyObject *xo = new_vec(n, &xv);
+    if (!xo) { Py_DECREF(x); return NULL; }
+    memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
+    Py_DECREF(x);
+    for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(stages); i++) {
+        PyObject *st = PyTuple_GET_ITEM(stages, i);
+        if (!PyTuple_Check(st) || PyTuple_GET_SIZE(st) != 6) {
+            PyErr_SetString(PyExc_TypeError, "_kalman: a stage is not a 6-tuple");
+            goto fail;
+        }
+        long kind = PyLong_AsLong(PyTuple_GET_ITEM(st, 0));
+        PyArrayObject *K = as_f64(PyTuple_GET_ITEM(st, 1));
+        if (!K) goto fail;
+        const double *k = PyArray_DATA(K);
+        if (kind == 1 || kind == 2) {
+            double z = PyFloat_AsDouble(PyTuple_GET_ITEM(st, 3));
+            double c = PyFloat_AsDouble(PyTuple_GET_ITEM(st, 5));
+            double hx;
+            if (kind == 1) {
+                long j = PyLong_AsLong(PyTuple_GET_ITEM(st, 4));
+                if (j < 0 || j >= n || check_size(K, n, "K")) {
+                    if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "_kalman: bad j");
+                    Py_DECREF(K);
+                    goto fail;
+                }
+                hx = xv[j];
+            } else {
+                PyArrayObject *H = as_f64(PyTuple_GET_ITEM(st, 2));
+                if (!H || check_size(H, n, "h") || check_size(K, n, "K")) {
+                    Py_XDECREF(H); Py_DECREF(K);
+                    goto fail;
+                }
+                const double *h = PyArray_DATA(H);
+                hx = 0.0;
+                for (npy_intp l = 0; l < n; l++) hx += h[l] * xv[l];
+                Py_DECREF(H);
+            }
+            double ci = c * (z - hx);
+            for (npy_intp l = 0; l < n; l++) xv[l] += k[l] * ci;
+        } else {
+            PyArrayObject *H = as_f64(PyTuple_GET_ITEM(st, 2));
+            PyArrayObject *Z = as_f64(PyTuple_GET_ITEM(st, 3));
+            npy_intp r = Z ? PyArray_SIZE(Z) : 0;
+            if (!H || !Z || r > MAXR || check_size(H, r * n, "H") || check_size(K, n * r, "K")) {
+                if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "_kalman: bad stage");
+                Py_XDECREF(H); Py_XDECREF(Z); Py_DECREF(K);
+                goto fail;
+            }
+            const double *h = PyArray_DATA(H), *z = PyArray_DATA(Z);
+            double innov[MAXR];
+            for (npy_intp c = 0; c < r; c++) {
+                double acc = 0.0;
+                for (npy_intp l = 0; l < n; l++) acc += h[c * n + l] * xv[l];
+                innov[c] = z[c] - acc;
+            }
+            for (npy_intp l = 0; l < n; l++) {
+                double acc = 0.0;
+                for (npy_intp c = 0; c < r; c++) acc += k[l * r + c] * innov[c];
+                xv[l] += acc;
+            }
+            Py_DECREF(H); Py_DECREF(Z);
+        }
+        Py_DECREF(K);
+        if (PyErr_Occurred()) goto fail;
+    }
+    return xo;
+fail:
+    Py_DECREF(xo);
+    return NULL;
+}
+
+static PyMethodDef methods[] = {
+    {"jump", jump, METH_VARARGS,
+     "jump(x, P or None, A, Qs, G or None, U) -> (x-, P- or None): m steps at once, G's "
+     "last U.size columns multiplying U."},
+    {"update", update, METH_VARARGS,
+     "update(x, P, packets, rows, start, stages) -> (x+, P+, stages) or None."},
+    {"remean", remean, METH_VARARGS, "remean(x, stages) -> x+: the stages' mean recursion."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "_kalman",
+    "The Kalman arithmetic of LinearBackend.advance in C (pd_service/estimation/_kalman.c).",
+    -1, methods, NULL, NULL, NULL, NULL,
+};
+
+PyMODINIT_FUNC PyInit__kalman(void) {
+    import_array();
+    return PyModule_Create(&module);
+}

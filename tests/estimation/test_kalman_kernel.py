@@ -1,0 +1,171 @@
+"""The C form of LinearBackend.advance (pd_service/estimation/_kalman.c) against its numpy form.
+
+The numpy form is the reference: the same backend is run twice on the same random steps,
+once with the kernel and once without (``_kernel = None``), and every mean, covariance and
+stored gain must agree to rounding. A (nearly) singular innovation covariance makes the
+kernel hand the step back to the numpy form; bad arguments raise, never crash.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pd_service.estimation import LinearModel, Sensor
+from pd_service.estimation.linear import _KALMAN, Gaussian, LinearBackend
+from pd_service.estimation.replay import Packet
+
+pytestmark = pytest.mark.skipif(
+    _KALMAN is None, reason="the C kernel is not in use here (PD_SERVICE_PURE=1, or no C "
+                            "compiler at install time): the numpy form runs everywhere")
+
+RTOL = 1e-10
+
+
+def close(a: np.ndarray, b: np.ndarray) -> bool:
+    scale = max(1.0, float(np.max(np.abs(b))) if b.size else 1.0)
+    return a.shape == b.shape and bool(np.allclose(a, b, rtol=RTOL, atol=RTOL * scale))
+
+
+def random_backend(rng: np.random.Generator, n: int, nu: int) -> LinearBackend:
+    A = rng.standard_normal((n, n))
+    A *= 0.95 / max(1e-9, max(abs(np.linalg.eigvals(A))))
+    L = rng.standard_normal((n, n)) * 0.2
+    model = LinearModel(A=A, B=rng.standard_normal((n, nu)), Q=L @ L.T + 1e-3 * np.eye(n))
+    sensors = []
+    j = int(rng.integers(n))
+    unit = np.zeros((1, n))
+    unit[0, j] = 1.0
+    for i, H in enumerate([unit, rng.standard_normal((1, n)),
+                           rng.standard_normal((int(rng.integers(2, 6)), n))]):
+        Lr = rng.standard_normal((H.shape[0], H.shape[0])) * 0.3
+        sensors.append(Sensor(name=f"s{i}", H=H, R=Lr @ Lr.T + 0.05 * np.eye(H.shape[0])))
+    return LinearBackend(model, sensors, int(rng.integers(1, 8)))
+
+
+def both(backend: LinearBackend, state: Gaussian, m: int, U: np.ndarray,
+         packets: list[Packet], old: Gaussian | None) -> tuple[Gaussian, Gaussian]:
+    backend._kernel = _KALMAN
+    got = backend.advance(state, m, U, packets, old)
+    backend._kernel = None
+    want = backend.advance(state, m, U, packets, old)
+    backend._kernel = _KALMAN
+    return got, want
+
+
+def assert_same(got: Gaussian, want: Gaussian) -> None:
+    assert close(got.x, want.x) and close(got.P, want.P)
+    assert np.array_equal(got.P, got.P.T)  # exactly symmetric, as the numpy form
+    assert got.src is want.src and got.m == want.m and got.sensors == want.sensors
+    assert len(got.stages) == len(want.stages)
+    for g, w in zip(got.stages, want.stages, strict=True):
+        assert g[0] == w[0] and g[2] is w[2] and g[4] == w[4]
+        assert close(np.asarray(g[1]), np.asarray(w[1]))
+        assert close(np.asarray(g[3]), np.asarray(w[3])) and abs(g[5] - w[5]) <= RTOL * abs(w[5])
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 8), nu=st.integers(0, 2))
+def test_the_kernel_gives_the_numpy_form_to_rounding(seed: int, n: int, nu: int) -> None:
+    rng = np.random.default_rng(seed)
+    b = random_backend(rng, n, nu)
+    L = rng.standard_normal((n, n))
+    state = Gaussian(rng.standard_normal(n), L @ L.T + np.eye(n))
+    prev: Gaussian | None = None
+    for _ in range(12):
+        m = int(rng.integers(0, b._M + 3))  # beyond the tables too (an idle session)
+        U = rng.standard_normal((m, nu))
+        present = sorted(int(i) for i in rng.choice(3, size=int(rng.integers(0, 4)),
+                                                    replace=False))
+        packets = []
+        for i in present:
+            r = b.sensors[i].m
+            R = None
+            if rng.random() < 0.3:  # a per-sample override
+                Lr = rng.standard_normal((r, r)) * 0.3
+                R = Lr @ Lr.T + 0.05 * np.eye(r)
+            packets.append(Packet(i, rng.standard_normal(r) * 3.0, R))
+        got, want = both(b, state, m, U, packets, None)
+        assert_same(got, want)
+        # the same step again, offered its previous result: covariance reused, means re-run
+        # (only commands changed), or only a packet that joined it updated
+        U2 = U + rng.standard_normal(U.shape)
+        again, want2 = both(b, state, m, U2, packets, want)
+        assert_same(again, want2)
+        if packets:
+            fewer = packets[:1]
+            first = b.advance(state, m, U, fewer, None)
+            joined, want3 = both(b, state, m, U, packets, first)
+            assert_same(joined, want3)
+        prev, state = state, want
+    assert prev is not None
+
+
+def test_a_singular_innovation_covariance_goes_to_the_numpy_form() -> None:
+    """Two equal rows with zero noise on a known direction: S is singular, the kernel hands
+    the step back, and the backend's result is the numpy form's (pseudo-inverse) bits."""
+    n = 3
+    H = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    model = LinearModel(A=np.eye(n), B=np.zeros((n, 0)), Q=np.zeros((n, n)))
+    b = LinearBackend(model, [Sensor(name="twin", H=H, R=np.zeros((2, 2)))], 4)
+    P = np.diag([0.0, 1.0, 2.0])
+    state = Gaussian(np.zeros(n), P)
+    assert _KALMAN.update(state.x, P, [Packet(0, np.array([0.0, 0.0]), None)], b._single, 0,
+                          ()) is None
+    got, want = both(b, state, 1, np.empty((1, 0)), [Packet(0, np.array([0.0, 0.0]), None)],
+                     None)
+    assert np.array_equal(got.x, want.x) and np.array_equal(got.P, want.P)
+
+
+def test_a_row_with_zero_innovation_variance_tells_nothing() -> None:
+    n = 2
+    model = LinearModel(A=np.eye(n), B=np.zeros((n, 0)), Q=np.zeros((n, n)))
+    b = LinearBackend(model, [Sensor(name="x", H=np.array([[1.0, 0.0]]), R=np.zeros((1, 1)))],
+                      4)
+    state = Gaussian(np.array([1.0, 2.0]), np.diag([0.0, 1.0]))
+    got, want = both(b, state, 0, np.empty((0, 0)), [Packet(0, np.array([5.0]), None)], None)
+    assert_same(got, want)
+    assert np.array_equal(got.x, state.x) and np.array_equal(got.P, state.P)
+    assert not np.any(got.stages[0][1]) and got.stages[0][5] == 0.0
+
+
+@pytest.mark.parametrize("call", [
+    lambda k: k.jump(np.zeros(3), np.eye(3), np.eye(2), np.eye(3), None, np.empty(0)),
+    lambda k: k.jump(np.zeros(3), np.eye(2), np.eye(3), np.eye(3), None, np.empty(0)),
+    lambda k: k.jump(np.zeros(2), None, np.eye(2), np.eye(2), np.ones((2, 1)), np.ones(3)),
+    lambda k: k.jump(np.zeros(2), None, np.eye(2), np.eye(2), np.ones(2), np.ones(1)),
+    lambda k: k.jump(np.zeros(65), None, np.eye(65), np.eye(65), None, np.empty(0)),
+    lambda k: k.jump("x", None, np.eye(2), np.eye(2), None, np.empty(0)),
+    lambda k: k.update(np.zeros(2), np.eye(3), [], [], 0, ()),
+    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(5, np.zeros(1), None)],
+                       [(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 0)], 0, ()),
+    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(0, np.zeros(2), None)],
+                       [(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 0)], 0, ()),
+    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(0, np.zeros(1), None)],
+                       [(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 7)], 0, ()),
+    lambda k: k.update(np.zeros(2), np.eye(2), [(0,)], [], 0, ()),
+    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(0, np.zeros(3), None)],
+                       [(3, np.ones((2, 2)), None, np.eye(2), 0.0, -1)], 0, ()),
+    lambda k: k.remean(np.zeros(2), ((1, np.zeros(2), None, 0.0, 9, 1.0),)),
+    lambda k: k.remean(np.zeros(2), ((3, np.zeros((2, 1)), np.ones((1, 3)), np.zeros(1), -1,
+                                      0.0),)),
+    lambda k: k.remean(np.zeros(2), ((1, 2),)),
+])
+def test_bad_arguments_raise(call) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises((ValueError, TypeError, IndexError)):
+        call(_KALMAN)
+
+
+def test_arrays_are_never_written() -> None:
+    rng = np.random.default_rng(3)
+    b = random_backend(rng, 4, 2)
+    P = np.eye(4)
+    x = np.ones(4)
+    for a in (x, P):
+        a.setflags(write=False)
+    state = Gaussian(x, P)
+    out = b.advance(state, 2, np.ones((2, 2)), [Packet(2, np.ones(b.sensors[2].m), None)], None)
+    assert np.array_equal(x, np.ones(4)) and np.array_equal(P, np.eye(4))
+    assert out.x is not x and out.P is not P
