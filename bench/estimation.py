@@ -10,7 +10,9 @@ Configurations:
   large   n=12, max_delay=50:  3 sensors, delays 5 / 20 / 50, intervals 1 / 2 / 5, lead 10
   window  n=4,  max_delay=200: the paper's sensors; 2% of packets straggle, delayed uniformly
           up to 200 steps
-Then ObserverPredictor's µs per tick over steps 5,000-5,300 against steps 0-300 (paper config).
+Then ObserverPredictor's µs per tick over steps 5,000-5,300 against steps 0-300 (paper config),
+and last one JSON object with the figures ("kernel": the linear backend's arithmetic in C, or
+its numpy form under PD_SERVICE_PURE=1 or without a compiled build).
 
 Usage: python bench/estimation.py [--ticks N] [--skip-aug-large]
 """
@@ -18,6 +20,7 @@ Usage: python bench/estimation.py [--ticks N] [--skip-aug-large]
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 import time
@@ -127,6 +130,11 @@ def main() -> None:
     early, late = statistics.median(t[12:300]), statistics.median(t[5000:5300])
     print(f"growth: median µs/tick steps 12-300 {early:.1f}, steps 5000-5300 {late:.1f}, "
           f"ratio {late / early:.2f}")
+    from pd_service.estimation.linear import _KALMAN
+
+    print(json.dumps({"kernel": "C" if _KALMAN is not None else "numpy", "configs": [
+        {k: (round(v, 3) if k.endswith("_us") else v) for k, v in r.items()} for r in rows],
+        "growth_us": [round(early, 3), round(late, 3)]}))
 
 
 if __name__ == "__main__":
