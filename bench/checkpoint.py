@@ -23,15 +23,14 @@ import numpy as np
 
 from pd_service.backends import build_estimator
 from pd_service.checkpoint import encode_state, to_message
-from pd_service.estimation import LinearModel, Sensor
+from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.scenarios.paper import paper_scenario
-from pd_service.service.stacked import StackedObserverPredictor
 from pd_service.wire import encode, spec_fingerprint
 
 
 def paper_case():
     spec = paper_scenario("journal").spec("bench", 0, lead=10, max_delay=12)
-    est = build_estimator(spec, StackedObserverPredictor)
+    est = build_estimator(spec)
     rng = np.random.default_rng(0)
     for k in range(200):
         est.add_command(k + spec.lead, rng.standard_normal(1), now=k)
@@ -47,8 +46,7 @@ def big_case():
     model = LinearModel(A=A, B=rng.standard_normal((n, nu)), Q=0.01 * np.eye(n))
     sensors = [Sensor(name=f"s{i}", H=rng.standard_normal((m, n)), R=np.eye(m))
                for i, m in enumerate((6, 3, 3))]
-    est = StackedObserverPredictor(model, sensors, np.zeros(n), np.eye(n), lead=10,
-                                   max_delay=50)
+    est = ObserverPredictor(model, sensors, np.zeros(n), np.eye(n), lead=10, max_delay=50)
     for k in range(300):
         est.add_command(k + 10, rng.standard_normal(nu), now=k)
         for s in sensors:
