@@ -26,8 +26,8 @@
 #include <string.h>
 
 #define PIVOT 1e-10
-#define MAXN 64  /* state dimension handled here; larger: the numpy form */
-#define MAXR 16  /* rows of one packet handled here; larger: the numpy form */
+#define MAXN 64  /* state dimension handled here (MAX_N); a larger model: the numpy form */
+#define MAXR 16  /* rows of one sensor handled here (MAX_R); larger: the numpy form */
 
 /* A float64 C-contiguous view of obj (a new reference), or NULL with an exception. */
 static PyArrayObject *as_f64(PyObject *obj) {
@@ -441,5 +441,10 @@ static struct PyModuleDef module = {
 
 PyMODINIT_FUNC PyInit__kalman(void) {
     import_array();
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m && (PyModule_AddIntConstant(m, "MAX_N", MAXN) || PyModule_AddIntConstant(m, "MAX_R", MAXR))) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
 }

@@ -301,6 +301,9 @@ class LinearBackend:
         self._M = self.tables.M
         self._jumps = self.tables.jumps
         self._single = [_rows(s.H, s.R) for s in sensors]
+        k = self._kernel
+        if k is not None and (model.n > k.MAX_N or any(s.m > k.MAX_R for s in sensors)):
+            self._kernel = None  # sizes beyond the kernel's buffers: the numpy form
         self._G = self.tables.Gfull if self._nu else None  # the kernel reads its last m*nu columns
 
     def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:

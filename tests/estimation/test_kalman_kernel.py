@@ -169,3 +169,23 @@ def test_arrays_are_never_written() -> None:
     out = b.advance(state, 2, np.ones((2, 2)), [Packet(2, np.ones(b.sensors[2].m), None)], None)
     assert np.array_equal(x, np.ones(4)) and np.array_equal(P, np.eye(4))
     assert out.x is not x and out.P is not P
+
+
+@pytest.mark.parametrize("n, rows", [(_KALMAN.MAX_N + 1 if _KALMAN else 65, 1),
+                                     (6, _KALMAN.MAX_R + 1 if _KALMAN else 17)])
+def test_sizes_beyond_the_kernel_run_the_numpy_form(n: int, rows: int) -> None:
+    """A model or a sensor larger than the kernel's buffers: that backend runs the numpy
+    form throughout (an estimator of such a spec works, only slower)."""
+    rng = np.random.default_rng(5)
+    model = LinearModel(A=np.eye(n) * 0.9, B=np.zeros((n, 0)), Q=np.eye(n) * 0.01)
+    b = LinearBackend(model, [Sensor(name="s", H=rng.standard_normal((rows, n)),
+                                     R=np.eye(rows))], 4)
+    assert b._kernel is None
+    small = LinearBackend(model if n <= 8 else LinearModel(A=np.eye(2), B=np.zeros((2, 0)),
+                                                            Q=np.eye(2)),
+                          [Sensor(name="s", H=np.ones((1, 6 if n <= 8 else 2)), R=np.eye(1))], 4)
+    assert small._kernel is _KALMAN
+    state = Gaussian(np.zeros(n), np.eye(n))
+    out = b.advance(state, 2, np.empty((2, 0)), [Packet(0, np.ones(rows), None)], None)
+    again = b.advance(state, 2, np.empty((2, 0)), [Packet(0, np.ones(rows), None)], out)
+    assert np.array_equal(out.x, again.x) and out.P is again.P
