@@ -1,8 +1,7 @@
 """SessionSpec -> estimator, for every model kind: the one place a spec becomes an estimator.
 
-- "linear": ``linear(LinearModel, [Sensor], x0, P0, lead, max_delay, command_hold)``, by
-  default :class:`~pd_service.estimation.ObserverPredictor`; the daemon passes its batched
-  twin (``pd_service.service.stacked.StackedObserverPredictor``, same constructor);
+- "linear": :class:`~pd_service.estimation.ObserverPredictor` (LinearModel, [Sensor], x0,
+  P0, lead, max_delay, command_hold);
 - "unscented": :func:`~pd_service.estimation.nonlinear.make_unscented` with the registered
   model, its params, adapt and sigma settings, the session's sensors in order and their R;
 - "imm": :func:`~pd_service.estimation.imm.make_imm` with the modes, transition, variant,
@@ -17,7 +16,7 @@ A valid linear spec is never refused.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -35,26 +34,19 @@ from pd_service.wire import (
 )
 from pd_service.wire.convert import estimator_refusal, mode_map, plain_params
 
-#: Constructor of a linear estimator: (model, sensors, x0, P0, lead, max_delay, command_hold).
-LinearEstimatorType = Callable[
-    [LinearModel, Sequence[Sensor], object, object, int, int, str], Estimator
-]
-
-__all__ = ["LinearEstimatorType", "build_estimator", "imm_sensor"]
+__all__ = ["build_estimator", "imm_sensor"]
 
 
-def build_estimator(spec: SessionSpec,
-                    linear: LinearEstimatorType = ObserverPredictor) -> Estimator:
+def build_estimator(spec: SessionSpec) -> Estimator:
     """The session's estimator, by ``spec.model.kind`` (see the module docstring).
 
-    ``linear``: the class built for a linear model (any with ObserverPredictor's
-    constructor). WireError "SessionSpec: refused by the estimator: ..." if the
-    estimator's constructor refuses the spec.
+    WireError "SessionSpec: refused by the estimator: ..." if the estimator's constructor
+    refuses the spec.
     """
     model = spec.model
     try:
         if isinstance(model, LinearModelSpec):
-            est = linear(
+            est: Estimator = ObserverPredictor(
                 LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
                 [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R)) for s in spec.sensors],
                 np.array(spec.x0), np.array(spec.P0), spec.lead, spec.max_delay,

@@ -130,7 +130,7 @@ class SessionState(Message):
     state_version: Annotated[int, Field(ge=1, le=1_000_000)] = Field(
         STATE_VERSION, description="Layout version of the estimator state.")
     kind: Annotated[str, StringConstraints(max_length=64)] = Field(
-        description="Estimator class, e.g. StackedObserverPredictor.")
+        description="Estimator class, e.g. ObserverPredictor.")
     made_ns: Int64 = Field(description="When the state was taken, ns on the shared clock.")
     now_step: NonNegInt | None = Field(description="Newest step the estimator had seen.")
     committed_step: NonNegInt = Field(description="First step that could still change.")
