@@ -128,7 +128,9 @@ def kernel(name: str) -> ModuleType | None:
         return None
     try:
         return importlib.import_module(name)
-    except ImportError:  # built before this kernel existed: rebuilt by make venv
+    except ImportError:  # e.g. a numpy older than the one it was built against
+        warnings.warn(f"pd_service: the C kernel {name} does not load; running its numpy "
+                      "form (rebuild: make venv)", RuntimeWarning, stacklevel=2)
         return None
 
 

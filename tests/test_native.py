@@ -23,6 +23,7 @@ PROBE = ("import json, os, warnings\n"
          "try:\n    import pd_service.native as n\nexcept RuntimeWarning as w:\n"
          "    print(json.dumps({'warning': str(w)})); raise SystemExit\n"
          "print(json.dumps({'status': n.STATUS, 'compiled': n.compiled(), "
+         "'kernels': [n.kernel(k) is not None for k in n.C_KERNELS], "
          "'file': n.__file__}))")
 
 
@@ -40,6 +41,7 @@ def test_pure_switch_runs_every_hot_module_from_its_source():
     assert got["status"] == "pure Python (PD_SERVICE_PURE=1)"
     assert set(got["compiled"]) == set(native.HOT_MODULES)
     assert not any(got["compiled"].values())
+    assert got["kernels"] == [False] * len(native.C_KERNELS)  # their numpy forms run
 
 
 def test_the_installed_build_is_used_whole_or_not_at_all():
@@ -48,6 +50,7 @@ def test_the_installed_build_is_used_whole_or_not_at_all():
     assert len(flags) == 1, got  # never a mix of compiled and source modules
     built = any(PKG.glob("native__mypyc.*"))
     assert flags == {built}
+    assert got["kernels"] == [built] * len(native.C_KERNELS)  # the C kernels with them
     assert got["status"].startswith("compiled with mypyc" if built else "pure Python")
 
 
@@ -65,6 +68,21 @@ def test_a_stale_build_is_not_run(tmp_path):
     assert "built from other sources" in warned["warning"]
     got = probe({native.PURE_ENV: ""}, tmp_path)
     assert "stale" in got["status"] and not any(got["compiled"].values())
+    assert not any(got["kernels"])
+
+
+def test_an_edited_kernel_source_makes_the_build_stale(tmp_path):
+    """The C kernels' sources are part of the build's digest: an edited one runs nothing
+    compiled (the numpy forms and the .py files run) until rebuilt."""
+    if not any(PKG.glob("native__mypyc.*")):
+        pytest.skip("no compiled build here (no C compiler at install time)")
+    shutil.copytree(PKG, tmp_path / "pd_service",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    src = tmp_path / next(iter(native.C_KERNELS.values()))
+    assert all(probe({native.PURE_ENV: ""}, tmp_path)["kernels"])
+    src.write_text(src.read_text() + "\n/* edited after the build */\n")
+    got = probe({native.PURE_ENV: ""}, tmp_path)
+    assert "stale" in got["status"] and not any(got["kernels"])
 
 
 def test_setup_compiles_exactly_the_hot_modules():
