@@ -131,6 +131,22 @@ done:
     return res;
 }
 
+/* x += K (z - H x) in place: x (n,), H (r, n), K (n, r), z (r,), r <= MAXR. */
+static void mean_update(double *x, npy_intp n, const double *H, const double *K,
+                        const double *z, npy_intp r) {
+    double innov[MAXR];
+    for (npy_intp c = 0; c < r; c++) {
+        double acc = 0.0;
+        for (npy_intp k = 0; k < n; k++) acc += H[c * n + k] * x[k];
+        innov[c] = z[c] - acc;
+    }
+    for (npy_intp i = 0; i < n; i++) {
+        double acc = 0.0;
+        for (npy_intp c = 0; c < r; c++) acc += K[i * r + c] * innov[c];
+        x[i] += acc;
+    }
+}
+
 /* One Kalman update in place on x (n,) and P (n, n) with r rows H (r, n), R (r, r), z (r,).
    Writes K (n, r). Returns 0, or 1 when a Cholesky pivot is not clearly positive. */
 static int update_rows(double *x, double *P, npy_intp n, const double *H, const double *R,
@@ -183,17 +199,7 @@ static int update_rows(double *x, double *P, npy_intp n, const double *H, const 
             for (npy_intp l = c; l < r; l++) acc += W[i * r + l] * Li[l * r + c];
             K[i * r + c] = acc;
         }
-    double innov[MAXR];
-    for (npy_intp c = 0; c < r; c++) {
-        double acc = 0.0;
-        for (npy_intp k = 0; k < n; k++) acc += H[c * n + k] * x[k];
-        innov[c] = z[c] - acc;
-    }
-    for (npy_intp i = 0; i < n; i++) {
-        double acc = 0.0;
-        for (npy_intp c = 0; c < r; c++) acc += K[i * r + c] * innov[c];
-        x[i] += acc;
-    }
+    mean_update(x, n, H, K, z, r);
     for (npy_intp i = 0; i < n; i++)  /* P - W W^T, exactly symmetric */
         for (npy_intp j = i; j < n; j++) {
             double acc = 0.0;
@@ -400,18 +406,7 @@ static PyObject *remean(PyObject *self, PyObject *args) {
                 Py_XDECREF(H); Py_XDECREF(Z); Py_DECREF(K);
                 goto fail;
             }
-            const double *h = PyArray_DATA(H), *z = PyArray_DATA(Z);
-            double innov[MAXR];
-            for (npy_intp c = 0; c < r; c++) {
-                double acc = 0.0;
-                for (npy_intp l = 0; l < n; l++) acc += h[c * n + l] * xv[l];
-                innov[c] = z[c] - acc;
-            }
-            for (npy_intp l = 0; l < n; l++) {
-                double acc = 0.0;
-                for (npy_intp c = 0; c < r; c++) acc += k[l * r + c] * innov[c];
-                xv[l] += acc;
-            }
+            mean_update(xv, n, PyArray_DATA(H), k, PyArray_DATA(Z), r);
             Py_DECREF(H); Py_DECREF(Z);
         }
         Py_DECREF(K);
