@@ -351,10 +351,9 @@ class ReplayEstimator(Generic[S]):
             m = target - step
             state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred)
             x, P = self._backend.moments(state)
-            if isinstance(x, np.ndarray):  # a lazy backend's moments are pending nodes
-                # shared with the engine (a reused covariance, a checkpoint): read-only
-                x.setflags(write=False)
-                P.setflags(write=False)
+            # shared with the engine (a reused covariance, a checkpoint): read-only
+            x.setflags(write=False)
+            P.setflags(write=False)
         else:
             if target > step:
                 state = self._propagate(state, step, target - step)
