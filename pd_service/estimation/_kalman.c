@@ -29,8 +29,16 @@
 #define MAXN 64  /* state dimension handled here (MAX_N); a larger model: the numpy form */
 #define MAXR 16  /* rows of one sensor handled here (MAX_R); larger: the numpy form */
 
-/* A float64 C-contiguous view of obj (a new reference), or NULL with an exception. */
+/* A float64 C-contiguous view of obj (a new reference), or NULL with an exception. The
+   backend's arrays are such already: taken as they are, without numpy's conversion. */
 static PyArrayObject *as_f64(PyObject *obj) {
+    if (PyArray_CheckExact(obj)) {
+        PyArrayObject *a = (PyArrayObject *)obj;
+        if (PyArray_TYPE(a) == NPY_DOUBLE && PyArray_ISCARRAY_RO(a) && PyArray_ISNOTSWAPPED(a)) {
+            Py_INCREF(obj);
+            return a;
+        }
+    }
     return (PyArrayObject *)PyArray_FROM_OTF(obj, NPY_DOUBLE, NPY_ARRAY_IN_ARRAY);
 }
 

@@ -189,3 +189,17 @@ def test_sizes_beyond_the_kernel_run_the_numpy_form(n: int, rows: int) -> None:
     out = b.advance(state, 2, np.empty((2, 0)), [Packet(0, np.ones(rows), None)], None)
     again = b.advance(state, 2, np.empty((2, 0)), [Packet(0, np.ones(rows), None)], out)
     assert np.array_equal(out.x, again.x) and out.P is again.P
+
+
+def test_arrays_of_other_layouts_and_types_are_converted() -> None:
+    """The kernel takes the backend's float64 C-contiguous arrays as they are and converts
+    anything else (a transposed view, integers, a byte-swapped array) first: same result."""
+    rng = np.random.default_rng(11)
+    n = 4
+    A, L = rng.standard_normal((n, n)), rng.standard_normal((n, n))
+    P, Qs, x = L @ L.T, np.eye(n) * 0.5, np.arange(n)
+    want = _KALMAN.jump(x.astype(float), P, A, Qs, None, np.empty(0))
+    for args in [(x, P, A, Qs), (x.astype(float), np.asfortranarray(P), A.T.copy().T, Qs),
+                 (x.astype(">f8"), P.astype(">f8"), A, Qs.astype(np.float32).astype(float))]:
+        got = _KALMAN.jump(*args, None, np.empty(0))
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
