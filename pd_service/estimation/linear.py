@@ -20,7 +20,7 @@ baselines use them).
 
 Where the hot path runs compiled (``pd_service.native``), the arithmetic of
 :meth:`LinearBackend.advance` runs in the C kernel ``_kalman.c`` instead: the same formulas in
-one call per jump and one per step's updates, ~2x faster per tick at the paper's size. The
+one call per jump and one per step's updates, ~2.3x faster per tick at the paper's size. The
 numpy form here is the reference (``PD_SERVICE_PURE=1``, no compiler, sizes beyond the
 kernel's, a nearly singular innovation covariance) and the kernel is tested against it.
 """
