@@ -1,6 +1,8 @@
 """Observer-predictors for delayed, multi-rate, lossy measurements (pure numpy).
 
-No networking, no clocks: time is an integer step passed in by the caller.
+No networking, no clocks: time is an integer step passed in by the caller. Where the
+package's hot path is compiled, the linear backend's arithmetic runs in a C kernel
+(``_kalman.c``; :mod:`.linear`); its numpy form is the reference.
 
 Public surface::
 
