@@ -33,7 +33,7 @@ from pd_service.transport import Drain, Handle, Transport
 from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 
 from .config import Settings
-from .dispatch import Dispatch, Route
+from .dispatch import ROUND_SESSIONS, Dispatch, Route
 from .failover import StateKeeper, replicas_for
 from .lifecycle import Lifecycle, spawn_thread
 from .ownership import Ownership
@@ -234,16 +234,27 @@ class ServiceCore:
                 touched: list[Session] = []
                 if d.unknown:
                     handled += d.process_unknown(now, touched)
-                handled += d.round(now, touched)
+                # a pass over the sessions ready now, in rounds, each round's touched
+                # sessions published before the next (dispatch.ROUND_SESSIONS)
+                served: list[Session] = []
+                left = len(d.ready)
+                while left > 0:
+                    handled += d.round(now, touched, ROUND_SESSIONS)
+                    left -= ROUND_SESSIONS
+                    if left > 0 and touched:
+                        pub.publish_many([s for s in touched if s.alive], now, data=True)
+                        served += touched
+                        touched = []
                 if d.released:
                     handled += d.process_released(now, touched)
                 if d.recovered:
                     handled += d.process_recovered(now, touched)
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
+                    served += touched
                 pub.run_ticks(now)
-                if touched:
-                    self.keeper.after_round(touched, now)
+                if served:
+                    self.keeper.after_round(served, now)
                 if now >= self._next_sweep_ns:  # sessions that only tick commit steps too
                     self.keeper.after_round([r.sess for r in self._routes.values()
                                              if r.sess is not None], now)

@@ -13,7 +13,7 @@ from pd_service.scenarios.paper import (
     paper_sensors,
     simulate_paper,
 )
-from pd_service.service import ServiceCore, Settings, SpecStore
+from pd_service.service import ServiceCore, Settings, SpecStore, dispatch
 from pd_service.transport import InMemoryBus
 from pd_service.wire import (
     Command,
@@ -434,6 +434,35 @@ def test_flooding_session_cannot_starve_another(world, tmp_path):
     assert fl["flood"] == 5000 - 256
     assert fl["accepted"] == 1 and fl["duplicate"] == 255
     assert core.session_status("calm").counters["accepted"] == 1
+
+
+def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp_path):
+    """150 sessions ready at once: one run_once serves them all in arrival order, 64 at a
+    time, and predicts each round's sessions before the next round handles its messages (a
+    session's message and its prediction close together)."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, max_sessions=1000, config_rate_total=1e6,
+                     config_burst_total=10**6, cpu_budget=1000)
+    names = [f"r{i:03d}" for i in range(150)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(core)
+    assert core.served_sessions() == names
+    sessions = [core._routes[s].sess for s in names]
+    accepted_at_predict: list[int] = []
+    for sess in sessions:  # the estimators are interpreted objects: wrap their predict
+        def predict(now, _real=sess.est.predict):
+            accepted_at_predict.append(sum(x.counters.get("accepted", 0) for x in sessions))
+            return _real(now)
+        sess.est.predict = predict
+    clock.t = at(20.1)
+    for s in names:
+        cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 19, [1.0]))
+    start = len(col.order)
+    core.run_once()
+    assert dispatch.ROUND_SESSIONS == 64
+    assert accepted_at_predict == [64] * 64 + [128] * 64 + [150] * 22
+    assert [s for s, kind in col.order[start:] if kind == "prediction"] == names
 
 
 # ---------------------------------------------------------------- expiry, persistence -----
