@@ -106,6 +106,8 @@ class Dispatch:
         self.pub = publisher
         self.ownership = ownership
         self.wake = wake
+        self._wake_set = wake.set
+        self._wake_is_set = wake.is_set
         self.routes: dict[str, Route] = {}
         self.ready: deque[Route] = deque()
         self.control: deque[Control] = deque(maxlen=settings.control_inbox_size)
@@ -152,7 +154,7 @@ class Dispatch:
         if len(q) == q.maxlen:
             self.recovered_drops += 1
         q.append((stream, sample, self.now_ns()))
-        self.wake.set()
+        self._notify()
 
     def process_recovered(self, now: int, touched: list[Session]) -> int:
         """Worker: the recovered messages that arrived after the start (a sender that
@@ -192,7 +194,7 @@ class Dispatch:
         """Any thread: the read-back of parked ``sessions`` is done (``items``: what it
         gave, ``(stream, sample)``)."""
         self.released.append((sessions, items))
-        self.wake.set()
+        self._notify()
 
     def process_released(self, now: int, touched: list[Session]) -> int:
         """Worker: for each finished read-back, the parked sessions' live messages (all,
@@ -242,7 +244,7 @@ class Dispatch:
             if len(q) == q.maxlen:
                 self.unknown_drops += 1
             q.append((parts[1], item))
-            self.wake.set()
+            self._notify()
             return
         inbox = route.inbox
         if inbox is None:  # served by another instance
@@ -253,23 +255,33 @@ class Dispatch:
         if not route.ready:
             route.ready = True
             self.ready.append(route)
-            self.wake.set()
+            self._notify()
 
     def on_config_sample(self, sample: Sample) -> None:
         q = self.configs
         if len(q) == q.maxlen:
             self.control_drops += 1
         q.append(ConfigChange(sample))
-        self.wake.set()
+        self._notify()
 
     def on_liveliness(self, key: str, alive: bool) -> None:
         self.control.append(Membership(key, alive))
-        self.wake.set()
+        self._notify()
 
     def post_peer_specs(self, specs: dict[str, SessionSpec]) -> None:
         """From any thread: hand specs fetched from peers to the worker."""
         self.control.append(PeerSpecs(specs))
-        self.wake.set()
+        self._notify()
+
+    def _notify(self) -> None:
+        """Wake the worker. A set event is left alone: Event.set takes its condition's lock
+        and notifies (~1 µs) even when already set, and the worker's own drains enqueue
+        while it runs (it clears the event after waking, before its round): once per
+        session and round before, measured at ~1 µs per session-step. Safe: a caller
+        appended before reading the flag, so a set flag it saw was cleared only after
+        that append, and the round after the clear takes it."""
+        if not self._wake_is_set():
+            self._wake_set()
 
     # ================================================================== worker ========
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -463,6 +465,37 @@ def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp
     assert dispatch.ROUND_SESSIONS == 64
     assert accepted_at_predict == [64] * 64 + [128] * 64 + [150] * 22
     assert [s for s, kind in col.order[start:] if kind == "prediction"] == names
+
+
+def test_messages_for_many_sessions_set_the_wake_event_once(world, tmp_path, monkeypatch):
+    """The worker's event is set by the first message that makes a session ready, not again
+    by every other session's (Event.set takes a lock and notifies even when set: once per
+    session and round, when the worker's own drains enqueue); all of them are served."""
+    sets: list[object] = []
+    real_set = threading.Event.set
+
+    def counting_set(self):
+        sets.append(self)
+        real_set(self)
+
+    monkeypatch.setattr(threading.Event, "set", counting_set)
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    names = [f"w{i}" for i in range(5)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(core)
+    clock.t = at(20.1)
+    core.wake.clear()
+    before = sum(e is core.wake for e in sets)
+    for s in names:
+        for k in (18, 19):
+            cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", k, [1.0]))
+    assert sum(e is core.wake for e in sets) - before == 1
+    assert core.wake.is_set()
+    core.run_once()
+    assert {s: core.session_status(s).counters["accepted"] for s in names} == dict.fromkeys(
+        names, 2)
 
 
 # ---------------------------------------------------------------- expiry, persistence -----
