@@ -35,6 +35,7 @@ from types import ModuleType
 HOT_MODULES = (
     "pd_service.estimation.checks",
     "pd_service.estimation.inputs",
+    "pd_service.estimation.linear",
     "pd_service.estimation.replay",
     "pd_service.intake",
     "pd_service.intake.fastpath",

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
+from mypy_extensions import mypyc_attr
 
 from pd_service.native import kernel
 
@@ -48,6 +49,9 @@ _KALMAN = kernel("pd_service.estimation._kalman")
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
 
+# a plain Python class where linear.py is compiled: a frozen dataclass is deep-copied
+# through its __setstate__, which a compiled frozen class refuses
+@mypyc_attr(native_class=False)
 @dataclass(frozen=True, eq=False)
 class PropagationTables:
     """Precomputed powers for horizons 0..M. Shapes: Apow (M+1, n, n), Qsum (M+1, n, n),
@@ -280,6 +284,9 @@ def _chol_inv(S: np.ndarray) -> np.ndarray | None:
 _PIVOT = 1e-10
 
 
+# compiled by mypyc (setup.py) where the hot path is; deep-copied with its estimator
+# (serializable) and subclassed by tests (allow_interpreted_subclasses; see inputs.py)
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class LinearBackend:
     """Kalman filter steps for :class:`ReplayEstimator`; state = :class:`Gaussian`.
 
@@ -296,9 +303,6 @@ class LinearBackend:
     order; otherwise the step is recomputed from the prior).
     """
 
-    #: The C kernel (a class attribute: estimators are deep-copied, modules are not), or None.
-    _kernel: Any = _KALMAN
-
     def __init__(self, model: LinearModel, sensors: list[Sensor], horizon: int) -> None:
         self.model = model
         self.sensors = sensors
@@ -307,9 +311,11 @@ class LinearBackend:
         self._M = self.tables.M
         self._jumps = self.tables.jumps
         self._single = [_rows(s.H, s.R) for s in sensors]
-        k = self._kernel
-        if k is not None and (model.n > k.MAX_N or any(s.m > k.MAX_R for s in sensors)):
-            self._kernel = None  # sizes beyond the kernel's buffers: the numpy form
+        k = _KALMAN
+        #: Whether :meth:`advance` runs the C kernel (built, and the sizes fit its buffers)
+        #: or the numpy form. (A flag, not the module: estimators are deep-copied.)
+        self.use_kernel = k is not None and model.n <= k.MAX_N and all(
+            s.m <= k.MAX_R for s in sensors)
         self._G = self.tables.Gfull if self._nu else None  # the kernel reads its last m*nu columns
 
     def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:
@@ -354,7 +360,7 @@ class LinearBackend:
             if not reuse:
                 done = ()  # old applied other packets first: start from the prior
         Pp = P
-        ck = self._kernel
+        ck = _KALMAN if self.use_kernel else None
         if m == 0:
             xp = x
         elif ck is not None and m <= self._M:

@@ -1,7 +1,7 @@
 """The C form of LinearBackend.advance (pd_service/estimation/_kalman.c) against its numpy form.
 
 The numpy form is the reference: the same backend is run twice on the same random steps,
-once with the kernel and once without (``_kernel = None``), and every mean, covariance and
+once with the kernel and once without (``use_kernel = False``), and every mean, covariance and
 stored gain must agree to rounding. A (nearly) singular innovation covariance makes the
 kernel hand the step back to the numpy form; bad arguments raise, never crash.
 """
@@ -47,11 +47,11 @@ def random_backend(rng: np.random.Generator, n: int, nu: int) -> LinearBackend:
 
 def both(backend: LinearBackend, state: Gaussian, m: int, U: np.ndarray,
          packets: list[Packet], old: Gaussian | None) -> tuple[Gaussian, Gaussian]:
-    backend._kernel = _KALMAN
+    backend.use_kernel = True
     got = backend.advance(state, m, U, packets, old)
-    backend._kernel = None
+    backend.use_kernel = False
     want = backend.advance(state, m, U, packets, old)
-    backend._kernel = _KALMAN
+    backend.use_kernel = True
     return got, want
 
 
@@ -180,11 +180,11 @@ def test_sizes_beyond_the_kernel_run_the_numpy_form(n: int, rows: int) -> None:
     model = LinearModel(A=np.eye(n) * 0.9, B=np.zeros((n, 0)), Q=np.eye(n) * 0.01)
     b = LinearBackend(model, [Sensor(name="s", H=rng.standard_normal((rows, n)),
                                      R=np.eye(rows))], 4)
-    assert b._kernel is None
+    assert not b.use_kernel
     small = LinearBackend(model if n <= 8 else LinearModel(A=np.eye(2), B=np.zeros((2, 0)),
                                                             Q=np.eye(2)),
                           [Sensor(name="s", H=np.ones((1, 6 if n <= 8 else 2)), R=np.eye(1))], 4)
-    assert small._kernel is _KALMAN
+    assert small.use_kernel is (_KALMAN is not None)
     state = Gaussian(np.zeros(n), np.eye(n))
     out = b.advance(state, 2, np.empty((2, 0)), [Packet(0, np.ones(rows), None)], None)
     again = b.advance(state, 2, np.empty((2, 0)), [Packet(0, np.ones(rows), None)], out)
