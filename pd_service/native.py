@@ -36,6 +36,7 @@ HOT_MODULES = (
     "pd_service.estimation.checks",
     "pd_service.estimation.inputs",
     "pd_service.estimation.linear",
+    "pd_service.estimation.observer",
     "pd_service.estimation.replay",
     "pd_service.intake",
     "pd_service.intake.fastpath",

@@ -452,7 +452,7 @@ def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp
     assert core.served_sessions() == names
     sessions = [core._routes[s].sess for s in names]
     accepted_at_predict: list[int] = []
-    for sess in sessions:  # the estimators are interpreted objects: wrap their predict
+    for sess in sessions:  # wrap each estimator's predict (the session looks it up per call)
         def predict(now, _real=sess.est.predict):
             accepted_at_predict.append(sum(x.counters.get("accepted", 0) for x in sessions))
             return _real(now)
