@@ -57,6 +57,7 @@ HOT_MODULES = (
 #: each has a numpy form beside its caller, the reference it is tested against.
 C_KERNELS = {
     "pd_service.estimation._kalman": "pd_service/estimation/_kalman.c",
+    "pd_service.service._moments": "pd_service/service/_moments.c",
 }
 
 #: ``PD_SERVICE_PURE=1``: import the .py files even where an extension is built.

@@ -22,7 +22,14 @@ from __future__ import annotations
 
 import math
 
+import msgpack
 import numpy as np
+
+from pd_service.native import kernel
+
+#: The C form of :func:`inspect_packed` where the hot path runs compiled (else None).
+_MOMENTS = kernel("pd_service.service._moments")
+_pack = msgpack.Packer(use_bin_type=True).pack
 
 #: Session time between two snapshots of a healthy estimator (s).
 SNAPSHOT_EVERY_S = 1.0
@@ -61,6 +68,26 @@ def inspect(x: np.ndarray, P: np.ndarray) -> tuple[str | None, list[float], list
 
 _NON_FINITE = "non-finite estimate (NaN or infinity in x or P)"
 _NEGATIVE = "covariance not positive semi-definite (a negative variance on its diagonal)"
+_VERDICTS = (None, _NON_FINITE, _NEGATIVE)
+
+
+def inspect_packed(x: np.ndarray, P: np.ndarray) -> tuple[str | None, bytes, bytes]:
+    """:func:`inspect`'s verdict on (x (n,), P (n, n)), with x's and P's values (row-major)
+    as msgpack arrays of floats, ``msgpack.packb(list)`` byte for byte: what
+    ``PredictionEncoder.encode_packed`` puts in a Prediction. One C call where the hot path
+    runs compiled (``_moments.c``: ~0.3 µs at n = 4, against ~1.5 µs for the lists, the
+    sums and the packing); this Python form otherwise, and for arrays it does not take
+    (another dtype or shape)."""
+    k = _MOMENTS
+    if k is not None:
+        try:
+            verdict, xb, pb = k.moments(x, P)
+        except TypeError:
+            pass
+        else:
+            return _VERDICTS[verdict], xb, pb
+    bad, xs, ps = inspect(x, P)
+    return bad, _pack(xs), _pack(ps)
 
 
 def thoroughly_healthy(P: np.ndarray) -> bool:

@@ -40,7 +40,7 @@ from pd_service.transport import Transport
 from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
 from .config import Settings
-from .health import inspect
+from .health import inspect, inspect_packed
 from .session import Refusal, Session
 from .stats import LatencyWindow
 from .status import SessionState, session_status
@@ -150,15 +150,15 @@ class Publisher:
                 pred = got
             missed = sess.steps_missed_before(k)
             try:
-                bad, xs, ps = inspect(pred.x, pred.P)
+                bad, xb, pb = inspect_packed(pred.x, pred.P)
                 if bad is not None:
                     got = self._recover(sess, k, bad, now)
                     if got is None:
                         continue
                     pred = got
-                    xs, ps = pred.x.tolist(), pred.P.ravel().tolist()  # checked by _recover
+                    _, xb, pb = inspect_packed(pred.x, pred.P)  # healthy: _recover checked
                 sess.keep_snapshot(pred, k)
-                payload = sess.pack(pred, xs, ps, k, now)
+                payload = sess.pack(pred, xb, pb, k, now)
             except Exception as exc:  # e.g. a non-finite estimate: report, never crash
                 self._publish_failed(sess, exc, now)
                 continue

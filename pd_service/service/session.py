@@ -227,12 +227,12 @@ class Session:
         """The estimator's prediction of x(now_step + lead)."""
         return self.est.predict(now_step)
 
-    def pack(self, pred: PredictedState, xs: list[float], ps: list[float], now_step: int,
+    def pack(self, pred: PredictedState, x_data: bytes, P_data: bytes, now_step: int,
              made_ns: int) -> bytes:
-        """Encoded Prediction of ``pred`` whose x and P were read and checked as
-        ``xs``, ``ps`` (:func:`pd_service.service.health.inspect`); bumps seq and the
-        published count."""
-        data = self.encoder.encode_values(pred, xs, ps, self.seq, made_ns,
+        """Encoded Prediction of ``pred`` whose x and P were checked and packed as
+        ``x_data``, ``P_data`` (:func:`pd_service.service.health.inspect_packed`); bumps
+        seq and the published count."""
+        data = self.encoder.encode_packed(pred, x_data, P_data, self.seq, made_ns,
                                           self.counters_snapshot())
         self.seq += 1
         self.published += 1

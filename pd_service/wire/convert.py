@@ -264,6 +264,8 @@ class PredictionEncoder:
         self._k_newest, self._k_made, self._k_counters = pk("newest_step"), pk("made_ns"), \
             pk("counters")
         self._pack = msgpack.Packer(use_bin_type=True).pack
+        # the lengths of x's and P's packed values: an array header, 9 bytes per float64
+        self._x_len, self._P_len = len(pk([0.0] * n)), len(pk([0.0] * (n * n)))
 
     def encode(self, pred: PredictedMoments, seq: int, made_ns: int,
                counters: Mapping[str, int]) -> bytes:
@@ -290,6 +292,21 @@ class PredictionEncoder:
         if len(xs) != n or len(ps) != n * n:
             raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
                             f"got {len(xs)} and {len(ps)} values")
+        pk = self._pack
+        return self.encode_packed(pred, pk(xs), pk(ps), seq, made_ns, counters)
+
+    def encode_packed(self, pred: PredictedMoments, x_data: bytes, P_data: bytes, seq: int,
+                      made_ns: int, counters: Mapping[str, int]) -> bytes:
+        """:meth:`encode_values` with the values already packed: ``x_data`` and ``P_data``
+        the msgpack arrays of x's n and P's n * n floats (row-major), as
+        ``msgpack.packb(list)`` writes them, checked finite by the caller (the daemon's
+        health check, :func:`pd_service.service.health.inspect_packed`). Their lengths are
+        checked here."""
+        if len(x_data) != self._x_len or len(P_data) != self._P_len:
+            n = self.n
+            raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}) packed in "
+                            f"{self._x_len} and {self._P_len} bytes, got {len(x_data)} and "
+                            f"{len(P_data)}")
         if type(counters) is not dict:
             counters = {str(k): int(v) for k, v in counters.items()}
         pk = self._pack
@@ -298,7 +315,7 @@ class PredictionEncoder:
         data = b"".join((
             self._head, pk(int(seq)), self._k_step, pk(step),
             self._k_t, pk(self._epoch + step * self._period),
-            self._k_x, pk(xs), self._k_P, pk(ps),
+            self._k_x, x_data, self._k_P, P_data,
             self._k_newest, pk(None if newest is None else int(newest)),
             self._k_made, pk(int(made_ns)), self._k_counters, pk(counters)))
         if len(data) > MAX_MESSAGE_BYTES:  # the codec's compact form, or its refusal

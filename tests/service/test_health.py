@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import dataclasses
 
+import msgpack
 import numpy as np
 import pytest
 
+from pd_service import native
 from pd_service.estimation.linear import LinearBackend
 from pd_service.estimation.nonlinear import unscented
 from pd_service.service import health
@@ -105,6 +107,51 @@ def test_check_agrees_with_numpy_on_both_paths(n):
         np.testing.assert_array_equal(np.array(ps).reshape(n, n), P)
         if want is not None:
             assert want in got
+
+
+@pytest.mark.parametrize("n", [0, 1, 4, 5, 17])  # array headers: fixarray, array 16
+def test_packed_check_gives_the_checks_verdict_and_msgpacks_bytes(n):
+    """inspect_packed (C where compiled: service/_moments.c) against inspect and msgpack:
+    the same verdict, and x's and P's values packed byte for byte as msgpack.packb of the
+    lists, for values of every kind and for arrays of other layouts and dtypes (taken by
+    the Python form)."""
+    rng = np.random.default_rng(100 + n)
+    special = [np.nan, np.inf, -np.inf, -1.0, -0.0, 0.0, 1e308, -1e308, 5e-324, -5e-324]
+    for i in range(300):
+        x = rng.normal(size=n) * 10.0 ** rng.integers(-300, 300)
+        P = rng.normal(size=(n, n)) * 10.0 ** rng.integers(-300, 300)
+        for _ in range(int(rng.integers(0, 3)) if n else 0):
+            if rng.random() < 0.5:
+                x[rng.integers(n)] = rng.choice(special)
+            P[rng.integers(n), rng.integers(n)] = rng.choice(special)
+        if i % 4 == 0 and n:
+            P[np.diag_indices(n)] = np.abs(P.diagonal())  # often healthy
+        if i % 5 == 1:
+            P = np.asfortranarray(P)  # other layouts: strided reads
+        elif i % 5 == 2:
+            x, P = np.concatenate([x, x])[::2], np.hstack([P, P])[:, :n]
+        elif i % 5 == 3:
+            with np.errstate(over="ignore"):  # the Python form (float32: inf where too big)
+                x, P = x.astype(np.float32), P.astype(np.float32)
+        bad, xb, pb = health.inspect_packed(x, P)
+        want, xs, ps = health.inspect(x, P)
+        assert bad == want, (x, P)
+        assert xb == msgpack.packb(xs) and pb == msgpack.packb(ps)
+
+
+def test_packed_check_kernel_refuses_what_it_does_not_take():
+    k = health._MOMENTS
+    if k is None:
+        pytest.skip(f"no C kernel here ({native.STATUS}): the Python form runs")
+    with pytest.raises(TypeError):
+        k.moments(np.zeros(3), np.zeros((3, 4)))
+    for bad in ([0.0], np.zeros(3, dtype=np.int64), np.zeros((3, 1))):
+        with pytest.raises(TypeError):
+            k.moments(bad, np.zeros((3, 3)))
+    with pytest.raises(TypeError):
+        k.moments(np.zeros(2), np.zeros((2, 2, 1)))
+    with pytest.raises(TypeError):
+        k.moments(np.zeros(2))
 
 
 def test_a_poisoned_posterior_is_recovered_from_the_snapshot(tmp_path, monkeypatch):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -167,8 +168,15 @@ def test_one_encoder_gives_the_models_bytes_for_every_message(session):
         # the daemon's path: x and P read as Python floats once (its health check)
         assert enc.encode_values(fake, x.tolist(), P.ravel().tolist(), seq, made,
                                  counters) == want
+        # ... and packed as msgpack arrays (its health check in C, service/_moments.c)
+        assert enc.encode_packed(fake, msgpack.packb(x.tolist()),
+                                 msgpack.packb(P.ravel().tolist()), seq, made, counters) == want
     with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\)"):
         enc.encode_values(fake, x.tolist()[:3], P.ravel().tolist(), 0, 0, {})
+    with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\) packed in 37 and "
+                                        r"147 bytes, got 28 and 147"):
+        enc.encode_packed(fake, msgpack.packb(x.tolist()[:3]), msgpack.packb(P.ravel().tolist()),
+                          0, 0, {})
 
 
 def test_prediction_from_copies_and_freezes():
