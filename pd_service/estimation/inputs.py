@@ -20,7 +20,12 @@ from mypy_extensions import mypyc_attr
 # serializable alone makes the compiled class skip __init__, with both flags it does not
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class InputBuffer:
-    """u(t) for t in [origin, origin + capacity). Shapes: each u is (nu,)."""
+    """u(t) for t in [origin, origin + capacity). Shapes: each u is (nu,).
+
+    Stored in rows ``[off, off + capacity)`` of a (2 capacity, nu) buffer; the rows after
+    the window already hold what its next steps will be (the last step's u for "hold",
+    zeros for "zero"), so moving the window forward is ``off += d`` with no copy, until it
+    reaches the buffer's end and is moved back to row 0 (once per ~capacity steps)."""
 
     def __init__(self, nu: int, capacity: int, hold: bool) -> None:
         self.nu = nu
@@ -62,9 +67,10 @@ class InputBuffer:
         self._cmd_steps.insert(k, step)
         start = self._off + i
         if self.hold:
-            # u applies until the next explicit command (or the end of the window).
+            # u applies until the next explicit command, else past the window's end: the
+            # rows after the window hold its last step's u
             nxt = self._cmd_steps[k + 1] if k + 1 < len(self._cmd_steps) else None
-            end = self._off + (nxt - self.origin if nxt is not None else self.capacity)
+            end = self._off + nxt - self.origin if nxt is not None else self._buf.shape[0]
             self._buf[start:end] = u
         else:
             self._buf[start] = u
@@ -112,18 +118,17 @@ class InputBuffer:
             return
         cap = self.capacity
         buf = self._buf
-        if d >= cap:
-            buf[:cap] = buf[self._off + cap - 1].copy() if self.hold else 0.0
+        if d >= cap:  # every step new: u of the old last step ("hold") or zeros
+            buf[:] = buf[self._off + cap - 1].copy() if self.hold else 0.0
             self._off = 0
-        else:
-            if self._off + d + cap > buf.shape[0]:
-                buf[: cap - d] = buf[self._off + d : self._off + cap]
-                self._off = 0
-            else:
-                self._off += d
-            end = self._off + cap
-            # the new steps continue u of the old last step (row end - d - 1, not overwritten)
-            buf[end - d : end] = buf[end - d - 1] if self.hold else 0.0
+        elif self._off + d + cap > buf.shape[0]:
+            # back to row 0; the rows after the window: u of its last step (row cap - d - 1,
+            # just moved there) or zeros
+            buf[: cap - d] = buf[self._off + d : self._off + cap]
+            buf[cap - d :] = buf[cap - d - 1] if self.hold else 0.0
+            self._off = 0
+        else:  # the rows entering the window already hold their u
+            self._off += d
         self.origin = origin
         cmds = self._cmd_steps
         if cmds and cmds[0] < origin:

@@ -175,6 +175,45 @@ def test_input_buffer_hold_and_zero() -> None:
         zero.slice(19, 2)
 
 
+@pytest.mark.parametrize("hold", [True, False])
+def test_input_buffer_equals_a_plain_record_of_commands(hold: bool) -> None:
+    """Random commands and window moves (by 0, 1, 2, capacity - 1, capacity, more; across
+    the buffer's end, where the window moves back to row 0), and exports restored into a
+    fresh buffer: every u(t) in the window is what a plain record of every command gives
+    (hold: the last command at or before t, else 0; zero: the command at t, else 0)."""
+    rng = np.random.default_rng(11 if hold else 12)
+    for _ in range(40):
+        cap, nu = int(rng.integers(1, 10)), int(rng.integers(1, 3))
+        buf = InputBuffer(nu=nu, capacity=cap, hold=hold)
+        commands: dict[int, np.ndarray] = {}
+        origin = 0
+
+        def want(t: int) -> np.ndarray:
+            if not hold:
+                return commands.get(t, np.zeros(nu))
+            past = [j for j in commands if j <= t]
+            return commands[max(past)] if past else np.zeros(nu)
+
+        for _ in range(120):
+            r = rng.random()
+            if r < 0.5:
+                free = [t for t in range(origin, origin + cap) if t not in commands]
+                if free:
+                    t = int(rng.choice(free))
+                    commands[t] = rng.normal(size=nu)
+                    buf.set(t, commands[t])
+            elif r < 0.9:
+                origin += int(rng.choice([0, 1, 1, 2, max(cap - 1, 0), cap, cap + 3]))
+                buf.advance(origin)
+            else:
+                o, u0, cmds = buf.export()
+                assert o == origin
+                buf = InputBuffer(nu=nu, capacity=cap, hold=hold)
+                buf.restore(o, u0, cmds)
+            got = buf.slice(origin, cap)
+            assert np.array_equal(got, np.array([want(t) for t in range(origin, origin + cap)]))
+
+
 @pytest.mark.parametrize("cls", ["ObserverPredictor", "AugmentedStateKF", "ConventionalPredictor"])
 def test_every_linear_estimator_checks_its_sensors(cls) -> None:
     """A sensor whose H does not fit the model is refused by name, by every estimator."""
