@@ -175,6 +175,15 @@ def test_input_buffer_hold_and_zero() -> None:
         zero.slice(19, 2)
 
 
+def _recorded(commands: dict[int, np.ndarray], t: int, nu: int, hold: bool) -> np.ndarray:
+    """u(t) from every command ever given: hold, the last one at or before t; zero, the one
+    at t; else zeros."""
+    if not hold:
+        return commands.get(t, np.zeros(nu))
+    past = [j for j in commands if j <= t]
+    return commands[max(past)] if past else np.zeros(nu)
+
+
 @pytest.mark.parametrize("hold", [True, False])
 def test_input_buffer_equals_a_plain_record_of_commands(hold: bool) -> None:
     """Random commands and window moves (by 0, 1, 2, capacity - 1, capacity, more; across
@@ -188,11 +197,6 @@ def test_input_buffer_equals_a_plain_record_of_commands(hold: bool) -> None:
         commands: dict[int, np.ndarray] = {}
         origin = 0
 
-        def want(t: int) -> np.ndarray:
-            if not hold:
-                return commands.get(t, np.zeros(nu))
-            past = [j for j in commands if j <= t]
-            return commands[max(past)] if past else np.zeros(nu)
 
         for _ in range(120):
             r = rng.random()
@@ -211,7 +215,8 @@ def test_input_buffer_equals_a_plain_record_of_commands(hold: bool) -> None:
                 buf = InputBuffer(nu=nu, capacity=cap, hold=hold)
                 buf.restore(o, u0, cmds)
             got = buf.slice(origin, cap)
-            assert np.array_equal(got, np.array([want(t) for t in range(origin, origin + cap)]))
+            assert np.array_equal(got, np.array([_recorded(commands, t, nu, hold)
+                                                 for t in range(origin, origin + cap)]))
 
 
 @pytest.mark.parametrize("cls", ["ObserverPredictor", "AugmentedStateKF", "ConventionalPredictor"])
