@@ -84,7 +84,8 @@ static PyObject *moments(PyObject *self, PyObject *args) {
     const char *base = PyArray_BYTES(x);
     npy_intp sx = PyArray_STRIDE(x, 0);
     for (npy_intp i = 0; i < n; i++) {
-        double v = *(const double *)(base + i * sx);
+        double v;
+        memcpy(&v, base + i * sx, 8);  /* any alignment */
         finite &= isfinite(v) != 0;
         put_double(out + len, v);
         len += 9;
@@ -99,7 +100,8 @@ static PyObject *moments(PyObject *self, PyObject *args) {
     npy_intp s0 = PyArray_STRIDE(P, 0), s1 = PyArray_STRIDE(P, 1);
     for (npy_intp i = 0; i < n; i++) {
         for (npy_intp j = 0; j < n; j++) {
-            double v = *(const double *)(base + i * s0 + j * s1);
+            double v;
+            memcpy(&v, base + i * s0 + j * s1, 8);
             finite &= isfinite(v) != 0;
             if (i == j && v < 0.0) negative = 1;
             put_double(out + len, v);

@@ -133,6 +133,10 @@ def test_packed_check_gives_the_checks_verdict_and_msgpacks_bytes(n):
         elif i % 5 == 3:
             with np.errstate(over="ignore"):  # the Python form (float32: inf where too big)
                 x, P = x.astype(np.float32), P.astype(np.float32)
+        elif i % 5 == 4 and n:  # not aligned in memory
+            raw = b"\0" + P.tobytes()
+            P = np.frombuffer(raw, dtype=np.float64, offset=1).reshape(n, n)
+            assert not P.flags.aligned
         bad, xb, pb = health.inspect_packed(x, P)
         want, xs, ps = health.inspect(x, P)
         assert bad == want, (x, P)
