@@ -28,29 +28,52 @@ static PyArrayObject *f64(PyObject *obj, int rank) {
     return a;
 }
 
-/* msgpack array header for `count` items at out; returns the bytes written */
-static Py_ssize_t header(unsigned char *out, uint64_t count) {
+/* bytes of the msgpack array header for `count` items */
+static Py_ssize_t header_len(uint64_t count) {
+    return count <= 15 ? 1 : (count <= 0xFFFF ? 3 : 5);
+}
+
+/* the msgpack array header for `count` items at out */
+static void header(unsigned char *out, uint64_t count) {
     if (count <= 15) {
         out[0] = (unsigned char)(0x90 | count);
-        return 1;
-    }
-    if (count <= 0xFFFF) {
+    } else if (count <= 0xFFFF) {
         out[0] = 0xdc;
         out[1] = (unsigned char)(count >> 8);
         out[2] = (unsigned char)count;
-        return 3;
+    } else {
+        out[0] = 0xdd;
+        for (int i = 0; i < 4; i++) out[1 + i] = (unsigned char)(count >> (24 - 8 * i));
     }
-    out[0] = 0xdd;
-    for (int i = 0; i < 4; i++) out[1 + i] = (unsigned char)(count >> (24 - 8 * i));
-    return 5;
 }
 
-/* 0xcb and the big-endian bytes of v at out (9 bytes) */
-static void put_double(unsigned char *out, double v) {
-    uint64_t bits;
-    memcpy(&bits, &v, 8);
-    out[0] = 0xcb;
-    for (int i = 0; i < 8; i++) out[1 + i] = (unsigned char)(bits >> (56 - 8 * i));
+/* The rows x cols float64 values at base (strides s0, s1; any alignment), row-major, as a
+   msgpack array (a new bytes object, or NULL with an exception). Clears *finite if a value
+   is not finite, sets *negative if a diagonal entry (i == j) is below 0. */
+static PyObject *pack(const char *base, npy_intp rows, npy_intp cols, npy_intp s0,
+                      npy_intp s1, int *finite, int *negative) {
+    uint64_t count = (uint64_t)rows * (uint64_t)cols;
+    Py_ssize_t h = header_len(count);
+    PyObject *b = PyBytes_FromStringAndSize(NULL, h + 9 * (Py_ssize_t)count);
+    if (b == NULL) return NULL;
+    unsigned char *out = (unsigned char *)PyBytes_AS_STRING(b);
+    header(out, count);
+    out += h;
+    for (npy_intp i = 0; i < rows; i++) {
+        for (npy_intp j = 0; j < cols; j++) {
+            double v;
+            memcpy(&v, base + i * s0 + j * s1, 8);
+            *finite &= isfinite(v) != 0;
+            if (i == j && v < 0.0) *negative = 1;
+            /* 0xcb and the IEEE double's 8 bytes, big-endian */
+            uint64_t bits;
+            memcpy(&bits, &v, 8);
+            out[0] = 0xcb;
+            for (int k = 0; k < 8; k++) out[1 + k] = (unsigned char)(bits >> (56 - 8 * k));
+            out += 9;
+        }
+    }
+    return b;
 }
 
 static PyObject *moments(PyObject *self, PyObject *args) {
@@ -70,45 +93,13 @@ static PyObject *moments(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_TypeError, "moments: too many values for one msgpack array");
         return NULL;
     }
-    uint64_t nn = (uint64_t)n * (uint64_t)n;
-    PyObject *xb = PyBytes_FromStringAndSize(NULL, 5 + 9 * (Py_ssize_t)n);
-    PyObject *pb = PyBytes_FromStringAndSize(NULL, 5 + 9 * (Py_ssize_t)nn);
-    if (xb == NULL || pb == NULL) {
-        Py_XDECREF(xb);
-        Py_XDECREF(pb);
-        return NULL;
-    }
-    int finite = 1, negative = 0;
-    unsigned char *out = (unsigned char *)PyBytes_AS_STRING(xb);
-    Py_ssize_t len = header(out, (uint64_t)n);
-    const char *base = PyArray_BYTES(x);
-    npy_intp sx = PyArray_STRIDE(x, 0);
-    for (npy_intp i = 0; i < n; i++) {
-        double v;
-        memcpy(&v, base + i * sx, 8);  /* any alignment */
-        finite &= isfinite(v) != 0;
-        put_double(out + len, v);
-        len += 9;
-    }
-    if (_PyBytes_Resize(&xb, len) < 0) {
-        Py_DECREF(pb);
-        return NULL;
-    }
-    out = (unsigned char *)PyBytes_AS_STRING(pb);
-    len = header(out, nn);
-    base = PyArray_BYTES(P);
-    npy_intp s0 = PyArray_STRIDE(P, 0), s1 = PyArray_STRIDE(P, 1);
-    for (npy_intp i = 0; i < n; i++) {
-        for (npy_intp j = 0; j < n; j++) {
-            double v;
-            memcpy(&v, base + i * s0 + j * s1, 8);
-            finite &= isfinite(v) != 0;
-            if (i == j && v < 0.0) negative = 1;
-            put_double(out + len, v);
-            len += 9;
-        }
-    }
-    if (_PyBytes_Resize(&pb, len) < 0) {
+    int finite = 1, negative = 0, ignored = 0;
+    /* x as n rows of one column: its "diagonal" is not a variance */
+    PyObject *xb = pack(PyArray_BYTES(x), n, 1, PyArray_STRIDE(x, 0), 0, &finite, &ignored);
+    if (xb == NULL) return NULL;
+    PyObject *pb = pack(PyArray_BYTES(P), n, n, PyArray_STRIDE(P, 0), PyArray_STRIDE(P, 1),
+                        &finite, &negative);
+    if (pb == NULL) {
         Py_DECREF(xb);
         return NULL;
     }
