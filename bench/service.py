@@ -32,7 +32,8 @@ Usage: python bench/service.py [--sessions 10,100,500,1000] [--duration 10] [--w
                           (the daemon with PD_SERVICE_PURE=1; pd_service.native)
        [--profile]        cProfile the daemon's worker thread, print the top functions
        [--threads]        print the CPU seconds of the daemon's busiest threads
-       [--declare-keys]   load generator declares its key expressions
+       [--clients plain]  the load generator's senders and displays: plain puts and 10
+                          subscriptions, or "sdk": declared as pd_client declares them
 Settings reach the daemon through the environment, e.g. PD_SERVICE_BATCH_BUDGET=32. The
 benchmark raises admission's limits unless they are set: PD_SERVICE_CPU_BUDGET=1000,
 PD_SERVICE_MEMORY_BUDGET_BYTES=8 GiB, PD_SERVICE_CONFIG_RATE_TOTAL and _BURST_TOTAL=100000,
@@ -142,12 +143,20 @@ def run_loadgen(args: argparse.Namespace) -> None:
     sensor_keys = [(keys.sensor_key(s, "ranger"), keys.sensor_key(s, "camera"),
                     keys.command_key(s)) for s in names]
     put = t.put
-    if args.declare_keys:
-        # declared key expressions travel as numeric ids and let the receiver cache the route
-        pubs = {}
-        for trio in sensor_keys:
-            for key in trio:
-                pubs[key] = t.session.declare_publisher(t.session.declare_keyexpr(key))
+    displays = []
+    if args.clients == "sdk":
+        # what pd_client declares: Robot and Operator a cached publisher per sensor and
+        # command key (zenoh-ext advanced publishers: a cache, a liveliness token), Display a
+        # subscription to its session's predictions (here keeping the newest in Zenoh's
+        # ring, read by nobody: no Python per sample)
+        import zenoh
+
+        from pd_service.transport import DEFAULT_SENDER_CACHE
+
+        pubs = {key: t.publisher(key, cache=DEFAULT_SENDER_CACHE)
+                for trio in sensor_keys for key in trio}
+        displays = [t.session.declare_subscriber(keys.prediction_key(s), zenoh.handlers.RingChannel(1))
+                    for s in names]
 
         def put(key: str, payload: bytes) -> None:
             pubs[key].put(payload)
@@ -190,6 +199,8 @@ def run_loadgen(args: argparse.Namespace) -> None:
                     sent += 1
         k += 1
     print(json.dumps({"sent": sent}), flush=True)
+    for d in displays:
+        d.undeclare()
     t.close()
 
 
@@ -258,7 +269,7 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
         gen = subprocess.Popen(
             [sys.executable, __file__, "--loadgen", "--n", str(n)]
             + [x for e in endpoints for x in ("--connect", e)]
-            + (["--declare-keys"] if args.declare_keys else []) + [
+            + ["--clients", args.clients] + [
              "--epoch", str(epoch), "--measure-start", str(measure_start), "--end", str(end)],
             stdout=subprocess.PIPE, text=True, cwd=ROOT)
         from pd_service.wire import keys as _keys
@@ -322,6 +333,7 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
     p99 = max(s.latency_p99_us for s in s1)
     res = {
         "n": n,
+        "clients": args.clients,
         "pred_rate": delta("published") / n / wall,
         "rx_rate": (d1 - d0) / min(10, n) / wall,
         "sent": out.get("sent", 0),
@@ -368,8 +380,12 @@ def main() -> None:
     ap.add_argument("--compare-pure", dest="compare_pure", action="store_true",
                     help="alternate compiled and pure-Python runs of this checkout")
     ap.add_argument("--threads", action="store_true", help="print the daemon's busiest threads")
-    ap.add_argument("--declare-keys", dest="declare_keys", action="store_true",
-                    help="load generator declares its key expressions (zenoh declare_keyexpr)")
+    ap.add_argument("--clients", choices=("plain", "sdk"), default="plain",
+                    help="plain: the load generator sends each message with a session put "
+                         "and subscribes to 10 sessions' predictions; sdk: it declares what "
+                         "pd_client's Robot, Operator and Display declare for every session "
+                         "(cached publishers per sensor and command key, a subscription per "
+                         "session's predictions)")
     # load-generator role (internal)
     ap.add_argument("--loadgen", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
@@ -385,7 +401,7 @@ def main() -> None:
     print(f"pd-service load test: paper scenario, 20 Hz steps (cmd 20 Hz, ranger 20 Hz, camera "
           f"10 Hz), {args.instances} daemon instance(s), {os.cpu_count()} CPUs, "
           f"{args.duration:g} s measured after {args.warmup:g} s warm-up, "
-          f"{args.repeat} run(s) per N")
+          f"{args.repeat} run(s) per N, clients {args.clients!r}")
     from pd_service import native
 
     print(f"hot path of this checkout: {native.STATUS}")
@@ -432,6 +448,7 @@ def _summarise(label: str, n: int, instances: int, rs: list[dict]) -> dict:
     import statistics
 
     out: dict = {"build": label, "n": n, "instances": instances, "runs": len(rs),
+                 "clients": rs[0]["clients"] if rs else None,
                  "saturated_runs": sum(1 for r in rs if r["saturated"])}
     for key in ("pred_rate", "rx_rate", "p50_us", "p99_us", "cpu_daemon", "us_per_session_step",
                 "cpu_gen", "in_rate", "overruns", "late", "refused", "flood"):

@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
-from pd_service.transport import Sample, Transport
+from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
@@ -81,6 +81,8 @@ class Lifecycle:
         self.closed = False
         #: Read-back threads of takeovers (joined at a stop: see :meth:`join_background`).
         self._readers: list[threading.Thread] = []
+        #: The busy keys declared for each session run here (:meth:`_declare_keys`).
+        self._declared: dict[str, Handle] = {}
 
     # ================================================================== start =========
 
@@ -341,6 +343,7 @@ class Lifecycle:
         old = route.sess
         if old is not None:
             old.alive = False
+        self._declare_keys(session, None)
         if not self.ownership.owns(session):
             self.ledger.release(session)
             self.refused.pop(session, None)
@@ -392,6 +395,7 @@ class Lifecycle:
             route.inbox = deque(maxlen=self.settings.inbox_size)
         route.sess = sess
         routes[session] = route
+        self._declare_keys(session, sess)
         self.dispatch.mark_ready(route)
         self.pub.schedule(sess, sess.step_now(now) - 1)
         event(log, "session_" + ("restored" if state == "restored" else
@@ -425,6 +429,7 @@ class Lifecycle:
                 event(log, "remove_failed", logging.ERROR, session=session, reason=str(exc))
         if self.keeper is not None:
             self.keeper.forget(session)
+        self._declare_keys(session, None)
         sess = route.sess if route is not None else None
         if sess is not None:
             sess.alive = False
@@ -433,6 +438,22 @@ class Lifecycle:
             event(log, "session_" + state, session=session, detail=detail)
             if answer:
                 self.pub.answer_gone(session, state, detail, now, sess)
+
+    def _declare_keys(self, session: str, sess: Session | None) -> None:
+        """Withdraw the keys declared for ``session``; declare those of ``sess`` (if
+        given): its commands, sensors and predictions, the keys of nearly every message
+        it receives or sends (Transport.declare_keys: routed by cached routes)."""
+        old = self._declared.pop(session, None)
+        if old is not None:
+            old.close()
+        if sess is None:
+            return
+        names = [keys.command_key(session), sess.pred_key]
+        names += [keys.sensor_key(session, s.name) for s in sess.spec.sensors]
+        try:
+            self._declared[session] = self.t.declare_keys(names)
+        except Exception as exc:  # the transport is closing, say: routing still works
+            log.debug("declaring the keys of %s failed: %s", session, exc)
 
     def expire_idle(self, now: int) -> None:
         """Remove the sessions idle for more than ``expire_s``; forget old removals."""

@@ -7,7 +7,7 @@ Callbacks run on the transport's own thread and must not block: hand work to a q
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal, NamedTuple, Protocol, Self
 
@@ -137,6 +137,16 @@ class Transport(Protocol):
 
     def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...
 
+    def declare_keys(self, keys: Sequence[str]) -> Handle:
+        """Declare ``keys`` (exact keys, no wildcards) as busy: ones this side puts on
+        (:meth:`put` then uses the declaration) or receives on, many times a second.
+        Closing the handle withdraws them. On Zenoh each becomes a declared key expression:
+        a message on it is routed by a cached route, where an undeclared key's route is
+        computed per message by comparing its chunks with every declared resource's (Zenoh
+        1.10: the cost grows with the number of sibling keys declared anywhere, e.g. every
+        display's subscription to its own session, docs/service.md "Declared keys")."""
+        ...
+
     def get(self, selector: str, payload: bytes | None = None,
             timeout: float = 2.0) -> list[Reply]: ...
 
@@ -157,6 +167,16 @@ class Transport(Protocol):
     def __enter__(self) -> Transport: ...
 
     def __exit__(self, *exc: object) -> None: ...
+
+
+def check_exact_keys(keys: Sequence[str]) -> list[str]:
+    """``keys`` as a list; ValueError naming the first that is not an exact key (empty, or
+    with a wildcard or a Zenoh special character)."""
+    out = list(keys)
+    for k in out:
+        if not k or any(c in k for c in "*$?#") or "//" in k or k[0] == "/" or k[-1] == "/":
+            raise ValueError(f"declare_keys: {k!r} is not an exact key")
+    return out
 
 
 class HandleOwner:

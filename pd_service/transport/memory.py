@@ -8,11 +8,11 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
-from .base import HandleOwner, Reply, Sample
+from .base import HandleOwner, Reply, Sample, check_exact_keys
 from .keyexpr import intersects
 
 
@@ -122,6 +122,8 @@ class InMemoryTransport(HandleOwner):
             bus.transports += 1
             # a fixed Zenoh-like id per transport of the bus: 1st -> "a1", 2nd -> "a2", ...
             self._zid = f"a{bus.transports:x}"
+        #: What :meth:`declare_keys` declared and is not withdrawn: one tuple per call.
+        self.declared: list[tuple[str, ...]] = []
 
     def session_id(self) -> str:
         return self._zid
@@ -183,6 +185,10 @@ class InMemoryTransport(HandleOwner):
     # queries
     def queryable(self, keyexpr: str, handler: Callable) -> _Handle:
         return self._register(self.bus.queryables, (keyexpr, handler))
+
+    def declare_keys(self, keys: Sequence[str]) -> _Handle:
+        """Recorded in :attr:`declared` (key, ...) until closed: no routing to speed up."""
+        return self._register(self.declared, tuple(check_exact_keys(keys)))
 
     def get(self, selector: str, payload: bytes | None = None, timeout: float = 2.0) -> list[Reply]:
         with self.bus.lock:

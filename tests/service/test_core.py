@@ -597,6 +597,55 @@ def test_two_instances_split_sessions_and_take_over(tmp_path):
         assert col.statuses[s][-1].instance == "inst-a"
 
 
+def declared(core) -> set[str]:
+    """Every key the core's transport holds declared (InMemoryTransport.declared)."""
+    return {k for group in core.t.declared for k in group}
+
+
+def busy_keys(session: str, sensors=("camera", "ranger")) -> set[str]:
+    return {keys.command_key(session), keys.prediction_key(session)} | {
+        keys.sensor_key(session, s) for s in sensors}
+
+
+def test_served_sessions_declare_their_busy_keys_and_withdraw_them(tmp_path):
+    """A session run here declares its command, sensor and prediction keys (cached routes
+    on Zenoh); replaced, handed over, removed or expired, it withdraws them."""
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, expire_s=5.0)
+    names = [f"s{i:02d}" for i in range(12)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(a)
+    assert declared(a) == set().union(*(busy_keys(s) for s in names))
+    # a new spec with one sensor renamed: the old sensor key is withdrawn, the new declared
+    spec = paper_spec("s00")
+    sensors = [spec.sensors[0].model_copy(update={"name": "lidar"}), *spec.sensors[1:]]
+    cli.put(keys.config_key("s00"), encode(spec.model_copy(update={"sensors": sensors})))
+    settle(a)
+    assert {k for k in declared(a) if k.startswith("pd/s00/")} == \
+        busy_keys("s00", [s.name for s in sensors])
+    assert len(a.t.declared) == len(names)  # one declaration per session, none left behind
+    # removed
+    cli.delete(keys.config_key("s01"))
+    settle(a)
+    assert not any(k.startswith("pd/s01/") for k in declared(a))
+    # handed over: what inst-b serves, inst-a no longer declares, and inst-b does
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, expire_s=5.0)
+    settle(a, b)
+    served = {core: core.served_sessions() for core in (a, b)}
+    assert served[b] and set(served[a]) | set(served[b]) == set(names) - {"s01"}
+    for core in (a, b):
+        assert declared(core) == set().union(*(
+            busy_keys(s, [x.name for x in sensors] if s == "s00" else ("camera", "ranger"))
+            for s in served[core]))
+    # expired (no traffic for 5 s)
+    clock.t = 10 * 1_000_000_000
+    for core in (a, b):
+        core.run_once()
+        assert core.served_sessions() == [] and core.t.declared == []
+
+
 def test_static_shards_split_without_coordination(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()

@@ -67,6 +67,23 @@ def exercise(t1, t2, wait) -> None:
     assert t2.get_liveliness("pd/@service/*", timeout=5.0) == ["pd/@service/a"]
     assert seen.wait(5.0)  # the subscriber's callback may come after the get's reply
     assert ("pd/@service/a", True) in live
+    # declared keys: the receiver's and the sender's; puts on them arrive as any put,
+    # also once the declarations are withdrawn (closing twice is harmless)
+    mine = t1.declare_keys(["pd/s1/sensor/cam", "pd/s2/sensor/cam"])
+    theirs = t2.declare_keys(["pd/s2/sensor/cam"])
+    for key, payload in (("pd/s2/sensor/cam", b"declared"), ("pd/s1/sensor/cam", b"half")):
+        ev.clear()
+        t2.put(key, payload)
+        assert ev.wait(5.0) and got[-1] == (key, payload, "put")
+    theirs.close()
+    mine.close()
+    mine.close()
+    ev.clear()
+    t2.put("pd/s2/sensor/cam", b"undeclared")
+    assert ev.wait(5.0) and got[-1] == ("pd/s2/sensor/cam", b"undeclared", "put")
+    for bad in (["pd/*/sensor/cam"], ["pd/s1/**"], ["pd//x"], [""], ["pd/$*x"]):
+        with pytest.raises(ValueError, match="not an exact key"):
+            t1.declare_keys(bad)
     sub.close()
     ev.clear()
     t2.put("pd/s1/sensor/cam", b"again")
@@ -77,6 +94,10 @@ def test_in_memory_transport() -> None:
     bus = InMemoryBus()
     with bus.transport() as t1, bus.transport() as t2:
         exercise(t1, t2, lambda: None)
+        kept = t1.declare_keys(["pd/s3/cmd"])
+        assert t1.declared == [("pd/s3/cmd",)] and t2.declared == []
+        kept.close()
+        assert t1.declared == []
     assert bus.subs == [] and bus.tokens == []
 
 
@@ -94,6 +115,7 @@ def test_zenoh_transport_loopback() -> None:
                     return
             raise AssertionError("peer never became visible")
         exercise(t1, t2, wait)
+        assert t1._declared == {} and t2._declared == {}  # withdrawn: put() no longer uses them
 
 
 @pytest.mark.integration
