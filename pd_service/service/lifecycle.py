@@ -441,14 +441,16 @@ class Lifecycle:
 
     def _declare_keys(self, session: str, sess: Session | None) -> None:
         """Withdraw the keys declared for ``session``; declare those of ``sess`` (if
-        given): its commands, sensors and predictions, the keys of nearly every message
-        it receives or sends (Transport.declare_keys: routed by cached routes)."""
+        given): its commands, sensors, predictions and error reports, the keys of nearly
+        every message it receives or sends (Transport.declare_keys: routed by cached
+        routes; an overloaded daemon refusing late samples sends up to
+        ``error_rate_total`` reports a second)."""
         old = self._declared.pop(session, None)
         if old is not None:
             old.close()
         if sess is None:
             return
-        names = [keys.command_key(session), sess.pred_key]
+        names = [keys.command_key(session), sess.pred_key, sess.error_key]
         names += [keys.sensor_key(session, s.name) for s in sess.spec.sensors]
         try:
             self._declared[session] = self.t.declare_keys(names)

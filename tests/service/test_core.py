@@ -603,13 +603,13 @@ def declared(core) -> set[str]:
 
 
 def busy_keys(session: str, sensors=("camera", "ranger")) -> set[str]:
-    return {keys.command_key(session), keys.prediction_key(session)} | {
+    return {keys.command_key(session), keys.prediction_key(session), keys.error_key(session)} | {
         keys.sensor_key(session, s) for s in sensors}
 
 
 def test_served_sessions_declare_their_busy_keys_and_withdraw_them(tmp_path):
-    """A session run here declares its command, sensor and prediction keys (cached routes
-    on Zenoh); replaced, handed over, removed or expired, it withdraws them."""
+    """A session run here declares its command, sensor, prediction and error keys (cached
+    routes on Zenoh); replaced, handed over, removed or expired, it withdraws them."""
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
     a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, expire_s=5.0)
