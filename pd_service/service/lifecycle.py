@@ -81,8 +81,9 @@ class Lifecycle:
         self.closed = False
         #: Read-back threads of takeovers (joined at a stop: see :meth:`join_background`).
         self._readers: list[threading.Thread] = []
-        #: The busy keys declared for each session run here (:meth:`_declare_keys`).
-        self._declared: dict[str, Handle] = {}
+        #: The busy keys declared for each known session, with the spec they are of
+        #: (:meth:`_declare_keys`).
+        self._declared: dict[str, tuple[SessionSpec, Handle]] = {}
 
     # ================================================================== start =========
 
@@ -343,7 +344,7 @@ class Lifecycle:
         old = route.sess
         if old is not None:
             old.alive = False
-        self._declare_keys(session, None)
+        self._declare_keys(session, self.specs.get(session))
         if not self.ownership.owns(session):
             self.ledger.release(session)
             self.refused.pop(session, None)
@@ -363,6 +364,7 @@ class Lifecycle:
             event(log, "session_refused", logging.WARNING, session=session, reason=exc.reason)
             if state == "restored":  # a persisted spec that no longer fits: set aside
                 self.specs.pop(session, None)
+                self._declare_keys(session, None)
                 routes.pop(session, None)
                 if self.store is not None:
                     self.store.set_aside(session, exc.reason)
@@ -395,7 +397,6 @@ class Lifecycle:
             route.inbox = deque(maxlen=self.settings.inbox_size)
         route.sess = sess
         routes[session] = route
-        self._declare_keys(session, sess)
         self.dispatch.mark_ready(route)
         self.pub.schedule(sess, sess.step_now(now) - 1)
         event(log, "session_" + ("restored" if state == "restored" else
@@ -439,21 +440,27 @@ class Lifecycle:
             if answer:
                 self.pub.answer_gone(session, state, detail, now, sess)
 
-    def _declare_keys(self, session: str, sess: Session | None) -> None:
-        """Withdraw the keys declared for ``session``; declare those of ``sess`` (if
-        given): its commands, sensors, predictions and error reports, the keys of nearly
-        every message it receives or sends (Transport.declare_keys: routed by cached
-        routes; an overloaded daemon refusing late samples sends up to
-        ``error_rate_total`` reports a second)."""
-        old = self._declared.pop(session, None)
-        if old is not None:
-            old.close()
-        if sess is None:
+    def _declare_keys(self, session: str, spec: SessionSpec | None) -> None:
+        """Declare the keys of ``session`` with ``spec`` (None: withdraw them): its commands,
+        sensors, predictions and error reports, the keys of nearly every message it
+        receives or sends (Transport.declare_keys: routed by cached routes; an overloaded
+        daemon refusing late samples sends up to ``error_rate_total`` reports a second).
+        Every known session's, not only the served ones': an instance receives the samples
+        of all sessions (one wildcard) and drops those of the sessions others serve, and an
+        undeclared key costs Zenoh a comparison with every sibling key per message."""
+        old = self._declared.get(session)
+        if old is not None and old[0] is spec:
             return
-        names = [keys.command_key(session), sess.pred_key, sess.error_key]
-        names += [keys.sensor_key(session, s.name) for s in sess.spec.sensors]
+        if old is not None:
+            del self._declared[session]
+            old[1].close()
+        if spec is None:
+            return
+        names = [keys.command_key(session), keys.prediction_key(session),
+                 keys.error_key(session)]
+        names += [keys.sensor_key(session, s.name) for s in spec.sensors]
         try:
-            self._declared[session] = self.t.declare_keys(names)
+            self._declared[session] = (spec, self.t.declare_keys(names))
         except Exception as exc:  # the transport is closing, say: routing still works
             log.debug("declaring the keys of %s failed: %s", session, exc)
 

@@ -607,9 +607,10 @@ def busy_keys(session: str, sensors=("camera", "ranger")) -> set[str]:
         keys.sensor_key(session, s) for s in sensors}
 
 
-def test_served_sessions_declare_their_busy_keys_and_withdraw_them(tmp_path):
-    """A session run here declares its command, sensor, prediction and error keys (cached
-    routes on Zenoh); replaced, handed over, removed or expired, it withdraws them."""
+def test_known_sessions_declare_their_busy_keys_and_withdraw_them(tmp_path):
+    """Every instance declares the command, sensor, prediction and error keys of every
+    session it knows (it receives all sessions' samples; cached routes on Zenoh), served
+    here or not; replaced, the old spec's keys are withdrawn; removed or expired, all."""
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
     a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, expire_s=5.0)
@@ -630,20 +631,22 @@ def test_served_sessions_declare_their_busy_keys_and_withdraw_them(tmp_path):
     cli.delete(keys.config_key("s01"))
     settle(a)
     assert not any(k.startswith("pd/s01/") for k in declared(a))
-    # handed over: what inst-b serves, inst-a no longer declares, and inst-b does
+    # a second instance: each serves a share and both declare every known session's keys
     b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, expire_s=5.0)
     settle(a, b)
     served = {core: core.served_sessions() for core in (a, b)}
-    assert served[b] and set(served[a]) | set(served[b]) == set(names) - {"s01"}
-    for core in (a, b):
-        assert declared(core) == set().union(*(
-            busy_keys(s, [x.name for x in sensors] if s == "s00" else ("camera", "ranger"))
-            for s in served[core]))
-    # expired (no traffic for 5 s)
+    assert served[a] and served[b] and set(served[a]).isdisjoint(served[b])
+    want = set().union(*(busy_keys(s) for s in names if s not in ("s00", "s01")),
+                       busy_keys("s00", [x.name for x in sensors]))
+    assert declared(a) == declared(b) == want
+    assert len(a.t.declared) == len(b.t.declared) == len(names) - 1
+    # expired (no traffic for 5 s): each owner removes its own and tells the other
     clock.t = 10 * 1_000_000_000
     for core in (a, b):
         core.run_once()
-        assert core.served_sessions() == [] and core.t.declared == []
+    settle(a, b)
+    assert a.served_sessions() == b.served_sessions() == []
+    assert a.t.declared == b.t.declared == []
 
 
 def test_static_shards_split_without_coordination(tmp_path):
