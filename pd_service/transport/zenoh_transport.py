@@ -182,10 +182,14 @@ class _DeclaredKeys:
         self._owner = owner
         self._kes: list[tuple[str, zenoh.KeyExpr]] = []
         declare, declared = owner.session.declare_keyexpr, owner._declared
-        for k in keys:
-            ke = declare(k)
-            declared[k] = ke  # the newest declaration of a key is the one put() uses
-            self._kes.append((k, ke))
+        try:
+            for k in keys:
+                ke = declare(k)
+                declared[k] = ke  # the newest declaration of a key is the one put() uses
+                self._kes.append((k, ke))
+        except BaseException:  # none half declared
+            self.close()
+            raise
 
     def close(self) -> None:
         kes, self._kes = self._kes, []
