@@ -11,6 +11,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal, NamedTuple, Protocol, Self
 
+from .keyexpr import check_keyexpr
+
 #: Samples a sender keeps per key by default (``Transport.publisher(key, cache=...)``) so that
 #: a restarted daemon reads back what it missed: a stream of one sample per step covers
 #: 256 steps (12.8 s at 20 Hz; the paper's window is max_delay 12 + lead 10 steps). About
@@ -170,12 +172,16 @@ class Transport(Protocol):
 
 
 def check_exact_keys(keys: Sequence[str]) -> list[str]:
-    """``keys`` as a list; ValueError naming the first that is not an exact key (empty, or
-    with a wildcard or a Zenoh special character)."""
+    """``keys`` as a list; ValueError naming the first that is not an exact key (a key
+    expression, :func:`.keyexpr.check_keyexpr`, without wildcards)."""
     out = list(keys)
     for k in out:
-        if not k or any(c in k for c in "*$?#") or "//" in k or k[0] == "/" or k[-1] == "/":
-            raise ValueError(f"declare_keys: {k!r} is not an exact key")
+        try:
+            check_keyexpr(k)
+        except ValueError as exc:
+            raise ValueError(f"declare_keys: {k!r} is not an exact key ({exc})") from None
+        if "*" in k:
+            raise ValueError(f"declare_keys: {k!r} is not an exact key (a wildcard)")
     return out
 
 
