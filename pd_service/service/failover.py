@@ -2,8 +2,9 @@
 going back to the prior.
 
 - **Checkpoint** (restart): after a round, a session whose estimator changed (committed
-  new steps, accepted packets or commands) since its last checkpoint, and whose last
-  checkpoint is at least ``checkpoint_interval_s`` old, writes its
+  new steps, accepted packets or commands) since its last checkpoint, and whose checkpoint
+  is due (the first at once, then one per ``checkpoint_interval_s`` at the session's own
+  phase, :func:`~.session.next_slot`, never two within half an interval), writes its
   :class:`~pd_service.wire.state.SessionState` to the state directory (``<session>.ckpt``,
   atomic like the specs). A restarted daemon resumes each restored
   session from it.
@@ -47,7 +48,7 @@ from .config import Settings
 from .ownership import Ownership
 from .persist import SpecStore, StateWriter
 from .publish import Out, Publisher
-from .session import Origin, Session
+from .session import Origin, Session, next_slot
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -122,8 +123,8 @@ class StateKeeper:
             sessions = sessions[start:] + sessions[:start]
         for i, sess in enumerate(sessions):
             # the time checks first: most sessions of a round had their state lately
-            ck = want_ck and now - sess.last_checkpoint_ns >= ck_ns
-            rep = want_rep and now - sess.last_replica_ns >= rep_ns
+            ck = want_ck and now >= sess.next_checkpoint_ns
+            rep = want_rep and now >= sess.next_replica_ns
             if not (ck or rep) or not sess.alive or sess.prior_alone():
                 continue
             mark = state_mark(sess)
@@ -137,11 +138,14 @@ class StateKeeper:
             if data is None:
                 continue
             sess.saved_mark = mark
+            # the next one at the session's own phase, at least half an interval from now:
+            # sessions created together spread over the interval instead of being encoded in
+            # the same few rounds every interval
             if ck:
-                sess.last_checkpoint_ns = now
+                sess.next_checkpoint_ns = next_slot(now + ck_ns // 2, ck_ns, sess.spread)
                 self._write(sess, data)
             if rep:
-                sess.last_replica_ns = now
+                sess.next_replica_ns = next_slot(now + rep_ns // 2, rep_ns, sess.spread)
                 self._send(sess, data)
 
     def handover(self, sessions: list[Session], now: int) -> dict[str, dict[str, bytes]]:

@@ -14,10 +14,10 @@ phase need no such delay: the tick finds the step published.
 A session is *idle* until its first measurement or command that decodes (from its start:
 created, replaced, restored, synced or taken over) and again after ``idle_after_s`` without
 one: its first tick still publishes (a display sees the prior at once), then it is ticked only
-at the steps ``k`` with ``k % skip == crc32(name) % skip`` (``skip``: ``idle_publish_s`` in
-steps), one prediction per ``idle_publish_s`` at a phase of its own, so a session with no
-traffic costs no CPU per step; its next message wakes it (:meth:`wake`): published at once
-if a measurement was accepted, and ticked every step again.
+at the steps ``k`` with ``k % skip == spread % skip`` (``skip``: ``idle_publish_s`` in steps;
+``Session.spread``: its phase, from its name), one prediction per ``idle_publish_s``, so a
+session with no traffic costs no CPU per step; its next message wakes it (:meth:`wake`):
+published at once if a measurement was accepted, and ticked every step again.
 
 Refusals are counted per session and service-wide and reported as ErrorReports, limited per
 session (``error_rate``/``error_burst``) and service-wide (``error_rate_total``).
@@ -28,7 +28,6 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
-import zlib
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,7 +40,7 @@ from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
 from .config import Settings
 from .health import inspect, inspect_packed
-from .session import Refusal, Session
+from .session import Refusal, Session, next_slot
 from .stats import LatencyWindow
 from .status import SessionState, session_status
 
@@ -299,7 +298,7 @@ class Publisher:
                 # them did, starving the active ones)
                 skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.period_ns)
                 base = max(cur, k)
-                nxt = base + 1 + (zlib.crc32(sess.name.encode()) - base - 1) % skip
+                nxt = next_slot(base, skip, sess.spread)
                 sess.idle = True
                 self.schedule(sess, nxt - 1)
                 if defer:

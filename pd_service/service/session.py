@@ -43,6 +43,7 @@ live_copy_of_recovered     live messages that repeat one already read back from 
 
 from __future__ import annotations
 
+import zlib
 from collections import Counter
 from typing import Literal
 
@@ -77,6 +78,17 @@ SESSION_LATENCY_WINDOW = 512
 #: Read-back messages remembered per session until their live copy came (or the window
 #: passed): more than the senders' caches give back at once (DEFAULT_SENDER_CACHE each).
 RECOVERED_COPIES = 1024
+
+
+def next_slot(after: int, period: int, offset: int) -> int:
+    """The first ``t > after`` with ``t = offset (mod period)``, in steps or in ns: when a
+    periodic task of a session falls due next, at the session's own phase ``offset``
+    (:attr:`Session.spread`). Sessions started together (one epoch, one config burst) then
+    spread their snapshots, checkpoints, replicas and idle ticks over the period instead of
+    all falling due in the same step: at 500 sessions the daemon's snapshots alone made
+    one worker loop per second of ~50 ms (bench/service.py), its checkpoints more."""
+    return after + 1 + (offset - after - 1) % period
+
 
 class Session:
     """A served session. ``state`` is "active" or "restored" (how it started)."""
@@ -130,16 +142,20 @@ class Session:
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
         self.fingerprint = spec_fingerprint(spec)
+        #: The session's phase of its periodic work (:func:`next_slot`), from its name.
+        self.spread = zlib.crc32(self.name.encode())
         self.saved_mark: tuple[int, int, int] = (0, 0, 0)
-        self.last_checkpoint_ns = -(1 << 62)
-        self.last_replica_ns = -(1 << 62)
+        #: When the next checkpoint / replica is due (ns; due at once at first).
+        self.next_checkpoint_ns = -(1 << 62)
+        self.next_replica_ns = -(1 << 62)
         # numerical health (pd_service.service.health): the in-memory snapshot of the last
         # healthy estimator state, taken every SNAPSHOT_EVERY_S of session time
         per_s = max(1, int(1e9 // spec.period_ns))
         self.snap_every = max(1, int(SNAPSHOT_EVERY_S * per_s))
         self.retry_after = max(1, int(RETRY_AFTER_S * per_s))
         self.snapshot: object | None = None  # an EstimatorState
-        self.snapshot_step: int | None = None
+        #: First step at which the next snapshot may be taken (at once at first).
+        self.next_snapshot_step = -(1 << 62)
         self.health_failed_step: int | None = None
 
     # --- time --------------------------------------------------------------------------
@@ -253,16 +269,19 @@ class Session:
     # --- numerical health (pd_service.service.health) ---------------------------------
 
     def keep_snapshot(self, pred: PredictedState, now_step: int) -> None:
-        """After a healthy prediction: keep the estimator's state in memory if the last
-        snapshot is SNAPSHOT_EVERY_S old and P passes the thorough test (not while the
-        estimate is its prior alone: recovering to the prior gives the same)."""
-        last = self.snapshot_step
-        if last is not None and now_step - last < self.snap_every or self.prior_alone():
+        """After a healthy prediction: keep the estimator's state in memory if it is due
+        (the first at once, then one per SNAPSHOT_EVERY_S of session time at the session's
+        own phase, :func:`next_slot`, never two within half of it) and P passes the
+        thorough test (not while the estimate is its prior alone: recovering to the prior
+        gives the same)."""
+        if now_step < self.next_snapshot_step or self.prior_alone():
             return
         export = getattr(self.est, "export_state", None)
         if export is None or not thoroughly_healthy(np.asarray(pred.P)):
             return
-        self.snapshot, self.snapshot_step = export(), now_step
+        self.snapshot = export()
+        self.next_snapshot_step = next_slot(now_step + self.snap_every // 2, self.snap_every,
+                                            self.spread)
 
     def recover(self, source: str) -> None:
         """Restore the estimator to its snapshot (``source`` "snapshot") or rebuild it from
@@ -273,4 +292,5 @@ class Session:
             return
         self.est = build_estimator(self.spec)
         self.intake.est = self.est
-        self.snapshot = self.snapshot_step = None
+        self.snapshot = None
+        self.next_snapshot_step = -(1 << 62)

@@ -196,7 +196,7 @@ def test_without_a_snapshot_the_session_restarts_from_its_prior(tmp_path, monkey
     core.run_once()
     drive(core, cli, clock, "s1", range(0, 10))
     sess = core._routes["s1"].sess
-    sess.snapshot, sess.snapshot_step, sess.snap_every = None, 0, 10**9  # none from now on
+    sess.snapshot, sess.next_snapshot_step = None, 10**9  # none from now on
     poison_steps(monkeypatch, times=1)
     drive(core, cli, clock, "s1", range(10, 30))
     c = core.session_status("s1").counters
