@@ -340,8 +340,8 @@ ATTACKS = {
     "unscented_1ms": (atk_unscented, "unscented spec, lead 1,000 at a 1 ms period"),
     "huge_values": (atk_huge, "u = 1e308 and z = 1e308, 100/s"),
     "read_only_dir": (atk_read_only, "state dir read-only: 20 creates, 10 deletes"),
-    "fifo_symlink": (atk_none, "FIFO, symlink to /dev/zero, FIFO .ckpt in the state dir at "
-                               "startup"),
+    "fifo_symlink": (atk_none, "FIFO, symlink to /dev/zero, FIFO .ckpt and checkpoints.log "
+                               "in the state dir at startup"),
     "status_storm": (atk_status_storm, "status queries from 4 threads, flat out"),
     "fake_tokens": (atk_fake_tokens, "10 fake pd/@service/* tokens (standalone daemon)"),
     "hostile_bytes": (atk_hostile_bytes, "malformed / random bytes, 5,000/s"),
@@ -377,6 +377,7 @@ def run_attack(name: str, duration: float, workdir: Path) -> dict:
         os.mkfifo(state / "s1.msgpack")
         (state / "s2.msgpack").symlink_to("/dev/zero")
         os.mkfifo(state / "s3.ckpt")
+        os.mkfifo(state / "checkpoints.log")
     if name == "read_only_dir" and os.geteuid() == 0:
         # root writes anywhere: run this daemon as nobody over a root-owned 0755 directory
         user_prefix = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"]

@@ -190,6 +190,8 @@ class ServiceCore:
                   seconds=round(time.monotonic() - t0, 3),
                   resent=self.counters["replicas_handover_resent"] - resent, **more)
         self.keeper.close()
+        if self.store is not None:
+            self.store.close()
         if self._token is not None:
             self._token.close()
         for h in reversed(self._handles):

@@ -1,6 +1,6 @@
 """SessionState: what a session's estimator needs to continue exactly, on the wire.
 
-Written by the daemon as a checkpoint (``<state_dir>/<session>.ckpt``) and sent as a
+Written by the daemon as a checkpoint (a record of ``<state_dir>/checkpoints.log``) and sent as a
 replica to the instance that would take the session over (``pd/@service/<successor>/replica/
 <session>``). The estimator-side meaning of every field is
 :class:`pd_service.estimation.EstimatorState`; the conversion lives in

@@ -121,9 +121,9 @@ def _checkpointed(tmp_path, steps=20):
     return bus, clock, col, cli, d
 
 
-def _tamper(path, **update):
-    msg = decode(path.read_bytes(), SessionState)
-    path.write_bytes(encode(msg.model_copy(update=update)))
+def _tamper(store, **update):
+    msg = decode(store.load_state("s1"), SessionState)
+    store.save_state("s1", encode(msg.model_copy(update=update)))
 
 
 @pytest.mark.parametrize("how, reason", [
@@ -136,19 +136,20 @@ def _tamper(path, **update):
 def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_path, how,
                                                                            reason):
     bus, clock, col, cli, d = _checkpointed(tmp_path)
-    path = tmp_path / "a" / "s1.ckpt"
-    assert path.exists()
+    store = SpecStore(tmp_path / "a")  # the checkpoint log the daemon wrote
+    data = store.load_state("s1")
+    assert data is not None
     restart_step = 19
     if how == "stale":
         restart_step = 19 + d.spec.max_delay + 2
     elif how == "corrupt":
-        path.write_bytes(path.read_bytes()[:-7])
+        store.save_state("s1", data[:-7])
     elif how == "spec":
-        _tamper(path, spec_fingerprint="0" * 64)
+        _tamper(store, spec_fingerprint="0" * 64)
     elif how == "version":
-        _tamper(path, state_version=2)
+        _tamper(store, state_version=2)
     elif how == "misfit":
-        _tamper(path, kind="ImmObserverPredictor")
+        _tamper(store, kind="ImmObserverPredictor")
     clock.t = int((restart_step + 0.1) * PERIOD_NS)
     b = make_core(bus, clock, tmp_path)
     assert b.counters["restore_refused"] == 1
@@ -307,7 +308,7 @@ def test_a_successor_that_does_not_answer_is_waited_for_a_bounded_time(tmp_path)
 def test_a_session_in_its_first_window_is_checkpointed(tmp_path):
     """Nothing commits before max_delay steps; accepted packets alone make a checkpoint."""
     bus, clock, col, cli, d = _checkpointed(tmp_path, steps=8)  # max_delay 12
-    msg = decode((tmp_path / "a" / "s1.ckpt").read_bytes(), SessionState)
+    msg = decode(SpecStore(tmp_path / "a").load_state("s1"), SessionState)
     assert msg.committed_step == 0 and msg.packets
     b = make_core(bus, clock, tmp_path)
     assert b.counters["resumed_from_checkpoint"] == 1
@@ -337,23 +338,26 @@ def test_state_writer_writes_newest_and_removes(tmp_path):
         w.close()
 
 
-def test_store_rewrites_keep_one_file_and_remove_cleans_up(tmp_path):
-    """Rewriting a checkpoint or a spec leaves the newest content under the final name
-    (exchanged with the hidden .tmp where the OS allows); removal deletes both."""
+def test_store_keeps_the_newest_checkpoint_in_one_log(tmp_path):
+    """Rewrites and removals are records appended to one file; a new store reads the
+    newest checkpoint of each session back; a shorter state after longer ones leaves
+    nothing of them behind."""
     from pd_service.service.persist import SpecStore
 
     store = SpecStore(tmp_path)
     for i in range(5):
         store.save_state("gamma", b"v%d" % i)
         assert store.load_state("gamma") == b"v%d" % i
-    # the temp file is overwritten in place, not truncated first: a shorter state after
-    # longer ones must leave nothing of them behind
-    for data in (b"x" * 5000, b"y" * 4000, b"short", b"z" * 6000, b""):
+    for data in (b"x" * 5000, b"y" * 4000, b"short", b"z" * 6000):
         store.save_state("gamma", data)
         assert store.load_state("gamma") == data
-    store.remove_state("gamma")
-    assert store.load_state("gamma") is None
-    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    store.save_states([("delta", b"d1"), ("gamma", None), ("delta", b"d2")])
+    assert SpecStore(tmp_path).load_state("delta") == b"d2"
+    assert SpecStore(tmp_path).load_state("gamma") is None
+    store.remove_state("delta")
+    store.close()
+    assert SpecStore(tmp_path).states.sessions() == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoints.log"]
 
 
 def test_states_due_together_are_spread_over_rounds(tmp_path):
@@ -381,7 +385,7 @@ def test_states_due_together_are_spread_over_rounds(tmp_path):
         before = a.counters["checkpoints"]
         a.run_once()
         assert 0 < a.counters["checkpoints"] - before <= STATES_PER_ROUND
-    assert all((tmp_path / "a" / f"{s}.ckpt").exists() for s in names)
+    assert all(a.store.load_state(s) is not None for s in names)
 
 
 def test_sessions_started_together_spread_their_checkpoints_and_snapshots(tmp_path):
@@ -435,7 +439,7 @@ def test_a_session_nobody_sent_to_writes_no_state_and_a_replace_drops_the_old_on
         a.run_once()
     assert all(len(col.predictions[s]) >= 2 for s in mine)
     assert a.counters["checkpoints"] == 0 and a.counters["replicas_sent"] == 0
-    assert not list((tmp_path / "inst-a").glob("*.ckpt"))
+    assert a.store.states.sessions() == []
     # nor an in-memory health snapshot (recovery to the prior gives the same)
     assert all(a._routes[s].sess.snapshot is None for s in mine)
     # traffic: now there is something to keep
@@ -443,12 +447,12 @@ def test_a_session_nobody_sent_to_writes_no_state_and_a_replace_drops_the_old_on
     d = Driver(cli, clock, col, s)
     for k in range(60, 70):
         d.step([a], k)
-    assert (tmp_path / "inst-a" / f"{s}.ckpt").exists() and a.counters["replicas_sent"] >= 1
+    assert a.store.load_state(s) is not None and a.counters["replicas_sent"] >= 1
     assert a._routes[s].sess.snapshot is not None
     cli.put(keys.config_key(s), encode(paper_spec(s, max_delay=20)))  # replaced
     a.run_once()
     assert "replaced" in status(cli, s).detail
-    assert not (tmp_path / "inst-a" / f"{s}.ckpt").exists()
+    assert a.store.load_state(s) is None
 
 
 class CachedSender:

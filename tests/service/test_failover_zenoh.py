@@ -47,6 +47,7 @@ import zenoh
 from pd_service.backends import build_estimator
 from pd_service.checkpoint import from_message
 from pd_service.scenarios.paper import paper_command, simulate_paper
+from pd_service.service import SpecStore
 from pd_service.transport import DEFAULT_SENDER_CACHE, Sample
 from pd_service.wire import Prediction, SessionSpec, SessionState, decode, encode, keys
 
@@ -276,7 +277,7 @@ def test_kill_and_restart_resumes_from_the_checkpoint_and_the_senders_caches(wor
     t_kill = time.time_ns()
     d.stop(signal.SIGKILL)
     assert pres.wait("inst-r", alive=False, timeout=WAIT_S)
-    state = decode((root / "inst-r" / "ck.ckpt").read_bytes(), SessionState)
+    state = decode(SpecStore(root / "inst-r").load_state("ck"), SessionState)
     # down for 2 s more (20 steps, a fifth of the window): the feed goes on, nobody hears it
     sleep_until(t_kill + 2_000_000_000)
     d2 = Daemon("inst-r", root / "inst-r", [peer], ["--config", str(conf)]).start()

@@ -420,7 +420,8 @@ def test_fifo_and_symlink_named_like_state_files_are_set_aside(tmp_path):
     d.mkdir()
     os.mkfifo(d / "s1.msgpack")
     (d / "s2.msgpack").symlink_to("/dev/zero")
-    os.mkfifo(d / "s3.ckpt")
+    os.mkfifo(d / "s3.ckpt")  # a checkpoint file of an earlier version: not read
+    os.mkfifo(d / "checkpoints.log")
     SpecStore(d).save(paper_spec("s3"))
     (d / "s4.msgpack").write_bytes(b"\x00" * (2 << 20))  # too big
     bus, clock, col, cli = world()
@@ -428,6 +429,7 @@ def test_fifo_and_symlink_named_like_state_files_are_set_aside(tmp_path):
     assert core.served_sessions() == ["s3"]
     for name in ("s1", "s2", "s4"):
         assert os.path.lexists(d / f"{name}.msgpack.bad"), name
+    assert os.path.lexists(d / "checkpoints.log.bad")
 
 
 def test_unpersisted_changes_are_answered_as_such(tmp_path):
