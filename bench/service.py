@@ -17,6 +17,8 @@ Printed per N, over the measurement interval (after a warm-up):
   us/sess-step  daemon CPU (all threads, utime + stime from /proc) per session and step:
                 CPU seconds / (N * interval / 50 ms), in µs
   overruns, flood, late, refused: daemon counters over the interval
+  gauge ms      bench/gauge.py just before the run: CPU time of a fixed workload (lower is
+                faster); the machine's speed changes between hours, compare figures with it
   behind        more than 1 % of the input refused as late: the daemon did not keep up, and
                 its CPU per session-step is then not the cost of the load
 After the table, one JSON object per N with the same figures (and the repetition spread
@@ -54,6 +56,8 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+
+from gauge import gauge_ms
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -227,6 +231,7 @@ BENCH_ENV = {
 def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = False) -> dict:
     from pd_service.transport import ZenohTransport, zenoh_config
 
+    gauge = gauge_ms()  # how fast the machine is right now (bench/gauge.py)
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     state = tempfile.mkdtemp(prefix="pd-bench-")
@@ -334,6 +339,7 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
     res = {
         "n": n,
         "clients": args.clients,
+        "gauge_ms": gauge,
         "pred_rate": delta("published") / n / wall,
         "rx_rate": (d1 - d0) / min(10, n) / wall,
         "sent": out.get("sent", 0),
@@ -414,7 +420,7 @@ def main() -> None:
         roots.append(("this, pure Python", roots[0][1], True))
     hdr = (f"{'N':>5} {'in msg/s':>9} {'pred/s/sess':>11} {'rx/s/sess':>9} {'p50 us':>8} "
            f"{'p99 us':>9} {'daemon CPU':>10} {'us/sess-step':>12} {'gen CPU':>8} "
-           f"{'overruns':>8} {'flood':>6} {'late':>6} {'refused':>7}")
+           f"{'overruns':>8} {'flood':>6} {'late':>6} {'refused':>7} {'gauge ms':>8}")
     if len(roots) > 1:
         hdr = f"{'build':>24} " + hdr
     print(hdr)
@@ -434,7 +440,8 @@ def main() -> None:
                       f"{r['rx_rate']:>9.1f} {r['p50_us']:>8.0f} {r['p99_us']:>9.0f} "
                       f"{r['cpu_daemon']:>9.0f}% {r['us_per_session_step']:>12.1f} "
                       f"{r['cpu_gen']:>7.0f}% {r['overruns']:>8} {r['flood']:>6} "
-                      f"{r['late']:>6} {r['refused']:>7}" + ("  behind" if r["saturated"] else ""),
+                      f"{r['late']:>6} {r['refused']:>7} {r['gauge_ms']:>8.1f}"
+                      + ("  behind" if r["saturated"] else ""),
                       flush=True)
         for label, rs in runs.items():
             if rs:
@@ -451,7 +458,7 @@ def _summarise(label: str, n: int, instances: int, rs: list[dict]) -> dict:
                  "clients": rs[0]["clients"] if rs else None,
                  "saturated_runs": sum(1 for r in rs if r["saturated"])}
     for key in ("pred_rate", "rx_rate", "p50_us", "p99_us", "cpu_daemon", "us_per_session_step",
-                "cpu_gen", "in_rate", "overruns", "late", "refused", "flood"):
+                "cpu_gen", "in_rate", "overruns", "late", "refused", "flood", "gauge_ms"):
         vals = [float(r[key]) for r in rs]
         out[key] = round(statistics.median(vals), 2)
         if len(vals) > 1:

@@ -25,6 +25,7 @@ import time
 
 import msgpack
 import numpy as np
+from gauge import gauge_ms
 
 from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_paper
 from pd_service.service.config import Settings
@@ -127,6 +128,8 @@ def main() -> None:
           f"{pubs:.2f} predictions per session-step, "
           f"late {core.counters['late_total']}")
     ps = sorted(per_step)
+    print(f"machine gauge: {gauge_ms():.1f} ms (bench/gauge.py: the same build's figures scale "
+          "with it)")
     print(f"CPU per step (ms, all sessions): median {1e3 * ps[len(ps) // 2]:.1f}, "
           f"p95 {1e3 * ps[int(0.95 * (len(ps) - 1))]:.1f}, max {1e3 * ps[-1]:.1f}, "
           f"max / median {ps[-1] / ps[len(ps) // 2]:.2f} (a step's work must fit in its "
