@@ -57,6 +57,10 @@ log = logging.getLogger(LOGGER_NAME)
 #: worker for tens of ms once per checkpoint interval (p99 40 ms at 200 sessions).
 STATES_PER_ROUND = 8
 
+#: Failed checkpoint writes are logged at most once per this many seconds (with their
+#: number): a full or read-only disk fails every session's checkpoint every second.
+FAILED_LOG_EVERY_S = 10.0
+
 #: Most replicas held (sessions); the oldest received is dropped beyond it.
 MAX_REPLICAS = 100_000
 
@@ -98,6 +102,9 @@ class StateKeeper:
         #: Writes checkpoints off the worker thread (the daemon's); None: written in place.
         self.writer: StateWriter | None = None
         self._rotate = 0  # where the next long after_round list starts (round-robin)
+        #: Failed checkpoint writes not logged yet, and when the last were (monotonic s).
+        self._failed_unlogged = 0
+        self._failed_logged_at = -FAILED_LOG_EVERY_S
         #: session -> (now_step of the state, encoded SessionState), newest received
         self.replicas: dict[str, tuple[int, bytes]] = {}
 
@@ -250,11 +257,22 @@ class StateKeeper:
         while done:
             session, size, exc = done.popleft()
             if exc is not None:
-                self.counters["checkpoint_failed"] += 1
-                event(log, "checkpoint_failed", logging.ERROR, session=session, reason=str(exc))
+                self._failed(session, exc)
             else:
                 self.counters["checkpoints"] += 1
                 self.counters["checkpoint_bytes"] += size
+
+    def _failed(self, session: str, exc: OSError) -> None:
+        """Count a checkpoint that was not written; log it, or (within FAILED_LOG_EVERY_S
+        of the last such line) only count it for the next line."""
+        self.counters["checkpoint_failed"] += 1
+        self._failed_unlogged += 1
+        t = time.monotonic()
+        if t - self._failed_logged_at >= FAILED_LOG_EVERY_S:
+            event(log, "checkpoint_failed", logging.ERROR, session=session, reason=str(exc),
+                  failed_since_last_line=self._failed_unlogged)
+            self._failed_unlogged = 0
+            self._failed_logged_at = t
 
     def close(self) -> None:
         """Write the pending checkpoints and stop the writer thread (if any)."""
@@ -270,8 +288,7 @@ class StateKeeper:
         try:
             self.store.save_state(sess.name, data)
         except OSError as exc:
-            self.counters["checkpoint_failed"] += 1
-            event(log, "checkpoint_failed", logging.ERROR, session=sess.name, reason=str(exc))
+            self._failed(sess.name, exc)
             return
         self.counters["checkpoints"] += 1
         self.counters["checkpoint_bytes"] += len(data)

@@ -388,6 +388,35 @@ def test_states_due_together_are_spread_over_rounds(tmp_path):
     assert all(a.store.load_state(s) is not None for s in names)
 
 
+def test_a_disk_that_refuses_checkpoints_is_counted_and_logged_sparingly(tmp_path, caplog):
+    """Every refused checkpoint counts (checkpoint_failed); the log gets one line per
+    FAILED_LOG_EVERY_S, not one per session and second."""
+    import logging
+
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.2)
+
+    def refuse(items):
+        raise OSError(28, "No space left on device")
+
+    a.store.states.append = refuse
+    names = [f"f{i}" for i in range(5)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    while a.has_work():
+        a.run_once()
+    with caplog.at_level(logging.ERROR):
+        for k in range(20):  # 1 s: each session due 5 times
+            clock.t = int((k + 0.1) * PERIOD_NS)
+            for s in names:
+                cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", k, [5.0]))
+            a.run_once()
+    assert a.counters["checkpoint_failed"] >= 4 * len(names)
+    assert a.counters["checkpoints"] == 0
+    assert caplog.text.count("checkpoint_failed") == 1
+
+
 def test_sessions_started_together_spread_their_checkpoints_and_snapshots(tmp_path):
     """Sessions with one epoch, configured in one burst, each fed every step: after their
     first checkpoints and snapshots (at once), each falls due at its own phase of the
