@@ -16,10 +16,12 @@ appending, or damage): the records before it hold, the rest is dropped and logge
 (``checkpoint_log_damaged``). A file that is not a regular file or does not start with the
 magic is renamed ``*.bad`` and logged; no checkpoint is read from it.
 
-Compaction: before the first append after opening, and whenever the file grows beyond
-``COMPACT_FACTOR`` times the live states (plus ``COMPACT_SLACK_BYTES``), the live states are
-written to ``.checkpoints.log.tmp`` and renamed over the log (atomic; not fsynced, like every
-checkpoint: a crash of the daemon keeps them, a power loss may not). Checkpoint files of
+Compaction: before the first append after opening, after an append that failed (it may
+have left a record cut short), and whenever the file grows beyond ``COMPACT_FACTOR`` times
+the live states plus ``COMPACT_SLACK_BYTES`` (or half of ``MAX_LOG_BYTES``), the live
+states are written to ``.checkpoints.log.tmp`` and renamed over the log (atomic; not
+fsynced, like every checkpoint: a crash of the daemon keeps them, a power loss may not).
+Checkpoint files of
 earlier versions (``<session>.ckpt``, one per session) are read at opening for the sessions
 the log does not hold, and deleted once a compaction has carried them into the log.
 """
@@ -196,10 +198,16 @@ class StateLog:
             buf = b"".join([record(name, data or b"") for name, data in todo])
             assert self._fd is not None
             view = memoryview(buf)
-            while view:
-                n = os.write(self._fd, view)
-                self._size += n
-                view = view[n:]
+            try:
+                while view:
+                    n = os.write(self._fd, view)
+                    self._size += n
+                    view = view[n:]
+            except OSError:
+                # part of the batch may be on disk, cut short: records appended after it
+                # would not be read back, so the next append rewrites the log first
+                self._close()
+                raise
             for name, data in todo:  # what the log now holds
                 old = live.pop(name, None)
                 if old is not None:
@@ -207,7 +215,8 @@ class StateLog:
                 if data:
                     live[name] = data
                     self._live_bytes += len(data)
-            if self._size > COMPACT_FACTOR * self._live_bytes + COMPACT_SLACK_BYTES:
+            if self._size > min(COMPACT_FACTOR * self._live_bytes + COMPACT_SLACK_BYTES,
+                                MAX_LOG_BYTES // 2):
                 self._compact()
 
     def _compact(self) -> None:

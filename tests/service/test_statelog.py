@@ -89,3 +89,31 @@ def test_the_log_stays_bounded_by_its_live_states(tmp_path, monkeypatch):
     assert size <= statelog.COMPACT_FACTOR * 2_010 + 10_000 + len(record("b", state + b"499"))
     log.close()
     assert StateLog(tmp_path).get("b") == state + b"499"
+
+
+def test_a_failed_append_is_rewritten_before_the_next_one(tmp_path, monkeypatch):
+    """A write that fails halfway (a full disk) may leave a record cut short: the next
+    append rewrites the log first, so the records after it are read back."""
+    log = StateLog(tmp_path)
+    log.append([("a", b"a1")])
+    real_write = os.write
+    calls = []
+
+    def half_then_fail(fd, data):
+        calls.append(1)
+        real_write(fd, bytes(data[: len(data) // 2]))
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(statelog.os, "write", half_then_fail)
+    try:
+        log.append([("b", b"b1" * 100)])
+    except OSError:
+        pass
+    else:
+        raise AssertionError("the failed write was not reported")
+    monkeypatch.setattr(statelog.os, "write", real_write)
+    assert calls and log.get("b") is None  # not written: not held
+    log.append([("c", b"c1")])
+    log.close()
+    again = StateLog(tmp_path)
+    assert again.get("a") == b"a1" and again.get("c") == b"c1" and again.get("b") is None
