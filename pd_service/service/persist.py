@@ -25,7 +25,7 @@ from pd_service.logs import LOGGER_NAME, event, name_os_thread
 from pd_service.wire import SessionSpec, WireError, decode, encode
 from pd_service.wire.keys import KeyError_, check_name
 
-from .statelog import StateLog, read_regular
+from .statelog import StateLog, read_regular, write_all
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -109,10 +109,7 @@ class SpecStore:
         # this way (docs/service.md)
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
         try:
-            view = memoryview(data)
-            while view:
-                n = os.write(fd, view)
-                view = view[n:]
+            write_all(fd, data)
             os.ftruncate(fd, len(data))
             os.fsync(fd)
         finally:

@@ -82,6 +82,13 @@ def read_regular(path: Path, limit: int = MAX_FILE_BYTES) -> bytes:
         os.close(fd)
 
 
+def write_all(fd: int, data: bytes) -> None:
+    """Write every byte of ``data`` to ``fd`` (``os.write`` may write fewer)."""
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
 def record(name: str, data: bytes) -> bytes:
     """One record: a session's checkpoint ``data``, or its removal (``data`` empty)."""
     nb = name.encode()
@@ -197,17 +204,14 @@ class StateLog:
             todo = list(items)
             buf = b"".join([record(name, data or b"") for name, data in todo])
             assert self._fd is not None
-            view = memoryview(buf)
             try:
-                while view:
-                    n = os.write(self._fd, view)
-                    self._size += n
-                    view = view[n:]
+                write_all(self._fd, buf)
             except OSError:
                 # part of the batch may be on disk, cut short: records appended after it
                 # would not be read back, so the next append rewrites the log first
                 self._close()
                 raise
+            self._size += len(buf)
             for name, data in todo:  # what the log now holds
                 old = live.pop(name, None)
                 if old is not None:
@@ -227,10 +231,7 @@ class StateLog:
         body = b"".join([MAGIC] + [record(n, d) for n, d in live.items()])
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o600)
         try:
-            view = memoryview(body)
-            while view:
-                n = os.write(fd, view)
-                view = view[n:]
+            write_all(fd, body)
         finally:
             os.close(fd)
         os.replace(tmp, self.path)
