@@ -54,7 +54,7 @@ PURE_TESTS := tests/estimation tests/intake tests/wire/test_convert.py tests/ser
 
 test: $(STAMP) native browser
 	$(PY) -m pytest -q
-	PD_SERVICE_PURE=1 $(PY) -m pytest -q $(PURE_TESTS) --ignore=tests/estimation/test_kalman_kernel.py \
+	PD_SERVICE_PURE=1 $(PY) -m pytest -q $(PURE_TESTS) --ignore=tests/estimation/test_kalman_kernel.py --ignore=tests/intake/test_fastread_kernel.py \
 		--deselect tests/service/test_health.py::test_packed_check_kernel_refuses_what_it_does_not_take
 
 # pd-web's browser test drives Debian's chromium through chromedriver: installed here when

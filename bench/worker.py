@@ -49,6 +49,9 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--checkpoints", action="store_true",
                     help="checkpoint every simulated second, as the daemon does")
+    ap.add_argument("--no-gauge", dest="gauge", action="store_false",
+                    help="skip the machine gauge (bench/instructions.py runs this under "
+                         "valgrind, where it costs a minute and means nothing)")
     args = ap.parse_args()
     n = args.sessions
     every = args.every
@@ -128,8 +131,9 @@ def main() -> None:
           f"{pubs:.2f} predictions per session-step, "
           f"late {core.counters['late_total']}")
     ps = sorted(per_step)
-    print(f"machine gauge: {gauge_ms():.1f} ms (bench/gauge.py: the same build's figures scale "
-          "with it)")
+    if args.gauge:
+        print(f"machine gauge: {gauge_ms():.1f} ms (bench/gauge.py: the same build's figures "
+              "scale with it)")
     print(f"CPU per step (ms, all sessions): median {1e3 * ps[len(ps) // 2]:.1f}, "
           f"p95 {1e3 * ps[int(0.95 * (len(ps) - 1))]:.1f}, max {1e3 * ps[-1]:.1f}, "
           f"max / median {ps[-1] / ps[len(ps) // 2]:.2f} (a step's work must fit in its "

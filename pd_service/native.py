@@ -57,6 +57,7 @@ HOT_MODULES = (
 #: each has a numpy form beside its caller, the reference it is tested against.
 C_KERNELS = {
     "pd_service.estimation._kalman": "pd_service/estimation/_kalman.c",
+    "pd_service.intake._fastread": "pd_service/intake/_fastread.c",
     "pd_service.service._moments": "pd_service/service/_moments.c",
 }
 
@@ -129,8 +130,26 @@ def kernel(name: str) -> ModuleType | None:
     form."""
     if not STATUS.startswith("compiled"):
         return None
+    if name in sys.modules:
+        return sys.modules[name]
+    # Loaded from its file beside the C source, not by name: a package that runs compiled
+    # (pd_service.intake) gets a wrong __path__ from mypyc, where the import system would
+    # not find a module of its own.
+    import importlib.machinery
+    import importlib.util
+
+    src = _ROOT / C_KERNELS[name]
     try:
-        return importlib.import_module(name)
+        for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+            path = src.with_suffix(suffix)
+            if path.is_file():
+                spec = importlib.util.spec_from_file_location(name, path)
+                assert spec is not None and spec.loader is not None
+                mod = importlib.util.module_from_spec(spec)
+                spec.loader.exec_module(mod)
+                sys.modules[name] = mod
+                return mod
+        raise ImportError(f"no extension module beside {src}")
     except ImportError:  # e.g. a numpy older than the one it was built against
         warnings.warn(f"pd_service: the C kernel {name} does not load; running its numpy "
                       "form (rebuild: make venv)", RuntimeWarning, stacklevel=2)

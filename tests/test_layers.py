@@ -32,7 +32,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.transport": set(),
     "pd_service.cli": {"pd_service.errors", "pd_service.logs", "pd_service.transport"},
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
-    "pd_service.intake": {"pd_service.estimation", "pd_service.wire"},
+    "pd_service.intake": {"pd_service.estimation", "pd_service.native", "pd_service.wire"},
     "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.checkpoint": {"pd_service.estimation", "pd_service.wire"},
     "pd_service.ros2": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},

@@ -6,6 +6,11 @@ fields; for anything else it returns None and the caller takes the full path
 (:func:`pd_service.wire.decode` + :func:`pd_service.wire.convert.check_measurement`), which
 gives the exact refusal reason. So the fast path can only ever accept what the full path
 accepts, with the same values (tested on mutated payloads), at about a third of the cost.
+
+Where the hot path runs compiled, both readers run in the C kernel ``_fastread.c``, which
+reads the msgpack bytes directly instead of building a dict first (~2,000 instructions per
+message instead of ~20,000); the Python form below is its reference, and the tests run both
+on the same payloads.
 """
 
 from __future__ import annotations
@@ -15,7 +20,11 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from pd_service.native import kernel
 from pd_service.wire import MAX_MESSAGE_BYTES
+
+#: The C form of both readers (None: the Python form runs).
+_FAST = kernel("pd_service.intake._fastread")
 
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 _MEAS_KEYS = frozenset({"v", "session", "sensor", "seq", "step", "t_ns", "z", "R"})
@@ -86,6 +95,16 @@ def read_measurement(payload: bytes, session: str, sensor: str, dims: dict[str, 
     ``dims`` maps the session's sensor names to their dimension m; every |z_i| is at most
     ``max_abs`` (finite), else None (the full path tells out_of_range from non-finite).
     """
+    if _FAST is not None:
+        m = dims.get(sensor)
+        return None if m is None else _FAST.read_measurement(
+            payload, session, sensor, m, max_abs, MAX_MESSAGE_BYTES)
+    return read_measurement_py(payload, session, sensor, dims, max_abs)
+
+
+def read_measurement_py(payload: bytes, session: str, sensor: str, dims: dict[str, int],
+                        max_abs: float) -> tuple[int, int | None, int | None, np.ndarray] | None:
+    """:func:`read_measurement`'s Python form: the reference of the C kernel."""
     obj = _unpack(payload)
     if obj is None:
         return None
@@ -111,6 +130,14 @@ def read_command(payload: bytes, session: str, r: int, max_abs: float
                  ) -> tuple[int, int | None, int | None, np.ndarray] | None:
     """(seq, step, issued_ns, u) of a plain Command of ``session`` with r inputs, each
     |u_i| at most ``max_abs`` (finite), else None."""
+    if _FAST is not None:
+        return _FAST.read_command(payload, session, r, max_abs, MAX_MESSAGE_BYTES)
+    return read_command_py(payload, session, r, max_abs)
+
+
+def read_command_py(payload: bytes, session: str, r: int, max_abs: float
+                    ) -> tuple[int, int | None, int | None, np.ndarray] | None:
+    """:func:`read_command`'s Python form: the reference of the C kernel."""
     obj = _unpack(payload)
     if obj is None:
         return None

@@ -30,7 +30,6 @@ import itertools
 import logging
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 from pd_service.estimation import PredictedState
 from pd_service.logs import LOGGER_NAME, event
@@ -50,15 +49,19 @@ log = logging.getLogger(LOGGER_NAME)
 DATA_TICK_PHASE = 0.95
 
 
-@dataclass(slots=True)
 class Out:
     """One pending publication: put (payload) or delete (payload None). ``recv``: receipt
-    times (monotonic ns) of the measurements a prediction answers, for ``sess``'s latency."""
+    times (monotonic ns) of the measurements a prediction answers, for ``sess``'s latency.
+    (A plain class: compiled, built in a fraction of a slots dataclass's time.)"""
 
-    key: str
-    payload: bytes | None
-    sess: Session | None = None
-    recv: list[int] = field(default_factory=list)
+    __slots__ = ("key", "payload", "sess", "recv")
+
+    def __init__(self, key: str, payload: bytes | None, sess: Session | None = None,
+                 recv: list[int] | None = None) -> None:
+        self.key = key
+        self.payload = payload
+        self.sess = sess
+        self.recv: list[int] = [] if recv is None else recv
 
 
 class Publisher:
