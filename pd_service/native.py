@@ -59,6 +59,7 @@ C_KERNELS = {
     "pd_service.estimation._kalman": "pd_service/estimation/_kalman.c",
     "pd_service.intake._fastread": "pd_service/intake/_fastread.c",
     "pd_service.service._moments": "pd_service/service/_moments.c",
+    "pd_service.wire._encode": "pd_service/wire/_encode.c",
 }
 
 #: ``PD_SERVICE_PURE=1``: import the .py files even where an extension is built.

@@ -28,7 +28,7 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.ratelimit": set(),
     # which hot modules run compiled (mypyc, setup.py): stdlib only, read by setup.py alone
     "pd_service.native": set(),
-    "pd_service.wire": {"pd_service.estimation", "pd_service.errors"},
+    "pd_service.wire": {"pd_service.estimation", "pd_service.errors", "pd_service.native"},
     "pd_service.transport": set(),
     "pd_service.cli": {"pd_service.errors", "pd_service.logs", "pd_service.transport"},
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},

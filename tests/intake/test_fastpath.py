@@ -88,6 +88,21 @@ def fast_command(payload: bytes):
     return None if j < 0 else (seq, j, u)
 
 
+def mutated(base: dict, mutations) -> tuple[dict, bytes | None]:
+    """``base`` with each (field, index into ODD or None: removed) applied, and its msgpack
+    bytes (None if msgpack cannot pack it)."""
+    d = dict(base)
+    for name, idx in mutations:
+        if idx is None:
+            d.pop(name, None)
+        else:
+            d[name] = ODD[idx]
+    try:
+        return d, msgpack.packb(d)
+    except (OverflowError, TypeError):
+        return d, None
+
+
 def same(a, b) -> bool:
     return a[0] == b[0] and a[1] == b[1] and np.array_equal(a[2], b[2]) \
         and a[2].dtype == b[2].dtype == np.float64
@@ -119,15 +134,8 @@ def test_plain_messages_take_the_fast_path():
        st.sampled_from(["camera", "ranger", "lidar"]))
 def test_fast_path_never_accepts_what_the_full_path_refuses(mutations, key_sensor):
     for base, is_cmd in ((MEAS, False), (CMD, True)):
-        d = dict(base)
-        for name, idx in mutations:
-            if idx is None:
-                d.pop(name, None)
-            else:
-                d[name] = ODD[idx]
-        try:
-            data = msgpack.packb(d)
-        except (OverflowError, TypeError):
+        d, data = mutated(base, mutations)
+        if data is None:
             continue
         if is_cmd:
             fast, full = fast_command(data), full_command(data)

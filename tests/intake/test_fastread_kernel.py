@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from pd_service.intake import MAX_ABS_INPUT
 from pd_service.intake.fastpath import _FAST, read_command_py, read_measurement_py
 from pd_service.wire import MAX_MESSAGE_BYTES
-from tests.intake.test_fastpath import CMD, DIMS, FIELDS, MEAS, ODD
+from tests.intake.test_fastpath import CMD, DIMS, FIELDS, MEAS, ODD, mutated
 
 pytestmark = pytest.mark.skipif(
     _FAST is None, reason="the C kernel is not in use here (PD_SERVICE_PURE=1, or no C "
@@ -110,15 +110,8 @@ def test_every_encoding_of_the_same_values_is_read_alike():
        st.sampled_from([MAX_ABS_INPUT, 1.0, 1e300]))
 def test_mutated_messages_are_read_alike(mutations, sensor, max_abs):
     for base in (MEAS, CMD):
-        d = dict(base)
-        for name, idx in mutations:
-            if idx is None:
-                d.pop(name, None)
-            else:
-                d[name] = ODD[idx]
-        try:
-            data = msgpack.packb(d)
-        except (OverflowError, TypeError):
+        d, data = mutated(base, mutations)
+        if data is None:
             continue
         c, py = c_meas(data, sensor, max_abs), py_meas(data, sensor, max_abs)
         if max_abs > 2**53 and c is None and py is not None:  # an int beyond 2^53 in z

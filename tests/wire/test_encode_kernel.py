@@ -1,0 +1,79 @@
+"""The C form of PredictionEncoder.encode_packed (pd_service/wire/_encode.c) against its
+Python form: the same bytes for every size class of every int and string, and None (the
+Python form runs) for what it does not take."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+
+from pd_service.wire import convert
+from pd_service.wire.convert import _ENCODE, PredictionEncoder
+from tests.service.helpers import paper_spec
+
+pytestmark = pytest.mark.skipif(
+    _ENCODE is None, reason="the C kernel is not in use here (PD_SERVICE_PURE=1, or no C "
+                            "compiler at install time): the Python form runs everywhere")
+
+EDGES = [0, 1, 31, 32, 127, 128, 255, 256, 65_535, 65_536, 2**32 - 1, 2**32, 2**63 - 1,
+         2**63, 2**64 - 1, -1, -32, -33, -128, -129, -32_768, -32_769, -(2**31),
+         -(2**31) - 1, -(2**63)]
+
+
+def python_form(monkeypatch, enc, pred, xd, pd, seq, made, counters) -> bytes:
+    with monkeypatch.context() as m:
+        m.setattr(convert, "_ENCODE", None)
+        return enc.encode_packed(pred, xd, pd, seq, made, counters)
+
+
+def fake(step, newest):
+    return type("P", (), {"step": step, "newest_step": newest, "x": None, "P": None})()
+
+
+@pytest.mark.parametrize("session", ["s1", "x" * 40])
+def test_same_bytes_for_every_size_class(monkeypatch, session):
+    spec = paper_spec(session, epoch_ns=0)
+    enc = PredictionEncoder(spec, session)
+    rng = np.random.default_rng(5)
+    xd = msgpack.packb(rng.normal(size=4).tolist())
+    pd = msgpack.packb(rng.normal(size=16).tolist())
+    # the probe must actually take the C form, else this test would compare Python with itself
+    assert _ENCODE.prediction(enc._parts, 1, 2, 3, xd, pd, None, 4, {}) is not None
+    for i, v in enumerate(EDGES):
+        w = EDGES[(i * 7 + 3) % len(EDGES)]
+        step = abs(v) % 2**30  # t_ns = step * period_ns stays below 2^63
+        counters = {"accepted": v, "k" * (i * 13 % 300): w, "é" * (i % 30): 1, "published": abs(w)}
+        for seq, made, newest in ((abs(v), v, None), (abs(w), w, step), (0, 0, v)):
+            args = (fake(step, newest), xd, pd, seq, made, counters)
+            got = enc.encode_packed(*args)
+            assert got == python_form(monkeypatch, enc, *args), (v, w)
+            # and the C form itself wrote it (no silent fallback for these values)
+            assert _ENCODE.prediction(enc._parts, seq, step, step * spec.period_ns, xd, pd,
+                                      newest, made, counters) == got
+
+
+def test_what_it_does_not_take_goes_to_the_python_form(monkeypatch):
+    spec = paper_spec("s1", epoch_ns=0)
+    enc = PredictionEncoder(spec, "s1")
+    xd, pd = msgpack.packb([0.0] * 4), msgpack.packb([0.0] * 16)
+    P = enc._parts
+    for counters in ({"a": True}, {"a": 2**64}, {"a": -(2**63) - 1}, {1: 2},
+                     {"\ud800": 1}, {f"c{j}": j for j in range(300)}, {"a": np.int64(3)}):
+        assert _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0, counters) is None
+        try:
+            want = python_form(monkeypatch, enc, fake(0, None), xd, pd, 0, 0, counters)
+        except Exception as exc:  # the Python form refuses it: so does the whole call
+            with pytest.raises(type(exc)):
+                enc.encode_packed(fake(0, None), xd, pd, 0, 0, counters)
+        else:
+            assert enc.encode_packed(fake(0, None), xd, pd, 0, 0, counters) == want
+    for seq in (True, 2**64, np.int64(4), 1.0):
+        assert _ENCODE.prediction(P, seq, 0, 0, xd, pd, None, 0, {}) is None
+    assert _ENCODE.prediction(P, 0, 0, 0, xd, pd, np.int64(3), 0, {}) is None
+    with pytest.raises(TypeError):
+        _ENCODE.prediction(P[:7], 0, 0, 0, xd, pd, None, 0, {})
+    with pytest.raises(TypeError):
+        _ENCODE.prediction(P, 0, 0, 0, bytearray(xd), pd, None, 0, {})
+    with pytest.raises(TypeError):
+        _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0)
