@@ -9,7 +9,13 @@
    P_data: x and P (row-major) as msgpack arrays of float64, byte for byte what
    msgpack.packb(list_of_floats) writes (an array header, then 0xcb and the 8 bytes of
    each IEEE double, big-endian). Any other argument (another dtype, rank or shape):
-   TypeError, and the caller takes the Python form. No state, no GIL release. */
+   TypeError, and the caller takes the Python form. No state, no GIL release.
+
+       clearly_psd(P, margin_rel) -> bool
+
+   the thorough test's shortcut (health.thoroughly_healthy): True when a Cholesky
+   factorisation shows that no eigenvalue of (P + P^T) / 2 is below -margin; False leaves
+   the verdict to numpy's eigenvalues. */
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -107,7 +113,58 @@ static PyObject *moments(PyObject *self, PyObject *args) {
     return Py_BuildValue("(iNN)", verdict, xb, pb);
 }
 
+#define MAXN_PSD 64
+
+/* clearly_psd(P, margin_rel) -> bool. True iff P (n, n) float64 is finite and the Cholesky
+   factorisation of (P + P^T) / 2 + margin I succeeds (every pivot > 0), where margin =
+   margin_rel * max(1, max_i |P_ii|): then every eigenvalue of (P + P^T) / 2 exceeds -margin
+   less the factorisation's rounding (~n^2 eps max(1, max |P_ii|)). False says nothing: the
+   caller decides with the eigenvalues. TypeError for another dtype, rank or shape, or n
+   above 64. */
+static PyObject *clearly_psd(PyObject *self, PyObject *args) {
+    (void)self;
+    PyObject *oP;
+    double margin_rel;
+    if (!PyArg_ParseTuple(args, "Od", &oP, &margin_rel)) return NULL;
+    PyArrayObject *P = f64(oP, 2);
+    if (P == NULL || PyArray_DIM(P, 0) != PyArray_DIM(P, 1) || PyArray_DIM(P, 0) > MAXN_PSD) {
+        PyErr_SetString(PyExc_TypeError, "clearly_psd: P must be a float64 (n, n) array, n <= 64");
+        return NULL;
+    }
+    npy_intp n = PyArray_DIM(P, 0), s0 = PyArray_STRIDE(P, 0), s1 = PyArray_STRIDE(P, 1);
+    const char *base = PyArray_BYTES(P);
+    double L[MAXN_PSD * MAXN_PSD];
+    double scale = 1.0;
+    for (npy_intp i = 0; i < n; i++) {
+        for (npy_intp j = 0; j < n; j++) {
+            double a, b;
+            memcpy(&a, base + i * s0 + j * s1, 8);
+            memcpy(&b, base + j * s0 + i * s1, 8);
+            if (!isfinite(a)) Py_RETURN_FALSE;
+            L[i * n + j] = 0.5 * (a + b);
+        }
+        if (fabs(L[i * n + i]) > scale) scale = fabs(L[i * n + i]);
+    }
+    double margin = margin_rel * scale;
+    for (npy_intp j = 0; j < n; j++) {  /* lower triangle, in place, row by row */
+        for (npy_intp i = j; i < n; i++) {
+            double v = L[i * n + j] + (i == j ? margin : 0.0);
+            for (npy_intp k = 0; k < j; k++) v -= L[i * n + k] * L[j * n + k];
+            if (i == j) {
+                if (!(v > 0.0)) Py_RETURN_FALSE;
+                L[j * n + j] = sqrt(v);
+            } else {
+                L[i * n + j] = v / L[j * n + j];
+            }
+        }
+    }
+    Py_RETURN_TRUE;
+}
+
 static PyMethodDef methods[] = {
+    {"clearly_psd", clearly_psd, METH_VARARGS,
+     "clearly_psd(P, margin_rel) -> True if P is finite and (P + P^T)/2 + margin I has a "
+     "Cholesky factor (margin = margin_rel * max(1, max |P_ii|)); False: undecided."},
     {"moments", moments, METH_VARARGS,
      "moments(x, P) -> (verdict, x_data, P_data): 0 healthy, 1 non-finite, 2 negative "
      "variance; x and P (row-major) as msgpack float64 arrays."},

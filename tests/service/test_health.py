@@ -86,6 +86,39 @@ def test_check_is_cheap_and_catches_what_it_should():
     assert not health.thoroughly_healthy(np.array([[1.0, 2.0], [2.0, 1.0]]))  # eig -1
 
 
+def _with_min_eig(rng, n: int, lam: float, scale: float = 1.0) -> np.ndarray:
+    """A symmetric (n, n) matrix with eigenvalues in [lam, scale], one of them lam."""
+    Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    ev = rng.uniform(max(lam, 0.0), max(lam, scale), size=n)
+    ev[0] = lam
+    return (Q * ev) @ Q.T
+
+
+def test_thorough_test_gives_the_eigenvalues_verdict():
+    """The C Cholesky shortcut only ever says "healthy" where the eigenvalues say so, and
+    is what decides the usual healthy covariance (where the kernel is in use)."""
+    rng = np.random.default_rng(11)
+    tol = health.EIG_TOL
+    cases = [np.zeros((0, 0)), np.eye(4), np.zeros((3, 3)), np.array([[1.0, 2.0], [2.0, 1.0]]),
+             np.full((2, 2), np.nan), np.array([[1.0, np.inf], [0.0, 1.0]]),
+             np.eye(70), np.eye(4, dtype=np.float32), np.eye(6)[::2, ::2],
+             np.asfortranarray(_with_min_eig(rng, 5, 0.3)), np.array([[1.0, 5.0], [-5.0, 1.0]])]
+    for n in (1, 2, 4, 9):
+        for scale in (1e-12, 1.0, 1e6):
+            for f in (-10.0, -1.01, -0.99, -0.51, -0.49, 0.0, 1e-3, 0.5):
+                lam = f * tol * max(1.0, scale)
+                cases.append(_with_min_eig(rng, n, lam, scale))
+    for P in cases:
+        assert health.thoroughly_healthy(P) == health.thoroughly_healthy_eig(P), P
+    k = health._MOMENTS
+    if k is not None:
+        assert k.clearly_psd(np.eye(4), 0.5 * tol) is True
+        assert k.clearly_psd(_with_min_eig(rng, 4, 0.1), 0.5 * tol) is True
+        assert k.clearly_psd(_with_min_eig(rng, 4, -2 * tol), 0.5 * tol) is False
+        with pytest.raises(TypeError):
+            k.clearly_psd(np.eye(65), 0.5 * tol)
+
+
 @pytest.mark.parametrize("n", [4, 17])  # Python floats (n^2 <= 256) and numpy's reductions
 def test_check_agrees_with_numpy_on_both_paths(n):
     rng = np.random.default_rng(n)
