@@ -321,18 +321,17 @@ class PredictionEncoder:
             counters = {str(k): int(v) for k, v in counters.items()}
         step = int(pred.step)
         newest = pred.newest_step
-        if _ENCODE is not None:  # the same bytes in one call; None: a value it does not take
-            got = _ENCODE.prediction(self._parts, seq, step, self._epoch + step * self._period,
-                                     x_data, P_data, newest, made_ns, counters)
-            if got is not None and len(got) <= MAX_MESSAGE_BYTES:
-                return got
-        pk = self._pack
-        data = b"".join((
-            self._head, pk(int(seq)), self._k_step, pk(step),
-            self._k_t, pk(self._epoch + step * self._period),
-            self._k_x, x_data, self._k_P, P_data,
-            self._k_newest, pk(None if newest is None else int(newest)),
-            self._k_made, pk(int(made_ns)), self._k_counters, pk(counters)))
+        t_ns = self._epoch + step * self._period
+        # the same bytes in one C call; None: a value it does not take (the Python form then)
+        data = None if _ENCODE is None else _ENCODE.prediction(
+            self._parts, seq, step, t_ns, x_data, P_data, newest, made_ns, counters)
+        if data is None:
+            pk = self._pack
+            data = b"".join((
+                self._head, pk(int(seq)), self._k_step, pk(step), self._k_t, pk(t_ns),
+                self._k_x, x_data, self._k_P, P_data,
+                self._k_newest, pk(None if newest is None else int(newest)),
+                self._k_made, pk(int(made_ns)), self._k_counters, pk(counters)))
         if len(data) > MAX_MESSAGE_BYTES:  # the codec's compact form, or its refusal
             data = encode(prediction_from(pred, self.spec, self.session, seq, made_ns,
                                           counters))
