@@ -3,7 +3,7 @@ simulated robot and the scripted operator (``python -m pd_client.tools sim|opera
 this process, a Display and a Recorder. Checks that predictions arrive and track the truth.
 
 The robot publishes straight on the service's keys (``--direct``: no link emulator; the
-link's delays are covered by the demo's own integration tests). Time scale 4: 200 steps of
+link's delays are covered by the demo's own integration tests). Time scale 4: 240 steps of
 12.5 ms.
 """
 
@@ -28,7 +28,7 @@ from pd_client.tools.record_csv import summarize
 pytestmark = pytest.mark.integration
 
 ROOT = Path(__file__).resolve().parents[2]
-STEPS = 200
+STEPS = 240
 WARMUP = 40
 
 
@@ -118,26 +118,38 @@ def test_sim_daemon_display_over_zenoh(procs, tmp_path):
         assert "newest prediction" in procs.log("display")
 
         # The predictions track the truth: pair each prediction with the truth at its target
-        # step, after the warm-up.
+        # step, from WARMUP steps after the first prediction made with a measurement (on a
+        # slow machine the robot's first samples come later than step 0).
+        first = next((s for s in range(STEPS + 1) if (p := display.prediction_for(s)) is not None
+                      and p.newest_step is not None), STEPS + 1)
+        start = first + WARMUP
+        why = (f"first prediction with data for step {first}; sim: "
+               f"{procs.log('sim').strip().splitlines()[-1:]}; counters: "
+               f"{display.latest().counters}")
+        assert start <= STEPS - 100, why  # at least 100 steps to judge
         errs, sds = [], []
-        for step in range(WARMUP, STEPS + 1):
+        for step in range(start, STEPS + 1):
             p, t = display.prediction_for(step), display.truth_at(step)
             if p is not None and t is not None:
                 errs.append(p.x - t.x)
                 sds.append(np.sqrt(np.diag(p.P)))
         errs, sds = np.array(errs), np.array(sds)
-        assert len(errs) >= 0.9 * (STEPS + 1 - WARMUP)  # a few may be lost, not many
+        assert len(errs) >= 0.9 * (STEPS + 1 - start), why  # a few may be lost, not many
         rms = np.sqrt(np.mean(errs**2, axis=0))
-        assert rms[0] < 0.5 and rms[2] < 0.5, rms  # positions p1, p2 (m)
-        assert np.mean(np.abs(errs) <= 4 * sds) > 0.95
+        assert rms[0] < 0.5 and rms[2] < 0.5, (rms, why)  # positions p1, p2 (m)
+        assert np.mean(np.abs(errs) <= 4 * sds) > 0.95, why
         latest = display.latest()
         assert latest.counters.get("accepted", 0) > 0
         assert latest.counters.get("commands_accepted", 0) > 0
+        # The only refusals: samples that came too late (a slow start's first steps, which the
+        # robot publishes at once), each counted; the display saw no invalid message.
+        refused = latest.counters.get("refused", 0)
+        assert refused == latest.counters.get("late", 0), why
         stats = display.stats()
-        assert stats.invalid == 0 and stats.errors == 0, stats.last_error
+        assert stats.invalid == 0 and stats.errors <= refused, stats.last_error
 
-        summary = summarize(tmp_path / "rec" / "paper.csv", warmup=WARMUP)
-        assert summary["rows"] >= 0.9 * (STEPS + 1 - WARMUP)
+        summary = summarize(tmp_path / "rec" / "paper.csv", warmup=start)
+        assert summary["rows"] >= 0.9 * (STEPS + 1 - start)
         assert math.isclose(summary["rms_p1"], rms[0], rel_tol=0.2)
         assert summary["mean_var_p2"] < 0.2
         display.close()

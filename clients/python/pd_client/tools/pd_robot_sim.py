@@ -26,8 +26,9 @@ arrive in (see docs/ros2.md). The truth stays native.
 
 Several ``--session NAME[:sensor,...]`` run the same robot (same truth and samples) for
 several sessions, each with its own sensor subset. ``--create-session`` puts the sessions'
-SessionSpecs (epoch = now) and answers spec queries while running; otherwise the specs are
-read from the config keys (whoever created the sessions must serve them).
+SessionSpecs (epoch = now, once the service answers) and answers spec queries while
+running; otherwise the specs are read from the config keys (whoever created the sessions
+must serve them).
 Progress lines go to stderr. Exit codes: 0 done or stopped by SIGINT/SIGTERM, 1 runtime
 error (e.g. no service acknowledged the session), 2 bad command line.
 """
@@ -216,7 +217,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run this many times faster than real time (default 1)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--create-session", action="store_true",
-                    help="put the SessionSpec(s) (epoch = now) and serve them while running")
+                    help="put the SessionSpec(s) (epoch = now, once the service answers) and "
+                         "serve them while running")
     ap.add_argument("--create-only", action="store_true",
                     help="with --create-session: create the session(s), wait for the service's "
                          "answer and exit (run as the admin user where only admins may create)")
@@ -264,27 +266,19 @@ def _run(args: argparse.Namespace, scenario: Scenario,
          transport: Transport, stop: threading.Event, ros2: Ros2Options | None = None) -> int:
     with Admin(transport) as admin:
         if args.create_session:
-            epoch = time.time_ns()
-            specs = []
-            for name, sensors in sessions:
-                try:
-                    specs.append(scenario.spec(name, epoch, time_scale=args.time_scale,
-                                               sensors=sensors, lead=args.lead,
-                                               max_delay=args.max_delay,
-                                               publish_every=args.publish_every))
-                except ValueError as exc:
-                    return common.fail(TOOL, exc, 2)
+            try:  # checked before waiting: a bad command line fails at once
+                specs = _new_specs(args, scenario, sessions, time.time_ns())
+            except ValueError as exc:
+                return common.fail(TOOL, exc, 2)
             if not args.no_wait_service:
                 common.progress(TOOL, "waiting for pd-service ...")
                 admin.wait_for_service(args.service_timeout)
-            for spec in specs:
-                admin.replace_session(spec, wait=not args.no_wait_service,
-                                      timeout=args.service_timeout)
-                common.progress(TOOL, f"session {spec.session} created "
-                                    f"(model {_model_label(spec)}, sensors "
-                                    f"{', '.join(s.name for s in spec.sensors)}, "
-                                    f"period {spec.period_ns / 1e6:g} ms, lead {spec.lead})")
+            # Step 0 is now, when the service is there and the robot is about to start:
+            # the steps that elapse before the first tick are published at once, and the
+            # service refuses those older than max_delay (a slow start cost the warm-up).
+            specs = _new_specs(args, scenario, sessions, time.time_ns())
             if args.create_only:
+                _create(admin, specs, args)
                 return 0
         else:
             specs = []
@@ -296,6 +290,12 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                            ros2=ros2)
         except ValueError as exc:
             return common.fail(TOOL, exc, 2)
+        try:
+            if args.create_session:  # the robot listens for commands before they can come
+                _create(admin, specs, args)
+        except BaseException:
+            sim.close()
+            raise
         if sim.ros is not None:
             keys = [sim.ros.key_of(n) for n in sim.ros.endpoints]
             common.progress(TOOL, f"ROS 2 node {sim.ros.node.name} (domain "
@@ -313,6 +313,25 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                     except PdClientError as exc:
                         common.progress(TOOL, f"closing {spec.session}: {exc}")
     return 0
+
+
+def _new_specs(args: argparse.Namespace, scenario: Scenario,
+               sessions: list[tuple[str, list[str] | None]], epoch: int) -> list[SessionSpec]:
+    """The sessions' SessionSpecs with step 0 at ``epoch`` (ns); ValueError for bad settings."""
+    return [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
+                          lead=args.lead, max_delay=args.max_delay,
+                          publish_every=args.publish_every)
+            for name, sensors in sessions]
+
+
+def _create(admin: Admin, specs: list[SessionSpec], args: argparse.Namespace) -> None:
+    """Put the sessions' specs (waiting for the service's acknowledgement unless
+    ``--no-wait-service``) and say so."""
+    for spec in specs:
+        admin.replace_session(spec, wait=not args.no_wait_service, timeout=args.service_timeout)
+        common.progress(TOOL, f"session {spec.session} created (model {_model_label(spec)}, "
+                            f"sensors {', '.join(s.name for s in spec.sensors)}, period "
+                            f"{spec.period_ns / 1e6:g} ms, lead {spec.lead})")
 
 
 def ros2_options(args: argparse.Namespace, prefix: str | None) -> Ros2Options | None:
