@@ -65,12 +65,40 @@ static int check_size(PyArrayObject *a, npy_intp size, const char *what) {
     return 0;
 }
 
+/* nargs == want, or a TypeError naming the function (the calls are METH_FASTCALL: no
+   argument tuple, no format string to parse). */
+static int check_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want) {
+    if (nargs == want) return 0;
+    PyErr_Format(PyExc_TypeError, "_kalman.%s: %zd arguments, expected %zd", name, nargs, want);
+    return -1;
+}
+
+/* A new 6-tuple (kind, K, H, z, j, c): a linear.Stage. Steals K; z a float (kind 1 / 2) or
+   the packet's array (kind 3, borrowed), j and c ints and floats. NULL with an exception. */
+static PyObject *new_stage(long kind, PyObject *K, PyObject *H, PyObject *z_obj, double z,
+                           long j, double c) {
+    PyObject *t = PyTuple_New(6);
+    if (!t) { Py_DECREF(K); return NULL; }
+    PyObject *ko = PyLong_FromLong(kind), *jo = PyLong_FromLong(j), *co = PyFloat_FromDouble(c);
+    PyObject *zo = z_obj ? Py_NewRef(z_obj) : PyFloat_FromDouble(z);
+    PyTuple_SET_ITEM(t, 0, ko);
+    PyTuple_SET_ITEM(t, 1, K);
+    PyTuple_SET_ITEM(t, 2, Py_NewRef(H));
+    PyTuple_SET_ITEM(t, 3, zo);
+    PyTuple_SET_ITEM(t, 4, jo);
+    PyTuple_SET_ITEM(t, 5, co);
+    if (!ko || !jo || !co || !zo) { Py_DECREF(t); return NULL; }  /* NULL items: skipped */
+    return t;
+}
+
 /* jump(x (n,), P (n, n) or None, A (n, n), Qs (n, n), G (n, >= k) or None, U (k values))
    -> (x-, P- or None). G is the tables' full stacked input matrix [A^{M-1}B ... B]: its last
    k columns multiply U (m steps of nu inputs, k = m nu). P None: the mean only. */
-static PyObject *jump(PyObject *self, PyObject *args) {
-    PyObject *ox, *oP, *oA, *oQ, *oG, *oU;
-    if (!PyArg_ParseTuple(args, "OOOOOO", &ox, &oP, &oA, &oQ, &oG, &oU)) return NULL;
+static PyObject *jump(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("jump", nargs, 6)) return NULL;
+    PyObject *ox = args[0], *oP = args[1], *oA = args[2], *oQ = args[3], *oG = args[4],
+             *oU = args[5];
     PyArrayObject *x = NULL, *P = NULL, *A = NULL, *Q = NULL, *G = NULL, *U = NULL;
     PyObject *xo = NULL, *Po = NULL, *res = NULL;
     x = as_f64(ox);
@@ -225,14 +253,20 @@ static int update_rows(double *x, double *P, npy_intp n, const double *H, const 
    (kind 1 / 2: K = w, z a float; kind 3: K (n, r), z the packet's array). None: a
    Cholesky pivot was not clearly positive, or a packet is beyond this kernel's sizes (the
    caller runs the numpy form from ``start``). */
-static PyObject *update(PyObject *self, PyObject *args) {
-    PyObject *ox, *oP, *packets, *rows, *stages;
-    Py_ssize_t start;
-    if (!PyArg_ParseTuple(args, "OOO!O!nO!", &ox, &oP, &PyList_Type, &packets, &PyList_Type,
-                          &rows, &start, &PyTuple_Type, &stages))
+static PyObject *update(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("update", nargs, 6)) return NULL;
+    PyObject *ox = args[0], *oP = args[1], *packets = args[2], *rows = args[3],
+             *stages = args[5];
+    if (!PyList_Check(packets) || !PyList_Check(rows) || !PyTuple_Check(stages)) {
+        PyErr_SetString(PyExc_TypeError,
+                        "_kalman.update: packets and rows must be lists, stages a tuple");
         return NULL;
+    }
+    Py_ssize_t start = PyLong_AsSsize_t(args[4]);
+    if (start == -1 && PyErr_Occurred()) return NULL;
     PyArrayObject *x = as_f64(ox), *P = NULL;
-    PyObject *xo = NULL, *Po = NULL, *added = NULL, *res = NULL;
+    PyObject *xo = NULL, *Po = NULL, *all = NULL, *res = NULL;
     if (!x) return NULL;
     P = as_f64(oP);
     npy_intp n = PyArray_SIZE(x);
@@ -244,9 +278,13 @@ static PyObject *update(PyObject *self, PyObject *args) {
     if (!xo || !Po) goto done;
     memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
     memcpy(pv, PyArray_DATA(P), sizeof(double) * (size_t)(n * n));
-    Py_ssize_t np_ = PyList_GET_SIZE(packets);
-    added = PyList_New(0);
-    if (!added) goto done;
+    Py_ssize_t np_ = PyList_GET_SIZE(packets), ns = PyTuple_GET_SIZE(stages);
+    if (start < 0) start = 0;
+    /* the result's stages: the given ones, then one per packet applied here */
+    all = PyTuple_New(ns + (np_ > start ? np_ - start : 0));
+    if (!all) goto done;
+    for (Py_ssize_t i = 0; i < ns; i++)
+        PyTuple_SET_ITEM(all, i, Py_NewRef(PyTuple_GET_ITEM(stages, i)));
     for (Py_ssize_t i = start; i < np_; i++) {
         PyObject *pk = PyList_GET_ITEM(packets, i);
         if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 3) {
@@ -313,7 +351,7 @@ static PyObject *update(PyObject *self, PyObject *args) {
                         for (npy_intp b = a; b < n; b++)
                             pv[a * n + b] = pv[b * n + a] = pv[a * n + b] - w[a] * w[b];
                 }
-                stage = Py_BuildValue("(lNOdld)", kind, wo, oH, zs, j, c);
+                stage = new_stage(kind, wo, oH, NULL, zs, j, c);
                 if (!stage) fail = -1;
             }
         } else {
@@ -332,8 +370,7 @@ static PyObject *update(PyObject *self, PyObject *args) {
                     Py_DECREF(Ko);
                     fail = 1;
                 } else {
-                    stage = Py_BuildValue("(lNOOld)", 3L, Ko, oH, PyTuple_GET_ITEM(pk, 1),
-                                          -1L, 0.0);
+                    stage = new_stage(3, Ko, oH, PyTuple_GET_ITEM(pk, 1), 0.0, -1, 0.0);
                     if (!stage) fail = -1;
                 }
             }
@@ -341,27 +378,28 @@ static PyObject *update(PyObject *self, PyObject *args) {
         Py_XDECREF(H); Py_XDECREF(R); Py_XDECREF(Z);
         if (fail < 0) goto done;
         if (fail > 0) { res = Py_None; Py_INCREF(res); goto done; }
-        int err = PyList_Append(added, stage);
-        Py_DECREF(stage);
-        if (err) goto done;
+        PyTuple_SET_ITEM(all, ns + (i - start), stage);  /* steals it */
     }
-    {
-        PyObject *tail = PyList_AsTuple(added);
-        if (!tail) goto done;
-        PyObject *all = PySequence_Concat(stages, tail);
-        Py_DECREF(tail);
-        if (!all) goto done;
-        res = Py_BuildValue("(OON)", xo, Po, all);
-    }
+    res = PyTuple_New(3);
+    if (!res) goto done;
+    PyTuple_SET_ITEM(res, 0, xo);
+    PyTuple_SET_ITEM(res, 1, Po);
+    PyTuple_SET_ITEM(res, 2, all);
+    xo = Po = all = NULL;  /* the result holds them */
 done:
-    Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(xo); Py_XDECREF(Po); Py_XDECREF(added);
+    Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(xo); Py_XDECREF(Po); Py_XDECREF(all);
     return res;
 }
 
 /* remean(x (n,), stages) -> x+: the mean recursion of the stages (linear._remean). */
-static PyObject *remean(PyObject *self, PyObject *args) {
-    PyObject *ox, *stages;
-    if (!PyArg_ParseTuple(args, "OO!", &ox, &PyTuple_Type, &stages)) return NULL;
+static PyObject *remean(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("remean", nargs, 2)) return NULL;
+    PyObject *ox = args[0], *stages = args[1];
+    if (!PyTuple_Check(stages)) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.remean: stages must be a tuple");
+        return NULL;
+    }
     PyArrayObject *x = as_f64(ox);
     if (!x) return NULL;
     npy_intp n = PyArray_SIZE(x);
@@ -427,12 +465,12 @@ fail:
 }
 
 static PyMethodDef methods[] = {
-    {"jump", jump, METH_VARARGS,
+    {"jump", (PyCFunction)(void (*)(void))jump, METH_FASTCALL,
      "jump(x, P or None, A, Qs, G or None, U) -> (x-, P- or None): m steps at once, G's "
      "last U.size columns multiplying U."},
-    {"update", update, METH_VARARGS,
+    {"update", (PyCFunction)(void (*)(void))update, METH_FASTCALL,
      "update(x, P, packets, rows, start, stages) -> (x+, P+, stages) or None."},
-    {"remean", remean, METH_VARARGS, "remean(x, stages) -> x+: the stages' mean recursion."},
+    {"remean", (PyCFunction)(void (*)(void))remean, METH_FASTCALL, "remean(x, stages) -> x+: the stages' mean recursion."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -82,9 +82,13 @@ static PyObject *pack(const char *base, npy_intp rows, npy_intp cols, npy_intp s
     return b;
 }
 
-static PyObject *moments(PyObject *self, PyObject *args) {
-    PyObject *ox, *oP;
-    if (!PyArg_ParseTuple(args, "OO", &ox, &oP)) return NULL;
+static PyObject *moments(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (nargs != 2) {
+        PyErr_Format(PyExc_TypeError, "moments: %zd arguments, expected 2", nargs);
+        return NULL;
+    }
+    PyObject *ox = args[0], *oP = args[1];
     PyArrayObject *x = f64(ox, 1), *P = f64(oP, 2);
     if (x == NULL || P == NULL) {
         PyErr_SetString(PyExc_TypeError, "moments: x (n,) and P (n, n) must be float64 arrays");
@@ -110,7 +114,16 @@ static PyObject *moments(PyObject *self, PyObject *args) {
         return NULL;
     }
     int verdict = !finite ? 1 : (negative ? 2 : 0);
-    return Py_BuildValue("(iNN)", verdict, xb, pb);
+    PyObject *res = PyTuple_New(3);  /* (verdict, xb, pb), without a format to parse */
+    if (res == NULL) {
+        Py_DECREF(xb);
+        Py_DECREF(pb);
+        return NULL;
+    }
+    PyTuple_SET_ITEM(res, 0, PyLong_FromLong(verdict));  /* 0, 1, 2: cached small ints */
+    PyTuple_SET_ITEM(res, 1, xb);
+    PyTuple_SET_ITEM(res, 2, pb);
+    return res;
 }
 
 #define MAXN_PSD 64
@@ -121,11 +134,15 @@ static PyObject *moments(PyObject *self, PyObject *args) {
    less the factorisation's rounding (~n^2 eps max(1, max |P_ii|)). False says nothing: the
    caller decides with the eigenvalues. TypeError for another dtype, rank or shape, or n
    above 64. */
-static PyObject *clearly_psd(PyObject *self, PyObject *args) {
+static PyObject *clearly_psd(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
-    PyObject *oP;
-    double margin_rel;
-    if (!PyArg_ParseTuple(args, "Od", &oP, &margin_rel)) return NULL;
+    if (nargs != 2) {
+        PyErr_Format(PyExc_TypeError, "clearly_psd: %zd arguments, expected 2", nargs);
+        return NULL;
+    }
+    PyObject *oP = args[0];
+    double margin_rel = PyFloat_AsDouble(args[1]);
+    if (margin_rel == -1.0 && PyErr_Occurred()) return NULL;
     PyArrayObject *P = f64(oP, 2);
     if (P == NULL || PyArray_DIM(P, 0) != PyArray_DIM(P, 1) || PyArray_DIM(P, 0) > MAXN_PSD) {
         PyErr_SetString(PyExc_TypeError, "clearly_psd: P must be a float64 (n, n) array, n <= 64");
@@ -162,10 +179,10 @@ static PyObject *clearly_psd(PyObject *self, PyObject *args) {
 }
 
 static PyMethodDef methods[] = {
-    {"clearly_psd", clearly_psd, METH_VARARGS,
+    {"clearly_psd", (PyCFunction)(void (*)(void))clearly_psd, METH_FASTCALL,
      "clearly_psd(P, margin_rel) -> True if P is finite and (P + P^T)/2 + margin I has a "
      "Cholesky factor (margin = margin_rel * max(1, max |P_ii|)); False: undecided."},
-    {"moments", moments, METH_VARARGS,
+    {"moments", (PyCFunction)(void (*)(void))moments, METH_FASTCALL,
      "moments(x, P) -> (verdict, x_data, P_data): 0 healthy, 1 non-finite, 2 negative "
      "variance; x and P (row-major) as msgpack float64 arrays."},
     {NULL, NULL, 0, NULL},
