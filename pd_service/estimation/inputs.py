@@ -15,6 +15,11 @@ from collections import Counter
 import numpy as np
 from mypy_extensions import mypyc_attr
 
+from pd_service.native import kernel
+
+#: The C form of ``buf[start:end] = u`` (``_kalman.fill``; None: numpy, the reference).
+_KALMAN = kernel("pd_service.estimation._kalman")
+
 
 # copy.deepcopy of an estimator, compiled (setup.py), needs serializable; with mypy 2.4.1,
 # serializable alone makes the compiled class skip __init__, with both flags it does not
@@ -71,9 +76,11 @@ class InputBuffer:
             # rows after the window hold its last step's u
             nxt = self._cmd_steps[k + 1] if k + 1 < len(self._cmd_steps) else None
             end = self._off + nxt - self.origin if nxt is not None else self._buf.shape[0]
-            self._buf[start:end] = u
         else:
-            self._buf[start] = u
+            end = start + 1
+        ck = _KALMAN
+        if ck is None or not ck.fill(self._buf, start, end, u):
+            self._buf[start:end] = u
 
     def slice(self, step: int, m: int) -> np.ndarray:
         """Inputs u(step), ..., u(step + m - 1) as a read-only (m, nu) view."""

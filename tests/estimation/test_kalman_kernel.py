@@ -152,6 +152,12 @@ def test_a_row_with_zero_innovation_variance_tells_nothing() -> None:
     lambda k: k.remean(np.zeros(2), ((3, np.zeros((2, 1)), np.ones((1, 3)), np.zeros(1), -1,
                                       0.0),)),
     lambda k: k.remean(np.zeros(2), ((1, 2),)),
+    lambda k: k.remean(np.zeros(2), [(1, np.zeros(2), None, 0.0, 0, 1.0)]),
+    lambda k: k.update(np.zeros(2), np.eye(2), (), [], 0, ()),
+    lambda k: k.update(np.zeros(2), np.eye(2), [], [], "0", ()),
+    lambda k: k.jump(np.zeros(2), None, np.eye(2), np.eye(2), None),
+    lambda k: k.fill(np.zeros((4, 2)), 0, 1),
+    lambda k: k.fill(np.zeros((4, 2)), 0, "1", np.zeros(2)),
 ])
 def test_bad_arguments_raise(call) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises((ValueError, TypeError, IndexError)):
@@ -203,3 +209,32 @@ def test_arrays_of_other_layouts_and_types_are_converted() -> None:
                  (x.astype(">f8"), P.astype(">f8"), A, Qs.astype(np.float32).astype(float))]:
         got = _KALMAN.jump(*args, None, np.empty(0))
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_fill_sets_rows_as_numpy_does_or_declines() -> None:
+    """fill(buf, start, end, u) writes what buf[start:end] = u writes, or returns False and
+    writes nothing (the caller then assigns with numpy)."""
+    rng = np.random.default_rng(21)
+    for _ in range(200):
+        rows, nu = int(rng.integers(1, 9)), int(rng.integers(0, 4))
+        buf = rng.standard_normal((rows, nu))
+        ref = buf.copy()
+        start = int(rng.integers(-1, rows + 2))
+        end = int(rng.integers(-1, rows + 2))
+        u = rng.standard_normal(nu)
+        took = _KALMAN.fill(buf, start, end, u)
+        if took:
+            ref[start:end] = u
+        else:
+            assert not (0 <= start <= end <= rows)
+        assert np.array_equal(buf, ref)
+    buf = np.zeros((4, 2))
+    for u in (np.ones(3), np.ones((1, 2)), np.ones(2, dtype=np.float32), np.ones(4)[::2],
+              [1.0, 1.0]):
+        assert _KALMAN.fill(buf, 0, 2, u) is False  # numpy decides (broadcast or convert)
+    for b in (np.zeros((4, 2)).T, np.zeros((4, 2), dtype=np.float32), np.zeros(8)):
+        assert _KALMAN.fill(b, 0, 1, np.ones(b.shape[-1] if b.ndim == 2 else 1)) is False
+    ro = np.zeros((4, 2))
+    ro.setflags(write=False)
+    assert _KALMAN.fill(ro, 0, 1, np.ones(2)) is False
+    assert not ro.any() and not buf.any()
