@@ -464,6 +464,165 @@ fail:
     return NULL;
 }
 
+/* A new state of type T (a tuple subclass of 6 fields: linear.Gaussian) (x, P, src, m,
+   sensors, stages). Steals x and P; src, sensors and stages borrowed. NULL with an
+   exception (x and P then released). */
+static PyObject *new_gaussian(PyTypeObject *T, PyObject *x, PyObject *P, PyObject *src,
+                              Py_ssize_t m, PyObject *sensors, PyObject *stages) {
+    PyObject *mo = PyLong_FromSsize_t(m);
+    PyObject *g = mo ? T->tp_alloc(T, 6) : NULL;
+    if (!g) {
+        Py_XDECREF(mo); Py_DECREF(x); Py_DECREF(P);
+        return NULL;
+    }
+    PyTuple_SET_ITEM(g, 0, x);
+    PyTuple_SET_ITEM(g, 1, P);
+    PyTuple_SET_ITEM(g, 2, Py_NewRef(src));
+    PyTuple_SET_ITEM(g, 3, mo);
+    PyTuple_SET_ITEM(g, 4, Py_NewRef(sensors));
+    PyTuple_SET_ITEM(g, 5, Py_NewRef(stages));
+    return g;
+}
+
+/* A packet's sensor index (its first field), borrowed; NULL with an exception. */
+static PyObject *sensor_of(PyObject *packet) {
+    if (!PyTuple_Check(packet) || PyTuple_GET_SIZE(packet) < 3) {
+        PyErr_SetString(PyExc_TypeError, "_kalman: a packet is not (sensor, z, R)");
+        return NULL;
+    }
+    return PyTuple_GET_ITEM(packet, 0);
+}
+
+/* advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> a Gaussian, or None
+
+   LinearBackend.advance in one call, for m <= the tables' M (the caller checks): the same
+   steps in the same order, calling jump, remean and update above, so the result is the
+   one the Python form gets with the kernel. Its docstring has the formulas and the rule for
+   reusing ``old`` (this step's previous result: same covariance object and m, its packets
+   the first of ``packets``). None: update() handed a packet back (a nearly singular S, or
+   sizes beyond the kernel's): the caller runs the Python form, which takes that packet to
+   numpy. Gaussian: the state type (a 6-field tuple subclass); jumps: tables.jumps (a
+   tuple), entry m a tuple (A^m, ., Qs(m), .); G: the stacked input matrix or None; rows:
+   linear._rows per sensor; state: (x, P, ...); U (m, nu); packets: a list of Packet; old: a Gaussian or
+   None. */
+static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("advance", nargs, 9)) return NULL;
+    PyObject *gt = args[0], *jumps = args[1], *G = args[2], *rows = args[3], *state = args[4];
+    PyObject *U = args[6], *packets = args[7], *old = args[8];
+    Py_ssize_t m = PyLong_AsSsize_t(args[5]);
+    if (m == -1 && PyErr_Occurred()) return NULL;
+    if (!PyType_Check(gt) || !PyType_IsSubtype((PyTypeObject *)gt, &PyTuple_Type)
+        || !PyTuple_Check(jumps) || !PyList_Check(packets) || !PyTuple_Check(state)
+        || PyTuple_GET_SIZE(state) < 2
+        || (old != Py_None && (!PyTuple_Check(old) || PyTuple_GET_SIZE(old) != 6
+                               || !PyTuple_Check(PyTuple_GET_ITEM(old, 4))
+                               || !PyTuple_Check(PyTuple_GET_ITEM(old, 5))))) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.advance: arguments of the wrong types");
+        return NULL;
+    }
+    if (m < 0 || m >= PyTuple_GET_SIZE(jumps)) {
+        PyErr_SetString(PyExc_ValueError, "_kalman.advance: m outside the tables");
+        return NULL;
+    }
+    PyTypeObject *T = (PyTypeObject *)gt;
+    PyObject *x = PyTuple_GET_ITEM(state, 0), *P = PyTuple_GET_ITEM(state, 1);
+    PyObject *empty = PyTuple_New(0);  /* the () singleton */
+    if (!empty) return NULL;
+    Py_ssize_t npk = PyList_GET_SIZE(packets);
+    PyObject *done = empty;
+    int reuse = 0;
+    if (old != Py_None && PyTuple_GET_ITEM(old, 2) == P) {
+        Py_ssize_t om = PyLong_AsSsize_t(PyTuple_GET_ITEM(old, 3));
+        if (om == -1 && PyErr_Occurred()) goto error;
+        if (om == m) {
+            done = PyTuple_GET_ITEM(old, 4);
+            Py_ssize_t k = PyTuple_GET_SIZE(done);
+            reuse = k == 0;
+            if (k > 0 && k <= npk) {  /* old's packets are the first of these, in order */
+                reuse = 1;
+                for (Py_ssize_t i = 0; i < k && reuse; i++) {
+                    PyObject *sn = sensor_of(PyList_GET_ITEM(packets, i));
+                    if (!sn) goto error;
+                    int eq = PyObject_RichCompareBool(sn, PyTuple_GET_ITEM(done, i), Py_EQ);
+                    if (eq < 0) goto error;
+                    reuse = eq;
+                }
+            }
+            if (!reuse) done = empty;  /* old applied other packets first: from the prior */
+        }
+    }
+    PyObject *xp, *Pp;  /* new references from here on */
+    if (m == 0) {
+        xp = Py_NewRef(x);
+        Pp = Py_NewRef(P);
+    } else {
+        PyObject *jt = PyTuple_GET_ITEM(jumps, m);
+        if (!PyTuple_Check(jt) || PyTuple_GET_SIZE(jt) < 3) {
+            PyErr_SetString(PyExc_TypeError, "_kalman.advance: a jump is not (A, ., Qs, ...)");
+            goto error;
+        }
+        PyObject *argv[6] = {x, reuse ? Py_None : P, PyTuple_GET_ITEM(jt, 0),
+                             PyTuple_GET_ITEM(jt, 2), G, U};
+        PyObject *r = jump(NULL, argv, 6);
+        if (!r) goto error;
+        xp = Py_NewRef(PyTuple_GET_ITEM(r, 0));
+        Pp = Py_NewRef(reuse ? P : PyTuple_GET_ITEM(r, 1));
+        Py_DECREF(r);
+    }
+    PyObject *stages = empty;
+    if (reuse) {  /* the covariance after old's packets is unchanged: their means only */
+        stages = PyTuple_GET_ITEM(old, 5);
+        if (PyTuple_GET_SIZE(stages)) {
+            PyObject *argv[2] = {xp, stages};
+            PyObject *nx = remean(NULL, argv, 2);
+            Py_DECREF(xp);
+            if (!nx) { Py_DECREF(Pp); goto error; }
+            xp = nx;
+        }
+        Py_SETREF(Pp, Py_NewRef(PyTuple_GET_ITEM(old, 1)));
+        if (PyTuple_GET_SIZE(done) == npk) {
+            PyObject *g = new_gaussian(T, xp, Pp, P, m, done, stages);
+            Py_DECREF(empty);
+            return g;
+        }
+    }
+    if (npk == 0) {
+        PyObject *g = new_gaussian(T, xp, Pp, P, m, empty, empty);
+        Py_DECREF(empty);
+        return g;
+    }
+    PyObject *sensors = PyTuple_New(npk), *start = PyLong_FromSsize_t(PyTuple_GET_SIZE(done));
+    if (!sensors || !start) goto fail_sensors;
+    for (Py_ssize_t i = 0; i < npk; i++) {
+        PyObject *sn = sensor_of(PyList_GET_ITEM(packets, i));
+        if (!sn) goto fail_sensors;
+        PyTuple_SET_ITEM(sensors, i, Py_NewRef(sn));
+    }
+    {
+        PyObject *argv[6] = {xp, Pp, packets, rows, start, stages};
+        PyObject *got = update(NULL, argv, 6);
+        Py_DECREF(xp); Py_DECREF(Pp); Py_DECREF(start);
+        PyObject *g = NULL;
+        if (got == Py_None) {
+            g = got;  /* the caller's Python form takes it from here */
+        } else if (got) {
+            g = new_gaussian(T, Py_NewRef(PyTuple_GET_ITEM(got, 0)),
+                             Py_NewRef(PyTuple_GET_ITEM(got, 1)), P, m, sensors,
+                             PyTuple_GET_ITEM(got, 2));
+            Py_DECREF(got);
+        }
+        Py_DECREF(sensors);
+        Py_DECREF(empty);
+        return g;
+    }
+fail_sensors:
+    Py_XDECREF(sensors); Py_XDECREF(start); Py_DECREF(xp); Py_DECREF(Pp);
+error:
+    Py_DECREF(empty);
+    return NULL;
+}
+
 /* fill(buf, start, end, u) -> bool: rows [start, end) of buf (rows, nu) set to u (nu,), as
    numpy's buf[start:end] = u does for these (inputs.InputBuffer.set: ~4,000 instructions in
    numpy's indexing, ~100 here). False, with nothing written, for anything else (buf not a
@@ -496,6 +655,9 @@ static PyMethodDef methods[] = {
      "last U.size columns multiplying U."},
     {"update", (PyCFunction)(void (*)(void))update, METH_FASTCALL,
      "update(x, P, packets, rows, start, stages) -> (x+, P+, stages) or None."},
+    {"advance", (PyCFunction)(void (*)(void))advance, METH_FASTCALL,
+     "advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> Gaussian, or None (the "
+     "Python form then runs): LinearBackend.advance for m <= M in one call."},
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,
      "fill(buf, start, end, u) -> True: buf[start:end] = u done; False: not taken (use numpy)."},
     {"remean", (PyCFunction)(void (*)(void))remean, METH_FASTCALL, "remean(x, stages) -> x+: the stages' mean recursion."},

@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import numpy as np
 from mypy_extensions import mypyc_attr
@@ -346,6 +346,12 @@ class LinearBackend:
         :func:`kalman_update`. The result depends only on the parent state, the inputs and
         the packets, not on whether ``old`` was reused (the same operations either way).
         """
+        ck = _KALMAN if self.use_kernel else None
+        if ck is not None and m <= self._M:  # the whole step in one C call (_kalman.advance)
+            got = ck.advance(Gaussian, self._jumps, self._G, self._single, state, m, U,
+                             packets, old)
+            if got is not None:  # else a packet the kernel hands back: this form from here
+                return cast(Gaussian, got)
         x, P = state[0], state[1]
         npk = len(packets)
         done: tuple[int, ...] = ()
@@ -360,7 +366,6 @@ class LinearBackend:
             if not reuse:
                 done = ()  # old applied other packets first: start from the prior
         Pp = P
-        ck = _KALMAN if self.use_kernel else None
         if m == 0:
             xp = x
         elif ck is not None and m <= self._M:

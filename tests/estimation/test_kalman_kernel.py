@@ -157,6 +157,18 @@ def test_a_row_with_zero_innovation_variance_tells_nothing() -> None:
     lambda k: k.update(np.zeros(2), np.eye(2), [], [], "0", ()),
     lambda k: k.jump(np.zeros(2), None, np.eye(2), np.eye(2), None),
     lambda k: k.fill(np.zeros((4, 2)), 0, 1),
+    lambda k: k.advance(Gaussian, (), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
+                        np.empty((0, 0)), []),
+    lambda k: k.advance(dict, (None,), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
+                        np.empty((0, 0)), [], None),
+    lambda k: k.advance(Gaussian, (None,), None, [], Gaussian(np.zeros(2), np.eye(2)), 1,
+                        np.empty((1, 0)), [], None),
+    lambda k: k.advance(Gaussian, (None,), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
+                        np.empty((0, 0)), [], (1, 2)),
+    lambda k: k.advance(Gaussian, (None, 5), None, [], Gaussian(np.zeros(2), np.eye(2)), 1,
+                        np.empty((1, 0)), [], None),
+    lambda k: k.advance(Gaussian, (None,), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
+                        np.empty((0, 0)), [(0,)], None),
     lambda k: k.fill(np.zeros((4, 2)), 0, "1", np.zeros(2)),
 ])
 def test_bad_arguments_raise(call) -> None:  # type: ignore[no-untyped-def]
