@@ -12,8 +12,15 @@
                 r rows H:   S = H P- H^T + R = L L^T (Cholesky),  W = P- H^T L^{-T},
                             K = W L^{-1},  x+ = x- + K (z - H x-),  P+ = P- - W W^T
 
+       advance: LinearBackend.advance's whole step (the reuse rule for a step's previous
+                result, jump, remean, update, the new Gaussian) in one call, without the
+                Python calls, tuple unpacking and global lookups between them
+       fill:    InputBuffer.set's rows, buf[start:end] = u
+
    A Cholesky pivot not above 1e-10 of its diagonal entry (S singular or nearly so) makes
-   update() return None: the caller then runs the numpy form (LU, or the pseudo-inverse).
+   update() and advance() return None: the caller then runs the numpy form (LU, or the
+   pseudo-inverse). The calls are METH_FASTCALL and build their tuples directly: parsing a
+   format string (PyArg_ParseTuple, Py_BuildValue) cost ~1,000 instructions a call.
    Arrays are read as float64 and C-contiguous (converted if not); results are new arrays.
    Sums run in index order, so results are deterministic but not bit for bit numpy's
    (BLAS orders its sums otherwise): they agree to rounding. No state, no GIL release. */
