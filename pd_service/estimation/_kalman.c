@@ -16,6 +16,7 @@
                 result, jump, remean, update, the new Gaussian) in one call, without the
                 Python calls, tuple unpacking and global lookups between them
        fill:    InputBuffer.set's rows, buf[start:end] = u
+       freeze:  arrays made read-only (ndarray.setflags(write=False)) in one call
 
    A Cholesky pivot not above 1e-10 of its diagonal entry (S singular or nearly so) makes
    update() and advance() return None: the caller then runs the numpy form (LU, or the
@@ -630,6 +631,21 @@ error:
     return NULL;
 }
 
+/* freeze(a, ...) -> None: each numpy array made read-only, as a.setflags(write=False) does
+   (which parses its keyword arguments: ~1,000 instructions a call, ~50 here). TypeError,
+   with nothing changed, if an argument is not a numpy array. */
+static PyObject *freeze(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    for (Py_ssize_t i = 0; i < nargs; i++)
+        if (!PyArray_Check(args[i])) {
+            PyErr_SetString(PyExc_TypeError, "_kalman.freeze: arguments must be numpy arrays");
+            return NULL;
+        }
+    for (Py_ssize_t i = 0; i < nargs; i++)
+        PyArray_CLEARFLAGS((PyArrayObject *)args[i], NPY_ARRAY_WRITEABLE);
+    Py_RETURN_NONE;
+}
+
 /* fill(buf, start, end, u) -> bool: rows [start, end) of buf (rows, nu) set to u (nu,), as
    numpy's buf[start:end] = u does for these (inputs.InputBuffer.set: ~4,000 instructions in
    numpy's indexing, ~100 here). False, with nothing written, for anything else (buf not a
@@ -665,6 +681,8 @@ static PyMethodDef methods[] = {
     {"advance", (PyCFunction)(void (*)(void))advance, METH_FASTCALL,
      "advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> Gaussian, or None (the "
      "Python form then runs): LinearBackend.advance for m <= M in one call."},
+    {"freeze", (PyCFunction)(void (*)(void))freeze, METH_FASTCALL,
+     "freeze(a, ...) -> None: a.setflags(write=False) for each array, in one call."},
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,
      "fill(buf, start, end, u) -> True: buf[start:end] = u done; False: not taken (use numpy)."},
     {"remean", (PyCFunction)(void (*)(void))remean, METH_FASTCALL, "remean(x, stages) -> x+: the stages' mean recursion."},

@@ -61,6 +61,8 @@ from typing import Final, Generic, NamedTuple, Protocol, TypeVar
 import numpy as np
 from mypy_extensions import mypyc_attr
 
+from pd_service.native import kernel
+
 from .checks import as_covariance, as_step, as_vector
 from .inputs import InputBuffer
 from .state import STATE_VERSION, EstimatorState, PacketRecord, StateError
@@ -97,6 +99,19 @@ class Packet(NamedTuple):
 
 
 _new_tuple = tuple.__new__
+
+#: ``_kalman.freeze``: arrays made read-only in one C call (``ndarray.setflags`` parses its
+#: keywords, ~1,000 instructions a call); None: ``setflags``, where the hot path is not
+#: compiled.
+_FREEZE = getattr(kernel("pd_service.estimation._kalman"), "freeze", None)
+
+
+def _read_only(a: np.ndarray) -> None:
+    fz = _FREEZE
+    if fz is not None:
+        fz(a)
+    else:
+        a.setflags(write=False)
 
 
 def _by_sensor(p: Packet) -> int:
@@ -302,7 +317,7 @@ class ReplayEstimator(Generic[S]):
                 if p.sensor == idx:
                     self._counters["duplicate"] += 1
                     return False
-        zv.setflags(write=False)
+        _read_only(zv)
         pkt = _new_tuple(Packet, (idx, zv, Rm))
         if bucket is None:
             self._packets[k] = [pkt]
@@ -365,8 +380,8 @@ class ReplayEstimator(Generic[S]):
             state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred)
             x, P = self._backend.moments(state)
             # shared with the engine (a reused covariance, a checkpoint): read-only
-            x.setflags(write=False)
-            P.setflags(write=False)
+            _read_only(x)
+            _read_only(P)
         else:
             if target > step:
                 state = self._propagate(state, step, target - step)

@@ -250,3 +250,19 @@ def test_fill_sets_rows_as_numpy_does_or_declines() -> None:
     ro.setflags(write=False)
     assert _KALMAN.fill(ro, 0, 1, np.ones(2)) is False
     assert not ro.any() and not buf.any()
+
+
+def test_freeze_makes_arrays_read_only_as_setflags_does() -> None:
+    a, b = np.zeros(3), np.ones((2, 2))
+    view = b[:, 0]
+    assert _KALMAN.freeze(a, view) is None
+    assert not a.flags.writeable and not view.flags.writeable and b.flags.writeable
+    with pytest.raises(ValueError):
+        a[0] = 1.0
+    _KALMAN.freeze(a)  # already read-only: nothing changes
+    assert not a.flags.writeable
+    c = np.zeros(2)
+    with pytest.raises(TypeError):
+        _KALMAN.freeze(c, [1.0])
+    assert c.flags.writeable  # nothing changed
+    assert _KALMAN.freeze() is None
