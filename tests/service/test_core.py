@@ -737,6 +737,25 @@ def test_packed_prediction_is_byte_for_byte_what_the_codec_encodes():
         encode_prediction(bad, spec, "s1", 0, 0, {})
 
 
+def test_counters_snapshot_keeps_nonzero_counters_in_order_then_published():
+    from pd_service.service.session import Session
+
+    sess = Session(paper_spec("s1"), "active", "", 0, 10.0, 10)
+    assert sess.counters_snapshot() == {"accepted": 0, "published": 0}
+    sess.counters["late"] += 2
+    sess.counters["accepted"] += 0  # a zero kept by the Counter (a resumed state's)
+    sess.counters["future"] += 1
+    sess.counters["published"] += 5  # shadowed by the session's own count, in its place
+    sess.published = 7
+    snap = sess.counters_snapshot()
+    assert list(snap.items()) == [("late", 2), ("future", 1), ("published", 7),
+                                  ("accepted", 0)]
+    sess.counters["accepted"] += 3
+    assert list(sess.counters_snapshot().items()) == [
+        ("late", 2), ("accepted", 3), ("future", 1), ("published", 7)]
+    assert type(snap) is dict
+
+
 def test_error_reports_have_a_service_wide_budget(world, tmp_path):
     bus, clock, col, cli = world
     core = make_core(bus, clock, tmp_path, error_rate_total=30.0)
