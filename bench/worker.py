@@ -11,7 +11,12 @@ floor of the per-session-step cost of the Python worker.
 With --checkpoints the sessions are checkpointed as in the daemon (every second of the
 simulated clock, written by the writer thread to a temporary state dir).
 
+With --epochs distinct every session has an epoch of its own (session i's is i ns later
+than session 0's: the same steps, but no two sessions share a tick deadline, as in a fleet
+whose robots were configured at different times); by default they share one.
+
 Usage: python bench/worker.py [--sessions 200] [--steps 100] [--checkpoints] [--profile]
+                              [--epochs shared|distinct]
 """
 
 from __future__ import annotations
@@ -49,6 +54,8 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--checkpoints", action="store_true",
                     help="checkpoint every simulated second, as the daemon does")
+    ap.add_argument("--epochs", choices=("shared", "distinct"), default="shared",
+                    help="one epoch for all sessions, or one each (i ns apart)")
     ap.add_argument("--no-gauge", dest="gauge", action="store_false",
                     help="skip the machine gauge (bench/instructions.py runs this under "
                          "valgrind, where it costs a minute and means nothing)")
@@ -75,7 +82,11 @@ def main() -> None:
     def sample(key: str, payload: bytes) -> Sample:
         return Sample(key, payload, "put", clock[0], clock[0])
 
-    specs = [encode(paper_scenario().spec(s, epoch, max_delay=RANGER_DELAY)) for s in names]
+    # distinct: i ns apart, far less than session i's send offset in the step (below), so
+    # every session's step numbers stay those of the shared epoch
+    specs = [encode(paper_scenario().spec(s, epoch + (i if args.epochs == "distinct" else 0),
+                                          max_delay=RANGER_DELAY))
+             for i, s in enumerate(names)]
     c0 = time.process_time()
     for s, spec_bytes in zip(names, specs, strict=True):
         d.on_config_sample(sample(keys.config_key(s), spec_bytes))
