@@ -7,6 +7,7 @@ Every check raises ``ValueError`` whose message starts with the field name, so a
 from __future__ import annotations
 
 import math
+from typing import Final
 
 import numpy as np
 
@@ -15,8 +16,8 @@ import numpy as np
 PSD_RTOL = 1e-9
 
 #: Vectors up to this length are checked for NaN / infinity element by element in Python.
-_SHORT = 8
-_isfinite = math.isfinite
+_SHORT: Final = 8
+_isfinite: Final = math.isfinite
 
 
 def as_vector(value: object, field: str, size: int | None = None) -> np.ndarray:

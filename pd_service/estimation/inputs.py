@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import bisect
 from collections import Counter
+from typing import Final
 
 import numpy as np
 from mypy_extensions import mypyc_attr
@@ -18,7 +19,9 @@ from mypy_extensions import mypyc_attr
 from pd_service.native import kernel
 
 #: The C form of ``buf[start:end] = u`` (``_kalman.fill``; None: numpy, the reference).
-_KALMAN = kernel("pd_service.estimation._kalman")
+_KALMAN: Final = kernel("pd_service.estimation._kalman")
+#: Read per call from a C static (Final), not looked up as ``bisect.bisect_left``.
+_bisect_left: Final = bisect.bisect_left
 
 
 # copy.deepcopy of an estimator, compiled (setup.py), needs serializable; with mypy 2.4.1,
@@ -42,7 +45,7 @@ class InputBuffer:
         self._cmd_steps: list[int] = []  # explicit command steps >= origin, sorted
 
     def has_command(self, step: int) -> bool:
-        i = bisect.bisect_left(self._cmd_steps, step)
+        i = _bisect_left(self._cmd_steps, step)
         return i < len(self._cmd_steps) and self._cmd_steps[i] == step
 
     def admit(self, step: int, u: np.ndarray, first: int, last: int,
@@ -68,7 +71,7 @@ class InputBuffer:
         i = step - self.origin
         if not 0 <= i < self.capacity:
             raise IndexError(f"step {step} outside the input window")
-        k = bisect.bisect_left(self._cmd_steps, step)
+        k = _bisect_left(self._cmd_steps, step)
         self._cmd_steps.insert(k, step)
         start = self._off + i
         if self.hold:
@@ -139,4 +142,4 @@ class InputBuffer:
         self.origin = origin
         cmds = self._cmd_steps
         if cmds and cmds[0] < origin:
-            del cmds[: bisect.bisect_left(cmds, origin)]
+            del cmds[: _bisect_left(cmds, origin)]

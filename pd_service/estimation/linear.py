@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, NamedTuple, cast
+from typing import Any, Final, NamedTuple, cast
 
 import numpy as np
 from mypy_extensions import mypyc_attr
@@ -44,7 +44,7 @@ from .state import check_names, take
 #: The C form of :meth:`LinearBackend.advance`'s arithmetic (pd_service/estimation/_kalman.c),
 #: None where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
 #: build): the numpy form below is the reference it is tested against.
-_KALMAN = kernel("pd_service.estimation._kalman")
+_KALMAN: Final = kernel("pd_service.estimation._kalman")
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
@@ -206,7 +206,7 @@ class Gaussian(NamedTuple):
 #: forming P- h / s); kind 3 (``H`` (r, n)): x+ = x- + K (z - H x-), ``K`` (n, r), z (r,).
 Stage = tuple[int, Any, Any, Any, int, float]
 
-_new = tuple.__new__
+_new: Final = tuple.__new__
 
 
 def _remean(x: np.ndarray, stages: tuple[Stage, ...]) -> np.ndarray:
@@ -281,7 +281,7 @@ def _chol_inv(S: np.ndarray) -> np.ndarray | None:
 
 
 #: A Cholesky pivot must exceed this fraction of its diagonal entry (else LU / pinv).
-_PIVOT = 1e-10
+_PIVOT: Final = 1e-10
 
 
 # compiled by mypyc (setup.py) where the hot path is; deep-copied with its estimator

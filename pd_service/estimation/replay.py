@@ -98,12 +98,15 @@ class Packet(NamedTuple):
     R: np.ndarray | None
 
 
-_new_tuple = tuple.__new__
+#: Read per call from C statics (Final), not looked up as ``bisect.<name>`` each time.
+_bisect_left: Final = bisect.bisect_left
+_insort: Final = bisect.insort
+_new_tuple: Final = tuple.__new__
 
 #: ``_kalman.freeze``: arrays made read-only in one C call (``ndarray.setflags`` parses its
 #: keywords, ~1,000 instructions a call); None: ``setflags``, where the hot path is not
 #: compiled.
-_FREEZE = getattr(kernel("pd_service.estimation._kalman"), "freeze", None)
+_FREEZE: Final = getattr(kernel("pd_service.estimation._kalman"), "freeze", None)
 
 
 def _read_only(a: np.ndarray) -> None:
@@ -325,7 +328,7 @@ class ReplayEstimator(Generic[S]):
             if not steps or k > steps[-1]:
                 steps.append(k)
             else:
-                bisect.insort(steps, k)
+                _insort(steps, k)
         else:
             bucket.append(pkt)
             bucket.sort(key=_by_sensor)
@@ -531,8 +534,8 @@ class ReplayEstimator(Generic[S]):
         if dirty is None or (limit is not None and dirty >= limit):
             return
         steps = self._steps
-        i = bisect.bisect_left(steps, dirty)
-        j = len(steps) if limit is None else bisect.bisect_left(steps, limit)
+        i = _bisect_left(steps, dirty)
+        j = len(steps) if limit is None else _bisect_left(steps, limit)
         chk = self._chk
         if i > 0:
             a = steps[i - 1]
@@ -576,7 +579,7 @@ class ReplayEstimator(Generic[S]):
             return
         self._replay(new_c)
         steps = self._steps
-        k = bisect.bisect_left(steps, new_c)
+        k = _bisect_left(steps, new_c)
         if k:
             final = steps[:k]
             chk, packets = self._chk, self._packets

@@ -15,7 +15,7 @@ on the same payloads.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Final
 
 import msgpack
 import numpy as np
@@ -24,7 +24,7 @@ from pd_service.native import kernel
 from pd_service.wire import MAX_MESSAGE_BYTES
 
 #: The C form of both readers (None: the Python form runs).
-_FAST = kernel("pd_service.intake._fastread")
+_FAST: Final = kernel("pd_service.intake._fastread")
 
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 _MEAS_KEYS = frozenset({"v", "session", "sensor", "seq", "step", "t_ns", "z", "R"})

@@ -25,6 +25,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable
+from typing import Final
 
 from pd_service import native
 from pd_service.estimation.linear import set_tables_max_bytes
@@ -45,15 +46,15 @@ from .status import Queries
 
 log = logging.getLogger(LOGGER_NAME)
 
-_EXPIRY_CHECK_NS = 1_000_000_000
+_EXPIRY_CHECK_NS: Final = 1_000_000_000
 #: How often every served session is offered for a checkpoint / replica (ns).
-_SWEEP_NS = 250_000_000
+_SWEEP_NS: Final = 250_000_000
 #: A single run_once() call returns after this long even if work remains (ns).
-_RUN_BUDGET_NS = 50_000_000
+_RUN_BUDGET_NS: Final = 50_000_000
 #: Longest wait (s) at a graceful stop for a successor to confirm the states handed over.
 _HANDOVER_ACK_S = 2.0
 #: Most samples taken from one drained subscription per loop of run_once.
-_DRAIN_LIMIT = 4096
+_DRAIN_LIMIT: Final = 4096
 
 
 class ServiceCore:

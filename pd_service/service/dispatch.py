@@ -23,6 +23,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Final
 
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Sample
@@ -42,7 +43,7 @@ log = logging.getLogger(LOGGER_NAME)
 Item = tuple[int, str, bytes, int, str, int]
 
 #: The refusals of a message the session already has.
-_DUPLICATE = frozenset({"duplicate", "commands_duplicate"})
+_DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 
 
 #: Sessions served per round of a pass. After each round the worker computes and encodes
@@ -51,7 +52,7 @@ _DUPLICATE = frozenset({"duplicate", "commands_duplicate"})
 #: arrays are still in the CPU's caches. With 500 sessions per pass (a worker behind) the
 #: worker alone took 41.5 µs per session-step in one round, 38.5 in rounds of 64
 #: (``bench/worker.py --sessions 1000 --every 500``, 5 runs alternating).
-ROUND_SESSIONS = 64
+ROUND_SESSIONS: Final = 64
 
 
 @dataclass(eq=False, slots=True)

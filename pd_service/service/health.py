@@ -22,6 +22,7 @@ step), or to its spec's prior when there is none or that does not help; see
 from __future__ import annotations
 
 import math
+from typing import Final
 
 import msgpack
 import numpy as np
@@ -29,8 +30,8 @@ import numpy as np
 from pd_service.native import kernel
 
 #: The C form of :func:`inspect_packed` where the hot path runs compiled (else None).
-_MOMENTS = kernel("pd_service.service._moments")
-_pack = msgpack.Packer(use_bin_type=True).pack
+_MOMENTS: Final = kernel("pd_service.service._moments")
+_pack: Final = msgpack.Packer(use_bin_type=True).pack
 
 #: Session time between two snapshots of a healthy estimator (s).
 SNAPSHOT_EVERY_S = 1.0
@@ -42,7 +43,7 @@ RETRY_AFTER_S = 1.0
 
 #: Up to this many entries in P, :func:`inspect` checks Python floats (~0.5 µs for n = 4)
 #: instead of calling numpy's reductions (~3 µs).
-_SMALL = 256
+_SMALL: Final = 256
 
 
 def inspect(x: np.ndarray, P: np.ndarray) -> tuple[str | None, list[float], list[float]]:
@@ -69,7 +70,7 @@ def inspect(x: np.ndarray, P: np.ndarray) -> tuple[str | None, list[float], list
 
 _NON_FINITE = "non-finite estimate (NaN or infinity in x or P)"
 _NEGATIVE = "covariance not positive semi-definite (a negative variance on its diagonal)"
-_VERDICTS = (None, _NON_FINITE, _NEGATIVE)
+_VERDICTS: Final = (None, _NON_FINITE, _NEGATIVE)
 
 
 def inspect_packed(x: np.ndarray, P: np.ndarray) -> tuple[str | None, bytes, bytes]:

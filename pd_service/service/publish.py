@@ -29,6 +29,7 @@ import heapq
 import logging
 from collections import Counter
 from collections.abc import Callable
+from typing import Final
 
 from pd_service.estimation import PredictedState
 from pd_service.logs import LOGGER_NAME, event
@@ -45,7 +46,11 @@ from .status import SessionState, session_status
 log = logging.getLogger(LOGGER_NAME)
 
 #: Where in its step the tick of a data-driven session fires (fraction of the period).
-DATA_TICK_PHASE = 0.95
+DATA_TICK_PHASE: Final = 0.95
+
+#: Read per call from C statics (Final), not looked up as ``heapq.<name>`` each time.
+_heappush: Final = heapq.heappush
+_heappop: Final = heapq.heappop
 
 
 class Out:
@@ -265,7 +270,7 @@ class Publisher:
         bucket = self._tick_at.get(deadline)
         if bucket is None:
             self._tick_at[deadline] = [entry]
-            heapq.heappush(self._tick_times, deadline)
+            _heappush(self._tick_times, deadline)
         else:
             bucket.append(entry)
 
@@ -289,7 +294,7 @@ class Publisher:
         while times and times[0] <= now:
             # a tick queued meanwhile for a deadline already passed (a late tick, a worker
             # behind) gets a bucket of its own: this loop takes it before it returns
-            for gen, k, deferred, sess in at.pop(heapq.heappop(times)):
+            for gen, k, deferred, sess in at.pop(_heappop(times)):
                 if not sess.alive or gen != sess.tick_gen:
                     continue
                 cur = sess.step_now(now)

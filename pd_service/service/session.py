@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import zlib
 from collections import Counter
-from typing import Literal
+from typing import Final, Literal
 
 import numpy as np
 
@@ -65,9 +65,10 @@ from pd_service.wire.state import spec_fingerprint
 from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
 from .stats import LatencyWindow
 
-SENSOR, COMMAND = 0, 1
+SENSOR: Final = 0
+COMMAND: Final = 1
 #: Added to SENSOR / COMMAND for a message read back from a sender's cache (recovered).
-RECOVERED = 2
+RECOVERED: Final = 2
 
 #: Where a session's estimate started from (``SessionStatus.origin``).
 Origin = Literal["prior", "checkpoint", "replica"]

@@ -10,7 +10,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Literal
+from typing import Final, Literal
 
 import zenoh
 import zenoh.ext
@@ -19,8 +19,8 @@ from .base import HandleOwner, Reply, Sample, check_exact_keys
 from .options import zenoh_config
 
 log = logging.getLogger("pd_service.transport")
-_DEFAULT_ENCODING = zenoh.Encoding.ZENOH_BYTES
-_DELETE = zenoh.SampleKind.DELETE
+_DEFAULT_ENCODING: Final = zenoh.Encoding.ZENOH_BYTES
+_DELETE: Final = zenoh.SampleKind.DELETE
 #: Samples a drained subscription holds before Zenoh waits for its owner (see _Drain).
 DRAIN_CAPACITY = 65_536
 
@@ -64,7 +64,7 @@ def _convert(s: zenoh.Sample, now: int, mono: int) -> Sample:
                   None if att is None else att.to_bytes())
 
 
-_new_tuple = tuple.__new__
+_new_tuple: Final = tuple.__new__
 
 
 class _Drain:
