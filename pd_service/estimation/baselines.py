@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-from collections import Counter
 from collections.abc import Sequence
 
 import numpy as np
@@ -21,6 +20,7 @@ from .inputs import InputBuffer
 from .linear import kalman_update, propagate, tables_for
 from .model import LinearModel, Sensor, check_sensors
 from .replay import COUNTER_NAMES, PredictedState
+from .tally import Tally
 
 
 class _InputsMixin:
@@ -39,7 +39,7 @@ class _InputsMixin:
         self._ahead = lead + max_delay + 1
         self._inputs = InputBuffer(model.nu, 2 * (lead + max_delay) + 4, hold=hold == "hold")
         self._tables = tables_for(model, self._inputs.capacity)
-        self._counters: Counter[str] = Counter({k: 0 for k in COUNTER_NAMES})
+        self._counters = Tally({k: 0 for k in COUNTER_NAMES})
 
     @property
     def counters(self) -> dict[str, int]:

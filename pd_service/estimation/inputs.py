@@ -10,13 +10,14 @@ contiguous (m, nu) slice, with no per-step Python work.
 from __future__ import annotations
 
 import bisect
-from collections import Counter
 from typing import Final
 
 import numpy as np
 from mypy_extensions import mypyc_attr
 
 from pd_service.native import kernel
+
+from .tally import Tally
 
 #: The C form of ``buf[start:end] = u`` (``_kalman.fill``; None: numpy, the reference).
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
@@ -49,7 +50,7 @@ class InputBuffer:
         return i < len(self._cmd_steps) and self._cmd_steps[i] == step
 
     def admit(self, step: int, u: np.ndarray, first: int, last: int,
-              counters: Counter[str]) -> bool:
+              counters: Tally) -> bool:
         """Store the command for ``step`` if ``first <= step <= last`` and none is stored for
         it yet; count the outcome in ``counters``: "commands_late" (step < first),
         "commands_future" (step > last), "commands_duplicate", or "commands_accepted"."""

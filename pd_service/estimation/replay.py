@@ -55,7 +55,6 @@ operands; tested).
 from __future__ import annotations
 
 import bisect
-from collections import Counter
 from typing import Final, Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
@@ -66,6 +65,7 @@ from pd_service.native import kernel
 from .checks import as_covariance, as_step, as_vector
 from .inputs import InputBuffer
 from .state import STATE_VERSION, EstimatorState, PacketRecord, StateError
+from .tally import Tally
 
 S = TypeVar("S")
 
@@ -249,7 +249,7 @@ class ReplayEstimator(Generic[S]):
         self._dirty: int | None = None  # earliest step whose posterior (mean) is stale
         self._noreuse: int | None = None  # from here on, stale posteriors are not reusable
         self._pred: S | None = None  # the last prediction's backend state (fused backends)
-        self._counters: Counter[str] = Counter({k: 0 for k in COUNTER_NAMES})
+        self._counters = Tally({k: 0 for k in COUNTER_NAMES})
         self._cache: tuple[int, PredictedState] | None = None
         self._newest_committed: int | None = None
         # Only a subclass that overrides _on_commit is handed the committed steps.
@@ -469,7 +469,7 @@ class ReplayEstimator(Generic[S]):
         self._chk = {}
         self._dirty = self._noreuse = c if self._steps else None
         self._pred = None
-        self._counters = Counter({k: 0 for k in COUNTER_NAMES})
+        self._counters = Tally({k: 0 for k in COUNTER_NAMES})
         self._counters.update({k: int(v) for k, v in st.counters.items()})
         self._cache = None
         self._newest_committed = st.newest_committed

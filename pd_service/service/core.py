@@ -23,12 +23,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable
 from typing import Final
 
 from pd_service import native
 from pd_service.estimation.linear import set_tables_max_bytes
+from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Drain, Handle, Transport
 from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
@@ -81,7 +81,7 @@ class ServiceCore:
         set_tables_max_bytes(settings.tables_max_bytes)
         self.wake = threading.Event()
         self.ownership = Ownership(self.instance, settings.shard_tuple)
-        self.counters: Counter[str] = Counter()
+        self.counters = Tally()
         self.latency = LatencyWindow(settings.latency_window)
         self.publisher = Publisher(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())

@@ -20,11 +20,12 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
+from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Sample
 from pd_service.wire import SessionSpec, keys
@@ -98,7 +99,7 @@ class Dispatch:
     """The inboxes and the round-robin. Callbacks (``on_*``) run on transport threads; the
     rest on the worker, under the core's lock."""
 
-    def __init__(self, settings: Settings, counters: Counter[str], publisher: Publisher,
+    def __init__(self, settings: Settings, counters: Tally, publisher: Publisher,
                  ownership: Ownership, wake: threading.Event,
                  now_ns: Callable[[], int] = time.time_ns) -> None:
         self.settings = settings

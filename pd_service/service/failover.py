@@ -34,9 +34,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter
 
 from pd_service.checkpoint import Refused, encode_state, restore
+from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Query, Sample
 from pd_service.transport.keyexpr import intersects
@@ -92,7 +92,7 @@ class StateKeeper:
     """Writes checkpoints, sends replicas, keeps received replicas, resumes sessions."""
 
     def __init__(self, settings: Settings, store: SpecStore | None, ownership: Ownership,
-                 counters: Counter[str], publisher: Publisher) -> None:
+                 counters: Tally, publisher: Publisher) -> None:
         self.settings = settings
         self.store = store
         self.ownership = ownership

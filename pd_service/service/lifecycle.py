@@ -14,9 +14,10 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter, deque
+from collections import deque
 from collections.abc import Callable
 
+from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
 from pd_service.transport import Handle, Sample, Transport
@@ -54,7 +55,7 @@ class Lifecycle:
     """The known specs and the sessions started from them."""
 
     def __init__(self, transport: Transport, settings: Settings, *, store: SpecStore | None,
-                 ownership: Ownership, counters: Counter[str], dispatch: Dispatch,
+                 ownership: Ownership, counters: Tally, dispatch: Dispatch,
                  publisher: Publisher, spawn: Callable[[Callable[[], None]], None],
                  keeper: StateKeeper | None = None) -> None:
         self.t = transport

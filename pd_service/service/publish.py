@@ -27,11 +27,11 @@ from __future__ import annotations
 
 import heapq
 import logging
-from collections import Counter
 from collections.abc import Callable
 from typing import Final
 
 from pd_service.estimation import PredictedState
+from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
 from pd_service.transport import Transport
@@ -71,7 +71,7 @@ class Out:
 class Publisher:
     """The outbox, the tick schedule and the error-report limits. Worker thread only."""
 
-    def __init__(self, transport: Transport, settings: Settings, counters: Counter[str],
+    def __init__(self, transport: Transport, settings: Settings, counters: Tally,
                  latency: LatencyWindow, mono_ns: Callable[[], int], now: int) -> None:
         self.t = transport
         self.settings = settings

@@ -44,13 +44,13 @@ live_copy_of_recovered     live messages that repeat one already read back from 
 from __future__ import annotations
 
 import zlib
-from collections import Counter
 from typing import Final, Literal
 
 import numpy as np
 
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
+from pd_service.estimation.tally import Tally
 from pd_service.intake import Intake, Refusal
 from pd_service.ratelimit import TokenBucket
 from pd_service.wire import (
@@ -110,7 +110,7 @@ class Session:
         self.intake = Intake(spec, self.est, max_abs)
         self.state = state
         self.detail = detail
-        self.counters: Counter[str] = Counter()
+        self.counters = Tally()
         self.seq = 0
         self.published = 0
         self.now_step: int | None = None
@@ -225,7 +225,7 @@ class Session:
 
     def counters_snapshot(self) -> dict[str, int]:
         """Non-zero counters plus the always-present ``accepted`` and ``published``."""
-        out = dict(self.counters)  # one C-level copy (a comprehension over a Counter's
+        out = dict(self.counters)  # one C-level copy (a comprehension over a dict subclass's
         if 0 in out.values():      # items is a generic iteration: ~4,000 instructions)
             out = {k: v for k, v in out.items() if v}
         out.setdefault("accepted", 0)

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import Counter
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal, Protocol, cast
 
+from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Query
 from pd_service.transport.keyexpr import intersects
@@ -104,7 +104,7 @@ class Queries:
     ``routes``: every known session name -> its route; ``specs``: every known spec. Both
     are read under ``lock``."""
 
-    def __init__(self, settings: Settings, lock: threading.RLock, counters: Counter[str],
+    def __init__(self, settings: Settings, lock: threading.RLock, counters: Tally,
                  latency: LatencyWindow, ownership: Ownership,
                  routes: Mapping[str, Routed],
                  specs: Mapping[str, SessionSpec], now_ns: Callable[[], int],
