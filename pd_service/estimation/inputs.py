@@ -21,6 +21,7 @@ from .tally import Tally
 
 #: The C form of ``buf[start:end] = u`` (``_kalman.fill``; None: numpy, the reference).
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
+_FILL: Final = None if _KALMAN is None else _KALMAN.fill  # bound once
 #: Read per call from a C static (Final), not looked up as ``bisect.bisect_left``.
 _bisect_left: Final = bisect.bisect_left
 
@@ -82,8 +83,8 @@ class InputBuffer:
             end = self._off + nxt - self.origin if nxt is not None else self._buf.shape[0]
         else:
             end = start + 1
-        ck = _KALMAN
-        if ck is None or not ck.fill(self._buf, start, end, u):
+        fill = _FILL
+        if fill is None or not fill(self._buf, start, end, u):
             self._buf[start:end] = u
 
     def slice(self, step: int, m: int) -> np.ndarray:

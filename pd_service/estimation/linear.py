@@ -45,6 +45,8 @@ from .state import check_names, take
 #: None where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
 #: build): the numpy form below is the reference it is tested against.
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
+#: ``_kalman.advance`` bound once (a call through the module looks it up each time).
+_ADVANCE: Final = None if _KALMAN is None else _KALMAN.advance
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
@@ -346,10 +348,9 @@ class LinearBackend:
         :func:`kalman_update`. The result depends only on the parent state, the inputs and
         the packets, not on whether ``old`` was reused (the same operations either way).
         """
-        ck = _KALMAN if self.use_kernel else None
-        if ck is not None and m <= self._M:  # the whole step in one C call (_kalman.advance)
-            got = ck.advance(Gaussian, self._jumps, self._G, self._single, state, m, U,
-                             packets, old)
+        ck, adv = (_KALMAN, _ADVANCE) if self.use_kernel else (None, None)
+        if adv is not None and m <= self._M:  # the whole step in one C call (_kalman.advance)
+            got = adv(Gaussian, self._jumps, self._G, self._single, state, m, U, packets, old)
             if got is not None:  # else a packet the kernel hands back: this form from here
                 return cast(Gaussian, got)
         x, P = state[0], state[1]

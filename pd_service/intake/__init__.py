@@ -137,7 +137,10 @@ class Intake:
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
-                ok = est.add_checked_measurement(sensor, s, z, now_step)
+                # a variable of the class's own type: mypyc calls the method natively (on
+                # the narrowed protocol-typed ``est`` it made a Python-level method call)
+                rep: ReplayEstimator = est
+                ok = rep.add_checked_measurement(sensor, s, z, now_step)
             else:  # positional: a keyword call costs a compiled method an argument parse
                 ok = est.add_measurement(sensor, s, z, now_step, R)
         except ValueError as exc:
@@ -188,7 +191,8 @@ class Intake:
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
-                ok = est.add_checked_command(j, u, now_step if now_step >= 0 else None)
+                rep: ReplayEstimator = est  # (a native call, as in measurement)
+                ok = rep.add_checked_command(j, u, now_step if now_step >= 0 else None)
             else:
                 ok = est.add_command(j, u, now_step if now_step >= 0 else None)
         except (ValueError, IndexError) as exc:

@@ -31,6 +31,7 @@ from pd_service.native import kernel
 
 #: The C form of :func:`inspect_packed` where the hot path runs compiled (else None).
 _MOMENTS: Final = kernel("pd_service.service._moments")
+_MOMENTS_OF: Final = None if _MOMENTS is None else _MOMENTS.moments  # bound once
 _pack: Final = msgpack.Packer(use_bin_type=True).pack
 
 #: Session time between two snapshots of a healthy estimator (s).
@@ -80,10 +81,10 @@ def inspect_packed(x: np.ndarray, P: np.ndarray) -> tuple[str | None, bytes, byt
     runs compiled (``_moments.c``: ~0.3 µs at n = 4, against ~1.5 µs for the lists, the
     sums and the packing); this Python form otherwise, and for arrays it does not take
     (another dtype or shape)."""
-    k = _MOMENTS
+    k = _MOMENTS_OF
     if k is not None:
         try:
-            verdict, xb, pb = k.moments(x, P)
+            verdict, xb, pb = k(x, P)
         except TypeError:
             pass
         else:
