@@ -25,10 +25,11 @@ import importlib
 import os
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib.machinery import ModuleSpec
 from pathlib import Path
 from types import ModuleType
+from typing import Any, cast
 
 #: The per-message path: decode and checks, the estimator's window and bookkeeping,
 #: publishing. (Module names; setup.py compiles their files.)
@@ -155,6 +156,15 @@ def kernel(name: str) -> ModuleType | None:
         warnings.warn(f"pd_service: the C kernel {name} does not load; running its numpy "
                       "form (rebuild: make venv)", RuntimeWarning, stacklevel=2)
         return None
+
+
+def kernel_function(name: str, attr: str) -> Callable[..., Any] | None:
+    """The function ``attr`` of the C kernel ``name`` (None where :func:`kernel` is None).
+    Bound once at import into a ``Final`` module attribute, a compiled caller reads it from
+    a C static and calls it directly: a call through the module object looks the function
+    up on the module each time (~300 instructions)."""
+    mod = kernel(name)
+    return None if mod is None else cast("Callable[..., Any]", getattr(mod, attr))
 
 
 def _decide() -> str:

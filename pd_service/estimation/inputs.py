@@ -15,13 +15,12 @@ from typing import Final
 import numpy as np
 from mypy_extensions import mypyc_attr
 
-from pd_service.native import kernel
+from pd_service.native import kernel_function
 
 from .tally import Tally
 
 #: The C form of ``buf[start:end] = u`` (``_kalman.fill``; None: numpy, the reference).
-_KALMAN: Final = kernel("pd_service.estimation._kalman")
-_FILL: Final = None if _KALMAN is None else _KALMAN.fill  # bound once
+_FILL: Final = kernel_function("pd_service.estimation._kalman", "fill")
 #: Read per call from a C static (Final), not looked up as ``bisect.bisect_left``.
 _bisect_left: Final = bisect.bisect_left
 
@@ -109,8 +108,9 @@ class InputBuffer:
         steps = self._cmd_steps
         # the commands' rows in one copy (fancy indexing), handed out as views of it: they
         # share nothing with the buffer (a ``.copy()`` per row cost ~1,100 instructions)
-        rows = self._buf[np.add(steps, self._off - self.origin, dtype=np.intp)] if steps \
-            else self._buf[:0].copy()
+        idx = np.array(steps, dtype=np.intp)
+        idx += self._off - self.origin
+        rows = self._buf[idx]
         cmds = list(zip(steps, rows, strict=True))
         return self.origin, self._buf[self._off].copy(), cmds
 

@@ -35,7 +35,7 @@ from typing import Any, Final, NamedTuple, cast
 import numpy as np
 from mypy_extensions import mypyc_attr
 
-from pd_service.native import kernel
+from pd_service.native import kernel, kernel_function
 
 from .model import LinearModel, Sensor
 from .replay import Packet
@@ -45,8 +45,7 @@ from .state import check_names, take
 #: None where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
 #: build): the numpy form below is the reference it is tested against.
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
-#: ``_kalman.advance`` bound once (a call through the module looks it up each time).
-_ADVANCE: Final = None if _KALMAN is None else _KALMAN.advance
+_ADVANCE: Final = kernel_function("pd_service.estimation._kalman", "advance")
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 

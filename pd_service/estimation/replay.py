@@ -60,7 +60,7 @@ from typing import Final, Generic, NamedTuple, Protocol, TypeVar
 import numpy as np
 from mypy_extensions import mypyc_attr
 
-from pd_service.native import kernel
+from pd_service.native import kernel_function
 
 from .checks import as_covariance, as_step, as_vector
 from .inputs import InputBuffer
@@ -106,7 +106,7 @@ _new_tuple: Final = tuple.__new__
 #: ``_kalman.freeze``: arrays made read-only in one C call (``ndarray.setflags`` parses its
 #: keywords, ~1,000 instructions a call); None: ``setflags``, where the hot path is not
 #: compiled.
-_FREEZE: Final = getattr(kernel("pd_service.estimation._kalman"), "freeze", None)
+_FREEZE: Final = kernel_function("pd_service.estimation._kalman", "freeze")
 
 
 def _read_only(a: np.ndarray) -> None:

@@ -20,16 +20,14 @@ from typing import Any, Final
 import msgpack
 import numpy as np
 
-from pd_service.native import kernel
+from pd_service.native import kernel, kernel_function
 from pd_service.wire import MAX_MESSAGE_BYTES
 
 #: The C form of both readers (None: the Python form runs).
 _FAST: Final = kernel("pd_service.intake._fastread")
-# the two readers and the size bound bound once, read from C statics: a call through the
-# module object looked the function up on it each time (~300 instructions)
-_READ_MEASUREMENT: Final = None if _FAST is None else _FAST.read_measurement
-_READ_COMMAND: Final = None if _FAST is None else _FAST.read_command
-_MAX_BYTES: Final = MAX_MESSAGE_BYTES
+_READ_MEASUREMENT: Final = kernel_function("pd_service.intake._fastread", "read_measurement")
+_READ_COMMAND: Final = kernel_function("pd_service.intake._fastread", "read_command")
+_MAX_BYTES: Final = MAX_MESSAGE_BYTES  # read from a C static, not the module's globals
 
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 _MEAS_KEYS = frozenset({"v", "session", "sensor", "seq", "step", "t_ns", "z", "R"})

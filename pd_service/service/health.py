@@ -27,11 +27,11 @@ from typing import Final
 import msgpack
 import numpy as np
 
-from pd_service.native import kernel
+from pd_service.native import kernel, kernel_function
 
 #: The C form of :func:`inspect_packed` where the hot path runs compiled (else None).
 _MOMENTS: Final = kernel("pd_service.service._moments")
-_MOMENTS_OF: Final = None if _MOMENTS is None else _MOMENTS.moments  # bound once
+_MOMENTS_OF: Final = kernel_function("pd_service.service._moments", "moments")
 _pack: Final = msgpack.Packer(use_bin_type=True).pack
 
 #: Session time between two snapshots of a healthy estimator (s).
