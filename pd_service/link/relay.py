@@ -243,6 +243,9 @@ class LinkRelay:
         self._limits = config.limits
         self._held = 0  # messages in the heap (guarded by _cond)
         self._held_bytes = 0  # their bytes, HELD_OVERHEAD_BYTES each included (idem)
+        #: Copies taken from the heap and not yet published (idem): still pending, so that
+        #: ``pending == 0`` in the stats means every due copy went out
+        self._releasing = 0
 
         # output publishers, LRU (most recent last); used by the releasing thread only
         self._publishers: OrderedDict[str, Publisher] = OrderedDict()
@@ -358,7 +361,7 @@ class LinkRelay:
     def stats(self) -> dict[str, Any]:
         gen = self._gen
         with self._cond:
-            pending, held_bytes = len(self._heap), self._held_bytes
+            pending, held_bytes = len(self._heap) + self._releasing, self._held_bytes
         return {
             "instance": self.instance,
             "generation": gen.number,
@@ -603,9 +606,17 @@ class LinkRelay:
             st.held -= 1
             st.held_bytes -= size
             batch.append(item)
+        self._releasing += len(batch)
         return batch
 
     def _publish(self, batch: list[tuple[Any, ...]]) -> None:
+        try:
+            self._put_all(batch)
+        finally:
+            with self._cond:
+                self._releasing -= len(batch)
+
+    def _put_all(self, batch: list[tuple[Any, ...]]) -> None:
         clock = self._clock
         for release_ns, _, route, payload, encoding, attachment, is_delete, arrival, _n in batch:
             t = clock()
