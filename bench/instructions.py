@@ -22,7 +22,10 @@ bench/worker.py measure time. Needs valgrind (Debian: ``apt-get install valgrind
 compiled build (``make venv``): the count is taken in the compiled ``run_once``.
 
 Usage: python bench/instructions.py [--sessions 100] [--steps 10,30] [--compare DIR] [--top 30]
-                                   [--keep DIR] [--epochs shared|distinct]
+                                   [--keep DIR] [--epochs shared|distinct] [--checkpoints]
+  --checkpoints   the sessions are checkpointed as in the daemon (bench/worker.py
+                  --checkpoints: every simulated second); counted are the worker's export and
+                  encoding, not the writer thread's file writes
   --compare DIR   a second checkout (e.g. a ``git worktree`` of the baseline, built with
                   ``setup.py build_ext --inplace``): both builds side by side, with the ratio
 """
@@ -65,15 +68,15 @@ def status(root: Path) -> str:
     return out.stdout.strip()
 
 
-def counts(root: Path, sessions: int, steps: int, out_dir: Path, epochs: str
-           ) -> tuple[int, dict[str, int]]:
+def counts(root: Path, sessions: int, steps: int, out_dir: Path, epochs: str,
+           extra: list[str]) -> tuple[int, dict[str, int]]:
     """Instructions inside run_once for one run of this checkout's bench/worker.py on the
     pd_service of ``root``: the total and the inclusive count per function."""
     out = out_dir / f"callgrind.{steps}.out"
     cmd = ["valgrind", "--tool=callgrind", f"--toggle-collect={RUN_ONCE}",
            f"--callgrind-out-file={out}", sys.executable, str(HERE / "worker.py"),
            "--sessions", str(sessions), "--steps", str(steps), "--epochs", epochs,
-           "--no-gauge"]
+           "--no-gauge", *extra]
     env = {**os.environ, "PYTHONPATH": str(root), "PYTHONHASHSEED": "0",
            "OPENBLAS_NUM_THREADS": "1"}
     run = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True)
@@ -93,8 +96,8 @@ def counts(root: Path, sessions: int, steps: int, out_dir: Path, epochs: str
     return int(total.group(1)), per
 
 
-def measure(root: Path, sessions: int, steps: tuple[int, int], keep: str, epochs: str
-            ) -> tuple[float, dict[str, float]]:
+def measure(root: Path, sessions: int, steps: tuple[int, int], keep: str, epochs: str,
+            extra: list[str]) -> tuple[float, dict[str, float]]:
     """Instructions per session-step in steady state, in all of run_once and per function.
     ``keep``: a directory to leave callgrind's files in (else a temporary one)."""
     with tempfile.TemporaryDirectory(prefix="pd-instr-") as tmp:
@@ -104,7 +107,7 @@ def measure(root: Path, sessions: int, steps: tuple[int, int], keep: str, epochs
         for s in steps:
             print(f"  {root}: {sessions} sessions, {s} steps under callgrind ...",
                   file=sys.stderr, flush=True)
-            runs.append(counts(root, sessions, s, out_dir, epochs))
+            runs.append(counts(root, sessions, s, out_dir, epochs, extra))
     (t_a, f_a), (t_b, f_b) = runs
     div = sessions * (steps[1] - steps[0])
     per_fn = {k: (f_b[k] - f_a.get(k, 0)) / div for k in f_b}
@@ -122,7 +125,10 @@ def main() -> None:
     ap.add_argument("--keep", default="", metavar="DIR",
                     help="leave callgrind's files in DIR/<checkout name>/ (read them with "
                          "callgrind_annotate --inclusive=yes --tree=calling)")
+    ap.add_argument("--checkpoints", action="store_true",
+                    help="checkpoint every simulated second, as the daemon does")
     args = ap.parse_args()
+    extra = ["--checkpoints"] if args.checkpoints else []
     if shutil.which("valgrind") is None or shutil.which("callgrind_annotate") is None:
         sys.exit("valgrind is not installed (Debian: apt-get install valgrind)")
     steps_a, steps_b = (int(v) for v in args.steps.split(","))
@@ -136,11 +142,12 @@ def main() -> None:
             sys.exit(f"{root}: the build is not compiled ({st}); run `make venv` (or "
                      "`setup.py build_ext --inplace` in a worktree)")
         total, per_fn = measure(root, args.sessions, (steps_a, steps_b), args.keep,
-                                args.epochs)
+                                args.epochs, extra)
         results.append((root, st, total, per_fn))
 
     print(f"\nworker instructions per session-step ({args.sessions} sessions, {args.epochs} "
-          f"epochs, steps {steps_b} minus {steps_a}; inside ServiceCore.run_once)")
+          f"epochs, {'checkpoints every second, ' if args.checkpoints else ''}"
+          f"steps {steps_b} minus {steps_a}; inside ServiceCore.run_once)")
     head = "| function | " + " | ".join(str(r[0]) for r in results)
     print(head + (" | ratio |" if len(results) == 2 else " |"))
     print("|---" * (len(results) + 1 + (len(results) == 2)) + "|")
@@ -158,6 +165,7 @@ def main() -> None:
         label = _LIBRARY.get(k, k.removeprefix("CPyDef_").replace("___", "."))
         row(label, [r[3].get(k, 0.0) for r in results])
     print(json.dumps({"bench": "instructions", "sessions": args.sessions, "epochs": args.epochs,
+                      "checkpoints": args.checkpoints,
                       "steps": [steps_a, steps_b],
                       "builds": [{"root": str(r[0]), "status": r[1],
                                   "instructions_per_session_step": round(r[2])}

@@ -148,6 +148,10 @@ def run_loadgen(args: argparse.Namespace) -> None:
                     keys.command_key(s)) for s in names]
     put = t.put
     displays = []
+    if args.clients == "declared":
+        # the same plain puts, of keys declared once (Transport.declare_keys, as the daemon
+        # declares its own): a put carries the key's id and reuses its cached route
+        t.declare_keys([key for trio in sensor_keys for key in trio])
     if args.clients == "sdk":
         # what pd_client declares: Robot and Operator a cached publisher per sensor and
         # command key (zenoh-ext advanced publishers: a cache, a liveliness token), Display a
@@ -386,7 +390,7 @@ def main() -> None:
     ap.add_argument("--compare-pure", dest="compare_pure", action="store_true",
                     help="alternate compiled and pure-Python runs of this checkout")
     ap.add_argument("--threads", action="store_true", help="print the daemon's busiest threads")
-    ap.add_argument("--clients", choices=("plain", "sdk"), default="plain",
+    ap.add_argument("--clients", choices=("plain", "declared", "sdk"), default="plain",
                     help="plain: the load generator sends each message with a session put "
                          "and subscribes to 10 sessions' predictions; sdk: it declares what "
                          "pd_client's Robot, Operator and Display declare for every session "

@@ -108,3 +108,25 @@ def test_tensors_of_mixed_shapes_are_converted_one_by_one():
     rows = t.rows([np.zeros(2), np.ones(3)])
     assert rows == [{"shape": [2], "data": [0.0, 0.0]}, {"shape": [3], "data": [1.0] * 3}]
     assert t.finite
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_the_c_form_writes_what_the_python_form_writes(monkeypatch, name):
+    """Where the C kernel is built (_encode.pack), the checkpoint is its bytes, which the
+    Python form (dicts and lists of floats, msgpack) must equal for every backend's state,
+    with counters and ints of every size class."""
+    from pd_service import checkpoint
+
+    if checkpoint._PACK is None:
+        pytest.skip("the C kernel is not in use here: the Python form runs everywhere")
+    st = _fed(name)
+    kw = dict(KW, session_counters={"a": 2**64 - 1, "é" * 40: -(2**63), "k" * 300: 0},
+              made_ns=2**63 + 5, published=2**32, seq=65_536)
+    fields = checkpoint._fields(st, checkpoint._as_array, checkpoint._as_arrays,
+                                **kw)  # type: ignore[arg-type]
+    c_form = checkpoint._PACK(fields)
+    assert c_form is not None  # the C form wrote it: no silent fallback for ordinary states
+    with monkeypatch.context() as m:
+        m.setattr(checkpoint, "_PACK", None)
+        assert encode_state(st, **kw) == c_form  # type: ignore[arg-type]
+    assert encode_state(st, **kw) == c_form  # type: ignore[arg-type]

@@ -19,10 +19,25 @@
    they are. None for anything else (an int that is not exactly an int, or beyond
    [-2^63, 2^64 - 1]; counters not exactly a dict; a key not a str or not encodable; a
    value not exactly an int): the caller then runs the Python form, the reference, which
-   the tests hold this to byte for byte. No state, no GIL release. */
+   the tests hold this to byte for byte. No state, no GIL release.
+
+       pack(obj) -> bytes or None
+
+   msgpack of a tree of dict, list, tuple, str, int, float, bool and None, byte for byte as
+   msgpack-python's ``packb(obj, use_bin_type=True)`` writes it (maps in the dict's order),
+   where a float64 numpy array stands for its wire form {"shape": [...], "data": [...]}
+   (pd_service.wire.state.Tensors: the values in C order). What the checkpoints' encoder
+   (pd_service.checkpoint.encode_state) builds per session and second, without the Python
+   dicts and lists of floats the wire form would need. None (the Python form, the
+   reference, then runs) for anything else: another type or a subclass, an array of
+   another dtype or byte order, a non-finite value in an array, an int beyond msgpack's
+   range, a str that is not UTF-8 encodable, nesting deeper than MAXDEPTH. */
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#define NPY_NO_DEPRECATED_API NPY_1_7_API_VERSION
+#include <numpy/arrayobject.h>
+#include <math.h>
 #include <stdint.h>
 #include <string.h>
 
@@ -208,7 +223,164 @@ static PyObject *prediction(PyObject *self, PyObject *const *args, Py_ssize_t na
     return out;
 }
 
+/* --- pack: a growable buffer and a walk over the tree ------------------------------------ */
+
+#define MAXDEPTH 32
+
+typedef struct {
+    unsigned char *buf;
+    Py_ssize_t len, cap;
+} Buf;
+
+/* Room for n more bytes: a pointer to them, NULL (MemoryError set) if it cannot grow. */
+static unsigned char *room(Buf *b, Py_ssize_t n) {
+    if (b->len + n > b->cap) {
+        Py_ssize_t cap = b->cap ? b->cap : 1024;
+        while (cap < b->len + n) cap *= 2;
+        unsigned char *nb = PyMem_Realloc(b->buf, (size_t)cap);
+        if (nb == NULL) { PyErr_NoMemory(); return NULL; }
+        b->buf = nb;
+        b->cap = cap;
+    }
+    return b->buf + b->len;
+}
+
+/* msgpack's array header (fixarray, array 16, array 32) */
+static Py_ssize_t array_head_len(Py_ssize_t n) { return n <= 15 ? 1 : (n <= 0xffff ? 3 : 5); }
+
+static unsigned char *put_array_head(unsigned char *p, Py_ssize_t n) {
+    if (n <= 15) { *p++ = (unsigned char)(0x90 | n); return p; }
+    if (n <= 0xffff) { *p++ = 0xdc; return put_be(p, (uint64_t)n, 2); }
+    *p++ = 0xdd;
+    return put_be(p, (uint64_t)n, 4);
+}
+
+enum { PACK_OK = 0, PACK_OTHER = 1, PACK_ERROR = -1 };
+
+#define NEED(n) do { p = room(b, (n)); if (p == NULL) return PACK_ERROR; } while (0)
+
+/* The wire form of a float64 array: {"shape": [d0, ...], "data": [v0, ...]} */
+static int pack_array(Buf *b, PyArrayObject *a) {
+    if (PyArray_TYPE(a) != NPY_DOUBLE || !PyArray_ISNOTSWAPPED(a)) return PACK_OTHER;
+    int nd = PyArray_NDIM(a);
+    npy_intp size = PyArray_SIZE(a);
+    if (size > 0xffffffffLL) return PACK_OTHER;
+    PyArrayObject *c = (PyArrayObject *)PyArray_GETCONTIGUOUS(a);
+    if (c == NULL) return PACK_ERROR;
+    const double *v = (const double *)PyArray_DATA(c);
+    for (npy_intp j = 0; j < size; j++) {
+        if (!isfinite(v[j])) { Py_DECREF(c); return PACK_OTHER; }
+    }
+    Int dims[NPY_MAXDIMS];
+    Py_ssize_t n = 1 + 6 + array_head_len(nd) + 5 + array_head_len(size) + 9 * size;
+    for (int d = 0; d < nd; d++) {
+        dims[d].neg = 0;
+        dims[d].u = (uint64_t)PyArray_DIM(a, d);
+        n += int_len(&dims[d]);
+    }
+    unsigned char *p = room(b, n);
+    if (p == NULL) { Py_DECREF(c); return PACK_ERROR; }
+    *p++ = 0x82;
+    memcpy(p, "\xa5shape", 6); p += 6;
+    p = put_array_head(p, nd);
+    for (int d = 0; d < nd; d++) p = put_int(p, &dims[d]);
+    memcpy(p, "\xa4" "data", 5); p += 5;
+    p = put_array_head(p, size);
+    for (npy_intp j = 0; j < size; j++) {
+        uint64_t bits;
+        memcpy(&bits, &v[j], 8);
+        *p++ = 0xcb;
+        p = put_be(p, bits, 8);
+    }
+    b->len = p - b->buf;
+    Py_DECREF(c);
+    return PACK_OK;
+}
+
+static int pack_obj(Buf *b, PyObject *o, int depth) {
+    unsigned char *p;
+    if (o == Py_None) { NEED(1); *p = 0xc0; b->len += 1; return PACK_OK; }
+    if (o == Py_True || o == Py_False) {
+        NEED(1); *p = o == Py_True ? 0xc3 : 0xc2; b->len += 1; return PACK_OK;
+    }
+    if (PyLong_CheckExact(o)) {
+        Int v;
+        if (!get_int(o, &v)) return PACK_OTHER;
+        NEED(9);
+        b->len = put_int(p, &v) - b->buf;
+        return PACK_OK;
+    }
+    if (PyFloat_CheckExact(o)) {
+        double d = PyFloat_AS_DOUBLE(o);
+        uint64_t bits;
+        memcpy(&bits, &d, 8);
+        NEED(9);
+        *p++ = 0xcb;
+        b->len = put_be(p, bits, 8) - b->buf;
+        return PACK_OK;
+    }
+    if (PyUnicode_CheckExact(o)) {
+        Py_ssize_t k;
+        const char *s = PyUnicode_AsUTF8AndSize(o, &k);
+        if (s == NULL) { PyErr_Clear(); return PACK_OTHER; }
+        if (k > 0xffffffffLL) return PACK_OTHER;
+        NEED(head_len(k, 0) + k);
+        p = put_head(p, k, 0);
+        memcpy(p, s, (size_t)k);
+        b->len = p + k - b->buf;
+        return PACK_OK;
+    }
+    if (depth >= MAXDEPTH) return PACK_OTHER;
+    if (PyDict_CheckExact(o)) {
+        Py_ssize_t n = PyDict_GET_SIZE(o), pos = 0, seen = 0;
+        if (n > 0xffffffffLL) return PACK_OTHER;
+        NEED(head_len(n, 1));
+        b->len = put_head(p, n, 1) - b->buf;
+        PyObject *k, *v;
+        while (PyDict_Next(o, &pos, &k, &v)) {
+            int r = pack_obj(b, k, depth + 1);
+            if (r == PACK_OK) r = pack_obj(b, v, depth + 1);
+            if (r != PACK_OK) return r;
+            seen++;
+        }
+        return seen == n ? PACK_OK : PACK_OTHER;
+    }
+    if (PyList_CheckExact(o) || PyTuple_CheckExact(o)) {
+        int list = PyList_CheckExact(o);
+        Py_ssize_t n = list ? PyList_GET_SIZE(o) : PyTuple_GET_SIZE(o);
+        if (n > 0xffffffffLL) return PACK_OTHER;
+        NEED(array_head_len(n));
+        b->len = put_array_head(p, n) - b->buf;
+        for (Py_ssize_t j = 0; j < n; j++) {
+            /* a list's length is read again: nothing here runs Python code, but be safe */
+            if (list && j >= PyList_GET_SIZE(o)) return PACK_OTHER;
+            int r = pack_obj(b, list ? PyList_GET_ITEM(o, j) : PyTuple_GET_ITEM(o, j),
+                             depth + 1);
+            if (r != PACK_OK) return r;
+        }
+        return PACK_OK;
+    }
+    if (PyArray_CheckExact(o)) return pack_array(b, (PyArrayObject *)o);
+    return PACK_OTHER;
+}
+
+#undef NEED
+
+static PyObject *pack(PyObject *self, PyObject *obj) {
+    (void)self;
+    Buf b = {NULL, 0, 0};
+    int r = pack_obj(&b, obj, 0);
+    PyObject *out = NULL;
+    if (r == PACK_OK) out = PyBytes_FromStringAndSize((const char *)b.buf, b.len);
+    else if (r == PACK_OTHER) out = Py_NewRef(Py_None);
+    PyMem_Free(b.buf);
+    return out;
+}
+
 static PyMethodDef methods[] = {
+    {"pack", (PyCFunction)pack, METH_O,
+     "pack(obj) -> msgpack bytes of a tree whose float64 arrays stand for their wire form "
+     "{shape, data}, or None (the Python form then runs)"},
     {"prediction", (PyCFunction)(void (*)(void))prediction, METH_FASTCALL,
      "prediction(parts, seq, step, t_ns, x_data, P_data, newest_step, made_ns, counters) "
      "-> the Prediction's msgpack bytes, or None (the Python form then runs)"},
@@ -217,10 +389,12 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_encode",
-    "PredictionEncoder.encode_packed's per-message part (pd_service.wire.convert), in C.", -1,
+    "PredictionEncoder.encode_packed's per-message part (pd_service.wire.convert) and the "
+    "checkpoints' msgpack (pd_service.checkpoint), in C.", -1,
     methods, NULL, NULL, NULL, NULL,
 };
 
 PyMODINIT_FUNC PyInit__encode(void) {
+    import_array();
     return PyModule_Create(&module);
 }

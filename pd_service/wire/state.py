@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from typing import Annotated, Any
+from typing import Annotated, Any, Final
 
 import msgpack
 import numpy as np
@@ -28,6 +28,8 @@ from pydantic import (
     model_validator,
 )
 from pydantic_core import PydanticCustomError
+
+from pd_service.native import kernel_function
 
 from .arrays import NON_FINITE_ERROR, Matrix, Vector, psd_problem, to_wire
 from .base import WireModel
@@ -216,6 +218,13 @@ class Tensors:
         shape = list(stack.shape[1:])
         return [{"shape": shape.copy(), "data": row}
                 for row in stack.reshape(len(arrays), -1).tolist()]
+
+
+#: ``pack(fields)``: msgpack of a SessionState's fields whose arrays are given as float64
+#: numpy arrays, each written in its wire form (pd_service/wire/_encode.c), or None for
+#: anything else; None where the hot path runs as pure Python. The caller's Python form
+#: (:class:`Tensors` and :func:`pack_state_fields`) is the reference.
+PACK_WITH_ARRAYS: Final = kernel_function("pd_service.wire._encode", "pack")
 
 
 def pack_state_fields(obj: dict[str, Any], finite: bool) -> bytes | None:

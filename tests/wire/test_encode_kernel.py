@@ -77,3 +77,76 @@ def test_what_it_does_not_take_goes_to_the_python_form(monkeypatch):
         _ENCODE.prediction(P, 0, 0, 0, bytearray(xd), pd, None, 0, {})
     with pytest.raises(TypeError):
         _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0)
+
+
+# --- pack: the checkpoints' msgpack (pd_service.checkpoint.encode_state) -------------------
+
+def wire_form(o):
+    """What msgpack is given where the C form takes arrays: their wire form (Tensors)."""
+    if isinstance(o, np.ndarray):
+        return {"shape": list(o.shape), "data": o.ravel().tolist()}
+    if isinstance(o, dict):
+        return {wire_form(k): wire_form(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [wire_form(v) for v in o]
+    return o
+
+
+def random_tree(rng, depth=0):
+    kind = rng.integers(0, 9 if depth < 4 else 5)
+    if kind == 0:
+        return [None, True, False][rng.integers(0, 3)]
+    if kind == 1:
+        v = EDGES[int(rng.integers(0, len(EDGES)))] + int(rng.integers(-1, 2))
+        return v if -(2**63) <= v <= 2**64 - 1 else 0
+    if kind == 2:
+        return float(rng.normal() * 10.0 ** rng.integers(-300, 300))
+    if kind == 3:
+        return "é" * int(rng.integers(0, 3)) + "k" * int(
+            [0, 5, 31, 32, 255, 256, 65_535, 65_536][rng.integers(0, 8)])
+    if kind == 4:
+        return float(["nan", "inf", "-inf"][rng.integers(0, 3)])  # packed as they are
+    if kind == 5:
+        shape = tuple(int(d) for d in rng.integers(0, 5, size=rng.integers(0, 4)))
+        a = rng.normal(size=shape)
+        return a.T if rng.integers(0, 2) else a  # strided too
+    n = int([0, 1, 15, 16, 17][rng.integers(0, 5)])
+    if kind == 6:
+        return {f"k{i}": random_tree(rng, depth + 1) for i in range(n)}
+    if kind == 7:
+        return [random_tree(rng, depth + 1) for _ in range(n)]
+    return tuple(random_tree(rng, depth + 1) for _ in range(n))
+
+
+def test_pack_writes_what_msgpack_writes_of_the_wire_form():
+    rng = np.random.default_rng(11)
+    big = {"l": list(range(70_000)), "a": np.arange(70_000.0), "s": "x" * 70_000,
+           "m": {str(i): i for i in range(70_000)}}
+    for obj in [big] + [random_tree(rng) for _ in range(3000)]:
+        got = _ENCODE.pack(obj)
+        want = msgpack.packb(wire_form(obj), use_bin_type=True)
+        assert got == want, obj
+
+
+@pytest.mark.parametrize("obj", [
+    2**64, -(2**63) - 1, True + 0.5j, b"bytes", bytearray(b"x"), np.float64(1.0), np.int64(1),
+    np.array([1, 2]), np.array([1.0], dtype=">f8"), np.array([1.0], dtype=np.float32),
+    np.array([0.0, np.nan]), np.array([[np.inf]]), {"k": np.array([1.0, -np.inf])},
+    [1, 2, object()], {1.5: object()}, "\ud800", type("L", (list,), {})([1]),
+    type("D", (dict,), {})(a=1), type("S", (str,), {})("s"), type("I", (int,), {})(1),
+], ids=repr)
+def test_pack_declines_what_it_does_not_write(obj):
+    """Another type, a subclass, another dtype or byte order, a non-finite array value, an
+    int beyond msgpack's range, a str that is not UTF-8: None (the Python form runs)."""
+    assert _ENCODE.pack(obj) is None
+    assert _ENCODE.pack({"deep": [{"x": obj}]}) is None
+
+
+def test_pack_declines_deep_nesting():
+    deep: list = []
+    x = deep
+    for _ in range(40):
+        x.append([])
+        x = x[0]
+    assert _ENCODE.pack(deep) is None
+    assert _ENCODE.pack([[[[1]]]]) == msgpack.packb([[[[1]]]])
