@@ -23,6 +23,7 @@ compiled build (``make venv``): the count is taken in the compiled ``run_once``.
 
 Usage: python bench/instructions.py [--sessions 100] [--steps 10,30] [--compare DIR] [--top 30]
                                    [--keep DIR] [--epochs shared|distinct] [--checkpoints]
+                                   [--every 20]
   --checkpoints   the sessions are checkpointed as in the daemon (bench/worker.py
                   --checkpoints: every simulated second); counted are the worker's export and
                   encoding, not the writer thread's file writes
@@ -127,8 +128,11 @@ def main() -> None:
                          "callgrind_annotate --inclusive=yes --tree=calling)")
     ap.add_argument("--checkpoints", action="store_true",
                     help="checkpoint every simulated second, as the daemon does")
+    ap.add_argument("--every", type=int, default=20,
+                    help="bench/worker.py --every: the worker runs after every this many "
+                         "sessions' messages (smaller: more rounds, each with fewer sessions)")
     args = ap.parse_args()
-    extra = ["--checkpoints"] if args.checkpoints else []
+    extra = (["--checkpoints"] if args.checkpoints else []) + ["--every", str(args.every)]
     if shutil.which("valgrind") is None or shutil.which("callgrind_annotate") is None:
         sys.exit("valgrind is not installed (Debian: apt-get install valgrind)")
     steps_a, steps_b = (int(v) for v in args.steps.split(","))
@@ -147,6 +151,7 @@ def main() -> None:
 
     print(f"\nworker instructions per session-step ({args.sessions} sessions, {args.epochs} "
           f"epochs, {'checkpoints every second, ' if args.checkpoints else ''}"
+          f"a round every {args.every} sessions, "
           f"steps {steps_b} minus {steps_a}; inside ServiceCore.run_once)")
     head = "| function | " + " | ".join(str(r[0]) for r in results)
     print(head + (" | ratio |" if len(results) == 2 else " |"))
@@ -165,7 +170,7 @@ def main() -> None:
         label = _LIBRARY.get(k, k.removeprefix("CPyDef_").replace("___", "."))
         row(label, [r[3].get(k, 0.0) for r in results])
     print(json.dumps({"bench": "instructions", "sessions": args.sessions, "epochs": args.epochs,
-                      "checkpoints": args.checkpoints,
+                      "checkpoints": args.checkpoints, "every": args.every,
                       "steps": [steps_a, steps_b],
                       "builds": [{"root": str(r[0]), "status": r[1],
                                   "instructions_per_session_step": round(r[2])}

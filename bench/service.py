@@ -34,8 +34,14 @@ Usage: python bench/service.py [--sessions 10,100,500,1000] [--duration 10] [--w
                           (the daemon with PD_SERVICE_PURE=1; pd_service.native)
        [--profile]        cProfile the daemon's worker thread, print the top functions
        [--threads]        print the CPU seconds of the daemon's busiest threads
-       [--clients plain]  the load generator's senders and displays: plain puts and 10
-                          subscriptions, or "sdk": declared as pd_client declares them
+       [--perf]           sample the daemon with Linux perf (Debian: linux-perf) over the
+                          measurement interval: where its CPU goes by thread and library
+                          (Zenoh's threads, the interpreter, the compiled modules, numpy,
+                          the C kernels) and the worker's busiest functions
+       [--clients declared]  the load generator's senders and displays: plain puts of keys
+                          declared once and 10 subscriptions; "plain": the same puts of
+                          undeclared keys (the key's string in every message); "sdk":
+                          declared as pd_client declares them
 Settings reach the daemon through the environment, e.g. PD_SERVICE_BATCH_BUDGET=32. The
 benchmark raises admission's limits unless they are set: PD_SERVICE_CPU_BUDGET=1000,
 PD_SERVICE_MEMORY_BUDGET_BYTES=8 GiB, PD_SERVICE_CONFIG_RATE_TOTAL and _BURST_TOTAL=100000,
@@ -214,6 +220,37 @@ def run_loadgen(args: argparse.Namespace) -> None:
 
 # ------------------------------------------------------------------ driver --------------
 
+def start_perf(pid: int, duration: float, tmp: str) -> tuple[subprocess.Popen, str]:
+    """``perf record`` of the daemon ``pid`` (all its threads, 499 samples per second and
+    CPU, no call graphs: little overhead) for ``duration`` s, into a file in ``tmp``."""
+    out = f"{tmp}/perf.data"
+    proc = subprocess.Popen(["perf", "record", "-F", "499", "-p", str(pid), "-o", out, "-q",
+                             "--", "sleep", f"{duration:.1f}"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return proc, out
+
+
+def print_perf(proc: subprocess.Popen, out: str, top: int = 25) -> None:
+    """Where the daemon's samples fell: per thread and library, then the worker thread's
+    busiest functions (mypyc's compiled functions are named CPyDef_<module>___<name>)."""
+    _, err = proc.communicate(timeout=120)
+    if proc.returncode != 0:
+        print(f"  perf record failed ({proc.returncode}): {err.strip()[-300:]}")
+        return
+
+    def report(*opts: str) -> list[str]:
+        r = subprocess.run(["perf", "report", "-i", out, "--no-children", "-q", "-g", "none",
+                            *opts], capture_output=True, text=True)
+        return [ln.rstrip() for ln in r.stdout.splitlines() if ln.strip()]
+
+    print("  perf, daemon's samples by thread and library:")
+    for ln in report("--sort", "comm,dso")[:top]:
+        print("   ", ln)
+    print("  perf, the worker thread's busiest functions:")
+    for ln in report("--comm", "pd-worker", "--sort", "dso,sym")[:top]:
+        print("   ", ln)
+
+
 def query_status(t, instance: str):
     """The instance's ServiceStatus; an overloaded daemon may answer late: three tries."""
     from pd_service.wire import ServiceStatus, decode, keys
@@ -300,6 +337,7 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
         g0 = cpu_seconds(gen.pid)
         d0 = drv["n"]
         w0 = time.monotonic()
+        perf = start_perf(daemons[0].pid, args.duration, state) if args.perf else None
         from pd_service.wire import SessionStatus, decode
         pub0 = sum(decode(r.payload, SessionStatus).published for i in range(min(10, n))
                    for r in probe.get(_keys.status_key(session_name(i))) if r.ok)
@@ -314,6 +352,8 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
                       busiest(before, thread_cpu(d.pid), time.monotonic() - w0), flush=True)
         g1 = cpu_seconds(gen.pid)
         wall = time.monotonic() - w0
+        if perf is not None:
+            print_perf(*perf)
         d1 = drv["n"]
         pub1 = sum(decode(r.payload, SessionStatus).published for i in range(min(10, n))
                    for r in probe.get(_keys.status_key(session_name(i))) if r.ok)
@@ -390,9 +430,14 @@ def main() -> None:
     ap.add_argument("--compare-pure", dest="compare_pure", action="store_true",
                     help="alternate compiled and pure-Python runs of this checkout")
     ap.add_argument("--threads", action="store_true", help="print the daemon's busiest threads")
-    ap.add_argument("--clients", choices=("plain", "declared", "sdk"), default="plain",
-                    help="plain: the load generator sends each message with a session put "
-                         "and subscribes to 10 sessions' predictions; sdk: it declares what "
+    ap.add_argument("--perf", action="store_true",
+                    help="sample the (first) daemon with Linux perf over the measurement "
+                         "interval: its CPU by thread and library, the worker's top functions")
+    ap.add_argument("--clients", choices=("plain", "declared", "sdk"), default="declared",
+                    help="declared: the load generator sends each message with a session put "
+                         "of a key declared once (Transport.declare_keys) and subscribes to 10 "
+                         "sessions' predictions; plain: the same puts of undeclared keys "
+                         "(~40 %% more of the generator's CPU at 1,000 sessions); sdk: it declares what "
                          "pd_client's Robot, Operator and Display declare for every session "
                          "(cached publishers per sensor and command key, a subscription per "
                          "session's predictions)")
@@ -408,6 +453,8 @@ def main() -> None:
         args.sessions = args.n
         run_loadgen(args)
         return
+    if args.perf and shutil.which("perf") is None:
+        sys.exit("--perf: Linux perf is not installed (Debian: apt-get install linux-perf)")
     print(f"pd-service load test: paper scenario, 20 Hz steps (cmd 20 Hz, ranger 20 Hz, camera "
           f"10 Hz), {args.instances} daemon instance(s), {os.cpu_count()} CPUs, "
           f"{args.duration:g} s measured after {args.warmup:g} s warm-up, "
