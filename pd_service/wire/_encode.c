@@ -352,7 +352,8 @@ static int pack_obj(Buf *b, PyObject *o, int depth) {
         NEED(array_head_len(n));
         b->len = put_array_head(p, n) - b->buf;
         for (Py_ssize_t j = 0; j < n; j++) {
-            /* a list's length is read again: nothing here runs Python code, but be safe */
+            /* the length read again: copying a strided array allocates, which may run
+               the garbage collector, whose finalizers may change a list (or a dict: seen) */
             if (list && j >= PyList_GET_SIZE(o)) return PACK_OTHER;
             int r = pack_obj(b, list ? PyList_GET_ITEM(o, j) : PyTuple_GET_ITEM(o, j),
                              depth + 1);
