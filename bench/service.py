@@ -179,6 +179,8 @@ def run_loadgen(args: argparse.Namespace) -> None:
     sent = 0
     seq = 0
     k = max(0, (time.time_ns() - epoch) // PERIOD_NS + 1)
+    measure_start = args.measure_start_ns
+    behind: list[int] = []  # ns by which a slot started late, over the measurement interval
     slot_ns = 1_000_000  # send in 1 ms slots: session i at phase i/N of the step
     # phases spread over the first 90 % of the step: the range finder's delay equals
     # max_delay (12), so a sample processed after the step boundary would be late
@@ -195,9 +197,12 @@ def run_loadgen(args: argparse.Namespace) -> None:
         u = [0.5 if 0 < (k + 10) % 400 <= 80 else 0.0]
         for j in range(slots):
             due = t_step + j * slot_ns
-            dt = (due - time.time_ns()) / 1e9
+            now = time.time_ns()
+            dt = (due - now) / 1e9
             if dt > 0:
                 time.sleep(dt)
+            elif due >= measure_start:  # the generator itself is behind its schedule
+                behind.append(now - due)
             for i in per_slot[j]:
                 rk, ck, mk = sensor_keys[i]
                 s = names[i]
@@ -212,7 +217,11 @@ def run_loadgen(args: argparse.Namespace) -> None:
                                   "step": k - 10, "z": {"shape": [2], "data": z_c}}))
                     sent += 1
         k += 1
-    print(json.dumps({"sent": sent}), flush=True)
+    behind.sort()
+    print(json.dumps({"sent": sent, "slots": slots * (end - measure_start) // PERIOD_NS,
+                      "slots_late_1ms": sum(1 for b in behind if b > 1_000_000),
+                      "slots_late_5ms": sum(1 for b in behind if b > 5_000_000),
+                      "max_behind_ms": behind[-1] / 1e6 if behind else 0.0}), flush=True)
     for d in displays:
         d.undeclare()
     t.close()
@@ -362,6 +371,10 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
             print(f"  (probe sessions: daemon published {pub1 - pub0}, probe received "
                   f"{dd1 - dd0})")
         out = json.loads(gen.stdout.readline() or "{}")
+        if out.get("slots_late_1ms"):
+            print(f"  (load generator behind its schedule: {out['slots_late_1ms']} of "
+                  f"{out['slots']} 1 ms slots started > 1 ms late, {out['slots_late_5ms']} "
+                  f"> 5 ms, the worst by {out['max_behind_ms']:.1f} ms)", flush=True)
         gen.wait(30)
     finally:
         probe.close()
@@ -387,6 +400,11 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
         "pred_rate": delta("published") / n / wall,
         "rx_rate": (d1 - d0) / min(10, n) / wall,
         "sent": out.get("sent", 0),
+        # the load generator's own schedule: slots (1 ms) it started more than 1 / 5 ms late
+        # in the measurement interval, and its worst lag (a lagging generator sends a burst)
+        "gen_late_1ms": out.get("slots_late_1ms", 0),
+        "gen_late_5ms": out.get("slots_late_5ms", 0),
+        "gen_max_behind_ms": out.get("max_behind_ms", 0.0),
         "p50_us": p50,
         "p99_us": p99,
         "cpu_daemon": 100 * sum(b - a for a, b in zip(c0, c1, strict=True)) / wall,

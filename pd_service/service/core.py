@@ -238,7 +238,9 @@ class ServiceCore:
                 if d.unknown:
                     handled += d.process_unknown(now, touched)
                 # a pass over the sessions ready now, in rounds, each round's touched
-                # sessions published before the next (dispatch.ROUND_SESSIONS)
+                # sessions published and put before the next (dispatch.ROUND_SESSIONS): a
+                # message handled in the first round of a long pass does not wait for the
+                # last one (at 1,000 sessions a burst's pass can take tens of ms)
                 served: list[Session] = []
                 left = len(d.ready)
                 while left > 0:
@@ -248,6 +250,7 @@ class ServiceCore:
                         pub.publish_many([s for s in touched if s.alive], now, data=True)
                         served += touched
                         touched = []
+                        pub.flush()
                 if d.released:
                     handled += d.process_released(now, touched)
                 if d.recovered:
@@ -255,6 +258,7 @@ class ServiceCore:
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
                     served += touched
+                    pub.flush()  # before the ticks and the checkpoints
                 pub.run_ticks(now)
                 if served:
                     self.keeper.after_round(served, now)

@@ -467,6 +467,32 @@ def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp
     assert [s for s, kind in col.order[start:] if kind == "prediction"] == names
 
 
+def test_each_round_is_put_before_the_next_round_is_handled(world, tmp_path):
+    """A long pass puts each round's predictions as soon as the round is predicted: the
+    first round's displays do not wait for the handling of the rounds after it."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, max_sessions=1000, config_rate_total=1e6,
+                     config_burst_total=10**6, cpu_budget=1000)
+    names = [f"q{i:03d}" for i in range(150)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(core)
+    sessions = [core._routes[s].sess for s in names]
+    put_at_predict: list[int] = []  # predictions on the bus when each session predicts
+    start = len(col.order)
+    for sess in sessions:
+        def predict(now, _real=sess.est.predict):
+            put_at_predict.append(sum(1 for _, kind in col.order[start:] if kind == "prediction"))
+            return _real(now)
+        sess.est.predict = predict
+    clock.t = at(20.1)
+    for s in names:
+        cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 19, [1.0]))
+    core.run_once()
+    assert put_at_predict == [0] * 64 + [64] * 64 + [128] * 22
+    assert [s for s, kind in col.order[start:] if kind == "prediction"] == names
+
+
 def test_messages_for_many_sessions_set_the_wake_event_once(world, tmp_path, monkeypatch):
     """The worker's event is set by the first message that makes a session ready, not again
     by every other session's (Event.set takes a lock and notifies even when set: once per
