@@ -7,7 +7,9 @@ command (20 Hz), one range-finder sample (20 Hz, stamp k - 12), one camera sampl
 second step (10 Hz, stamp k - 10). Session i sends at phase i/N of every step, so the load
 is spread over the step as independent robots would spread it.
 
-Printed per N, over the measurement interval (after a warm-up):
+Printed per N, over the measurement interval (after a warm-up); a line in brackets when the
+load generator started any of its 1 ms send slots more than 1 ms late (it then sends a
+burst: the daemon's latency is judged against a schedule that was not kept):
   pred/s/sess   predictions published per session per second (daemon counter); the tick
                 guarantees >= 20, a measurement-triggered publish can add more
   rx/s/sess     predictions received per second, per session, by a probe process
@@ -527,7 +529,8 @@ def _summarise(label: str, n: int, instances: int, rs: list[dict]) -> dict:
                  "clients": rs[0]["clients"] if rs else None,
                  "saturated_runs": sum(1 for r in rs if r["saturated"])}
     for key in ("pred_rate", "rx_rate", "p50_us", "p99_us", "cpu_daemon", "us_per_session_step",
-                "cpu_gen", "in_rate", "overruns", "late", "refused", "flood", "gauge_ms"):
+                "cpu_gen", "in_rate", "overruns", "late", "refused", "flood", "gauge_ms",
+                "gen_late_5ms", "gen_max_behind_ms"):
         vals = [float(r[key]) for r in rs]
         out[key] = round(statistics.median(vals), 2)
         if len(vals) > 1:
