@@ -266,3 +266,30 @@ def test_freeze_makes_arrays_read_only_as_setflags_does() -> None:
         _KALMAN.freeze(c, [1.0])
     assert c.flags.writeable  # nothing changed
     assert _KALMAN.freeze() is None
+
+
+def test_the_kernels_states_are_left_out_of_the_cycle_collector() -> None:
+    """advance's Gaussian, its stages and sensors hold only numbers, arrays and such tuples
+    (no cycle is possible): the kernel untracks them, so that a session's window does not
+    fill the collector's young generation (docs/service.md, "Garbage collection"). Their
+    contents are what the numpy form gives, and they are freed by reference counting."""
+    import gc
+    import weakref
+
+    rng = np.random.default_rng(7)
+    b = random_backend(rng, 4, 1)
+    state = Gaussian(rng.standard_normal(4), np.eye(4))
+    packets = [Packet(i, rng.standard_normal(b.sensors[i].m), None) for i in range(3)]
+    got, want = both(b, state, 2, rng.standard_normal((2, 1)), packets, None)
+    assert_same(got, want)
+    assert not gc.is_tracked(got) and not gc.is_tracked(got.stages)
+    assert not gc.is_tracked(got.sensors) and len(got.stages) == 3
+    assert not any(gc.is_tracked(s) for s in got.stages)
+    assert gc.is_tracked(want)  # the numpy form's are tracked, as any tuple subclass
+    # a packet that joins later: the carried and the new stages, untracked as well
+    joined, want2 = both(b, state, 2, np.zeros((2, 1)), packets + packets[:1], got)
+    assert_same(joined, want2)
+    assert not gc.is_tracked(joined.stages) and not any(gc.is_tracked(s) for s in joined.stages)
+    ref = weakref.ref(got.x)
+    del got, joined
+    assert ref() is None  # freed by reference counting, with no collection
