@@ -271,7 +271,7 @@ def test_freeze_makes_arrays_read_only_as_setflags_does() -> None:
 def test_the_kernels_states_are_left_out_of_the_cycle_collector() -> None:
     """advance's Gaussian, its stages and sensors hold only numbers, arrays and such tuples
     (no cycle is possible): the kernel untracks them, so that a session's window does not
-    fill the collector's young generation (docs/service.md, "Garbage collection"). Their
+    fill the collector's young generation (docs/service.md, "Performance"). Their
     contents are what the numpy form gives, and they are freed by reference counting."""
     import gc
     import weakref
