@@ -3,18 +3,28 @@
 from __future__ import annotations
 
 import math
-from collections import deque
+from array import array
 from collections.abc import Iterable
 
+import numpy as np
 
-def percentiles(values: Iterable[float]) -> tuple[float, float]:
+
+def percentiles(values: Iterable[float] | np.ndarray) -> tuple[float, float]:
     """(p50, p99) of ``values`` (µs), clipped at 0; (0, 0) when empty.
 
     Linear interpolation between order statistics, as numpy's default: with the sorted
     values x_0..x_{n-1} and h = (n - 1) q, p_q = x_i + (h - i)(x_{i+1} - x_i), i = floor(h).
-    Plain Python (a sort of at most a few thousand floats): no first-call cost, nothing to
-    warm up.
+    An array (a :meth:`LatencyWindow.values` copy) goes to ``np.percentile``, whose
+    selection runs without the GIL: the daemon's window can hold 200,000 values, and a
+    sort of those in Python (~40 ms) held the GIL and so stopped the worker while a query
+    thread answered a status query. Anything else is sorted in plain Python (a few
+    thousand floats at most): no first-call cost, nothing to warm up.
     """
+    if isinstance(values, np.ndarray):
+        if values.size == 0:
+            return 0.0, 0.0
+        p50, p99 = np.percentile(values, [50.0, 99.0])
+        return max(float(p50), 0.0), max(float(p99), 0.0)
     xs = sorted(values)
     if not xs:
         return 0.0, 0.0
@@ -29,23 +39,36 @@ def percentiles(values: Iterable[float]) -> tuple[float, float]:
 
 
 class LatencyWindow:
-    """The last ``size`` latencies in µs; percentiles over that sliding window."""
+    """The last ``size`` latencies in µs (a ring of doubles); percentiles over that sliding
+    window."""
 
-    __slots__ = ("_buf",)
+    __slots__ = ("_buf", "_next", "_n", "_size")
 
     def __init__(self, size: int) -> None:
-        self._buf: deque[float] = deque(maxlen=size)
+        self._buf = array("d", bytes(8 * size))
+        self._size = size
+        self._next = 0  # where the next value goes
+        self._n = 0  # values held (<= size)
 
     def add(self, us: float) -> None:
-        self._buf.append(us)
+        i = self._next
+        self._buf[i] = us
+        i += 1
+        self._next = 0 if i == self._size else i
+        if self._n < self._size:
+            self._n += 1
 
     def __len__(self) -> int:
-        return len(self._buf)
+        return self._n
 
-    def values(self) -> list[float]:
-        """A copy of the window (µs), e.g. taken under a lock and reduced outside it."""
-        return list(self._buf)
+    def values(self) -> np.ndarray:
+        """A copy of the window (µs, oldest first), e.g. taken under a lock and reduced
+        outside it (one copy of the ring: ~0.6 ms for 200,000 values)."""
+        ring = np.frombuffer(self._buf, dtype=np.float64)
+        if self._n < self._size:
+            return ring[: self._n].copy()
+        return np.concatenate((ring[self._next :], ring[: self._next]))
 
     def percentiles(self) -> tuple[float, float]:
         """(p50, p99) in µs; (0, 0) when empty."""
-        return percentiles(self._buf)
+        return percentiles(self.values())

@@ -15,6 +15,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal, Protocol, cast
 
+import numpy as np
+
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Query
@@ -44,7 +46,7 @@ class SessionView:
     spec: SessionSpec  # immutable; for now_step
     counters: dict[str, int]
     published: int
-    latency_us: list[float]
+    latency_us: np.ndarray  # a copy of the session's LatencyWindow
     origin: Literal["prior", "checkpoint", "replica"]
     origin_step: int | None
 

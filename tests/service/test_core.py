@@ -918,6 +918,24 @@ def test_latency_percentiles_equal_numpys(n):
     from pd_service.service.stats import percentiles
 
     x = np.random.default_rng(n).exponential(100.0, n)
-    assert percentiles(x.tolist()) == pytest.approx(tuple(np.percentile(x, [50.0, 99.0])),
-                                                    rel=1e-12, abs=0.0)
-    assert percentiles([]) == (0.0, 0.0)
+    want = tuple(np.percentile(x, [50.0, 99.0]))
+    assert percentiles(x.tolist()) == pytest.approx(want, rel=1e-12, abs=0.0)
+    assert percentiles(x) == pytest.approx(want, rel=1e-12, abs=0.0)  # numpy's own
+    assert percentiles([]) == (0.0, 0.0) == percentiles(np.empty(0))
+
+
+def test_a_latency_window_keeps_the_last_values_in_order():
+    """The ring holds the newest ``size`` values, oldest first, as a deque(maxlen) would;
+    its percentiles are those of that copy."""
+    from collections import deque
+
+    from pd_service.service.stats import LatencyWindow, percentiles
+
+    w, ref = LatencyWindow(5), deque(maxlen=5)
+    assert len(w) == 0 and w.values().size == 0 and w.percentiles() == (0.0, 0.0)
+    for v in range(1, 13):
+        w.add(float(v))
+        ref.append(float(v))
+        assert w.values().tolist() == list(ref) and len(w) == len(ref)
+    assert w.percentiles() == percentiles(list(ref))
+    assert not np.shares_memory(w.values(), w.values())  # copies: safe outside the lock
