@@ -50,6 +50,7 @@ import numpy as np
 
 from pd_service.backends import build_estimator
 from pd_service.estimation import Estimator, PredictedState
+from pd_service.estimation.state import untracked
 from pd_service.estimation.tally import Tally
 from pd_service.intake import Intake, Refusal
 from pd_service.ratelimit import TokenBucket
@@ -282,7 +283,7 @@ class Session:
         export = getattr(self.est, "export_state", None)
         if export is None or not thoroughly_healthy(np.asarray(pred.P)):
             return
-        self.snapshot = export()
+        self.snapshot = untracked(export())  # out of the cycle collector's young generation
         self.next_snapshot_step = next_slot(now_step + self.snap_every // 2, self.snap_every,
                                             self.spread)
 

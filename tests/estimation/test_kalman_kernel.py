@@ -293,3 +293,43 @@ def test_the_kernels_states_are_left_out_of_the_cycle_collector() -> None:
     ref = weakref.ref(got.x)
     del got, joined
     assert ref() is None  # freed by reference counting, with no collection
+
+
+def test_a_snapshot_is_left_out_of_the_cycle_collector() -> None:
+    """A session's snapshot (an EstimatorState kept for a second) and the tuples, lists and
+    dicts it holds are untracked by the kernel's untrack (docs/service.md, "Performance"):
+    1,000 sessions' snapshots were most of the collector's young generation. Nothing is
+    copied or changed, and it is freed by reference counting."""
+    import gc
+    import weakref
+
+    from pd_service.backends import build_estimator
+    from pd_service.estimation.state import untracked
+    from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_paper
+
+    sc = paper_scenario()
+    est = build_estimator(sc.spec("s", 0, max_delay=RANGER_DELAY))
+    run = simulate_paper(40, np.random.default_rng(3))
+    for k in range(30):  # a window with commands and packets in it
+        est.add_command(k, sc.command(k), now=k)
+        for smp in run.samples:
+            if smp.arrival == k:
+                est.add_measurement(smp.sensor, smp.step, smp.z, now=k)
+        est.predict(k)
+    state = est.export_state()
+    assert gc.is_tracked(state)
+    parts = [state, state.base, state.packets, state.commands, state.counters,
+             *state.packets, *state.commands]
+    same = untracked(state)
+    assert same is state
+    assert not any(gc.is_tracked(p) for p in parts)
+    # a container that holds something tracked stays tracked (and so does what holds it)
+    class Holder:  # an instance: tracked, it could close a cycle
+        pass
+
+    live = [Holder()]
+    outer = untracked((1, live, (2.0, "x")))
+    assert gc.is_tracked(outer) and gc.is_tracked(live) and not gc.is_tracked(outer[2])
+    ref = weakref.ref(state.u_origin)
+    del state, same, parts
+    assert ref() is None
