@@ -14,7 +14,8 @@ burst: the daemon's latency is judged against a schedule that was not kept):
                 guarantees >= 20, a measurement-triggered publish can add more
   rx/s/sess     predictions received per second, per session, by a probe process
                 subscribed to sessions 0-9 (their phase is early in the step)
-  p50/p99 us    packet receipt -> prediction put, inside the daemon (ServiceStatus window)
+  p50/p99 us    packet receipt -> prediction put, inside the daemon (ServiceStatus; its
+                window is sized to hold the measurement interval's measurements)
   daemon CPU    % of one core (utime + stime from /proc), generator CPU likewise
   us/sess-step  daemon CPU (all threads, utime + stime from /proc) per session and step:
                 CPU seconds / (N * interval / 50 ms), in µs
@@ -70,6 +71,9 @@ from gauge import gauge_ms
 ROOT = Path(__file__).resolve().parents[1]
 
 PERIOD_NS = 50_000_000
+#: Measurements a session sends per second (range finder 20 Hz, camera 10 Hz): the daemon
+#: records one latency per measurement answered.
+SENSOR_RATE = 30
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -287,7 +291,10 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     state = tempfile.mkdtemp(prefix="pd-bench-")
-    env = dict(os.environ, PD_SERVICE_LATENCY_WINDOW="200000", PD_SERVICE_LOG_LEVEL="WARNING",
+    # the daemon's latency window: the measurements of the measurement interval (30 a
+    # session and second: range finder 20 Hz, camera 10 Hz), not the warm-up's
+    window = max(16, int(SENSOR_RATE * n * args.duration))
+    env = dict(os.environ, PD_SERVICE_LATENCY_WINDOW=str(window), PD_SERVICE_LOG_LEVEL="WARNING",
                PD_SERVICE_INBOX_SIZE="1024")
     env.pop("PD_SERVICE_CONFIG", None)
     for k, v in BENCH_ENV.items():
@@ -391,8 +398,8 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
     def delta(name: str) -> int:
         return sum(b.counters.get(name, 0) - a.counters.get(name, 0) for a, b in zip(s0, s1, strict=True))
 
-    # latency percentiles: the daemon's window holds the last 200,000 samples, i.e. the
-    # measurement interval at these rates (weighted mean over instances if several)
+    # latency percentiles: the daemon's window holds the last SENSOR_RATE * n * duration
+    # samples, i.e. the measurement interval (weighted mean over instances if several)
     p50 = sum(s.latency_p50_us for s in s1) / len(s1)
     p99 = max(s.latency_p99_us for s in s1)
     res = {
