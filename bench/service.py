@@ -15,7 +15,8 @@ burst: the daemon's latency is judged against a schedule that was not kept):
   rx/s/sess     predictions received per second, per session, by a probe process
                 subscribed to sessions 0-9 (their phase is early in the step)
   p50/p99 us    packet receipt -> prediction put, inside the daemon (ServiceStatus; its
-                window is sized to hold the measurement interval's measurements)
+                window is sized to hold the measurements of the measurement interval but
+                its first 0.5 s, which follow the probe's own status queries)
   daemon CPU    % of one core (utime + stime from /proc), generator CPU likewise
   us/sess-step  daemon CPU (all threads, utime + stime from /proc) per session and step:
                 CPU seconds / (N * interval / 50 ms), in µs
@@ -74,6 +75,8 @@ PERIOD_NS = 50_000_000
 #: Measurements a session sends per second (range finder 20 Hz, camera 10 Hz): the daemon
 #: records one latency per measurement answered.
 SENSOR_RATE = 30
+#: The start of the measurement interval left out of the latency percentiles (s).
+SETTLE_S = 0.5
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 
 
@@ -292,8 +295,10 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
     ep = f"tcp/127.0.0.1:{port}"
     state = tempfile.mkdtemp(prefix="pd-bench-")
     # the daemon's latency window: the measurements of the measurement interval (30 a
-    # session and second: range finder 20 Hz, camera 10 Hz), not the warm-up's
-    window = max(16, int(SENSOR_RATE * n * args.duration))
+    # session and second: range finder 20 Hz, camera 10 Hz) but its first SETTLE_S, when
+    # the probe's own status queries (and this process decoding them) take CPU from the
+    # daemon; not the warm-up's
+    window = max(16, int(SENSOR_RATE * n * max(args.duration - SETTLE_S, 0.5)))
     env = dict(os.environ, PD_SERVICE_LATENCY_WINDOW=str(window), PD_SERVICE_LOG_LEVEL="WARNING",
                PD_SERVICE_INBOX_SIZE="1024")
     env.pop("PD_SERVICE_CONFIG", None)
@@ -398,8 +403,9 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
     def delta(name: str) -> int:
         return sum(b.counters.get(name, 0) - a.counters.get(name, 0) for a, b in zip(s0, s1, strict=True))
 
-    # latency percentiles: the daemon's window holds the last SENSOR_RATE * n * duration
-    # samples, i.e. the measurement interval (weighted mean over instances if several)
+    # latency percentiles: the daemon's window holds the last SENSOR_RATE * n *
+    # (duration - SETTLE_S) samples, i.e. the measurement interval but its first half second
+    # (weighted mean over instances if several)
     p50 = sum(s.latency_p50_us for s in s1) / len(s1)
     p99 = max(s.latency_p99_us for s in s1)
     res = {
