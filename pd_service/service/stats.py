@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 from array import array
-from collections.abc import Iterable
+from collections.abc import Sequence
 
 import numpy as np
 
 
-def percentiles(values: Iterable[float] | np.ndarray) -> tuple[float, float]:
+def percentiles(values: Sequence[float] | np.ndarray) -> tuple[float, float]:
     """(p50, p99) of ``values`` (µs), clipped at 0; (0, 0) when empty.
 
     Linear interpolation between order statistics, as numpy's default: with the sorted
