@@ -40,9 +40,9 @@ from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Query, Sample
 from pd_service.transport.keyexpr import intersects
-from pd_service.wire import WireError, decode, keys
+from pd_service.wire import WireError, keys
+from pd_service.wire.codec import unpack_map
 from pd_service.wire.keys import KeyError_, check_name
-from pd_service.wire.state import SessionState
 
 from .config import Settings
 from .ownership import Ownership
@@ -305,17 +305,27 @@ class StateKeeper:
     # ================================================================== incoming ======
 
     def on_replica(self, sample: Sample) -> None:
-        """Transport thread: keep the newest replica per session (by its now_step)."""
+        """Transport thread: keep the newest replica per session (by its now_step).
+
+        Only unpacked here, and its session and now_step read: the whole SessionState is
+        validated when a takeover resumes from it (:func:`~pd_service.checkpoint.restore`,
+        a bad one refused there as ``restore_refused_corrupt``). Validating each replica
+        on arrival cost ~110 µs of a pydantic decode, holding the GIL against the worker:
+        at 500 sessions per instance, 1 replica per session and second, ~6 % of a core."""
         session = sample.key.rsplit("/", 1)[-1]
         if sample.kind == "delete" or sample.payload is None:
             return
         try:
             check_name(session, "session")
-            st = decode(sample.payload, SessionState)
+            obj = unpack_map(sample.payload, "SessionState")
         except (KeyError_, WireError):
+            obj = None
+        step = obj.get("now_step", -1) if obj is not None else -1
+        if obj is None or obj.get("session") != session or not (
+                step is None or type(step) is int and step >= 0):
             self.counters["replica_malformed"] += 1
             return
-        step = st.now_step or 0
+        step = step or 0
         with self._lock:
             old = self.replicas.get(session)
             if old is None or step >= old[0]:

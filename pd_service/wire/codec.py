@@ -78,6 +78,22 @@ def decode(data: bytes | bytearray | memoryview, msg_type: type[M]) -> M:
     if not (isinstance(msg_type, type) and issubclass(msg_type, Message)):
         raise TypeError(f"decode: msg_type must be a wire message class, got {msg_type!r}")
     name = msg_type.__name__
+    obj = unpack_map(data, name)
+    try:
+        return msg_type.model_validate(obj)
+    except ValidationError as exc:
+        raise WireError(validation_reason(name, exc), error_kind(exc), _readable_seq(obj)) \
+            from None
+    except RecursionError:  # defensive: validators do not recurse into input
+        raise WireError(f"{name}: input nested too deep") from None
+    except Exception as exc:  # defensive: the contract is "only WireError comes out"
+        raise WireError(f"{name}: invalid ({type(exc).__name__}: {exc})") from None
+
+
+def unpack_map(data: bytes | bytearray | memoryview, name: str) -> dict[str, Any]:
+    """The msgpack map of a message named ``name``, unpacked with the codec's limits but not
+    validated (WireError if it is no such map): :func:`decode`'s first half, for a reader
+    that needs a field or two now and validates the whole message later, if ever."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise WireError(f"{name}: expected bytes, got {type(data).__name__}")
     size = len(data) if not isinstance(data, memoryview) else data.nbytes
@@ -94,15 +110,7 @@ def decode(data: bytes | bytearray | memoryview, msg_type: type[M]) -> M:
         raise WireError(f"{name}: not valid msgpack ({str(exc) or type(exc).__name__})") from None
     if type(obj) is not dict:
         raise WireError(f"{name}: expected a msgpack map, got {_kind(obj)}")
-    try:
-        return msg_type.model_validate(obj)
-    except ValidationError as exc:
-        raise WireError(validation_reason(name, exc), error_kind(exc), _readable_seq(obj)) \
-            from None
-    except RecursionError:  # defensive: validators do not recurse into input
-        raise WireError(f"{name}: input nested too deep") from None
-    except Exception as exc:  # defensive: the contract is "only WireError comes out"
-        raise WireError(f"{name}: invalid ({type(exc).__name__}: {exc})") from None
+    return obj
 
 
 def validation_reason(type_name: str, exc: ValidationError) -> str:

@@ -210,6 +210,41 @@ def test_a_replica_for_another_spec_is_refused(tmp_path):
     assert a.dispatch.routes["s1"].sess.origin == "prior"
 
 
+def test_a_replica_is_only_unpacked_on_arrival_and_validated_at_the_takeover(tmp_path):
+    """On arrival a replica is kept if it is a msgpack map naming its key's session with a
+    valid now_step (else counted as ``replica_malformed``), the newest by now_step; the whole
+    SessionState is validated only when a takeover resumes from it."""
+    import msgpack
+
+    from pd_service.checkpoint import to_message
+    from pd_service.wire.state import spec_fingerprint
+
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    a.run_once()
+    est = build_estimator(paper_spec("s1"))
+    good = to_message(est.export_state(), session="s1", instance="inst-x",
+                      fingerprint=spec_fingerprint(paper_spec("s1")), made_ns=0)
+    obj = msgpack.unpackb(encode(good))
+    key = replica_key("inst-a", "s1")
+    for bad in (b"\xc1", msgpack.packb([1, 2]), msgpack.packb({**obj, "session": "s2"}),
+                msgpack.packb({**obj, "now_step": -1}), msgpack.packb({**obj, "now_step": 1.5}),
+                msgpack.packb({**obj, "now_step": True})):
+        cli.put(key, bad)
+    assert a.counters["replica_malformed"] == 6 and "s1" not in a.keeper.replicas
+    cli.put(key, msgpack.packb({**obj, "now_step": 7}))
+    cli.put(key, msgpack.packb({**obj, "now_step": 5}))  # older: the newest is kept
+    assert a.keeper.replicas["s1"][0] == 7 and a.counters["replicas_received"] == 2
+    # unpackable but no SessionState (P not a matrix): refused when resumed, not before
+    cli.put(key, msgpack.packb({**obj, "now_step": 9, "P": "not a matrix"}))
+    assert a.keeper.replicas["s1"][0] == 9
+    a.keeper.resume(a.dispatch.routes["s1"].sess, "replica", 0)
+    assert a.counters["restore_refused_corrupt"] == 1
+    assert a.dispatch.routes["s1"].sess.origin == "prior"
+
+
 def test_checkpoints_are_bounded_in_rate(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
