@@ -105,6 +105,31 @@ def busiest(before: dict[str, float], after: dict[str, float], wall: float) -> s
     return ", ".join(f"{k.split('/')[0]} {100 * v / wall:.0f}%" for v, k in used)
 
 
+def pin_worker(daemons: list[subprocess.Popen], gen_pid: int) -> None:
+    """A core for the daemons' worker threads: CPU 0 for each ``pd-worker``, the last CPU for
+    every other thread of the daemons, the load generator and this process (the probe).
+    With several daemons, their workers share CPU 0."""
+    last = (os.cpu_count() or 1) - 1
+    for pid in [d.pid for d in daemons] + [gen_pid, os.getpid()]:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            try:
+                worker = (task / "comm").read_text().strip() == "pd-worker"
+                os.sched_setaffinity(int(task.name), {0} if worker else {last})
+            except OSError:  # a thread that ended meanwhile
+                continue
+
+
+def unpin_self() -> None:
+    """Every thread of this process on every CPU again (after a pinned run: the daemons and
+    the generator started next inherit this process's affinity)."""
+    cpus = set(range(os.cpu_count() or 1))
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        try:
+            os.sched_setaffinity(int(task.name), cpus)
+        except OSError:
+            continue
+
+
 def cpu_seconds(pid: int) -> float:
     """utime + stime of a process (and its threads), seconds."""
     with open(f"/proc/{pid}/stat") as f:
@@ -287,9 +312,11 @@ BENCH_ENV = {
 }
 
 
-def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = False) -> dict:
+def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = False,
+            pin: bool = False) -> dict:
     from pd_service.transport import ZenohTransport, zenoh_config
 
+    unpin_self()
     gauge = gauge_ms()  # how fast the machine is right now (bench/gauge.py)
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
@@ -352,6 +379,8 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
         line = gen.stdout.readline()
         if "ready" not in line:
             raise RuntimeError(f"load generator failed: {line}")
+        if pin:
+            pin_worker(daemons, gen.pid)
         while time.time_ns() < measure_start:
             time.sleep(0.05)
         s0 = [query_status(probe, i) for i in instances]
@@ -392,9 +421,11 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
         gen.wait(30)
     finally:
         probe.close()
+        # one at a time, as a rolling restart would: an instance stopped while its
+        # successor is stopping too waits 2 s for a confirmation that cannot come (a
+        # `handover` warning with every state unconfirmed)
         for d in daemons:
             d.send_signal(signal.SIGTERM)
-        for d in daemons:
             try:
                 d.wait(30)
             except subprocess.TimeoutExpired:
@@ -463,6 +494,10 @@ def main() -> None:
     ap.add_argument("--compare-pure", dest="compare_pure", action="store_true",
                     help="alternate compiled and pure-Python runs of this checkout")
     ap.add_argument("--threads", action="store_true", help="print the daemon's busiest threads")
+    ap.add_argument("--pin", choices=("no", "yes", "compare"), default="no",
+                    help="yes: the daemon's worker thread alone on CPU 0, everything else "
+                         "(the daemon's other threads, the generator, the probe) on the last "
+                         "CPU; compare: alternate runs without and with")
     ap.add_argument("--perf", action="store_true",
                     help="sample the (first) daemon with Linux perf over the measurement "
                          "interval: its CPU by thread and library, the worker's top functions")
@@ -502,6 +537,10 @@ def main() -> None:
         roots.append((args.compare, Path(args.compare).resolve(), False))
     if args.compare_pure:
         roots.append(("this, pure Python", roots[0][1], True))
+    roots = [(label, root, pure, args.pin == "yes") for label, root, pure in roots]
+    if args.pin == "compare":  # each build twice: as it is, then its worker on a core of its own
+        roots = [r for label, root, pure, _ in roots
+                 for r in ((label, root, pure, False), (label + ", pinned", root, pure, True))]
     hdr = (f"{'N':>5} {'in msg/s':>9} {'pred/s/sess':>11} {'rx/s/sess':>9} {'p50 us':>8} "
            f"{'p99 us':>9} {'daemon CPU':>10} {'us/sess-step':>12} {'gen CPU':>8} "
            f"{'overruns':>8} {'flood':>6} {'late':>6} {'refused':>7} {'gauge ms':>8}")
@@ -510,11 +549,11 @@ def main() -> None:
     print(hdr)
     summary = []
     for n in [int(x) for x in args.sessions.split(",")]:
-        runs: dict[str, list[dict]] = {label: [] for label, _, _ in roots}
+        runs: dict[str, list[dict]] = {label: [] for label, _, _, _ in roots}
         for _ in range(args.repeat):
-            for label, root, pure in roots:  # alternate the builds: same load on the machine
+            for label, root, pure, pin in roots:  # alternate the builds: same machine load
                 try:
-                    r = one_run(n, args, root, pure)
+                    r = one_run(n, args, root, pure, pin)
                 except RuntimeError as exc:  # e.g. a daemon too overloaded to answer
                     print(f"{label[-24:]:>24} {n:>5} run failed: {exc}", flush=True)
                     continue
