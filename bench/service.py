@@ -38,6 +38,10 @@ Usage: python bench/service.py [--sessions 10,100,500,1000] [--duration 10] [--w
                           (the daemon with PD_SERVICE_PURE=1; pd_service.native)
        [--profile]        cProfile the daemon's worker thread, print the top functions
        [--threads]        print the CPU seconds of the daemon's busiest threads
+       [--pin no]         yes: the daemon's worker thread (pd-worker) alone on CPU 0, all
+                          its other threads, the load generator and the probe on the last
+                          CPU (taskset's affinity, set once the generator is ready);
+                          compare: alternate runs as they are and pinned
        [--perf]           sample the daemon with Linux perf (Debian: linux-perf) over the
                           measurement interval: where its CPU goes by thread and library
                           (Zenoh's threads, the interpreter, the compiled modules, numpy,
