@@ -240,17 +240,23 @@ class ServiceCore:
                 # a pass over the sessions ready now, in rounds, each round's touched
                 # sessions published and put before the next (dispatch.ROUND_SESSIONS): a
                 # message handled in the first round of a long pass does not wait for the
-                # last one (at 1,000 sessions a burst's pass can take tens of ms)
+                # last one (at 1,000 sessions a burst's pass can take tens of ms). Between
+                # rounds the queues are looked at again: what arrived joins its session's
+                # inbox (served in this pass if the session is still ahead in it), its
+                # receipt bounded by that look, not by the pass's first.
                 served: list[Session] = []
                 left = len(d.ready)
                 while left > 0:
                     handled += d.round(now, touched, ROUND_SESSIONS)
                     left -= ROUND_SESSIONS
-                    if left > 0 and touched:
-                        pub.publish_many([s for s in touched if s.alive], now, data=True)
-                        served += touched
-                        touched = []
-                        pub.flush()
+                    if left > 0:
+                        if touched:
+                            pub.publish_many([s for s in touched if s.alive], now, data=True)
+                            served += touched
+                            touched = []
+                            pub.flush()
+                        for dr in self._drains:
+                            got += dr.drain(_DRAIN_LIMIT)
                 if d.released:
                     handled += d.process_released(now, touched)
                 if d.recovered:

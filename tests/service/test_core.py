@@ -472,6 +472,53 @@ def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp
     assert [s for s, kind in col.order[start:] if kind == "prediction"] == names
 
 
+def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
+    """Between the rounds of a long pass the worker drains its queues again: a message that
+    arrived during the first round, for a session still ahead in the pass, is handled in
+    that session's round with the message it already had (one prediction for both); a
+    sample stamped in the step that began meanwhile is judged at its arrival, not refused
+    as "future" against the pass's clock reading."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, max_sessions=1000, config_rate_total=1e6,
+                     config_burst_total=10**6, cpu_budget=1000)
+    names = [f"q{i:03d}" for i in range(150)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(core)
+    calls: list[int] = []  # sessions that had accepted a packet at each look
+
+    class HeldQueue:
+        """A drained subscription whose second look finds two samples (the first look is
+        the pass's own, before its first round)."""
+        pending = False
+
+        def drain(self, limit: int) -> int:
+            calls.append(sum(core.session_status(s).counters["accepted"] > 0 for s in names))
+            if len(calls) != 2:
+                return 0
+            clock.t = at(21.1)  # step 21 began while the first round ran
+            cli.put(keys.sensor_key("q149", "ranger"), meas_bytes("q149", "ranger", 21, [2.0]))
+            cli.put(keys.sensor_key("q000", "ranger"), meas_bytes("q000", "ranger", 21, [2.0]))
+            return 2
+
+        def arm(self) -> None:
+            pass
+
+    core._drains = [HeldQueue()]
+    clock.t = at(20.1)
+    for s in names:
+        cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 19, [1.0]))
+    start = len(col.order)
+    core.run_once()
+    assert calls[:3] == [0, 64, 128]  # the pass's look, then one after each round but the last
+    preds = [s for s, kind in col.order[start:] if kind == "prediction"]
+    assert preds.count("q149") == 1  # its two samples, one prediction
+    assert preds.count("q000") == 2  # served before the sample came: published again after
+    for s in ("q149", "q000"):
+        c = core.session_status(s).counters
+        assert c["accepted"] == 2 and "future" not in c, c
+
+
 def test_messages_for_many_sessions_set_the_wake_event_once(world, tmp_path, monkeypatch):
     """The worker's event is set by the first message that makes a session ready, not again
     by every other session's (Event.set takes a lock and notifies even when set: once per
