@@ -438,6 +438,19 @@ def test_flooding_session_cannot_starve_another(world, tmp_path):
     assert core.session_status("calm").counters["accepted"] == 1
 
 
+def serve_many(world, tmp_path, prefix: str, n: int) -> tuple[ServiceCore, list[str]]:
+    """A core serving ``n`` paper sessions ``<prefix>000`` ... (limits raised to take them
+    all at once), configured and settled."""
+    bus, clock, _col, cli = world
+    core = make_core(bus, clock, tmp_path, max_sessions=1000, config_rate_total=1e6,
+                     config_burst_total=10**6, cpu_budget=1000)
+    names = [f"{prefix}{i:03d}" for i in range(n)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(core)
+    return core, names
+
+
 def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp_path):
     """150 sessions ready at once: one run_once serves them all in arrival order, 64 at a
     time, and predicts each round's sessions before the next round handles its messages (a
@@ -445,12 +458,7 @@ def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp
     before the next round is handled (the first round's displays do not wait for the rest
     of a long pass)."""
     bus, clock, col, cli = world
-    core = make_core(bus, clock, tmp_path, max_sessions=1000, config_rate_total=1e6,
-                     config_burst_total=10**6, cpu_budget=1000)
-    names = [f"r{i:03d}" for i in range(150)]
-    for s in names:
-        cli.put(keys.config_key(s), encode(paper_spec(s)))
-    settle(core)
+    core, names = serve_many(world, tmp_path, "r", 150)
     assert core.served_sessions() == names
     sessions = [core._routes[s].sess for s in names]
     start = len(col.order)
@@ -479,12 +487,7 @@ def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
     sample stamped in the step that began meanwhile is judged at its arrival, not refused
     as "future" against the pass's clock reading."""
     bus, clock, col, cli = world
-    core = make_core(bus, clock, tmp_path, max_sessions=1000, config_rate_total=1e6,
-                     config_burst_total=10**6, cpu_budget=1000)
-    names = [f"q{i:03d}" for i in range(150)]
-    for s in names:
-        cli.put(keys.config_key(s), encode(paper_spec(s)))
-    settle(core)
+    core, names = serve_many(world, tmp_path, "q", 150)
     calls: list[int] = []  # sessions that had accepted a packet at each look
 
     class HeldQueue:
