@@ -52,8 +52,12 @@ _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 #: a session's messages and its prediction are then handled close together, while its
 #: arrays are still in the CPU's caches. With 500 sessions per pass (a worker behind) the
 #: worker alone took 41.5 µs per session-step in one round, 38.5 in rounds of 64
-#: (``bench/worker.py --sessions 1000 --every 500``, 5 runs alternating).
-ROUND_SESSIONS: Final = 64
+#: (``bench/worker.py --sessions 1000 --every 500``, 5 runs alternating). Between rounds the
+#: worker drains its queues again (``ServiceCore.run_once``), so smaller rounds also look at
+#: them more often: at 1,000 sessions rounds of 16 gave a p50 of 1.00-1.16 ms against
+#: 1.26-1.44 with 64 and a lower p99 in 6 of 8 runs alternating, for the same instructions
+#: per session-step (bench/instructions.py --every 100: 109,186 against 109,505).
+ROUND_SESSIONS: Final = 16
 
 
 @dataclass(eq=False, slots=True)

@@ -452,11 +452,11 @@ def serve_many(world, tmp_path, prefix: str, n: int) -> tuple[ServiceCore, list[
 
 
 def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp_path):
-    """150 sessions ready at once: one run_once serves them all in arrival order, 64 at a
-    time, and predicts each round's sessions before the next round handles its messages (a
-    session's message and its prediction close together); each round's predictions are put
-    before the next round is handled (the first round's displays do not wait for the rest
-    of a long pass)."""
+    """150 sessions ready at once: one run_once serves them all in arrival order,
+    ROUND_SESSIONS at a time, and predicts each round's sessions before the next round
+    handles its messages (a session's message and its prediction close together); each
+    round's predictions are put before the next round is handled (the first round's
+    displays do not wait for the rest of a long pass)."""
     bus, clock, col, cli = world
     core, names = serve_many(world, tmp_path, "r", 150)
     assert core.served_sessions() == names
@@ -474,9 +474,16 @@ def test_a_backlog_is_served_in_rounds_each_published_before_the_next(world, tmp
     for s in names:
         cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 19, [1.0]))
     core.run_once()
-    assert dispatch.ROUND_SESSIONS == 64
-    assert accepted_at_predict == [64] * 64 + [128] * 64 + [150] * 22
-    assert put_at_predict == [0] * 64 + [64] * 64 + [128] * 22
+    rs = dispatch.ROUND_SESSIONS
+    assert 150 > 2 * rs  # several rounds
+    accepted: list[int] = []
+    put: list[int] = []
+    for first in range(0, 150, rs):
+        end = min(first + rs, 150)
+        accepted += [end] * (end - first)  # the round's messages, all before its predictions
+        put += [first] * (end - first)  # the earlier rounds' predictions, already put
+    assert accepted_at_predict == accepted
+    assert put_at_predict == put
     assert [s for s, kind in col.order[start:] if kind == "prediction"] == names
 
 
@@ -513,7 +520,9 @@ def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
         cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 19, [1.0]))
     start = len(col.order)
     core.run_once()
-    assert calls[:3] == [0, 64, 128]  # the pass's look, then one after each round but the last
+    rs = dispatch.ROUND_SESSIONS
+    # the pass's look, then one after each round but the last
+    assert calls == [0] + list(range(rs, 150, rs)) + [150]
     preds = [s for s, kind in col.order[start:] if kind == "prediction"]
     assert preds.count("q149") == 1  # its two samples, one prediction
     assert preds.count("q000") == 2  # served before the sample came: published again after
