@@ -55,9 +55,11 @@ _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 #: (``bench/worker.py --sessions 1000 --every 500``, 5 runs alternating). Between rounds the
 #: worker drains its queues again (``ServiceCore.run_once``), so smaller rounds also look at
 #: them more often: at 1,000 sessions rounds of 16 gave a p50 of 1.00-1.16 ms against
-#: 1.26-1.44 with 64 and a lower p99 in 6 of 8 runs alternating, for the same instructions
-#: per session-step (bench/instructions.py --every 100: 109,186 against 109,505).
-ROUND_SESSIONS: Final = 16
+#: 1.26-1.44 with 64 and a lower p99 in 6 of 8 runs alternating; rounds of 8 against 16 a
+#: lower p99 in 7 of 10 (median 3.2 against 6.1 ms), each for the same instructions per
+#: session-step (bench/instructions.py --every 100: 109,186 against 109,505 for 16 and 64,
+#: 109,087 against 109,047 for 8 and 16; docs/performance.md).
+ROUND_SESSIONS: Final = 8
 
 
 @dataclass(eq=False, slots=True)
