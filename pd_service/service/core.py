@@ -219,6 +219,14 @@ class ServiceCore:
         for dr in self._drains:
             dr.arm()
 
+    def _drain(self) -> int:
+        """The samples waiting in the subscriptions' queues, into the inboxes (the
+        callbacks' path; no lock needed). Returns how many."""
+        got = 0
+        for dr in self._drains:
+            got += dr.drain(_DRAIN_LIMIT)
+        return got
+
     def run_once(self) -> int:
         """Process what is pending: control, unknown sessions, rounds of session inboxes
         (each followed by its coalesced publications), due ticks and idle expiry, until
@@ -227,9 +235,7 @@ class ServiceCore:
         handled = 0
         t_end = self.mono_ns() + _RUN_BUDGET_NS
         while True:
-            got = 0
-            for dr in self._drains:  # into the inboxes (callbacks' path), lock not needed
-                got += dr.drain(_DRAIN_LIMIT)
+            got = self._drain()
             with self.lock:
                 now = self.now_ns()
                 if d.control or d.configs:
@@ -255,8 +261,7 @@ class ServiceCore:
                             served += touched
                             touched = []
                             pub.flush()
-                        for dr in self._drains:
-                            got += dr.drain(_DRAIN_LIMIT)
+                        got += self._drain()
                 if d.released:
                     handled += d.process_released(now, touched)
                 if d.recovered:
