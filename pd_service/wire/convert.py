@@ -242,6 +242,12 @@ def prediction_from(
 #: The C form of :meth:`PredictionEncoder.encode_packed`'s per-message part (None: Python).
 _ENCODE = kernel("pd_service.wire._encode")
 
+#: msgpack's packing, shared by every encoder: a Packer holds a 256 KiB buffer, and one per
+#: session spread the sessions' objects 256 KiB apart (1,000 sessions: 256 MiB of address
+#: space), which made the worker's memory accesses miss the caches. (Safe to share: packing
+#: plain values runs in C, holding the GIL throughout.)
+_PACK = msgpack.Packer(use_bin_type=True).pack
+
 
 class PredictionEncoder:
     """One session's Prediction encoder: ``encode(prediction_from(...))``, byte for byte,
@@ -259,7 +265,7 @@ class PredictionEncoder:
     """
 
     def __init__(self, spec: SessionSpec, session: str) -> None:
-        pk = msgpack.Packer(use_bin_type=True).pack
+        pk = _PACK
         n = spec.n
         self.spec, self.session, self.n = spec, session, n
         self._epoch, self._period = spec.epoch_ns, spec.period_ns
@@ -270,7 +276,6 @@ class PredictionEncoder:
         self._k_P = pk("P") + b"\x82" + pk("shape") + pk([n, n]) + pk("data")
         self._k_newest, self._k_made, self._k_counters = pk("newest_step"), pk("made_ns"), \
             pk("counters")
-        self._pack = msgpack.Packer(use_bin_type=True).pack
         #: the constant pieces around the values, in message order (the C form's ``parts``)
         self._parts = (self._head, self._k_step, self._k_t, self._k_x, self._k_P,
                        self._k_newest, self._k_made, self._k_counters)
@@ -302,7 +307,7 @@ class PredictionEncoder:
         if len(xs) != n or len(ps) != n * n:
             raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
                             f"got {len(xs)} and {len(ps)} values")
-        pk = self._pack
+        pk = _PACK
         return self.encode_packed(pred, pk(xs), pk(ps), seq, made_ns, counters)
 
     def encode_packed(self, pred: PredictedMoments, x_data: bytes, P_data: bytes, seq: int,
@@ -326,7 +331,7 @@ class PredictionEncoder:
         data = None if _ENCODE is None else _ENCODE.prediction(
             self._parts, seq, step, t_ns, x_data, P_data, newest, made_ns, counters)
         if data is None:
-            pk = self._pack
+            pk = _PACK
             data = b"".join((
                 self._head, pk(int(seq)), self._k_step, pk(step), self._k_t, pk(t_ns),
                 self._k_x, x_data, self._k_P, P_data,
