@@ -263,88 +263,106 @@ static int update_rows(double *x, double *P, npy_intp n, const double *H, const 
     return 0;
 }
 
-/* update(x (n,), P (n, n), packets, rows, start, stages) -> (x+, P+, stages + new) or None
+/* Packed stages (what update() and advance() make): a bytes object holding one record of
+   float64 values per packet applied, in order,
 
-   packets: a list of Packet tuples (sensor, z, R or None); rows: per sensor the tuple
-   (kind, H or h, H^T, R, r, j) of linear._rows; the packets from index ``start`` on are
-   applied in turn. Each adds a stage (kind, K, H, z, j, c) as linear.Stage describes
-   (kind 1 / 2: K = w, z a float; kind 3: K (n, r), z the packet's array). None: a
-   Cholesky pivot was not clearly positive, or a packet is beyond this kernel's sizes (the
-   caller runs the numpy form from ``start``). */
-static PyObject *update(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (check_nargs("update", nargs, 6)) return NULL;
-    PyObject *ox = args[0], *oP = args[1], *packets = args[2], *rows = args[3],
-             *stages = args[5];
-    if (!PyList_Check(packets) || !PyList_Check(rows) || !PyTuple_Check(stages)) {
-        PyErr_SetString(PyExc_TypeError,
-                        "_kalman.update: packets and rows must be lists, stages a tuple");
-        return NULL;
+       sensor, kind, j, c, r, z (r values), K (n x r, row-major), H (r x n; not for kind 1)
+
+   with kind, j, c, K and z as linear.Stage describes (kind 1 / 2: r = 1, K = w; kind 3: K
+   (n, r), j = -1, c = 0). One object instead of a tuple of 6-tuples, each with its K array
+   (three blocks of memory: object, shape, data) and its floats: a step's state is made and
+   freed ~10 times per session and step by the replay, and at 1,000 sessions each block
+   freed is a cache miss (the window is no longer in cache when its step is replayed again).
+   unpack_stages() gives the tuple form; the numpy form (linear.py) makes the tuple form,
+   and the calls here take both. */
+
+static Py_ssize_t record_len(long kind, npy_intp n, npy_intp r) {
+    return 5 + r + n * r + (kind == 1 ? 0 : r * n);
+}
+
+/* A growable array of doubles: the records being written (on the stack while they fit). */
+typedef struct {
+    double *d;
+    Py_ssize_t len, cap;
+    double local[512];
+} Records;
+
+static void records_init(Records *b) { b->d = b->local; b->len = 0; b->cap = 512; }
+
+static void records_free(Records *b) { if (b->d != b->local) PyMem_Free(b->d); }
+
+static double *records_add(Records *b, Py_ssize_t k) {
+    if (b->len + k > b->cap) {
+        Py_ssize_t cap = 2 * (b->len + k);
+        double *d = PyMem_Malloc(sizeof(double) * (size_t)cap);
+        if (!d) { PyErr_NoMemory(); return NULL; }
+        memcpy(d, b->d, sizeof(double) * (size_t)b->len);
+        records_free(b);
+        b->d = d;
+        b->cap = cap;
     }
-    Py_ssize_t start = PyLong_AsSsize_t(args[4]);
-    if (start == -1 && PyErr_Occurred()) return NULL;
-    PyArrayObject *x = as_f64(ox), *P = NULL;
-    PyObject *xo = NULL, *Po = NULL, *all = NULL, *res = NULL;
-    if (!x) return NULL;
-    P = as_f64(oP);
-    npy_intp n = PyArray_SIZE(x);
-    if (!P || check_size(P, n * n, "P")) goto done;
-    if (n > MAXN) { res = Py_None; Py_INCREF(res); goto done; }
-    double *xv, *pv;
-    xo = new_vec(n, &xv);
-    Po = new_mat(n, n, &pv);
-    if (!xo || !Po) goto done;
-    memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
-    memcpy(pv, PyArray_DATA(P), sizeof(double) * (size_t)(n * n));
-    Py_ssize_t np_ = PyList_GET_SIZE(packets), ns = PyTuple_GET_SIZE(stages);
-    if (start < 0) start = 0;
-    /* the result's stages: the given ones, then one per packet applied here */
-    all = PyTuple_New(ns + (np_ > start ? np_ - start : 0));
-    if (!all) goto done;
-    for (Py_ssize_t i = 0; i < ns; i++)
-        PyTuple_SET_ITEM(all, i, Py_NewRef(PyTuple_GET_ITEM(stages, i)));
+    double *at = b->d + b->len;
+    b->len += k;
+    return at;
+}
+
+/* The length (bytes or tuple items) of a step's stages; -1 with a TypeError if neither. */
+static Py_ssize_t stages_len(PyObject *stages) {
+    if (PyBytes_Check(stages)) return PyBytes_GET_SIZE(stages);
+    if (PyTuple_Check(stages)) return PyTuple_GET_SIZE(stages);
+    PyErr_SetString(PyExc_TypeError, "_kalman: stages must be a tuple or packed bytes");
+    return -1;
+}
+
+/* Applies packets[start:] to xv (n,) and pv (n, n) in place, in turn, each giving a stage:
+   a record appended to ``rec`` (packed), or a 6-tuple appended to the list ``tuples``. 0, 1
+   (hand back: a Cholesky pivot not clearly positive, or a packet beyond this kernel's
+   sizes), or -1 with an exception. */
+static int apply_packets(double *xv, double *pv, npy_intp n, PyObject *packets,
+                         PyObject *rows, Py_ssize_t start, Records *rec, PyObject *tuples) {
+    Py_ssize_t np_ = PyList_GET_SIZE(packets);
     for (Py_ssize_t i = start; i < np_; i++) {
         PyObject *pk = PyList_GET_ITEM(packets, i);
         if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 3) {
             PyErr_SetString(PyExc_TypeError, "_kalman: a packet is not (sensor, z, R)");
-            goto done;
+            return -1;
         }
         Py_ssize_t sensor = PyLong_AsSsize_t(PyTuple_GET_ITEM(pk, 0));
-        if (sensor == -1 && PyErr_Occurred()) goto done;
+        if (sensor == -1 && PyErr_Occurred()) return -1;
         if (sensor < 0 || sensor >= PyList_GET_SIZE(rows)) {
             PyErr_SetString(PyExc_IndexError, "_kalman: sensor index out of range");
-            goto done;
+            return -1;
         }
         PyObject *row = PyList_GET_ITEM(rows, sensor);
         if (!PyTuple_Check(row) || PyTuple_GET_SIZE(row) != 6) {
             PyErr_SetString(PyExc_TypeError, "_kalman: a sensor row is not a 6-tuple");
-            goto done;
+            return -1;
         }
         long kind = PyLong_AsLong(PyTuple_GET_ITEM(row, 0));
+        if (kind == -1 && PyErr_Occurred()) return -1;
         PyObject *oH = PyTuple_GET_ITEM(row, 1);
         PyObject *oR = PyTuple_GET_ITEM(pk, 2);
         if (oR == Py_None) oR = PyTuple_GET_ITEM(row, 3);
         PyArrayObject *H = as_f64(oH), *R = as_f64(oR), *Z = as_f64(PyTuple_GET_ITEM(pk, 1));
-        PyObject *stage = NULL;
         int fail = 0;
+        long j = -1;
+        double c = 0.0, K[MAXN * MAXR];
+        npy_intp r = 1;
         if (!H || !R || !Z) {
             fail = -1;
         } else if (kind == 1 || kind == 2) {
             const double *h = PyArray_DATA(H);
-            double zs = *(const double *)PyArray_DATA(Z), r = *(const double *)PyArray_DATA(R);
-            long j = PyLong_AsLong(PyTuple_GET_ITEM(row, 5));
-            double *w;
-            PyObject *wo = new_vec(n, &w);
-            if (!wo || check_size(H, n, "h") || check_size(Z, 1, "z") || check_size(R, 1, "R")
-                || (kind == 1 && (j < 0 || j >= n))) {
+            j = PyLong_AsLong(PyTuple_GET_ITEM(row, 5));
+            if ((j == -1 && PyErr_Occurred()) || check_size(H, n, "h") || check_size(Z, 1, "z")
+                || check_size(R, 1, "R") || (kind == 1 && (j < 0 || j >= n))) {
                 if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "_kalman: bad row");
-                Py_XDECREF(wo);
                 fail = -1;
             } else {
-                double s, innov;
+                double zs = *(const double *)PyArray_DATA(Z), rr = *(const double *)PyArray_DATA(R);
+                double *w = K, s, innov;
                 if (kind == 1) {
                     for (npy_intp k = 0; k < n; k++) w[k] = pv[k * n + j];
-                    s = pv[j * n + j] + r;
+                    s = pv[j * n + j] + rr;
                     innov = zs - xv[j];
                 } else {
                     double hph = 0.0, hx = 0.0;
@@ -354,10 +372,9 @@ static PyObject *update(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                         w[k] = acc;
                     }
                     for (npy_intp k = 0; k < n; k++) { hph += h[k] * w[k]; hx += h[k] * xv[k]; }
-                    s = hph + r;
+                    s = hph + rr;
                     innov = zs - hx;
                 }
-                double c = 0.0;
                 if (!(s > 0.0)) {  /* h P- h^T + r = 0: nothing new (K = 0) */
                     for (npy_intp k = 0; k < n; k++) w[k] = 0.0;
                 } else {
@@ -369,36 +386,84 @@ static PyObject *update(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                         for (npy_intp b = a; b < n; b++)
                             pv[a * n + b] = pv[b * n + a] = pv[a * n + b] - w[a] * w[b];
                 }
-                stage = new_stage(kind, wo, oH, NULL, zs, j, c);
-                if (!stage) fail = -1;
             }
         } else {
-            npy_intp r = PyArray_SIZE(Z);
+            r = PyArray_SIZE(Z);
             if (r > MAXR) {
                 fail = 1;
             } else if (check_size(H, r * n, "H") || check_size(R, r * r, "R")) {
                 fail = -1;
+            } else if (update_rows(xv, pv, n, PyArray_DATA(H), PyArray_DATA(R),
+                                   PyArray_DATA(Z), r, K)) {
+                fail = 1;
             } else {
-                double *K;
-                PyObject *Ko = new_mat(n, r, &K);
-                if (!Ko) {
-                    fail = -1;
-                } else if (update_rows(xv, pv, n, PyArray_DATA(H), PyArray_DATA(R),
-                                       PyArray_DATA(Z), r, K)) {
-                    Py_DECREF(Ko);
-                    fail = 1;
-                } else {
-                    stage = new_stage(3, Ko, oH, PyTuple_GET_ITEM(pk, 1), 0.0, -1, 0.0);
-                    if (!stage) fail = -1;
-                }
+                kind = 3;
             }
         }
+        if (!fail && rec) {  /* the packed record */
+            double *d = records_add(rec, record_len(kind, n, r));
+            if (!d) {
+                fail = -1;
+            } else {
+                d[0] = (double)sensor; d[1] = (double)kind; d[2] = (double)j; d[3] = c;
+                d[4] = (double)r;
+                memcpy(d + 5, PyArray_DATA(Z), sizeof(double) * (size_t)r);
+                memcpy(d + 5 + r, K, sizeof(double) * (size_t)(n * r));
+                if (kind != 1)
+                    memcpy(d + 5 + r + n * r, PyArray_DATA(H), sizeof(double) * (size_t)(r * n));
+            }
+        } else if (!fail) {  /* the tuple form (kind, K, H, z, j, c) */
+            double *kd;
+            PyObject *Ko = kind == 3 ? new_mat(n, r, &kd) : new_vec(n, &kd);
+            PyObject *stage = NULL;
+            if (Ko) {
+                memcpy(kd, K, sizeof(double) * (size_t)(n * r));
+                stage = kind == 3
+                    ? new_stage(3, Ko, oH, PyTuple_GET_ITEM(pk, 1), 0.0, -1, 0.0)
+                    : new_stage(kind, Ko, oH, NULL, *(const double *)PyArray_DATA(Z), j, c);
+            }
+            if (!stage || PyList_Append(tuples, stage)) fail = -1;
+            Py_XDECREF(stage);
+        }
         Py_XDECREF(H); Py_XDECREF(R); Py_XDECREF(Z);
-        if (fail < 0) goto done;
-        if (fail > 0) { res = Py_None; Py_INCREF(res); goto done; }
-        PyTuple_SET_ITEM(all, ns + (i - start), stage);  /* steals it */
+        if (fail) return fail;
     }
-    PyObject_GC_UnTrack(all);  /* see untrack_note */
+    return 0;
+}
+
+/* (x+, P+, stages + the new ones) for xo, Po updated by packets[start:] (apply_packets):
+   packed if ``stages`` is packed or empty, else the tuple form. xo and Po are the result's
+   arrays (their data written in place); on any failure released. None: handed back. */
+static PyObject *finish_update(PyObject *xo, PyObject *Po, npy_intp n, PyObject *packets,
+                               PyObject *rows, Py_ssize_t start, PyObject *stages) {
+    PyObject *res = NULL, *all = NULL, *tuples = NULL;
+    Records rec;
+    records_init(&rec);
+    Py_ssize_t ns = stages_len(stages);
+    if (ns < 0) goto done;
+    int packed = PyBytes_Check(stages) || ns == 0;
+    if (!packed && !(tuples = PyList_New(0))) goto done;
+    int got = apply_packets(PyArray_DATA((PyArrayObject *)xo), PyArray_DATA((PyArrayObject *)Po),
+                            n, packets, rows, start, packed ? &rec : NULL, tuples);
+    if (got < 0) goto done;
+    if (got > 0) { res = Py_NewRef(Py_None); goto done; }
+    if (packed) {
+        Py_ssize_t old = PyBytes_Check(stages) ? ns : 0;
+        all = PyBytes_FromStringAndSize(NULL, old + (Py_ssize_t)sizeof(double) * rec.len);
+        if (!all) goto done;
+        char *to = PyBytes_AS_STRING(all);
+        if (old) memcpy(to, PyBytes_AS_STRING(stages), (size_t)old);
+        memcpy(to + old, rec.d, sizeof(double) * (size_t)rec.len);
+    } else {
+        Py_ssize_t k = PyList_GET_SIZE(tuples);
+        all = PyTuple_New(ns + k);
+        if (!all) goto done;
+        for (Py_ssize_t i = 0; i < ns; i++)
+            PyTuple_SET_ITEM(all, i, Py_NewRef(PyTuple_GET_ITEM(stages, i)));
+        for (Py_ssize_t i = 0; i < k; i++)
+            PyTuple_SET_ITEM(all, ns + i, Py_NewRef(PyList_GET_ITEM(tuples, i)));
+        PyObject_GC_UnTrack(all);  /* see untrack_note */
+    }
     res = PyTuple_New(3);
     if (!res) goto done;
     PyTuple_SET_ITEM(res, 0, xo);
@@ -406,17 +471,121 @@ static PyObject *update(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     PyTuple_SET_ITEM(res, 2, all);
     xo = Po = all = NULL;  /* the result holds them */
 done:
-    Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(xo); Py_XDECREF(Po); Py_XDECREF(all);
+    records_free(&rec);
+    Py_XDECREF(tuples); Py_XDECREF(all); Py_XDECREF(xo); Py_XDECREF(Po);
     return res;
 }
 
-/* remean(x (n,), stages) -> x+: the mean recursion of the stages (linear._remean). */
+/* update(x (n,), P (n, n), packets, rows, start, stages) -> (x+, P+, stages + new) or None
+
+   packets: a list of Packet tuples (sensor, z, R or None); rows: per sensor the tuple
+   (kind, H or h, H^T, R, r, j) of linear._rows; the packets from index ``start`` on are
+   applied in turn. Each adds a stage (kind, K, H, z, j, c) as linear.Stage describes
+   (kind 1 / 2: K = w, z a float; kind 3: K (n, r), z the packet's array): packed (above)
+   if ``stages`` is packed or empty, as a tuple otherwise. None: a Cholesky pivot was not
+   clearly positive, or a packet is beyond this kernel's sizes (the caller runs the numpy
+   form from ``start``). x and P are not written: the results are new arrays. */
+static PyObject *update(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("update", nargs, 6)) return NULL;
+    PyObject *ox = args[0], *oP = args[1], *packets = args[2], *rows = args[3],
+             *stages = args[5];
+    if (!PyList_Check(packets) || !PyList_Check(rows)
+        || !(PyTuple_Check(stages) || PyBytes_Check(stages))) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.update: packets and rows must be lists, "
+                        "stages a tuple or packed bytes");
+        return NULL;
+    }
+    Py_ssize_t start = PyLong_AsSsize_t(args[4]);
+    if (start == -1 && PyErr_Occurred()) return NULL;
+    if (start < 0) start = 0;
+    PyArrayObject *x = as_f64(ox), *P = NULL;
+    PyObject *xo = NULL, *Po = NULL, *res = NULL;
+    if (!x) return NULL;
+    P = as_f64(oP);
+    npy_intp n = PyArray_SIZE(x);
+    if (!P || check_size(P, n * n, "P")) goto done;
+    if (n > MAXN) { res = Py_NewRef(Py_None); goto done; }
+    double *xv, *pv;
+    xo = new_vec(n, &xv);
+    Po = new_mat(n, n, &pv);
+    if (!xo || !Po) goto done;
+    memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
+    memcpy(pv, PyArray_DATA(P), sizeof(double) * (size_t)(n * n));
+    res = finish_update(xo, Po, n, packets, rows, start, stages);
+    xo = Po = NULL;  /* finish_update took them */
+done:
+    Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(xo); Py_XDECREF(Po);
+    return res;
+}
+
+/* The next record of packed stages d[0..nd) at *at for a state of n values: its kind, j,
+   c, r and pointers to its z, K and H (NULL for kind 1); advances *at. -1 with a ValueError
+   if the bytes are not such records. */
+static int next_record(const double *d, Py_ssize_t nd, Py_ssize_t *at, npy_intp n, long *kind,
+                       long *j, double *c, npy_intp *r, const double **z, const double **K,
+                       const double **H, Py_ssize_t *sensor) {
+    Py_ssize_t i = *at;
+    if (nd - i < 5) goto bad;
+    *sensor = (Py_ssize_t)d[i];
+    *kind = (long)d[i + 1];
+    *j = (long)d[i + 2];
+    *c = d[i + 3];
+    *r = (npy_intp)d[i + 4];
+    if (*kind < 1 || *kind > 3 || *r < 1 || *r > MAXR || (*kind != 3 && *r != 1)
+        || (*kind == 1 && (*j < 0 || *j >= n)))
+        goto bad;
+    Py_ssize_t len = record_len(*kind, n, *r);
+    if (nd - i < len) goto bad;
+    *z = d + i + 5;
+    *K = *z + *r;
+    *H = *kind == 1 ? NULL : *K + n * *r;
+    *at = i + len;
+    return 0;
+bad:
+    PyErr_SetString(PyExc_ValueError, "_kalman: packed stages that do not fit this state");
+    return -1;
+}
+
+/* The mean recursion of packed stages on xv (n,) in place; -1 with an exception. */
+static int remean_packed(double *xv, npy_intp n, PyObject *stages) {
+    Py_ssize_t size = PyBytes_GET_SIZE(stages);
+    if (size % (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of a partial value");
+        return -1;
+    }
+    const double *d = (const double *)PyBytes_AS_STRING(stages);
+    Py_ssize_t nd = size / (Py_ssize_t)sizeof(double), at = 0, sensor;
+    while (at < nd) {
+        long kind, j;
+        double c;
+        npy_intp r;
+        const double *z, *K, *H;
+        if (next_record(d, nd, &at, n, &kind, &j, &c, &r, &z, &K, &H, &sensor)) return -1;
+        if (kind == 3) {
+            mean_update(xv, n, H, K, z, r);
+            continue;
+        }
+        double hx = 0.0;
+        if (kind == 1) {
+            hx = xv[j];
+        } else {
+            for (npy_intp l = 0; l < n; l++) hx += H[l] * xv[l];
+        }
+        double ci = c * (z[0] - hx);
+        for (npy_intp l = 0; l < n; l++) xv[l] += K[l] * ci;
+    }
+    return 0;
+}
+
+/* remean(x (n,), stages) -> x+: the mean recursion of the stages (linear._remean), packed
+   or a tuple. */
 static PyObject *remean(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     if (check_nargs("remean", nargs, 2)) return NULL;
     PyObject *ox = args[0], *stages = args[1];
-    if (!PyTuple_Check(stages)) {
-        PyErr_SetString(PyExc_TypeError, "_kalman.remean: stages must be a tuple");
+    if (!PyTuple_Check(stages) && !PyBytes_Check(stages)) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.remean: stages must be a tuple or packed bytes");
         return NULL;
     }
     PyArrayObject *x = as_f64(ox);
@@ -427,6 +596,10 @@ static PyObject *remean(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     if (!xo) { Py_DECREF(x); return NULL; }
     memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
     Py_DECREF(x);
+    if (PyBytes_Check(stages)) {
+        if (remean_packed(xv, n, stages)) { Py_DECREF(xo); return NULL; }
+        return xo;
+    }
     for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(stages); i++) {
         PyObject *st = PyTuple_GET_ITEM(stages, i);
         if (!PyTuple_Check(st) || PyTuple_GET_SIZE(st) != 6) {
@@ -483,6 +656,91 @@ fail:
     return NULL;
 }
 
+/* unpack_stages(stages, rows) -> the tuple form of packed stages: per record the 6-tuple
+   (kind, K, H, z, j, c) of linear.Stage, H the sensor's rows[sensor][1] (the object the
+   numpy form puts there), K and (kind 3) z new arrays. A tuple is returned as it is. */
+static PyObject *unpack_stages(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("unpack_stages", nargs, 2)) return NULL;
+    PyObject *stages = args[0], *rows = args[1];
+    if (PyTuple_Check(stages)) return Py_NewRef(stages);
+    if (!PyBytes_Check(stages) || !PyList_Check(rows)) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.unpack_stages: packed bytes and a list of rows");
+        return NULL;
+    }
+    Py_ssize_t size = PyBytes_GET_SIZE(stages);
+    if (size % (Py_ssize_t)sizeof(double)) {
+        PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of a partial value");
+        return NULL;
+    }
+    const double *d = (const double *)PyBytes_AS_STRING(stages);
+    Py_ssize_t nd = size / (Py_ssize_t)sizeof(double), at = 0, sensor;
+    PyObject *out = PyList_New(0);
+    if (!out) return NULL;
+    while (at < nd) {
+        /* n from the record's sensor: its h (n,) or H (r, n) */
+        Py_ssize_t s0 = (Py_ssize_t)d[at];
+        if (nd - at < 5 || s0 < 0 || s0 >= PyList_GET_SIZE(rows)
+            || !PyTuple_Check(PyList_GET_ITEM(rows, s0))
+            || PyTuple_GET_SIZE(PyList_GET_ITEM(rows, s0)) != 6) {
+            PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of an unknown sensor");
+            goto fail;
+        }
+        PyObject *oH = PyTuple_GET_ITEM(PyList_GET_ITEM(rows, s0), 1);
+        npy_intp r0 = (npy_intp)d[at + 4];
+        if (!PyArray_Check(oH) || r0 < 1) {
+            PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of an unknown sensor");
+            goto fail;
+        }
+        npy_intp n = PyArray_SIZE((PyArrayObject *)oH) / r0;
+        long kind, j;
+        double c;
+        npy_intp r;
+        const double *z, *K, *H;
+        if (next_record(d, nd, &at, n, &kind, &j, &c, &r, &z, &K, &H, &sensor)) goto fail;
+        double *kd, *zd;
+        PyObject *Ko = kind == 3 ? new_mat(n, r, &kd) : new_vec(n, &kd);
+        if (!Ko) goto fail;
+        memcpy(kd, K, sizeof(double) * (size_t)(n * r));
+        PyObject *zo = NULL;
+        if (kind == 3) {
+            zo = new_vec(r, &zd);
+            if (!zo) { Py_DECREF(Ko); goto fail; }
+            memcpy(zd, z, sizeof(double) * (size_t)r);
+        }
+        PyObject *st = new_stage(kind, Ko, oH, zo, z[0], j, c);  /* steals Ko */
+        Py_XDECREF(zo);
+        if (!st) goto fail;
+        int bad = PyList_Append(out, st);
+        Py_DECREF(st);
+        if (bad) goto fail;
+    }
+    PyObject *t = PyList_AsTuple(out);
+    Py_DECREF(out);
+    if (t) PyObject_GC_UnTrack(t);  /* see untrack_note */
+    return t;
+fail:
+    Py_DECREF(out);
+    return NULL;
+}
+
+/* An array with a's values that the caller may write: a itself where the caller holds the
+   only reference to it (an array just made here, float64 and C-contiguous), else a new
+   copy. Steals a; NULL with an exception. */
+static PyObject *writable(PyObject *a) {
+    if (Py_REFCNT(a) == 1 && PyArray_CheckExact(a)) {
+        PyArrayObject *arr = (PyArrayObject *)a;
+        if (PyArray_TYPE(arr) == NPY_DOUBLE && PyArray_ISCARRAY(arr) && PyArray_ISNOTSWAPPED(arr))
+            return a;
+    }
+    PyArrayObject *c = as_f64(a);
+    Py_DECREF(a);
+    if (!c) return NULL;
+    PyObject *copy = PyArray_NewCopy(c, NPY_CORDER);
+    Py_DECREF(c);
+    return copy;
+}
+
 /* A new state of type T (a tuple subclass of 6 fields: linear.Gaussian) (x, P, src, m,
    sensors, stages). Steals x and P; src, sensors and stages borrowed. NULL with an
    exception (x and P then released). */
@@ -537,7 +795,8 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
         || PyTuple_GET_SIZE(state) < 2
         || (old != Py_None && (!PyTuple_Check(old) || PyTuple_GET_SIZE(old) != 6
                                || !PyTuple_Check(PyTuple_GET_ITEM(old, 4))
-                               || !PyTuple_Check(PyTuple_GET_ITEM(old, 5))))) {
+                               || !(PyTuple_Check(PyTuple_GET_ITEM(old, 5))
+                                    || PyBytes_Check(PyTuple_GET_ITEM(old, 5)))))) {
         PyErr_SetString(PyExc_TypeError, "_kalman.advance: arguments of the wrong types");
         return NULL;
     }
@@ -593,7 +852,7 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     PyObject *stages = empty;
     if (reuse) {  /* the covariance after old's packets is unchanged: their means only */
         stages = PyTuple_GET_ITEM(old, 5);
-        if (PyTuple_GET_SIZE(stages)) {
+        if (stages_len(stages)) {
             PyObject *argv[2] = {xp, stages};
             PyObject *nx = remean(NULL, argv, 2);
             Py_DECREF(xp);
@@ -612,8 +871,8 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
         Py_DECREF(empty);
         return g;
     }
-    PyObject *sensors = PyTuple_New(npk), *start = PyLong_FromSsize_t(PyTuple_GET_SIZE(done));
-    if (!sensors || !start) goto fail_sensors;
+    PyObject *sensors = PyTuple_New(npk);
+    if (!sensors) goto fail_sensors;
     for (Py_ssize_t i = 0; i < npk; i++) {
         PyObject *sn = sensor_of(PyList_GET_ITEM(packets, i));
         if (!sn) goto fail_sensors;
@@ -621,24 +880,39 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     }
     PyObject_GC_UnTrack(sensors);  /* see untrack_note */
     {
-        PyObject *argv[6] = {xp, Pp, packets, rows, start, stages};
-        PyObject *got = update(NULL, argv, 6);
-        Py_DECREF(xp); Py_DECREF(Pp); Py_DECREF(start);
+        /* the jump's (or remean's) new arrays are updated in place; x or P shared with
+           another state (no jump, or old's covariance) is copied first */
+        PyObject *xo = writable(xp), *Po = xo ? writable(Pp) : NULL;
+        if (!xo) Py_DECREF(Pp);
         PyObject *g = NULL;
-        if (got == Py_None) {
-            g = got;  /* the caller's Python form takes it from here */
-        } else if (got) {
-            g = new_gaussian(T, Py_NewRef(PyTuple_GET_ITEM(got, 0)),
-                             Py_NewRef(PyTuple_GET_ITEM(got, 1)), P, m, sensors,
-                             PyTuple_GET_ITEM(got, 2));
-            Py_DECREF(got);
+        if (xo && Po) {
+            npy_intp n = PyArray_SIZE((PyArrayObject *)xo);
+            if (n > MAXN) {
+                Py_DECREF(xo); Py_DECREF(Po);
+                g = Py_NewRef(Py_None);
+            } else if (check_size((PyArrayObject *)Po, n * n, "P")) {
+                Py_DECREF(xo); Py_DECREF(Po);
+            } else {
+                PyObject *got = finish_update(xo, Po, n, packets, rows, PyTuple_GET_SIZE(done),
+                                              stages);
+                if (got == Py_None) {
+                    g = got;  /* the caller's Python form takes it from here */
+                } else if (got) {
+                    g = new_gaussian(T, Py_NewRef(PyTuple_GET_ITEM(got, 0)),
+                                     Py_NewRef(PyTuple_GET_ITEM(got, 1)), P, m, sensors,
+                                     PyTuple_GET_ITEM(got, 2));
+                    Py_DECREF(got);
+                }
+            }
+        } else {
+            Py_XDECREF(xo);
         }
         Py_DECREF(sensors);
         Py_DECREF(empty);
         return g;
     }
 fail_sensors:
-    Py_XDECREF(sensors); Py_XDECREF(start); Py_DECREF(xp); Py_DECREF(Pp);
+    Py_XDECREF(sensors); Py_DECREF(xp); Py_DECREF(Pp);
 error:
     Py_DECREF(empty);
     return NULL;
@@ -738,6 +1012,8 @@ static PyMethodDef methods[] = {
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,
      "fill(buf, start, end, u) -> True: buf[start:end] = u done; False: not taken (use numpy)."},
     {"remean", (PyCFunction)(void (*)(void))remean, METH_FASTCALL, "remean(x, stages) -> x+: the stages' mean recursion."},
+    {"unpack_stages", (PyCFunction)(void (*)(void))unpack_stages, METH_FASTCALL,
+     "unpack_stages(stages, rows) -> the tuple form (kind, K, H, z, j, c) of packed stages."},
     {"untrack", untrack, METH_O,
      "untrack(obj) -> obj: obj and the tuples, lists and dicts it holds leave the cycle "
      "collector where they reference nothing tracked (for states not changed afterwards)."},

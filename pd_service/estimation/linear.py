@@ -189,8 +189,9 @@ class Gaussian(NamedTuple):
     of ``m`` steps, then one Kalman update per packet, in sensor order) records ``src``, the
     parent's covariance *object*, ``sensors``, the sensor indices of the packets applied, and
     ``stages``, one :data:`Stage` per packet: the gain that maps the prior mean to the
-    posterior mean. Arrays are never written after creation. (A NamedTuple: built with
-    ``tuple.__new__`` on the hot path, ~4x cheaper than a class with ``__init__``.)
+    posterior mean; the C kernel packs them into one ``bytes`` object (:data:`Stages`).
+    Arrays are never written after creation. (A NamedTuple: built with ``tuple.__new__`` on
+    the hot path, ~4x cheaper than a class with ``__init__``.)
     """
 
     x: np.ndarray
@@ -198,7 +199,7 @@ class Gaussian(NamedTuple):
     src: np.ndarray | None = None
     m: int = 0
     sensors: tuple[int, ...] = ()
-    stages: tuple[Stage, ...] = ()
+    stages: Stages = ()
 
 
 #: One packet's mean update ``(kind, K, H, z, j, c)``: kind 1 (one unit row ``H = e_j``),
@@ -206,6 +207,11 @@ class Gaussian(NamedTuple):
 #: P- h / sqrt(s) (n,), ``c`` = 1 / sqrt(s), s = h P- h^T + r (one vector operation less than
 #: forming P- h / s); kind 3 (``H`` (r, n)): x+ = x- + K (z - H x-), ``K`` (n, r), z (r,).
 Stage = tuple[int, Any, Any, Any, int, float]
+#: A step's stages: a tuple of :data:`Stage` (the numpy form), or the same packed by the C
+#: kernel as float64 records in one ``bytes`` object (``_kalman.c``, "Packed stages": one
+#: object instead of ~7 per packet, made and freed ~10 times per session and step by the
+#: replay); ``_kalman.unpack_stages`` gives the tuple form.
+Stages = tuple[Stage, ...] | bytes
 
 _new: Final = tuple.__new__
 
@@ -385,12 +391,13 @@ class LinearBackend:
         else:  # a jump longer than the tables (idle session): in table-sized chunks
             xp, Pp = propagate(self.tables, self._nu, x, P, U)
             Pp = (Pp + Pp.T) * 0.5
-        stages: tuple[Stage, ...] = ()
+        stages: Stages = ()
         if reuse:  # the covariance after old's packets is unchanged: their means only
             assert old is not None
             stages = old[5]
             if stages:
-                xp = _remean(xp, stages) if ck is None else ck.remean(xp, stages)
+                xp = _remean(xp, self._tuple_stages(stages)) if ck is None else \
+                    ck.remean(xp, stages)
             if len(done) == npk:
                 return _new(Gaussian, (xp, old[1], P, m, done, stages))
             Pp = old[1]
@@ -402,6 +409,7 @@ class LinearBackend:
             if got is not None:  # else a (nearly) singular S, or sizes beyond the kernel's
                 return _new(Gaussian, (got[0], got[1], P, m, sensors, got[2]))
         single = self._single
+        tstages = self._tuple_stages(stages)  # this form appends tuples
         for i in range(len(done), npk):
             p = packets[i]
             kind, H, HT, R, r, j = single[p.sensor]
@@ -420,13 +428,13 @@ class LinearBackend:
                     s = float(H.dot(PHt)) + r
                     innov = zs - H.dot(xp)
                 if not s > 0.0:  # h P- h^T + r = 0: the sample tells nothing new (K = 0)
-                    stages += ((kind, PHt * 0.0, H, zs, j, 0.0),)
+                    tstages += ((kind, PHt * 0.0, H, zs, j, 0.0),)
                     continue
                 c = 1.0 / math.sqrt(s)
                 w = PHt * c  # K = w c, and K (P- h)^T = w w^T, exactly symmetric
                 xp = xp + w * (c * innov)
                 Pp = Pp - w[:, None].dot(w[None, :])
-                stages += ((kind, w, H, zs, j, c),)
+                tstages += ((kind, w, H, zs, j, c),)
                 continue
             PHt = Pp.dot(HT)
             S = H.dot(PHt) + R
@@ -444,8 +452,15 @@ class LinearBackend:
                 Pn = (Pn + Pn.T) * 0.5
             xp = xp + K.dot(z - H.dot(xp))
             Pp = Pn
-            stages += ((3, K, H, z, -1, 0.0),)
-        return _new(Gaussian, (xp, Pp, P, m, sensors, stages))
+            tstages += ((3, K, H, z, -1, 0.0),)
+        return _new(Gaussian, (xp, Pp, P, m, sensors, tstages))
+
+    def _tuple_stages(self, stages: Stages) -> tuple[Stage, ...]:
+        """The tuple form of a step's stages (the kernel's are packed: :data:`Stages`)."""
+        if type(stages) is bytes:
+            assert _KALMAN is not None  # packed stages come only from the kernel
+            return cast(tuple[Stage, ...], _KALMAN.unpack_stages(stages, self._single))
+        return cast(tuple[Stage, ...], stages)
 
     def moments(self, state: Gaussian) -> LinearState:
         return state.x, state.P

@@ -55,12 +55,18 @@ def both(backend: LinearBackend, state: Gaussian, m: int, U: np.ndarray,
     return got, want
 
 
-def assert_same(got: Gaussian, want: Gaussian) -> None:
+def stages_of(b: LinearBackend, g: Gaussian) -> tuple:
+    """A state's stages in the tuple form (the kernel packs them into bytes)."""
+    return b._tuple_stages(g.stages)
+
+
+def assert_same(got: Gaussian, want: Gaussian, b: LinearBackend) -> None:
     assert close(got.x, want.x) and close(got.P, want.P)
     assert np.array_equal(got.P, got.P.T)  # exactly symmetric, as the numpy form
     assert got.src is want.src and got.m == want.m and got.sensors == want.sensors
-    assert len(got.stages) == len(want.stages)
-    for g, w in zip(got.stages, want.stages, strict=True):
+    gs, ws = stages_of(b, got), stages_of(b, want)
+    assert len(gs) == len(ws)
+    for g, w in zip(gs, ws, strict=True):
         assert g[0] == w[0] and g[2] is w[2] and g[4] == w[4]
         assert close(np.asarray(g[1]), np.asarray(w[1]))
         assert close(np.asarray(g[3]), np.asarray(w[3])) and abs(g[5] - w[5]) <= RTOL * abs(w[5])
@@ -88,17 +94,17 @@ def test_the_kernel_gives_the_numpy_form_to_rounding(seed: int, n: int, nu: int)
                 R = Lr @ Lr.T + 0.05 * np.eye(r)
             packets.append(Packet(i, rng.standard_normal(r) * 3.0, R))
         got, want = both(b, state, m, U, packets, None)
-        assert_same(got, want)
+        assert_same(got, want, b)
         # the same step again, offered its previous result: covariance reused, means re-run
         # (only commands changed), or only a packet that joined it updated
         U2 = U + rng.standard_normal(U.shape)
         again, want2 = both(b, state, m, U2, packets, want)
-        assert_same(again, want2)
+        assert_same(again, want2, b)
         if packets:
             fewer = packets[:1]
             first = b.advance(state, m, U, fewer, None)
             joined, want3 = both(b, state, m, U, packets, first)
-            assert_same(joined, want3)
+            assert_same(joined, want3, b)
         prev, state = state, want
     assert prev is not None
 
@@ -126,9 +132,10 @@ def test_a_row_with_zero_innovation_variance_tells_nothing() -> None:
                       4)
     state = Gaussian(np.array([1.0, 2.0]), np.diag([0.0, 1.0]))
     got, want = both(b, state, 0, np.empty((0, 0)), [Packet(0, np.array([5.0]), None)], None)
-    assert_same(got, want)
+    assert_same(got, want, b)
     assert np.array_equal(got.x, state.x) and np.array_equal(got.P, state.P)
-    assert not np.any(got.stages[0][1]) and got.stages[0][5] == 0.0
+    assert isinstance(got.stages, bytes)  # packed by the kernel
+    assert not np.any(stages_of(b, got)[0][1]) and stages_of(b, got)[0][5] == 0.0
 
 
 @pytest.mark.parametrize("call", [
@@ -170,6 +177,16 @@ def test_a_row_with_zero_innovation_variance_tells_nothing() -> None:
     lambda k: k.advance(Gaussian, (None,), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
                         np.empty((0, 0)), [(0,)], None),
     lambda k: k.fill(np.zeros((4, 2)), 0, "1", np.zeros(2)),
+    # packed stages that are not the kernel's records
+    lambda k: k.remean(np.zeros(2), b"\x00" * 7),  # not whole float64 values
+    lambda k: k.remean(np.zeros(2), np.array([0.0, 9.0, 0.0, 1.0, 1.0]).tobytes()),  # kind 9
+    lambda k: k.remean(np.zeros(2), np.array([0.0, 1.0, 0.0, 1.0, 1.0, 0.0]).tobytes()),  # cut
+    lambda k: k.remean(np.zeros(2), np.array([0.0, 1.0, 5.0, 1.0, 1.0, 0.0, 0.0,
+                                              0.0]).tobytes()),  # j outside the state
+    lambda k: k.unpack_stages(np.array([5.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]).tobytes(),
+                              []),  # an unknown sensor
+    lambda k: k.unpack_stages(b"", None),
+    lambda k: k.update(np.zeros(2), np.eye(2), [], [], 0, [1]),  # stages a list
 ])
 def test_bad_arguments_raise(call) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises((ValueError, TypeError, IndexError)):
@@ -187,6 +204,36 @@ def test_arrays_are_never_written() -> None:
     out = b.advance(state, 2, np.ones((2, 2)), [Packet(2, np.ones(b.sensors[2].m), None)], None)
     assert np.array_equal(x, np.ones(4)) and np.array_equal(P, np.eye(4))
     assert out.x is not x and out.P is not P
+    # writeable arrays that another state holds: no jump (m = 0: the parent's x and P), or
+    # old's covariance reused, are copied before the update, never written in place
+    for m in (0, 2):
+        x, P = np.ones(4), np.eye(4)
+        state = Gaussian(x, P)
+        U = np.ones((m, 2))
+        first = b.advance(state, m, U, [], None)
+        fx, fP = first.x.copy(), first.P.copy()
+        pk = [Packet(2, np.ones(b.sensors[2].m), None)]
+        joined = b.advance(state, m, U, pk, first)  # old's covariance reused, then updated
+        again = b.advance(state, m, U, pk, None)
+        assert np.array_equal(x, np.ones(4)) and np.array_equal(P, np.eye(4))
+        assert np.array_equal(first.x, fx) and np.array_equal(first.P, fP)
+        assert np.array_equal(joined.x, again.x) and np.array_equal(joined.P, again.P)
+
+
+def test_packed_stages_remean_as_their_tuple_form() -> None:
+    """The kernel's packed stages and their tuple form (unpack_stages) give the same mean,
+    bit for bit; a tuple is unpacked as itself."""
+    rng = np.random.default_rng(11)
+    b = random_backend(rng, 4, 1)
+    state = Gaussian(rng.standard_normal(4), np.eye(4))
+    packets = [Packet(i, rng.standard_normal(b.sensors[i].m), None) for i in range(3)]
+    got = b.advance(state, 2, rng.standard_normal((2, 1)), packets, None)
+    assert isinstance(got.stages, bytes)
+    tup = stages_of(b, got)
+    assert [s[0] for s in tup] == [1, 2, 3]  # a unit row, a row, several rows
+    x = rng.standard_normal(4)
+    assert np.array_equal(_KALMAN.remean(x, got.stages), _KALMAN.remean(x, tup))
+    assert _KALMAN.unpack_stages(tup, b._single) is tup
 
 
 @pytest.mark.parametrize("n, rows", [(_KALMAN.MAX_N + 1 if _KALMAN else 65, 1),
@@ -281,15 +328,15 @@ def test_the_kernels_states_are_left_out_of_the_cycle_collector() -> None:
     state = Gaussian(rng.standard_normal(4), np.eye(4))
     packets = [Packet(i, rng.standard_normal(b.sensors[i].m), None) for i in range(3)]
     got, want = both(b, state, 2, rng.standard_normal((2, 1)), packets, None)
-    assert_same(got, want)
+    assert_same(got, want, b)
     assert not gc.is_tracked(got) and not gc.is_tracked(got.stages)
-    assert not gc.is_tracked(got.sensors) and len(got.stages) == 3
-    assert not any(gc.is_tracked(s) for s in got.stages)
+    assert not gc.is_tracked(got.sensors) and len(stages_of(b, got)) == 3
+    assert isinstance(got.stages, bytes)  # packed: one object, not tracked (no references)
     assert gc.is_tracked(want)  # the numpy form's are tracked, as any tuple subclass
     # a packet that joins later: the carried and the new stages, untracked as well
     joined, want2 = both(b, state, 2, np.zeros((2, 1)), packets + packets[:1], got)
-    assert_same(joined, want2)
-    assert not gc.is_tracked(joined.stages) and not any(gc.is_tracked(s) for s in joined.stages)
+    assert_same(joined, want2, b)
+    assert not gc.is_tracked(joined.stages) and isinstance(joined.stages, bytes)
     ref = weakref.ref(got.x)
     del got, joined
     assert ref() is None  # freed by reference counting, with no collection
