@@ -871,14 +871,30 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
         Py_DECREF(empty);
         return g;
     }
-    PyObject *sensors = PyTuple_New(npk);
-    if (!sensors) goto fail_sensors;
-    for (Py_ssize_t i = 0; i < npk; i++) {
-        PyObject *sn = sensor_of(PyList_GET_ITEM(packets, i));
-        if (!sn) goto fail_sensors;
-        PyTuple_SET_ITEM(sensors, i, Py_NewRef(sn));
+    /* the packets' sensor indices: old's tuple where it holds the same ones (a step the
+       replay redoes with its packets unchanged: no new tuple to make and later free) */
+    PyObject *sensors = NULL;
+    if (old != Py_None && PyTuple_GET_SIZE(PyTuple_GET_ITEM(old, 4)) == npk) {
+        PyObject *os = PyTuple_GET_ITEM(old, 4);
+        int same = 1;
+        for (Py_ssize_t i = 0; i < npk && same; i++) {
+            PyObject *sn = sensor_of(PyList_GET_ITEM(packets, i));
+            if (!sn) goto fail_sensors;
+            same = PyObject_RichCompareBool(sn, PyTuple_GET_ITEM(os, i), Py_EQ);
+            if (same < 0) goto fail_sensors;
+        }
+        if (same) sensors = Py_NewRef(os);
     }
-    PyObject_GC_UnTrack(sensors);  /* see untrack_note */
+    if (!sensors) {
+        sensors = PyTuple_New(npk);
+        if (!sensors) goto fail_sensors;
+        for (Py_ssize_t i = 0; i < npk; i++) {
+            PyObject *sn = sensor_of(PyList_GET_ITEM(packets, i));
+            if (!sn) goto fail_sensors;
+            PyTuple_SET_ITEM(sensors, i, Py_NewRef(sn));
+        }
+        PyObject_GC_UnTrack(sensors);  /* see untrack_note */
+    }
     {
         /* the jump's (or remean's) new arrays are updated in place; x or P shared with
            another state (no jump, or old's covariance) is copied first */
