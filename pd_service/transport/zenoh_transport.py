@@ -15,8 +15,6 @@ from typing import Final, Literal
 import zenoh
 import zenoh.ext
 
-from pd_service.logs import name_os_thread
-
 from .base import HandleOwner, Reply, Sample, check_exact_keys
 from .options import zenoh_config
 
@@ -119,7 +117,6 @@ class _Drain:
         return not self._go.is_set()
 
     def _watch(self) -> None:
-        name_os_thread("pd-drain")
         rx, go = self._rx, self._go
         while True:
             go.wait()
