@@ -201,6 +201,20 @@ static void mean_update(double *x, npy_intp n, const double *H, const double *K,
     }
 }
 
+/* x += K (c (z - h x)) in place: one row's mean step (kinds 1 and 2 of linear.Stage), with
+   h x = x[j] for a unit row (h NULL) or the dot product h (n,) x. */
+static void mean_row(double *x, npy_intp n, const double *h, long j, const double *K,
+                     double z, double c) {
+    double hx = 0.0;
+    if (h == NULL) {
+        hx = x[j];
+    } else {
+        for (npy_intp l = 0; l < n; l++) hx += h[l] * x[l];
+    }
+    double ci = c * (z - hx);
+    for (npy_intp l = 0; l < n; l++) x[l] += K[l] * ci;
+}
+
 /* One Kalman update in place on x (n,) and P (n, n) with r rows H (r, n), R (r, r), z (r,).
    Writes K (n, r). Returns 0, or 1 when a Cholesky pivot is not clearly positive. */
 static int update_rows(double *x, double *P, npy_intp n, const double *H, const double *R,
@@ -547,33 +561,33 @@ bad:
     return -1;
 }
 
-/* The mean recursion of packed stages on xv (n,) in place; -1 with an exception. */
-static int remean_packed(double *xv, npy_intp n, PyObject *stages) {
+/* The float64 values of packed stages (a bytes object) and their count; NULL with a
+   ValueError if the bytes hold a partial value. */
+static const double *packed_values(PyObject *stages, Py_ssize_t *nd) {
     Py_ssize_t size = PyBytes_GET_SIZE(stages);
     if (size % (Py_ssize_t)sizeof(double)) {
         PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of a partial value");
-        return -1;
+        return NULL;
     }
-    const double *d = (const double *)PyBytes_AS_STRING(stages);
-    Py_ssize_t nd = size / (Py_ssize_t)sizeof(double), at = 0, sensor;
+    *nd = size / (Py_ssize_t)sizeof(double);
+    return (const double *)PyBytes_AS_STRING(stages);
+}
+
+/* The mean recursion of packed stages on xv (n,) in place; -1 with an exception. */
+static int remean_packed(double *xv, npy_intp n, PyObject *stages) {
+    Py_ssize_t nd, at = 0, sensor;
+    const double *d = packed_values(stages, &nd);
+    if (!d) return -1;
     while (at < nd) {
         long kind, j;
         double c;
         npy_intp r;
         const double *z, *K, *H;
         if (next_record(d, nd, &at, n, &kind, &j, &c, &r, &z, &K, &H, &sensor)) return -1;
-        if (kind == 3) {
+        if (kind == 3)
             mean_update(xv, n, H, K, z, r);
-            continue;
-        }
-        double hx = 0.0;
-        if (kind == 1) {
-            hx = xv[j];
-        } else {
-            for (npy_intp l = 0; l < n; l++) hx += H[l] * xv[l];
-        }
-        double ci = c * (z[0] - hx);
-        for (npy_intp l = 0; l < n; l++) xv[l] += K[l] * ci;
+        else
+            mean_row(xv, n, kind == 1 ? NULL : H, j, K, z[0], c);
     }
     return 0;
 }
@@ -613,7 +627,6 @@ static PyObject *remean(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         if (kind == 1 || kind == 2) {
             double z = PyFloat_AsDouble(PyTuple_GET_ITEM(st, 3));
             double c = PyFloat_AsDouble(PyTuple_GET_ITEM(st, 5));
-            double hx;
             if (kind == 1) {
                 long j = PyLong_AsLong(PyTuple_GET_ITEM(st, 4));
                 if (j < 0 || j >= n || check_size(K, n, "K")) {
@@ -621,20 +634,16 @@ static PyObject *remean(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                     Py_DECREF(K);
                     goto fail;
                 }
-                hx = xv[j];
+                mean_row(xv, n, NULL, j, k, z, c);
             } else {
                 PyArrayObject *H = as_f64(PyTuple_GET_ITEM(st, 2));
                 if (!H || check_size(H, n, "h") || check_size(K, n, "K")) {
                     Py_XDECREF(H); Py_DECREF(K);
                     goto fail;
                 }
-                const double *h = PyArray_DATA(H);
-                hx = 0.0;
-                for (npy_intp l = 0; l < n; l++) hx += h[l] * xv[l];
+                mean_row(xv, n, PyArray_DATA(H), -1, k, z, c);
                 Py_DECREF(H);
             }
-            double ci = c * (z - hx);
-            for (npy_intp l = 0; l < n; l++) xv[l] += k[l] * ci;
         } else {
             PyArrayObject *H = as_f64(PyTuple_GET_ITEM(st, 2));
             PyArrayObject *Z = as_f64(PyTuple_GET_ITEM(st, 3));
@@ -668,13 +677,9 @@ static PyObject *unpack_stages(PyObject *self, PyObject *const *args, Py_ssize_t
         PyErr_SetString(PyExc_TypeError, "_kalman.unpack_stages: packed bytes and a list of rows");
         return NULL;
     }
-    Py_ssize_t size = PyBytes_GET_SIZE(stages);
-    if (size % (Py_ssize_t)sizeof(double)) {
-        PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of a partial value");
-        return NULL;
-    }
-    const double *d = (const double *)PyBytes_AS_STRING(stages);
-    Py_ssize_t nd = size / (Py_ssize_t)sizeof(double), at = 0, sensor;
+    Py_ssize_t nd, at = 0, sensor;
+    const double *d = packed_values(stages, &nd);
+    if (!d) return NULL;
     PyObject *out = PyList_New(0);
     if (!out) return NULL;
     while (at < nd) {
