@@ -15,6 +15,8 @@
        advance: LinearBackend.advance's whole step (the reuse rule for a step's previous
                 result, jump, remean, update, the new Gaussian) in one call, without the
                 Python calls, tuple unpacking and global lookups between them
+       replay:  ReplayEstimator._replay's loop, advance after advance over the measured
+                steps, the inputs read from the input buffer in place
        fill:    InputBuffer.set's rows, buf[start:end] = u
        freeze:  arrays made read-only (ndarray.setflags(write=False)) in one call
 
@@ -112,12 +114,9 @@ static PyObject *new_stage(long kind, PyObject *K, PyObject *H, PyObject *z_obj,
 /* jump(x (n,), P (n, n) or None, A (n, n), Qs (n, n), G (n, >= k) or None, U (k values))
    -> (x-, P- or None). G is the tables' full stacked input matrix [A^{M-1}B ... B]: its last
    k columns multiply U (m steps of nu inputs, k = m nu). P None: the mean only. */
-static PyObject *jump(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (check_nargs("jump", nargs, 6)) return NULL;
-    PyObject *ox = args[0], *oP = args[1], *oA = args[2], *oQ = args[3], *oG = args[4],
-             *oU = args[5];
-    PyArrayObject *x = NULL, *P = NULL, *A = NULL, *Q = NULL, *G = NULL, *U = NULL;
+static PyObject *jump_impl(PyObject *ox, PyObject *oP, PyObject *oA, PyObject *oQ,
+                           PyObject *oG, const double *u, npy_intp k) {
+    PyArrayObject *x = NULL, *P = NULL, *A = NULL, *Q = NULL, *G = NULL;
     PyObject *xo = NULL, *Po = NULL, *res = NULL;
     x = as_f64(ox);
     A = as_f64(oA);
@@ -138,15 +137,13 @@ static PyObject *jump(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     }
     if (oG != Py_None) {
         G = as_f64(oG);
-        U = as_f64(oU);
-        if (!G || !U) goto done;
-        npy_intp k = PyArray_SIZE(U);
+        if (!G) goto done;
         npy_intp cols = PyArray_NDIM(G) == 2 ? PyArray_DIM(G, 1) : -1;
         if (PyArray_NDIM(G) != 2 || PyArray_DIM(G, 0) != n || cols < k) {
             PyErr_SetString(PyExc_ValueError, "_kalman: G is not (n, >= U.size)");
             goto done;
         }
-        const double *g = (const double *)PyArray_DATA(G) + (cols - k), *u = PyArray_DATA(U);
+        const double *g = (const double *)PyArray_DATA(G) + (cols - k);
         for (npy_intp i = 0; i < n; i++) {  /* the last k columns: [A^{m-1}B ... B] */
             double acc = 0.0;
             for (npy_intp l = 0; l < k; l++) acc += g[i * cols + l] * u[l];
@@ -181,7 +178,20 @@ static PyObject *jump(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     res = PyTuple_Pack(2, xo, Po);
 done:
     Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(A); Py_XDECREF(Q); Py_XDECREF(G);
-    Py_XDECREF(U); Py_XDECREF(xo); Py_XDECREF(Po);
+    Py_XDECREF(xo); Py_XDECREF(Po);
+    return res;
+}
+
+static PyObject *jump(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("jump", nargs, 6)) return NULL;
+    if (args[4] == Py_None)
+        return jump_impl(args[0], args[1], args[2], args[3], Py_None, NULL, 0);
+    PyArrayObject *U = as_f64(args[5]);
+    if (!U) return NULL;
+    PyObject *res = jump_impl(args[0], args[1], args[2], args[3], args[4],
+                              (const double *)PyArray_DATA(U), PyArray_SIZE(U));
+    Py_DECREF(U);
     return res;
 }
 
@@ -788,13 +798,9 @@ static PyObject *sensor_of(PyObject *packet) {
    tuple), entry m a tuple (A^m, ., Qs(m), .); G: the stacked input matrix or None; rows:
    linear._rows per sensor; state: (x, P, ...); U (m, nu); packets: a list of Packet; old: a Gaussian or
    None. */
-static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (check_nargs("advance", nargs, 9)) return NULL;
-    PyObject *gt = args[0], *jumps = args[1], *G = args[2], *rows = args[3], *state = args[4];
-    PyObject *U = args[6], *packets = args[7], *old = args[8];
-    Py_ssize_t m = PyLong_AsSsize_t(args[5]);
-    if (m == -1 && PyErr_Occurred()) return NULL;
+static PyObject *advance_impl(PyObject *gt, PyObject *jumps, PyObject *G, PyObject *rows,
+                              PyObject *state, Py_ssize_t m, const double *u, npy_intp k_u,
+                              PyObject *packets, PyObject *old) {
     if (!PyType_Check(gt) || !PyType_IsSubtype((PyTypeObject *)gt, &PyTuple_Type)
         || !PyTuple_Check(jumps) || !PyList_Check(packets) || !PyTuple_Check(state)
         || PyTuple_GET_SIZE(state) < 2
@@ -846,9 +852,8 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
             PyErr_SetString(PyExc_TypeError, "_kalman.advance: a jump is not (A, ., Qs, ...)");
             goto error;
         }
-        PyObject *argv[6] = {x, reuse ? Py_None : P, PyTuple_GET_ITEM(jt, 0),
-                             PyTuple_GET_ITEM(jt, 2), G, U};
-        PyObject *r = jump(NULL, argv, 6);
+        PyObject *r = jump_impl(x, reuse ? Py_None : P, PyTuple_GET_ITEM(jt, 0),
+                                PyTuple_GET_ITEM(jt, 2), G, u, k_u);
         if (!r) goto error;
         xp = Py_NewRef(PyTuple_GET_ITEM(r, 0));
         Pp = Py_NewRef(reuse ? P : PyTuple_GET_ITEM(r, 1));
@@ -936,6 +941,120 @@ fail_sensors:
     Py_XDECREF(sensors); Py_DECREF(xp); Py_DECREF(Pp);
 error:
     Py_DECREF(empty);
+    return NULL;
+}
+
+static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("advance", nargs, 9)) return NULL;
+    Py_ssize_t m = PyLong_AsSsize_t(args[5]);
+    if (m == -1 && PyErr_Occurred()) return NULL;
+    if (args[2] == Py_None)
+        return advance_impl(args[0], args[1], Py_None, args[3], args[4], m, NULL, 0, args[7],
+                            args[8]);
+    PyArrayObject *U = as_f64(args[6]);
+    if (!U) return NULL;
+    PyObject *g = advance_impl(args[0], args[1], args[2], args[3], args[4], m,
+                               (const double *)PyArray_DATA(U), PyArray_SIZE(U), args[7],
+                               args[8]);
+    Py_DECREF(U);
+    return g;
+}
+
+/* replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse)
+   -> (state, a, done)
+
+   ReplayEstimator._replay's loop over the measured steps ``steps`` (a list of ints, rising,
+   after ``a``) for a LinearBackend with the kernel, one advance per step as that loop makes
+   it, without a Python call, a slice of the input buffer and two dict operations per step:
+
+       for s in steps:
+           old = chk.get(s) if noreuse is None or s < noreuse else None
+           state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
+           chk[s] = state;  a = s
+
+   buf (rows, nu) float64 C-contiguous (InputBuffer's; u(t) = buf[t - off]); packets and
+   chk dicts from step to a list of packets / a Gaussian. Stops before a step it does not
+   take (a jump longer than the tables, or advance() handing a packet back): ``done`` steps
+   were made and stored, ``state`` is the last, ``a`` its step; the caller goes on from
+   there with LinearBackend.advance. Same calls in the same order: the same bits. */
+static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("replay", nargs, 12)) return NULL;
+    PyObject *gt = args[0], *jumps = args[1], *G = args[2], *rows = args[3];
+    PyObject *steps = args[6], *ob = args[7], *packets = args[9], *chk = args[10];
+    PyObject *nr = args[11];
+    Py_ssize_t a = PyLong_AsSsize_t(args[5]), off = PyLong_AsSsize_t(args[8]);
+    if ((a == -1 || off == -1) && PyErr_Occurred()) return NULL;
+    Py_ssize_t noreuse = 0;
+    if (nr != Py_None) {
+        noreuse = PyLong_AsSsize_t(nr);
+        if (noreuse == -1 && PyErr_Occurred()) return NULL;
+    }
+    if (!PyTuple_Check(jumps) || !PyList_Check(steps) || !PyDict_Check(packets)
+        || !PyDict_Check(chk) || !PyArray_CheckExact(ob)) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.replay: arguments of the wrong types");
+        return NULL;
+    }
+    PyArrayObject *buf = (PyArrayObject *)ob;
+    if (PyArray_TYPE(buf) != NPY_DOUBLE || !PyArray_ISCARRAY_RO(buf)
+        || !PyArray_ISNOTSWAPPED(buf) || PyArray_NDIM(buf) != 2) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.replay: buf is not a C-contiguous float64 "
+                                         "(rows, nu) array");
+        return NULL;
+    }
+    npy_intp nbuf = PyArray_DIM(buf, 0), nu = PyArray_DIM(buf, 1);
+    const double *bd = (const double *)PyArray_DATA(buf);
+    Py_ssize_t ntab = PyTuple_GET_SIZE(jumps);
+    PyObject *state = Py_NewRef(args[4]);
+    Py_ssize_t done = 0, nsteps = PyList_GET_SIZE(steps);
+    for (; done < nsteps; done++) {
+        Py_ssize_t s = PyLong_AsSsize_t(PyList_GET_ITEM(steps, done));
+        if (s == -1 && PyErr_Occurred()) goto error;
+        Py_ssize_t m = s - a;
+        if (m < 0 || m >= ntab) break;  /* the Python form: its error, or table-sized chunks */
+        if (a - off < 0 || s - off > nbuf) {
+            PyErr_SetString(PyExc_IndexError, "_kalman.replay: steps outside the input buffer");
+            goto error;
+        }
+        PyObject *key = PyList_GET_ITEM(steps, done);
+        PyObject *pk = PyDict_GetItemWithError(packets, key);  /* borrowed */
+        if (!pk) {
+            if (!PyErr_Occurred()) PyErr_SetObject(PyExc_KeyError, key);
+            goto error;
+        }
+        PyObject *old = Py_None;
+        if (nr == Py_None || s < noreuse) {
+            old = PyDict_GetItemWithError(chk, key);  /* borrowed; chk[s] replaced below */
+            if (!old) {
+                if (PyErr_Occurred()) goto error;
+                old = Py_None;
+            }
+        }
+        Py_INCREF(old);  /* held across chk[s] = g, which drops the dict's reference */
+        PyObject *g = advance_impl(gt, jumps, G, rows, state, m, bd + (a - off) * nu, m * nu,
+                                   pk, old);
+        Py_DECREF(old);
+        if (!g) goto error;
+        if (g == Py_None) {  /* a packet handed back: the Python form takes this step */
+            Py_DECREF(g);
+            break;
+        }
+        if (PyDict_SetItem(chk, key, g) < 0) { Py_DECREF(g); goto error; }
+        Py_SETREF(state, g);
+        a = s;
+    }
+    {
+        PyObject *ao = PyLong_FromSsize_t(a), *dn = PyLong_FromSsize_t(done);
+        PyObject *res = ao && dn ? PyTuple_New(3) : NULL;
+        if (!res) { Py_XDECREF(ao); Py_XDECREF(dn); goto error; }
+        PyTuple_SET_ITEM(res, 0, state);
+        PyTuple_SET_ITEM(res, 1, ao);
+        PyTuple_SET_ITEM(res, 2, dn);
+        return res;
+    }
+error:
+    Py_DECREF(state);
     return NULL;
 }
 
@@ -1028,6 +1147,9 @@ static PyMethodDef methods[] = {
     {"advance", (PyCFunction)(void (*)(void))advance, METH_FASTCALL,
      "advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> Gaussian, or None (the "
      "Python form then runs): LinearBackend.advance for m <= M in one call."},
+    {"replay", (PyCFunction)(void (*)(void))replay, METH_FASTCALL,
+     "replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse) -> "
+     "(state, a, done): ReplayEstimator._replay's loop of advance calls, in one call."},
     {"freeze", (PyCFunction)(void (*)(void))freeze, METH_FASTCALL,
      "freeze(a, ...) -> None: a.setflags(write=False) for each array, in one call."},
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,

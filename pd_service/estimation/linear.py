@@ -46,6 +46,7 @@ from .state import check_names, take
 #: build): the numpy form below is the reference it is tested against.
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
 _ADVANCE: Final = kernel_function("pd_service.estimation._kalman", "advance")
+_REPLAY: Final = kernel_function("pd_service.estimation._kalman", "replay")
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
@@ -327,6 +328,28 @@ class LinearBackend:
 
     def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:
         return self.advance(state, m, U, [], None)
+
+    def advance_run(self, state: Gaussian, a: int, steps: list[int], buf: np.ndarray, off: int,
+                    packets: dict[int, list[Packet]], chk: dict[int, Gaussian],
+                    noreuse: int | None) -> tuple[Gaussian, int, int]:
+        """The replay's loop of :meth:`advance` calls over the measured ``steps`` (rising,
+        after ``a``) in one C call (``_kalman.replay``), the inputs u(t) = buf[t - off] read
+        in place::
+
+            for s in steps:
+                old = chk.get(s) if noreuse is None or s < noreuse else None
+                chk[s] = state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
+                a = s
+
+        Returns (state, a, done): the first ``done`` steps were made and stored (the same
+        calls, the same bits as the loop); the caller makes the rest with :meth:`advance`
+        (the numpy form, or a jump longer than the tables). Without the kernel: none."""
+        run = _REPLAY if self.use_kernel else None
+        if run is None:
+            return state, a, 0
+        return cast(tuple[Gaussian, int, int],
+                    run(Gaussian, self._jumps, self._G, self._single, state, a, steps, buf, off,
+                        packets, chk, noreuse))
 
     def update(self, state: Gaussian, step: int, packets: list[Packet]) -> Gaussian:
         return self.advance(state, 0, U=np.empty((0, self._nu)), packets=packets, old=None)

@@ -176,7 +176,11 @@ class FusedBackend(Backend[S], Protocol):
     """A backend with a fused replay step that may reuse a previous result's covariance.
 
     :class:`ReplayEstimator` calls :meth:`advance` instead of ``propagate`` + ``update`` when
-    the backend has it.
+    the backend has it. A backend may also offer ``advance_run(state, a, steps, buf, off,
+    packets, chk, noreuse) -> (state, a, done)``: the replay's loop of :meth:`advance` calls
+    over several steps in one call, the inputs read in place from the input buffer
+    (``LinearBackend.advance_run``, its C kernel); the replay makes the steps after the
+    first ``done`` with :meth:`advance`.
     """
 
     def advance(self, state: S, m: int, U: np.ndarray, packets: list[Packet],
@@ -550,6 +554,11 @@ class ReplayEstimator(Generic[S]):
             todo = steps[i:j]
             if todo:
                 buf, off = self._inputs.window(a, todo[-1])
+                run = getattr(backend, "advance_run", None)
+                if run is not None:  # the loop below in one C call, as far as it goes
+                    state, a, done = run(state, a, todo, buf, off, packets, chk, noreuse)
+                    if done:
+                        todo = todo[done:]
                 for s in todo:
                     old = chk.get(s) if noreuse is None or s < noreuse else None
                     state = advance(state, s - a, buf[a - off : s - off], packets[s], old)

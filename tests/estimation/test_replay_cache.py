@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
-from pd_service.estimation.linear import Gaussian, LinearBackend, _chol_inv
+from pd_service.estimation.linear import _REPLAY, Gaussian, LinearBackend, _chol_inv
 from pd_service.scenarios.paper import paper_model, paper_prior, paper_sensors
 
 from .reference import batch_predict
@@ -38,6 +38,27 @@ class CountingBackend(LinearBackend):
             self.offered += 1
             self.hits += self.reuse and out.P is old.P
         return out
+
+    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
+        return state, a, 0  # every step through advance above (the C loop would bypass it)
+
+
+class StepwiseBackend(LinearBackend):
+    """LinearBackend without its C replay loop: the replay calls advance step by step."""
+
+    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
+        return state, a, 0
+
+
+class RunCountingBackend(LinearBackend):
+    """LinearBackend counting the steps its C replay loop made."""
+
+    made = 0
+
+    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
+        got = super().advance_run(state, a, steps, buf, off, packets, chk, noreuse)
+        self.made += got[2]
+        return got
 
 
 def command_heavy(seed: int, ticks: int):
@@ -276,3 +297,43 @@ def test_a_packet_joining_a_step_pays_only_its_own_update() -> None:
     unpack = ops[0]._backend._tuple_stages
     assert after.sensors == (0, 1)  # the ranger's gain recomputed after the camera's update
     assert not np.array_equal(unpack(after.stages)[1][1], unpack(before.stages)[0][1])
+
+
+def replay_pair(seed: int, ticks: int) -> int:
+    """The same random traffic (commands for past steps included) through an estimator
+    whose replay uses the C loop and one whose replay calls advance step by step: asserts
+    the same predictions, bit for bit, at every tick; returns the steps the C loop made."""
+    (model, sensors, max_delay, lead, x0, P0, hold), events = command_heavy(seed, ticks)
+    mode = "hold" if hold else "zero"
+    ops = []
+    for cls in (RunCountingBackend, StepwiseBackend):
+        op = ObserverPredictor(model, sensors, x0, P0, lead=lead, max_delay=max_delay,
+                               command_hold=mode)
+        op._backend = cls(op.model, op.sensors, op._inputs.capacity)
+        ops.append(op)
+    a, b = ops
+    for k in range(ticks):
+        ra, rb = feed(a, events.get(k, []), k), feed(b, events.get(k, []), k)
+        assert ra == rb or [r[-1] for r in ra] == [r[-1] for r in rb]
+        pa, pb = a.predict(k), b.predict(k)
+        assert np.array_equal(pa.x, pb.x) and np.array_equal(pa.P, pb.P), k
+    return a._backend.made  # type: ignore[attr-defined]
+
+
+needs_kernel = pytest.mark.skipif(_REPLAY is None, reason="the C kernel is not built (pure Python)")
+
+
+@needs_kernel
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow],
+          derandomize=True)
+@given(seed=st.integers(min_value=0, max_value=2**32 - 1))
+def test_the_kernels_replay_loop_gives_the_bits_of_the_step_by_step_loop(seed: int) -> None:
+    """``_kalman.replay`` (LinearBackend.advance_run: the replay's steps in one C call)
+    against the replay's own loop of advance calls, with and without reuse."""
+    replay_pair(seed, 50)
+
+
+@needs_kernel
+def test_the_kernels_replay_loop_is_used() -> None:
+    """The property above is not vacuous: the C loop makes most replayed steps."""
+    assert sum(replay_pair(seed, 50) for seed in range(10)) > 100
