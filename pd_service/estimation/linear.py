@@ -343,7 +343,9 @@ class LinearBackend:
 
         Returns (state, a, done): the first ``done`` steps were made and stored (the same
         calls, the same bits as the loop); the caller makes the rest with :meth:`advance`
-        (the numpy form, or a jump longer than the tables). Without the kernel: none."""
+        (the numpy form, or a jump longer than the tables). Without the kernel: none. The C
+        loop does not call :meth:`advance`: a subclass (or a test's patch) that replaces
+        ``advance`` replaces this too."""
         run = _REPLAY if self.use_kernel else None
         if run is None:
             return state, a, 0
