@@ -24,8 +24,16 @@ from .test_state import feed, linear_events
 RTOL = 1e-9
 
 
-class CountingBackend(LinearBackend):
-    """LinearBackend that counts reused covariances, or (``reuse=False``) never reuses."""
+class StepwiseBackend(LinearBackend):
+    """LinearBackend without its C replay loop: the replay calls advance step by step."""
+
+    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
+        return state, a, 0
+
+
+class CountingBackend(StepwiseBackend):
+    """LinearBackend that counts reused covariances, or (``reuse=False``) never reuses
+    (stepwise: every step through its advance, which the C loop would bypass)."""
 
     def __init__(self, *args: object, reuse: bool = True) -> None:
         super().__init__(*args)  # type: ignore[arg-type]
@@ -38,16 +46,6 @@ class CountingBackend(LinearBackend):
             self.offered += 1
             self.hits += self.reuse and out.P is old.P
         return out
-
-    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
-        return state, a, 0  # every step through advance above (the C loop would bypass it)
-
-
-class StepwiseBackend(LinearBackend):
-    """LinearBackend without its C replay loop: the replay calls advance step by step."""
-
-    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
-        return state, a, 0
 
 
 class RunCountingBackend(LinearBackend):
