@@ -2,10 +2,9 @@
 """Machine gauge: CPU time of a fixed workload that does not depend on pd_service, to tell
 how fast the machine was when a benchmark ran.
 
-The shared 2-core machine's speed changes by tens of percent between hours, and a figure
-measured in a fast hour does not reproduce in a slow one (bench/worker.py measured the same
-build at 37-39 µs per session-step one day and 55-69 µs the next). The benchmarks print this
-gauge beside their figures: two figures compare only with their gauges.
+A shared machine's speed changes between hours, and a figure measured in a fast hour does
+not reproduce in a slow one (docs/performance.md, "How to read the figures"). The benchmarks
+print this gauge beside their figures: two figures compare only with their gauges.
 
 The workload is the kind of work the daemon does per message: msgpack packing and unpacking
 of small maps, dict and list operations, small numpy products. Printed: the median of 5

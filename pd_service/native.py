@@ -80,7 +80,7 @@ def source_path(module: str) -> Path:
 
 class _SourceFirst:
     """Finds the hot modules' .py files ahead of their extension modules (a meta path
-    finder; importlib.abc is not imported for it: it costs ~6 ms at every start)."""
+    finder; importlib.abc is not imported for it: its import would slow every start)."""
 
     def find_spec(self, fullname: str, path: Sequence[str] | None = None,
                   target: ModuleType | None = None) -> ModuleSpec | None:
@@ -162,7 +162,7 @@ def kernel_function(name: str, attr: str) -> Callable[..., Any] | None:
     """The function ``attr`` of the C kernel ``name`` (None where :func:`kernel` is None).
     Bound once at import into a ``Final`` module attribute, a compiled caller reads it from
     a C static and calls it directly: a call through the module object looks the function
-    up on the module each time (~300 instructions)."""
+    up on the module each time."""
     mod = kernel(name)
     return None if mod is None else cast("Callable[..., Any]", getattr(mod, attr))
 

@@ -199,8 +199,7 @@ class LinkRelay:
     a release instead of trusting ``Condition.wait`` to wake up on time -- only while releases
     are sparse (more than ``10 * spin_ns`` apart), which bounds the CPU it burns.
     ``express``: Zenoh's express flag on the output publishers (no batching).  Off by default:
-    at 10,000 msg/s on loopback it doubled pd-link's CPU (64 % vs 29 % of a core) without
-    lowering the latency (bench/link.py).
+    it costs CPU at high rates without lowering the latency (docs/link.md, "Timing").
     ``max_inbox``: messages waiting for the worker beyond this are dropped (and counted as
     ``overflow``).
     ``cache``: the output publishers of keys the service reads (``pd/<s>/sensor/<name>``,
