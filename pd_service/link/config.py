@@ -554,7 +554,8 @@ class Limits:
                 "max_keys": self.max_keys}  # fmt: skip
 
 
-HELD_OVERHEAD_BYTES = 640  # a held message's RSS beyond its payload (~690 B measured, bench/link_flood.py)
+#: A held message's own objects, counted so that max_held_bytes tracks the memory really held.
+HELD_OVERHEAD_BYTES = 640
 
 _DEFAULT_LIMITS = Limits()
 
