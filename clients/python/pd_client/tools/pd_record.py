@@ -223,8 +223,7 @@ class Recorder:
 
 # --- command line ----------------------------------------------------------------------------
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--session", action="append", metavar="NAME",
                     help="session to record (repeatable; default: paper)")
     ap.add_argument("--out", default="out/record", help="output directory (default out/record)")
@@ -241,12 +240,6 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also record every input and output of the sessions to this MCAP "
                          "file (pip install 'pd-client[viz]'; see pd_client.tools.mcap_log)")
     common.add_progress_arg(ap)
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -333,6 +326,10 @@ def finish(paths: dict[str, Path], out_dir: str | Path, warmup: int = DEFAULT_WA
             for png in render({s: paths[s] for s in summaries}, out):
                 print(f"png: {png}")
     return 0 if summaries else 1
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

@@ -388,8 +388,7 @@ def _xy(value: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"--xy: expected I,J (two state indices), got {value!r}") from None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--session", action="append", metavar="NAME",
                     help="session to show (repeatable; default: all the daemons serve)")
     ap.add_argument("--host", default="127.0.0.1",
@@ -400,12 +399,6 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--status-every", type=float, default=1.0,
                     help="seconds between SessionStatus queries (0: none)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -436,6 +429,10 @@ def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event
     finally:
         server.close()
     return 0
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":
