@@ -32,9 +32,9 @@ import math
 import re
 import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import astuple, dataclass, fields, replace
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal, cast, get_args
 
 from pydantic import (
     AfterValidator,
@@ -43,6 +43,7 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
+    PlainSerializer,
     PlainValidator,
     PrivateAttr,
     Tag,
@@ -176,9 +177,11 @@ def _duration(value: Any, info: ValidationInfo) -> int:
     return parse_time_ns(value, (info.context or {}).get("step_ms"))
 
 
-Percent = Annotated[float, PlainValidator(parse_percent)]
-Duration = Annotated[int, PlainValidator(_duration)]
+# each field type reads the document's form and writes it back (``Rule.to_dict``)
+Percent = Annotated[float, PlainValidator(parse_percent), PlainSerializer(format_percent)]
+Duration = Annotated[int, PlainValidator(_duration), PlainSerializer(format_ns)]
 KeyExpr = Annotated[str, PlainValidator(check_keyexpr)]
+RateField = Annotated[Rate, PlainValidator(parse_rate), PlainSerializer(format_rate)]
 
 
 class _Doc(BaseModel):
@@ -248,8 +251,11 @@ DEFAULT_MAPPINGS: tuple[KeyMapping, ...] = (
 
 
 class _LossDoc(_Doc):
-    """A loss table; validating it builds the model's loss dataclass (:attr:`spec`)."""
+    """A loss table; validating it builds the model's loss dataclass (:attr:`spec`), whose
+    fields are the table's after ``model``, in order."""
 
+    spec_type: ClassVar[type[LossSpec]]
+    model: str
     _spec: LossSpec = PrivateAttr()
 
     @model_validator(mode="after")
@@ -264,8 +270,18 @@ class _LossDoc(_Doc):
     def spec(self) -> LossSpec:
         return self._spec
 
+    @classmethod
+    def of(cls, spec: LossSpec) -> LossTable:
+        """The table of a loss dataclass (every field written, as ``to_dict`` does)."""
+        doc = next(c for c in cls.__subclasses__() if c.spec_type is type(spec))
+        names = [n for n in doc.model_fields if n != "model"]
+        return cast(LossTable, doc.model_construct(
+            model=get_args(doc.model_fields["model"].annotation)[0],
+            **dict(zip(names, astuple(spec), strict=True))))
+
 
 class _RandomLossDoc(_LossDoc):
+    spec_type = RandomLoss
     model: Literal["random"] = "random"
     percent: Percent
     correlation: Percent = 0.0
@@ -275,6 +291,7 @@ class _RandomLossDoc(_LossDoc):
 
 
 class _GilbertElliottDoc(_LossDoc):
+    spec_type = GilbertElliott
     model: Literal["gemodel"]
     p: Percent
     r: Percent | None = None  # netem: 1 - p
@@ -287,6 +304,7 @@ class _GilbertElliottDoc(_LossDoc):
 
 
 class _FourStateDoc(_LossDoc):
+    spec_type = FourStateLoss
     model: Literal["state"]
     p13: Percent
     p31: Percent | None = None  # netem: 1 - p13
@@ -300,11 +318,15 @@ class _FourStateDoc(_LossDoc):
 
 
 LOSS_MODELS = ("random", "gemodel", "state")
+LossTable = _RandomLossDoc | _GilbertElliottDoc | _FourStateDoc
 
 
 def _loss_tag(value: Any) -> str:
     """Which member of the loss union reads ``value``: a table by its ``model`` (default
-    random), anything else as the shorthand percentage (``loss = "1%"``)."""
+    random), anything else as the shorthand percentage (``loss = "1%"``); when writing a
+    rule back, a loss table by its own."""
+    if isinstance(value, _LossDoc):
+        return value.model
     if isinstance(value, Mapping):
         return str(value.get("model", "random"))
     return "percent"
@@ -328,7 +350,7 @@ class _OutageDoc(_Doc):
 
     at: Duration = 0
     for_: Duration = Field(alias="for")
-    every: Duration = 0
+    every: Duration = Field(0, exclude_if=lambda every: every == 0)
     _window: Outage = PrivateAttr()
 
     @model_validator(mode="after")
@@ -339,6 +361,11 @@ class _OutageDoc(_Doc):
     @property
     def window(self) -> Outage:
         return self._window
+
+    @classmethod
+    def of(cls, window: Outage) -> _OutageDoc:
+        return cls.model_construct(at=window.start_ns, for_=window.duration_ns,
+                                   every=window.every_ns)
 
 
 def _as_list(value: Any) -> Any:
@@ -365,82 +392,40 @@ class Rule:
 
     def to_dict(self) -> dict[str, Any]:
         """Normalised form (ms strings, percent strings) that parses back to the same rule."""
-        p = self.params
-        out: dict[str, Any] = {"name": self.name, "match": self.match}
-        if self.shared:
-            out["shared"] = True
-        d = p.delay
-        if d.delay_ns:
-            out["delay"] = format_ns(d.delay_ns)
-        if d.jitter_ns:
-            out["jitter"] = format_ns(d.jitter_ns)
-            out["distribution"] = d.distribution
-        if d.correlation:
-            out["delay_correlation"] = format_percent(d.correlation)
-        if p.loss is not None:
-            out["loss"] = _loss_to_dict(p.loss)
-        for name in ("duplicate", "reorder", "corrupt"):
-            prob = getattr(p, name)
-            if prob:
-                out[name] = format_percent(prob)
-            rho = getattr(p, f"{name}_correlation")
-            if rho:
-                out[f"{name}_correlation"] = format_percent(rho)
-        if p.reorder:
-            out["gap"] = p.gap
-        if p.corrupt_bits != 1:
-            out["corrupt_bits"] = p.corrupt_bits
-        if p.rate is not None:
-            out["rate"] = format_rate(p.rate)
-            if p.rate.overhead_bytes:
-                out["packet_overhead"] = p.rate.overhead_bytes
-        if p.outages:
-            out["outage"] = [
-                {"at": format_ns(w.start_ns), "for": format_ns(w.duration_ns)}
-                | ({"every": format_ns(w.every_ns)} if w.every_ns else {})
-                for w in p.outages
-            ]
-        if p.outages or p.outage_mode != "drop":
-            out["outage_mode"] = p.outage_mode
-        if p.in_order:
-            out["in_order"] = True
-        return out
+        return _RuleDoc.of(self).to_dict()
 
 
-def _loss_to_dict(loss: LossSpec) -> dict[str, Any]:
-    if isinstance(loss, RandomLoss):
-        return {"model": "random", "percent": format_percent(loss.p),
-                "correlation": format_percent(loss.correlation)}  # fmt: skip
-    if isinstance(loss, GilbertElliott):
-        return {"model": "gemodel", "p": format_percent(loss.p), "r": format_percent(loss.r),
-                "1-h": format_percent(loss.one_minus_h),
-                "1-k": format_percent(loss.one_minus_k)}  # fmt: skip
-    return {"model": "state"} | {
-        n: format_percent(getattr(loss, n)) for n in ("p13", "p31", "p32", "p23", "p14")
-    }
+#: LinkParams fields a rule table holds as they are (the others are built from its fields)
+_AS_IS = tuple(f.name for f in fields(LinkParams) if f.name not in ("delay", "loss", "rate",
+                                                                     "outages"))
+#: Fields refused unless the one named is set too (tc's refusals); written only with it.
+_NEEDS = {"distribution": "jitter", "gap": "reorder", "packet_overhead": "rate"}
+#: Fields written whenever the one named is (as netem shows them), even with their default.
+_WRITTEN_WITH = {"distribution": "jitter", "gap": "reorder", "outage_mode": "outage"}
 
 
 class _RuleDoc(_Doc):
-    """One rule table (netem's names); validating it builds the :class:`LinkParams`."""
+    """One rule table (netem's names); validating it builds the :class:`LinkParams`, and
+    :meth:`of` / :meth:`to_dict` write one back (fields in this order)."""
 
     name: str = Field(min_length=1)
     match: KeyExpr = "**"
     shared: bool = False
     delay: Duration = 0
     jitter: Duration = 0
-    delay_correlation: Percent = 0.0
     distribution: Distribution = "uniform"
+    delay_correlation: Percent = 0.0
     loss: Loss | None = None
     loss_correlation: Percent | None = None
     duplicate: Percent = 0.0
     duplicate_correlation: Percent = 0.0
     reorder: Percent = 0.0
     reorder_correlation: Percent = 0.0
-    gap: int = 1
     corrupt: Percent = 0.0
     corrupt_correlation: Percent = 0.0
+    gap: int = 1
     corrupt_bits: int = 1
-    rate: Annotated[Rate, PlainValidator(parse_rate)] | None = None
+    rate: RateField | None = None
     packet_overhead: int = 0
     outage: Annotated[list[_OutageDoc], BeforeValidator(_as_list)] = []
     outage_mode: OutageMode = "drop"
@@ -451,13 +436,9 @@ class _RuleDoc(_Doc):
     @model_validator(mode="after")
     def _build_params(self) -> _RuleDoc:
         given = self.model_fields_set
-        # the three refusals below are tc's
-        if "distribution" in given and self.jitter == 0:
-            raise ValueError("distribution given without jitter")
-        if "gap" in given and not self.reorder:
-            raise ValueError("gap given without reorder")
-        if "packet_overhead" in given and self.rate is None:
-            raise ValueError("packet_overhead given without rate")
+        for name, needed in _NEEDS.items():
+            if name in given and not getattr(self, needed):
+                raise ValueError(f"{name} given without {needed}")
         loss: LossSpec | None = None
         if isinstance(self.loss, float):  # shorthand: loss = "1%" [loss_correlation = ...]
             if self.loss > 0:
@@ -469,15 +450,35 @@ class _RuleDoc(_Doc):
             loss = self.loss.spec
         rate = None if self.rate is None else replace(self.rate, overhead_bytes=self.packet_overhead)
         delay = DelaySpec(self.delay, self.jitter, self.delay_correlation, self.distribution)
-        self._params = LinkParams(
-            delay, loss, self.duplicate, self.duplicate_correlation, self.reorder,
-            self.reorder_correlation, self.gap, self.corrupt, self.corrupt_correlation,
-            self.corrupt_bits, rate, tuple(w.window for w in self.outage), self.outage_mode,
-            self.in_order)
+        self._params = LinkParams(delay, loss, rate=rate,
+                                  outages=tuple(w.window for w in self.outage),
+                                  **{n: getattr(self, n) for n in _AS_IS})
         return self
 
     def rule(self) -> Rule:
         return Rule(self.name, self.match, self._params, self.shared)
+
+    @classmethod
+    def of(cls, rule: Rule) -> _RuleDoc:
+        """The table of ``rule`` (unvalidated: ``rule`` was)."""
+        p, d = rule.params, rule.params.delay
+        return cls.model_construct(
+            name=rule.name, match=rule.match, shared=rule.shared, delay=d.delay_ns,
+            jitter=d.jitter_ns, distribution=d.distribution, delay_correlation=d.correlation,
+            loss=None if p.loss is None else _LossDoc.of(p.loss), rate=p.rate,
+            packet_overhead=0 if p.rate is None else p.rate.overhead_bytes,
+            outage=[_OutageDoc.of(w) for w in p.outages], **{n: getattr(p, n) for n in _AS_IS})
+
+    def to_dict(self) -> dict[str, Any]:
+        """``name``, ``match`` and the fields that differ from their defaults (see
+        :data:`_NEEDS`, :data:`_WRITTEN_WITH`), in the document's form."""
+        written: set[str] = {"name", "match"}
+        for name, info in type(self).model_fields.items():
+            needed = _NEEDS.get(name)
+            if ((getattr(self, name) != info.default and (needed is None or needed in written))
+                    or _WRITTEN_WITH.get(name) in written):
+                written.add(name)
+        return self.model_dump(by_alias=True, include=written)
 
 
 def _rule_tables(value: Any, info: ValidationInfo) -> Any:
@@ -553,7 +554,8 @@ class Limits:
                 "max_keys": self.max_keys}  # fmt: skip
 
 
-HELD_OVERHEAD_BYTES = 640  # a held message's RSS beyond its payload (~690 B measured, bench/link_flood.py)
+#: A held message's own objects, counted so that max_held_bytes tracks the memory really held.
+HELD_OVERHEAD_BYTES = 640
 
 _DEFAULT_LIMITS = Limits()
 

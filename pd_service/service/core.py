@@ -2,8 +2,9 @@
 
 The core composes four parts, one job each, and talks to the world only through a
 :class:`~pd_service.transport.Transport` (Zenoh in the daemon, :class:`InMemoryBus` in unit
-tests); it reads time only through two injected clocks (``now_ns``: shared wall clock for
-steps; ``mono_ns``: monotonic clock for latencies), so tests drive it deterministically.
+tests); it reads time only through injected clocks (``now_ns``: shared wall clock for
+steps; ``mono_ns``: monotonic clock for latencies; ``run_clock_ns``: the one of run_once's
+time budget, ``mono_ns`` by default), so tests drive it deterministically.
 
 - :mod:`.dispatch`: callbacks -> bounded inboxes -> round-robin rounds of session messages;
 - :mod:`.lifecycle`: specs applied, sessions installed / removed / expired / reassigned,
@@ -69,6 +70,7 @@ class ServiceCore:
         store: SpecStore | None = None,
         now_ns: Callable[[], int] = time.time_ns,
         mono_ns: Callable[[], int] = time.monotonic_ns,
+        run_clock_ns: Callable[[], int] | None = None,
         spawn: Callable[[Callable[[], None]], None] | None = None,
     ) -> None:
         self.t = transport
@@ -77,6 +79,9 @@ class ServiceCore:
         self.store = store
         self.now_ns = now_ns
         self.mono_ns = mono_ns
+        #: The clock of run_once's time budget (default ``mono_ns``; a test freezes it so
+        #: that how much one call does does not depend on the machine's speed).
+        self.run_clock_ns = mono_ns if run_clock_ns is None else run_clock_ns
         self.lock = threading.RLock()
         set_tables_max_bytes(settings.tables_max_bytes)
         self.wake = threading.Event()
@@ -233,7 +238,7 @@ class ServiceCore:
         nothing is left or ~50 ms have passed. Returns the number of messages handled."""
         d, pub = self.dispatch, self.publisher
         handled = 0
-        t_end = self.mono_ns() + _RUN_BUDGET_NS
+        t_end = self.run_clock_ns() + _RUN_BUDGET_NS
         while True:
             got = self._drain()
             with self.lock:
@@ -281,7 +286,7 @@ class ServiceCore:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS
                 pub.flush()
-            if not (got or self.has_work()) or self.mono_ns() >= t_end:
+            if not (got or self.has_work()) or self.run_clock_ns() >= t_end:
                 return handled
 
     def next_deadline_ns(self) -> int:

@@ -186,7 +186,7 @@ def run_chain(tmp_path: Path, scenario: str, steps: int) -> dict:
             assert time.monotonic() < deadline, "packets kept arriving"
             time.sleep(0.05)
         spec = next(wire_decode(r.payload, SessionSpec)
-                    for r in t.get(keys.config_key(SESSION), timeout=3.0) if r.ok)
+                    for r in t.get(keys.config_key(SESSION), timeout=10.0) if r.ok)
         with w.lock:
             n_events, n_preds = len(w.events), len(w.preds)
             # a few predictions made after the last packet, republished by the bridge

@@ -114,7 +114,7 @@ def test_paper_link_end_to_end(zenoh_pair, collector_factory):
 
         deadline = time.monotonic() + 5  # counters move just after put(): poll briefly
         while True:
-            replies = list(test_s.get(keys.link_stats_key("itest"), timeout=5.0))
+            replies = list(test_s.get(keys.link_stats_key("itest"), timeout=10.0))
             stats = json.loads(replies[0].ok.payload.to_bytes())
             by_name = {r["name"]: r for r in stats["rules"]}
             done = by_name["camera"]["forwarded"] >= 10 and by_name["commands"]["forwarded"] >= 10
@@ -127,7 +127,7 @@ def test_paper_link_end_to_end(zenoh_pair, collector_factory):
         # replace the rules at runtime: the camera now goes through in ~0 ms
         new = {"downlink": [{"name": "camera-fast", "match": "robot/*/sensor/camera"}]}
         replies = list(test_s.get(keys.link_rules_key("itest"),
-                                  payload=json.dumps(new).encode(), timeout=5.0))  # fmt: skip
+                                  payload=json.dumps(new).encode(), timeout=10.0))  # fmt: skip
         assert json.loads(replies[0].ok.payload.to_bytes())["generation"] == 2
         got.clear()
         t0 = time.monotonic_ns()

@@ -37,10 +37,12 @@ PAIR = ["inst-a", "inst-b"]
 
 
 def make_core(bus, clock, tmp_path, instance="a", **kw) -> ServiceCore:
+    """A started core on ``bus``; its run_once budget's clock is frozen (one call does all
+    the work there is, on a slow machine as on a fast one)."""
     settings = Settings(instance=instance, **kw)
     store = SpecStore(tmp_path / instance)
     core = ServiceCore(bus.transport(), settings, store=store, now_ns=clock,
-                       spawn=lambda fn: fn())
+                       run_clock_ns=lambda: 0, spawn=lambda fn: fn())
     core.start()
     return core
 

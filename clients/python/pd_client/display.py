@@ -14,7 +14,7 @@ import logging
 import statistics
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -24,6 +24,7 @@ from pd_service.wire import ErrorReport, Prediction, keys
 from ._base import ClientBase, session_name, try_decode
 from ._queue import Inbox
 from .errors import Timeout
+from .pairing import TruthPairs
 from .truth import Truth
 
 log = logging.getLogger("pd_client.display")
@@ -65,17 +66,14 @@ class Display(ClientBase):
                  errors: bool = True, history: int = 4096) -> None:
         super().__init__(transport)
         self.session = session_name(session)
-        self._history = history
         self._state = threading.Lock()
         self._cond = threading.Condition(self._state)
         self._inbox: Inbox[Prediction] = Inbox(history)
         self._pred_cbs: list[PredictionCallback] = []
         self._truth_cbs: list[TruthCallback] = []
         self._latest: Prediction | None = None
-        self._by_step: OrderedDict[int, Prediction] = OrderedDict()
-        self._truth: OrderedDict[int, Truth] = OrderedDict()
+        self._pairs = TruthPairs(history)
         self._latest_truth: Truth | None = None
-        self._pair: tuple[Prediction, Truth] | None = None
         self._latencies: deque[float] = deque(maxlen=256)
         self._last_seq: int | None = None
         self._received = self._missed = self._invalid = self._truths = self._errors = 0
@@ -105,13 +103,7 @@ class Display(ClientBase):
             self._latencies.append((sample.recv_ns - pred.made_ns) / 1e3)
             if self._latest is None or pred.step >= self._latest.step:
                 self._latest = pred
-            self._by_step[pred.step] = pred
-            self._by_step.move_to_end(pred.step)
-            while len(self._by_step) > self._history:
-                self._by_step.popitem(last=False)
-            t = self._truth.get(pred.step)
-            if t is not None:
-                self._set_pair(pred, t)
+            self._pairs.add_prediction(pred)
             self._cond.notify_all()
         self._inbox.push(pred)
         for cb in list(self._pred_cbs):
@@ -131,13 +123,7 @@ class Display(ClientBase):
             self._truths += 1
             if self._latest_truth is None or truth.step >= self._latest_truth.step:
                 self._latest_truth = truth
-            self._truth[truth.step] = truth
-            self._truth.move_to_end(truth.step)
-            while len(self._truth) > self._history:
-                self._truth.popitem(last=False)
-            p = self._by_step.get(truth.step)
-            if p is not None:
-                self._set_pair(p, truth)
+            self._pairs.add_truth(truth)
             self._cond.notify_all()
         for cb in list(self._truth_cbs):
             try:
@@ -153,10 +139,6 @@ class Display(ClientBase):
             self._errors += 1
             if report is not None:
                 self._last_error = f"{report.key}: {report.reason}"
-
-    def _set_pair(self, pred: Prediction, truth: Truth) -> None:
-        if self._pair is None or pred.step >= self._pair[0].step:
-            self._pair = (pred, truth)
 
     # --- reading -------------------------------------------------------------------------
 
@@ -190,16 +172,16 @@ class Display(ClientBase):
     def prediction_for(self, step: int) -> Prediction | None:
         """The prediction whose target step is ``step``, if still kept."""
         with self._state:
-            return self._by_step.get(step)
+            return self._pairs.predictions.get(step)
 
     def truth_at(self, step: int) -> Truth | None:
         with self._state:
-            return self._truth.get(step)
+            return self._pairs.truths.get(step)
 
     def latest_pair(self) -> tuple[Prediction, Truth] | None:
         """(prediction, truth) for the newest target step that has both, or None."""
         with self._state:
-            return self._pair
+            return self._pairs.newest
 
     def wait(self, count: int = 1, timeout: float | None = None) -> Prediction:
         """Wait until ``count`` predictions have been received in total; return the latest.
@@ -218,13 +200,13 @@ class Display(ClientBase):
         """Wait for a (prediction, truth) pair whose step is >= ``min_step``."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._cond:
-            while self._pair is None or self._pair[0].step < min_step:
+            while (pair := self._pairs.newest) is None or pair[0].step < min_step:
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0:
                     raise Timeout(f"no prediction/truth pair at step >= {min_step} for session "
                                   f"{self.session!r} within {timeout} s")
                 self._cond.wait(remaining)
-            return self._pair
+            return pair
 
     def stats(self) -> DisplayStats:
         with self._state:

@@ -109,8 +109,15 @@ def test_sim_daemon_display_over_zenoh(procs, tmp_path):
         while sim.poll() is None:
             recorder.poll(timeout=0.2)
         assert sim.returncode == 0, procs.log("sim")
-        # ... and the prediction for the last step meets its truth.
-        display.wait_pair(min_step=STEPS, timeout=10)
+        # ... and the prediction for the last step meets its truth. A daemon held up past a
+        # step's tick (a slow or loaded machine) skips that step's prediction and counts it in
+        # steps_missed at its next one: once a prediction past the last step is in, the newest
+        # pair is at most that many steps before it.
+        deadline = time.monotonic() + 30
+        while display.latest().step <= STEPS and time.monotonic() < deadline:
+            display.wait(display.stats().received + 1, timeout=30)
+        missed = display.latest().counters.get("steps_missed", 0)
+        display.wait_pair(min_step=STEPS - missed, timeout=10)
         recorder.poll(timeout=0.5)
         recorder.close()
         assert operator.wait(20) == 0, procs.log("operator")
@@ -123,7 +130,7 @@ def test_sim_daemon_display_over_zenoh(procs, tmp_path):
         first = next((s for s in range(STEPS + 1) if (p := display.prediction_for(s)) is not None
                       and p.newest_step is not None), STEPS + 1)
         start = first + WARMUP
-        why = (f"first prediction with data for step {first}; sim: "
+        why = (f"first prediction with data for step {first}; {missed} steps missed; sim: "
                f"{procs.log('sim').strip().splitlines()[-1:]}; counters: "
                f"{display.latest().counters}")
         assert start <= STEPS - 100, why  # at least 100 steps to judge
@@ -134,7 +141,8 @@ def test_sim_daemon_display_over_zenoh(procs, tmp_path):
                 errs.append(p.x - t.x)
                 sds.append(np.sqrt(np.diag(p.P)))
         errs, sds = np.array(errs), np.array(sds)
-        assert len(errs) >= 0.9 * (STEPS + 1 - start), why  # a few may be lost, not many
+        # a few may be lost, not many (those the daemon skipped are not lost)
+        assert len(errs) >= 0.9 * (STEPS + 1 - start - missed), why
         rms = np.sqrt(np.mean(errs**2, axis=0))
         assert rms[0] < 0.5 and rms[2] < 0.5, (rms, why)  # positions p1, p2 (m)
         assert np.mean(np.abs(errs) <= 4 * sds) > 0.95, why
@@ -149,7 +157,7 @@ def test_sim_daemon_display_over_zenoh(procs, tmp_path):
         assert stats.invalid == 0 and stats.errors <= refused, stats.last_error
 
         summary = summarize(tmp_path / "rec" / "paper.csv", warmup=start)
-        assert summary["rows"] >= 0.9 * (STEPS + 1 - start)
+        assert summary["rows"] >= 0.9 * (STEPS + 1 - start - missed), why
         assert math.isclose(summary["rms_p1"], rms[0], rel_tol=0.2)
         assert summary["mean_var_p2"] < 0.2
         display.close()

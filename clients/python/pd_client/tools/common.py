@@ -1,5 +1,6 @@
-"""What every command-line tool shares: its main (flags, logging, stop signal), the Zenoh
-option group with the TOOL role's defaults, progress lines and the clock."""
+"""What every command-line tool shares: its skeleton (:class:`Tool`: parser, logging, stop
+signal, main), the Zenoh option group with the TOOL role's defaults, progress lines and the
+clock."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -19,22 +21,47 @@ from pd_service.transport import TOOL, Transport, add_zenoh_args, options_from_a
 from .._base import connect_options
 from ..errors import PdClientError
 
-
-def tool_parser(tool: str, doc: str) -> argparse.ArgumentParser:
-    """A tool's parser: its docstring's first paragraph as the description, the rest (kept
-    as written) as the epilog."""
-    return argparse.ArgumentParser(prog=tool, description=doc.split("\n\n")[0],
-                                   formatter_class=argparse.RawDescriptionHelpFormatter,
-                                   epilog=doc.split("\n\n", 1)[1])
+#: What a tool runs once its flags are read: ``body(parser, args, stop)`` -> exit code.
+ToolBody = Callable[[argparse.ArgumentParser, argparse.Namespace, threading.Event], int]
 
 
-def add_tool_args(ap: argparse.ArgumentParser) -> None:
-    """The flags every tool has: ``--log-level`` / ``--log-format`` (default WARNING),
-    ``-v/--verbose`` (short for ``--log-level DEBUG``) and the Zenoh group (TOOL role:
-    client mode, connect to tcp/127.0.0.1:7447)."""
-    add_logging_args(ap, default_level="WARNING")
-    ap.add_argument("--verbose", "-v", action="store_true", help="same as --log-level DEBUG")
-    add_zenoh_args(ap, TOOL)
+@dataclass(frozen=True, slots=True)
+class Tool:
+    """A command-line tool's skeleton. Its parser: ``doc``'s first paragraph as the
+    description and the rest (kept as written) as the epilog; the tool's own flags
+    (``add_flags``); then the flags every tool has: ``--log-level`` / ``--log-format``
+    (default WARNING), ``-v/--verbose`` (short for ``--log-level DEBUG``) and, with
+    ``zenoh``, the Zenoh group (TOOL role: client mode, connect to tcp/127.0.0.1:7447).
+    Its :meth:`main` parses them, sets up logging and returns ``body(parser, args, stop)``,
+    ``stop`` set by SIGINT / SIGTERM. A tool's module ends with::
+
+        CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+        build_parser, main = CLI.build_parser, CLI.main
+    """
+
+    name: str
+    doc: str
+    add_flags: Callable[[argparse.ArgumentParser], None]
+    body: ToolBody
+    zenoh: bool = True
+
+    def build_parser(self) -> argparse.ArgumentParser:
+        ap = argparse.ArgumentParser(prog=self.name, description=self.doc.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=self.doc.split("\n\n", 1)[1])
+        self.add_flags(ap)
+        add_logging_args(ap, default_level="WARNING")
+        ap.add_argument("--verbose", "-v", action="store_true", help="same as --log-level DEBUG")
+        if self.zenoh:
+            add_zenoh_args(ap, TOOL)
+        return ap
+
+    def main(self, argv: Sequence[str] | None = None) -> int:
+        with signal_stop() as stop:
+            ap = self.build_parser()
+            args = ap.parse_args(argv)
+            setup_logging("DEBUG" if args.verbose else args.log_level, args.log_format)
+            return self.body(ap, args, stop)
 
 
 def add_ros2_args(ap: argparse.ArgumentParser, ros2_help: str) -> None:
@@ -53,7 +80,7 @@ def add_progress_arg(ap: argparse.ArgumentParser) -> None:
 
 
 def open_transport(args: argparse.Namespace) -> Transport:
-    """The Zenoh transport of a command line built with :func:`add_tool_args`."""
+    """The Zenoh transport of a :class:`Tool`'s command line."""
     return connect_options(options_from_args(args))
 
 
@@ -90,18 +117,6 @@ def signal_stop() -> Iterator[threading.Event]:
     finally:
         for sig, h in previous.items():
             signal.signal(sig, h)
-
-
-def run_tool(build_parser: Callable[[], argparse.ArgumentParser],
-             body: Callable[[argparse.ArgumentParser, argparse.Namespace, threading.Event], int],
-             argv: Sequence[str] | None) -> int:
-    """A tool's main: parse the flags, set up logging, run ``body(parser, args, stop)`` with
-    ``stop`` set by SIGINT / SIGTERM."""
-    with signal_stop() as stop:
-        ap = build_parser()
-        args = ap.parse_args(argv)
-        setup_logging("DEBUG" if args.verbose else args.log_level, args.log_format)
-        return body(ap, args, stop)
 
 
 def wait_until(t_ns: int, stop: threading.Event) -> bool:

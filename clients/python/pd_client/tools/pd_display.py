@@ -18,7 +18,6 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Sequence
 
 import numpy as np
 
@@ -87,8 +86,7 @@ def render_frame(display: Display) -> str:
     return "\n".join(lines)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--session", default="paper")
     ap.add_argument("--no-truth", action="store_true", help="do not read the truth key")
     ap.add_argument("--once", action="store_true",
@@ -99,12 +97,6 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--interval", type=float, default=0.25, help="refresh period, s")
     ap.add_argument("--plain", action="store_true",
                     help="no ANSI screen clearing (default when stdout is not a terminal)")
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -136,6 +128,10 @@ def _show(transport: Transport, args: argparse.Namespace, plain: bool,
                                        f"predictions within {args.timeout} s")
             stop.wait(args.interval)
         return 0
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

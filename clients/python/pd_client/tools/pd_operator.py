@@ -25,7 +25,6 @@ import argparse
 import sys
 import threading
 import time
-from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
@@ -46,8 +45,7 @@ if TYPE_CHECKING:
 TOOL = "pd-operator"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help=argparse.SUPPRESS)
@@ -61,12 +59,6 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_ros2_args(ap, "send Twist messages on the session's bound command topic in "
                              "rmw_zenoh's format (needs the ros2 extra and ROS 2 bindings)")
     common.add_progress_arg(ap)
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -195,6 +187,10 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
         for op in ops.values():
             op.close()
     return 0
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

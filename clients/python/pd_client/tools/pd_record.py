@@ -44,6 +44,7 @@ from pd_service.wire import Prediction, keys
 from .._base import try_decode
 from .._queue import Inbox
 from ..errors import InvalidMessage, PdClientError
+from ..pairing import TruthPairs, prediction_error
 from ..truth import Truth
 from . import common
 from .record_csv import DEFAULT_WARMUP, META_COLUMNS, format_summary, summarize
@@ -67,8 +68,8 @@ class _SessionLog:
         self.session = session
         self.path = path
         self.keep = keep
-        self.preds: OrderedDict[int, _Pred] = OrderedDict()
-        self.truth: OrderedDict[int, Truth] = OrderedDict()
+        self.pairs = TruthPairs(keep)
+        self.waiting: OrderedDict[int, _Pred] = OrderedDict()  # rows waiting for their truth
         self.names: list[str] | None = None
         self.rows = 0
         self.matched = 0
@@ -77,23 +78,20 @@ class _SessionLog:
         self._writer: Any = None
 
     def add_prediction(self, p: _Pred) -> None:
-        t = self.truth.get(p.msg.step)
+        t = self.pairs.add_prediction(p.msg)
         if t is not None:
             self._write(p, t)
             return
-        self.preds[p.msg.step] = p
-        self.preds.move_to_end(p.msg.step)
-        while len(self.preds) > self.keep:
-            self._write(self.preds.popitem(last=False)[1], None)
+        self.waiting[p.msg.step] = p
+        self.waiting.move_to_end(p.msg.step)
+        while len(self.waiting) > self.keep:
+            self._write(self.waiting.popitem(last=False)[1], None)
 
     def add_truth(self, t: Truth) -> None:
         if self.names is None and t.names and len(t.names) == t.x.shape[0]:
             self.names = list(t.names)
-        self.truth[t.step] = t
-        self.truth.move_to_end(t.step)
-        while len(self.truth) > self.keep:
-            self.truth.popitem(last=False)
-        p = self.preds.pop(t.step, None)
+        self.pairs.add_truth(t)
+        p = self.waiting.pop(t.step, None)
         if p is not None:
             self._write(p, t)
 
@@ -118,11 +116,8 @@ class _SessionLog:
                           "" if m.newest_step is None else m.newest_step, m.made_ns, p.recv_ns,
                           f"{(p.recv_ns - m.made_ns) / 1e3:.1f}"]
         row += [repr(float(v)) for v in m.x] + [repr(float(v)) for v in var]
-        if t is not None and t.x.shape[0] == n:
-            err = m.x - t.x
-            if t.angles:  # an angle error across +-pi is small, not 2 pi
-                idx = [i for i in t.angles if i < n]
-                err[idx] = (err[idx] + np.pi) % (2.0 * np.pi) - np.pi
+        err = None if t is None else prediction_error(m, t)
+        if t is not None and err is not None:
             row += [repr(float(v)) for v in t.x] + [repr(float(v)) for v in err]
             self.matched += 1
             self.last_matched_step = max(self.last_matched_step or m.step, m.step)
@@ -137,9 +132,9 @@ class _SessionLog:
 
     def close(self) -> None:
         """Write the predictions still waiting for truth (truth columns empty)."""
-        for p in list(self.preds.values()):
+        for p in list(self.waiting.values()):
             self._write(p, None)
-        self.preds.clear()
+        self.waiting.clear()
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -228,8 +223,7 @@ class Recorder:
 
 # --- command line ----------------------------------------------------------------------------
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--session", action="append", metavar="NAME",
                     help="session to record (repeatable; default: paper)")
     ap.add_argument("--out", default="out/record", help="output directory (default out/record)")
@@ -246,12 +240,6 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also record every input and output of the sessions to this MCAP "
                          "file (pip install 'pd-client[viz]'; see pd_client.tools.mcap_log)")
     common.add_progress_arg(ap)
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -338,6 +326,10 @@ def finish(paths: dict[str, Path], out_dir: str | Path, warmup: int = DEFAULT_WA
             for png in render({s: paths[s] for s in summaries}, out):
                 print(f"png: {png}")
     return 0 if summaries else 1
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

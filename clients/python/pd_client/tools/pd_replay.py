@@ -253,8 +253,7 @@ def write_outputs(results: Sequence[ReplayResult], recs: dict[str, SessionRecord
 
 # --- command line ----------------------------------------------------------------------------
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("mcap", help="recording written by pd-record --mcap")
     ap.add_argument("--spec", help="SessionSpec JSON file to replay with instead")
     ap.add_argument("--session", action="append", metavar="NAME",
@@ -266,14 +265,6 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--warmup", type=int, default=DEFAULT_WARMUP,
                     help=f"target steps left out of the summary (default {DEFAULT_WARMUP})")
     ap.add_argument("--no-plots", action="store_true", help="do not render PNGs")
-    from pd_service.logs import add_logging_args
-    add_logging_args(ap, default_level="WARNING")
-    ap.add_argument("--verbose", "-v", action="store_true", help="same as --log-level DEBUG")
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -323,6 +314,10 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         return common.fail(TOOL, f"replay differs from the recording by {worst:.3g} "
                                  f"(> {args.tolerance:g})", 3)
     return code
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main, zenoh=False)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

@@ -202,8 +202,7 @@ class RobotSim:
             s.robot.close()
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help="noise setting of the paper scenario (default: journal)")
@@ -236,12 +235,6 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
                              "spec with ROS 2 bindings, e.g. --scenario diffdrive)")
     common.add_progress_arg(ap)
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -393,6 +386,10 @@ def _loop(sim: RobotSim, steps: int, every_s: float, stop: threading.Event,
                         f"{sim.samples_published}, commands {sim.schedule.received} (late "
                         f"{sim.schedule.late}, stale {sim.schedule.stale}, invalid "
                         f"{sim.commands_invalid})")
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

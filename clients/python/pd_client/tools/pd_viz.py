@@ -37,7 +37,6 @@ import math
 import sys
 import threading
 import time
-from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
 
@@ -60,6 +59,7 @@ from pd_service.wire.convert import command_step, measurement_step
 from ..admin import Admin
 from ..display import Display
 from ..errors import PdClientError
+from ..pairing import prediction_error
 from ..truth import Truth
 from . import common
 
@@ -127,8 +127,6 @@ class SessionView:
         self.xy = xy
         self.names: list[str] | None = None
         self._lock = threading.Lock()
-        self._preds: OrderedDict[int, Prediction] = OrderedDict()
-        self._truth: OrderedDict[int, Truth] = OrderedDict()
         self.counts = {"predictions": 0, "measurements": 0, "commands": 0, "truth": 0,
                        "errors": 0, "invalid": 0}
         p = f"/{session}/"
@@ -188,10 +186,7 @@ class SessionView:
         now = time.time_ns()
         with self._lock:
             self.counts["predictions"] += 1
-            self._preds[p.step] = p
-            while len(self._preds) > 256:
-                self._preds.popitem(last=False)
-            truth = self._truth.get(p.step)
+        truth = self.display.truth_at(p.step)  # kept by the display before it calls back
         n = p.x.shape[0]
         names = self._state_names(n)
         var = np.diag(p.P)
@@ -229,13 +224,10 @@ class SessionView:
                 "missed": st.missed, "viewer": dict(self.counts)}
 
     def _emit_error(self, p: Prediction, t: Truth, now: int) -> None:
-        n = p.x.shape[0]
-        if t.x.shape[0] != n:
+        err = prediction_error(p, t)
+        if err is None:
             return
-        err = p.x - t.x
-        if t.angles:
-            idx = [a for a in t.angles if a < n]
-            err[idx] = (err[idx] + np.pi) % (2.0 * np.pi) - np.pi
+        n = p.x.shape[0]
         sd = np.sqrt(np.maximum(np.diag(p.P), 0.0))
         names = self._state_names(n)
         z = np.where(sd > 0, err / np.where(sd > 0, sd, 1.0), 0.0)
@@ -248,10 +240,7 @@ class SessionView:
             if self.names is None and t.names and len(t.names) == t.x.shape[0]:
                 self.names = list(t.names)
             self.counts["truth"] += 1
-            self._truth[t.step] = t
-            while len(self._truth) > 256:
-                self._truth.popitem(last=False)
-            p = self._preds.get(t.step)
+        p = self.display.prediction_for(t.step)
         names = self._state_names(t.x.shape[0])
         self.truth_pose.log(self._pose(t.x, t.t_ns), log_time=now)
         self._emit("truth", {"step": t.step, "x": _named(t.x, names)}, now)
@@ -399,8 +388,7 @@ def _xy(value: str) -> tuple[int, int]:
         raise argparse.ArgumentTypeError(f"--xy: expected I,J (two state indices), got {value!r}") from None
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--session", action="append", metavar="NAME",
                     help="session to show (repeatable; default: all the daemons serve)")
     ap.add_argument("--host", default="127.0.0.1",
@@ -411,12 +399,6 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--status-every", type=float, default=1.0,
                     help="seconds between SessionStatus queries (0: none)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -447,6 +429,10 @@ def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event
     finally:
         server.close()
     return 0
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

@@ -200,8 +200,7 @@ class WebServer:
 
 # --- command line ----------------------------------------------------------------------------
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = common.tool_parser(TOOL, __doc__)
+def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--host", default="127.0.0.1",
                     help="interface to serve on (default 127.0.0.1: this machine only)")
     ap.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any free)")
@@ -211,12 +210,6 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--linger", type=float, default=0.0,
                     help="on SIGINT/SIGTERM or --duration, keep serving the last state this many "
                          "seconds more (default 0)")
-    common.add_tool_args(ap)
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return common.run_tool(build_parser, _main, argv)
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
@@ -241,6 +234,10 @@ def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event
     finally:
         server.close()
     return 0
+
+
+CLI = common.Tool(TOOL, __doc__, _add_flags, _main)
+build_parser, main = CLI.build_parser, CLI.main
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import math
 import re
 import threading
 import time
-from collections import OrderedDict, deque
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -43,6 +43,7 @@ from pd_service.wire import Command, Measurement, Prediction, SessionSpec, keys
 from .._base import try_decode
 from ..admin import Admin
 from ..errors import PdClientError
+from ..pairing import TruthPairs, prediction_error
 from ..truth import Truth
 
 #: Events of one session kept for a page that connects late (or reloads after the run).
@@ -93,13 +94,10 @@ class SessionView:
 
     def __init__(self, name: str, keep: int = 512) -> None:
         self.name = name
-        self.keep = keep
         self.spec: SessionSpec | None = None
         self.spec_asked: float | None = None  # monotonic s of the last query for it
         self.names: list[str] | None = None
-        self.angles: list[int] = []
-        self.truth: OrderedDict[int, np.ndarray] = OrderedDict()
-        self.preds: OrderedDict[int, np.ndarray] = OrderedDict()
+        self.pairs = TruthPairs(keep)
         self.latest_truth: tuple[int, np.ndarray] | None = None
         self.pair: tuple[int, np.ndarray] | None = None  # (step, prediction - truth)
         self.meas: dict[str, Json] = {}
@@ -130,24 +128,16 @@ class SessionView:
     def add_truth(self, t: Truth) -> None:
         if t.names and len(t.names) == t.x.shape[0]:
             self.names = list(t.names)
-            self.angles = list(t.angles)
-        self.truth[t.step] = t.x
-        while len(self.truth) > self.keep:
-            self.truth.popitem(last=False)
         if self.latest_truth is None or t.step >= self.latest_truth[0]:
             self.latest_truth = (t.step, t.x)
-        p = self.preds.get(t.step)
+        p = self.pairs.add_truth(t)
         if p is not None:
-            self._pair(t.step, p, t.x)
+            self._pair(p, t)
 
-    def _pair(self, step: int, x: np.ndarray, truth: np.ndarray) -> None:
-        if x.shape != truth.shape or (self.pair is not None and step < self.pair[0]):
-            return
-        err = x - truth
-        idx = [i for i in self.angles if i < err.shape[0]]
-        if idx:  # an angle error across +-pi is small, not 2 pi
-            err[idx] = (err[idx] + np.pi) % (2.0 * np.pi) - np.pi
-        self.pair = (step, err)
+    def _pair(self, p: Prediction, t: Truth) -> None:
+        err = prediction_error(p, t)
+        if err is not None and (self.pair is None or p.step >= self.pair[0]):
+            self.pair = (p.step, err)
 
     def add_measurement(self, m: Measurement, recv_ns: int, mono: float) -> None:
         self.sensor_seen[m.sensor] = mono
@@ -196,12 +186,9 @@ class SessionView:
         """The page's event for prediction ``p`` (see the module's docstring)."""
         self.last_pred = mono
         self.predictions += 1
-        self.preds[p.step] = p.x
-        while len(self.preds) > self.keep:
-            self.preds.popitem(last=False)
-        t = self.truth.get(p.step)
+        t = self.pairs.add_prediction(p)
         if t is not None:
-            self._pair(p.step, p.x, t)
+            self._pair(p, t)
         n = p.x.shape[0]
         names = self.state_names(n)
         layout, pos = position_layout(names, n)
