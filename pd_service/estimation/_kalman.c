@@ -673,7 +673,7 @@ static PyObject *advance_impl(PyObject *gt, PyObject *jumps, PyObject *G, PyObje
                 PyObject *got = finish_update(xo, Po, n, packets, rows, PyTuple_GET_SIZE(done),
                                               stages);
                 if (got == Py_None) {
-                    g = got;  /* the caller's Python form takes it from here */
+                    g = got;  /* not taken: the caller runs the numpy form */
                 } else if (got) {
                     g = new_gaussian(T, Py_NewRef(PyTuple_GET_ITEM(got, 0)),
                                      Py_NewRef(PyTuple_GET_ITEM(got, 1)), P, m, sensors,
@@ -763,7 +763,7 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         Py_ssize_t s = PyLong_AsSsize_t(PyList_GET_ITEM(steps, done));
         if (s == -1 && PyErr_Occurred()) goto error;
         Py_ssize_t m = s - a;
-        if (m < 0 || m >= ntab) break;  /* the Python form: its error, or table-sized chunks */
+        if (m < 0 || m >= ntab) break;  /* the numpy form: its error, or table-sized jumps */
         if (a - off < 0 || s - off > nbuf) {
             PyErr_SetString(PyExc_IndexError, "_kalman.replay: steps outside the input buffer");
             goto error;
@@ -787,7 +787,7 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                                    pk, old);
         Py_DECREF(old);
         if (!g) goto error;
-        if (g == Py_None) {  /* a packet handed back: the Python form takes this step */
+        if (g == Py_None) {  /* not taken: the numpy form makes this step */
             Py_DECREF(g);
             break;
         }
