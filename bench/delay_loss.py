@@ -40,8 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pd_service.estimation.delay_model import DelayModel, arrivals_by_step
-from pd_service.estimation.linear_coding import (
+from pd_service.research.delay_model import DelayModel, arrivals_by_step
+from pd_service.research.linear_coding import (
     CodedOnlineEstimator,
     CorrelatedPlant,
     NewestPacketEstimator,

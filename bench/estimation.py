@@ -27,7 +27,8 @@ import time
 
 import numpy as np
 
-from pd_service.estimation import AugmentedStateKF, LinearModel, ObserverPredictor, Sensor
+from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
+from pd_service.research import AugmentedStateKF
 from pd_service.scenarios.paper import paper_model, paper_prior, paper_sensors
 
 

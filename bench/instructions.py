@@ -52,8 +52,9 @@ _LINE = re.compile(r"^\s*([\d,]+) \([\s\d.]+%\)\s+(?:\S*?:)?([A-Za-z_][\w.']*)(?
 _LIBRARY = {
     "__pyx_pw_7msgpack_9_cmsgpack_3unpackb": "msgpack.unpackb",
     "__pyx_pw_7msgpack_9_cmsgpack_6Packer_7pack": "msgpack Packer.pack",
-    "update": "_kalman.c update",
-    "jump": "_kalman.c jump",
+    "advance_impl": "_kalman.c step",
+    "apply_packets": "_kalman.c update",
+    "jump_impl": "_kalman.c jump",
     "gc_collect_main": "garbage collector",
     "PyArray_NewFromDescr_int": "numpy array creation",
     "ufunc_generic_fastcall": "numpy ufuncs",

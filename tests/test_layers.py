@@ -23,6 +23,8 @@ SOURCES = {"pd_service": ROOT / "pd_service", "pd_client": ROOT / "clients" / "p
 ALLOWED: dict[str, set[str]] = {
     # native (stdlib only) tells whether the C kernel of the linear backend is in use
     "pd_service.estimation": {"pd_service.native"},
+    # baselines and research estimators (benchmarks, tests): never on the daemon's path
+    "pd_service.research": {"pd_service.estimation", "pd_service.native"},
     "pd_service.errors": set(),
     "pd_service.logs": set(),
     "pd_service.ratelimit": set(),
@@ -60,6 +62,7 @@ ALLOWED: dict[str, set[str]] = {
 #: mypy_extensions' compile hints for mypyc, which do nothing at run time).
 THIRD_PARTY: dict[str, set[str] | None] = {
     "pd_service.estimation": {"numpy", "mypy_extensions"},
+    "pd_service.research": {"numpy"},
     "pd_service.errors": set(),
     "pd_service.logs": set(),
     "pd_service.ratelimit": set(),
@@ -145,6 +148,21 @@ def test_no_upward_or_sideways_import() -> None:
             if allowed is not None and top not in STDLIB and top not in allowed:
                 bad.append(f"{path.relative_to(ROOT)}:{line}: {src} imports {target}")
     assert not bad, "imports against docs/architecture.md:\n" + "\n".join(bad)
+
+
+#: Layers of the daemon's path: none of them may import the research layer (its baselines
+#: and research estimators serve benchmarks and tests only).
+DAEMON_LAYERS = ("pd_service.service", "pd_service.backends", "pd_service.intake",
+                 "pd_service.wire")
+
+
+def test_the_daemon_never_imports_research() -> None:
+    bad = [f"{path.relative_to(ROOT)}:{line}: imports {target}"
+           for module, target, line, path in edges()
+           if layer_of(module) in DAEMON_LAYERS and project_root(target)
+           and layer_of(target) == "pd_service.research"]
+    assert not any("pd_service.research" in ALLOWED[layer] for layer in DAEMON_LAYERS)
+    assert not bad, "the daemon imports pd_service.research:\n" + "\n".join(bad)
 
 
 def test_no_import_cycle() -> None:

@@ -8,15 +8,15 @@ Public surface::
 
     LinearModel, Sensor              model and sensor descriptions
     ObserverPredictor                the exact re-organised-innovation observer-predictor
-    AugmentedStateKF                 classical augmented-state baseline (same API)
-    ConventionalPredictor            one-sensor, one-delay baseline (same API)
     PredictedState                   what predict() returns
     Estimator                        the API all of them share (a Protocol)
     ReplayEstimator, Backend, Packet the timestamp window and replay, for other backends
     EstimatorState, StateError       export_state() / restore_state(): continue exactly
+
+The baselines with the same API (AugmentedStateKF, ConventionalPredictor) and the research
+estimators are in :mod:`pd_service.research`, outside the daemon's path.
 """
 
-from .baselines import AugmentedStateKF, ConventionalPredictor
 from .estimator import Estimator
 from .model import LinearModel, Sensor
 from .observer import ObserverPredictor
@@ -24,10 +24,8 @@ from .replay import COUNTER_NAMES, Backend, Packet, PredictedState, ReplayEstima
 from .state import STATE_VERSION, EstimatorState, StateError
 
 __all__ = [
-    "AugmentedStateKF",
     "Backend",
     "COUNTER_NAMES",
-    "ConventionalPredictor",
     "Estimator",
     "EstimatorState",
     "LinearModel",

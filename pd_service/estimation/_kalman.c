@@ -1,8 +1,8 @@
-/* The Kalman arithmetic of pd_service.estimation.linear.LinearBackend.advance, in C.
+/* The Kalman step of pd_service.estimation.linear.LinearBackend.advance, in C.
 
    The same formulas as the numpy form in linear.py (the reference, which the tests compare
-   this against): for the 4 x 4 matrices of a robot each numpy call costs ~0.2-0.8 us of
-   overhead and does ~60 floating-point operations; here one call does the whole step.
+   this against), for a step of m <= M jumps; one call does the whole step where numpy would
+   make a few dozen calls on tiny arrays:
 
        jump:    x- = A^m x + [A^{m-1}B ... B] [u(a); ...; u(a+m-1)]
                 P- = A^m P (A^m)^T + Qs(m)          (upper triangle computed, mirrored:
@@ -12,18 +12,20 @@
                 r rows H:   S = H P- H^T + R = L L^T (Cholesky),  W = P- H^T L^{-T},
                             K = W L^{-1},  x+ = x- + K (z - H x-),  P+ = P- - W W^T
 
-       advance: LinearBackend.advance's whole step (the reuse rule for a step's previous
-                result, jump, remean, update, the new Gaussian) in one call, without the
-                Python calls, tuple unpacking and global lookups between them
+   Entry points (one step's arithmetic, advance_impl, behind both):
+       advance: LinearBackend.advance's step (the reuse rule for a step's previous result,
+                jump, remean, update, the new Gaussian)
        replay:  ReplayEstimator._replay's loop, advance after advance over the measured
                 steps, the inputs read from the input buffer in place
+   and two helpers of the input buffer and the window:
        fill:    InputBuffer.set's rows, buf[start:end] = u
        freeze:  arrays made read-only (ndarray.setflags(write=False)) in one call
+       untrack: states kept unchanged taken out of the cycle collector
 
-   A Cholesky pivot not above 1e-10 of its diagonal entry (S singular or nearly so) makes
-   update() and advance() return None: the caller then runs the numpy form (LU, or the
-   pseudo-inverse). The calls are METH_FASTCALL and build their tuples directly: parsing a
-   format string (PyArg_ParseTuple, Py_BuildValue) cost ~1,000 instructions a call.
+   A step it does not take (a Cholesky pivot not above 1e-10 of its diagonal entry: S
+   singular or nearly so; a sensor beyond MAXR rows) makes advance() return None and replay()
+   stop: the caller then runs the numpy form for that step (LU, or the pseudo-inverse). The
+   calls are METH_FASTCALL and build their tuples directly (no format string to parse).
    Arrays are read as float64 and C-contiguous (converted if not); results are new arrays.
    Sums run in index order, so results are deterministic but not bit for bit numpy's
    (BLAS orders its sums otherwise): they agree to rounding. No state, no GIL release. */
@@ -83,37 +85,17 @@ static int check_nargs(const char *name, Py_ssize_t nargs, Py_ssize_t want) {
     return -1;
 }
 
-/* untrack_note: the tuples made here (a stage, a step's stages and sensors, the Gaussian)
-   are taken out of the cyclic garbage collector's lists. They are immutable and hold only
-   numbers, numpy arrays of float64 and other such tuples, so they can be in no reference
-   cycle and reference counting frees them; tracked, they lived in a session's window for
-   ~13 steps, long enough to fill the young generation: at 1,000 sessions its collections
-   scanned ~60,000 objects, ~3/4 of them these, and stopped the worker for 10-13 ms. (CPython
+/* untrack_note: the tuples made here (a step's sensors, the Gaussian) are taken out of the
+   cyclic garbage collector's lists. They are immutable and hold only numbers, bytes, numpy
+   arrays of float64 and other such tuples, so they can be in no reference cycle and
+   reference counting frees them; tracked, a session's window of them fills the collector's
+   young generation and its collections stop the worker (docs/performance.md). (CPython
    untracks such exact tuples itself, but only when a collection first scans them, and never
    a tuple subclass such as the Gaussian.) */
 
-/* A new 6-tuple (kind, K, H, z, j, c): a linear.Stage. Steals K; z a float (kind 1 / 2) or
-   the packet's array (kind 3, borrowed), j and c ints and floats. NULL with an exception. */
-static PyObject *new_stage(long kind, PyObject *K, PyObject *H, PyObject *z_obj, double z,
-                           long j, double c) {
-    PyObject *t = PyTuple_New(6);
-    if (!t) { Py_DECREF(K); return NULL; }
-    PyObject *ko = PyLong_FromLong(kind), *jo = PyLong_FromLong(j), *co = PyFloat_FromDouble(c);
-    PyObject *zo = z_obj ? Py_NewRef(z_obj) : PyFloat_FromDouble(z);
-    PyTuple_SET_ITEM(t, 0, ko);
-    PyTuple_SET_ITEM(t, 1, K);
-    PyTuple_SET_ITEM(t, 2, Py_NewRef(H));
-    PyTuple_SET_ITEM(t, 3, zo);
-    PyTuple_SET_ITEM(t, 4, jo);
-    PyTuple_SET_ITEM(t, 5, co);
-    if (!ko || !jo || !co || !zo) { Py_DECREF(t); return NULL; }  /* NULL items: skipped */
-    PyObject_GC_UnTrack(t);  /* see untrack_note */
-    return t;
-}
-
-/* jump(x (n,), P (n, n) or None, A (n, n), Qs (n, n), G (n, >= k) or None, U (k values))
-   -> (x-, P- or None). G is the tables' full stacked input matrix [A^{M-1}B ... B]: its last
-   k columns multiply U (m steps of nu inputs, k = m nu). P None: the mean only. */
+/* The jump: (x (n,), P (n, n) or None, A (n, n), Qs (n, n), G (n, >= k) or None, u (k
+   values)) -> (x-, P- or None). G is the tables' full stacked input matrix [A^{M-1}B ... B]:
+   its last k columns multiply u (m steps of nu inputs, k = m nu). P None: the mean only. */
 static PyObject *jump_impl(PyObject *ox, PyObject *oP, PyObject *oA, PyObject *oQ,
                            PyObject *oG, const double *u, npy_intp k) {
     PyArrayObject *x = NULL, *P = NULL, *A = NULL, *Q = NULL, *G = NULL;
@@ -179,19 +161,6 @@ static PyObject *jump_impl(PyObject *ox, PyObject *oP, PyObject *oA, PyObject *o
 done:
     Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(A); Py_XDECREF(Q); Py_XDECREF(G);
     Py_XDECREF(xo); Py_XDECREF(Po);
-    return res;
-}
-
-static PyObject *jump(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (check_nargs("jump", nargs, 6)) return NULL;
-    if (args[4] == Py_None)
-        return jump_impl(args[0], args[1], args[2], args[3], Py_None, NULL, 0);
-    PyArrayObject *U = as_f64(args[5]);
-    if (!U) return NULL;
-    PyObject *res = jump_impl(args[0], args[1], args[2], args[3], args[4],
-                              (const double *)PyArray_DATA(U), PyArray_SIZE(U));
-    Py_DECREF(U);
     return res;
 }
 
@@ -287,18 +256,13 @@ static int update_rows(double *x, double *P, npy_intp n, const double *H, const 
     return 0;
 }
 
-/* Packed stages (what update() and advance() make): a bytes object holding one record of
-   float64 values per packet applied, in order,
+/* Stages (linear.Gaussian.stages, the one format the numpy form writes too): a bytes object
+   holding one record of float64 values per packet applied, in order,
 
        sensor, kind, j, c, r, z (r values), K (n x r, row-major), H (r x n; not for kind 1)
 
-   with kind, j, c, K and z as linear.Stage describes (kind 1 / 2: r = 1, K = w; kind 3: K
-   (n, r), j = -1, c = 0). One object instead of a tuple of 6-tuples, each with its K array
-   (three blocks of memory: object, shape, data) and its floats: a step's state is made and
-   freed ~10 times per session and step by the replay, and at 1,000 sessions each block
-   freed is a cache miss (the window is no longer in cache when its step is replayed again).
-   unpack_stages() gives the tuple form; the numpy form (linear.py) makes the tuple form,
-   and the calls here take both. */
+   with kind, j, c, K and z as linear.read_stages describes (kind 1 / 2: r = 1, K = w;
+   kind 3: K (n, r), j = -1, c = 0): one object per step, not one per packet and array. */
 
 static Py_ssize_t record_len(long kind, npy_intp n, npy_intp r) {
     return 5 + r + n * r + (kind == 1 ? 0 : r * n);
@@ -330,20 +294,11 @@ static double *records_add(Records *b, Py_ssize_t k) {
     return at;
 }
 
-/* The length (bytes or tuple items) of a step's stages; -1 with a TypeError if neither. */
-static Py_ssize_t stages_len(PyObject *stages) {
-    if (PyBytes_Check(stages)) return PyBytes_GET_SIZE(stages);
-    if (PyTuple_Check(stages)) return PyTuple_GET_SIZE(stages);
-    PyErr_SetString(PyExc_TypeError, "_kalman: stages must be a tuple or packed bytes");
-    return -1;
-}
-
-/* Applies packets[start:] to xv (n,) and pv (n, n) in place, in turn, each giving a stage:
-   a record appended to ``rec`` (packed), or a 6-tuple appended to the list ``tuples``. 0, 1
-   (hand back: a Cholesky pivot not clearly positive, or a packet beyond this kernel's
-   sizes), or -1 with an exception. */
+/* Applies packets[start:] to xv (n,) and pv (n, n) in place, in turn, each appending its
+   stage's record to ``rec``. 0, 1 (hand back: a Cholesky pivot not clearly positive, or a
+   packet beyond this kernel's sizes), or -1 with an exception. */
 static int apply_packets(double *xv, double *pv, npy_intp n, PyObject *packets,
-                         PyObject *rows, Py_ssize_t start, Records *rec, PyObject *tuples) {
+                         PyObject *rows, Py_ssize_t start, Records *rec) {
     Py_ssize_t np_ = PyList_GET_SIZE(packets);
     for (Py_ssize_t i = start; i < np_; i++) {
         PyObject *pk = PyList_GET_ITEM(packets, i);
@@ -424,7 +379,7 @@ static int apply_packets(double *xv, double *pv, npy_intp n, PyObject *packets,
                 kind = 3;
             }
         }
-        if (!fail && rec) {  /* the packed record */
+        if (!fail) {  /* the stage's record */
             double *d = records_add(rec, record_len(kind, n, r));
             if (!d) {
                 fail = -1;
@@ -436,18 +391,6 @@ static int apply_packets(double *xv, double *pv, npy_intp n, PyObject *packets,
                 if (kind != 1)
                     memcpy(d + 5 + r + n * r, PyArray_DATA(H), sizeof(double) * (size_t)(r * n));
             }
-        } else if (!fail) {  /* the tuple form (kind, K, H, z, j, c) */
-            double *kd;
-            PyObject *Ko = kind == 3 ? new_mat(n, r, &kd) : new_vec(n, &kd);
-            PyObject *stage = NULL;
-            if (Ko) {
-                memcpy(kd, K, sizeof(double) * (size_t)(n * r));
-                stage = kind == 3
-                    ? new_stage(3, Ko, oH, PyTuple_GET_ITEM(pk, 1), 0.0, -1, 0.0)
-                    : new_stage(kind, Ko, oH, NULL, *(const double *)PyArray_DATA(Z), j, c);
-            }
-            if (!stage || PyList_Append(tuples, stage)) fail = -1;
-            Py_XDECREF(stage);
         }
         Py_XDECREF(H); Py_XDECREF(R); Py_XDECREF(Z);
         if (fail) return fail;
@@ -455,39 +398,24 @@ static int apply_packets(double *xv, double *pv, npy_intp n, PyObject *packets,
     return 0;
 }
 
-/* (x+, P+, stages + the new ones) for xo, Po updated by packets[start:] (apply_packets):
-   packed if ``stages`` is packed or empty, else the tuple form. xo and Po are the result's
-   arrays (their data written in place); on any failure released. None: handed back. */
+/* (x+, P+, stages + the new ones' records) for xo, Po updated by packets[start:]
+   (apply_packets); stages: bytes. xo and Po are the result's arrays (their data written in
+   place); on any failure released. None: handed back. */
 static PyObject *finish_update(PyObject *xo, PyObject *Po, npy_intp n, PyObject *packets,
                                PyObject *rows, Py_ssize_t start, PyObject *stages) {
-    PyObject *res = NULL, *all = NULL, *tuples = NULL;
+    PyObject *res = NULL, *all = NULL;
     Records rec;
     records_init(&rec);
-    Py_ssize_t ns = stages_len(stages);
-    if (ns < 0) goto done;
-    int packed = PyBytes_Check(stages) || ns == 0;
-    if (!packed && !(tuples = PyList_New(0))) goto done;
     int got = apply_packets(PyArray_DATA((PyArrayObject *)xo), PyArray_DATA((PyArrayObject *)Po),
-                            n, packets, rows, start, packed ? &rec : NULL, tuples);
+                            n, packets, rows, start, &rec);
     if (got < 0) goto done;
     if (got > 0) { res = Py_NewRef(Py_None); goto done; }
-    if (packed) {
-        Py_ssize_t old = PyBytes_Check(stages) ? ns : 0;
-        all = PyBytes_FromStringAndSize(NULL, old + (Py_ssize_t)sizeof(double) * rec.len);
-        if (!all) goto done;
-        char *to = PyBytes_AS_STRING(all);
-        if (old) memcpy(to, PyBytes_AS_STRING(stages), (size_t)old);
-        memcpy(to + old, rec.d, sizeof(double) * (size_t)rec.len);
-    } else {
-        Py_ssize_t k = PyList_GET_SIZE(tuples);
-        all = PyTuple_New(ns + k);
-        if (!all) goto done;
-        for (Py_ssize_t i = 0; i < ns; i++)
-            PyTuple_SET_ITEM(all, i, Py_NewRef(PyTuple_GET_ITEM(stages, i)));
-        for (Py_ssize_t i = 0; i < k; i++)
-            PyTuple_SET_ITEM(all, ns + i, Py_NewRef(PyList_GET_ITEM(tuples, i)));
-        PyObject_GC_UnTrack(all);  /* see untrack_note */
-    }
+    Py_ssize_t old = PyBytes_GET_SIZE(stages);
+    all = PyBytes_FromStringAndSize(NULL, old + (Py_ssize_t)sizeof(double) * rec.len);
+    if (!all) goto done;
+    char *to = PyBytes_AS_STRING(all);
+    if (old) memcpy(to, PyBytes_AS_STRING(stages), (size_t)old);
+    memcpy(to + old, rec.d, sizeof(double) * (size_t)rec.len);
     res = PyTuple_New(3);
     if (!res) goto done;
     PyTuple_SET_ITEM(res, 0, xo);
@@ -496,54 +424,11 @@ static PyObject *finish_update(PyObject *xo, PyObject *Po, npy_intp n, PyObject 
     xo = Po = all = NULL;  /* the result holds them */
 done:
     records_free(&rec);
-    Py_XDECREF(tuples); Py_XDECREF(all); Py_XDECREF(xo); Py_XDECREF(Po);
+    Py_XDECREF(all); Py_XDECREF(xo); Py_XDECREF(Po);
     return res;
 }
 
-/* update(x (n,), P (n, n), packets, rows, start, stages) -> (x+, P+, stages + new) or None
-
-   packets: a list of Packet tuples (sensor, z, R or None); rows: per sensor the tuple
-   (kind, H or h, H^T, R, r, j) of linear._rows; the packets from index ``start`` on are
-   applied in turn. Each adds a stage (kind, K, H, z, j, c) as linear.Stage describes
-   (kind 1 / 2: K = w, z a float; kind 3: K (n, r), z the packet's array): packed (above)
-   if ``stages`` is packed or empty, as a tuple otherwise. None: a Cholesky pivot was not
-   clearly positive, or a packet is beyond this kernel's sizes (the caller runs the numpy
-   form from ``start``). x and P are not written: the results are new arrays. */
-static PyObject *update(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (check_nargs("update", nargs, 6)) return NULL;
-    PyObject *ox = args[0], *oP = args[1], *packets = args[2], *rows = args[3],
-             *stages = args[5];
-    if (!PyList_Check(packets) || !PyList_Check(rows)
-        || !(PyTuple_Check(stages) || PyBytes_Check(stages))) {
-        PyErr_SetString(PyExc_TypeError, "_kalman.update: packets and rows must be lists, "
-                        "stages a tuple or packed bytes");
-        return NULL;
-    }
-    Py_ssize_t start = PyLong_AsSsize_t(args[4]);
-    if (start == -1 && PyErr_Occurred()) return NULL;
-    if (start < 0) start = 0;
-    PyArrayObject *x = as_f64(ox), *P = NULL;
-    PyObject *xo = NULL, *Po = NULL, *res = NULL;
-    if (!x) return NULL;
-    P = as_f64(oP);
-    npy_intp n = PyArray_SIZE(x);
-    if (!P || check_size(P, n * n, "P")) goto done;
-    if (n > MAXN) { res = Py_NewRef(Py_None); goto done; }
-    double *xv, *pv;
-    xo = new_vec(n, &xv);
-    Po = new_mat(n, n, &pv);
-    if (!xo || !Po) goto done;
-    memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
-    memcpy(pv, PyArray_DATA(P), sizeof(double) * (size_t)(n * n));
-    res = finish_update(xo, Po, n, packets, rows, start, stages);
-    xo = Po = NULL;  /* finish_update took them */
-done:
-    Py_XDECREF(x); Py_XDECREF(P); Py_XDECREF(xo); Py_XDECREF(Po);
-    return res;
-}
-
-/* The next record of packed stages d[0..nd) at *at for a state of n values: its kind, j,
+/* The next record of stages d[0..nd) at *at for a state of n values: its kind, j,
    c, r and pointers to its z, K and H (NULL for kind 1); advances *at. -1 with a ValueError
    if the bytes are not such records. */
 static int next_record(const double *d, Py_ssize_t nd, Py_ssize_t *at, npy_intp n, long *kind,
@@ -567,23 +452,24 @@ static int next_record(const double *d, Py_ssize_t nd, Py_ssize_t *at, npy_intp 
     *at = i + len;
     return 0;
 bad:
-    PyErr_SetString(PyExc_ValueError, "_kalman: packed stages that do not fit this state");
+    PyErr_SetString(PyExc_ValueError, "_kalman: stages that do not fit this state");
     return -1;
 }
 
-/* The float64 values of packed stages (a bytes object) and their count; NULL with a
-   ValueError if the bytes hold a partial value. */
+/* The float64 values of stages (a bytes object) and their count; NULL with a ValueError if
+   the bytes hold a partial value. */
 static const double *packed_values(PyObject *stages, Py_ssize_t *nd) {
     Py_ssize_t size = PyBytes_GET_SIZE(stages);
     if (size % (Py_ssize_t)sizeof(double)) {
-        PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of a partial value");
+        PyErr_SetString(PyExc_ValueError, "_kalman: stages of a partial value");
         return NULL;
     }
     *nd = size / (Py_ssize_t)sizeof(double);
     return (const double *)PyBytes_AS_STRING(stages);
 }
 
-/* The mean recursion of packed stages on xv (n,) in place; -1 with an exception. */
+/* The mean recursion of stages (bytes) on xv (n,) in place (linear.LinearBackend._remean);
+   -1 with an exception. */
 static int remean_packed(double *xv, npy_intp n, PyObject *stages) {
     Py_ssize_t nd, at = 0, sensor;
     const double *d = packed_values(stages, &nd);
@@ -600,143 +486,6 @@ static int remean_packed(double *xv, npy_intp n, PyObject *stages) {
             mean_row(xv, n, kind == 1 ? NULL : H, j, K, z[0], c);
     }
     return 0;
-}
-
-/* remean(x (n,), stages) -> x+: the mean recursion of the stages (linear._remean), packed
-   or a tuple. */
-static PyObject *remean(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (check_nargs("remean", nargs, 2)) return NULL;
-    PyObject *ox = args[0], *stages = args[1];
-    if (!PyTuple_Check(stages) && !PyBytes_Check(stages)) {
-        PyErr_SetString(PyExc_TypeError, "_kalman.remean: stages must be a tuple or packed bytes");
-        return NULL;
-    }
-    PyArrayObject *x = as_f64(ox);
-    if (!x) return NULL;
-    npy_intp n = PyArray_SIZE(x);
-    double *xv;
-    PyObject *xo = new_vec(n, &xv);
-    if (!xo) { Py_DECREF(x); return NULL; }
-    memcpy(xv, PyArray_DATA(x), sizeof(double) * (size_t)n);
-    Py_DECREF(x);
-    if (PyBytes_Check(stages)) {
-        if (remean_packed(xv, n, stages)) { Py_DECREF(xo); return NULL; }
-        return xo;
-    }
-    for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(stages); i++) {
-        PyObject *st = PyTuple_GET_ITEM(stages, i);
-        if (!PyTuple_Check(st) || PyTuple_GET_SIZE(st) != 6) {
-            PyErr_SetString(PyExc_TypeError, "_kalman: a stage is not a 6-tuple");
-            goto fail;
-        }
-        long kind = PyLong_AsLong(PyTuple_GET_ITEM(st, 0));
-        PyArrayObject *K = as_f64(PyTuple_GET_ITEM(st, 1));
-        if (!K) goto fail;
-        const double *k = PyArray_DATA(K);
-        if (kind == 1 || kind == 2) {
-            double z = PyFloat_AsDouble(PyTuple_GET_ITEM(st, 3));
-            double c = PyFloat_AsDouble(PyTuple_GET_ITEM(st, 5));
-            if (kind == 1) {
-                long j = PyLong_AsLong(PyTuple_GET_ITEM(st, 4));
-                if (j < 0 || j >= n || check_size(K, n, "K")) {
-                    if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "_kalman: bad j");
-                    Py_DECREF(K);
-                    goto fail;
-                }
-                mean_row(xv, n, NULL, j, k, z, c);
-            } else {
-                PyArrayObject *H = as_f64(PyTuple_GET_ITEM(st, 2));
-                if (!H || check_size(H, n, "h") || check_size(K, n, "K")) {
-                    Py_XDECREF(H); Py_DECREF(K);
-                    goto fail;
-                }
-                mean_row(xv, n, PyArray_DATA(H), -1, k, z, c);
-                Py_DECREF(H);
-            }
-        } else {
-            PyArrayObject *H = as_f64(PyTuple_GET_ITEM(st, 2));
-            PyArrayObject *Z = as_f64(PyTuple_GET_ITEM(st, 3));
-            npy_intp r = Z ? PyArray_SIZE(Z) : 0;
-            if (!H || !Z || r > MAXR || check_size(H, r * n, "H") || check_size(K, n * r, "K")) {
-                if (!PyErr_Occurred()) PyErr_SetString(PyExc_ValueError, "_kalman: bad stage");
-                Py_XDECREF(H); Py_XDECREF(Z); Py_DECREF(K);
-                goto fail;
-            }
-            mean_update(xv, n, PyArray_DATA(H), k, PyArray_DATA(Z), r);
-            Py_DECREF(H); Py_DECREF(Z);
-        }
-        Py_DECREF(K);
-        if (PyErr_Occurred()) goto fail;
-    }
-    return xo;
-fail:
-    Py_DECREF(xo);
-    return NULL;
-}
-
-/* unpack_stages(stages, rows) -> the tuple form of packed stages: per record the 6-tuple
-   (kind, K, H, z, j, c) of linear.Stage, H the sensor's rows[sensor][1] (the object the
-   numpy form puts there), K and (kind 3) z new arrays. A tuple is returned as it is. */
-static PyObject *unpack_stages(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
-    (void)self;
-    if (check_nargs("unpack_stages", nargs, 2)) return NULL;
-    PyObject *stages = args[0], *rows = args[1];
-    if (PyTuple_Check(stages)) return Py_NewRef(stages);
-    if (!PyBytes_Check(stages) || !PyList_Check(rows)) {
-        PyErr_SetString(PyExc_TypeError, "_kalman.unpack_stages: packed bytes and a list of rows");
-        return NULL;
-    }
-    Py_ssize_t nd, at = 0, sensor;
-    const double *d = packed_values(stages, &nd);
-    if (!d) return NULL;
-    PyObject *out = PyList_New(0);
-    if (!out) return NULL;
-    while (at < nd) {
-        /* n from the record's sensor: its h (n,) or H (r, n) */
-        Py_ssize_t s0 = (Py_ssize_t)d[at];
-        if (nd - at < 5 || s0 < 0 || s0 >= PyList_GET_SIZE(rows)
-            || !PyTuple_Check(PyList_GET_ITEM(rows, s0))
-            || PyTuple_GET_SIZE(PyList_GET_ITEM(rows, s0)) != 6) {
-            PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of an unknown sensor");
-            goto fail;
-        }
-        PyObject *oH = PyTuple_GET_ITEM(PyList_GET_ITEM(rows, s0), 1);
-        npy_intp r0 = (npy_intp)d[at + 4];
-        if (!PyArray_Check(oH) || r0 < 1) {
-            PyErr_SetString(PyExc_ValueError, "_kalman: packed stages of an unknown sensor");
-            goto fail;
-        }
-        npy_intp n = PyArray_SIZE((PyArrayObject *)oH) / r0;
-        long kind, j;
-        double c;
-        npy_intp r;
-        const double *z, *K, *H;
-        if (next_record(d, nd, &at, n, &kind, &j, &c, &r, &z, &K, &H, &sensor)) goto fail;
-        double *kd, *zd;
-        PyObject *Ko = kind == 3 ? new_mat(n, r, &kd) : new_vec(n, &kd);
-        if (!Ko) goto fail;
-        memcpy(kd, K, sizeof(double) * (size_t)(n * r));
-        PyObject *zo = NULL;
-        if (kind == 3) {
-            zo = new_vec(r, &zd);
-            if (!zo) { Py_DECREF(Ko); goto fail; }
-            memcpy(zd, z, sizeof(double) * (size_t)r);
-        }
-        PyObject *st = new_stage(kind, Ko, oH, zo, z[0], j, c);  /* steals Ko */
-        Py_XDECREF(zo);
-        if (!st) goto fail;
-        int bad = PyList_Append(out, st);
-        Py_DECREF(st);
-        if (bad) goto fail;
-    }
-    PyObject *t = PyList_AsTuple(out);
-    Py_DECREF(out);
-    if (t) PyObject_GC_UnTrack(t);  /* see untrack_note */
-    return t;
-fail:
-    Py_DECREF(out);
-    return NULL;
 }
 
 /* An array with a's values that the caller may write: a itself where the caller holds the
@@ -786,18 +535,20 @@ static PyObject *sensor_of(PyObject *packet) {
     return PyTuple_GET_ITEM(packet, 0);
 }
 
-/* advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> a Gaussian, or None
+/* The empty stages (b""), made once at import: a step without packets holds it. */
+static PyObject *no_stages;
 
-   LinearBackend.advance in one call, for m <= the tables' M (the caller checks): the same
-   steps in the same order, calling jump, remean and update above, so the result is the
-   one the Python form gets with the kernel. Its docstring has the formulas and the rule for
-   reusing ``old`` (this step's previous result: same covariance object and m, its packets
-   the first of ``packets``). None: update() handed a packet back (a nearly singular S, or
-   sizes beyond the kernel's): the caller runs the Python form, which takes that packet to
-   numpy. Gaussian: the state type (a 6-field tuple subclass); jumps: tables.jumps (a
-   tuple), entry m a tuple (A^m, ., Qs(m), .); G: the stacked input matrix or None; rows:
-   linear._rows per sensor; state: (x, P, ...); U (m, nu); packets: a list of Packet; old: a Gaussian or
-   None. */
+/* One step: a Gaussian, or None (not taken), or NULL with an exception.
+
+   LinearBackend.advance's step for m <= the tables' M: the numpy form's steps in the same
+   order (the jump, the reuse of ``old``, remean, the updates), the same formulas. Its
+   docstring has them and the rule for reusing ``old`` (this step's previous result: same
+   covariance object and m, its packets the first of ``packets``). None: a packet this
+   kernel does not take (a nearly singular S, or sizes beyond the kernel's): the caller runs
+   the numpy form for the whole step. gt: the state type (linear.Gaussian, a 6-field tuple
+   subclass); jumps: tables.jumps (a tuple), entry m a tuple (A^m, ., Qs(m), .); G: the
+   stacked input matrix or None; rows: linear._rows per sensor; state: (x, P, ...); u: the
+   k_u inputs u(a), ..., u(a+m-1); packets: a list of Packet; old: a Gaussian or None. */
 static PyObject *advance_impl(PyObject *gt, PyObject *jumps, PyObject *G, PyObject *rows,
                               PyObject *state, Py_ssize_t m, const double *u, npy_intp k_u,
                               PyObject *packets, PyObject *old) {
@@ -806,8 +557,7 @@ static PyObject *advance_impl(PyObject *gt, PyObject *jumps, PyObject *G, PyObje
         || PyTuple_GET_SIZE(state) < 2
         || (old != Py_None && (!PyTuple_Check(old) || PyTuple_GET_SIZE(old) != 6
                                || !PyTuple_Check(PyTuple_GET_ITEM(old, 4))
-                               || !(PyTuple_Check(PyTuple_GET_ITEM(old, 5))
-                                    || PyBytes_Check(PyTuple_GET_ITEM(old, 5)))))) {
+                               || !PyBytes_Check(PyTuple_GET_ITEM(old, 5))))) {
         PyErr_SetString(PyExc_TypeError, "_kalman.advance: arguments of the wrong types");
         return NULL;
     }
@@ -859,15 +609,16 @@ static PyObject *advance_impl(PyObject *gt, PyObject *jumps, PyObject *G, PyObje
         Pp = Py_NewRef(reuse ? P : PyTuple_GET_ITEM(r, 1));
         Py_DECREF(r);
     }
-    PyObject *stages = empty;
+    PyObject *stages = no_stages;
     if (reuse) {  /* the covariance after old's packets is unchanged: their means only */
         stages = PyTuple_GET_ITEM(old, 5);
-        if (stages_len(stages)) {
-            PyObject *argv[2] = {xp, stages};
-            PyObject *nx = remean(NULL, argv, 2);
-            Py_DECREF(xp);
-            if (!nx) { Py_DECREF(Pp); goto error; }
-            xp = nx;
+        if (PyBytes_GET_SIZE(stages)) {
+            xp = writable(xp);  /* the jump's new array, or a copy of a shared one */
+            if (!xp || remean_packed(PyArray_DATA((PyArrayObject *)xp),
+                                     PyArray_SIZE((PyArrayObject *)xp), stages)) {
+                Py_XDECREF(xp); Py_DECREF(Pp);
+                goto error;
+            }
         }
         Py_SETREF(Pp, Py_NewRef(PyTuple_GET_ITEM(old, 1)));
         if (PyTuple_GET_SIZE(done) == npk) {
@@ -877,7 +628,7 @@ static PyObject *advance_impl(PyObject *gt, PyObject *jumps, PyObject *G, PyObje
         }
     }
     if (npk == 0) {
-        PyObject *g = new_gaussian(T, xp, Pp, P, m, empty, empty);
+        PyObject *g = new_gaussian(T, xp, Pp, P, m, empty, no_stages);
         Py_DECREF(empty);
         return g;
     }
@@ -922,7 +673,7 @@ static PyObject *advance_impl(PyObject *gt, PyObject *jumps, PyObject *G, PyObje
                 PyObject *got = finish_update(xo, Po, n, packets, rows, PyTuple_GET_SIZE(done),
                                               stages);
                 if (got == Py_None) {
-                    g = got;  /* the caller's Python form takes it from here */
+                    g = got;  /* not taken: the caller runs the numpy form */
                 } else if (got) {
                     g = new_gaussian(T, Py_NewRef(PyTuple_GET_ITEM(got, 0)),
                                      Py_NewRef(PyTuple_GET_ITEM(got, 1)), P, m, sensors,
@@ -1012,7 +763,7 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         Py_ssize_t s = PyLong_AsSsize_t(PyList_GET_ITEM(steps, done));
         if (s == -1 && PyErr_Occurred()) goto error;
         Py_ssize_t m = s - a;
-        if (m < 0 || m >= ntab) break;  /* the Python form: its error, or table-sized chunks */
+        if (m < 0 || m >= ntab) break;  /* the numpy form: its error, or table-sized jumps */
         if (a - off < 0 || s - off > nbuf) {
             PyErr_SetString(PyExc_IndexError, "_kalman.replay: steps outside the input buffer");
             goto error;
@@ -1036,7 +787,7 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                                    pk, old);
         Py_DECREF(old);
         if (!g) goto error;
-        if (g == Py_None) {  /* a packet handed back: the Python form takes this step */
+        if (g == Py_None) {  /* not taken: the numpy form makes this step */
             Py_DECREF(g);
             break;
         }
@@ -1059,8 +810,8 @@ error:
 }
 
 /* freeze(a, ...) -> None: each numpy array made read-only, as a.setflags(write=False) does
-   (which parses its keyword arguments: ~1,000 instructions a call, ~50 here). TypeError,
-   with nothing changed, if an argument is not a numpy array. */
+   without parsing keyword arguments. TypeError, with nothing changed, if an argument is not
+   a numpy array. */
 static PyObject *freeze(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
     for (Py_ssize_t i = 0; i < nargs; i++)
@@ -1074,8 +825,8 @@ static PyObject *freeze(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 }
 
 /* fill(buf, start, end, u) -> bool: rows [start, end) of buf (rows, nu) set to u (nu,), as
-   numpy's buf[start:end] = u does for these (inputs.InputBuffer.set: ~4,000 instructions in
-   numpy's indexing, ~100 here). False, with nothing written, for anything else (buf not a
+   numpy's buf[start:end] = u does for these (inputs.InputBuffer.set), without numpy's
+   general indexing. False, with nothing written, for anything else (buf not a
    writeable C-contiguous float64 matrix, u not float64 (nu,), rows out of range): the caller
    then assigns with numpy, the reference. */
 static PyObject *fill(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
@@ -1102,10 +853,10 @@ static PyObject *fill(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
 /* untrack(obj) -> obj: obj and the tuples, lists and dicts it holds, at any depth, leave
    the cyclic garbage collector, each where everything it references is then untracked or
    atomic (numbers, strings, numpy arrays, types). For states kept unchanged for seconds, as
-   a session's snapshot (an EstimatorState: ~55 containers, replaced every second): tracked,
-   1,000 sessions' snapshots were most of the young generation the collector scanned every
-   ~3 s (see untrack_note). Only for objects nobody changes afterwards: a list or an instance
-   untracked here is not tracked again when a container is put in it (a dict is). Recursion
+   a session's snapshot (an EstimatorState, replaced every second), which would otherwise
+   fill the collector's young generation (see untrack_note). Only for objects nobody changes
+   afterwards: a list or an instance untracked here is not tracked again when a container is
+   put in it (a dict is). Recursion
    below the root goes only into exact tuples, lists and dicts, at most 16 deep. */
 static int holds_tracked(PyObject *ref, void *arg) {
     (void)arg;
@@ -1139,14 +890,9 @@ static PyObject *untrack(PyObject *self, PyObject *obj) {
 }
 
 static PyMethodDef methods[] = {
-    {"jump", (PyCFunction)(void (*)(void))jump, METH_FASTCALL,
-     "jump(x, P or None, A, Qs, G or None, U) -> (x-, P- or None): m steps at once, G's "
-     "last U.size columns multiplying U."},
-    {"update", (PyCFunction)(void (*)(void))update, METH_FASTCALL,
-     "update(x, P, packets, rows, start, stages) -> (x+, P+, stages) or None."},
     {"advance", (PyCFunction)(void (*)(void))advance, METH_FASTCALL,
-     "advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> Gaussian, or None (the "
-     "Python form then runs): LinearBackend.advance for m <= M in one call."},
+     "advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> Gaussian, or None (not "
+     "taken: the numpy form then runs): LinearBackend.advance's step for m <= M."},
     {"replay", (PyCFunction)(void (*)(void))replay, METH_FASTCALL,
      "replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse) -> "
      "(state, a, done): ReplayEstimator._replay's loop of advance calls, in one call."},
@@ -1154,9 +900,6 @@ static PyMethodDef methods[] = {
      "freeze(a, ...) -> None: a.setflags(write=False) for each array, in one call."},
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,
      "fill(buf, start, end, u) -> True: buf[start:end] = u done; False: not taken (use numpy)."},
-    {"remean", (PyCFunction)(void (*)(void))remean, METH_FASTCALL, "remean(x, stages) -> x+: the stages' mean recursion."},
-    {"unpack_stages", (PyCFunction)(void (*)(void))unpack_stages, METH_FASTCALL,
-     "unpack_stages(stages, rows) -> the tuple form (kind, K, H, z, j, c) of packed stages."},
     {"untrack", untrack, METH_O,
      "untrack(obj) -> obj: obj and the tuples, lists and dicts it holds leave the cycle "
      "collector where they reference nothing tracked (for states not changed afterwards)."},
@@ -1165,12 +908,13 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_kalman",
-    "The Kalman arithmetic of LinearBackend.advance in C (pd_service/estimation/_kalman.c).",
+    "The Kalman step of LinearBackend.advance in C (pd_service/estimation/_kalman.c).",
     -1, methods, NULL, NULL, NULL, NULL,
 };
 
 PyMODINIT_FUNC PyInit__kalman(void) {
     import_array();
+    if (!no_stages && !(no_stages = PyBytes_FromStringAndSize(NULL, 0))) return NULL;
     PyObject *m = PyModule_Create(&module);
     if (m && (PyModule_AddIntConstant(m, "MAX_N", MAXN) || PyModule_AddIntConstant(m, "MAX_R", MAXR))) {
         Py_DECREF(m);

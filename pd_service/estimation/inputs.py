@@ -107,7 +107,7 @@ class InputBuffer:
         enough for :meth:`restore` to rebuild u(t) over the whole buffer."""
         steps = self._cmd_steps
         # the commands' rows in one copy (fancy indexing), handed out as views of it: they
-        # share nothing with the buffer (a ``.copy()`` per row cost ~1,100 instructions)
+        # share nothing with the buffer (one copy, not one ``.copy()`` per row)
         idx = np.array(steps, dtype=np.intp)
         idx += self._off - self.origin
         rows = self._buf[idx]

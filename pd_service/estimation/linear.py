@@ -1,4 +1,4 @@
-"""Linear-Gaussian backend: multi-step propagation tables and the Kalman update.
+"""Linear-Gaussian backend: multi-step propagation tables and the Kalman step.
 
 Propagating m steps at once, with no per-step Python work::
 
@@ -10,19 +10,16 @@ shared by every estimator with the same model (a daemon with 1,000 sessions of o
 keeps one copy).
 
 :class:`LinearBackend` is the ObserverPredictor's backend: one fused step per measured step
-(:meth:`LinearBackend.advance`: jump, then the Kalman update on the step's packets), written
-for 4 x 4 matrices where each numpy call costs ~0.2-0.8 µs of overhead: ``ndarray.dot``
-(about half the cost of ``@`` on tiny arrays), closed-form 2 x 2 / 3 x 3 Cholesky factors
-instead of LAPACK, a column and an entry for a unit-row scalar sensor, contiguous operands
-(a transposed view makes an addition 3x slower), and covariances kept exactly symmetric
-without a symmetrisation pass. :func:`propagate` and :func:`kalman_update` are the plain forms (the
-baselines use them).
-
-Where the hot path runs compiled (``pd_service.native``), the arithmetic of
-:meth:`LinearBackend.advance` runs in the C kernel ``_kalman.c`` instead: the same formulas in
-one call per jump and one per step's updates, ~2.3x faster per tick at the paper's size. The
-numpy form here is the reference (``PD_SERVICE_PURE=1``, no compiler, sizes beyond the
-kernel's, a nearly singular innovation covariance) and the kernel is tested against it.
+(:meth:`LinearBackend.advance`: jump, then the Kalman update on the step's packets). The step
+exists twice: the numpy form here, the reference, written for 4 x 4 matrices where numpy's
+per-call overhead dominates (``ndarray.dot``, closed-form 2 x 2 / 3 x 3 Cholesky factors
+instead of LAPACK, a column and an entry for a unit-row scalar sensor, contiguous operands,
+covariances kept exactly symmetric without a symmetrisation pass); and, where the hot path
+runs compiled (``pd_service.native``), the C kernel ``_kalman.c``: the same formulas in one
+call per step (``_kalman.advance``), or per replay (``_kalman.replay``, the replay's loop of
+steps). The numpy form runs with ``PD_SERVICE_PURE=1``, without a compiler, for sizes beyond
+the kernel's and for a step the kernel hands back (a nearly singular innovation
+covariance); the kernel is tested against it.
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Any, Final, NamedTuple, cast
+from typing import Final, NamedTuple, cast
 
 import numpy as np
 from mypy_extensions import mypyc_attr
@@ -41,9 +38,10 @@ from .model import LinearModel, Sensor
 from .replay import Packet
 from .state import check_names, take
 
-#: The C form of :meth:`LinearBackend.advance`'s arithmetic (pd_service/estimation/_kalman.c),
-#: None where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
-#: build): the numpy form below is the reference it is tested against.
+#: The C form of :meth:`LinearBackend.advance`'s step (pd_service/estimation/_kalman.c), None
+#: where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
+#: build): the numpy form below is the reference it is tested against. ``advance`` makes one
+#: step, ``replay`` the replay's loop of them (:meth:`LinearBackend.advance_run`).
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
 _ADVANCE: Final = kernel_function("pd_service.estimation._kalman", "advance")
 _REPLAY: Final = kernel_function("pd_service.estimation._kalman", "replay")
@@ -139,49 +137,6 @@ def tables_for(model: LinearModel, M: int) -> PropagationTables:
     return t
 
 
-def propagate(tables: PropagationTables, nu: int, x: np.ndarray, P: np.ndarray,
-              U: np.ndarray) -> LinearState:
-    """Roll (x, P) forward len(U) steps with inputs U (m, nu); m may exceed the table."""
-    m = U.shape[0]
-    M = tables.M
-    while m > M:  # only when a session sat idle for longer than the horizon
-        x, P = propagate(tables, nu, x, P, U[:M])
-        U = U[M:]
-        m -= M
-    Am = tables.Apow[m]
-    x = Am @ x
-    if nu:
-        # [A^{m-1}B ... B] is the last m*nu columns of the full stacked matrix.
-        x = x + tables.Gfull[:, (M - m) * nu :] @ U.reshape(-1)
-    P = Am @ P @ Am.T + tables.Qsum[m]
-    return x, P
-
-
-def kalman_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray,
-                  z: np.ndarray) -> LinearState:
-    """Condition N(x, P) on z = H x + v, v ~ N(0, R).
-
-        S = H P H^T + R,   K = P H^T S^{-1}
-        x+ = x + K (z - H x),   P+ = P - K H P   (symmetrised)
-
-    A singular S (zero R on a direction P already knows exactly) uses the pseudo-inverse,
-    which is still the LMMSE gain.
-    """
-    PHt = P @ H.T
-    S = H @ PHt + R
-    if S.shape[0] == 1:
-        s = S[0, 0]
-        K = PHt / s if s > 0.0 else PHt * 0.0
-    else:
-        try:
-            K = np.linalg.solve(S, PHt.T).T
-        except np.linalg.LinAlgError:
-            K = PHt @ np.linalg.pinv(S)
-    x = x + K @ (z - H @ x)
-    P = P - K @ PHt.T
-    return x, 0.5 * (P + P.T)
-
-
 class Gaussian(NamedTuple):
     """State of :class:`LinearBackend`: mean ``x`` (n,) and covariance ``P`` (n, n), plus what
     re-running its mean recursion with the same covariance needs.
@@ -189,10 +144,10 @@ class Gaussian(NamedTuple):
     A state the backend computed from a parent state by :meth:`LinearBackend.advance` (a jump
     of ``m`` steps, then one Kalman update per packet, in sensor order) records ``src``, the
     parent's covariance *object*, ``sensors``, the sensor indices of the packets applied, and
-    ``stages``, one :data:`Stage` per packet: the gain that maps the prior mean to the
-    posterior mean; the C kernel packs them into one ``bytes`` object (:data:`Stages`).
-    Arrays are never written after creation. (A NamedTuple: built with ``tuple.__new__`` on
-    the hot path, ~4x cheaper than a class with ``__init__``.)
+    ``stages``, per packet the gain that maps the prior mean to the posterior mean, as
+    float64 records in one ``bytes`` object (:func:`read_stages`; both forms of the step
+    write and read them). Arrays are never written after creation. (A NamedTuple: built
+    with ``tuple.__new__`` on the hot path, cheaper than a class with ``__init__``.)
     """
 
     x: np.ndarray
@@ -200,33 +155,44 @@ class Gaussian(NamedTuple):
     src: np.ndarray | None = None
     m: int = 0
     sensors: tuple[int, ...] = ()
-    stages: Stages = ()
+    stages: bytes = b""
 
 
-#: One packet's mean update ``(kind, K, H, z, j, c)``: kind 1 (one unit row ``H = e_j``),
-#: 2 (one row ``H = h`` (n,)): ``z`` a float, x+ = x- + K (c (z - h x-)) with ``K`` =
-#: P- h / sqrt(s) (n,), ``c`` = 1 / sqrt(s), s = h P- h^T + r (one vector operation less than
-#: forming P- h / s); kind 3 (``H`` (r, n)): x+ = x- + K (z - H x-), ``K`` (n, r), z (r,).
-Stage = tuple[int, Any, Any, Any, int, float]
-#: A step's stages: a tuple of :data:`Stage` (the numpy form), or the same packed by the C
-#: kernel as float64 records in one ``bytes`` object (``_kalman.c``, "Packed stages": one
-#: object instead of ~7 per packet, made and freed ~10 times per session and step by the
-#: replay); ``_kalman.unpack_stages`` gives the tuple form.
-Stages = tuple[Stage, ...] | bytes
+#: One packet's mean update, as :func:`read_stages` gives it: ``(sensor, kind, j, c, z, K)``.
+#: Kind 1 (one unit row ``H = e_j``), 2 (one row ``H = h`` (n,)): ``z`` (1,), x+ = x- +
+#: K (c (z - h x-)) with ``K`` = P- h / sqrt(s) (n,), ``c`` = 1 / sqrt(s), s = h P- h^T + r
+#: (one vector operation less than forming P- h / s); kind 3 (``H`` (r, n)): x+ = x- +
+#: K (z - H x-), ``K`` (n, r), z (r,), j = -1, c = 0. H is the sensor's.
+Stage = tuple[int, int, int, float, np.ndarray, np.ndarray]
 
 _new: Final = tuple.__new__
 
 
-def _remean(x: np.ndarray, stages: tuple[Stage, ...]) -> np.ndarray:
-    """The mean recursion of ``stages`` from the prior mean ``x`` (no covariance work)."""
-    for kind, K, H, z, j, c in stages:
-        if kind == 1:
-            x = x + K * (c * (z - x[j]))
-        elif kind == 2:
-            x = x + K * (c * (z - H.dot(x)))
-        else:
-            x = x + K.dot(z - H.dot(x))
-    return x
+def read_stages(stages: bytes, n: int) -> list[Stage]:
+    """The :data:`Stage` of each record of a step's stages for a state of ``n`` values.
+
+    A record is the float64 values ``sensor, kind, j, c, r, z (r), K (n * r, row-major),
+    H (r * n; not for kind 1)`` (``_kalman.c``, "Stages"); K is copied (an aligned array)."""
+    d = np.frombuffer(stages, dtype=np.float64)
+    out: list[Stage] = []
+    at = 0
+    while at < d.size:
+        sensor, kind, j, c, rows = d[at : at + 5].tolist()
+        r = int(rows)
+        nr = n * r
+        z = d[at + 5 : at + 5 + r]
+        K = d[at + 5 + r : at + 5 + r + nr].copy()
+        out.append((int(sensor), int(kind), int(j), c, z, K.reshape(n, r) if kind == 3 else K))
+        at += 5 + r + nr + (0 if kind == 1 else nr)
+    return out
+
+
+def _record(sensor: int, kind: int, j: int, c: float, z: np.ndarray, K: np.ndarray,
+            H: np.ndarray) -> np.ndarray:
+    """One stage's record (:func:`read_stages`), as the C kernel writes it."""
+    head = np.array((sensor, kind, j, c, z.size), dtype=np.float64)
+    parts = (head, z, K.ravel()) if kind == 1 else (head, z, K.ravel(), H.ravel())
+    return np.concatenate(parts)
 
 
 #: One sensor prepared for the update: (kind, H (r, n) or h (n,), H^T (n, r), R (r, r),
@@ -236,9 +202,9 @@ _Rows = tuple[int, np.ndarray, np.ndarray, np.ndarray, float, int]
 
 def _rows(H: np.ndarray, R: np.ndarray) -> _Rows:
     """Prepare measurement rows H (r, n) with noise R (r, r) for :meth:`LinearBackend.advance`:
-    kind 1 (one unit row e_j: P- h and h x- are a column and an entry, ~0.7 µs less per
-    update), 2 (one row) or 3 (r >= 2 rows; several unit rows gain nothing: strided slices
-    make the following products slower than the saved ones)."""
+    kind 1 (one unit row e_j: P- h and h x- are a column and an entry, no products), 2 (one
+    row) or 3 (r >= 2 rows; several unit rows gain nothing: strided slices make the
+    following products slower than the saved ones)."""
     H = np.array(H, dtype=np.float64)
     H.setflags(write=False)
     HT = np.ascontiguousarray(H.T)
@@ -374,15 +340,25 @@ class LinearBackend:
         stable against antisymmetric rounding errors): A^m P (A^m)^T is formed as M + M^T
         with M = A^m P (A^m)^T / 2, and the downdate W W^T is symmetric by construction. A
         2 x 2 or 3 x 3 S is factored by closed formulas; a larger or (nearly) singular S
-        goes through LU, or the pseudo-inverse, and an explicit symmetrisation, as
-        :func:`kalman_update`. The result depends only on the parent state, the inputs and
-        the packets, not on whether ``old`` was reused (the same operations either way).
+        goes through LU, or the pseudo-inverse, and an explicit symmetrisation. The result
+        depends only on the parent state, the inputs and the packets, not on whether ``old``
+        was reused (the same operations either way).
+
+        With the kernel (:attr:`use_kernel`) the step is one C call (``_kalman.advance``);
+        a step it does not take (a jump longer than the tables, a nearly singular S) is
+        made by the numpy form, :meth:`numpy_step`.
         """
-        ck, adv = (_KALMAN, _ADVANCE) if self.use_kernel else (None, None)
-        if adv is not None and m <= self._M:  # the whole step in one C call (_kalman.advance)
+        adv = _ADVANCE if self.use_kernel and m <= self._M else None
+        if adv is not None:
             got = adv(Gaussian, self._jumps, self._G, self._single, state, m, U, packets, old)
-            if got is not None:  # else a packet the kernel hands back: this form from here
+            if got is not None:  # else a step the kernel does not take: the numpy form's
                 return cast(Gaussian, got)
+        return self.numpy_step(state, m, U, packets, old)
+
+    def numpy_step(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+                   old: Gaussian | None) -> Gaussian:
+        """:meth:`advance` in numpy: the reference form of the step, and the whole step
+        where the kernel is not used or does not take it."""
         x, P = state[0], state[1]
         npk = len(packets)
         done: tuple[int, ...] = ()
@@ -399,42 +375,24 @@ class LinearBackend:
         Pp = P
         if m == 0:
             xp = x
-        elif ck is not None and m <= self._M:
-            jump = self._jumps[m]  # (A^m, ., Qs(m), .): the kernel reads G's last m*nu columns
-            xp, Pj = ck.jump(x, None if reuse else P, jump[0], jump[2], self._G, U)
-            if not reuse:
+        else:
+            xp, Pj = self._jump(x, None if reuse else P, m, U)
+            if Pj is not None:
                 Pp = Pj
-        elif m <= self._M:
-            A, AT2, Qs, G = self._jumps[m]
-            xp = A.dot(x)
-            if self._nu:
-                xp += G.dot(U.reshape(-1))
-            if not reuse:
-                M = A.dot(P).dot(AT2)  # A^m P (A^m)^T / 2
-                Pp = M + M.T.copy()  # (copying the transpose first: 0.5 µs instead of 0.8)
-                Pp += Qs
-        else:  # a jump longer than the tables (idle session): in table-sized chunks
-            xp, Pp = propagate(self.tables, self._nu, x, P, U)
-            Pp = (Pp + Pp.T) * 0.5
-        stages: Stages = ()
+        stages = b""
         if reuse:  # the covariance after old's packets is unchanged: their means only
             assert old is not None
             stages = old[5]
             if stages:
-                xp = _remean(xp, self._tuple_stages(stages)) if ck is None else \
-                    ck.remean(xp, stages)
+                xp = self._remean(xp, stages)
             if len(done) == npk:
                 return _new(Gaussian, (xp, old[1], P, m, done, stages))
             Pp = old[1]
         if not npk:
-            return _new(Gaussian, (xp, Pp, P, m, (), ()))
+            return _new(Gaussian, (xp, Pp, P, m, (), b""))
         sensors = (packets[0].sensor,) if npk == 1 else tuple([p.sensor for p in packets])
-        if ck is not None:
-            got = ck.update(xp, Pp, packets, self._single, len(done), stages)
-            if got is not None:  # else a (nearly) singular S, or sizes beyond the kernel's
-                return _new(Gaussian, (got[0], got[1], P, m, sensors, got[2]))
         single = self._single
-        tstages = self._tuple_stages(stages)  # this form appends tuples
+        records: list[np.ndarray] = []
         for i in range(len(done), npk):
             p = packets[i]
             kind, H, HT, R, r, j = single[p.sensor]
@@ -453,13 +411,13 @@ class LinearBackend:
                     s = float(H.dot(PHt)) + r
                     innov = zs - H.dot(xp)
                 if not s > 0.0:  # h P- h^T + r = 0: the sample tells nothing new (K = 0)
-                    tstages += ((kind, PHt * 0.0, H, zs, j, 0.0),)
+                    records.append(_record(p.sensor, kind, j, 0.0, z, PHt * 0.0, H))
                     continue
                 c = 1.0 / math.sqrt(s)
                 w = PHt * c  # K = w c, and K (P- h)^T = w w^T, exactly symmetric
                 xp = xp + w * (c * innov)
                 Pp = Pp - w[:, None].dot(w[None, :])
-                tstages += ((kind, w, H, zs, j, c),)
+                records.append(_record(p.sensor, kind, j, c, z, w, H))
                 continue
             PHt = Pp.dot(HT)
             S = H.dot(PHt) + R
@@ -475,17 +433,44 @@ class LinearBackend:
                     K = PHt.dot(np.linalg.pinv(S))
                 Pn = Pp - K.dot(PHt.T)
                 Pn = (Pn + Pn.T) * 0.5
+                K = np.ascontiguousarray(K)  # as read back from the record: a remean's bits
             xp = xp + K.dot(z - H.dot(xp))
             Pp = Pn
-            tstages += ((3, K, H, z, -1, 0.0),)
-        return _new(Gaussian, (xp, Pp, P, m, sensors, tstages))
+            records.append(_record(p.sensor, 3, -1, 0.0, z, K, H))
+        return _new(Gaussian, (xp, Pp, P, m, sensors,
+                               stages + np.concatenate(records).tobytes()))
 
-    def _tuple_stages(self, stages: Stages) -> tuple[Stage, ...]:
-        """The tuple form of a step's stages (the kernel's are packed: :data:`Stages`)."""
-        if type(stages) is bytes:
-            assert _KALMAN is not None  # packed stages come only from the kernel
-            return cast(tuple[Stage, ...], _KALMAN.unpack_stages(stages, self._single))
-        return cast(tuple[Stage, ...], stages)
+    def _jump(self, x: np.ndarray, P: np.ndarray | None, m: int,
+              U: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """x- and P- (None: the mean only) after m >= 1 steps with inputs U (m, nu); a jump
+        longer than the tables (a session idle that long) in table-sized jumps first."""
+        M = self._M
+        while m > M:
+            x, P = self._jump(x, P, M, U[:M])
+            U = U[M:]
+            m -= M
+        A, AT2, Qs, G = self._jumps[m]
+        xp = A.dot(x)
+        if self._nu:
+            xp += G.dot(U.reshape(-1))
+        if P is None:
+            return xp, None
+        Mh = A.dot(P).dot(AT2)  # A^m P (A^m)^T / 2
+        Pp = Mh + Mh.T.copy()  # copying the transpose first: a contiguous addition
+        Pp += Qs
+        return xp, Pp
+
+    def _remean(self, x: np.ndarray, stages: bytes) -> np.ndarray:
+        """The mean recursion of ``stages`` from the prior mean ``x`` (no covariance work)."""
+        single = self._single
+        for sensor, kind, j, c, z, K in read_stages(stages, x.shape[0]):
+            if kind == 1:
+                x = x + K * (c * (z.item(0) - x[j]))
+            elif kind == 2:
+                x = x + K * (c * (z.item(0) - single[sensor][1].dot(x)))
+            else:
+                x = x + K.dot(z - single[sensor][1].dot(x))
+        return x
 
     def moments(self, state: Gaussian) -> LinearState:
         return state.x, state.P

@@ -13,8 +13,8 @@ from .replay import ReplayEstimator
 
 
 # compiled by mypyc (setup.py): a compiled subclass, so the window's calls on its own
-# methods skip the glue an interpreted subclass needs (~0.8 µs per tick); the flags as on
-# ReplayEstimator (deep copies, see inputs.py)
+# methods skip the glue an interpreted subclass needs; the flags as on ReplayEstimator
+# (deep copies, see inputs.py)
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ObserverPredictor(ReplayEstimator[Gaussian]):
     """Exact LMMSE predictor of x(now + lead) from delayed, multi-rate, lossy packets.

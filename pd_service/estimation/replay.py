@@ -104,8 +104,7 @@ _insort: Final = bisect.insort
 _new_tuple: Final = tuple.__new__
 
 #: ``_kalman.freeze``: arrays made read-only in one C call (``ndarray.setflags`` parses its
-#: keywords, ~1,000 instructions a call); None: ``setflags``, where the hot path is not
-#: compiled.
+#: keywords each call); None: ``setflags``, where the hot path is not compiled.
 _FREEZE: Final = kernel_function("pd_service.estimation._kalman", "freeze")
 
 
@@ -121,10 +120,9 @@ def _by_sensor(p: Packet) -> int:
     return p.sensor
 
 
-# a plain class with Final attributes, not a frozen dataclass: compiled, it is built in
-# ~0.1 µs instead of ~0.9 µs (the dataclass's __init__ sets each field through
-# object.__setattr__), and its attributes are as read-only from Python (AttributeError);
-# copied and pickled through __reduce__ (estimators are deep-copied)
+# a plain class with Final attributes, not a frozen dataclass (whose __init__ sets each field
+# through object.__setattr__): built faster compiled, and as read-only from Python
+# (AttributeError); copied and pickled through __reduce__ (estimators are deep-copied)
 class PredictedState:
     """Estimate of x(step): mean ``x`` (n,), covariance ``P`` (n, n). Read-only.
 
@@ -305,7 +303,7 @@ class ReplayEstimator(Generic[S]):
         made its checks (the daemon's intake fast path): ``sensor`` one of
         :attr:`sensor_names`, ``step`` an int, ``z`` a fresh finite float64 array of the
         sensor's dimension that the estimator keeps (made read-only, not copied). Skips
-        the conversion and checks of z (~0.5 µs)."""
+        the conversion and checks of z."""
         return self._accept(self._index[sensor], step, z, None, self._check_now(now))
 
     def _accept(self, idx: int, k: int, zv: np.ndarray, Rm: np.ndarray | None, t: int) -> bool:
@@ -357,7 +355,7 @@ class ReplayEstimator(Generic[S]):
     def add_checked_command(self, step: int, u: np.ndarray, now: object | None = None) -> bool:
         """:meth:`add_command` for a caller that has made its checks (the daemon's intake
         fast path): ``step`` an int, ``u`` a finite float64 (nu,) array (copied into the
-        input buffer). Skips the conversion and checks of u (~0.5 µs)."""
+        input buffer). Skips the conversion and checks of u."""
         if now is not None:
             t = self._check_now(now)
             if t != self._now:

@@ -116,7 +116,6 @@ def untracked(state: _T) -> _T:
     taken with its tuples, lists and dicts out of the cycle collector where the C kernel
     runs (``_kalman.untrack``; the same object otherwise). Such a state holds only numbers,
     strings and arrays, so it can be in no reference cycle; kept tracked for its second of
-    life, 1,000 sessions' snapshots filled most of the collector's young generation, whose
-    collections then stopped the daemon's worker for ~15 ms (docs/service.md,
-    "Performance")."""
+    life, many sessions' snapshots fill the collector's young generation, whose collections
+    then stop the daemon's worker (docs/performance.md)."""
     return state if _UNTRACK is None else _UNTRACK(state)

@@ -3,9 +3,9 @@
 ``collections.Counter`` does the same, but it defines ``__delitem__`` in Python, and a class
 that defines one of the item-assignment methods gets CPython's generic slot for all item
 assignment: every ``counter[k] += 1`` then looks ``__setitem__`` up on the type and calls it
-through a wrapper (~950 instructions, against ~100 for a dict's own assignment). The
-daemon counts several outcomes per message (the estimator's, the session's and the
-service's counters), so that was ~8 % of its worker (``bench/instructions.py``).
+through a wrapper, several times a dict's own assignment; the daemon counts several
+outcomes per message (the estimator's, the session's and the service's counters), so this
+shows in its worker (docs/performance.md).
 
 A Tally inherits every dict slot unchanged and adds only ``__missing__``: ``t[k]`` of a key
 never counted is 0 and inserts nothing, ``t[k] += 1`` starts from 0, as with Counter. It has

@@ -12,7 +12,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pd_service.estimation import AugmentedStateKF, LinearModel, ObserverPredictor, Sensor
+from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
+from pd_service.research import AugmentedStateKF
 
 from .reference import batch_predict
 

@@ -3,7 +3,8 @@
 The numpy form is the reference: the same backend is run twice on the same random steps,
 once with the kernel and once without (``use_kernel = False``), and every mean, covariance and
 stored gain must agree to rounding. A (nearly) singular innovation covariance makes the
-kernel hand the step back to the numpy form; bad arguments raise, never crash.
+kernel hand the step back to the numpy form; bad arguments raise, never crash. (The replay's
+C loop, ``_kalman.replay``, against the step-by-step loop: test_replay_cache.py.)
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pd_service.estimation import LinearModel, Sensor
-from pd_service.estimation.linear import _KALMAN, Gaussian, LinearBackend
+from pd_service.estimation.linear import _KALMAN, Gaussian, LinearBackend, read_stages
 from pd_service.estimation.replay import Packet
 
 pytestmark = pytest.mark.skipif(
@@ -55,9 +56,9 @@ def both(backend: LinearBackend, state: Gaussian, m: int, U: np.ndarray,
     return got, want
 
 
-def stages_of(b: LinearBackend, g: Gaussian) -> tuple:
-    """A state's stages in the tuple form (the kernel packs them into bytes)."""
-    return b._tuple_stages(g.stages)
+def stages_of(b: LinearBackend, g: Gaussian) -> list:
+    """A state's stages, read: per packet (sensor, kind, j, c, z, K)."""
+    return read_stages(g.stages, b.model.n)
 
 
 def assert_same(got: Gaussian, want: Gaussian, b: LinearBackend) -> None:
@@ -67,9 +68,9 @@ def assert_same(got: Gaussian, want: Gaussian, b: LinearBackend) -> None:
     gs, ws = stages_of(b, got), stages_of(b, want)
     assert len(gs) == len(ws)
     for g, w in zip(gs, ws, strict=True):
-        assert g[0] == w[0] and g[2] is w[2] and g[4] == w[4]
-        assert close(np.asarray(g[1]), np.asarray(w[1]))
-        assert close(np.asarray(g[3]), np.asarray(w[3])) and abs(g[5] - w[5]) <= RTOL * abs(w[5])
+        assert g[:3] == w[:3]  # sensor, kind, j
+        assert close(g[5], w[5])  # K
+        assert close(g[4], w[4]) and abs(g[3] - w[3]) <= RTOL * abs(w[3])  # z, c
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -118,8 +119,8 @@ def test_a_singular_innovation_covariance_goes_to_the_numpy_form() -> None:
     b = LinearBackend(model, [Sensor(name="twin", H=H, R=np.zeros((2, 2)))], 4)
     P = np.diag([0.0, 1.0, 2.0])
     state = Gaussian(np.zeros(n), P)
-    assert _KALMAN.update(state.x, P, [Packet(0, np.array([0.0, 0.0]), None)], b._single, 0,
-                          ()) is None
+    assert _KALMAN.advance(Gaussian, b._jumps, b._G, b._single, state, 1, np.empty((1, 0)),
+                           [Packet(0, np.array([0.0, 0.0]), None)], None) is None
     got, want = both(b, state, 1, np.empty((1, 0)), [Packet(0, np.array([0.0, 0.0]), None)],
                      None)
     assert np.array_equal(got.x, want.x) and np.array_equal(got.P, want.P)
@@ -134,35 +135,48 @@ def test_a_row_with_zero_innovation_variance_tells_nothing() -> None:
     got, want = both(b, state, 0, np.empty((0, 0)), [Packet(0, np.array([5.0]), None)], None)
     assert_same(got, want, b)
     assert np.array_equal(got.x, state.x) and np.array_equal(got.P, state.P)
-    assert isinstance(got.stages, bytes)  # packed by the kernel
-    assert not np.any(stages_of(b, got)[0][1]) and stages_of(b, got)[0][5] == 0.0
+    assert isinstance(got.stages, bytes)
+    assert not np.any(stages_of(b, got)[0][5]) and stages_of(b, got)[0][3] == 0.0
+
+
+_P2 = np.eye(2)
+_UNIT = [(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 0)]  # linear._rows of e_0
+
+
+def _step(k, packets, rows=_UNIT, state=None, old=None):  # type: ignore[no-untyped-def]
+    """advance with m = 0 (no jump: the tables are not read)."""
+    return k.advance(Gaussian, (None,), None, rows, state or Gaussian(np.zeros(2), _P2), 0,
+                     np.empty((0, 0)), packets, old)
+
+
+def _jump(k, n, A, P, G=None, U=None):  # type: ignore[no-untyped-def]
+    """advance with m = 1 and no packets (the jump only)."""
+    x = "x" if n == 0 else np.zeros(n)
+    return k.advance(Gaussian, (None, (A, None, np.eye(len(A)))), G,
+                     [], Gaussian(x, P), 1, np.empty((1, 0)) if U is None else U, [], None)
+
+
+def _reusing(k, stages):  # type: ignore[no-untyped-def]
+    """advance offered an old state that it reuses, with these stages."""
+    return _step(k, [], old=Gaussian(np.zeros(2), _P2, _P2, 0, (), stages))
 
 
 @pytest.mark.parametrize("call", [
-    lambda k: k.jump(np.zeros(3), np.eye(3), np.eye(2), np.eye(3), None, np.empty(0)),
-    lambda k: k.jump(np.zeros(3), np.eye(2), np.eye(3), np.eye(3), None, np.empty(0)),
-    lambda k: k.jump(np.zeros(2), None, np.eye(2), np.eye(2), np.ones((2, 1)), np.ones(3)),
-    lambda k: k.jump(np.zeros(2), None, np.eye(2), np.eye(2), np.ones(2), np.ones(1)),
-    lambda k: k.jump(np.zeros(65), None, np.eye(65), np.eye(65), None, np.empty(0)),
-    lambda k: k.jump("x", None, np.eye(2), np.eye(2), None, np.empty(0)),
-    lambda k: k.update(np.zeros(2), np.eye(3), [], [], 0, ()),
-    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(5, np.zeros(1), None)],
-                       [(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 0)], 0, ()),
-    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(0, np.zeros(2), None)],
-                       [(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 0)], 0, ()),
-    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(0, np.zeros(1), None)],
-                       [(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 7)], 0, ()),
-    lambda k: k.update(np.zeros(2), np.eye(2), [(0,)], [], 0, ()),
-    lambda k: k.update(np.zeros(2), np.eye(2), [Packet(0, np.zeros(3), None)],
-                       [(3, np.ones((2, 2)), None, np.eye(2), 0.0, -1)], 0, ()),
-    lambda k: k.remean(np.zeros(2), ((1, np.zeros(2), None, 0.0, 9, 1.0),)),
-    lambda k: k.remean(np.zeros(2), ((3, np.zeros((2, 1)), np.ones((1, 3)), np.zeros(1), -1,
-                                      0.0),)),
-    lambda k: k.remean(np.zeros(2), ((1, 2),)),
-    lambda k: k.remean(np.zeros(2), [(1, np.zeros(2), None, 0.0, 0, 1.0)]),
-    lambda k: k.update(np.zeros(2), np.eye(2), (), [], 0, ()),
-    lambda k: k.update(np.zeros(2), np.eye(2), [], [], "0", ()),
-    lambda k: k.jump(np.zeros(2), None, np.eye(2), np.eye(2), None),
+    lambda k: _jump(k, 3, np.eye(2), np.eye(3)),  # A of another size
+    lambda k: _jump(k, 3, np.eye(3), np.eye(2)),  # P of another size
+    lambda k: _jump(k, 2, np.eye(2), np.eye(2), np.ones((2, 1)), np.ones(3)),  # G too narrow
+    lambda k: _jump(k, 2, np.eye(2), np.eye(2), np.ones(2), np.ones(1)),  # G not a matrix
+    lambda k: _jump(k, 65, np.eye(65), np.eye(65)),  # beyond MAX_N
+    lambda k: _jump(k, 0, np.eye(2), np.eye(2)),  # x not numbers
+    lambda k: _step(k, [Packet(0, np.zeros(1), None)], state=Gaussian(np.zeros(2), np.eye(3))),
+    lambda k: _step(k, [Packet(5, np.zeros(1), None)]),  # an unknown sensor
+    lambda k: _step(k, [Packet(0, np.zeros(2), None)]),  # z of another size
+    lambda k: _step(k, [Packet(0, np.zeros(1), None)],
+                    rows=[(1, np.array([1.0, 0.0]), None, np.eye(1), 1.0, 7)]),  # j outside
+    lambda k: _step(k, [(0,)], rows=[]),
+    lambda k: _step(k, [Packet(0, np.zeros(3), None)],
+                    rows=[(3, np.ones((2, 2)), None, np.eye(2), 0.0, -1)]),
+    lambda k: _step(k, ()),  # packets not a list
     lambda k: k.fill(np.zeros((4, 2)), 0, 1),
     lambda k: k.advance(Gaussian, (), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
                         np.empty((0, 0)), []),
@@ -177,16 +191,17 @@ def test_a_row_with_zero_innovation_variance_tells_nothing() -> None:
     lambda k: k.advance(Gaussian, (None,), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
                         np.empty((0, 0)), [(0,)], None),
     lambda k: k.fill(np.zeros((4, 2)), 0, "1", np.zeros(2)),
-    # packed stages that are not the kernel's records
-    lambda k: k.remean(np.zeros(2), b"\x00" * 7),  # not whole float64 values
-    lambda k: k.remean(np.zeros(2), np.array([0.0, 9.0, 0.0, 1.0, 1.0]).tobytes()),  # kind 9
-    lambda k: k.remean(np.zeros(2), np.array([0.0, 1.0, 0.0, 1.0, 1.0, 0.0]).tobytes()),  # cut
-    lambda k: k.remean(np.zeros(2), np.array([0.0, 1.0, 5.0, 1.0, 1.0, 0.0, 0.0,
-                                              0.0]).tobytes()),  # j outside the state
-    lambda k: k.unpack_stages(np.array([5.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]).tobytes(),
-                              []),  # an unknown sensor
-    lambda k: k.unpack_stages(b"", None),
-    lambda k: k.update(np.zeros(2), np.eye(2), [], [], 0, [1]),  # stages a list
+    lambda k: k.replay(Gaussian, (None,), None, [], Gaussian(np.zeros(2), np.eye(2)), 0, (1,),
+                       np.zeros((2, 0)), 0, {}, {}, None),  # steps not a list
+    lambda k: k.replay(Gaussian, (None, None), None, [], Gaussian(np.zeros(2), np.eye(2)), 0,
+                       [1], np.zeros((2, 0)), 1, {1: []}, {}, None),  # outside the buffer
+    # stages that are not the kernel's records
+    lambda k: _reusing(k, b"\x00" * 7),  # not whole float64 values
+    lambda k: _reusing(k, np.array([0.0, 9.0, 0.0, 1.0, 1.0]).tobytes()),  # kind 9
+    lambda k: _reusing(k, np.array([0.0, 1.0, 0.0, 1.0, 1.0, 0.0]).tobytes()),  # cut
+    lambda k: _reusing(k, np.array([0.0, 1.0, 5.0, 1.0, 1.0, 0.0, 0.0,
+                                    0.0]).tobytes()),  # j outside the state
+    lambda k: _reusing(k, ((1, np.zeros(2), None, 0.0, 0, 1.0),)),  # stages not bytes
 ])
 def test_bad_arguments_raise(call) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises((ValueError, TypeError, IndexError)):
@@ -220,20 +235,26 @@ def test_arrays_are_never_written() -> None:
         assert np.array_equal(joined.x, again.x) and np.array_equal(joined.P, again.P)
 
 
-def test_packed_stages_remean_as_their_tuple_form() -> None:
-    """The kernel's packed stages and their tuple form (unpack_stages) give the same mean,
-    bit for bit; a tuple is unpacked as itself."""
+def test_each_form_reuses_the_others_stages() -> None:
+    """One stage format: a state the kernel made is reused by the numpy form and one the
+    numpy form made by the kernel (the same covariance object kept, the means re-run), and
+    both give what a recompute gives, to rounding. Kinds 1, 2 and 3 are in the records."""
     rng = np.random.default_rng(11)
     b = random_backend(rng, 4, 1)
     state = Gaussian(rng.standard_normal(4), np.eye(4))
     packets = [Packet(i, rng.standard_normal(b.sensors[i].m), None) for i in range(3)]
-    got = b.advance(state, 2, rng.standard_normal((2, 1)), packets, None)
-    assert isinstance(got.stages, bytes)
-    tup = stages_of(b, got)
-    assert [s[0] for s in tup] == [1, 2, 3]  # a unit row, a row, several rows
-    x = rng.standard_normal(4)
-    assert np.array_equal(_KALMAN.remean(x, got.stages), _KALMAN.remean(x, tup))
-    assert _KALMAN.unpack_stages(tup, b._single) is tup
+    U = rng.standard_normal((2, 1))
+    got, want = both(b, state, 2, U, packets, None)
+    assert [s[1] for s in stages_of(b, got)] == [1, 2, 3]  # a unit row, a row, several rows
+    U2 = U + 1.0
+    fresh = b.numpy_step(state, 2, U2, packets, None)
+    b.use_kernel = False
+    by_numpy = b.advance(state, 2, U2, packets, got)  # the kernel's stages, read in numpy
+    b.use_kernel = True
+    by_kernel = b.advance(state, 2, U2, packets, want)  # the numpy form's, read in C
+    for out, old in ((by_numpy, got), (by_kernel, want)):
+        assert out.P is old.P and out.stages is old.stages
+        assert close(out.x, fresh.x) and close(out.P, fresh.P)
 
 
 @pytest.mark.parametrize("n, rows", [(_KALMAN.MAX_N + 1 if _KALMAN else 65, 1),
@@ -261,13 +282,16 @@ def test_arrays_of_other_layouts_and_types_are_converted() -> None:
     anything else (a transposed view, integers, a byte-swapped array) first: same result."""
     rng = np.random.default_rng(11)
     n = 4
-    A, L = rng.standard_normal((n, n)), rng.standard_normal((n, n))
-    P, Qs, x = L @ L.T, np.eye(n) * 0.5, np.arange(n)
-    want = _KALMAN.jump(x.astype(float), P, A, Qs, None, np.empty(0))
-    for args in [(x, P, A, Qs), (x.astype(float), np.asfortranarray(P), A.T.copy().T, Qs),
-                 (x.astype(">f8"), P.astype(">f8"), A, Qs.astype(np.float32).astype(float))]:
-        got = _KALMAN.jump(*args, None, np.empty(0))
-        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    b = random_backend(rng, n, 2)
+    L = rng.standard_normal((n, n))
+    P, x, U = L @ L.T, np.arange(n), rng.standard_normal((2, 2))
+    pk = [Packet(2, np.ones(b.sensors[2].m), None)]
+    want = b.advance(Gaussian(x.astype(float), P), 2, U, pk, None)
+    for args in [(x, P, U), (x.astype(float), np.asfortranarray(P), np.asfortranarray(U)),
+                 (x.astype(">f8"), P.astype(">f8"), U.astype(">f8"))]:
+        got = b.advance(Gaussian(args[0], args[1]), 2, args[2], pk, None)
+        assert np.array_equal(got.x, want.x) and np.array_equal(got.P, want.P)
+        assert got.stages == want.stages
 
 
 def test_fill_sets_rows_as_numpy_does_or_declines() -> None:

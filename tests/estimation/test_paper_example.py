@@ -11,7 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from pd_service.estimation import ConventionalPredictor, ObserverPredictor
+from pd_service.estimation import ObserverPredictor
+from pd_service.research import ConventionalPredictor
 from pd_service.scenarios.paper import (
     CAMERA_DELAY,
     RANGER_DELAY,

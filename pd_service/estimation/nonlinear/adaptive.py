@@ -26,7 +26,7 @@ acceleration channels): adapting all entries of Q from the innovations is not id
 
 Why per gap: after a lost sample (or in a multi-rate pattern) the innovation after a 2-step
 gap has a larger covariance than after a 1-step one; one window mixing both, compared with the
-current S_k, biases q (upwards by ~40 % with 10 % loss on the omni bench). Averaging S over
+current S_k, biases q upwards (docs/nonlinear.md). Averaging S over
 the window instead removes the bias but delays the feedback (S_k reacts to q at once, a window
 average does not) and makes q oscillate. Gaps longer than ``max_gap`` are not used.
 

@@ -100,11 +100,8 @@ class OmniDynamics:
         out[:, 5] = m2 * (fz - d2 * S[:, 5])
         return out
 
-    def deriv_jac(self, S: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """d s_dot / d s, (N, 6, 6)."""
-        return self._deriv_jac(S, self._coeffs(tau))
-
     def _deriv_jac(self, S: np.ndarray, co: tuple[float, float, float]) -> np.ndarray:
+        """d s_dot / d s, (N, 6, 6)."""
         ar, br, _ = co
         A = np.empty((S.shape[0], 6, 6))
         A[:] = self._jac_const

@@ -1,4 +1,4 @@
-"""Baselines with the same API as :class:`ObserverPredictor`.
+"""Baselines with the same API as :class:`~pd_service.estimation.ObserverPredictor`.
 
 * :class:`AugmentedStateKF`: the classical augmented-state Kalman filter, with the state
   stacked with its last ``max_delay`` values and dense augmented matrices, as in textbooks.
@@ -15,12 +15,56 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .checks import as_covariance, as_step, as_vector
-from .inputs import InputBuffer
-from .linear import kalman_update, propagate, tables_for
-from .model import LinearModel, Sensor, check_sensors
-from .replay import COUNTER_NAMES, PredictedState
-from .tally import Tally
+from pd_service.estimation.checks import as_covariance, as_step, as_vector
+from pd_service.estimation.inputs import InputBuffer
+from pd_service.estimation.linear import LinearState, PropagationTables, tables_for
+from pd_service.estimation.model import LinearModel, Sensor, check_sensors
+from pd_service.estimation.replay import COUNTER_NAMES, PredictedState
+from pd_service.estimation.tally import Tally
+
+
+def propagate(tables: PropagationTables, nu: int, x: np.ndarray, P: np.ndarray,
+              U: np.ndarray) -> LinearState:
+    """Roll (x, P) forward len(U) steps with inputs U (m, nu); m may exceed the table (the
+    baselines' textbook form; the daemon's estimator runs LinearBackend's step)."""
+    m = U.shape[0]
+    M = tables.M
+    while m > M:  # a jump longer than the tables: in table-sized chunks
+        x, P = propagate(tables, nu, x, P, U[:M])
+        U = U[M:]
+        m -= M
+    Am = tables.Apow[m]
+    x = Am @ x
+    if nu:
+        # [A^{m-1}B ... B] is the last m*nu columns of the full stacked matrix.
+        x = x + tables.Gfull[:, (M - m) * nu :] @ U.reshape(-1)
+    P = Am @ P @ Am.T + tables.Qsum[m]
+    return x, P
+
+
+def kalman_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, R: np.ndarray,
+                  z: np.ndarray) -> LinearState:
+    """Condition N(x, P) on z = H x + v, v ~ N(0, R).
+
+        S = H P H^T + R,   K = P H^T S^{-1}
+        x+ = x + K (z - H x),   P+ = P - K H P   (symmetrised)
+
+    A singular S (zero R on a direction P already knows exactly) uses the pseudo-inverse,
+    which is still the LMMSE gain.
+    """
+    PHt = P @ H.T
+    S = H @ PHt + R
+    if S.shape[0] == 1:
+        s = S[0, 0]
+        K = PHt / s if s > 0.0 else PHt * 0.0
+    else:
+        try:
+            K = np.linalg.solve(S, PHt.T).T
+        except np.linalg.LinAlgError:
+            K = PHt @ np.linalg.pinv(S)
+    x = x + K @ (z - H @ x)
+    P = P - K @ PHt.T
+    return x, 0.5 * (P + P.T)
 
 
 class _InputsMixin:

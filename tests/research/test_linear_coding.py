@@ -12,8 +12,8 @@ import itertools
 import numpy as np
 import pytest
 
-from pd_service.estimation.delay_model import LOST, DelayModel, arrivals_by_step
-from pd_service.estimation.linear_coding import (
+from pd_service.research.delay_model import LOST, DelayModel, arrivals_by_step
+from pd_service.research.linear_coding import (
     CodedOnlineEstimator,
     CorrelatedPlant,
     NewestPacketEstimator,

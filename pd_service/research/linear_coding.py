@@ -13,7 +13,7 @@ Plant (paper eq. 1-3), no control input:
     y(k)   = C x(k) + v(k),      Cov(v) = R = V,  E[w̄(k) v(k)ᵀ] = S = Γ S_paper  (m outputs)
 
 Every y(k) is sent once, stamped k, and arrives after a random delay 0..d or never (see
-:mod:`pd_service.estimation.delay_model`); a_i(k) = 1 iff y(k - i) arrives at step k. All
+:mod:`pd_service.research.delay_model`); a_i(k) = 1 iff y(k - i) arrives at step k. All
 packets that arrive in one step are coded into ONE m-vector with fixed weights beta_i:
 
     z(k) = sum_{i=0..d} beta_i a_i(k) y(k - i)                               (paper eq. 8-9)
@@ -49,7 +49,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .checks import as_covariance, as_matrix, as_vector
+from pd_service.estimation.checks import as_covariance, as_matrix, as_vector
+
 from .delay_model import DelayModel
 
 __all__ = [
@@ -70,7 +71,7 @@ Packets = Iterable[tuple[int, ArrayLike]]
 
 # ---------------------------------------------------------------------------- validation
 def _matrix(name: str, value: ArrayLike, shape: tuple[int, int]) -> Array:
-    """:func:`.checks.as_matrix`, also taking a vector (shape[0],) for a column."""
+    """:func:`pd_service.estimation.checks.as_matrix`, also taking a vector (shape[0],) for a column."""
     a = np.asarray(value)
     if a.ndim == 1 and shape[1] == 1 and a.shape[0] == shape[0]:
         a = a.reshape(shape)
@@ -78,7 +79,7 @@ def _matrix(name: str, value: ArrayLike, shape: tuple[int, int]) -> Array:
 
 
 def _vector(name: str, value: ArrayLike, size: int) -> Array:
-    """:func:`.checks.as_vector`, also taking a scalar when size is 1."""
+    """:func:`pd_service.estimation.checks.as_vector`, also taking a scalar when size is 1."""
     try:
         a = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
