@@ -400,25 +400,19 @@ class Dispatch:
             log.debug("internal error in session %s", sess.name, exc_info=True)
             return Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")
         if refusal is None:
-            self.counters[name] += 1
-            if also:
-                self.counters[also + name] += 1
-                sess.counters[also + name] += 1
+            for c in (sess.counters, self.counters):
+                c[name] += 1
+                if also:
+                    c[also + name] += 1
         return refusal
 
     def _note_flood(self, route: Route, sess: Session, now: int) -> None:
         seen = route.flood
         dropped = seen - route.flood_seen
         route.flood_seen = seen
-        sess.counters["flood"] += dropped
-        sess.counters["refused"] += dropped
-        self.counters["flood"] += dropped
-        self.counters["refused"] += dropped
-        pub = self.pub
-        if sess.limiter.allow(now) and pub.total_limiter.allow(now):
-            pub.error(sess.error_key, sess.name, keys.ALL_SENSORS.replace("*", sess.name, 1),
-                      f"inbox full: dropped {dropped} oldest unread message(s) "
-                      f"(more than {self.settings.inbox_size} waiting)", None, now)
+        self.pub.refuse(sess, keys.ALL_SENSORS.replace("*", sess.name, 1), Refusal(
+            "flood", f"inbox full: dropped {dropped} oldest unread message(s) "
+            f"(more than {self.settings.inbox_size} waiting)"), now, count=dropped)
 
     def process_unknown(self, now: int, touched: list[Session]) -> int:
         """Messages that arrived for no known session: hand them over if the session was
@@ -428,7 +422,6 @@ class Dispatch:
         if self.unknown_drops:
             self.counters["unknown_flood"] += self.unknown_drops
             self.unknown_drops = 0
-        pub = self.pub
         while q:
             session, item = q.popleft()
             n += 1
@@ -441,19 +434,16 @@ class Dispatch:
                     if sess.pending_recv and not had:
                         touched.append(sess)
                 continue
-            self.counters["unknown_session"] += 1
-            self.counters["refused"] += 1
             try:
                 check_name(session, "session")
             except KeyError_:
+                self.pub.refuse(None, item[1], Refusal("unknown_session", ""), now,
+                                session=session, report=False)
                 self.counters["bad_key"] += 1
                 continue
             # Every instance knows every spec, so the rendezvous owner of the name reports.
-            if self.ownership.owns(session):
-                if pub.unknown_limiter.allow(now) and pub.total_limiter.allow(now):
-                    pub.error(keys.error_key(session), session, item[1],
-                              f"unknown session {session!r}: put a SessionSpec on "
-                              f"{keys.config_key(session)!r} first", None, now)
-                else:
-                    self.counters["errors_suppressed"] += 1
+            self.pub.refuse(None, item[1], Refusal(
+                "unknown_session", f"unknown session {session!r}: put a SessionSpec on "
+                f"{keys.config_key(session)!r} first"), now, session=session,
+                report=self.ownership.owns(session))
         return n

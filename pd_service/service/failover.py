@@ -48,7 +48,7 @@ from .config import Settings
 from .ownership import Ownership
 from .persist import SpecStore, StateWriter
 from .publish import Out, Publisher
-from .session import Origin, Session, next_slot
+from .session import Origin, Refusal, Session, next_slot
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -378,11 +378,10 @@ class StateKeeper:
               packets=len(msg.packets), writer=msg.instance)
 
     def _refused(self, sess: Session, source: str, why: Refused, now: int) -> None:
-        self.counters["restore_refused"] += 1
         self.counters[f"restore_refused_{why.reason}"] += 1
-        sess.counters["restore_refused"] += 1
         text = f"{source} not resumed ({why.reason}): {why.text}; started from the prior"
         event(log, "restore_refused", logging.WARNING, session=sess.name, source=source,
               reason=why.reason, detail=why.text)
-        self.pub.error(sess.error_key, sess.name, f"{source}/{sess.name}", text, None, now)
+        self.pub.refuse(sess, f"{source}/{sess.name}", Refusal("restore_refused", text), now,
+                        counted=("restore_refused",))
 

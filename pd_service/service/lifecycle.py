@@ -216,14 +216,12 @@ class Lifecycle:
             b = self._config_buckets[session] = TokenBucket(s.config_rate, s.config_burst, now)
         if b.allow(now) and self._config_total.allow(now):
             return True
-        self.counters["config_rate_limited"] += 1
-        self.counters["config_refused"] += 1
-        if session and self.ownership.owns(session) and self.pub.unknown_limiter.allow(now) \
-                and self.pub.total_limiter.allow(now):
-            self.pub.error(keys.error_key(session), session, sample.key,
-                           f"config change refused: more than {s.config_rate:g} per second "
-                           f"for this session or {s.config_rate_total:g} per second for "
-                           "this service (config_rate, config_rate_total)", None, now)
+        self.pub.refuse(None, sample.key, Refusal(
+            "config_rate_limited", f"config change refused: more than {s.config_rate:g} per "
+            f"second for this session or {s.config_rate_total:g} per second for this service "
+            "(config_rate, config_rate_total)"), now, session=session,
+            counted=("config_rate_limited", "config_refused"),
+            report=bool(session) and self.ownership.owns(session))
         return False
 
     def apply_config(self, sample: Sample, now: int) -> None:
@@ -273,10 +271,8 @@ class Lifecycle:
                 self.pub.refuse(route.sess, sample.key, Refusal("config_refused", exc.reason),
                                 now)
             else:
-                self.counters["config_refused"] += 1
-                if owns and self.pub.unknown_limiter.allow(now):
-                    self.pub.error(keys.error_key(session), session, sample.key, exc.reason,
-                                   None, now)
+                self.pub.refuse(None, sample.key, Refusal("config_refused", exc.reason), now,
+                                session=session, counted=("config_refused",), report=owns)
             return
         old = self.specs.get(session)
         self.gone.pop(session, None)

@@ -99,26 +99,40 @@ class Publisher:
 
     # --- error reports --------------------------------------------------------------------
 
-    def refuse(self, sess: Session, key: str, r: Refusal, now: int) -> None:
-        """Count a refusal (session and service) and report it unless rate-limited."""
-        sess.counters[r.reason] += 1
-        sess.counters["refused"] += 1
-        self.counters[r.reason] += 1
-        self.counters["refused"] += 1
-        if log.isEnabledFor(logging.DEBUG):
-            event(log, "refused", logging.DEBUG, session=sess.name, key=key, reason=r.reason,
-                  text=r.text)
-        if sess.limiter.allow(now) and self.total_limiter.allow(now):
-            self.error(sess.error_key, sess.name, key, r.text, r.seq, now)
-        else:
-            sess.counters["errors_suppressed"] += 1
-            self.counters["errors_suppressed"] += 1
+    def refuse(self, sess: Session | None, key: str, r: Refusal, now: int, *,
+               session: str = "", count: int = 1, counted: tuple[str, ...] | None = None,
+               report: bool = True) -> None:
+        """The daemon's one way to refuse: count ``r`` and report it in an ErrorReport.
 
-    def error(self, err_key: str, session: str, key: str, text: str, seq: int | None,
-              now: int) -> None:
-        rep = ErrorReport(session=session, key=key[:512], seq=seq, reason=text[:1024], t_ns=now)
-        self.outbox.append(Out(err_key, encode(rep)))
-        self.counters["errors_sent"] += 1
+        Counted: ``count`` times each name of ``counted`` (default ``r.reason`` and
+        ``refused``), on the session's counters (``sess``: served here; else None and
+        ``session`` names it) and service-wide. Reported (``report``: this instance owns the
+        name) on the session's error key within the limits: its own bucket (``error_rate``,
+        ``error_burst``; the names not served here share one), then the service's
+        (``error_rate_total``); over either, counted ``errors_suppressed`` instead."""
+        if counted is None:
+            counted = (r.reason, "refused")
+        for name in counted:
+            if sess is not None:
+                sess.counters[name] += count
+            self.counters[name] += count
+        if counted and log.isEnabledFor(logging.DEBUG):
+            event(log, "refused", logging.DEBUG, session=session if sess is None else sess.name,
+                  key=key, reason=r.reason, text=r.text)
+        if not report:
+            return
+        limiter = self.unknown_limiter if sess is None else sess.limiter
+        if limiter.allow(now) and self.total_limiter.allow(now):
+            err_key = keys.error_key(session) if sess is None else sess.error_key
+            name = session if sess is None else sess.name
+            rep = ErrorReport(session=name, key=key[:512], seq=r.seq, reason=r.text[:1024],
+                              t_ns=now)
+            self.outbox.append(Out(err_key, encode(rep)))
+            self.counters["errors_sent"] += 1
+        else:
+            if sess is not None:
+                sess.counters["errors_suppressed"] += 1
+            self.counters["errors_suppressed"] += 1
 
     # --- status answers -------------------------------------------------------------------
 
@@ -212,11 +226,8 @@ class Publisher:
                 text = f"estimate recovered from its {source} at step {k}: {why}"
                 event(log, "session_recovered", logging.WARNING, session=sess.name,
                       source=source, step=k, reason=why)
-                if sess.limiter.allow(now) and self.total_limiter.allow(now):
-                    self.error(sess.error_key, sess.name, sess.pred_key, text, None, now)
-                else:
-                    sess.counters["errors_suppressed"] += 1
-                    self.counters["errors_suppressed"] += 1
+                # a notice, not a refusal: reported within the limits, nothing counted
+                self.refuse(sess, sess.pred_key, Refusal("recovered", text), now, counted=())
                 return pred
             problem = f"{problem}; from its {source}: {bad}"
         sess.health_failed_step = k

@@ -183,8 +183,6 @@ class Session:
         if self.intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
-        if refusal is None:
-            self.counters["accepted"] += 1
         return refusal
 
     def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
@@ -193,8 +191,6 @@ class Session:
         if self.intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
-        if refusal is None:
-            self.counters["commands_accepted"] += 1
         return refusal
 
     # --- read-back copies ----------------------------------------------------------------
