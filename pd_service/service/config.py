@@ -144,7 +144,7 @@ class Settings(BaseSettings):
     latency_window: int = Field(4096, ge=16, description="Latency samples kept (service-wide).")
     sync_timeout_s: float = Field(1.0, gt=0, description="Wait for peers' specs at startup.")
 
-    # restart and takeover (see pd_service.service.failover)
+    # restart and takeover (see pd_service.service.handover.keeper)
     checkpoint_interval_s: float = Field(
         1.0, ge=0, description="Least time between two checkpoints of one session in the "
                                "state directory (written when new steps were committed); 0: none.")

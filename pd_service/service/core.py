@@ -35,13 +35,13 @@ from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 
 from .config import Settings
 from .dispatch import ROUND_SESSIONS, Dispatch, Route
-from .failover import StateKeeper, replicas_for
+from .handover.keeper import HandoverKeeper, replicas_for
+from .latency import LatencyWindow
 from .lifecycle import Lifecycle, spawn_thread
+from .outbox import Outbox
 from .ownership import Ownership
-from .persist import SpecStore
-from .publish import Publisher
 from .session import Session
-from .stats import LatencyWindow
+from .spec_store import SpecStore
 from .status import Queries
 
 log = logging.getLogger(LOGGER_NAME)
@@ -83,11 +83,11 @@ class ServiceCore:
         self.ownership = Ownership(self.instance, settings.shard_tuple)
         self.counters = Tally()
         self.latency = LatencyWindow(settings.latency_window)
-        self.publisher = Publisher(transport, settings, self.counters, self.latency, mono_ns,
+        self.publisher = Outbox(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())
         self.dispatch = Dispatch(settings, self.counters, self.publisher, self.ownership,
                                  self.wake, now_ns)
-        self.keeper = StateKeeper(settings, store, self.ownership, self.counters,
+        self.keeper = HandoverKeeper(settings, store, self.ownership, self.counters,
                                   self.publisher)
         self.lifecycle = Lifecycle(transport, settings, store=store, ownership=self.ownership,
                                    counters=self.counters, dispatch=self.dispatch,
@@ -126,10 +126,10 @@ class ServiceCore:
                                                                  timeout=s.sync_timeout_s)]
         peers = [p for p in peers if p != self.instance]
         peers = self.lifecycle.trusted_peers(peers)
-        specs, origin = self.lifecycle.recover(peers)
+        specs, origin = self.lifecycle.load_specs(peers)
         now = self.now_ns()
         with self.lock:
-            self.lifecycle.install_recovered(specs, origin, now)
+            self.lifecycle.install_loaded(specs, origin, now)
         # Data arrives through drained queues: the worker takes samples in batches at the
         # start of each loop (no GIL hand-off per sample while it is busy).
         self._drains = [t.subscribe_drained(keys.ALL_SENSORS, d.on_sensor_sample, self.wake.set),
@@ -141,8 +141,8 @@ class ServiceCore:
             # the live subscriptions and handled before the worker runs, behind the live
             # messages that arrived meanwhile (a message both received live and read back
             # is refused as the recovered copy, quietly): the first prediction has it all.
-            for ke, cb in ((keys.ALL_SENSORS, d.on_recovered_sensor),
-                           (keys.ALL_COMMANDS, d.on_recovered_command)):
+            for ke, cb in ((keys.ALL_SENSORS, d.on_read_back_sensor),
+                           (keys.ALL_COMMANDS, d.on_read_back_command)):
                 self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
                                                timeout=s.recover_timeout_s))
         for dr in self._drains:  # the live messages that arrived meanwhile, first
@@ -264,8 +264,8 @@ class ServiceCore:
                         got += self._drain()
                 if d.released:
                     handled += d.process_released(now, touched)
-                if d.recovered:
-                    handled += d.process_recovered(now, touched)
+                if d.read_back:
+                    handled += d.process_read_back(now, touched)
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
                     served += touched

@@ -26,7 +26,8 @@ from pd_service.transport import Transport
 
 from .config import Settings
 from .core import ServiceCore
-from .persist import SpecStore, StateWriter
+from .handover.checkpoint_writer import CheckpointWriter
+from .spec_store import SpecStore
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -80,7 +81,7 @@ class Daemon:
         store = SpecStore(self.settings.effective_state_dir)
         self.core = ServiceCore(transport, self.settings, store=store)
         # checkpoints are written by a thread of their own: the worker never waits for fsync
-        self.core.keeper.writer = StateWriter(store)
+        self.core.keeper.writer = CheckpointWriter(store)
         self.core.start()
         tune_gc()
         self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)

@@ -16,7 +16,7 @@ Cholesky factorisation in C passes the usual healthy covariance first).
 A session whose prediction fails a check (or whose prediction raises) is restored to its
 snapshot (``ReplayEstimator.restore_state`` of an ``export_state`` taken at a healthy
 step), or to its spec's prior when there is none or that does not help; see
-:meth:`pd_service.service.publish.Publisher.publish_many`.
+:meth:`pd_service.service.outbox.Outbox.publish_many`.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Publishing: predictions, ticks, error reports and status answers, through one outbox.
 
 Everything the worker publishes during a round is appended to the outbox and sent by
-:meth:`Publisher.flush` at the end of the round (after the core's state is consistent). A
+:meth:`Outbox.flush` at the end of the round (after the core's state is consistent). A
 Prediction is published for every session that accepted a measurement in the round
 (coalesced: one per session per round) and at every session's tick: the first step
 ``k > after`` with ``k % publish_every == 0`` fires at ``epoch + (k + tick_phase) * period``.
@@ -39,9 +39,9 @@ from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
 from .config import Settings
 from .health import inspect, inspect_packed
+from .latency import LatencyWindow
 from .session import Refusal, Session, next_slot
-from .stats import LatencyWindow
-from .status import SessionState, session_status
+from .status import SessionPhase, session_status
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -68,7 +68,7 @@ class Out:
         self.recv: list[int] = [] if recv is None else recv
 
 
-class Publisher:
+class Outbox:
     """The outbox, the tick schedule and the error-report limits. Worker thread only."""
 
     def __init__(self, transport: Transport, settings: Settings, counters: Tally,
@@ -82,7 +82,7 @@ class Publisher:
         self.counters = counters
         self.latency = latency
         self.mono_ns = mono_ns
-        self.outbox: list[Out] = []
+        self.pending: list[Out] = []
         #: The tick schedule: per deadline (ns) its entries (the session's tick generation,
         #: step, deferred, session) in the order they were queued, and a heap of the
         #: deadlines; ``deferred``: the late tick of a data-driven session. Sessions that
@@ -127,7 +127,7 @@ class Publisher:
             name = session if sess is None else sess.name
             rep = ErrorReport(session=name, key=key[:512], seq=r.seq, reason=r.text[:1024],
                               t_ns=now)
-            self.outbox.append(Out(err_key, encode(rep)))
+            self.pending.append(Out(err_key, encode(rep)))
             self.counters["errors_sent"] += 1
         else:
             if sess is not None:
@@ -136,12 +136,12 @@ class Publisher:
 
     # --- status answers -------------------------------------------------------------------
 
-    def answer(self, sess: Session, state: SessionState, detail: str, now: int) -> None:
+    def answer(self, sess: Session, state: SessionPhase, detail: str, now: int) -> None:
         """Put the session's status (the answer to a config change)."""
         st = session_status(sess, self.instance, state, detail, now)
-        self.outbox.append(Out(sess.status_key, encode(st)))
+        self.pending.append(Out(sess.status_key, encode(st)))
 
-    def answer_gone(self, session: str, state: SessionState, detail: str, now: int,
+    def answer_gone(self, session: str, state: SessionPhase, detail: str, now: int,
                     sess: Session | None) -> None:
         """Put the status of a session that is removed or expired (or never was)."""
         if sess is not None:
@@ -150,10 +150,10 @@ class Publisher:
             st = SessionStatus(session=session, instance=self.instance, state=state,
                                now_step=0, published=0, latency_p50_us=0.0,
                                latency_p99_us=0.0, detail=detail)
-        self.outbox.append(Out(keys.status_key(session), encode(st)))
+        self.pending.append(Out(keys.status_key(session), encode(st)))
 
     def delete(self, key: str) -> None:
-        self.outbox.append(Out(key, None))
+        self.pending.append(Out(key, None))
 
     # --- predictions ----------------------------------------------------------------------
 
@@ -168,7 +168,7 @@ class Publisher:
             try:
                 pred = sess.predict(k)
             except Exception as exc:  # e.g. a backend's Cholesky of a broken covariance
-                got = self._recover(sess, k, f"prediction failed: "
+                got = self._reset_estimate(sess, k, f"prediction failed: "
                                     f"{type(exc).__name__}: {exc}", now)
                 if got is None:
                     continue
@@ -177,11 +177,11 @@ class Publisher:
             try:
                 bad, xb, pb = inspect_packed(pred.x, pred.P)
                 if bad is not None:
-                    got = self._recover(sess, k, bad, now)
+                    got = self._reset_estimate(sess, k, bad, now)
                     if got is None:
                         continue
                     pred = got
-                    _, xb, pb = inspect_packed(pred.x, pred.P)  # healthy: _recover checked
+                    _, xb, pb = inspect_packed(pred.x, pred.P)  # healthy: _reset_estimate checked
                 sess.keep_snapshot(pred, k)
                 payload = sess.pack(pred, xb, pb, k, now)
             except Exception as exc:  # e.g. a non-finite estimate: report, never crash
@@ -192,11 +192,11 @@ class Publisher:
                 sess.counters["steps_missed"] += missed
                 self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
-            self.outbox.append(Out(sess.pred_key, payload, sess, recv))
+            self.pending.append(Out(sess.pred_key, payload, sess, recv))
             if data and now - sess.time_of(k) >= self._tick_ns(sess):
                 sess.late_data_step = k
 
-    def _recover(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
+    def _reset_estimate(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
         """The estimate of ``sess`` at step ``k`` is unusable (``why``): restore its snapshot,
         else its prior, and predict again. Returns the healthy prediction, or
         None (reported as ``internal_error``) if even the prior gives none; after such a
@@ -213,7 +213,7 @@ class Publisher:
         problem = why
         for source in sources:
             try:
-                sess.recover(source)
+                sess.reset_estimate(source)
                 pred = sess.predict(k)
                 bad = inspect(pred.x, pred.P)[0]
             except Exception as exc:
@@ -245,7 +245,7 @@ class Publisher:
 
     def flush(self) -> None:
         """Send the outbox; record receipt -> put latencies (µs) of the predictions sent."""
-        out, self.outbox = self.outbox, []
+        out, self.pending = self.pending, []
         t = self.t
         put, mono = t.put, self.mono_ns
         for o in out:

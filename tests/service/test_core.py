@@ -974,7 +974,7 @@ def test_status_queries_build_their_replies_without_the_lock(world, tmp_path, mo
 
 @pytest.mark.parametrize("n", [1, 2, 3, 10, 511, 4096])
 def test_latency_percentiles_equal_numpys(n):
-    from pd_service.service.stats import percentiles
+    from pd_service.service.latency import percentiles
 
     x = np.random.default_rng(n).exponential(100.0, n)
     want = tuple(np.percentile(x, [50.0, 99.0]))
@@ -988,7 +988,7 @@ def test_a_latency_window_keeps_the_last_values_in_order():
     its percentiles are those of that copy."""
     from collections import deque
 
-    from pd_service.service.stats import LatencyWindow, percentiles
+    from pd_service.service.latency import LatencyWindow, percentiles
 
     w, ref = LatencyWindow(5), deque(maxlen=5)
     assert len(w) == 0 and w.values().size == 0 and w.percentiles() == (0.0, 0.0)

@@ -14,7 +14,7 @@ going back to the prior.
   without this instance). Every instance keeps the newest replica per session it received;
   when it takes a session over it resumes from it.
 - A state that is stale, corrupt, from another spec or of another version is refused
-  (:mod:`pd_service.checkpoint`): the session starts from its prior, the refusal is counted
+  (:mod:`pd_service.service.handover.checkpoint`): the session starts from its prior, the refusal is counted
   (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.
 
 A session whose estimate is its prior alone (:meth:`Session.prior_alone`: started from
@@ -22,11 +22,11 @@ the prior, nothing accepted) writes and sends no state: resuming from the prior 
 An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
 (``checkpoint_too_large``). On a graceful stop the owner sends every served session's
 newest state to its successor and waits until the successor says it holds them
-(:meth:`StateKeeper.handover`, :meth:`StateKeeper.confirm_handover`; bounded) before it
+(:meth:`HandoverKeeper.handover`, :meth:`HandoverKeeper.confirm_handover`; bounded) before it
 withdraws its presence, so a planned handover loses nothing that was accepted.
-Worker thread only, except :meth:`StateKeeper.on_replica` and
-:meth:`StateKeeper.on_replica_query` (transport threads: they only store or read the bytes)
-and :meth:`StateKeeper.confirm_handover` (the stopping thread, the worker stopped).
+Worker thread only, except :meth:`HandoverKeeper.on_replica` and
+:meth:`HandoverKeeper.on_replica_query` (transport threads: they only store or read the bytes)
+and :meth:`HandoverKeeper.confirm_handover` (the stopping thread, the worker stopped).
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ import logging
 import threading
 import time
 
-from pd_service.checkpoint import Refused, encode_state, restore
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Query, Sample
@@ -44,11 +43,13 @@ from pd_service.wire import WireError, keys
 from pd_service.wire.codec import unpack_map
 from pd_service.wire.keys import KeyError_, check_name
 
-from .config import Settings
-from .ownership import Ownership
-from .persist import SpecStore, StateWriter
-from .publish import Out, Publisher
-from .session import Origin, Refusal, Session, next_slot
+from ..config import Settings
+from ..outbox import Out, Outbox
+from ..ownership import Ownership
+from ..session import Origin, Refusal, Session, next_slot
+from ..spec_store import SpecStore
+from .checkpoint import Refused, encode_state, restore
+from .checkpoint_writer import CheckpointWriter
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -88,11 +89,11 @@ def state_mark(sess: Session) -> tuple[int, int, int]:
     return sess.est.committed_step, c["accepted"], c["commands_accepted"]
 
 
-class StateKeeper:
+class HandoverKeeper:
     """Writes checkpoints, sends replicas, keeps received replicas, resumes sessions."""
 
     def __init__(self, settings: Settings, store: SpecStore | None, ownership: Ownership,
-                 counters: Tally, publisher: Publisher) -> None:
+                 counters: Tally, publisher: Outbox) -> None:
         self.settings = settings
         self.store = store
         self.ownership = ownership
@@ -100,7 +101,7 @@ class StateKeeper:
         self.pub = publisher
         self._lock = threading.Lock()
         #: Writes checkpoints off the worker thread (the daemon's); None: written in place.
-        self.writer: StateWriter | None = None
+        self.writer: CheckpointWriter | None = None
         self._rotate = 0  # where the next long after_round list starts (round-robin)
         #: Failed checkpoint writes not logged yet, and when the last were (monotonic s).
         self._failed_unlogged = 0
@@ -225,7 +226,7 @@ class StateKeeper:
     def _send(self, sess: Session, data: bytes) -> str | None:
         succ = self.ownership.successor(sess.name)
         if succ is not None:
-            self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
+            self.pub.pending.append(Out(replica_key(succ, sess.name), data))
             self.counters["replicas_sent"] += 1
             self.counters["replica_bytes"] += len(data)
         return succ
@@ -308,7 +309,7 @@ class StateKeeper:
         """Transport thread: keep the newest replica per session (by its now_step).
 
         Only unpacked here, and its session and now_step read: the whole SessionState is
-        validated when a takeover resumes from it (:func:`~pd_service.checkpoint.restore`,
+        validated when a takeover resumes from it (:func:`~pd_service.service.handover.checkpoint.restore`,
         a bad one refused there as ``restore_refused_corrupt``). Validating each replica
         on arrival cost ~110 µs of a pydantic decode, holding the GIL against the worker:
         at 500 sessions per instance, 1 replica per session and second, ~7 % of a core."""
