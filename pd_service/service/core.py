@@ -36,7 +36,7 @@ from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 from .config import Settings
 from .dispatch import ROUND_SESSIONS, Dispatch, Route
 from .handover.keeper import HandoverKeeper, replicas_for
-from .latency import LatencyWindow
+from .latency import SERVICE_LATENCY_WINDOW, LatencyWindow
 from .lifecycle import Lifecycle, spawn_thread
 from .outbox import Outbox
 from .ownership import Ownership
@@ -82,16 +82,16 @@ class ServiceCore:
         self.wake = threading.Event()
         self.ownership = Ownership(self.instance, settings.shard_tuple)
         self.counters = Tally()
-        self.latency = LatencyWindow(settings.latency_window)
-        self.publisher = Outbox(transport, settings, self.counters, self.latency, mono_ns,
+        self.latency = LatencyWindow(SERVICE_LATENCY_WINDOW)
+        self.outbox = Outbox(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())
-        self.dispatch = Dispatch(settings, self.counters, self.publisher, self.ownership,
+        self.dispatch = Dispatch(settings, self.counters, self.outbox, self.ownership,
                                  self.wake, now_ns)
         self.keeper = HandoverKeeper(settings, store, self.ownership, self.counters,
-                                  self.publisher)
+                                  self.outbox)
         self.lifecycle = Lifecycle(transport, settings, store=store, ownership=self.ownership,
                                    counters=self.counters, dispatch=self.dispatch,
-                                   publisher=self.publisher, spawn=spawn or spawn_thread,
+                                   outbox=self.outbox, spawn=spawn or spawn_thread,
                                    keeper=self.keeper)
         self.queries = Queries(settings, self.lock, self.counters, self.latency,
                                self.ownership, self.dispatch.routes, self.lifecycle.specs,
@@ -153,8 +153,8 @@ class ServiceCore:
             touched: list[Session] = []
             recovered = d.take_held(now, touched)
             if touched:
-                self.publisher.publish_many([x for x in touched if x.alive], now, data=True)
-                self.publisher.flush()
+                self.outbox.publish_many([x for x in touched if x.alive], now, data=True)
+                self.outbox.flush()
         self._handles.append(t.queryable(keys.ALL_STATUS, q.on_status_query))
         self._handles.append(t.queryable(keys.ALL_CONFIGS, q.on_config_query))
         self._handles.append(t.queryable(keys.service_status_key(self.instance),
@@ -179,7 +179,7 @@ class ServiceCore:
         with self.lock:
             succs = self.keeper.handover(
                 [r.sess for r in self._routes.values() if r.sess is not None], self.now_ns())
-            self.publisher.flush()
+            self.outbox.flush()
         # the token goes only when each successor holds the final states (or the wait
         # ends): one that took over before they arrived would resume from older replicas
         for succ, states in sorted(succs.items()):
@@ -231,7 +231,7 @@ class ServiceCore:
         """Process what is pending: control, unknown sessions, rounds of session inboxes
         (each followed by its coalesced publications), due ticks and idle expiry, until
         nothing is left or ~50 ms have passed. Returns the number of messages handled."""
-        d, pub = self.dispatch, self.publisher
+        d, pub = self.dispatch, self.outbox
         handled = 0
         t_end = self.mono_ns() + _RUN_BUDGET_NS
         while True:
@@ -287,7 +287,7 @@ class ServiceCore:
     def next_deadline_ns(self) -> int:
         """Wall-clock time (ns) at which run_once has timed work (next tick or expiry check)."""
         with self.lock:
-            tick = self.publisher.next_tick_ns()
+            tick = self.outbox.next_tick_ns()
             return self._next_expiry_ns if tick is None else min(self._next_expiry_ns, tick)
 
     # ================================================================== status ========

@@ -48,14 +48,9 @@ def tune_gc() -> None:
     100,000 net allocations instead of 700.
 
     A young collection's pause grows with the tracked objects alive and younger than the
-    last collection, not with the threshold: at 1,000 sessions in steady state ~20,000
-    (the sessions' windows; their snapshots are untracked,
-    :func:`pd_service.estimation.state.untracked`), 3-5 ms of the worker; the one that
-    first follows the creation of 1,000 sessions scans their ~60,000 objects, 12-18 ms.
-    The threshold sets how often they come: every ~3 s at 10,000; at 100,000 none came in
-    the 16 s that followed the creation of 1,000 sessions (bench/service.py, a
-    sitecustomize hooking ``gc.callbacks``; docs/service.md, "Performance"). The hot path
-    makes no reference cycles, so rarer collections leave none of its garbage waiting."""
+    last collection, not with the threshold; the threshold sets how often they come
+    (measurements: docs/service.md, "Performance"). The hot path makes no reference
+    cycles, so rarer collections leave none of its garbage waiting."""
     gc.freeze()
     gc.set_threshold(100_000, 10, 10)
 

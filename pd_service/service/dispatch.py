@@ -43,22 +43,20 @@ log = logging.getLogger(LOGGER_NAME)
 #: against that, not against the worker's later loop time).
 Item = tuple[int, str, bytes, int, str, int]
 
+#: Messages of sessions nobody configured waiting for the worker (oldest dropped beyond it).
+UNKNOWN_INBOX: Final = 1024
+#: Config changes, and apart from them presence events and peers' specs, waiting likewise.
+CONTROL_INBOX: Final = 4096
+#: Read-back messages waiting for the worker after the start.
+READ_BACK_INBOX: Final = 64 * UNKNOWN_INBOX
+
 #: The refusals of a message the session already has.
 _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 
 
-#: Sessions served per round of a pass. After each round the worker computes and encodes
-#: the predictions of the sessions it touched, before the next round handles more messages:
-#: a session's messages and its prediction are then handled close together, while its
-#: arrays are still in the CPU's caches. With 500 sessions per pass (a worker behind) the
-#: worker alone took 41.5 µs per session-step in one round, 38.5 in rounds of 64
-#: (``bench/worker.py --sessions 1000 --every 500``, 5 runs alternating). Between rounds the
-#: worker drains its queues again (``ServiceCore.run_once``), so smaller rounds also look at
-#: them more often: at 1,000 sessions rounds of 16 gave a p50 of 1.00-1.16 ms against
-#: 1.26-1.44 with 64 and a lower p99 in 6 of 8 runs alternating; rounds of 8 against 16 a
-#: lower p99 in 7 of 10 (median 3.2 against 6.1 ms), each for the same instructions per
-#: session-step (bench/instructions.py --every 100: 109,186 against 109,505 for 16 and 64,
-#: 109,087 against 109,047 for 8 and 16; docs/performance.md).
+#: Sessions served per round of a pass: each round's predictions are made while the sessions'
+#: arrays are still in the caches, and the queues are looked at between rounds
+#: (``ServiceCore.run_once``; the measurements behind 8: docs/performance.md).
 ROUND_SESSIONS: Final = 8
 
 
@@ -105,23 +103,23 @@ class Dispatch:
     """The inboxes and the round-robin. Callbacks (``on_*``) run on transport threads; the
     rest on the worker, under the core's lock."""
 
-    def __init__(self, settings: Settings, counters: Tally, publisher: Outbox,
+    def __init__(self, settings: Settings, counters: Tally, outbox: Outbox,
                  ownership: Ownership, wake: threading.Event,
                  now_ns: Callable[[], int] = time.time_ns) -> None:
         self.settings = settings
         self.now_ns = now_ns
         self.counters = counters
-        self.pub = publisher
+        self.pub = outbox
         self.ownership = ownership
         self.wake = wake
         self._wake_set = wake.set
         self._wake_is_set = wake.is_set
         self.routes: dict[str, Route] = {}
         self.ready: deque[Route] = deque()
-        self.control: deque[Control] = deque(maxlen=settings.control_inbox_size)
+        self.control: deque[Control] = deque(maxlen=CONTROL_INBOX)
         #: Config changes, apart from presence events (a config flood cannot push those out).
-        self.configs: deque[ConfigChange] = deque(maxlen=settings.control_inbox_size)
-        self.unknown: deque[tuple[str, Item]] = deque(maxlen=settings.unknown_inbox_size)
+        self.configs: deque[ConfigChange] = deque(maxlen=CONTROL_INBOX)
+        self.unknown: deque[tuple[str, Item]] = deque(maxlen=UNKNOWN_INBOX)
         self.control_drops = 0
         self.unknown_drops = 0
         #: Recovered messages held while the core starts (None: after the start, they go to
@@ -132,7 +130,7 @@ class Dispatch:
         self._held_lock = threading.Lock()
         #: Recovered messages after the start: (stream, sample, wall clock at arrival).
         self.read_back: deque[tuple[int, Sample, int]] = deque(
-            maxlen=settings.unknown_inbox_size * 64)
+            maxlen=READ_BACK_INBOX)
         self.read_back_drops = 0
         #: Read-backs finished off the worker for parked sessions: (sessions, messages).
         self.released: deque[tuple[list[str], list[tuple[int, Sample]]]] = deque()
@@ -283,11 +281,9 @@ class Dispatch:
 
     def _notify(self) -> None:
         """Wake the worker. A set event is left alone: Event.set takes its condition's lock
-        and notifies (~1 µs) even when already set, and the worker's own drains enqueue
-        while it runs (it clears the event after waking, before its round): once per
-        session and round before, measured at ~1 µs per session-step. Safe: a caller
-        appended before reading the flag, so a set flag it saw was cleared only after
-        that append, and the round after the clear takes it."""
+        and notifies even when already set, and the worker's own drains enqueue while it
+        runs. Safe: a caller appended before reading the flag, so a set flag it saw was
+        cleared only after that append, and the round after the clear takes it."""
         if not self._wake_is_set():
             self._wake_set()
 

@@ -56,7 +56,7 @@ class Lifecycle:
 
     def __init__(self, transport: Transport, settings: Settings, *, store: SpecStore | None,
                  ownership: Ownership, counters: Tally, dispatch: Dispatch,
-                 publisher: Outbox, spawn: Callable[[Callable[[], None]], None],
+                 outbox: Outbox, spawn: Callable[[Callable[[], None]], None],
                  keeper: HandoverKeeper | None = None) -> None:
         self.t = transport
         self.settings = settings
@@ -64,7 +64,7 @@ class Lifecycle:
         self.ownership = ownership
         self.counters = counters
         self.dispatch = dispatch
-        self.pub = publisher
+        self.pub = outbox
         self._spawn = spawn
         self.keeper = keeper
         self.specs: dict[str, SessionSpec] = {}

@@ -86,10 +86,8 @@ class Outbox:
         #: The tick schedule: per deadline (ns) its entries (the session's tick generation,
         #: step, deferred, session) in the order they were queued, and a heap of the
         #: deadlines; ``deferred``: the late tick of a data-driven session. Sessions that
-        #: share an epoch share deadlines: queueing a tick is then a dict lookup and an
-        #: append, not a push into a heap of N tuples whose equal deadlines make every
-        #: comparison fall through to the tie-break (~10,000 -> ~2,300 instructions per
-        #: session-step in the worker, bench/instructions.py).
+        #: share an epoch share deadlines: queueing a tick is a dict lookup and an append,
+        #: not a push into a heap of N tuples whose equal deadlines tie.
         self._tick_at: dict[int, list[tuple[int, int, bool, Session]]] = {}
         self._tick_times: list[int] = []
         #: ErrorReports about sessions nobody serves (unknown names, refused new specs).
@@ -325,10 +323,8 @@ class Outbox:
                         due.append(sess)
                 if not sess.heard or now - sess.last_activity_ns > idle_ns:
                     # idle (no message since it was started, or none for idle_after_s): ticked
-                    # only at the steps k = phase (mod skip), one per idle_publish_s (cost
-                    # O(active sessions) per step); the phase is the session's own, so idle
-                    # sessions sharing an epoch do not all predict in the same tick (2,000 of
-                    # them did, starving the active ones)
+                    # only at the steps k = phase (mod skip), one per idle_publish_s, at a
+                    # phase of its own so idle sessions do not all predict in the same tick
                     skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.period_ns)
                     base = max(cur, k)
                     nxt = next_slot(base, skip, sess.spread)

@@ -87,8 +87,7 @@ def next_slot(after: int, period: int, offset: int) -> int:
     periodic task of a session falls due next, at the session's own phase ``offset``
     (:attr:`Session.spread`). Sessions started together (one epoch, one config burst) then
     spread their snapshots, checkpoints, replicas and idle ticks over the period instead of
-    all falling due in the same step: at 500 sessions the daemon's snapshots alone made
-    one worker loop per second of ~50 ms (bench/service.py), its checkpoints more."""
+    all falling due in the same step."""
     return after + 1 + (offset - after - 1) % period
 
 
@@ -222,8 +221,8 @@ class Session:
 
     def counters_snapshot(self) -> dict[str, int]:
         """Non-zero counters plus the always-present ``accepted`` and ``published``."""
-        out = dict(self.counters)  # one C-level copy (a comprehension over a dict subclass's
-        if 0 in out.values():      # items is a generic iteration: ~4,000 instructions)
+        out = dict(self.counters)  # one C-level copy: cheaper than a comprehension over a
+        if 0 in out.values():      # dict subclass's items
             out = {k: v for k, v in out.items() if v}
         out.setdefault("accepted", 0)
         out["published"] = self.published

@@ -36,8 +36,8 @@ _renameat2: Any = None
 def _exchange(tmp: Path, final: Path) -> bool:
     """Swap ``tmp`` and ``final`` atomically (Linux ``renameat2(RENAME_EXCHANGE)``): the old
     content stays in ``tmp``, whose inode the next write truncates and reuses, so rewriting
-    a spec creates and deletes no inode (on ext4 a new inode per write cost ~0.5 ms of
-    kernel time). False where unsupported (no such file yet, other OS or file system): the
+    a spec creates and deletes no inode (each costs the kernel metadata work). False where
+    unsupported (no such file yet, other OS or file system): the
     caller renames instead."""
     global _renameat2
     if _renameat2 is None:
@@ -99,11 +99,8 @@ class SpecStore:
         reader sees the old or the new file) and fsync the directory: the write survives a
         power loss, not only a crash of the process."""
         tmp = final.with_name(f".{final.name}.tmp")
-        # no O_TRUNC: the temp file (the previous exchange's old content) is overwritten in
-        # place and cut to the new length. Truncating to zero and renaming over a file makes
-        # ext4 start the data's writeback at once (its auto_da_alloc heuristic): measured
-        # ~230 µs of kernel time per (then file-per-session) checkpoint against ~25 µs
-        # this way (docs/service.md)
+        # no O_TRUNC: overwritten in place and cut to the new length, since truncating and
+        # renaming over a file makes ext4 start its writeback at once (auto_da_alloc)
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
         try:
             write_all(fd, data)

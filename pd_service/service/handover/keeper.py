@@ -19,7 +19,7 @@ going back to the prior.
 
 A session whose estimate is its prior alone (:meth:`Session.prior_alone`: started from
 the prior, nothing accepted) writes and sends no state: resuming from the prior gives the same.
-An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
+An encoded state larger than a message may be (64 KiB) is neither written nor sent
 (``checkpoint_too_large``). On a graceful stop the owner sends every served session's
 newest state to its successor and waits until the successor says it holds them
 (:meth:`HandoverKeeper.handover`, :meth:`HandoverKeeper.confirm_handover`; bounded) before it
@@ -39,7 +39,7 @@ from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Query, Sample
 from pd_service.transport.keyexpr import intersects
-from pd_service.wire import WireError, keys
+from pd_service.wire import MAX_MESSAGE_BYTES, WireError, keys
 from pd_service.wire.codec import unpack_map
 from pd_service.wire.keys import KeyError_, check_name
 
@@ -53,9 +53,8 @@ from .checkpoint_writer import CheckpointWriter
 
 log = logging.getLogger(LOGGER_NAME)
 
-#: Most session states encoded after one round (~150 µs each for the paper's session):
-#: sessions created together fall due together, and encoding them all at once stalled the
-#: worker for tens of ms once per checkpoint interval (p99 40 ms at 200 sessions).
+#: Most session states encoded after one round: sessions created together fall due
+#: together, and encoding them all at once would stall the worker.
 STATES_PER_ROUND = 8
 
 #: Failed checkpoint writes are logged at most once per this many seconds (with their
@@ -93,12 +92,12 @@ class HandoverKeeper:
     """Writes checkpoints, sends replicas, keeps received replicas, resumes sessions."""
 
     def __init__(self, settings: Settings, store: SpecStore | None, ownership: Ownership,
-                 counters: Tally, publisher: Outbox) -> None:
+                 counters: Tally, outbox: Outbox) -> None:
         self.settings = settings
         self.store = store
         self.ownership = ownership
         self.counters = counters
-        self.pub = publisher
+        self.pub = outbox
         self._lock = threading.Lock()
         #: Writes checkpoints off the worker thread (the daemon's); None: written in place.
         self.writer: CheckpointWriter | None = None
@@ -246,7 +245,7 @@ class HandoverKeeper:
             event(log, "checkpoint_too_large", logging.WARNING, session=sess.name,
                   reason=exc.reason)
             return None
-        if len(data) > self.settings.checkpoint_max_bytes:
+        if len(data) > MAX_MESSAGE_BYTES:
             self.counters["checkpoint_too_large"] += 1
             return None
         return data
@@ -309,10 +308,9 @@ class HandoverKeeper:
         """Transport thread: keep the newest replica per session (by its now_step).
 
         Only unpacked here, and its session and now_step read: the whole SessionState is
-        validated when a takeover resumes from it (:func:`~pd_service.service.handover.checkpoint.restore`,
-        a bad one refused there as ``restore_refused_corrupt``). Validating each replica
-        on arrival cost ~110 µs of a pydantic decode, holding the GIL against the worker:
-        at 500 sessions per instance, 1 replica per session and second, ~7 % of a core."""
+        validated when a takeover resumes from it (:func:`.checkpoint.restore`, a bad one
+        refused there as ``restore_refused_corrupt``): a pydantic decode of every replica
+        on arrival would hold the GIL against the worker."""
         session = sample.key.rsplit("/", 1)[-1]
         if sample.kind == "delete" or sample.payload is None:
             return
