@@ -22,9 +22,9 @@ import time
 import numpy as np
 
 from pd_service.backends import build_estimator
-from pd_service.checkpoint import encode_state, to_message
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.scenarios.paper import paper_scenario
+from pd_service.service.handover.checkpoint import encode_state, to_message
 from pd_service.wire import encode, spec_fingerprint
 
 

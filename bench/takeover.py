@@ -6,7 +6,7 @@ process keeps, for every session, one cached publisher (``cache=64``: the SDK's 
 Operator keep such caches) on its ranger key and one on its command key, and has put
 ``--steps`` steps of data on each. Then inst-y is killed (SIGKILL: no handover). inst-x takes
 its sessions over, parks them, and reads their senders' caches back
-(``Lifecycle.recover_taken``): until a session's own read-back ends, its live messages wait.
+(``Lifecycle.read_back_taken``): until a session's own read-back ends, its live messages wait.
 With ``--signal term`` inst-y is stopped gracefully instead: it hands its sessions' states
 over and waits until inst-x confirms it holds them; the table then adds that hand-over's
 time and what was left unconfirmed (inst-y's ``event=handover`` line), and the time from the

@@ -36,7 +36,8 @@ from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_pa
 from pd_service.service.config import Settings
 from pd_service.service.core import ServiceCore
 from pd_service.service.daemon import tune_gc
-from pd_service.service.persist import SpecStore, StateWriter
+from pd_service.service.handover.checkpoint_writer import CheckpointWriter
+from pd_service.service.spec_store import SpecStore
 from pd_service.transport import InMemoryBus
 from pd_service.transport.base import Sample
 from pd_service.wire import encode, keys
@@ -72,7 +73,7 @@ def main() -> None:
     core = ServiceCore(t, settings, now_ns=lambda: clock[0], mono_ns=lambda: clock[0],
                        store=store)
     if store is not None:
-        core.keeper.writer = StateWriter(store)
+        core.keeper.writer = CheckpointWriter(store)
     core.start()
     tune_gc()  # as the daemon does after its start
     epoch = clock[0]

@@ -36,7 +36,6 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.intake": {"pd_service.estimation", "pd_service.native", "pd_service.wire"},
     "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
-    "pd_service.checkpoint": {"pd_service.estimation", "pd_service.wire"},
     "pd_service.ros2": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     # the pd-ros2 bridge on top of the pure building blocks: they never import it
     "pd_service.ros2.bridge": {"pd_service.ros2", "pd_service.wire", "pd_service.errors",
@@ -45,8 +44,10 @@ ALLOWED: dict[str, set[str]] = {
                                  "pd_service.transport", "pd_service.cli", "pd_service.ros2"},
     "pd_service.service": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
                            "pd_service.logs", "pd_service.transport", "pd_service.backends",
-                           "pd_service.checkpoint", "pd_service.intake", "pd_service.ratelimit",
-                           "pd_service.native"},
+                           "pd_service.service.handover.checkpoint", "pd_service.intake",
+                           "pd_service.ratelimit", "pd_service.native"},
+    # the daemon's checkpoint codec (EstimatorState <-> SessionState): estimation and wire only
+    "pd_service.service.handover.checkpoint": {"pd_service.estimation", "pd_service.wire"},
     "pd_service.link": {"pd_service.errors", "pd_service.logs", "pd_service.transport",
                         "pd_service.wire", "pd_service.cli"},
     "pd_service.__main__": {"pd_service.service"},

@@ -12,6 +12,6 @@ See docs/service.md.
 
 from .config import ConfigError, Settings, load_settings
 from .core import ServiceCore
-from .persist import SpecStore
+from .spec_store import SpecStore
 
 __all__ = ["ConfigError", "ServiceCore", "Settings", "SpecStore", "load_settings"]

@@ -131,7 +131,7 @@ def spec_cost(spec: SessionSpec) -> Cost:
     return Cost(session_bytes, table_bytes, table_key, cpu, spec.period_ns)
 
 
-class Refused(Exception):
+class OverBudget(Exception):
     """A spec that does not fit a budget; ``reason`` is one readable line."""
 
     def __init__(self, reason: str) -> None:
@@ -146,7 +146,7 @@ def _mib(b: float) -> str:
 class Ledger:
     """The costs of the sessions this instance runs, against the budgets.
 
-    ``admit(name, cost)`` raises :class:`Refused` (and changes nothing) if the session, or
+    ``admit(name, cost)`` raises :class:`OverBudget` (and changes nothing) if the session, or
     the service with it (its previous cost, if any, replaced), would exceed a budget;
     ``release(name)`` gives its share back."""
 
@@ -163,13 +163,13 @@ class Ledger:
         self.cpu = 0.0
 
     def check(self, name: str, cost: Cost) -> None:
-        """Raise :class:`Refused` if ``cost`` does not fit (nothing changes either way)."""
+        """Raise :class:`OverBudget` if ``cost`` does not fit (nothing changes either way)."""
         if cost.bytes > self.max_session_bytes:
-            raise Refused(f"SessionSpec: needs {_mib(cost.bytes)} of tables and buffers "
+            raise OverBudget(f"SessionSpec: needs {_mib(cost.bytes)} of tables and buffers "
                           f"(n, lead, max_delay, inputs), more than this service's "
                           f"{_mib(self.max_session_bytes)} per session (max_session_bytes)")
         if cost.cpu_share > self.max_session_cpu:
-            raise Refused(f"SessionSpec: needs about {cost.cpu_us:.0f} µs per "
+            raise OverBudget(f"SessionSpec: needs about {cost.cpu_us:.0f} µs per "
                           f"{cost.period_ns / 1e6:g} ms step ({cost.cpu_share:.0%} of a core), "
                           f"more than this service's {self.max_session_cpu:.0%} per session "
                           f"(max_session_cpu)")
@@ -188,11 +188,11 @@ class Ledger:
         b += cost.session_bytes
         c += cost.cpu_share
         if b > self.memory_budget_bytes:
-            raise Refused(f"SessionSpec: this service's memory budget is full "
+            raise OverBudget(f"SessionSpec: this service's memory budget is full "
                           f"({_mib(self.bytes)} of {_mib(self.memory_budget_bytes)} used, the "
                           f"spec needs {_mib(cost.bytes)}; memory_budget_bytes)")
         if c > self.cpu_budget + 1e-12:
-            raise Refused(f"SessionSpec: this service's CPU budget is full ({self.cpu:.0%} of "
+            raise OverBudget(f"SessionSpec: this service's CPU budget is full ({self.cpu:.0%} of "
                           f"a core used of {self.cpu_budget:.0%}, the spec needs "
                           f"{cost.cpu_share:.1%}; cpu_budget)")
 

@@ -126,8 +126,6 @@ class Settings(BaseSettings):
 
     # work queues and limits
     inbox_size: int = Field(256, ge=1, description="Per-session inbox (messages); oldest dropped.")
-    unknown_inbox_size: int = Field(1024, ge=1, description="Shared inbox of unknown sessions.")
-    control_inbox_size: int = Field(4096, ge=1, description="Inbox of configs and presence events.")
     config_rate: float = Field(2.0, gt=0, description="Config changes (put or delete) per "
                                "second per session; more are refused (config_rate_limited).")
     config_burst: int = Field(5, ge=1, description="Config change burst per session.")
@@ -141,10 +139,9 @@ class Settings(BaseSettings):
     error_burst: int = Field(20, ge=1, description="ErrorReport burst per session.")
     error_rate_total: float = Field(500.0, gt=0, description="ErrorReports per second, all "
                                     "sessions together (overload must not feed itself).")
-    latency_window: int = Field(4096, ge=16, description="Latency samples kept (service-wide).")
     sync_timeout_s: float = Field(1.0, gt=0, description="Wait for peers' specs at startup.")
 
-    # restart and takeover (see pd_service.service.failover)
+    # restart and takeover (see pd_service.service.handover.keeper)
     checkpoint_interval_s: float = Field(
         1.0, ge=0, description="Least time between two checkpoints of one session in the "
                                "state directory (written when new steps were committed); 0: none.")
@@ -160,8 +157,6 @@ class Settings(BaseSettings):
         2.0, gt=0, description="Longest wait for the senders' caches (at start, and per "
                                "session at a takeover): once to find them (liveliness), once "
                                "for their answers (so up to twice this).")
-    checkpoint_max_bytes: int = Field(
-        65536, ge=1024, le=65536, description="Largest encoded session state written or sent.")
 
     round_interval_us: float = Field(
         1000.0, ge=0, description="Least time between the starts of two worker loops while "

@@ -36,13 +36,13 @@ from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 
 from .config import Settings
 from .dispatch import ROUND_SESSIONS, Dispatch, Route
-from .failover import StateKeeper, replicas_for
+from .handover.keeper import HandoverKeeper, replicas_for
+from .latency import SERVICE_LATENCY_WINDOW, LatencyWindow
 from .lifecycle import Lifecycle, spawn_thread
+from .outbox import Outbox
 from .ownership import Ownership
-from .persist import SpecStore
-from .publish import Publisher
 from .session import Session
-from .stats import LatencyWindow
+from .spec_store import SpecStore
 from .status import Queries
 
 log = logging.getLogger(LOGGER_NAME)
@@ -87,16 +87,16 @@ class ServiceCore:
         self.wake = threading.Event()
         self.ownership = Ownership(self.instance, settings.shard_tuple)
         self.counters = Tally()
-        self.latency = LatencyWindow(settings.latency_window)
-        self.publisher = Publisher(transport, settings, self.counters, self.latency, mono_ns,
+        self.latency = LatencyWindow(SERVICE_LATENCY_WINDOW)
+        self.outbox = Outbox(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())
-        self.dispatch = Dispatch(settings, self.counters, self.publisher, self.ownership,
+        self.dispatch = Dispatch(settings, self.counters, self.outbox, self.ownership,
                                  self.wake, now_ns)
-        self.keeper = StateKeeper(settings, store, self.ownership, self.counters,
-                                  self.publisher)
+        self.keeper = HandoverKeeper(settings, store, self.ownership, self.counters,
+                                  self.outbox)
         self.lifecycle = Lifecycle(transport, settings, store=store, ownership=self.ownership,
                                    counters=self.counters, dispatch=self.dispatch,
-                                   publisher=self.publisher, spawn=spawn or spawn_thread,
+                                   outbox=self.outbox, spawn=spawn or spawn_thread,
                                    keeper=self.keeper)
         self.queries = Queries(settings, self.lock, self.counters, self.latency,
                                self.ownership, self.dispatch.routes, self.lifecycle.specs,
@@ -131,10 +131,10 @@ class ServiceCore:
                                                                  timeout=s.sync_timeout_s)]
         peers = [p for p in peers if p != self.instance]
         peers = self.lifecycle.trusted_peers(peers)
-        specs, origin = self.lifecycle.recover(peers)
+        specs, origin = self.lifecycle.load_specs(peers)
         now = self.now_ns()
         with self.lock:
-            self.lifecycle.install_recovered(specs, origin, now)
+            self.lifecycle.install_loaded(specs, origin, now)
         # Data arrives through drained queues: the worker takes samples in batches at the
         # start of each loop (no GIL hand-off per sample while it is busy).
         self._drains = [t.subscribe_drained(keys.ALL_SENSORS, d.on_sensor_sample, self.wake.set),
@@ -146,8 +146,8 @@ class ServiceCore:
             # the live subscriptions and handled before the worker runs, behind the live
             # messages that arrived meanwhile (a message both received live and read back
             # is refused as the recovered copy, quietly): the first prediction has it all.
-            for ke, cb in ((keys.ALL_SENSORS, d.on_recovered_sensor),
-                           (keys.ALL_COMMANDS, d.on_recovered_command)):
+            for ke, cb in ((keys.ALL_SENSORS, d.on_read_back_sensor),
+                           (keys.ALL_COMMANDS, d.on_read_back_command)):
                 self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
                                                timeout=s.recover_timeout_s))
         for dr in self._drains:  # the live messages that arrived meanwhile, first
@@ -158,8 +158,8 @@ class ServiceCore:
             touched: list[Session] = []
             recovered = d.take_held(now, touched)
             if touched:
-                self.publisher.publish_many([x for x in touched if x.alive], now, data=True)
-                self.publisher.flush()
+                self.outbox.publish_many([x for x in touched if x.alive], now, data=True)
+                self.outbox.flush()
         self._handles.append(t.queryable(keys.ALL_STATUS, q.on_status_query))
         self._handles.append(t.queryable(keys.ALL_CONFIGS, q.on_config_query))
         self._handles.append(t.queryable(keys.service_status_key(self.instance),
@@ -184,7 +184,7 @@ class ServiceCore:
         with self.lock:
             succs = self.keeper.handover(
                 [r.sess for r in self._routes.values() if r.sess is not None], self.now_ns())
-            self.publisher.flush()
+            self.outbox.flush()
         # the token goes only when each successor holds the final states (or the wait
         # ends): one that took over before they arrived would resume from older replicas
         for succ, states in sorted(succs.items()):
@@ -236,7 +236,7 @@ class ServiceCore:
         """Process what is pending: control, unknown sessions, rounds of session inboxes
         (each followed by its coalesced publications), due ticks and idle expiry, until
         nothing is left or ~50 ms have passed. Returns the number of messages handled."""
-        d, pub = self.dispatch, self.publisher
+        d, pub = self.dispatch, self.outbox
         handled = 0
         t_end = self.run_clock_ns() + _RUN_BUDGET_NS
         while True:
@@ -269,8 +269,8 @@ class ServiceCore:
                         got += self._drain()
                 if d.released:
                     handled += d.process_released(now, touched)
-                if d.recovered:
-                    handled += d.process_recovered(now, touched)
+                if d.read_back:
+                    handled += d.process_read_back(now, touched)
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
                     served += touched
@@ -292,7 +292,7 @@ class ServiceCore:
     def next_deadline_ns(self) -> int:
         """Wall-clock time (ns) at which run_once has timed work (next tick or expiry check)."""
         with self.lock:
-            tick = self.publisher.next_tick_ns()
+            tick = self.outbox.next_tick_ns()
             return self._next_expiry_ns if tick is None else min(self._next_expiry_ns, tick)
 
     # ================================================================== status ========

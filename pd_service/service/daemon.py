@@ -26,7 +26,8 @@ from pd_service.transport import Transport
 
 from .config import Settings
 from .core import ServiceCore
-from .persist import SpecStore, StateWriter
+from .handover.checkpoint_writer import CheckpointWriter
+from .spec_store import SpecStore
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -47,14 +48,9 @@ def tune_gc() -> None:
     100,000 net allocations instead of 700.
 
     A young collection's pause grows with the tracked objects alive and younger than the
-    last collection, not with the threshold: at 1,000 sessions in steady state ~20,000
-    (the sessions' windows; their snapshots are untracked,
-    :func:`pd_service.estimation.state.untracked`), 3-5 ms of the worker; the one that
-    first follows the creation of 1,000 sessions scans their ~60,000 objects, 12-18 ms.
-    The threshold sets how often they come: every ~3 s at 10,000; at 100,000 none came in
-    the 16 s that followed the creation of 1,000 sessions (bench/service.py, a
-    sitecustomize hooking ``gc.callbacks``; docs/service.md, "Performance"). The hot path
-    makes no reference cycles, so rarer collections leave none of its garbage waiting."""
+    last collection, not with the threshold; the threshold sets how often they come
+    (measurements: docs/service.md, "Performance"). The hot path makes no reference
+    cycles, so rarer collections leave none of its garbage waiting."""
     gc.freeze()
     gc.set_threshold(100_000, 10, 10)
 
@@ -80,7 +76,7 @@ class Daemon:
         store = SpecStore(self.settings.effective_state_dir)
         self.core = ServiceCore(transport, self.settings, store=store)
         # checkpoints are written by a thread of their own: the worker never waits for fsync
-        self.core.keeper.writer = StateWriter(store)
+        self.core.keeper.writer = CheckpointWriter(store)
         self.core.start()
         tune_gc()
         self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)

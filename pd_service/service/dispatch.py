@@ -32,9 +32,9 @@ from pd_service.wire import SessionSpec, keys
 from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
+from .outbox import Outbox
 from .ownership import Ownership
-from .publish import Publisher
-from .session import COMMAND, RECOVERED, SENSOR, Refusal, Session
+from .session import COMMAND, READ_BACK, SENSOR, Refusal, Session
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -43,22 +43,20 @@ log = logging.getLogger(LOGGER_NAME)
 #: against that, not against the worker's later loop time).
 Item = tuple[int, str, bytes, int, str, int]
 
+#: Messages of sessions nobody configured waiting for the worker (oldest dropped beyond it).
+UNKNOWN_INBOX: Final = 1024
+#: Config changes, and apart from them presence events and peers' specs, waiting likewise.
+CONTROL_INBOX: Final = 4096
+#: Read-back messages waiting for the worker after the start.
+READ_BACK_INBOX: Final = 64 * UNKNOWN_INBOX
+
 #: The refusals of a message the session already has.
 _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 
 
-#: Sessions served per round of a pass. After each round the worker computes and encodes
-#: the predictions of the sessions it touched, before the next round handles more messages:
-#: a session's messages and its prediction are then handled close together, while its
-#: arrays are still in the CPU's caches. With 500 sessions per pass (a worker behind) the
-#: worker alone took 41.5 µs per session-step in one round, 38.5 in rounds of 64
-#: (``bench/worker.py --sessions 1000 --every 500``, 5 runs alternating). Between rounds the
-#: worker drains its queues again (``ServiceCore.run_once``), so smaller rounds also look at
-#: them more often: at 1,000 sessions rounds of 16 gave a p50 of 1.00-1.16 ms against
-#: 1.26-1.44 with 64 and a lower p99 in 6 of 8 runs alternating; rounds of 8 against 16 a
-#: lower p99 in 7 of 10 (median 3.2 against 6.1 ms), each for the same instructions per
-#: session-step (bench/instructions.py --every 100: 109,186 against 109,505 for 16 and 64,
-#: 109,087 against 109,047 for 8 and 16; docs/performance.md).
+#: Sessions served per round of a pass: each round's predictions are made while the sessions'
+#: arrays are still in the caches, and the queues are looked at between rounds
+#: (``ServiceCore.run_once``; the measurements behind 8: docs/performance.md).
 ROUND_SESSIONS: Final = 8
 
 
@@ -105,35 +103,35 @@ class Dispatch:
     """The inboxes and the round-robin. Callbacks (``on_*``) run on transport threads; the
     rest on the worker, under the core's lock."""
 
-    def __init__(self, settings: Settings, counters: Tally, publisher: Publisher,
+    def __init__(self, settings: Settings, counters: Tally, outbox: Outbox,
                  ownership: Ownership, wake: threading.Event,
                  now_ns: Callable[[], int] = time.time_ns) -> None:
         self.settings = settings
         self.now_ns = now_ns
         self.counters = counters
-        self.pub = publisher
+        self.pub = outbox
         self.ownership = ownership
         self.wake = wake
         self._wake_set = wake.set
         self._wake_is_set = wake.is_set
         self.routes: dict[str, Route] = {}
         self.ready: deque[Route] = deque()
-        self.control: deque[Control] = deque(maxlen=settings.control_inbox_size)
+        self.control: deque[Control] = deque(maxlen=CONTROL_INBOX)
         #: Config changes, apart from presence events (a config flood cannot push those out).
-        self.configs: deque[ConfigChange] = deque(maxlen=settings.control_inbox_size)
-        self.unknown: deque[tuple[str, Item]] = deque(maxlen=settings.unknown_inbox_size)
+        self.configs: deque[ConfigChange] = deque(maxlen=CONTROL_INBOX)
+        self.unknown: deque[tuple[str, Item]] = deque(maxlen=UNKNOWN_INBOX)
         self.control_drops = 0
         self.unknown_drops = 0
         #: Recovered messages held while the core starts (None: after the start, they go to
-        #: ``recovered``, apart from the inboxes: they never push out a live message).
+        #: ``read_back``, apart from the inboxes: they never push out a live message).
         #: Appended by callbacks under ``_held_lock`` (the start's hand-over and a late
         #: sender's cache may race).
         self.held: list[tuple[int, Sample]] | None = []
         self._held_lock = threading.Lock()
         #: Recovered messages after the start: (stream, sample, wall clock at arrival).
-        self.recovered: deque[tuple[int, Sample, int]] = deque(
-            maxlen=settings.unknown_inbox_size * 64)
-        self.recovered_drops = 0
+        self.read_back: deque[tuple[int, Sample, int]] = deque(
+            maxlen=READ_BACK_INBOX)
+        self.read_back_drops = 0
         #: Read-backs finished off the worker for parked sessions: (sessions, messages).
         self.released: deque[tuple[list[str], list[tuple[int, Sample]]]] = deque()
 
@@ -146,39 +144,39 @@ class Dispatch:
     def on_command_sample(self, sample: Sample) -> None:
         self._enqueue(COMMAND, sample)
 
-    def on_recovered_sensor(self, sample: Sample) -> None:
+    def on_read_back_sensor(self, sample: Sample) -> None:
         """A measurement read back from a sender's cache (``Transport.recover``)."""
-        self._recovered(SENSOR + RECOVERED, sample)
+        self._read_back(SENSOR + READ_BACK, sample)
 
-    def on_recovered_command(self, sample: Sample) -> None:
-        self._recovered(COMMAND + RECOVERED, sample)
+    def on_read_back_command(self, sample: Sample) -> None:
+        self._read_back(COMMAND + READ_BACK, sample)
 
-    def _recovered(self, stream: int, sample: Sample) -> None:
+    def _read_back(self, stream: int, sample: Sample) -> None:
         with self._held_lock:
             if self.held is not None:
                 self.held.append((stream, sample))
                 return
-        q = self.recovered
+        q = self.read_back
         if len(q) == q.maxlen:
-            self.recovered_drops += 1
+            self.read_back_drops += 1
         q.append((stream, sample, self.now_ns()))
         self._notify()
 
-    def process_recovered(self, now: int, touched: list[Session]) -> int:
+    def process_read_back(self, now: int, touched: list[Session]) -> int:
         """Worker: the recovered messages that arrived after the start (a sender that
         appeared, a takeover's read-back), after the round's live messages."""
-        q = self.recovered
-        if self.recovered_drops:
-            self.counters["recovered_dropped"] += self.recovered_drops
-            self.recovered_drops = 0
+        q = self.read_back
+        if self.read_back_drops:
+            self.counters["recovered_dropped"] += self.read_back_drops
+            self.read_back_drops = 0
         n = 0
         while q:
             stream, sample, recv_now = q.popleft()
             n += 1
-            self._offer_recovered(stream, sample, recv_now, now, touched)
+            self._offer_read_back(stream, sample, recv_now, now, touched)
         return n
 
-    def _offer_recovered(self, stream: int, sample: Sample, recv_now: int, now: int,
+    def _offer_read_back(self, stream: int, sample: Sample, recv_now: int, now: int,
                          touched: list[Session]) -> None:
         parts = sample.key.split("/", 2)
         route = self.routes.get(parts[1]) if len(parts) == 3 else None
@@ -188,7 +186,7 @@ class Dispatch:
             self.counters["recovered_ignored"] += 1
             return
         had = bool(sess.pending_recv)
-        self._handle_recovered(sess, (stream, sample.key, sample.payload, sample.recv_mono_ns,
+        self._handle_read_back(sess, (stream, sample.key, sample.payload, sample.recv_mono_ns,
                                       sample.kind, recv_now), sess.step_now(now), now)
         if sess.pending_recv and not had:
             touched.append(sess)
@@ -223,7 +221,7 @@ class Dispatch:
                     n += self._serve(route, now, touched, len(route.inbox))
                 self.mark_ready(route)
             for stream, sample in items:
-                self._offer_recovered(stream, sample, now, now, touched)
+                self._offer_read_back(stream, sample, now, now, touched)
                 n += 1
         return n
 
@@ -231,13 +229,13 @@ class Dispatch:
         """Worker (the core's start, under its lock): the live messages that arrived during
         the start, then the recovered ones held meanwhile (so that a message both received
         live and read back is refused as the recovered copy, quietly); from now on
-        recovered messages go to ``recovered``. Returns the number of recovered messages."""
+        recovered messages go to ``read_back``. Returns the number of recovered messages."""
         while self.ready:
             self.round(now, touched, len(self.ready))
         with self._held_lock:
             held, self.held = self.held or [], None
         for stream, sample in held:
-            self._offer_recovered(stream, sample, now, now, touched)
+            self._offer_read_back(stream, sample, now, now, touched)
         return len(held)
 
     def _enqueue(self, stream: int, sample: Sample) -> None:
@@ -283,11 +281,9 @@ class Dispatch:
 
     def _notify(self) -> None:
         """Wake the worker. A set event is left alone: Event.set takes its condition's lock
-        and notifies (~1 µs) even when already set, and the worker's own drains enqueue
-        while it runs (it clears the event after waking, before its round): once per
-        session and round before, measured at ~1 µs per session-step. Safe: a caller
-        appended before reading the flag, so a set flag it saw was cleared only after
-        that append, and the round after the clear takes it."""
+        and notifies even when already set, and the worker's own drains enqueue while it
+        runs. Safe: a caller appended before reading the flag, so a set flag it saw was
+        cleared only after that append, and the round after the clear takes it."""
         if not self._wake_is_set():
             self._wake_set()
 
@@ -295,7 +291,7 @@ class Dispatch:
 
     def has_work(self) -> bool:
         return bool(self.ready or self.control or self.configs or self.unknown
-                    or self.recovered or self.released)
+                    or self.read_back or self.released)
 
     def mark_ready(self, route: Route) -> None:
         """Queue ``route`` for the next round if its inbox holds messages."""
@@ -352,14 +348,14 @@ class Dispatch:
         same message: dropped quietly, counted as ``live_copy_of_recovered``."""
         refusal = self._offer(sess, item, now_step, now)
         if refusal is not None:
-            if sess.recovered_copies and refusal.reason in _DUPLICATE \
-                    and sess.take_recovered_copy(item[2], now_step):
+            if sess.read_back_copies and refusal.reason in _DUPLICATE \
+                    and sess.take_read_back_copy(item[2], now_step):
                 for c in (sess.counters, self.counters):
                     c["live_copy_of_recovered"] += 1
                 return
             self.pub.refuse(sess, item[1], refusal, now)
 
-    def _handle_recovered(self, sess: Session, item: Item, now_step: int, now: int) -> None:
+    def _handle_read_back(self, sess: Session, item: Item, now_step: int, now: int) -> None:
         """A message read back from a sender's cache: judged like a live one (its sample
         stamp against the window: too old is refused, never applied as current), but a
         refusal is expected (it repeats a packet the checkpoint or the live stream already
@@ -368,7 +364,7 @@ class Dispatch:
         ``refused``. Accepted ones count in ``accepted`` and ``recovered_accepted``."""
         refusal = self._offer(sess, item, now_step, now, "recovered_")
         if refusal is None:
-            sess.keep_recovered_copy(item[2], now_step)
+            sess.keep_read_back_copy(item[2], now_step)
             return
         for c in (sess.counters, self.counters):
             c[f"recovered_{refusal.reason}"] += 1
@@ -376,7 +372,7 @@ class Dispatch:
 
     def _offer(self, sess: Session, item: Item, now_step: int, now: int,
                also: str = "") -> Refusal | None:
-        """One message into its session (the stream's RECOVERED bit ignored); None if
+        """One message into its session (the stream's READ_BACK bit ignored); None if
         accepted (counted as ``accepted`` / ``commands_accepted``, and ``also`` + that name
         when ``also`` is set). A packet is judged at its arrival if that came after the
         loop read its clock."""
@@ -385,10 +381,10 @@ class Dispatch:
             now_step = sess.step_now(recv_now)
         try:
             if kind != "put":
-                return Refusal("malformed" if stream & ~RECOVERED == SENSOR
+                return Refusal("malformed" if stream & ~READ_BACK == SENSOR
                                else "commands_malformed",
                                f"{kind} is not supported on {key!r}: publish a message with put")
-            if stream & ~RECOVERED == SENSOR:
+            if stream & ~READ_BACK == SENSOR:
                 refusal = sess.on_measurement(key, payload, now_step, now)
                 name = "accepted"
                 if refusal is None:
@@ -400,25 +396,19 @@ class Dispatch:
             log.debug("internal error in session %s", sess.name, exc_info=True)
             return Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")
         if refusal is None:
-            self.counters[name] += 1
-            if also:
-                self.counters[also + name] += 1
-                sess.counters[also + name] += 1
+            for c in (sess.counters, self.counters):
+                c[name] += 1
+                if also:
+                    c[also + name] += 1
         return refusal
 
     def _note_flood(self, route: Route, sess: Session, now: int) -> None:
         seen = route.flood
         dropped = seen - route.flood_seen
         route.flood_seen = seen
-        sess.counters["flood"] += dropped
-        sess.counters["refused"] += dropped
-        self.counters["flood"] += dropped
-        self.counters["refused"] += dropped
-        pub = self.pub
-        if sess.limiter.allow(now) and pub.total_limiter.allow(now):
-            pub.error(sess.error_key, sess.name, keys.ALL_SENSORS.replace("*", sess.name, 1),
-                      f"inbox full: dropped {dropped} oldest unread message(s) "
-                      f"(more than {self.settings.inbox_size} waiting)", None, now)
+        self.pub.refuse(sess, keys.ALL_SENSORS.replace("*", sess.name, 1), Refusal(
+            "flood", f"inbox full: dropped {dropped} oldest unread message(s) "
+            f"(more than {self.settings.inbox_size} waiting)"), now, count=dropped)
 
     def process_unknown(self, now: int, touched: list[Session]) -> int:
         """Messages that arrived for no known session: hand them over if the session was
@@ -428,7 +418,6 @@ class Dispatch:
         if self.unknown_drops:
             self.counters["unknown_flood"] += self.unknown_drops
             self.unknown_drops = 0
-        pub = self.pub
         while q:
             session, item = q.popleft()
             n += 1
@@ -441,19 +430,16 @@ class Dispatch:
                     if sess.pending_recv and not had:
                         touched.append(sess)
                 continue
-            self.counters["unknown_session"] += 1
-            self.counters["refused"] += 1
             try:
                 check_name(session, "session")
             except KeyError_:
+                self.pub.refuse(None, item[1], Refusal("unknown_session", ""), now,
+                                session=session, report=False)
                 self.counters["bad_key"] += 1
                 continue
             # Every instance knows every spec, so the rendezvous owner of the name reports.
-            if self.ownership.owns(session):
-                if pub.unknown_limiter.allow(now) and pub.total_limiter.allow(now):
-                    pub.error(keys.error_key(session), session, item[1],
-                              f"unknown session {session!r}: put a SessionSpec on "
-                              f"{keys.config_key(session)!r} first", None, now)
-                else:
-                    self.counters["errors_suppressed"] += 1
+            self.pub.refuse(None, item[1], Refusal(
+                "unknown_session", f"unknown session {session!r}: put a SessionSpec on "
+                f"{keys.config_key(session)!r} first"), now, session=session,
+                report=self.ownership.owns(session))
         return n

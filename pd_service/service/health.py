@@ -2,7 +2,7 @@
 recovered to.
 
 A prediction's mean ``x`` (n,) and covariance ``P`` (n, n) are checked before it is
-published (:func:`inspect`, every prediction, ~0.5 µs at n = 4):
+published (:func:`inspect`, every prediction):
 
 - every entry of ``x`` and ``P`` finite;
 - ``min_i P_ii >= 0`` (a covariance's diagonal is a variance; a negative one means ``P`` lost
@@ -16,7 +16,7 @@ Cholesky factorisation in C passes the usual healthy covariance first).
 A session whose prediction fails a check (or whose prediction raises) is restored to its
 snapshot (``ReplayEstimator.restore_state`` of an ``export_state`` taken at a healthy
 step), or to its spec's prior when there is none or that does not help; see
-:meth:`pd_service.service.publish.Publisher.publish_many`.
+:meth:`pd_service.service.outbox.Outbox.publish_many`.
 """
 
 from __future__ import annotations
@@ -42,8 +42,8 @@ SNAPSHOT_EVERY_S = 1.0
 RETRY_AFTER_S = 1.0
 
 
-#: Up to this many entries in P, :func:`inspect` checks Python floats (~0.5 µs for n = 4)
-#: instead of calling numpy's reductions (~3 µs).
+#: Up to this many entries in P, :func:`inspect` checks Python floats: cheaper than numpy's
+#: reductions for small arrays.
 _SMALL: Final = 256
 
 
@@ -78,9 +78,8 @@ def inspect_packed(x: np.ndarray, P: np.ndarray) -> tuple[str | None, bytes, byt
     """:func:`inspect`'s verdict on (x (n,), P (n, n)), with x's and P's values (row-major)
     as msgpack arrays of floats, ``msgpack.packb(list)`` byte for byte: what
     ``PredictionEncoder.encode_packed`` puts in a Prediction. One C call where the hot path
-    runs compiled (``_moments.c``: ~0.3 µs at n = 4, against ~1.5 µs for the lists, the
-    sums and the packing); this Python form otherwise, and for arrays it does not take
-    (another dtype or shape)."""
+    runs compiled (``_moments.c``); this Python form (the reference) otherwise, and for
+    arrays it does not take (another dtype or shape)."""
     k = _MOMENTS_OF
     if k is not None:
         try:
@@ -102,8 +101,8 @@ def thoroughly_healthy(P: np.ndarray) -> bool:
     """P (n, n) finite with no eigenvalue below ``-1e-9 * max(1, max_i |P_ii|)``.
 
     Where the hot path runs compiled, a Cholesky factorisation in C
-    (``_moments.clearly_psd``, ~1,000 instructions at n = 4 against ~90,000 for numpy's
-    eigenvalues) first tries (P + P^T) / 2 + (tol / 2) I: if it succeeds, every eigenvalue
+    (``_moments.clearly_psd``, far cheaper than numpy's eigenvalues) first tries
+    (P + P^T) / 2 + (tol / 2) I: if it succeeds, every eigenvalue
     is above -tol / 2 less a rounding error far below tol / 2, so P passes; if not, the
     eigenvalues decide (:func:`thoroughly_healthy_eig`, the reference), so the verdict is
     always theirs."""

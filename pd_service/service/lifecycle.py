@@ -6,7 +6,7 @@ the live instances, or a static shard; :class:`Ownership`). A spec comes from a 
 (checked, persisted, answered with a SessionStatus), from the state directory at start, or
 from the peers (at start and whenever an instance joins). A session is (re)started from its
 spec's prior on every change: spec replaced, ownership gained. Worker thread only (under the
-core's lock), except :meth:`Lifecycle.recover` and the background sync.
+core's lock), except :meth:`Lifecycle.load_specs` and the background sync.
 """
 
 from __future__ import annotations
@@ -24,15 +24,15 @@ from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
-from .admission import Ledger, Refused, spec_cost
+from .admission import Ledger, OverBudget, spec_cost
 from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
-from .failover import StateKeeper
+from .handover.keeper import HandoverKeeper
+from .outbox import Outbox
 from .ownership import Ownership
-from .persist import SpecStore
-from .publish import Publisher
-from .session import COMMAND, RECOVERED, SENSOR, Origin, Refusal, Session
-from .status import SessionState, state_of
+from .session import COMMAND, READ_BACK, SENSOR, Origin, Refusal, Session
+from .spec_store import SpecStore
+from .status import SessionPhase, phase_of
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -56,15 +56,15 @@ class Lifecycle:
 
     def __init__(self, transport: Transport, settings: Settings, *, store: SpecStore | None,
                  ownership: Ownership, counters: Tally, dispatch: Dispatch,
-                 publisher: Publisher, spawn: Callable[[Callable[[], None]], None],
-                 keeper: StateKeeper | None = None) -> None:
+                 outbox: Outbox, spawn: Callable[[Callable[[], None]], None],
+                 keeper: HandoverKeeper | None = None) -> None:
         self.t = transport
         self.settings = settings
         self.store = store
         self.ownership = ownership
         self.counters = counters
         self.dispatch = dispatch
-        self.pub = publisher
+        self.pub = outbox
         self._spawn = spawn
         self.keeper = keeper
         self.specs: dict[str, SessionSpec] = {}
@@ -104,8 +104,8 @@ class Lifecycle:
                       detail="liveliness token of an instance not in the peers setting: ignored")
         return out
 
-    def recover(self, peers: list[str]
-                ) -> tuple[dict[str, SessionSpec], dict[str, SessionState]]:
+    def load_specs(self, peers: list[str]
+                ) -> tuple[dict[str, SessionSpec], dict[str, SessionPhase]]:
         """The specs to start with and their origin ("restored" or "active"): the state
         directory's, joined with the live peers' (``peers``, who join the ownership)."""
         disk: dict[str, SessionSpec] = {}
@@ -114,7 +114,7 @@ class Lifecycle:
             if bad:
                 event(log, "specs_unreadable", logging.WARNING, files=",".join(bad))
         specs = dict(disk)
-        origin: dict[str, SessionState] = dict.fromkeys(disk, "restored")
+        origin: dict[str, SessionPhase] = dict.fromkeys(disk, "restored")
         if peers:
             # Union of disk and peers; the peers' version wins (a change made while we were
             # down reached them, not us). A spec deleted while we were down comes back and
@@ -129,9 +129,9 @@ class Lifecycle:
             self.ownership.join(p)
         return specs, origin
 
-    def install_recovered(self, specs: dict[str, SessionSpec],
-                          origin: dict[str, SessionState], now: int) -> None:
-        """Start the sessions :meth:`recover` found (not answered: nobody asked)."""
+    def install_loaded(self, specs: dict[str, SessionSpec],
+                          origin: dict[str, SessionPhase], now: int) -> None:
+        """Start the sessions :meth:`load_specs` found (not answered: nobody asked)."""
         for name, spec in specs.items():
             self.specs[name] = spec
             detail = "restored from the state directory" if origin[name] == "restored" \
@@ -216,14 +216,12 @@ class Lifecycle:
             b = self._config_buckets[session] = TokenBucket(s.config_rate, s.config_burst, now)
         if b.allow(now) and self._config_total.allow(now):
             return True
-        self.counters["config_rate_limited"] += 1
-        self.counters["config_refused"] += 1
-        if session and self.ownership.owns(session) and self.pub.unknown_limiter.allow(now) \
-                and self.pub.total_limiter.allow(now):
-            self.pub.error(keys.error_key(session), session, sample.key,
-                           f"config change refused: more than {s.config_rate:g} per second "
-                           f"for this session or {s.config_rate_total:g} per second for "
-                           "this service (config_rate, config_rate_total)", None, now)
+        self.pub.refuse(None, sample.key, Refusal(
+            "config_rate_limited", f"config change refused: more than {s.config_rate:g} per "
+            f"second for this session or {s.config_rate_total:g} per second for this service "
+            "(config_rate, config_rate_total)"), now, session=session,
+            counted=("config_rate_limited", "config_refused"),
+            report=bool(session) and self.ownership.owns(session))
         return False
 
     def apply_config(self, sample: Sample, now: int) -> None:
@@ -258,7 +256,7 @@ class Lifecycle:
                 # estimator check the spec before anything changes.
                 try:
                     self.ledger.check(session, spec_cost(spec))
-                except Refused as ref:
+                except OverBudget as ref:
                     self.counters["admission_refused"] += 1
                     raise WireError(ref.reason) from None
                 st = self.settings
@@ -273,17 +271,15 @@ class Lifecycle:
                 self.pub.refuse(route.sess, sample.key, Refusal("config_refused", exc.reason),
                                 now)
             else:
-                self.counters["config_refused"] += 1
-                if owns and self.pub.unknown_limiter.allow(now):
-                    self.pub.error(keys.error_key(session), session, sample.key, exc.reason,
-                                   None, now)
+                self.pub.refuse(None, sample.key, Refusal("config_refused", exc.reason), now,
+                                session=session, counted=("config_refused",), report=owns)
             return
         old = self.specs.get(session)
         self.gone.pop(session, None)
         if old is not None and old == spec:
             route = routes.get(session)
             if route is not None and route.sess is not None:
-                self.pub.answer(route.sess, state_of(route.sess), "unchanged (same spec)",
+                self.pub.answer(route.sess, phase_of(route.sess), "unchanged (same spec)",
                                 now)
             return
         self.specs[session] = spec
@@ -331,11 +327,11 @@ class Lifecycle:
 
     # ================================================================== sessions ======
 
-    def install(self, session: str, state: SessionState, detail: str, now: int,
+    def install(self, session: str, state: SessionPhase, detail: str, now: int,
                 answer: bool, resume: Origin = "prior", built: Session | None = None) -> None:
         """(Re)start ``session`` from its spec if we own it, else route it elsewhere;
         ``resume``: continue from its checkpoint or the replica held for it, if it passes
-        (pd_service.service.failover), else from the spec's prior. ``built``: a session
+        (pd_service.service.handover.keeper), else from the spec's prior. ``built``: a session
         just built from this spec at ``now`` (by the config check), used instead of a new
         one."""
         routes = self.dispatch.routes
@@ -359,7 +355,7 @@ class Lifecycle:
         try:
             cost = spec_cost(spec)
             self.ledger.admit(session, cost)
-        except (Refused, WireError) as exc:  # e.g. a persisted spec over today's budget
+        except (OverBudget, WireError) as exc:  # e.g. a persisted spec over today's budget
             self.ledger.release(session)
             self.counters["admission_refused"] += 1
             event(log, "session_refused", logging.WARNING, session=session, reason=exc.reason)
@@ -407,7 +403,7 @@ class Lifecycle:
         if answer:
             self.pub.answer(sess, state, detail, now)
 
-    def remove(self, session: str, state: SessionState, detail: str, now: int,
+    def remove(self, session: str, state: SessionPhase, detail: str, now: int,
                answer: bool) -> None:
         """Forget ``session`` (its spec, stored file and route); answer if we own it."""
         spec = self.specs.pop(session, None)
@@ -478,7 +474,7 @@ class Lifecycle:
         for name in [n for n, t in self.gone.items() if now - t > _GONE_MEMO_NS]:
             del self.gone[name]
 
-    def recover_taken(self, names: list[str]) -> None:
+    def read_back_taken(self, names: list[str]) -> None:
         """Off the worker (``spawn``): read back what the senders of sessions just taken
         over kept (what the previous owner accepted after its last replica, what was sent
         while nobody served them); the samples reach the worker as recovered messages.
@@ -504,7 +500,7 @@ class Lifecycle:
 
             def on(sample: Sample) -> None:
                 with lock:
-                    items.append((stream + RECOVERED, sample))
+                    items.append((stream + READ_BACK, sample))
 
             key = keys.command_key(name) if stream == COMMAND \
                 else keys.ALL_SENSORS.replace("*", name, 1)
@@ -575,4 +571,4 @@ class Lifecycle:
             elif running and not owns:
                 self.install(name, "active", "", now, answer=False)
         if taken:
-            self._spawn(lambda: self.recover_taken(taken))
+            self._spawn(lambda: self.read_back_taken(taken))

@@ -64,12 +64,12 @@ from pd_service.wire.convert import (
 from pd_service.wire.state import spec_fingerprint
 
 from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
-from .stats import LatencyWindow
+from .latency import LatencyWindow
 
 SENSOR: Final = 0
 COMMAND: Final = 1
 #: Added to SENSOR / COMMAND for a message read back from a sender's cache (recovered).
-RECOVERED: Final = 2
+READ_BACK: Final = 2
 
 #: Where a session's estimate started from (``SessionStatus.origin``).
 Origin = Literal["prior", "checkpoint", "replica"]
@@ -79,7 +79,7 @@ SESSION_LATENCY_WINDOW = 512
 
 #: Read-back messages remembered per session until their live copy came (or the window
 #: passed): more than the senders' caches give back at once (DEFAULT_SENDER_CACHE each).
-RECOVERED_COPIES = 1024
+READ_BACK_COPIES = 1024
 
 
 def next_slot(after: int, period: int, offset: int) -> int:
@@ -87,8 +87,7 @@ def next_slot(after: int, period: int, offset: int) -> int:
     periodic task of a session falls due next, at the session's own phase ``offset``
     (:attr:`Session.spread`). Sessions started together (one epoch, one config burst) then
     spread their snapshots, checkpoints, replicas and idle ticks over the period instead of
-    all falling due in the same step: at 500 sessions the daemon's snapshots alone made
-    one worker loop per second of ~50 ms (bench/service.py), its checkpoints more."""
+    all falling due in the same step."""
     return after + 1 + (offset - after - 1) % period
 
 
@@ -117,21 +116,21 @@ class Session:
         self.now_step: int | None = None
         self.last_pub_step: int | None = None
         #: Step of the newest prediction published on data that came after the step's tick
-        #: phase (pd_service.service.publish: the next tick waits for such data).
+        #: phase (pd_service.service.outbox: the next tick waits for such data).
         self.late_data_step: int | None = None
         self.last_activity_ns = now_ns
         #: Whether a measurement or command of this session decoded since it was (re)started
         #: (created, replaced, restored, synced or taken over): until then it is idle
-        #: (pd_service.service.publish), however recent its start.
+        #: (pd_service.service.outbox), however recent its start.
         self.heard = False
         self.latency = LatencyWindow(SESSION_LATENCY_WINDOW)
         self.limiter = TokenBucket(error_rate, error_burst, now_ns)
         self.pending_recv: list[int] = []  # recv_mono_ns of packets accepted since last publish
         #: Hashes of payloads read back from senders' caches and accepted -> the last step
-        #: at which their live copy is expected (:meth:`take_recovered_copy`).
-        self.recovered_copies: dict[int, int] = {}
+        #: at which their live copy is expected (:meth:`take_read_back_copy`).
+        self.read_back_copies: dict[int, int] = {}
         self.alive = True
-        #: Tick bookkeeping (pd_service.service.publish): the generation of the live heap
+        #: Tick bookkeeping (pd_service.service.outbox): the generation of the live heap
         #: entry (older entries are skipped) and whether the session is ticking as idle.
         self.tick_gen = 0
         self.idle = False
@@ -140,7 +139,7 @@ class Session:
         self.error_key = keys.error_key(self.name)
         self.status_key = keys.status_key(self.name)
         # where the estimate came from ("prior", "checkpoint", "replica") and the step of
-        # that state; checkpoint / replica bookkeeping (pd_service.service.failover)
+        # that state; checkpoint / replica bookkeeping (pd_service.service.handover.keeper)
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
         self.fingerprint = spec_fingerprint(spec)
@@ -183,8 +182,6 @@ class Session:
         if self.intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
-        if refusal is None:
-            self.counters["accepted"] += 1
         return refusal
 
     def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
@@ -193,27 +190,25 @@ class Session:
         if self.intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
-        if refusal is None:
-            self.counters["commands_accepted"] += 1
         return refusal
 
     # --- read-back copies ----------------------------------------------------------------
 
-    def keep_recovered_copy(self, payload: bytes, now_step: int) -> None:
+    def keep_read_back_copy(self, payload: bytes, now_step: int) -> None:
         """A message read back from a sender's cache was accepted: its live copy, if still
         on its way, is expected within the window (``max_delay + 1`` steps). Kept: the
         payload's hash, not its bytes (a false match could only silence the report of a
         message refused as a duplicate anyway)."""
-        copies = self.recovered_copies
-        if len(copies) >= RECOVERED_COPIES:  # oldest first: insertion order
+        copies = self.read_back_copies
+        if len(copies) >= READ_BACK_COPIES:  # oldest first: insertion order
             del copies[next(iter(copies))]
         copies[hash(payload)] = now_step + self.spec.max_delay + 1
 
-    def take_recovered_copy(self, payload: bytes, now_step: int) -> bool:
+    def take_read_back_copy(self, payload: bytes, now_step: int) -> bool:
         """Whether ``payload`` repeats a message read back and accepted (then forgotten);
         copies past their step are dropped, oldest first (their steps grow with insertion),
         so a flood of duplicates costs O(1) each."""
-        copies = self.recovered_copies
+        copies = self.read_back_copies
         until = copies.pop(hash(payload), None)
         while copies:
             first = next(iter(copies))
@@ -226,8 +221,8 @@ class Session:
 
     def counters_snapshot(self) -> dict[str, int]:
         """Non-zero counters plus the always-present ``accepted`` and ``published``."""
-        out = dict(self.counters)  # one C-level copy (a comprehension over a dict subclass's
-        if 0 in out.values():      # items is a generic iteration: ~4,000 instructions)
+        out = dict(self.counters)  # one C-level copy: cheaper than a comprehension over a
+        if 0 in out.values():      # dict subclass's items
             out = {k: v for k, v in out.items() if v}
         out.setdefault("accepted", 0)
         out["published"] = self.published
@@ -287,7 +282,7 @@ class Session:
         self.next_snapshot_step = next_slot(now_step + self.snap_every // 2, self.snap_every,
                                             self.spread)
 
-    def recover(self, source: str) -> None:
+    def reset_estimate(self, source: str) -> None:
         """Restore the estimator to its snapshot (``source`` "snapshot") or rebuild it from
         the spec's prior ("prior"). StateError (ValueError) if the snapshot does not fit."""
         if source == "snapshot":

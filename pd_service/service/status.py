@@ -1,7 +1,7 @@
 """Queries and status: SessionStatus / ServiceStatus, and the status and spec queryables.
 
 Queryables run on the transport's threads. They hold the core's lock (which the worker
-holds while processing one round) only to copy what a reply needs (a :class:`SessionView`:
+holds while processing one round) only to copy what a reply needs (a :class:`StatusSnapshot`:
 counters, the latency window, a few scalars; microseconds), so replies never see a
 half-updated session; percentiles, building and validating the message, encoding and
 sending happen after the lock is released, so a query never stalls the worker.
@@ -25,23 +25,23 @@ from pd_service.wire import ErrorReport, ServiceStatus, SessionSpec, SessionStat
 from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
+from .latency import LatencyWindow, percentiles
 from .ownership import Ownership
 from .session import Session
-from .stats import LatencyWindow, percentiles
 
 log = logging.getLogger(LOGGER_NAME)
 
-#: ``SessionStatus.state``.
-SessionState = Literal["active", "restored", "expired", "removed"]
+#: ``SessionStatus.state``: how a session started (active, restored) or ended.
+SessionPhase = Literal["active", "restored", "expired", "removed"]
 
 
 @dataclass(frozen=True, slots=True)
-class SessionView:
+class StatusSnapshot:
     """What a SessionStatus needs, copied from a session (under the core's lock)."""
 
     name: str
     status_key: str
-    state: SessionState
+    state: SessionPhase
     detail: str
     spec: SessionSpec  # immutable; for now_step
     counters: dict[str, int]
@@ -60,28 +60,28 @@ class SessionView:
                              origin=self.origin, origin_step=self.origin_step)
 
 
-def view_of(sess: Session, state: SessionState, detail: str) -> SessionView:
+def snapshot_of(sess: Session, state: SessionPhase, detail: str) -> StatusSnapshot:
     """Copy of what ``sess``'s status needs (hold the lock while calling this)."""
-    return SessionView(sess.name, sess.status_key, state, detail, sess.spec,
+    return StatusSnapshot(sess.name, sess.status_key, state, detail, sess.spec,
                        sess.counters_snapshot(), sess.published, sess.latency.values(),
                        sess.origin, sess.origin_step)
 
 
-def session_status(sess: Session, instance: str, state: SessionState, detail: str,
+def session_status(sess: Session, instance: str, state: SessionPhase, detail: str,
                    now: int) -> SessionStatus:
     """The status of a served session at wall-clock time ``now`` (ns)."""
-    return view_of(sess, state, detail).status(instance, now)
+    return snapshot_of(sess, state, detail).status(instance, now)
 
 
-def state_of(sess: Session) -> SessionState:
+def phase_of(sess: Session) -> SessionPhase:
     """The state a session was started with."""
-    # Session.state is typed str; the lifecycle only ever creates it with a SessionState.
-    return cast(SessionState, sess.state)
+    # Session.state is typed str; the lifecycle only ever creates it with a SessionPhase.
+    return cast(SessionPhase, sess.state)
 
 
-def current_view(sess: Session) -> SessionView:
+def current_snapshot(sess: Session) -> StatusSnapshot:
     """The view of a session in the state and detail it was last answered with."""
-    return view_of(sess, state_of(sess), sess.detail)
+    return snapshot_of(sess, phase_of(sess), sess.detail)
 
 
 def valid_name(name: str) -> bool:
@@ -131,7 +131,7 @@ class Queries:
             route = self.routes.get(session)
             if route is None or route.sess is None:
                 return None
-            view = current_view(route.sess)
+            view = current_snapshot(route.sess)
         return view.status(self.instance, self.now_ns())
 
     def service_status(self) -> ServiceStatus:
@@ -168,13 +168,13 @@ class Queries:
         with self.lock:  # copies only: the statuses are built after it is released
             if "*" in sel:
                 sessions = [r.sess for r in self.routes.values() if r.sess is not None]
-                views = [current_view(s) for s in sessions if intersects(sel, s.status_key)]
+                views = [current_snapshot(s) for s in sessions if intersects(sel, s.status_key)]
             else:
                 parts = sel.split("/")
                 name = parts[1] if len(parts) == 3 else ""
                 route = self.routes.get(name)
                 if route is not None and route.sess is not None:
-                    views = [current_view(route.sess)]
+                    views = [current_snapshot(route.sess)]
                 elif route is None and valid_name(name) and self.ownership.owns(name):
                     views, unknown = [], name
                 else:

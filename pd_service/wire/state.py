@@ -4,7 +4,7 @@ Written by the daemon as a checkpoint (a record of ``<state_dir>/checkpoints.log
 replica to the instance that would take the session over (``pd/@service/<successor>/replica/
 <session>``). The estimator-side meaning of every field is
 :class:`pd_service.estimation.EstimatorState`; the conversion lives in
-:mod:`pd_service.checkpoint`.
+:mod:`pd_service.service.handover.checkpoint`.
 
 Arrays of any rank (the IMM's per-mode means are (N, r, n), the UKF's sensitivities
 (p, n, n), an adapter's innovation windows (N, p, m)) use :data:`Tensor`:

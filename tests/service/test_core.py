@@ -837,6 +837,21 @@ def test_error_reports_have_a_service_wide_budget(world, tmp_path):
     assert core.service_status().counters["errors_suppressed"] == 30
 
 
+def test_refused_specs_of_new_names_share_the_service_wide_budget(world, tmp_path):
+    """Every ErrorReport goes through one funnel (Outbox.refuse): the refusal of a spec for a
+    name not served here is limited service-wide too, and one over it is counted."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, error_rate_total=5.0)
+    names = [f"n{i}" for i in range(10)]
+    for s in names:
+        cli.put(keys.config_key(s), b"junk")
+    settle(core)
+    c = core.service_status().counters
+    assert c["config_refused"] == 10
+    assert sum(len(col.errors[s]) for s in names) == 5
+    assert c["errors_suppressed"] == 5
+
+
 def test_refusals_are_counted_by_kind_and_echo_a_readable_seq(world, tmp_path):
     """A non-PSD R is malformed (not non_finite, though "semi-definite" contains "finite"),
     a NaN is non_finite; both ErrorReports echo the seq the message carried."""
@@ -976,7 +991,7 @@ def test_status_queries_build_their_replies_without_the_lock(world, tmp_path, mo
 
 @pytest.mark.parametrize("n", [1, 2, 3, 10, 511, 4096])
 def test_latency_percentiles_equal_numpys(n):
-    from pd_service.service.stats import percentiles
+    from pd_service.service.latency import percentiles
 
     x = np.random.default_rng(n).exponential(100.0, n)
     want = tuple(np.percentile(x, [50.0, 99.0]))
@@ -990,7 +1005,7 @@ def test_a_latency_window_keeps_the_last_values_in_order():
     its percentiles are those of that copy."""
     from collections import deque
 
-    from pd_service.service.stats import LatencyWindow, percentiles
+    from pd_service.service.latency import LatencyWindow, percentiles
 
     w, ref = LatencyWindow(5), deque(maxlen=5)
     assert len(w) == 0 and w.values().size == 0 and w.percentiles() == (0.0, 0.0)

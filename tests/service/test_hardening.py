@@ -10,7 +10,7 @@ import numpy as np
 
 from pd_service.estimation import linear as linear_mod
 from pd_service.service import Settings, SpecStore
-from pd_service.service.admission import Ledger, Refused, spec_cost
+from pd_service.service.admission import Ledger, OverBudget, spec_cost
 from pd_service.transport import InMemoryBus
 from pd_service.wire import (
     LinearModelSpec,
@@ -95,7 +95,7 @@ def test_service_wide_budgets_and_shared_tables_counted_once():
     assert led.bytes == a.bytes + a.session_bytes
     try:
         led.admit("c", spec_cost(paper_spec("c")))
-    except Refused as exc:
+    except OverBudget as exc:
         assert "memory_budget_bytes" in exc.reason
     else:
         raise AssertionError("over the memory budget")
@@ -108,7 +108,7 @@ def test_service_wide_budgets_and_shared_tables_counted_once():
     cpu.admit("b", a)
     try:
         cpu.admit("c", a)
-    except Refused as exc:
+    except OverBudget as exc:
         assert "cpu_budget" in exc.reason
     else:
         raise AssertionError("over the CPU budget")

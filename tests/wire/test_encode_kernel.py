@@ -79,7 +79,7 @@ def test_what_it_does_not_take_goes_to_the_python_form(monkeypatch):
         _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0)
 
 
-# --- pack: the checkpoints' msgpack (pd_service.checkpoint.encode_state) -------------------
+# --- pack: the checkpoints' msgpack (pd_service.service.handover.checkpoint.encode_state) -------------------
 
 def wire_form(o):
     """What msgpack is given where the C form takes arrays: their wire form (Tensors)."""

@@ -32,7 +32,6 @@ from pd_service.wire.state import (
     StatePacket,
     Tensors,
     pack_state_fields,
-    spec_fingerprint,
 )
 
 __all__ = ["Refused", "encode_state", "from_message", "refusal", "restore", "to_message"]
@@ -118,11 +117,9 @@ def encode_state(st: EstimatorState, *, session: str, instance: str, fingerprint
                  published: int = 0, seq: int = 0) -> bytes:
     """``encode(to_message(...))``, byte for byte, without building the models when the
     state is ordinary (finite, small enough). Where the C kernel is built, the fields go
-    to it with their arrays as they are (``_encode.pack``; a paper session's state then
-    costs ~230,000 instructions instead of ~430,000, the export before it not counted:
-    no dicts and lists of floats for the arrays' wire form, no msgpack walk over them);
-    else, or if it declines, they are built in their wire form and packed by msgpack
-    (about 3x cheaper than the models).
+    to it with their arrays as they are (``_encode.pack``: no dicts and lists of floats
+    for the arrays' wire form, no msgpack walk over them); else, or if it declines, they
+    are built in their wire form and packed by msgpack (cheaper than the models).
     Anything unusual takes the validated path: WireError if it is refused."""
     def fields(tensor: Callable[[Any], Any],
                rows: Callable[[list[Any]], list[Any]]) -> dict[str, Any]:
@@ -207,7 +204,3 @@ def restore(est: Estimator, data: bytes | SessionState, spec: SessionSpec, finge
         return msg, Refused("corrupt", str(exc))
     return msg, None
 
-
-def fingerprint_of(spec: SessionSpec) -> str:
-    """:func:`~pd_service.wire.state.spec_fingerprint` of a spec."""
-    return spec_fingerprint(spec)

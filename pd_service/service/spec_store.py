@@ -1,6 +1,6 @@
 """Session specs on disk: one ``<session>.msgpack`` file per session (the wire encoding);
-the sessions' checkpoints in one log beside them (:mod:`.statelog`), written by a thread of
-their own (:class:`StateWriter`).
+the sessions' checkpoints in one log beside them (:mod:`.handover.checkpoint_log`), written
+by a thread of their own (:class:`~.handover.checkpoint_writer.CheckpointWriter`).
 
 Writes are atomic and durable: write ``.<session>.msgpack.tmp``, fsync it, rename it over the
 old file (exchange the two where Linux allows: the old content stays in the ``.tmp`` file,
@@ -15,17 +15,14 @@ from __future__ import annotations
 import ctypes
 import logging
 import os
-import threading
-import time
-from collections import deque
 from pathlib import Path
 from typing import Any
 
-from pd_service.logs import LOGGER_NAME, event, name_os_thread
+from pd_service.logs import LOGGER_NAME, event
 from pd_service.wire import SessionSpec, WireError, decode, encode
 from pd_service.wire.keys import KeyError_, check_name
 
-from .statelog import StateLog, read_regular, write_all
+from .handover.checkpoint_log import CheckpointLog, read_regular, write_all
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -39,8 +36,8 @@ _renameat2: Any = None
 def _exchange(tmp: Path, final: Path) -> bool:
     """Swap ``tmp`` and ``final`` atomically (Linux ``renameat2(RENAME_EXCHANGE)``): the old
     content stays in ``tmp``, whose inode the next write truncates and reuses, so rewriting
-    a spec creates and deletes no inode (on ext4 a new inode per write cost ~0.5 ms of
-    kernel time). False where unsupported (no such file yet, other OS or file system): the
+    a spec creates and deletes no inode (each costs the kernel metadata work). False where
+    unsupported (no such file yet, other OS or file system): the
     caller renames instead."""
     global _renameat2
     if _renameat2 is None:
@@ -65,7 +62,7 @@ class SpecStore:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True, mode=0o700)
         #: The checkpoints (read at first use).
-        self.states = StateLog(self.dir)
+        self.states = CheckpointLog(self.dir)
 
     def path(self, session: str) -> Path:
         return self.dir / f"{check_name(session, 'session')}{SUFFIX}"
@@ -80,7 +77,7 @@ class SpecStore:
 
     def save_states(self, items: list[tuple[str, bytes | None]]) -> None:
         """Write checkpoints ``(session, data)`` and removals ``(session, None)``, in order,
-        to the checkpoint log (one write; :mod:`.statelog`), without fsync: they survive a
+        to the checkpoint log (one write; :mod:`.handover.checkpoint_log`), without fsync: they survive a
         crash of the daemon (kill -9: the kernel holds the data), not necessarily a power
         loss, after which a checkpoint may be older or the log's end damaged (the records
         before the damage are read). OSError if the disk refuses."""
@@ -102,11 +99,8 @@ class SpecStore:
         reader sees the old or the new file) and fsync the directory: the write survives a
         power loss, not only a crash of the process."""
         tmp = final.with_name(f".{final.name}.tmp")
-        # no O_TRUNC: the temp file (the previous exchange's old content) is overwritten in
-        # place and cut to the new length. Truncating to zero and renaming over a file makes
-        # ext4 start the data's writeback at once (its auto_da_alloc heuristic): measured
-        # ~230 µs of kernel time per (then file-per-session) checkpoint against ~25 µs
-        # this way (docs/service.md)
+        # no O_TRUNC: overwritten in place and cut to the new length, since truncating and
+        # renaming over a file makes ext4 start its writeback at once (auto_da_alloc)
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_NOFOLLOW, 0o600)
         try:
             write_all(fd, data)
@@ -177,80 +171,3 @@ class SpecStore:
             pass
         finally:
             os.close(fd)
-
-
-class StateWriter:
-    """Writes checkpoints on a thread of its own, so the worker never waits for the disk.
-
-    The worker hands over encoded states with :meth:`submit` (a dict insert; a newer state of
-    the same session replaces one not yet written) and removals with :meth:`remove`; the
-    thread takes what is pending in one batch, appends it to the checkpoint log with one write
-    (:meth:`SpecStore.save_states`), then rests ``BATCH_WAIT_S`` so that the next batch
-    gathers the states of many rounds (one write and two GIL hand-offs per batch, not ~6
-    system calls per state: the worker paid for each hand-off). Outcomes ``(session, bytes,
-    error or None)`` wait in :attr:`done` for the worker to count them. :meth:`close` writes
-    what is pending, then stops the thread.
-    """
-
-    #: Rest (s) after a batch: checkpoints reach the log at most this much later.
-    BATCH_WAIT_S = 0.02
-
-    def __init__(self, store: SpecStore) -> None:
-        self.store = store
-        self.done: deque[tuple[str, int, OSError | None]] = deque()
-        self._cond = threading.Condition()
-        self._pending: dict[str, bytes | None] = {}  # None: remove the session's checkpoint
-        self._writing = False
-        self._closed = False
-        self._thread = threading.Thread(target=self._run, name="pd-service-ckpt", daemon=True)
-        self._thread.start()
-
-    def submit(self, session: str, data: bytes) -> None:
-        with self._cond:
-            self._pending[session] = data
-            self._cond.notify()
-
-    def remove(self, session: str) -> None:
-        """Drop a pending write of ``session`` and remove its checkpoint (written after any
-        state of it already taken: the log keeps their order)."""
-        with self._cond:
-            self._pending[session] = None
-            self._cond.notify()
-
-    def flush(self) -> None:
-        """Return once every state submitted so far is written."""
-        with self._cond:
-            while self._pending or self._writing:
-                self._cond.wait()
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-        self._thread.join(timeout=30.0)
-
-    def _run(self) -> None:
-        name_os_thread("pd-ckpt")
-        store = self.store
-        while True:
-            with self._cond:
-                while not self._pending and not self._closed:
-                    self._cond.wait()
-                if not self._pending:
-                    return
-                batch, self._pending = self._pending, {}
-                self._writing = True
-            try:
-                store.save_states(list(batch.items()))
-                err: OSError | None = None
-            except OSError as exc:
-                err = exc
-            for session, data in batch.items():
-                if data is not None:
-                    self.done.append((session, len(data), err))
-            with self._cond:
-                self._writing = False
-                self._cond.notify_all()
-                closed = self._closed
-            if not closed:
-                time.sleep(self.BATCH_WAIT_S)

@@ -1,4 +1,4 @@
-"""pd_service.checkpoint: the fast state encoding equals the validated one, byte for byte."""
+"""pd_service.service.handover.checkpoint: the fast state encoding equals the validated one, byte for byte."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from pd_service.backends import build_estimator
-from pd_service.checkpoint import encode_state, from_message, to_message
 from pd_service.estimation import EstimatorState, StateError
 from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario
+from pd_service.service.handover.checkpoint import encode_state, from_message, to_message
 from pd_service.wire import SessionState, WireError, decode, encode
 
 
@@ -115,7 +115,7 @@ def test_the_c_form_writes_what_the_python_form_writes(monkeypatch, name):
     """Where the C kernel is built (_encode.pack), the checkpoint is its bytes, which the
     Python form (dicts and lists of floats, msgpack) must equal for every backend's state,
     with counters and ints of every size class."""
-    from pd_service import checkpoint
+    from pd_service.service.handover import checkpoint
 
     if checkpoint._PACK is None:
         pytest.skip("the C kernel is not in use here: the Python form runs everywhere")

@@ -29,7 +29,7 @@ steps; with 0.25 s replicas a loaded machine once lost enough steps for a ratio 
 against a bar of 2). The tests print the ratios.
 
 No wall-time asserts; everything waits on events (liveliness, predictions) with generous
-timeouts. Run alone with ``pytest tests/service/test_failover_zenoh.py -m integration -s``.
+timeouts. Run alone with ``pytest tests/service/handover/test_keeper_zenoh.py -m integration -s``.
 """
 
 from __future__ import annotations
@@ -45,14 +45,14 @@ import pytest
 import zenoh
 
 from pd_service.backends import build_estimator
-from pd_service.checkpoint import from_message
 from pd_service.scenarios.paper import paper_command, simulate_paper
 from pd_service.service import SpecStore
+from pd_service.service.handover.checkpoint import from_message
 from pd_service.transport import DEFAULT_SENDER_CACHE, Sample
 from pd_service.wire import Prediction, SessionSpec, SessionState, decode, encode, keys
 
-from .helpers import Collector, cmd_bytes, meas_bytes, paper_spec
-from .procs import Daemon, Presence, client, free_port, query_session_status, sleep_until
+from ..helpers import Collector, cmd_bytes, meas_bytes, paper_spec
+from ..procs import Daemon, Presence, client, free_port, query_session_status, sleep_until
 
 pytestmark = pytest.mark.integration
 
@@ -108,7 +108,7 @@ def make_feed(session: str, epoch: int, seed: int, steps: int, max_delay: int) -
     return feed
 
 
-class Publisher(threading.Thread):
+class Outbox(threading.Thread):
     """Puts every feed's schedule on time, whoever is listening. ``cache`` 0: plain puts (a
     dead daemon loses them); > 0: one publisher per key keeping its last ``cache`` samples,
     as the SDK's Robot and Operator do (a restarted daemon reads them back)."""
@@ -270,7 +270,7 @@ def test_kill_and_restart_resumes_from_the_checkpoint_and_the_senders_caches(wor
     feed = make_feed("ck", epoch, seed=21, steps=steps, max_delay=max_delay)
     t.put(keys.config_key("ck"), encode(feed.spec))
     assert col.wait_for(lambda c: c.statuses["ck"], WAIT_S), d.log()
-    pub = Publisher(t, [feed], cache=DEFAULT_SENDER_CACHE)
+    pub = Outbox(t, [feed], cache=DEFAULT_SENDER_CACHE)
     pub.start()
     assert col.wait_for(lambda c: any(p.step - feed.spec.lead >= kill_at
                                       for p in c.predictions["ck"]), WAIT_S), d.log()
@@ -394,7 +394,7 @@ def test_owner_killed_survivor_resumes_from_its_replicas(world):
         lost = [s for s in names if owners[s] == "inst-y"]
         kept = [s for s in names if owners[s] == "inst-x"]
         assert lost and kept, owners
-        pub = Publisher(t, list(feeds.values()))
+        pub = Outbox(t, list(feeds.values()))
         pub.start()
         # kill once every session of inst-y has been replicated past kill_at
         assert col.wait_for(lambda c: all(any(k >= kill_at for k in replicas.steps(s))
@@ -457,7 +457,7 @@ def test_sigterm_hands_the_final_state_to_the_successor(world):
         names = list(feeds)
         moved = [s for s in names if owners[s] == "inst-y"]
         assert moved and len(moved) < len(names), owners
-        pub = Publisher(t, list(feeds.values()), cache=DEFAULT_SENDER_CACHE)
+        pub = Outbox(t, list(feeds.values()), cache=DEFAULT_SENDER_CACHE)
         pub.start()
         assert col.wait_for(lambda c: all(any(p.step - feeds[s].spec.lead >= stop_at
                                               for p in c.predictions[s]) for s in moved),

@@ -6,7 +6,7 @@ going back to the prior.
   is due (the first at once, then one per ``checkpoint_interval_s`` at the session's own
   phase, :func:`~.session.next_slot`, never two within half an interval), writes its
   :class:`~pd_service.wire.state.SessionState` to the state directory's checkpoint log
-  (``checkpoints.log``, :mod:`.statelog`, by the daemon's writer thread). A restarted daemon
+  (``checkpoints.log``, :mod:`.checkpoint_log`, by the daemon's writer thread). A restarted daemon
   resumes each restored session from it.
 - **Replica** (takeover): at the same moments, rate-bounded by ``replica_interval_s``, the
   owner puts the same message on ``pd/@service/<successor>/replica/<session>``, the successor
@@ -14,19 +14,19 @@ going back to the prior.
   without this instance). Every instance keeps the newest replica per session it received;
   when it takes a session over it resumes from it.
 - A state that is stale, corrupt, from another spec or of another version is refused
-  (:mod:`pd_service.checkpoint`): the session starts from its prior, the refusal is counted
+  (:mod:`pd_service.service.handover.checkpoint`): the session starts from its prior, the refusal is counted
   (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.
 
 A session whose estimate is its prior alone (:meth:`Session.prior_alone`: started from
 the prior, nothing accepted) writes and sends no state: resuming from the prior gives the same.
-An encoded state larger than ``checkpoint_max_bytes`` is neither written nor sent
+An encoded state larger than a message may be (64 KiB) is neither written nor sent
 (``checkpoint_too_large``). On a graceful stop the owner sends every served session's
 newest state to its successor and waits until the successor says it holds them
-(:meth:`StateKeeper.handover`, :meth:`StateKeeper.confirm_handover`; bounded) before it
+(:meth:`HandoverKeeper.handover`, :meth:`HandoverKeeper.confirm_handover`; bounded) before it
 withdraws its presence, so a planned handover loses nothing that was accepted.
-Worker thread only, except :meth:`StateKeeper.on_replica` and
-:meth:`StateKeeper.on_replica_query` (transport threads: they only store or read the bytes)
-and :meth:`StateKeeper.confirm_handover` (the stopping thread, the worker stopped).
+Worker thread only, except :meth:`HandoverKeeper.on_replica` and
+:meth:`HandoverKeeper.on_replica_query` (transport threads: they only store or read the bytes)
+and :meth:`HandoverKeeper.confirm_handover` (the stopping thread, the worker stopped).
 """
 
 from __future__ import annotations
@@ -35,26 +35,26 @@ import logging
 import threading
 import time
 
-from pd_service.checkpoint import Refused, encode_state, restore
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Query, Sample
 from pd_service.transport.keyexpr import intersects
-from pd_service.wire import WireError, keys
+from pd_service.wire import MAX_MESSAGE_BYTES, WireError, keys
 from pd_service.wire.codec import unpack_map
 from pd_service.wire.keys import KeyError_, check_name
 
-from .config import Settings
-from .ownership import Ownership
-from .persist import SpecStore, StateWriter
-from .publish import Out, Publisher
-from .session import Origin, Session, next_slot
+from ..config import Settings
+from ..outbox import Out, Outbox
+from ..ownership import Ownership
+from ..session import Origin, Refusal, Session, next_slot
+from ..spec_store import SpecStore
+from .checkpoint import Refused, encode_state, restore
+from .checkpoint_writer import CheckpointWriter
 
 log = logging.getLogger(LOGGER_NAME)
 
-#: Most session states encoded after one round (~150 µs each for the paper's session):
-#: sessions created together fall due together, and encoding them all at once stalled the
-#: worker for tens of ms once per checkpoint interval (p99 40 ms at 200 sessions).
+#: Most session states encoded after one round: sessions created together fall due
+#: together, and encoding them all at once would stall the worker.
 STATES_PER_ROUND = 8
 
 #: Failed checkpoint writes are logged at most once per this many seconds (with their
@@ -88,19 +88,19 @@ def state_mark(sess: Session) -> tuple[int, int, int]:
     return sess.est.committed_step, c["accepted"], c["commands_accepted"]
 
 
-class StateKeeper:
+class HandoverKeeper:
     """Writes checkpoints, sends replicas, keeps received replicas, resumes sessions."""
 
     def __init__(self, settings: Settings, store: SpecStore | None, ownership: Ownership,
-                 counters: Tally, publisher: Publisher) -> None:
+                 counters: Tally, outbox: Outbox) -> None:
         self.settings = settings
         self.store = store
         self.ownership = ownership
         self.counters = counters
-        self.pub = publisher
+        self.pub = outbox
         self._lock = threading.Lock()
         #: Writes checkpoints off the worker thread (the daemon's); None: written in place.
-        self.writer: StateWriter | None = None
+        self.writer: CheckpointWriter | None = None
         self._rotate = 0  # where the next long after_round list starts (round-robin)
         #: Failed checkpoint writes not logged yet, and when the last were (monotonic s).
         self._failed_unlogged = 0
@@ -225,7 +225,7 @@ class StateKeeper:
     def _send(self, sess: Session, data: bytes) -> str | None:
         succ = self.ownership.successor(sess.name)
         if succ is not None:
-            self.pub.outbox.append(Out(replica_key(succ, sess.name), data))
+            self.pub.pending.append(Out(replica_key(succ, sess.name), data))
             self.counters["replicas_sent"] += 1
             self.counters["replica_bytes"] += len(data)
         return succ
@@ -245,7 +245,7 @@ class StateKeeper:
             event(log, "checkpoint_too_large", logging.WARNING, session=sess.name,
                   reason=exc.reason)
             return None
-        if len(data) > self.settings.checkpoint_max_bytes:
+        if len(data) > MAX_MESSAGE_BYTES:
             self.counters["checkpoint_too_large"] += 1
             return None
         return data
@@ -308,10 +308,9 @@ class StateKeeper:
         """Transport thread: keep the newest replica per session (by its now_step).
 
         Only unpacked here, and its session and now_step read: the whole SessionState is
-        validated when a takeover resumes from it (:func:`~pd_service.checkpoint.restore`,
-        a bad one refused there as ``restore_refused_corrupt``). Validating each replica
-        on arrival cost ~110 µs of a pydantic decode, holding the GIL against the worker:
-        at 500 sessions per instance, 1 replica per session and second, ~7 % of a core."""
+        validated when a takeover resumes from it (:func:`.checkpoint.restore`, a bad one
+        refused there as ``restore_refused_corrupt``): a pydantic decode of every replica
+        on arrival would hold the GIL against the worker."""
         session = sample.key.rsplit("/", 1)[-1]
         if sample.kind == "delete" or sample.payload is None:
             return
@@ -378,11 +377,10 @@ class StateKeeper:
               packets=len(msg.packets), writer=msg.instance)
 
     def _refused(self, sess: Session, source: str, why: Refused, now: int) -> None:
-        self.counters["restore_refused"] += 1
         self.counters[f"restore_refused_{why.reason}"] += 1
-        sess.counters["restore_refused"] += 1
         text = f"{source} not resumed ({why.reason}): {why.text}; started from the prior"
         event(log, "restore_refused", logging.WARNING, session=sess.name, source=source,
               reason=why.reason, detail=why.text)
-        self.pub.error(sess.error_key, sess.name, f"{source}/{sess.name}", text, None, now)
+        self.pub.refuse(sess, f"{source}/{sess.name}", Refusal("restore_refused", text), now,
+                        counted=("restore_refused",))
 

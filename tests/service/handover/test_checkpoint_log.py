@@ -1,4 +1,4 @@
-"""The checkpoint log (pd_service/service/statelog.py): newest record wins, a damaged end
+"""The checkpoint log (pd_service/service/handover/checkpoint_log.py): newest record wins, a damaged end
 drops only what follows the damage, foreign files are set aside, earlier versions' files
 are carried over, the file stays bounded."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import logging
 import os
 
-from pd_service.service import statelog
-from pd_service.service.statelog import LOG_NAME, MAGIC, StateLog, parse, record
+from pd_service.service.handover import checkpoint_log
+from pd_service.service.handover.checkpoint_log import LOG_NAME, MAGIC, CheckpointLog, parse, record
 
 
 def names(d):
@@ -16,11 +16,11 @@ def names(d):
 
 
 def test_the_newest_record_of_a_session_wins_and_a_removal_forgets_it(tmp_path):
-    log = StateLog(tmp_path)
+    log = CheckpointLog(tmp_path)
     log.append([("a", b"a1"), ("b", b"b1")])
     log.append([("a", b"a2"), ("b", None), ("c", b"c1")])
     log.close()
-    again = StateLog(tmp_path)
+    again = CheckpointLog(tmp_path)
     assert again.get("a") == b"a2" and again.get("b") is None and again.get("c") == b"c1"
     assert again.sessions() == ["a", "c"]
     buf = (tmp_path / LOG_NAME).read_bytes()
@@ -29,7 +29,7 @@ def test_the_newest_record_of_a_session_wins_and_a_removal_forgets_it(tmp_path):
 
 
 def test_a_damaged_end_drops_only_what_follows_it(tmp_path, caplog):
-    log = StateLog(tmp_path)
+    log = CheckpointLog(tmp_path)
     log.append([("a", b"a1"), ("b", b"b1")])
     log.append([("a", b"a2-newer")])
     log.close()
@@ -38,17 +38,17 @@ def test_a_damaged_end_drops_only_what_follows_it(tmp_path, caplog):
     cut = whole[:-3]  # a crash while appending: the last record cut short
     path.write_bytes(cut)
     with caplog.at_level(logging.WARNING):
-        again = StateLog(tmp_path)
+        again = CheckpointLog(tmp_path)
         assert again.get("a") == b"a1" and again.get("b") == b"b1"
     assert "checkpoint_log_damaged" in caplog.text
     # a flipped byte inside a record: its CRC fails, reading stops before it
     flipped = bytearray(whole)
     flipped[len(MAGIC) + 12] ^= 0xFF  # inside the first record's name
     path.write_bytes(bytes(flipped))
-    assert StateLog(tmp_path).sessions() == []
+    assert CheckpointLog(tmp_path).sessions() == []
     # the next append rewrites the log without the damage: everything reads to the end
     path.write_bytes(cut)
-    again = StateLog(tmp_path)
+    again = CheckpointLog(tmp_path)
     again.append([("c", b"c1")])
     buf = path.read_bytes()
     assert parse(buf, len(MAGIC)) == ({"a": b"a1", "b": b"b1", "c": b"c1"}, len(buf))
@@ -56,13 +56,13 @@ def test_a_damaged_end_drops_only_what_follows_it(tmp_path, caplog):
 
 def test_a_file_that_is_not_a_log_is_set_aside(tmp_path):
     (tmp_path / LOG_NAME).write_bytes(b"not a checkpoint log")
-    log = StateLog(tmp_path)
+    log = CheckpointLog(tmp_path)
     assert log.sessions() == []
     assert names(tmp_path) == [LOG_NAME + ".bad"]
     os.mkfifo(tmp_path / "x")
     (tmp_path / LOG_NAME).unlink(missing_ok=True)
     (tmp_path / LOG_NAME).symlink_to(tmp_path / "x")  # a symlink to a FIFO: never opened
-    assert StateLog(tmp_path).sessions() == []
+    assert CheckpointLog(tmp_path).sessions() == []
     assert os.path.lexists(tmp_path / (LOG_NAME + ".bad"))
 
 
@@ -70,31 +70,31 @@ def test_earlier_versions_files_are_read_then_carried_into_the_log(tmp_path):
     (tmp_path / "old.ckpt").write_bytes(b"old-state")
     (tmp_path / "both.ckpt").write_bytes(b"stale")
     os.mkfifo(tmp_path / "fifo.ckpt")  # never read, left alone
-    log = StateLog(tmp_path)
+    log = CheckpointLog(tmp_path)
     log.append([("both", b"newer")])
     log.close()
     assert names(tmp_path) == [LOG_NAME, "fifo.ckpt"]
-    again = StateLog(tmp_path)
+    again = CheckpointLog(tmp_path)
     assert again.get("old") == b"old-state" and again.get("both") == b"newer"
     assert again.get("fifo") is None
 
 
 def test_the_log_stays_bounded_by_its_live_states(tmp_path, monkeypatch):
-    monkeypatch.setattr(statelog, "COMPACT_SLACK_BYTES", 10_000)
-    log = StateLog(tmp_path)
+    monkeypatch.setattr(checkpoint_log, "COMPACT_SLACK_BYTES", 10_000)
+    log = CheckpointLog(tmp_path)
     state = b"s" * 1000
     for i in range(500):  # 500 kB written, 2 kB live
         log.append([("a", state), ("b", state + b"%d" % i)])
     size = (tmp_path / LOG_NAME).stat().st_size
-    assert size <= statelog.COMPACT_FACTOR * 2_010 + 10_000 + len(record("b", state + b"499"))
+    assert size <= checkpoint_log.COMPACT_FACTOR * 2_010 + 10_000 + len(record("b", state + b"499"))
     log.close()
-    assert StateLog(tmp_path).get("b") == state + b"499"
+    assert CheckpointLog(tmp_path).get("b") == state + b"499"
 
 
 def test_a_failed_append_is_rewritten_before_the_next_one(tmp_path, monkeypatch):
     """A write that fails halfway (a full disk) may leave a record cut short: the next
     append rewrites the log first, so the records after it are read back."""
-    log = StateLog(tmp_path)
+    log = CheckpointLog(tmp_path)
     log.append([("a", b"a1")])
     real_write = os.write
     calls = []
@@ -104,16 +104,16 @@ def test_a_failed_append_is_rewritten_before_the_next_one(tmp_path, monkeypatch)
         real_write(fd, bytes(data[: len(data) // 2]))
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(statelog.os, "write", half_then_fail)
+    monkeypatch.setattr(checkpoint_log.os, "write", half_then_fail)
     try:
         log.append([("b", b"b1" * 100)])
     except OSError:
         pass
     else:
         raise AssertionError("the failed write was not reported")
-    monkeypatch.setattr(statelog.os, "write", real_write)
+    monkeypatch.setattr(checkpoint_log.os, "write", real_write)
     assert calls and log.get("b") is None  # not written: not held
     log.append([("c", b"c1")])
     log.close()
-    again = StateLog(tmp_path)
+    again = CheckpointLog(tmp_path)
     assert again.get("a") == b"a1" and again.get("c") == b"c1" and again.get("b") is None

@@ -1,7 +1,7 @@
 """Publishing: predictions, ticks, error reports and status answers, through one outbox.
 
 Everything the worker publishes during a round is appended to the outbox and sent by
-:meth:`Publisher.flush` at the end of the round (after the core's state is consistent). A
+:meth:`Outbox.flush` at the end of the round (after the core's state is consistent). A
 Prediction is published for every session that accepted a measurement in the round
 (coalesced: one per session per round) and at every session's tick: the first step
 ``k > after`` with ``k % publish_every == 0`` fires at ``epoch + (k + tick_phase) * period``.
@@ -39,9 +39,9 @@ from pd_service.wire import ErrorReport, SessionStatus, encode, keys
 
 from .config import Settings
 from .health import inspect, inspect_packed
+from .latency import LatencyWindow
 from .session import Refusal, Session, next_slot
-from .stats import LatencyWindow
-from .status import SessionState, session_status
+from .status import SessionPhase, session_status
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -68,7 +68,7 @@ class Out:
         self.recv: list[int] = [] if recv is None else recv
 
 
-class Publisher:
+class Outbox:
     """The outbox, the tick schedule and the error-report limits. Worker thread only."""
 
     def __init__(self, transport: Transport, settings: Settings, counters: Tally,
@@ -82,14 +82,12 @@ class Publisher:
         self.counters = counters
         self.latency = latency
         self.mono_ns = mono_ns
-        self.outbox: list[Out] = []
+        self.pending: list[Out] = []
         #: The tick schedule: per deadline (ns) its entries (the session's tick generation,
         #: step, deferred, session) in the order they were queued, and a heap of the
         #: deadlines; ``deferred``: the late tick of a data-driven session. Sessions that
-        #: share an epoch share deadlines: queueing a tick is then a dict lookup and an
-        #: append, not a push into a heap of N tuples whose equal deadlines make every
-        #: comparison fall through to the tie-break (~10,000 -> ~2,300 instructions per
-        #: session-step in the worker, bench/instructions.py).
+        #: share an epoch share deadlines: queueing a tick is a dict lookup and an append,
+        #: not a push into a heap of N tuples whose equal deadlines tie.
         self._tick_at: dict[int, list[tuple[int, int, bool, Session]]] = {}
         self._tick_times: list[int] = []
         #: ErrorReports about sessions nobody serves (unknown names, refused new specs).
@@ -99,35 +97,49 @@ class Publisher:
 
     # --- error reports --------------------------------------------------------------------
 
-    def refuse(self, sess: Session, key: str, r: Refusal, now: int) -> None:
-        """Count a refusal (session and service) and report it unless rate-limited."""
-        sess.counters[r.reason] += 1
-        sess.counters["refused"] += 1
-        self.counters[r.reason] += 1
-        self.counters["refused"] += 1
-        if log.isEnabledFor(logging.DEBUG):
-            event(log, "refused", logging.DEBUG, session=sess.name, key=key, reason=r.reason,
-                  text=r.text)
-        if sess.limiter.allow(now) and self.total_limiter.allow(now):
-            self.error(sess.error_key, sess.name, key, r.text, r.seq, now)
-        else:
-            sess.counters["errors_suppressed"] += 1
-            self.counters["errors_suppressed"] += 1
+    def refuse(self, sess: Session | None, key: str, r: Refusal, now: int, *,
+               session: str = "", count: int = 1, counted: tuple[str, ...] | None = None,
+               report: bool = True) -> None:
+        """The daemon's one way to refuse: count ``r`` and report it in an ErrorReport.
 
-    def error(self, err_key: str, session: str, key: str, text: str, seq: int | None,
-              now: int) -> None:
-        rep = ErrorReport(session=session, key=key[:512], seq=seq, reason=text[:1024], t_ns=now)
-        self.outbox.append(Out(err_key, encode(rep)))
-        self.counters["errors_sent"] += 1
+        Counted: ``count`` times each name of ``counted`` (default ``r.reason`` and
+        ``refused``), on the session's counters (``sess``: served here; else None and
+        ``session`` names it) and service-wide. Reported (``report``: this instance owns the
+        name) on the session's error key within the limits: its own bucket (``error_rate``,
+        ``error_burst``; the names not served here share one), then the service's
+        (``error_rate_total``); over either, counted ``errors_suppressed`` instead."""
+        if counted is None:
+            counted = (r.reason, "refused")
+        for name in counted:
+            if sess is not None:
+                sess.counters[name] += count
+            self.counters[name] += count
+        if counted and log.isEnabledFor(logging.DEBUG):
+            event(log, "refused", logging.DEBUG, session=session if sess is None else sess.name,
+                  key=key, reason=r.reason, text=r.text)
+        if not report:
+            return
+        limiter = self.unknown_limiter if sess is None else sess.limiter
+        if limiter.allow(now) and self.total_limiter.allow(now):
+            err_key = keys.error_key(session) if sess is None else sess.error_key
+            name = session if sess is None else sess.name
+            rep = ErrorReport(session=name, key=key[:512], seq=r.seq, reason=r.text[:1024],
+                              t_ns=now)
+            self.pending.append(Out(err_key, encode(rep)))
+            self.counters["errors_sent"] += 1
+        else:
+            if sess is not None:
+                sess.counters["errors_suppressed"] += 1
+            self.counters["errors_suppressed"] += 1
 
     # --- status answers -------------------------------------------------------------------
 
-    def answer(self, sess: Session, state: SessionState, detail: str, now: int) -> None:
+    def answer(self, sess: Session, state: SessionPhase, detail: str, now: int) -> None:
         """Put the session's status (the answer to a config change)."""
         st = session_status(sess, self.instance, state, detail, now)
-        self.outbox.append(Out(sess.status_key, encode(st)))
+        self.pending.append(Out(sess.status_key, encode(st)))
 
-    def answer_gone(self, session: str, state: SessionState, detail: str, now: int,
+    def answer_gone(self, session: str, state: SessionPhase, detail: str, now: int,
                     sess: Session | None) -> None:
         """Put the status of a session that is removed or expired (or never was)."""
         if sess is not None:
@@ -136,10 +148,10 @@ class Publisher:
             st = SessionStatus(session=session, instance=self.instance, state=state,
                                now_step=0, published=0, latency_p50_us=0.0,
                                latency_p99_us=0.0, detail=detail)
-        self.outbox.append(Out(keys.status_key(session), encode(st)))
+        self.pending.append(Out(keys.status_key(session), encode(st)))
 
     def delete(self, key: str) -> None:
-        self.outbox.append(Out(key, None))
+        self.pending.append(Out(key, None))
 
     # --- predictions ----------------------------------------------------------------------
 
@@ -154,7 +166,7 @@ class Publisher:
             try:
                 pred = sess.predict(k)
             except Exception as exc:  # e.g. a backend's Cholesky of a broken covariance
-                got = self._recover(sess, k, f"prediction failed: "
+                got = self._reset_estimate(sess, k, f"prediction failed: "
                                     f"{type(exc).__name__}: {exc}", now)
                 if got is None:
                     continue
@@ -163,11 +175,11 @@ class Publisher:
             try:
                 bad, xb, pb = inspect_packed(pred.x, pred.P)
                 if bad is not None:
-                    got = self._recover(sess, k, bad, now)
+                    got = self._reset_estimate(sess, k, bad, now)
                     if got is None:
                         continue
                     pred = got
-                    _, xb, pb = inspect_packed(pred.x, pred.P)  # healthy: _recover checked
+                    _, xb, pb = inspect_packed(pred.x, pred.P)  # healthy: _reset_estimate checked
                 sess.keep_snapshot(pred, k)
                 payload = sess.pack(pred, xb, pb, k, now)
             except Exception as exc:  # e.g. a non-finite estimate: report, never crash
@@ -178,11 +190,11 @@ class Publisher:
                 sess.counters["steps_missed"] += missed
                 self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
-            self.outbox.append(Out(sess.pred_key, payload, sess, recv))
+            self.pending.append(Out(sess.pred_key, payload, sess, recv))
             if data and now - sess.time_of(k) >= self._tick_ns(sess):
                 sess.late_data_step = k
 
-    def _recover(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
+    def _reset_estimate(self, sess: Session, k: int, why: str, now: int) -> PredictedState | None:
         """The estimate of ``sess`` at step ``k`` is unusable (``why``): restore its snapshot,
         else its prior, and predict again. Returns the healthy prediction, or
         None (reported as ``internal_error``) if even the prior gives none; after such a
@@ -199,7 +211,7 @@ class Publisher:
         problem = why
         for source in sources:
             try:
-                sess.recover(source)
+                sess.reset_estimate(source)
                 pred = sess.predict(k)
                 bad = inspect(pred.x, pred.P)[0]
             except Exception as exc:
@@ -212,11 +224,8 @@ class Publisher:
                 text = f"estimate recovered from its {source} at step {k}: {why}"
                 event(log, "session_recovered", logging.WARNING, session=sess.name,
                       source=source, step=k, reason=why)
-                if sess.limiter.allow(now) and self.total_limiter.allow(now):
-                    self.error(sess.error_key, sess.name, sess.pred_key, text, None, now)
-                else:
-                    sess.counters["errors_suppressed"] += 1
-                    self.counters["errors_suppressed"] += 1
+                # a notice, not a refusal: reported within the limits, nothing counted
+                self.refuse(sess, sess.pred_key, Refusal("recovered", text), now, counted=())
                 return pred
             problem = f"{problem}; from its {source}: {bad}"
         sess.health_failed_step = k
@@ -234,7 +243,7 @@ class Publisher:
 
     def flush(self) -> None:
         """Send the outbox; record receipt -> put latencies (µs) of the predictions sent."""
-        out, self.outbox = self.outbox, []
+        out, self.pending = self.pending, []
         t = self.t
         put, mono = t.put, self.mono_ns
         for o in out:
@@ -314,10 +323,8 @@ class Publisher:
                         due.append(sess)
                 if not sess.heard or now - sess.last_activity_ns > idle_ns:
                     # idle (no message since it was started, or none for idle_after_s): ticked
-                    # only at the steps k = phase (mod skip), one per idle_publish_s (cost
-                    # O(active sessions) per step); the phase is the session's own, so idle
-                    # sessions sharing an epoch do not all predict in the same tick (2,000 of
-                    # them did, starving the active ones)
+                    # only at the steps k = phase (mod skip), one per idle_publish_s, at a
+                    # phase of its own so idle sessions do not all predict in the same tick
                     skip = max(1, int(self.settings.idle_publish_s * 1e9) // sess.period_ns)
                     base = max(cur, k)
                     nxt = next_slot(base, skip, sess.spread)

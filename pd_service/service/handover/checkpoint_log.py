@@ -123,7 +123,7 @@ def parse(buf: bytes, off: int = 0) -> tuple[dict[str, bytes], int]:
     return live, off
 
 
-class StateLog:
+class CheckpointLog:
     """The log of one state directory. Thread-safe (one lock); :meth:`append` raises
     OSError when the disk refuses (the caller counts it), the next call tries again."""
 

@@ -14,13 +14,13 @@ import pytest
 
 from pd_service.backends import build_estimator
 from pd_service.service import ServiceCore, Settings, SpecStore
-from pd_service.service.failover import replica_key
-from pd_service.service.session import RECOVERED_COPIES
+from pd_service.service.handover.keeper import replica_key
+from pd_service.service.session import READ_BACK_COPIES
 from pd_service.transport import InMemoryBus, Sample
 from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
 
-from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
-from .test_core import PAIR, make_core, settle
+from ..helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
+from ..test_core import PAIR, make_core, settle
 
 
 class Driver:
@@ -199,7 +199,7 @@ def test_a_replica_for_another_spec_is_refused(tmp_path):
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
     a.run_once()
     other = build_estimator(paper_spec("s1", max_delay=20))
-    from pd_service.checkpoint import to_message
+    from pd_service.service.handover.checkpoint import to_message
     from pd_service.wire.state import spec_fingerprint
     msg = to_message(other.export_state(), session="s1", instance="inst-x",
                      fingerprint=spec_fingerprint(paper_spec("s1", max_delay=20)), made_ns=0)
@@ -216,7 +216,7 @@ def test_a_replica_is_only_unpacked_on_arrival_and_validated_at_the_takeover(tmp
     SessionState is validated only when a takeover resumes from it."""
     import msgpack
 
-    from pd_service.checkpoint import to_message
+    from pd_service.service.handover.checkpoint import to_message
     from pd_service.wire.state import spec_fingerprint
 
     bus, clock = InMemoryBus(), Clock(0)
@@ -353,10 +353,11 @@ def test_a_session_in_its_first_window_is_checkpointed(tmp_path):
 def test_state_writer_writes_newest_and_removes(tmp_path):
     """The daemon's checkpoint thread: the newest submitted state of a session is on disk
     after flush, a removal deletes it even with a write pending, failures are reported."""
-    from pd_service.service.persist import SpecStore, StateWriter
+    from pd_service.service.handover.checkpoint_writer import CheckpointWriter
+    from pd_service.service.spec_store import SpecStore
 
     store = SpecStore(tmp_path)
-    w = StateWriter(store)
+    w = CheckpointWriter(store)
     try:
         for i in range(50):
             w.submit("alpha", b"state-%d" % i)
@@ -377,7 +378,7 @@ def test_store_keeps_the_newest_checkpoint_in_one_log(tmp_path):
     """Rewrites and removals are records appended to one file; a new store reads the
     newest checkpoint of each session back; a shorter state after longer ones leaves
     nothing of them behind."""
-    from pd_service.service.persist import SpecStore
+    from pd_service.service.spec_store import SpecStore
 
     store = SpecStore(tmp_path)
     for i in range(5):
@@ -400,7 +401,7 @@ def test_states_due_together_are_spread_over_rounds(tmp_path):
     STATES_PER_ROUND per round (a burst stalled the worker); the others stay due and are
     all taken by the following rounds and sweeps, none starved (a session written first
     may be due again meanwhile, at its own phase: it takes a share of the budget)."""
-    from pd_service.service.failover import STATES_PER_ROUND
+    from pd_service.service.handover.keeper import STATES_PER_ROUND
 
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
@@ -729,8 +730,8 @@ def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
     def sample(key: str, payload: bytes, recovered: bool = False) -> Sample:
         return Sample(key, payload, "put", clock.t, clock.t, recovered=recovered)
 
-    d.on_recovered_command(sample(keys.command_key("s1"), cmd, True))
-    d.on_recovered_sensor(sample(keys.sensor_key("s1", "ranger"), meas, True))
+    d.on_read_back_command(sample(keys.command_key("s1"), cmd, True))
+    d.on_read_back_sensor(sample(keys.sensor_key("s1", "ranger"), meas, True))
     core.run_once()
     d.on_command_sample(sample(keys.command_key("s1"), cmd))
     d.on_sensor_sample(sample(keys.sensor_key("s1", "ranger"), meas))
@@ -744,7 +745,7 @@ def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
     core.run_once()
     assert c["commands_duplicate"] == 1 and c["refused"] == 1 and len(col.errors["s1"]) == 1
     # a copy is expected only within the window: later, a repeat is a duplicate again
-    d.on_recovered_sensor(sample(keys.sensor_key("s1", "ranger"),
+    d.on_read_back_sensor(sample(keys.sensor_key("s1", "ranger"),
                                  meas_bytes("s1", "ranger", 3, [1.0]), True))
     core.run_once()
     clock.t = (3 + paper_spec("s1").max_delay + 2) * PERIOD_NS
@@ -752,13 +753,13 @@ def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
                               meas_bytes("s1", "ranger", 3, [1.0])))
     core.run_once()
     assert c["live_copy_of_recovered"] == 2 and c["refused"] == 2
-    # bounded: at most RECOVERED_COPIES remembered (hashes, oldest dropped first); those
+    # bounded: at most READ_BACK_COPIES remembered (hashes, oldest dropped first); those
     # kept before now - max_delay - 1 are past their window and go at the next look-up
     sess = d.routes["s1"].sess
     now_step = sess.step_now(clock.t)
-    for i in range(RECOVERED_COPIES + 100):
-        sess.keep_recovered_copy(b"m%d" % i, now_step - 20 + i // 100)  # steps now-20 .. now-9
-    assert len(sess.recovered_copies) == RECOVERED_COPIES
-    assert not sess.take_recovered_copy(b"m0", now_step)  # the oldest went first
-    assert len(sess.recovered_copies) < RECOVERED_COPIES  # expired ones purged
-    assert sess.take_recovered_copy(b"m%d" % (RECOVERED_COPIES + 99), now_step)
+    for i in range(READ_BACK_COPIES + 100):
+        sess.keep_read_back_copy(b"m%d" % i, now_step - 20 + i // 100)  # steps now-20 .. now-9
+    assert len(sess.read_back_copies) == READ_BACK_COPIES
+    assert not sess.take_read_back_copy(b"m0", now_step)  # the oldest went first
+    assert len(sess.read_back_copies) < READ_BACK_COPIES  # expired ones purged
+    assert sess.take_read_back_copy(b"m%d" % (READ_BACK_COPIES + 99), now_step)
