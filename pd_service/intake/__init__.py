@@ -21,7 +21,6 @@ from pd_service.wire import Command, Measurement, SessionSpec, WireError, decode
 from pd_service.wire.convert import (
     check_command,
     check_measurement,
-    command_dim,
     command_step,
     measurement_step,
 )
@@ -83,7 +82,10 @@ class Intake:
     message offered could be read as a message of this session (activity, for idle
     detection), whatever its outcome."""
 
-    def __init__(self, spec: SessionSpec, est: Estimator, max_abs: float = MAX_ABS_INPUT) -> None:
+    def __init__(self, spec: SessionSpec, est: Estimator, nu: int,
+                 max_abs: float = MAX_ABS_INPUT) -> None:
+        """``est`` and ``nu`` (the command dimension, 0: no commands) as
+        :class:`pd_service.backends.Built` holds them."""
         self.spec = spec
         self.est = est
         self.name = spec.session
@@ -93,7 +95,7 @@ class Intake:
             raise ValueError(f"max_abs: must be positive and finite, got {max_abs!r}")
         self.max_abs = max_abs
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
-        self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
+        self.r = nu
         self.decoded = False
 
     def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:

@@ -63,7 +63,7 @@ def full_measurement(payload: bytes, sensor: str):
 def full_command(payload: bytes):
     try:
         msg = decode(payload, Command)
-        check_command(msg, SPEC)
+        check_command(msg, SPEC, SPEC.model.r)
     except WireError:
         return None
     if np.abs(msg.u).max(initial=0.0) > MAX_ABS_INPUT:
