@@ -37,6 +37,9 @@ def range_bearing(
     or the given diagonal (2, 2) covariance R (as a session spec gives it: no square root)."""
     st = as_vector(station, f"sensor {name!r} station", 2).copy()
     if R is None:
+        if sigma_range is None or sigma_bearing is None:
+            raise ValueError(f"sensor {name!r}: bad parameters (expected sigma_range and "
+                             "sigma_bearing, or R)")
         sr = as_positive(sigma_range, f"sensor {name!r} sigma_range")
         sb = as_positive(sigma_bearing, f"sensor {name!r} sigma_bearing")
         Rm = np.diag([sr * sr, sb * sb])
