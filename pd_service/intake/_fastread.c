@@ -275,7 +275,7 @@ static PyObject *read_msg(PyObject *const *args, Py_ssize_t nargs, int command) 
     if (r.p != r.end || !seen[K_SESSION] || !seen[K_SEQ] || vec == NULL
         || (!command && !seen[K_SENSOR]) || has_step == has_stamp) goto none;
     {   /* (seq, step or None, stamp or None, vec), built directly (Py_BuildValue
-           parses its format string: ~600 instructions a call) */
+           would parse its format string at every call) */
         PyObject *s = PyLong_FromLongLong((long long)seq);
         PyObject *o = PyLong_FromLongLong(has_step ? step : stamp);
         if (s == NULL || o == NULL || (res = PyTuple_New(4)) == NULL) {
@@ -320,7 +320,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_fastread",
-    "The hot-path Measurement / Command readers of pd_service.intake.fastpath, in C.", -1,
+    "The fast path of pd_service.intake: plain Measurement / Command readers, in C.", -1,
     methods, NULL, NULL, NULL, NULL,
 };
 
