@@ -358,7 +358,7 @@ def test_imm_spec_builds_the_factorys_estimator(variant):
     a, b = _drive([op, direct], 40, measure)
     for p, q in zip(a, b, strict=True):
         assert p.step == q.step and p.newest_step == q.newest_step
-        # sigma_bearing = sqrt(R[1, 1]) may differ from the literal in its last bit
+        # the spec's R against the literal sigmas squared
         np.testing.assert_allclose(p.x, q.x, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(p.P, q.P, rtol=1e-9, atol=1e-15)
     assert op.counters == direct.counters and op.counters["accepted"] > 50
