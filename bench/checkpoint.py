@@ -21,7 +21,8 @@ import time
 
 import numpy as np
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
+from pd_service.service.handover.checkpoint import encode_state, to_message
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.scenarios.paper import paper_scenario
 from pd_service.service.handover.checkpoint import encode_state, to_message
@@ -30,7 +31,7 @@ from pd_service.wire import encode, spec_fingerprint
 
 def paper_case():
     spec = paper_scenario("journal").spec("bench", 0, lead=10, max_delay=12)
-    est = build_estimator(spec)
+    est = build(spec).est
     rng = np.random.default_rng(0)
     for k in range(200):
         est.add_command(k + spec.lead, rng.standard_normal(1), now=k)

@@ -17,7 +17,7 @@ import json
 
 import numpy as np
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario
 
 
@@ -28,7 +28,7 @@ def main() -> None:
     args = ap.parse_args()
     lost = {int(k) for k in args.lost.split(",") if k}
     spec = paper_scenario().spec("s", 0, max_delay=RANGER_DELAY)
-    a, b = build_estimator(spec), build_estimator(spec)
+    a, b = build(spec).est, build(spec).est
     rows, equal_from, equal_steps = [], None, 0
     for k in range(args.steps):
         for est, loses in ((a, False), (b, k in lost)):

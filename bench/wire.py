@@ -14,6 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario
+from pd_service.service.health import inspect_packed
 from pd_service.wire import (
     Command,
     Measurement,
@@ -23,8 +24,8 @@ from pd_service.wire import (
     encode,
 )
 from pd_service.wire.convert import (
+    PredictionEncoder,
     check_measurement,
-    encode_prediction,
     measurement_step,
     prediction_from,
 )
@@ -74,6 +75,12 @@ def main() -> None:
     def daemon_out() -> None:
         encode(prediction_from(est, spec, "s1", 99, 1_700_000_000_123_456_789, counters))
 
+    encoder = PredictionEncoder(spec, "s1")
+
+    def daemon_fast_out() -> None:
+        _, xb, pb = inspect_packed(est.x, est.P)
+        encoder.encode_packed(est, xb, pb, 99, 1_700_000_000_123_456_789, counters)
+
     rows = [
         ("decode+validate Measurement (m=2)       [bar 10]", lambda: decode(b_meas, Measurement)),
         ("encode Prediction (n=4)                 [bar 10]", lambda: encode(pred)),
@@ -82,8 +89,7 @@ def main() -> None:
         ("decode+validate Prediction (n=4, PSD)", lambda: decode(b_pred, Prediction)),
         ("daemon in: decode + check + step", daemon_in),
         ("daemon out: prediction_from + encode", daemon_out),
-        ("daemon out: encode_prediction (direct)", lambda: encode_prediction(
-            est, spec, "s1", 99, 1_700_000_000_123_456_789, counters)),
+        ("daemon out: inspect_packed + encode_packed", daemon_fast_out),
         ("decode+validate SessionSpec (paper)", lambda: decode(b_spec, SessionSpec)),
     ]
     print(f"wire benchmark: median of {REPEATS} batches x {BATCH} calls, µs per call")

@@ -1,29 +1,72 @@
-"""SessionSpec -> estimator, for every model kind: the one place a spec becomes an estimator.
+"""SessionSpec -> (estimator, command dimension, cost): the one place a spec becomes an
+estimator, in one trip.
+
+:class:`Blueprint` reads a spec once: it builds the nonlinear model (the first IMM mode) that
+gives the command dimension ``nu``, and prices the session (:func:`spec_cost`) without
+allocating anything in proportion to it, so the daemon can check the cost against its budgets
+first; :meth:`Blueprint.build` then builds the estimator on the model already built and
+returns a :class:`Built` (estimator, nu, cost) that the session, its intake and the admission
+ledger take as they are. :func:`build` is both steps at once (tools, tests).
 
 - "linear": :class:`~pd_service.estimation.ObserverPredictor` (LinearModel, [Sensor], x0,
-  P0, lead, max_delay, command_hold);
+  P0, lead, max_delay, command_hold); nu = the columns of B;
 - "unscented": :func:`~pd_service.estimation.nonlinear.make_unscented` with the registered
-  model, its params, adapt and sigma settings, the session's sensors in order and their R;
-- "imm": :func:`~pd_service.estimation.imm.make_imm` with the modes, transition, variant,
-  node, mu0, kappa and the sensors as IMM sensor maps (:func:`imm_sensor`).
+  model built here, its adapt and sigma settings, the session's sensors in order and their R;
+  nu = the model's;
+- "imm": :func:`~pd_service.estimation.imm.make_imm` with the modes (the first built here),
+  transition, variant, node, mu0, kappa and the sensors as IMM sensor maps
+  (:func:`imm_sensor`, R as the spec gives it); nu = the first mode's (0: no commands).
 
 What the wire layer cannot check alone (a model that is not registered, a parameter it does
-not take, x0 / R of the wrong size for the model) is refused here: any error of the
-estimator's constructor becomes a WireError "SessionSpec: refused by the estimator: <reason>".
-A valid linear spec is never refused.
+not take, x0 / R of the wrong size for the model) is refused here: any error of a model's or
+the estimator's constructor becomes a WireError "SessionSpec.<field>: refused by the
+estimator: <reason>" (:func:`estimator_refusal`). A valid linear spec is never refused.
+
+Cost model (:func:`spec_cost`; bytes, 8 per float64), from the spec's fields and nu only.
+With n states, W = max_delay + 1 and the input buffer's capacity C = 3 max_delay + lead + 4
+(:class:`~pd_service.estimation.replay.ReplayEstimator`)::
+
+    state       g = 8 (n + n^2) * k          k = 1 linear, 2 unscented (x, P and the
+                                             sensitivities an adapter tracks), 2 r IMM (r modes)
+    window      W g  (posterior checkpoints) + sum_s ceil(W / interval_s) (8 (m_s + m_s^2) + 200)
+    inputs      16 C nu                      (the command buffer holds 2 C rows)
+    fixed       SESSION_FIXED_BYTES          (Python objects, latency window, counters)
+    tables      8 ((C + 1) 2 n^2 + C n nu)   linear only: A^m, Qs(m) for m <= C and the
+                                             stacked [A^{C-1}B ... B]; shared by every session
+                                             with the same (A, B, Q, C), charged once
+
+CPU model (µs per step), "nominal": every sensor delivers a sample every ``interval`` steps
+after its declared ``delay``; a late sample re-runs the measured steps after its stamp
+(ReplayEstimator), which per step coalesces to a replay of D = max_s delay_s steps; the
+prediction rolls the newest posterior forward to now + lead::
+
+    samples/step   lam = sum_s 1 / interval_s
+    updates        U = 1 + lam D
+    linear         cpu = STEP_US + lam SAMPLE_US + (U + 1) LIN_OP_US(n)      (the prediction
+                                             is one multi-step product from the tables)
+    unscented      cpu = STEP_US + lam SAMPLE_US + (D + lead) UKF_STEP_US(n) + U UKF_UPD_US(n)
+    IMM (r modes)  the unscented figure with both per-op costs times r
+
+The constants are calibrated with ``bench/admission_calibrate.py`` and rounded up
+(docs/performance.md, "Admission's cost model"). They are a model, not a measurement of the
+spec: a spec's real cost depends on its traffic. The budgets it is checked against are
+:class:`pd_service.service.admission.Ledger`'s.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+import re
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from pd_service.estimation import Estimator, LinearModel, ObserverPredictor, Sensor
-from pd_service.estimation.imm import make_imm
-from pd_service.estimation.nonlinear import make_unscented
+from pd_service.estimation.imm import make_imm, make_mode
+from pd_service.estimation.nonlinear import NonlinearModel, make_model, make_unscented
 from pd_service.wire import (
     ImmModelSpec,
     LinearModelSpec,
@@ -32,82 +75,228 @@ from pd_service.wire import (
     UnscentedModelSpec,
     WireError,
 )
-from pd_service.wire.convert import estimator_refusal, mode_map, plain_params
+from pd_service.wire.messages import ModeSpec
 
-__all__ = ["build_estimator", "imm_sensor"]
+__all__ = ["Blueprint", "Built", "Cost", "build", "estimator_refusal", "imm_sensor",
+           "spec_cost"]
+
+SESSION_FIXED_BYTES = 32 * 1024
+PACKET_OVERHEAD_BYTES = 200
+
+STEP_US = 40.0  # pack and publish one prediction, tick bookkeeping
+SAMPLE_US = 15.0  # decode, check and store one measurement
 
 
-def build_estimator(spec: SessionSpec) -> Estimator:
-    """The session's estimator, by ``spec.model.kind`` (see the module docstring).
+def lin_op_us(n: int) -> float:
+    """One linear propagate or update (µs)."""
+    return 5.0 + 1e-4 * n**3
 
-    WireError "SessionSpec: refused by the estimator: ..." if the estimator's constructor
-    refuses the spec.
-    """
+
+def ukf_step_us(n: int) -> float:
+    """One propagated step of the 2n+1 sigma points (µs)."""
+    return 10.0 * n + 1e-3 * n**3
+
+
+def ukf_upd_us(n: int) -> float:
+    """One unscented update (µs)."""
+    return 27.0 * n + 3e-3 * n**3
+
+
+@dataclass(frozen=True, slots=True)
+class Cost:
+    """What one session costs. ``table_key`` identifies its shared tables (None: none)."""
+
+    session_bytes: int
+    table_bytes: int
+    table_key: str | None
+    cpu_us: float
+    period_ns: int
+
+    @property
+    def cpu_share(self) -> float:
+        """Fraction of one core: cpu_us per step over the step period."""
+        return self.cpu_us * 1000.0 / self.period_ns
+
+    @property
+    def bytes(self) -> int:
+        return self.session_bytes + self.table_bytes
+
+
+def spec_cost(spec: SessionSpec, nu: int) -> Cost:
+    """The cost model of the module docstring for ``spec`` with ``nu`` inputs (the
+    :attr:`Blueprint.nu`). Allocates nothing in proportion to the spec."""
     model = spec.model
-    try:
-        if isinstance(model, LinearModelSpec):
-            est: Estimator = ObserverPredictor(
-                LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
-                [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R)) for s in spec.sensors],
-                np.array(spec.x0), np.array(spec.P0), spec.lead, spec.max_delay,
-                spec.command_hold,
-            )
-        elif isinstance(model, UnscentedModelSpec):
-            est = _unscented(spec, model)
-        elif isinstance(model, ImmModelSpec):
-            est = _imm(spec, model)
-        else:  # a model kind the wire accepts but no backend builds: a programming error
-            raise TypeError(f"no backend for model kind {model.kind!r}")
-    except WireError:
-        raise
-    except Exception as exc:  # ValueError, or a registered model's own code failing
-        raise estimator_refusal(exc) from None
-    if est.n != spec.n:  # the constructors check x0 against the model; kept as a guard
-        raise WireError(f"SessionSpec.x0: refused by the estimator: the model has n={est.n} "
-                        f"states, x0 has {spec.n}")
-    return est
+    n = spec.n
+    W = spec.max_delay + 1
+    C = 3 * spec.max_delay + spec.lead + 4
+    if isinstance(model, LinearModelSpec):
+        k = 1
+    elif isinstance(model, UnscentedModelSpec):
+        k = 2
+    else:
+        k = 2 * len(model.modes)
+    g = 8 * (n + n * n) * k
+    packets = sum(math.ceil(W / s.interval) * (8 * (s.m + s.m * s.m) + PACKET_OVERHEAD_BYTES)
+                  for s in spec.sensors)
+    session_bytes = SESSION_FIXED_BYTES + W * g + packets + 16 * C * max(nu, 1)
+    lam = sum(1.0 / s.interval for s in spec.sensors)
+    D = max(s.delay for s in spec.sensors)
+    updates = 1.0 + lam * D
+    cpu = STEP_US + lam * SAMPLE_US
+    table_bytes, table_key = 0, None
+    if isinstance(model, LinearModelSpec):
+        table_bytes = 8 * ((C + 1) * 2 * n * n + C * n * nu)
+        h = hashlib.blake2b(digest_size=16)
+        for a in (model.A, model.B, model.Q):
+            h.update(repr(a.shape).encode())
+            h.update(a.tobytes())
+        h.update(str(C).encode())
+        table_key = h.hexdigest()
+        cpu += (updates + 1.0) * lin_op_us(n)
+    else:
+        r = 1 if isinstance(model, UnscentedModelSpec) else len(model.modes)
+        cpu += r * ((D + spec.lead) * ukf_step_us(n) + updates * ukf_upd_us(n))
+    return Cost(session_bytes, table_bytes, table_key, cpu, spec.period_ns)
 
 
-def _unscented(spec: SessionSpec, model: UnscentedModelSpec) -> Estimator:
-    adapt = None
-    if model.adapt is not None:
-        adapt = {k: v for k, v in model.adapt.model_dump().items() if v is not None}
-    sigma = None if model.sigma is None else model.sigma.model_dump()
-    return make_unscented(
-        model.model, plain_params(model.params),
-        x0=np.array(spec.x0), P0=np.array(spec.P0),
-        lead=spec.lead, max_delay=spec.max_delay, command_hold=spec.command_hold,
-        adapt=adapt, sigma=sigma,
-        sensors=[s.name for s in spec.sensors],
-        sensor_R={s.name: np.array(s.R) for s in spec.sensors},
-    )
+#: The estimator factories start a refusal with what they refuse ("x0: ...",
+#: "sensor_R['pose']: ..."); the SessionSpec field each such word stands for (else "model").
+_ESTIMATOR_FIELDS = {"x0": "x0", "P0": "P0", "sensors": "sensors", "sensor_R": "sensors",
+                     "indices": "model.unscented.adapt.indices", "modes": "model.imm.modes"}
+
+
+def estimator_refusal(exc: Exception) -> WireError:
+    """A spec the estimator refused, as ``SessionSpec.<field>: refused by the estimator:
+    <reason>`` (the field its reason starts with, else ``model``)."""
+    text = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+    head = re.match(r"[A-Za-z0-9_]+", text)
+    field = _ESTIMATOR_FIELDS.get(head.group(0) if head else "", "model")
+    return WireError(f"SessionSpec.{field}: refused by the estimator: {text}")
+
+
+def _params(params: Mapping[str, Any]) -> dict[str, Any]:
+    """Fresh copies of a model's parameter values (lists are mutable)."""
+    return {k: list(v) if isinstance(v, list) else v for k, v in params.items()}
+
+
+def _mode_map(mode: ModeSpec) -> dict[str, Any]:
+    """An IMM mode as the registry's {"model": name, "params": {...}} map."""
+    return {"model": mode.model, "params": _params(mode.params)}
+
+
+@dataclass(frozen=True, slots=True)
+class Built:
+    """A spec's estimator with what serving it needs: its command dimension ``nu`` (0: the
+    session takes no commands) and its :class:`Cost`."""
+
+    est: Estimator
+    nu: int
+    cost: Cost
+
+
+class Blueprint:
+    """A spec read once: ``nu`` and ``cost`` known, the estimator not yet built.
+
+    WireError "SessionSpec.model: refused by the estimator: ..." if the model that gives nu
+    (unscented: the registered model; IMM: the first mode) cannot be built.
+    """
+
+    def __init__(self, spec: SessionSpec) -> None:
+        self.spec = spec
+        model = spec.model
+        #: the nonlinear model built for nu, reused by :meth:`build` (None: linear)
+        self._model: NonlinearModel | None = None
+        try:
+            if isinstance(model, LinearModelSpec):
+                nu = model.r
+            elif isinstance(model, UnscentedModelSpec):
+                self._model = make_model(model.model, **_params(model.params))
+                nu = int(self._model.nu)
+            else:
+                self._model = make_mode(_mode_map(model.modes[0]))
+                nu = int(self._model.nu)
+        except Exception as exc:  # ValueError, or a registered model's own code failing
+            raise estimator_refusal(exc) from None
+        self.nu: int = nu
+        self.cost: Cost = spec_cost(spec, nu)
+
+    def build(self) -> Built:
+        """The session's estimator, by ``spec.model.kind`` (see the module docstring).
+
+        WireError "SessionSpec.<field>: refused by the estimator: ..." if the estimator's
+        constructor refuses the spec.
+        """
+        spec, model = self.spec, self.spec.model
+        try:
+            if isinstance(model, LinearModelSpec):
+                est: Estimator = ObserverPredictor(
+                    LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
+                    [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R))
+                     for s in spec.sensors],
+                    np.array(spec.x0), np.array(spec.P0), spec.lead, spec.max_delay,
+                    spec.command_hold,
+                )
+            elif isinstance(model, UnscentedModelSpec):
+                est = self._unscented(model)
+            elif isinstance(model, ImmModelSpec):
+                est = self._imm(model)
+            else:  # a model kind the wire accepts but no backend builds: a programming error
+                raise TypeError(f"no backend for model kind {model.kind!r}")
+        except WireError:
+            raise
+        except Exception as exc:  # ValueError, or a registered model's own code failing
+            raise estimator_refusal(exc) from None
+        if est.n != spec.n:  # the constructors check x0 against the model; kept as a guard
+            raise WireError(f"SessionSpec.x0: refused by the estimator: the model has "
+                            f"n={est.n} states, x0 has {spec.n}")
+        return Built(est, self.nu, self.cost)
+
+    def _unscented(self, model: UnscentedModelSpec) -> Estimator:
+        spec = self.spec
+        assert self._model is not None  # built in __init__
+        adapt = None
+        if model.adapt is not None:
+            adapt = {k: v for k, v in model.adapt.model_dump().items() if v is not None}
+        sigma = None if model.sigma is None else model.sigma.model_dump()
+        return make_unscented(
+            self._model, None,
+            x0=np.array(spec.x0), P0=np.array(spec.P0),
+            lead=spec.lead, max_delay=spec.max_delay, command_hold=spec.command_hold,
+            adapt=adapt, sigma=sigma,
+            sensors=[s.name for s in spec.sensors],
+            sensor_R={s.name: np.array(s.R) for s in spec.sensors},
+        )
+
+    def _imm(self, model: ImmModelSpec) -> Estimator:
+        spec = self.spec
+        assert self._model is not None  # the first mode, built in __init__
+        modes: list[NonlinearModel | Mapping[str, object]] = [
+            self._model, *(_mode_map(m) for m in model.modes[1:])]
+        return make_imm(
+            modes=modes,
+            transition=np.array(model.transition),
+            sensors=[imm_sensor(s) for s in spec.sensors],
+            variant=model.variant,
+            x0=np.array(spec.x0), P0=np.array(spec.P0),
+            lead=spec.lead, max_delay=spec.max_delay,
+            mu0=None if model.mu0 is None else np.array(model.mu0),
+            node=model.node, kappa=model.kappa, command_hold=spec.command_hold,
+        )
+
+
+def build(spec: SessionSpec) -> Built:
+    """``Blueprint(spec).build()``: the spec's estimator, nu and cost, no budget checked."""
+    return Blueprint(spec).build()
 
 
 def imm_sensor(sensor: SensorSpec) -> dict[str, Any]:
-    """The IMM factory's sensor map of a "range_bearing" or "position" SensorSpec:
-    range-bearing: station, sigma_range = sqrt(R[0, 0]), sigma_bearing = sqrt(R[1, 1]);
-    position: R (2, 2)."""
+    """The IMM factory's sensor map of a "range_bearing" or "position" SensorSpec, with the
+    spec's R (2, 2) as it is (range-bearing: station too; R diagonal, as the wire checks)."""
     if sensor.kind == "range_bearing":
         assert sensor.station is not None  # guaranteed by SensorSpec's validator
         return {"name": sensor.name, "kind": "range_bearing",
-                "station": [float(v) for v in sensor.station],
-                "sigma_range": math.sqrt(float(sensor.R[0, 0])),
-                "sigma_bearing": math.sqrt(float(sensor.R[1, 1]))}
+                "station": [float(v) for v in sensor.station], "R": np.array(sensor.R)}
     if sensor.kind == "position":
         return {"name": sensor.name, "kind": "position", "R": np.array(sensor.R)}
     raise WireError(f"SessionSpec.sensors: sensor {sensor.name!r} of kind {sensor.kind!r} does not "
                     "fit an IMM model")
-
-
-def _imm(spec: SessionSpec, model: ImmModelSpec) -> Estimator:
-    modes: list[Mapping[str, object]] = [mode_map(m) for m in model.modes]
-    return make_imm(
-        modes=modes,
-        transition=np.array(model.transition),
-        sensors=[imm_sensor(s) for s in spec.sensors],
-        variant=model.variant,
-        x0=np.array(spec.x0), P0=np.array(spec.P0),
-        lead=spec.lead, max_delay=spec.max_delay,
-        mu0=None if model.mu0 is None else np.array(model.mu0),
-        node=model.node, kappa=model.kappa, command_hold=spec.command_hold,
-    )

@@ -40,7 +40,6 @@ HOT_MODULES = (
     "pd_service.estimation.observer",
     "pd_service.estimation.replay",
     "pd_service.intake",
-    "pd_service.intake.fastpath",
     "pd_service.ratelimit",
     "pd_service.service.core",
     "pd_service.service.dispatch",

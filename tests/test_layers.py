@@ -56,8 +56,15 @@ ALLOWED: dict[str, set[str]] = {
                         "pd_service.errors", "pd_service.logs", "pd_service.transport",
                         "pd_service.scenarios", "pd_service.backends", "pd_service.ros2",
                         "pd_service.intake"},
-    "pd_client": {"pd_service.wire", "pd_service.errors", "pd_service.transport"},
+    # backends: an Operator's check of u needs the model's input dimension
+    "pd_client": {"pd_service.wire", "pd_service.errors", "pd_service.transport",
+                  "pd_service.backends"},
 }
+
+#: All the wire layer may import of the estimation layer: pure data helpers (checks.py: the
+#: PSD tolerance). No estimator, no model, no model registry: a spec becomes an estimator
+#: in pd_service.backends alone.
+WIRE_FROM_ESTIMATION = {"pd_service.estimation.checks"}
 
 #: Third-party imports a layer may use (None: any). The estimation core is pure numpy (plus
 #: mypy_extensions' compile hints for mypyc, which do nothing at run time).
@@ -164,6 +171,15 @@ def test_the_daemon_never_imports_research() -> None:
            and layer_of(target) == "pd_service.research"]
     assert not any("pd_service.research" in ALLOWED[layer] for layer in DAEMON_LAYERS)
     assert not bad, "the daemon imports pd_service.research:\n" + "\n".join(bad)
+
+
+def test_wire_builds_no_model_and_no_estimator() -> None:
+    bad = [f"{path.relative_to(ROOT)}:{line}: {module} imports {target}"
+           for module, target, line, path in edges()
+           if layer_of(module) == "pd_service.wire"
+           and (target == "pd_service.estimation" or target.startswith("pd_service.estimation."))
+           and target not in WIRE_FROM_ESTIMATION]
+    assert not bad, "the wire layer imports estimators or models:\n" + "\n".join(bad)
 
 
 def test_no_import_cycle() -> None:

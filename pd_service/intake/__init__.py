@@ -1,6 +1,16 @@
 """How one message enters a session's estimator: decode (fast path first), checks against
 the spec, step mapping, magnitude bounds, the estimator's window, and the refusal reason.
 
+Two ways to read a message, one result: the full path (:func:`pd_service.wire.decode`, the
+validated pydantic model, then :func:`pd_service.wire.convert.check_measurement` /
+``check_command``) is the reference and names every refusal; where the hot path runs
+compiled, the C kernel ``_fastread.c`` first reads the plainest form of a Measurement or
+Command straight from its msgpack bytes (exact types, no per-sample R, finite values within
+``max_abs``, dimensions right) and returns None for anything else, which then takes the full
+path. It only ever accepts what the full path accepts, with the same values (tested on
+plain, re-encoded, mutated, cut and random payloads), so both give the same outcomes and
+counters; without the kernel (pure Python) every message takes the full path.
+
 One implementation for the daemon (:class:`pd_service.service.session.Session`) and for the
 offline replay of a recording (``pd-replay``), so both accept and refuse exactly alike.
 No clock reads: the caller passes the session's current step ``now_step``. Nothing raises for
@@ -12,21 +22,28 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Final
 
 import numpy as np
 
 from pd_service.estimation import Estimator
 from pd_service.estimation.replay import ReplayEstimator
-from pd_service.wire import Command, Measurement, SessionSpec, WireError, decode
+from pd_service.native import kernel_function
+from pd_service.wire import MAX_MESSAGE_BYTES, Command, Measurement, SessionSpec, WireError, decode
 from pd_service.wire.convert import (
     check_command,
     check_measurement,
-    command_dim,
     command_step,
     measurement_step,
 )
 
-from .fastpath import read_command, read_measurement
+#: What the fast path reads: (seq, step or None, t_ns / issued_ns or None, z / u float64 (m,)).
+_Fields = tuple[int, int | None, int | None, np.ndarray]
+
+#: The fast path's readers (the C kernel ``_fastread.c``; None: pure Python, no fast path).
+_READ_MEASUREMENT: Final = kernel_function("pd_service.intake._fastread", "read_measurement")
+_READ_COMMAND: Final = kernel_function("pd_service.intake._fastread", "read_command")
+_MAX_BYTES: Final = MAX_MESSAGE_BYTES  # read from a C static, not the module's globals
 
 #: Largest |z_i| and |u_i| accepted by default (the daemon's ``max_abs_input``).
 MAX_ABS_INPUT = 1e12
@@ -62,7 +79,7 @@ class Refusal:
 
 def _max_abs(v: np.ndarray) -> float:
     """max |v_i| of a finite vector (both paths refused non-finite values before); Python
-    floats for a few values: cheaper than numpy's reductions (~0.4 µs instead of ~3 µs)."""
+    floats for a few values: cheaper than numpy's reductions (docs/performance.md)."""
     if v.size > 16:
         return float(np.max(np.abs(v)))
     return float(max(map(abs, v.ravel().tolist())))
@@ -83,7 +100,10 @@ class Intake:
     message offered could be read as a message of this session (activity, for idle
     detection), whatever its outcome."""
 
-    def __init__(self, spec: SessionSpec, est: Estimator, max_abs: float = MAX_ABS_INPUT) -> None:
+    def __init__(self, spec: SessionSpec, est: Estimator, nu: int,
+                 max_abs: float = MAX_ABS_INPUT) -> None:
+        """``est`` and ``nu`` (the command dimension, 0: no commands) as
+        :class:`pd_service.backends.Built` holds them."""
         self.spec = spec
         self.est = est
         self.name = spec.session
@@ -93,14 +113,17 @@ class Intake:
             raise ValueError(f"max_abs: must be positive and finite, got {max_abs!r}")
         self.max_abs = max_abs
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
-        self.r = command_dim(spec)  # a nonlinear model's own input dimension (0: none)
+        self.r = nu
         self.decoded = False
 
     def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Measurement received on ``key``; None if accepted."""
         self.decoded = False
         sensor = key.rsplit("/", 1)[-1]
-        fast = read_measurement(payload, self.name, sensor, self.dims, self.max_abs)
+        m = self.dims.get(sensor)
+        read = _READ_MEASUREMENT
+        fast: _Fields | None = None if read is None or m is None else read(
+            payload, self.name, sensor, m, self.max_abs, _MAX_BYTES)
         if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
             seq, s, t_ns, z = fast  # |z_i| <= max_abs checked on the way
             stamp = "step" if s is not None else "t_ns"
@@ -162,7 +185,9 @@ class Intake:
         """Offer one Command; None if accepted."""
         self.decoded = False
         spec = self.spec
-        fast = read_command(payload, self.name, self.r, self.max_abs)
+        read = _READ_COMMAND
+        fast: _Fields | None = None if read is None else read(
+            payload, self.name, self.r, self.max_abs, _MAX_BYTES)
         if fast is not None and (fast[1] is not None
                                  or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
             seq, j, issued, u = fast

@@ -1,17 +1,17 @@
-/* The hot-path readers of pd_service/intake/fastpath.py, read_measurement and read_command,
-   straight from the msgpack bytes.
+/* The fast path of pd_service/intake (Intake.measurement / Intake.command): read_measurement
+   and read_command, straight from the msgpack bytes.
 
-   The Python form (msgpack.unpackb, then type checks on the dict) is the reference; the tests
-   run both on the same payloads (plain messages, mutated ones, random bytes) and demand the
-   same result. Both accept only the plainest form of a message that fits its session and
-   return None for anything else; the caller then takes the full path, which names the
-   refusal. The Python form builds a dict, its keys and its values (~15,000 instructions for
-   a 70-byte Measurement); this one reads the bytes once and builds the result only.
+   The full path (pd_service.wire.decode into the validated pydantic model, then
+   wire.convert.check_measurement / check_command) is the reference; the tests run both on
+   the same payloads (plain messages, re-encoded, mutated, cut and random ones) and demand
+   that whatever this accepts, the full path accepts with the same values. This accepts only
+   the plainest form of a message that fits its session and returns None for anything else;
+   the caller then takes the full path, which names the refusal. It reads the bytes once and
+   builds the result only (no dict of the message).
 
    Accepted (anything else: None):
      top level:  one msgpack map, nothing after it, at most max_bytes bytes in all
-     keys:       str, each at most once (a repeated key: None, where the Python form would
-                 take the last value: the full path decides), from
+     keys:       str, each at most once (a repeated key: None, the full path decides), from
                  Measurement {v, session, sensor, seq, step, t_ns, z, R},
                  Command     {v, session, seq, step, issued_ns, u}
      v:          absent or the int 1          session: the str equal to `session`
@@ -25,8 +25,7 @@
                  (NaN fails the comparison); an int beyond 2^53 in magnitude: None (its
                  comparison with max_abs would need more than a double's precision; with the
                  default max_abs of 1e12 such an int is refused either way)
-   Returns (seq, step or None, t_ns or None, float64 array (size,)): the Python form's
-   tuple. Strings are compared as bytes with the UTF-8 of `session` / `sensor`: only valid
+   Returns (seq, step or None, t_ns or None, float64 array (size,)). Strings are compared as bytes with the UTF-8 of `session` / `sensor`: only valid
    UTF-8 can match. No state, no GIL release. */
 
 #define PY_SSIZE_T_CLEAN
@@ -276,7 +275,7 @@ static PyObject *read_msg(PyObject *const *args, Py_ssize_t nargs, int command) 
     if (r.p != r.end || !seen[K_SESSION] || !seen[K_SEQ] || vec == NULL
         || (!command && !seen[K_SENSOR]) || has_step == has_stamp) goto none;
     {   /* (seq, step or None, stamp or None, vec), built directly (Py_BuildValue
-           parses its format string: ~600 instructions a call) */
+           would parse its format string at every call) */
         PyObject *s = PyLong_FromLongLong((long long)seq);
         PyObject *o = PyLong_FromLongLong(has_step ? step : stamp);
         if (s == NULL || o == NULL || (res = PyTuple_New(4)) == NULL) {
@@ -321,7 +320,7 @@ static PyMethodDef methods[] = {
 
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_fastread",
-    "The hot-path Measurement / Command readers of pd_service.intake.fastpath, in C.", -1,
+    "The fast path of pd_service.intake: plain Measurement / Command readers, in C.", -1,
     methods, NULL, NULL, NULL, NULL,
 };
 

@@ -50,7 +50,7 @@ _SMALL: Final = 256
 def inspect(x: np.ndarray, P: np.ndarray) -> tuple[str | None, list[float], list[float]]:
     """Why (x (n,), P (n, n)) may not be published (None if it may), with the entries of x
     and of P (row-major) as Python floats: read and checked once here, then packed as they
-    are (``PredictionEncoder.encode_values``). Cheap: O(n^2) reads."""
+    are (:func:`inspect_packed`'s Python form). Cheap: O(n^2) reads."""
     xs, ps = x.tolist(), P.ravel().tolist()
     if P.size <= _SMALL:
         # fsum of finite values is finite unless it overflows (then numpy looks closer);

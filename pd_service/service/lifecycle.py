@@ -17,6 +17,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 
+from pd_service.backends import Blueprint
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
@@ -24,7 +25,7 @@ from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
-from .admission import Ledger, OverBudget, spec_cost
+from .admission import Ledger, OverBudget
 from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
 from .handover.keeper import HandoverKeeper
@@ -254,14 +255,15 @@ class Lifecycle:
             if self.ownership.owns(session):
                 # Its cost against the budgets first (nothing allocated yet), then let the
                 # estimator check the spec before anything changes.
+                blueprint = Blueprint(spec)
                 try:
-                    self.ledger.check(session, spec_cost(spec))
+                    self.ledger.check(session, blueprint.cost)
                 except OverBudget as ref:
                     self.counters["admission_refused"] += 1
                     raise WireError(ref.reason) from None
                 st = self.settings
-                checked = Session(spec, "active", "", now, st.error_rate, st.error_burst,
-                                  st.max_abs_input)  # installed below: built once
+                checked = Session(spec, blueprint.build(), "active", "", now, st.error_rate,
+                                  st.error_burst, st.max_abs_input)  # installed below: built once
         except WireError as exc:
             event(log, "config_refused", session=session, reason=exc.reason)
             route = routes.get(session)
@@ -352,8 +354,13 @@ class Lifecycle:
                       owner=self.ownership.owner(session) or "")
             return
         spec = self.specs[session]
+        blueprint: Blueprint | None = None
         try:
-            cost = spec_cost(spec)
+            if built is not None and built.spec is spec:
+                cost = built.cost
+            else:
+                built, blueprint = None, Blueprint(spec)
+                cost = blueprint.cost
             self.ledger.admit(session, cost)
         except (OverBudget, WireError) as exc:  # e.g. a persisted spec over today's budget
             self.ledger.release(session)
@@ -371,11 +378,12 @@ class Lifecycle:
             self.refused[session] = exc.reason
             return
         try:
-            if built is not None and built.spec is spec:
+            if built is not None:
                 sess = built
                 sess.state, sess.detail = state, detail
             else:
-                sess = Session(spec, state, detail, now,
+                assert blueprint is not None
+                sess = Session(spec, blueprint.build(), state, detail, now,
                                self.settings.error_rate, self.settings.error_burst,
                                self.settings.max_abs_input)
         except WireError as exc:  # a persisted or synced spec the estimator refuses

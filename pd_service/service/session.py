@@ -1,7 +1,7 @@
 """One session of the daemon: its spec, its estimator, its counters.
 
 Pure bookkeeping around the session's estimator (a :class:`pd_service.estimation.Estimator`,
-built by :func:`pd_service.backends.build_estimator`); no transport, no clock reads (the core passes
+built by :mod:`pd_service.backends`); no transport, no clock reads (the core passes
 ``now_ns`` / ``now_step`` in), no locks (the core's worker is the only caller). Every
 refusal is returned as a :class:`Refusal`; nothing raises for bad input.
 
@@ -48,7 +48,7 @@ from typing import Final, Literal
 
 import numpy as np
 
-from pd_service.backends import build_estimator
+from pd_service.backends import Built, build
 from pd_service.estimation import Estimator, PredictedState
 from pd_service.estimation.state import untracked
 from pd_service.estimation.tally import Tally
@@ -94,8 +94,10 @@ def next_slot(after: int, period: int, offset: int) -> int:
 class Session:
     """A served session. ``state`` is "active" or "restored" (how it started)."""
 
-    def __init__(self, spec: SessionSpec, state: str, detail: str, now_ns: int,
+    def __init__(self, spec: SessionSpec, built: Built, state: str, detail: str, now_ns: int,
                  error_rate: float, error_burst: int, max_abs: float = 1e12) -> None:
+        """``built``: ``spec``'s estimator, command dimension and cost
+        (:meth:`pd_service.backends.Blueprint.build`)."""
         self.spec = spec
         self.name = spec.session
         #: The spec's clock (ns) and publish_every as plain attributes: read several times
@@ -103,11 +105,11 @@ class Session:
         self.epoch_ns: int = spec.epoch_ns
         self.period_ns: int = spec.period_ns
         self.publish_every: int = spec.publish_every
-        # WireError for a spec it refuses (a linear model: ObserverPredictor, whose Kalman
-        # arithmetic runs in C where the hot path is compiled: pd_service.estimation.linear)
-        self.est: Estimator = build_estimator(spec)
+        self.est: Estimator = built.est
+        #: What the session costs against the budgets (pd_service.service.admission).
+        self.cost = built.cost
         #: The per-message rules (pd_service.intake), shared with the offline replay.
-        self.intake = Intake(spec, self.est, max_abs)
+        self.intake = Intake(spec, self.est, built.nu, max_abs)
         self.state = state
         self.detail = detail
         self.counters = Tally()
@@ -289,7 +291,7 @@ class Session:
             snap, self.snapshot = self.snapshot, None  # a snapshot that failed is not reused
             self.est.restore_state(snap)  # type: ignore[attr-defined]  # a ReplayEstimator
             return
-        self.est = build_estimator(self.spec)
+        self.est = build(self.spec).est
         self.intake.est = self.est
         self.snapshot = None
         self.next_snapshot_step = -(1 << 62)

@@ -27,7 +27,7 @@
    msgpack-python's ``packb(obj, use_bin_type=True)`` writes it (maps in the dict's order),
    where a float64 numpy array stands for its wire form {"shape": [...], "data": [...]}
    (pd_service.wire.state.Tensors: the values in C order). What the checkpoints' encoder
-   (pd_service.checkpoint.encode_state) builds per session and second, without the Python
+   (pd_service.service.handover.checkpoint.encode_state) builds per session and second, without the Python
    dicts and lists of floats the wire form would need. None (the Python form, the
    reference, then runs) for anything else: another type or a subclass, an array of
    another dtype or byte order, a non-finite value in an array, an int beyond msgpack's
@@ -391,7 +391,7 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT, "_encode",
     "PredictionEncoder.encode_packed's per-message part (pd_service.wire.convert) and the "
-    "checkpoints' msgpack (pd_service.checkpoint), in C.", -1,
+    "checkpoints' msgpack (pd_service.service.handover.checkpoint), in C.", -1,
     methods, NULL, NULL, NULL, NULL,
 };
 

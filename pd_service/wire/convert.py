@@ -1,23 +1,22 @@
 """Between wire messages and the estimators' numbers: what a message stands for, and whether
-it fits its session. Builds no estimator (that is :mod:`pd_service.backends`).
+it fits its session. Builds no model and no estimator (that is :mod:`pd_service.backends`,
+which also gives a session's command dimension).
 
-- :func:`command_dim`: the command dimension r of a session (a nonlinear model's is the
-  registered model's);
 - :func:`measurement_step` / :func:`command_step`: the integer step a message stands for;
 - :func:`check_measurement` / :func:`check_command`: does the message fit its session?
   (raise :class:`WireError` naming the field);
 - :func:`check_key`: does the message agree with the key it arrived on?
-- :func:`prediction_from`: estimator output -> Prediction message;
-- :class:`PredictionEncoder` / :func:`encode_prediction`: estimator output -> the same
-  Prediction's bytes, directly (the daemon's hot path: no model object).
+- :func:`prediction_from`: estimator output -> Prediction message (with
+  :func:`pd_service.wire.encode`: the reference of a Prediction's bytes);
+- :class:`PredictionEncoder`: estimator output, x and P already packed -> the same
+  Prediction's bytes, directly (the daemon's hot path: no model object; its per-message part
+  in C, ``_encode.c``, where the hot path runs compiled).
 
 Time: ``step_of(t_ns) = floor((t_ns - epoch_ns) / period_ns)`` in exact integer arithmetic.
 """
 
 from __future__ import annotations
 
-import math
-import re
 from collections.abc import Mapping
 from typing import Any, Protocol, SupportsInt
 
@@ -25,8 +24,6 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-from pd_service.estimation.imm import make_mode
-from pd_service.estimation.nonlinear import make_model
 from pd_service.native import kernel
 
 from .codec import MAX_MESSAGE_BYTES, encode
@@ -37,7 +34,6 @@ from .messages import (
     LinearModelSpec,
     Measurement,
     Message,
-    ModeSpec,
     Prediction,
     SessionSpec,
     UnscentedModelSpec,
@@ -61,46 +57,6 @@ class PredictedMoments(Protocol):
 
     @property
     def newest_step(self) -> SupportsInt | None: ...
-
-
-def plain_params(params: Mapping[str, Any]) -> dict[str, Any]:
-    """Fresh copies of a model's parameter values (lists are mutable)."""
-    return {k: list(v) if isinstance(v, list) else v for k, v in params.items()}
-
-
-def mode_map(mode: ModeSpec) -> dict[str, Any]:
-    """An IMM mode as the registry's {"model": name, "params": {...}} map."""
-    return {"model": mode.model, "params": plain_params(mode.params)}
-
-
-def command_dim(spec: SessionSpec) -> int:
-    """Command dimension r: the columns of model.B, or the registered model's input
-    dimension (0 for a model without inputs: such a session takes no commands). Builds the
-    nonlinear model (not an estimator); WireError if it cannot be built."""
-    model = spec.model
-    if isinstance(model, LinearModelSpec):
-        return model.r
-    try:
-        if isinstance(model, UnscentedModelSpec):
-            return int(make_model(model.model, **plain_params(model.params)).nu)
-        return int(make_mode(mode_map(model.modes[0])).nu)
-    except Exception as exc:  # ValueError, or a registered model's own code failing
-        raise estimator_refusal(exc) from None
-
-
-#: The estimator factories start a refusal with what they refuse ("x0: ...",
-#: "sensor_R['pose']: ..."); the SessionSpec field each such word stands for (else "model").
-_ESTIMATOR_FIELDS = {"x0": "x0", "P0": "P0", "sensors": "sensors", "sensor_R": "sensors",
-                     "indices": "model.unscented.adapt.indices", "modes": "model.imm.modes"}
-
-
-def estimator_refusal(exc: Exception) -> WireError:
-    """A spec the estimator refused, as ``SessionSpec.<field>: refused by the estimator:
-    <reason>`` (the field its reason starts with, else ``model``)."""
-    text = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
-    head = re.match(r"[A-Za-z0-9_]+", text)
-    field = _ESTIMATOR_FIELDS.get(head.group(0) if head else "", "model")
-    return WireError(f"SessionSpec.{field}: refused by the estimator: {text}")
 
 
 def measurement_step(msg: Measurement, spec: SessionSpec) -> int:
@@ -142,14 +98,11 @@ def check_measurement(msg: Measurement, spec: SessionSpec) -> None:
                         f"{spec.epoch_ns} (step < 0)")
 
 
-def check_command(msg: Command, spec: SessionSpec, r: int | None = None) -> None:
-    """Raise WireError unless ``msg`` fits ``spec``: same session, u of dimension r,
-    apply step >= 0. ``r``: the session's :func:`command_dim`, if already known (else it
-    is computed, which builds a nonlinear model)."""
+def check_command(msg: Command, spec: SessionSpec, r: int) -> None:
+    """Raise WireError unless ``msg`` fits ``spec``: same session, u of dimension r (the
+    session's command dimension, :attr:`pd_service.backends.Blueprint.nu`), apply step >= 0."""
     if msg.session != spec.session:
         raise WireError(f"Command.session: {msg.session!r} is not session {spec.session!r}")
-    if r is None:
-        r = command_dim(spec)
     if msg.u.shape[0] != r:
         model = spec.model
         if isinstance(model, LinearModelSpec):
@@ -193,10 +146,6 @@ def _checked(pred: PredictedMoments, n: int) -> tuple[NDArray[np.float64], NDArr
     return x, P
 
 
-def _not_finite() -> WireError:
-    return WireError("Prediction: the estimate is not finite (NaN or infinity)")
-
-
 def _fields(pred: PredictedMoments, spec: SessionSpec, session: str, seq: int, made_ns: int,
             counters: Mapping[str, int], x: object, P: object) -> dict[str, Any]:
     """The Prediction's fields in wire order, ``t_ns = epoch_ns + step * period_ns``."""
@@ -225,14 +174,16 @@ def prediction_from(
 ) -> Prediction:
     """Wrap the estimator's output as a Prediction, ``t_ns = epoch_ns + step * period_ns``.
 
-    Fast path for the daemon's hot loop: shapes and finiteness are checked and the arrays
-    are copied (the estimator may reuse its buffers), but the PSD check of P is skipped
+    With :func:`pd_service.wire.encode`, the reference of a Prediction's bytes (the
+    daemon's :class:`PredictionEncoder` writes the same). Shapes and finiteness are checked
+    and the arrays are copied (the estimator may reuse its buffers), but the PSD check of P
+    is skipped
     (the estimator produces P = A P A^T + Q, symmetric PSD up to rounding, far inside the
     1e-9 tolerance a decoder applies). Raises WireError on a bad shape or non-finite value.
     """
     x, P = _checked(pred, spec.n)
     if not (np.isfinite(x).all() and np.isfinite(P).all()):
-        raise _not_finite()
+        raise WireError("Prediction: the estimate is not finite (NaN or infinity)")
     x, P = np.array(x), np.array(P)
     x.flags.writeable = False
     P.flags.writeable = False
@@ -242,25 +193,22 @@ def prediction_from(
 #: The C form of :meth:`PredictionEncoder.encode_packed`'s per-message part (None: Python).
 _ENCODE = kernel("pd_service.wire._encode")
 
-#: msgpack's packing, shared by every encoder: a Packer holds a 256 KiB buffer, and one per
-#: session put 256 MiB of address space between 1,000 sessions' objects (the worker alone,
-#: bench/worker.py: 300 sessions 23.6 -> 18.5 µs per session-step; the daemon: no change
-#: beyond the noise; docs/performance.md). Shared safely: the worker is its one user, and
-#: packing plain values runs in C, holding the GIL throughout.
+#: msgpack's packing, shared by every encoder: a Packer holds a 256 KiB buffer, too much per
+#: session (docs/performance.md). Shared safely: the worker is its one user, and packing
+#: plain values runs in C, holding the GIL throughout.
 _PACK = msgpack.Packer(use_bin_type=True).pack
 
 
 class PredictionEncoder:
     """One session's Prediction encoder: ``encode(prediction_from(...))``, byte for byte,
-    without building the model (the daemon's publish loop; about 2x cheaper than packing a
-    dict of the fields).
+    without building the model (the daemon's publish loop: no dict of the fields).
 
     The msgpack map is written as its parts: the constant ones (the map header, the keys,
     ``v``, ``session``, the shapes of x and P) are packed once, here; per message only seq,
     step, t_ns (``epoch_ns + step * period_ns``), the data of x (n,) and P (n, n) (row-major
-    floats), newest_step, made_ns and the counters are packed. Same checks as
-    :func:`prediction_from`: shapes and finite values; raises WireError otherwise (also when
-    the message cannot fit in ``MAX_MESSAGE_BYTES``, even in the codec's compact form).
+    floats, packed by the caller), newest_step, made_ns and the counters are packed. Raises
+    WireError for packed values of the wrong length, or when the message cannot fit in
+    ``MAX_MESSAGE_BYTES`` even in the codec's compact form.
     Where the hot path runs compiled, :meth:`encode_packed` writes the message in one call
     of the C kernel ``_encode.c``; the Python form is its reference (the same bytes).
     """
@@ -283,41 +231,12 @@ class PredictionEncoder:
         # the lengths of x's and P's packed values: an array header, 9 bytes per float64
         self._x_len, self._P_len = len(pk([0.0] * n)), len(pk([0.0] * (n * n)))
 
-    def encode(self, pred: PredictedMoments, seq: int, made_ns: int,
-               counters: Mapping[str, int]) -> bytes:
-        """The Prediction of x(pred.step) ~ (pred.x, pred.P), encoded."""
-        x, P = _checked(pred, self.n)
-        xs = x.tolist()
-        ps = P.ravel().tolist()
-        # finite check: fsum of finite values is finite unless it overflows (then look
-        # closer); fsum raises ValueError for inf + -inf
-        try:
-            finite = math.isfinite(math.fsum(xs)) and math.isfinite(math.fsum(ps))
-        except (OverflowError, ValueError):
-            finite = False
-        if not finite and not (np.isfinite(x).all() and np.isfinite(P).all()):
-            raise _not_finite()
-        return self.encode_values(pred, xs, ps, seq, made_ns, counters)
-
-    def encode_values(self, pred: PredictedMoments, xs: list[float], ps: list[float],
-                      seq: int, made_ns: int, counters: Mapping[str, int]) -> bytes:
-        """:meth:`encode` of ``pred`` whose x and P the caller has read as Python floats,
-        ``xs`` (n,) and ``ps`` (n * n, row-major), and found finite (the daemon's health
-        check, :func:`pd_service.service.health.inspect`). Their lengths are checked here."""
-        n = self.n
-        if len(xs) != n or len(ps) != n * n:
-            raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}), "
-                            f"got {len(xs)} and {len(ps)} values")
-        pk = _PACK
-        return self.encode_packed(pred, pk(xs), pk(ps), seq, made_ns, counters)
-
     def encode_packed(self, pred: PredictedMoments, x_data: bytes, P_data: bytes, seq: int,
                       made_ns: int, counters: Mapping[str, int]) -> bytes:
-        """:meth:`encode_values` with the values already packed: ``x_data`` and ``P_data``
-        the msgpack arrays of x's n and P's n * n floats (row-major), as
-        ``msgpack.packb(list)`` writes them, checked finite by the caller (the daemon's
-        health check, :func:`pd_service.service.health.inspect_packed`). Their lengths are
-        checked here."""
+        """The Prediction of x(pred.step) ~ (x, P), encoded: ``x_data`` and ``P_data`` the
+        msgpack arrays of x's n and P's n * n floats (row-major), as ``msgpack.packb(list)``
+        writes them, checked finite by the caller (the daemon's health check,
+        :func:`pd_service.service.health.inspect_packed`). Their lengths are checked here."""
         if len(x_data) != self._x_len or len(P_data) != self._P_len:
             n = self.n
             raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}) packed in "
@@ -343,15 +262,3 @@ class PredictionEncoder:
                                           counters))
         return data
 
-
-def encode_prediction(
-    pred: PredictedMoments,
-    spec: SessionSpec,
-    session: str,
-    seq: int,
-    made_ns: int,
-    counters: Mapping[str, int],
-) -> bytes:
-    """``encode(prediction_from(...))``, byte for byte: :class:`PredictionEncoder` for one
-    message (the daemon keeps one encoder per session)."""
-    return PredictionEncoder(spec, session).encode(pred, seq, made_ns, counters)

@@ -2,7 +2,7 @@
 
 It speaks the same keys and messages as the daemon for what the clients need: configs
 (create/replace/delete, acknowledged by a SessionStatus put), sensor and command streams fed
-to :func:`pd_service.backends.build_estimator`, a Prediction per ``tick``, ErrorReports
+to :func:`pd_service.backends.build`, a Prediction per ``tick``, ErrorReports
 for refused input, the status queryable and a liveliness token. It is NOT the daemon: no
 state directory, no latency stats, no sharding.
 
@@ -19,7 +19,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.transport import Query, Sample, Transport
 from pd_service.wire import (
     Command,
@@ -44,7 +44,9 @@ from pd_service.wire.convert import (
 class _Session:
     def __init__(self, spec: SessionSpec) -> None:
         self.spec = spec
-        self.est = build_estimator(spec)
+        built = build(spec)
+        self.est = built.est
+        self.nu = built.nu
         self.seq = 0
         self.last_now: int | None = None
 
@@ -129,7 +131,7 @@ class MiniDaemon:
 
     def _add_command(self, s: _Session, payload: bytes) -> None:
         msg = decode(payload, Command)
-        check_command(msg, s.spec)
+        check_command(msg, s.spec, s.nu)
         s.est.add_command(command_step(msg, s.spec), msg.u, now=self._now(s))
 
     def _on_status_query(self, query: Query) -> None:

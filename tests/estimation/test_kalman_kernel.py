@@ -374,12 +374,12 @@ def test_a_snapshot_is_left_out_of_the_cycle_collector() -> None:
     import gc
     import weakref
 
-    from pd_service.backends import build_estimator
+    from pd_service.backends import build
     from pd_service.estimation.state import untracked
     from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_paper
 
     sc = paper_scenario()
-    est = build_estimator(sc.spec("s", 0, max_delay=RANGER_DELAY))
+    est = build(sc.spec("s", 0, max_delay=RANGER_DELAY)).est
     run = simulate_paper(40, np.random.default_rng(3))
     for k in range(30):  # a window with commands and packets in it
         est.add_command(k, sc.command(k), now=k)

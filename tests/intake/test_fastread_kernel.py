@@ -1,9 +1,9 @@
-"""The C readers (pd_service/intake/_fastread.c) against their Python form in fastpath.py.
-
-The Python form is the reference: on every payload both must give the same result (None, or
-the same seq, step, time and float64 array), except where the C form is documented to be
-more cautious (a repeated key, an int beyond 2^53 in a vector): there it must give None, so
-the full path decides.
+"""The intake's fast path, the C kernel pd_service/intake/_fastread.c, against the full path
+(decode into the validated model, then the checks): the reference. Whatever the kernel
+accepts, the full path accepts with the same values; plain messages, in every msgpack
+encoding of their values, are taken by the kernel; anything else gives None (the full path
+decides). Where the kernel is not in use (pure Python) every message takes the full path and
+there is nothing to test here.
 """
 
 from __future__ import annotations
@@ -17,44 +17,204 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pd_service.intake import MAX_ABS_INPUT
-from pd_service.intake.fastpath import _FAST, read_command_py, read_measurement_py
-from pd_service.wire import MAX_MESSAGE_BYTES
-from tests.intake.test_fastpath import CMD, DIMS, FIELDS, MEAS, ODD, mutated
+from pd_service.native import kernel
+from pd_service.wire import MAX_MESSAGE_BYTES, Command, Measurement, WireError, decode
+from pd_service.wire.convert import (
+    check_command,
+    check_measurement,
+    command_step,
+    measurement_step,
+)
+from tests.service.helpers import paper_spec
+
+_FAST = kernel("pd_service.intake._fastread")
 
 pytestmark = pytest.mark.skipif(
     _FAST is None, reason="the C kernel is not in use here (PD_SERVICE_PURE=1, or no C "
-                          "compiler at install time): the Python form runs everywhere")
+                          "compiler at install time): every message takes the full path")
+
+SPEC = paper_spec("s1", epoch_ns=1_000)
+DIMS = {"camera": 2, "ranger": 1}
+
+MEAS = {"v": 1, "session": "s1", "sensor": "camera", "seq": 3, "step": 7,
+        "z": {"shape": [2], "data": [1.5, -2.0]}}
+CMD = {"v": 1, "session": "s1", "seq": 4, "step": 12, "u": {"shape": [1], "data": [0.5]}}
+
+# values that are wrong (or subtly different) for some field
+ODD = [None, True, False, 1, 0, -1, 2**63, 2**63 - 1, -(2**63), -(2**63) - 1, 1.0, 0.5,
+       math.nan, math.inf, "", "s1", "s2", "camera", "ranger", "lidar", [], [1], [2], [1, 2],
+       {}, {"shape": [2], "data": [1.0, 2.0]}, {"shape": [1], "data": [1]},
+       {"shape": [2], "data": [1.0, math.nan]}, {"shape": [2], "data": [1.0, True]},
+       {"shape": [2], "data": [1.0, 10**400]}, {"shape": [2], "data": [1.0, 2**1023]},
+       {"shape": [2], "data": [1.0, 1e13]}, {"shape": [2], "data": [-1e12, 10**12]},
+       {"shape": [2], "data": [1.0, -(10**12) - 1]}, {"shape": [1], "data": [-math.inf]},
+       {"shape": [2, 1], "data": [1.0, 2.0]}, {"shape": [2], "data": [1.0]},
+       {"shape": [1, 1], "data": [0.25]}, {"shape": [2, 2], "data": [1.0, 0.0, 0.0, 1.0]},
+       {"shape": [2], "data": [1.0, 2.0], "x": 1}, {"shape": [True], "data": [1.0]},
+       # what only the codec's unpacker limits refuse (the readers use msgpack's defaults)
+       b"s1", b"", msgpack.ExtType(5, b"ab"), {"shape": [2], "data": [b"\x00", 1.0]},
+       {"shape": [2], "data": [1.0, msgpack.ExtType(1, b"")]}, "s" * 17_000,
+       {"shape": [2], "data": [1.0] * 17_000}]
+FIELDS = ["v", "session", "sensor", "seq", "step", "t_ns", "z", "R", "u", "issued_ns", "extra"]
+
+
+def read_measurement(payload: bytes, session: str, sensor: str, dims: dict[str, int],
+                     max_abs: float):
+    """The kernel as the intake calls it."""
+    m = dims.get(sensor)
+    return None if m is None else _FAST.read_measurement(
+        payload, session, sensor, m, max_abs, MAX_MESSAGE_BYTES)
+
+
+def read_command(payload: bytes, session: str, r: int, max_abs: float):
+    return _FAST.read_command(payload, session, r, max_abs, MAX_MESSAGE_BYTES)
+
+
+def full_measurement(payload: bytes, sensor: str, max_abs: float = MAX_ABS_INPUT):
+    try:
+        msg = decode(payload, Measurement)
+        if msg.sensor != sensor or msg.session != "s1":
+            return None
+        check_measurement(msg, SPEC)
+    except WireError:
+        return None
+    if msg.R is not None:
+        return "with R"
+    if np.abs(msg.z).max(initial=0.0) > max_abs:  # the intake's out_of_range
+        return None
+    return msg.seq, measurement_step(msg, SPEC), msg.z
+
+
+def full_command(payload: bytes, max_abs: float = MAX_ABS_INPUT):
+    try:
+        msg = decode(payload, Command)
+        check_command(msg, SPEC, SPEC.model.r)
+    except WireError:
+        return None
+    if np.abs(msg.u).max(initial=0.0) > max_abs:
+        return None
+    return msg.seq, command_step(msg, SPEC), msg.u
+
+
+def fast_measurement(payload: bytes, sensor: str, max_abs: float = MAX_ABS_INPUT):
+    got = read_measurement(payload, "s1", sensor, DIMS, max_abs)
+    if got is None or (got[2] is not None and got[2] < SPEC.epoch_ns):
+        return None
+    seq, step, t_ns, z = got
+    return seq, step if step is not None else SPEC.step_of(t_ns), z
+
+
+def fast_command(payload: bytes, max_abs: float = MAX_ABS_INPUT):
+    got = read_command(payload, "s1", 1, max_abs)
+    if got is None:
+        return None
+    seq, step, issued, u = got
+    j = step if step is not None else SPEC.step_of(issued) + SPEC.lead
+    return None if j < 0 else (seq, j, u)
+
+
+def mutated(base: dict, mutations) -> tuple[dict, bytes | None]:
+    """``base`` with each (field, index into ODD or None: removed) applied, and its msgpack
+    bytes (None if msgpack cannot pack it)."""
+    d = dict(base)
+    for name, idx in mutations:
+        if idx is None:
+            d.pop(name, None)
+        else:
+            d[name] = ODD[idx]
+    try:
+        return d, msgpack.packb(d)
+    except (OverflowError, TypeError):
+        return d, None
+
+
+def same(a, b) -> bool:
+    return a[0] == b[0] and a[1] == b[1] and np.array_equal(a[2], b[2]) \
+        and a[2].dtype == b[2].dtype == np.float64
+
+
+def test_plain_messages_take_the_fast_path():
+    for sensor, z in (("camera", [1.5, -2.0]), ("ranger", [3]), ("camera", [0, -1e12]),
+                      ("ranger", [10**12])):
+        d = dict(MEAS, sensor=sensor, z={"shape": [len(z)], "data": z})
+        data = msgpack.packb(d)
+        assert same(fast_measurement(data, sensor), full_measurement(data, sensor))
+    d = dict(MEAS)
+    del d["step"], d["v"]
+    d["t_ns"] = 1_000 + 3 * SPEC.period_ns + 5
+    data = msgpack.packb(d)
+    assert fast_measurement(data, "camera")[1] == 3
+    assert same(fast_measurement(data, "camera"), full_measurement(data, "camera"))
+    c = dict(CMD)
+    del c["step"]
+    c["issued_ns"] = 1_000 + 2 * SPEC.period_ns
+    data = msgpack.packb(c)
+    assert fast_command(data)[1] == 2 + SPEC.lead
+    assert same(fast_command(data), full_command(data))
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(FIELDS), st.sampled_from(range(len(ODD))) | st.none()),
+                max_size=4),
+       st.sampled_from(["camera", "ranger", "lidar"]))
+def test_fast_path_never_accepts_what_the_full_path_refuses(mutations, key_sensor):
+    for base, is_cmd in ((MEAS, False), (CMD, True)):
+        d, data = mutated(base, mutations)
+        if data is None:
+            continue
+        if is_cmd:
+            fast, full = fast_command(data), full_command(data)
+        else:
+            fast, full = fast_measurement(data, key_sensor), full_measurement(data, key_sensor)
+        if fast is not None:
+            assert full is not None and full != "with R", (d, fast)
+            assert same(fast, full), d
+
+
+def test_garbage_goes_to_the_full_path():
+    rng = np.random.default_rng(0)
+    for n in range(0, 300, 7):
+        data = rng.bytes(n)
+        assert read_measurement(data, "s1", "camera", DIMS, MAX_ABS_INPUT) is None
+        assert read_command(data, "s1", 1, MAX_ABS_INPUT) is None
+    assert read_measurement(b"\x00" * 70_000, "s1", "camera", DIMS, MAX_ABS_INPUT) is None
+
+
+def test_values_beyond_max_abs_take_the_full_path():
+    """The bound is checked on the way in: a value beyond it, NaN or an infinity sends the
+    message to the full path (which names the reason), an int or float on it does not."""
+    for bad in (1e13, -(10**13), math.nan, math.inf, -math.inf, 10**400):
+        d = dict(MEAS, z={"shape": [2], "data": [1.0, bad]})
+        try:
+            data = msgpack.packb(d)
+        except OverflowError:
+            continue
+        assert read_measurement(data, "s1", "camera", DIMS, MAX_ABS_INPUT) is None, bad
+        c = msgpack.packb(dict(CMD, u={"shape": [1], "data": [bad]}))
+        assert read_command(c, "s1", 1, MAX_ABS_INPUT) is None, bad
+    edge = msgpack.packb(dict(CMD, u={"shape": [1], "data": [-(10**12)]}))
+    assert read_command(edge, "s1", 1, MAX_ABS_INPUT)[3].tolist() == [-1e12]
+    assert read_command(edge, "s1", 1, 1e11) is None
 
 
 def c_meas(payload: bytes, sensor: str = "camera", max_abs: float = MAX_ABS_INPUT):
-    m = DIMS.get(sensor)
-    return None if m is None else _FAST.read_measurement(
-        payload, "s1", sensor, m, max_abs, MAX_MESSAGE_BYTES)
+    return read_measurement(payload, "s1", sensor, DIMS, max_abs)
 
 
 def c_cmd(payload: bytes, max_abs: float = MAX_ABS_INPUT):
-    return _FAST.read_command(payload, "s1", 1, max_abs, MAX_MESSAGE_BYTES)
-
-
-def py_meas(payload: bytes, sensor: str = "camera", max_abs: float = MAX_ABS_INPUT):
-    return read_measurement_py(payload, "s1", sensor, DIMS, max_abs)
-
-
-def py_cmd(payload: bytes, max_abs: float = MAX_ABS_INPUT):
-    return read_command_py(payload, "s1", 1, max_abs)
-
-
-def agree(a, b) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    return (a[:3] == b[:3] and type(a[1]) is type(b[1]) and type(a[2]) is type(b[2])
-            and a[3].dtype == b[3].dtype == np.float64 and a[3].shape == b[3].shape
-            and np.array_equal(a[3], b[3]))
+    return read_command(payload, "s1", 1, max_abs)
 
 
 def check(payload: bytes, sensor: str = "camera", max_abs: float = MAX_ABS_INPUT) -> None:
-    assert agree(c_meas(payload, sensor, max_abs), py_meas(payload, sensor, max_abs)), payload
-    assert agree(c_cmd(payload, max_abs), py_cmd(payload, max_abs)), payload
+    """What the kernel accepts (as the intake takes it), the full path accepts alike."""
+    fast = fast_measurement(payload, sensor, max_abs)
+    if fast is not None:
+        full = full_measurement(payload, sensor, max_abs)
+        assert full is not None and full != "with R" and same(fast, full), payload
+    fast = fast_command(payload, max_abs)
+    if fast is not None:
+        full = full_command(payload, max_abs)
+        assert full is not None and same(fast, full), payload
 
 
 def test_plain_messages_are_read_alike():
@@ -111,19 +271,8 @@ def test_every_encoding_of_the_same_values_is_read_alike():
 def test_mutated_messages_are_read_alike(mutations, sensor, max_abs):
     for base in (MEAS, CMD):
         d, data = mutated(base, mutations)
-        if data is None:
-            continue
-        c, py = c_meas(data, sensor, max_abs), py_meas(data, sensor, max_abs)
-        if max_abs > 2**53 and c is None and py is not None:  # an int beyond 2^53 in z
-            assert any(type(v) is int and abs(v) > 2**53 for v in py[3].tolist() + [
-                x for x in d["z"]["data"] if type(x) is int]), d
-            continue
-        assert agree(c, py), d
-        c, py = c_cmd(data, max_abs), py_cmd(data, max_abs)
-        if max_abs > 2**53 and c is None and py is not None:
-            assert any(type(x) is int and abs(x) > 2**53 for x in d["u"]["data"]), d
-            continue
-        assert agree(c, py), d
+        if data is not None:
+            check(data, sensor, max_abs)
 
 
 def test_every_cut_and_every_flipped_byte_is_read_alike():
@@ -145,22 +294,21 @@ def test_random_bytes_and_oversize_payloads_are_none():
         check(rng.bytes(n))
     big = msgpack.packb(dict(MEAS, extra="x" * MAX_MESSAGE_BYTES))
     assert c_meas(big) is None and c_cmd(big) is None
-    # at the limit: accepted by size (then refused for its extra key, as the Python form)
+    # at the limit: accepted by size (then refused for its extra key, as the full path)
     check(msgpack.packb(dict(MEAS, session="s1")) + b"")
 
 
 def test_cautious_cases_give_none():
-    """A repeated key (the Python form takes the last value) and an int beyond 2^53 in a
-    vector with a max_abs above it: None, the full path decides."""
+    """A repeated key and an int beyond 2^53 in a vector with a max_abs above it: None, the
+    full path decides."""
     base = msgpack.packb(MEAS)
     dup = b"\x87" + base[1:] + b"\xa3seq\x05"
-    assert py_meas(dup) is not None and py_meas(dup)[0] == 5
     assert c_meas(dup) is None
     shape_twice = msgpack.packb(dict(MEAS, z={"shape": [2], "data": [1.0, 2.0]}))
     shape_twice = shape_twice.replace(b"\xa4data", b"\xa5shape", 1)
     check(shape_twice)
     big = msgpack.packb(dict(MEAS, z={"shape": [2], "data": [1.0, 2**53 + 1]}))
-    assert py_meas(big, max_abs=1e300) is not None
+    assert full_measurement(big, "camera", max_abs=1e300) is not None
     assert c_meas(big, max_abs=1e300) is None
     edge = msgpack.packb(dict(MEAS, z={"shape": [2], "data": [-(2**53), 2**53]}))
     check(edge, max_abs=1e300)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.estimation import ObserverPredictor
 from pd_service.wire import Command, Measurement, Prediction, SessionSpec
 from tests.service.procs import Daemon
@@ -39,7 +39,7 @@ def test_raw_client_imports_only_zenoh_msgpack_and_the_standard_library() -> Non
 
 def _offline(spec: SessionSpec, packets: list[tuple[int, Measurement | Command]]
              ) -> ObserverPredictor:
-    op = build_estimator(spec)
+    op = build(spec).est
     assert isinstance(op, ObserverPredictor)
     for k, msg in packets:
         if isinstance(msg, Measurement):

@@ -10,7 +10,7 @@ router): it records the native packets the bridge gives the daemon, in their arr
 the native Predictions, the simulator's truth and the bridge's CDR Odometry.
 
 Checks: (a) each decoded predicted Odometry (x, y, yaw and their covariance block) equals an
-offline estimator (``build_estimator(spec)``, the one the daemon builds) fed the same packets
+offline estimator (``build(spec).est``, the one the daemon builds) fed the same packets
 up to the Prediction's counters, to 1e-9; (b) driving: RMS error against the truth is printed;
 stationary (``diffdrive-stationary``): the pose NEES (x, y, yaw; 3 dof) sampled once per second
 has its mean inside the 99.9 % chi-square band of that many independent samples; (c) the
@@ -34,7 +34,7 @@ import pytest
 pytest.importorskip("rosbags")
 
 from pd_client.truth import Truth  # noqa: E402
-from pd_service.backends import build_estimator  # noqa: E402
+from pd_service.backends import build  # noqa: E402
 from pd_service.ros2.extract import yaw_of  # noqa: E402
 from pd_service.ros2.keys import topic_keyexpr  # noqa: E402
 from pd_service.ros2.messages import Odometry, decode, stamp_ns, type_hash  # noqa: E402
@@ -219,7 +219,7 @@ def run_chain(tmp_path: Path, scenario: str, steps: int) -> dict:
 def offline_references(spec: SessionSpec, events: list[tuple[int, Measurement | Command]],
                        preds: list[Prediction]) -> tuple[dict[int, tuple[np.ndarray, np.ndarray]],
                                                           dict[str, int]]:
-    """Feed ``build_estimator(spec)`` the packets in arrival order and, at each Prediction
+    """Feed ``build(spec).est`` the packets in arrival order and, at each Prediction
     whose counters (accepted, commands_accepted) the offline estimator reaches, predict as
     the daemon did. Returns {prediction index: (x, P)} and the offline counters.
 
@@ -227,7 +227,7 @@ def offline_references(spec: SessionSpec, events: list[tuple[int, Measurement | 
     next Prediction that counts it (the daemon's step when it took the packet is between the
     sample's step and that one; ``now`` only decides refusals, which the windows here, of
     MAX_DELAY steps, do not make)."""
-    est = build_estimator(spec)
+    est = build(spec).est
     ordered = sorted(range(len(events)), key=lambda i: events[i][0])
     evs = [events[i] for i in ordered]
     refs: dict[int, tuple[np.ndarray, np.ndarray]] = {}

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from pd_client.truth import Truth
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.transport import ZenohTransport, zenoh_config
 from pd_service.wire import (
     Command,
@@ -214,7 +214,7 @@ def test_paper_scenario_through_the_link_equals_offline(tmp_path: Path) -> None:
         assert w.errors == []
 
         # Offline: the same accepted packets and commands, in the order they were received.
-        op = build_estimator(spec)
+        op = build(spec).est
         events = [(r, 0, m) for r, m in meas] + [(r, 1, c) for r, c in cmds]
         for recv_ns, kind, msg in sorted(events, key=lambda e: e[0]):
             now = spec.step_of(recv_ns)

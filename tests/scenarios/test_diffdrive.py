@@ -7,12 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pd_service.backends import build_estimator
+from pd_service.backends import Blueprint, build
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
 from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario
 from pd_service.scenarios.diffdrive import PROFILE, drive_turn_stop
 from pd_service.wire import SessionSpec, decode, encode
-from pd_service.wire.convert import command_dim
 
 EPOCH_NS = 1_700_000_000_000_000_000
 
@@ -24,7 +23,7 @@ def test_spec_is_an_unscented_unicycle_session_with_ros2_topics():
     assert decode(encode(spec), SessionSpec) == spec
     assert SessionSpec.model_validate_json(spec.model_dump_json()) == spec
     assert spec.model.kind == "unscented" and spec.model.model == "unicycle"
-    assert (spec.n, command_dim(spec), spec.period_ns) == (5, 2, 20_000_000)
+    assert (spec.n, Blueprint(spec).nu, spec.period_ns) == (5, 2, 20_000_000)
     timing = {s.name: (s.kind, s.interval, s.delay) for s in spec.sensors}
     assert timing == {"odom_twist": ("model", 2, 2), "imu": ("model", 1, 1),
                       "pose": ("model", 10, 15)}
@@ -43,7 +42,7 @@ def test_spec_is_an_unscented_unicycle_session_with_ros2_topics():
     assert ros2.outputs is not None
     assert ros2.outputs.layout.indices() == {"x": 0, "y": 1, "yaw": 2, "vx": 3, "yaw_rate": 4}
     assert ros2.outputs.layout.velocity_frame == "body"
-    assert isinstance(build_estimator(spec), UnscentedObserverPredictor)
+    assert isinstance(build(spec).est, UnscentedObserverPredictor)
 
 
 def test_a_sensor_subset_keeps_only_its_bindings():
@@ -67,7 +66,7 @@ def run_offline(name: str, seed: int, steps: int):
     Returns (NEES of x(k + lead), position error m) per step k."""
     sc = get_scenario(name)
     spec = sc.spec("bot", EPOCH_NS)
-    est = build_estimator(spec)
+    est = build(spec).est
     sim = ScenarioSim(sc, seed=seed)
     lead = spec.lead
     for j in range(lead):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pd_service.backends import build_estimator
+from pd_service.backends import Blueprint, build
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor
 from pd_service.estimation.nonlinear.adaptive import MITAdapter
 from pd_service.estimation.nonlinear.models_omni import OMNI_Q0
@@ -19,7 +19,6 @@ from pd_service.scenarios.omni import (
     simulate_omni,
 )
 from pd_service.wire import SessionSpec, decode, encode
-from pd_service.wire.convert import command_dim
 
 EPOCH_NS = 1_700_000_000_000_000_000
 
@@ -39,9 +38,9 @@ def test_omni_spec_selects_the_adaptive_ukf():
                                                                 OMNI_POSE_DELAY)
     np.testing.assert_allclose(pose.R, 1e-8 * np.eye(3), rtol=1e-12)
     assert (spec.lead, spec.max_delay) == (OMNI_LEAD, OMNI_MAX_DELAY)
-    assert command_dim(spec) == 3 and spec.n == 6
+    assert Blueprint(spec).nu == 3 and spec.n == 6
 
-    est = build_estimator(decode(encode(spec), SessionSpec))
+    est = build(decode(encode(spec), SessionSpec)).est
     assert isinstance(est, UnscentedObserverPredictor)
     assert isinstance(est.adapter, MITAdapter) and list(est.adapter.indices) == [3, 4, 5]
     np.testing.assert_array_equal(np.diag(est.Q), OMNI_Q0)

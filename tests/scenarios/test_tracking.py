@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.estimation.imm import ImmObserverPredictor
 from pd_service.scenarios.filter_runs import monte_carlo
 from pd_service.scenarios.tracking import simulate, tracking_scenario
@@ -58,7 +58,7 @@ def test_spec_builds_the_scenarios_imm():
                                                                               "imm_ct"]
     for sensor, ref in zip(spec.sensors, scn.sensors, strict=True):
         np.testing.assert_array_equal(sensor.R, ref.R)
-    est = build_estimator(spec)
+    est = build(spec).est
     assert isinstance(est, ImmObserverPredictor)
 
 

@@ -788,7 +788,8 @@ def test_prediction_messages_decode_strictly(world, tmp_path):
 
 def test_packed_prediction_is_byte_for_byte_what_the_codec_encodes():
     from pd_service.estimation import PredictedState
-    from pd_service.wire.convert import encode_prediction, prediction_from
+    from pd_service.service.health import inspect_packed
+    from pd_service.wire.convert import PredictionEncoder, prediction_from
 
     spec = paper_spec("s1", epoch_ns=123)
     rng = np.random.default_rng(0)
@@ -796,17 +797,22 @@ def test_packed_prediction_is_byte_for_byte_what_the_codec_encodes():
         L = rng.standard_normal((4, 4))
         pred = PredictedState(25, rng.standard_normal(4), L @ L.T, newest)
         counters = {"accepted": 3, "late": 1, "published": 9}
-        got = encode_prediction(pred, spec, "s1", 7, 999, counters)
+        bad, xb, pb = inspect_packed(pred.x, pred.P)
+        assert bad is None
+        got = PredictionEncoder(spec, "s1").encode_packed(pred, xb, pb, 7, 999, counters)
         assert got == encode(prediction_from(pred, spec, "s1", 7, 999, counters))
     bad = PredictedState(25, np.array([np.nan, 0, 0, 0]), np.eye(4), None)
+    assert inspect_packed(bad.x, bad.P)[0] is not None  # the daemon does not encode it
     with pytest.raises(ValueError, match="not finite"):
-        encode_prediction(bad, spec, "s1", 0, 0, {})
+        prediction_from(bad, spec, "s1", 0, 0, {})
 
 
 def test_counters_snapshot_keeps_nonzero_counters_in_order_then_published():
+    from pd_service.backends import build
     from pd_service.service.session import Session
 
-    sess = Session(paper_spec("s1"), "active", "", 0, 10.0, 10)
+    spec = paper_spec("s1")
+    sess = Session(spec, build(spec), "active", "", 0, 10.0, 10)
     assert sess.counters_snapshot() == {"accepted": 0, "published": 0}
     sess.counters["late"] += 2
     sess.counters["accepted"] += 0  # a zero kept by the Counter (a resumed state's)

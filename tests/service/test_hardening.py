@@ -8,9 +8,10 @@ import zlib
 
 import numpy as np
 
+from pd_service.backends import Blueprint
 from pd_service.estimation import linear as linear_mod
 from pd_service.service import Settings, SpecStore
-from pd_service.service.admission import Ledger, OverBudget, spec_cost
+from pd_service.service.admission import Ledger, OverBudget
 from pd_service.transport import InMemoryBus
 from pd_service.wire import (
     LinearModelSpec,
@@ -46,11 +47,11 @@ def world():
 # ---------------------------------------------------------------- admission ---------------
 
 def test_cost_model_counts_the_tables_of_the_big_spec():
-    c = spec_cost(big_linear_spec("big", 0))
+    c = Blueprint(big_linear_spec("big", 0)).cost
     C = 3 * 1000 + 10_000 + 4
     assert c.table_bytes == 8 * ((C + 1) * 2 * 64 * 64 + C * 64 * 64)
     assert c.bytes > 10**9  # the 1.2 GB the attack allocated
-    small = spec_cost(paper_spec("p"))
+    small = Blueprint(paper_spec("p")).cost
     assert small.bytes < 2**20 and small.cpu_share < 0.01
 
 
@@ -88,18 +89,18 @@ def test_unscented_long_lead_at_1ms_is_refused_by_the_cpu_budget(tmp_path):
 
 
 def test_service_wide_budgets_and_shared_tables_counted_once():
-    a = spec_cost(paper_spec("a"))
+    a = Blueprint(paper_spec("a")).cost
     led = Ledger(2**30, 1.0, a.bytes + a.session_bytes, 10.0)
     led.admit("a", a)
-    led.admit("b", spec_cost(paper_spec("b")))  # same model: its tables are not charged again
+    led.admit("b", Blueprint(paper_spec("b")).cost)  # same model: its tables are not charged again
     assert led.bytes == a.bytes + a.session_bytes
     try:
-        led.admit("c", spec_cost(paper_spec("c")))
+        led.admit("c", Blueprint(paper_spec("c")).cost)
     except OverBudget as exc:
         assert "memory_budget_bytes" in exc.reason
     else:
         raise AssertionError("over the memory budget")
-    led.admit("a", spec_cost(paper_spec("a", max_delay=12)))  # replacing itself fits
+    led.admit("a", Blueprint(paper_spec("a", max_delay=12)).cost)  # replacing itself fits
     led.release("a")
     led.release("b")
     assert (led.bytes, led.cpu) == (0, 0.0)
@@ -120,7 +121,7 @@ def test_restart_never_readmits_more_than_the_budget(tmp_path):
     store = SpecStore(d)
     for s in ("s1", "s2", "s3"):
         store.save(paper_spec(s))
-    one = spec_cost(paper_spec("x")).cpu_share
+    one = Blueprint(paper_spec("x")).cost.cpu_share
     core = make_core(bus, clock, tmp_path, cpu_budget=2.5 * one)
     assert core.served_sessions() == ["s1", "s2"]
     assert (d / "s3.msgpack.refused").exists() and not (d / "s3.msgpack").exists()

@@ -6,7 +6,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.estimation.checks import PSD_RTOL as ESTIMATION_PSD_RTOL
 from pd_service.wire import PSD_RTOL, Prediction, WireError, decode, encode
@@ -16,7 +16,6 @@ from pd_service.wire.convert import (
     check_key,
     check_measurement,
     command_step,
-    encode_prediction,
     measurement_step,
     prediction_from,
 )
@@ -30,9 +29,9 @@ def test_same_tolerance_as_the_estimator():
 
 
 @pytest.mark.parametrize("hold", ["hold", "zero"])
-def test_build_estimator_matches_direct_construction(hold):
+def test_build_matches_direct_construction(hold):
     spec = paper_spec().model_copy(update={"command_hold": hold})
-    op = build_estimator(spec)
+    op = build(spec).est
     direct = ObserverPredictor(
         LinearModel(A=spec.model.A, B=spec.model.B, Q=spec.model.Q),
         [Sensor(name=s.name, H=s.H, R=s.R) for s in spec.sensors],
@@ -100,9 +99,9 @@ def test_check_measurement():
 
 def test_check_command():
     spec = paper_spec(epoch_ns=EPOCH)
-    check_command(command(), spec)
+    check_command(command(), spec, spec.model.r)
     # issued before the epoch, but lead moves the apply step to >= 0: fine
-    check_command(command(step=None, issued_ns=EPOCH - 3 * PERIOD_NS), spec)
+    check_command(command(step=None, issued_ns=EPOCH - 3 * PERIOD_NS), spec, spec.model.r)
     cases = [
         (command(session="s9"), "Command.session: 's9' is not session 's1'"),
         (command(u=np.array([1.0, 2.0])),
@@ -112,16 +111,24 @@ def test_check_command():
     ]
     for msg, text in cases:
         with pytest.raises(WireError) as info:
-            check_command(msg, spec)
+            check_command(msg, spec, spec.model.r)
         assert info.value.reason == text
 
 
 def _estimate():
     spec = paper_spec(epoch_ns=EPOCH)
-    op = build_estimator(spec)
+    op = build(spec).est
     op.add_command(step=0, u=np.array([0.5]))
     op.add_measurement("camera", step=0, z=np.array([0.0, 5.0]), now=10)
     return spec, op, op.predict(now=10)
+
+
+def _encoded(pred, spec, session, seq, made_ns, counters) -> bytes:
+    """The daemon's fast path: x and P packed as msgpack arrays (as its health check does),
+    then the session's PredictionEncoder."""
+    return PredictionEncoder(spec, session).encode_packed(
+        pred, msgpack.packb(np.asarray(pred.x).tolist()),
+        msgpack.packb(np.asarray(pred.P).ravel().tolist()), seq, made_ns, counters)
 
 
 def test_prediction_from():
@@ -140,7 +147,7 @@ def test_prediction_from():
     assert encode(msg) == encode(full)
     assert decode(encode(msg), Prediction) == msg
     # the direct-to-bytes path gives the very same bytes
-    fast = encode_prediction(pred, spec, "s1", seq=4, made_ns=EPOCH + 999, counters=op.counters)
+    fast = _encoded(pred, spec, "s1", seq=4, made_ns=EPOCH + 999, counters=op.counters)
     assert fast == encode(full)
 
 
@@ -164,15 +171,9 @@ def test_one_encoder_gives_the_models_bytes_for_every_message(session):
         want = encode(Prediction(session=session, seq=seq, step=step,
                                  t_ns=EPOCH + step * PERIOD_NS, x=x, P=P, newest_step=newest,
                                  made_ns=made, counters=counters))
-        assert enc.encode(fake, seq, made, counters) == want
-        # the daemon's path: x and P read as Python floats once (its health check)
-        assert enc.encode_values(fake, x.tolist(), P.ravel().tolist(), seq, made,
-                                 counters) == want
-        # ... and packed as msgpack arrays (its health check in C, service/_moments.c)
+        # x and P packed as msgpack arrays (the daemon's health check, service/_moments.c)
         assert enc.encode_packed(fake, msgpack.packb(x.tolist()),
                                  msgpack.packb(P.ravel().tolist()), seq, made, counters) == want
-    with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\)"):
-        enc.encode_values(fake, x.tolist()[:3], P.ravel().tolist(), 0, 0, {})
     with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\) packed in 37 and "
                                         r"147 bytes, got 28 and 147"):
         enc.encode_packed(fake, msgpack.packb(x.tolist()[:3]), msgpack.packb(P.ravel().tolist()),
@@ -201,20 +202,13 @@ def test_prediction_from_refuses_bad_estimates():
     fake = type("P", (), {"step": 1, "x": bad_x, "P": pred.P, "newest_step": None})()
     with pytest.raises(WireError, match="not finite"):
         prediction_from(fake, spec, "s1", 0, 0, {})
-    with pytest.raises(WireError, match="not finite"):
-        encode_prediction(fake, spec, "s1", 0, 0, {})
-    bad_x[1], bad_x[2] = np.inf, -np.inf  # fsum raises ValueError here, not OverflowError
-    with pytest.raises(WireError, match="not finite"):
-        encode_prediction(fake, spec, "s1", 0, 0, {})
     big = type("P", (), {"step": 1, "x": np.full(4, 1e308), "P": np.diag(np.full(4, 1e308)),
-                         "newest_step": None})()  # fsum overflows, values are finite
-    assert decode(encode_prediction(big, spec, "s1", 0, 0, {}), Prediction) == \
+                         "newest_step": None})()  # large, finite values
+    assert decode(_encoded(big, spec, "s1", 0, 0, {}), Prediction) == \
         prediction_from(big, spec, "s1", 0, 0, {})
     fake = type("P", (), {"step": 1, "x": pred.x[:3], "P": pred.P, "newest_step": None})()
     with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\)"):
         prediction_from(fake, spec, "s1", 0, 0, {})
-    with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\)"):
-        encode_prediction(fake, spec, "s1", 0, 0, {})
 
 
 def test_check_key():

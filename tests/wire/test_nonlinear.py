@@ -15,12 +15,11 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from pd_service.backends import build_estimator, imm_sensor
+from pd_service.backends import Blueprint, build, imm_sensor
 from pd_service.wire import SensorSpec, SessionSpec, WireError, decode, encode
 from pd_service.wire.convert import (
     check_command,
     check_measurement,
-    command_dim,
 )
 from pd_service.wire.messages import AdaptSpec, ImmModelSpec, ModeSpec, UnscentedModelSpec
 from tests.wire.factories import (
@@ -301,7 +300,7 @@ def test_unscented_spec_builds_the_factorys_estimator():
     from pd_service.estimation.nonlinear.factory import make_unscented
 
     spec = omni_spec()
-    op = build_estimator(spec)
+    op = build(spec).est
     direct = make_unscented(
         "omni3", {"period_s": 0.01, "mass": 10, "Q": OMNI_Q0}, x0=np.zeros(6),
         P0=np.diag([1e-4, 1e-4, 1e-4, 1e-3, 1e-3, 1e-3]), lead=5, max_delay=10,
@@ -334,7 +333,7 @@ def test_imm_spec_builds_the_factorys_estimator(variant):
     from pd_service.estimation.imm.factory import make_imm
 
     spec = imm_spec(variant=variant, node=1, position=True)
-    op = build_estimator(spec)
+    op = build(spec).est
     direct = make_imm(
         modes=[{"model": "imm_cv", "params": {"period_s": 0.1, "sigma_accel": 0.003}},
                {"model": "imm_ct", "params": {"period_s": 0.1, "sigma_accel": 0.0016,
@@ -359,7 +358,7 @@ def test_imm_spec_builds_the_factorys_estimator(variant):
     a, b = _drive([op, direct], 40, measure)
     for p, q in zip(a, b, strict=True):
         assert p.step == q.step and p.newest_step == q.newest_step
-        # sigma_bearing = sqrt(R[1, 1]) may differ from the literal in its last bit
+        # the spec's R against the literal sigmas squared
         np.testing.assert_allclose(p.x, q.x, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(p.P, q.P, rtol=1e-9, atol=1e-15)
     assert op.counters == direct.counters and op.counters["accepted"] > 50
@@ -368,9 +367,9 @@ def test_imm_spec_builds_the_factorys_estimator(variant):
 def test_imm_sensor_maps():
     spec = imm_spec(position=True)
     rb = imm_sensor(spec.sensors[0])
-    assert rb == {"name": "st1", "kind": "range_bearing", "station": [9.5, -8.5],
-                  "sigma_range": pytest.approx(0.3, rel=1e-15),
-                  "sigma_bearing": pytest.approx(SIGMA_BEARING, rel=1e-15)}
+    R = rb.pop("R")
+    assert rb == {"name": "st1", "kind": "range_bearing", "station": [9.5, -8.5]}
+    np.testing.assert_array_equal(R, np.diag([0.3**2, SIGMA_BEARING**2]))
     pos = imm_sensor(spec.sensors[3])
     np.testing.assert_array_equal(pos["R"], [[0.04, 0.01], [0.01, 0.04]])
 
@@ -395,21 +394,22 @@ def _unscented(**model) -> SessionSpec:
 ])
 def test_refused_by_the_estimator(make, expected):
     with pytest.raises(WireError) as info:
-        build_estimator(make())
+        build(make())
     assert info.value.reason.startswith(expected), info.value.reason
 
 
 def test_command_dim_and_check_command():
     u, i = omni_spec(), imm_spec()
-    assert command_dim(paper_spec()) == 1 and command_dim(u) == 3 and command_dim(i) == 0
-    check_command(command(session="u1", u=np.array([0.1, 0.2, 0.3])), u)
+    nu_u, nu_i = Blueprint(u).nu, Blueprint(i).nu
+    assert Blueprint(paper_spec()).nu == 1 and nu_u == 3 and nu_i == 0
+    check_command(command(session="u1", u=np.array([0.1, 0.2, 0.3])), u, nu_u)
     check_command(command(session="u1", u=np.array([0.1, 0.2, 0.3])), u, r=3)
     with pytest.raises(WireError, match=r"^Command.u: expected 3 values \(model 'omni3' has 3 inputs\), got 1$"):
-        check_command(command(session="u1"), u)
+        check_command(command(session="u1"), u, nu_u)
     with pytest.raises(WireError, match=r"^Command.u: session 'i1' takes no commands \(its model has no inputs\)$"):
-        check_command(command(session="i1"), i)
+        check_command(command(session="i1"), i, nu_i)
     with pytest.raises(WireError, match="refused by the estimator: model: unknown model"):
-        command_dim(_unscented(model="nope"))
+        Blueprint(_unscented(model="nope"))
 
 
 def test_check_measurement_uses_the_sensor_R_dimension():

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from pd_service.backends import Blueprint
 from pd_service.transport import DEFAULT_SENDER_CACHE, Transport
 from pd_service.wire import Command, SessionSpec, WireError, encode, keys
 from pd_service.wire.convert import check_command
@@ -38,6 +39,8 @@ class Operator(ClientBase):
         self.cache = cache
         self.session = session_name(session, spec)
         self.spec = spec
+        #: the model's input dimension, read from the spec at the first send
+        self._nu: int | None = None
         self._key = keys.command_key(session)
         self.seq = 0
 
@@ -53,7 +56,9 @@ class Operator(ClientBase):
                     u=as_array(u, "u", 1))
         if self.spec is not None:
             try:
-                check_command(msg, self.spec)
+                if self._nu is None:  # a nonlinear model's is its registered model's
+                    self._nu = Blueprint(self.spec).nu
+                check_command(msg, self.spec, self._nu)
             except WireError as exc:
                 raise InvalidMessage(exc.reason) from None
         self._sender(self._key, self.cache).put(encode(msg))

@@ -13,6 +13,8 @@ A session spec names sensors with plain dicts, see :func:`make_sensor`::
 
     {"name": "st1", "kind": "range_bearing", "station": [9.5, -8.5],
      "sigma_range": 0.3, "sigma_bearing": 0.0611}                       # m, rad
+    {"name": "st1", "kind": "range_bearing", "station": [9.5, -8.5],
+     "R": [[0.09, 0.0], [0.0, 0.0037]]}                                  # m^2, rad^2
     {"name": "cam", "kind": "position", "sigma": 0.05}                   # m
 """
 
@@ -28,12 +30,25 @@ from .models import ETA, XI
 
 
 def range_bearing(
-    name: str, station: object, sigma_range: float, sigma_bearing: float
+    name: str, station: object, sigma_range: float | None = None,
+    sigma_bearing: float | None = None, R: object | None = None,
 ) -> MeasurementModel:
-    """Range (m) and bearing (rad, wrapped) from ``station`` (2,) m; R = diag(sr^2, sb^2)."""
+    """Range (m) and bearing (rad, wrapped) from ``station`` (2,) m; R = diag(sr^2, sb^2),
+    or the given diagonal (2, 2) covariance R (as a session spec gives it: no square root)."""
     st = as_vector(station, f"sensor {name!r} station", 2).copy()
-    sr = as_positive(sigma_range, f"sensor {name!r} sigma_range")
-    sb = as_positive(sigma_bearing, f"sensor {name!r} sigma_bearing")
+    if R is None:
+        if sigma_range is None or sigma_bearing is None:
+            raise ValueError(f"sensor {name!r}: bad parameters (expected sigma_range and "
+                             "sigma_bearing, or R)")
+        sr = as_positive(sigma_range, f"sensor {name!r} sigma_range")
+        sb = as_positive(sigma_bearing, f"sensor {name!r} sigma_bearing")
+        Rm = np.diag([sr * sr, sb * sb])
+    elif sigma_range is None and sigma_bearing is None:
+        Rm = as_covariance(R, f"sensor {name!r} R", 2)
+        if not (Rm[0, 1] == 0.0 == Rm[1, 0] and Rm[0, 0] > 0.0 and Rm[1, 1] > 0.0):
+            raise ValueError(f"sensor {name!r} R: must be diagonal with positive entries")
+    else:
+        raise ValueError(f"sensor {name!r}: give the sigmas or R, not both")
     sx, sy = float(st[0]), float(st[1])
 
     def h(x: np.ndarray) -> np.ndarray:
@@ -42,9 +57,8 @@ def range_bearing(
         dy = x[..., ETA] - sy
         return np.stack([np.hypot(dx, dy), np.arctan2(dy, dx)], axis=-1)
 
-    R = np.diag([sr * sr, sb * sb])
-    R.setflags(write=False)
-    return MeasurementModel(name=name, h=h, R=R, angles=(1,), vectorized=True)
+    Rm.setflags(write=False)
+    return MeasurementModel(name=name, h=h, R=Rm, angles=(1,), vectorized=True)
 
 
 def position(name: str, sigma: float | None = None, R: object | None = None) -> MeasurementModel:

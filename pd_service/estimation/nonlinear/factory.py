@@ -16,13 +16,13 @@ from collections.abc import Mapping, Sequence
 
 from ..checks import as_covariance
 from .adaptive import make_adapter
-from .registry import make_model
+from .registry import NonlinearModel, make_model
 from .sigma import SigmaWeights
 from .ukf import UnscentedObserverPredictor
 
 
 def make_unscented(
-    model_name: str,
+    model_name: str | NonlinearModel,
     model_params: Mapping[str, object] | None,
     x0: object,
     P0: object,
@@ -34,7 +34,8 @@ def make_unscented(
     sensors: Sequence[str] | None = None,
     sensor_R: Mapping[str, object] | None = None,
 ) -> UnscentedObserverPredictor:
-    """Build the registered model ``model_name`` with ``model_params`` and its estimator.
+    """Build the registered model ``model_name`` with ``model_params`` and its estimator
+    (``model_name`` may be that model already built, ``model_params`` then None).
 
     ``adapt``: None (plain UKF) or the settings of :func:`.adaptive.make_adapter`.
     ``sigma``: optional {"alpha", "beta", "kappa"} (defaults 1, 2, 0).
@@ -43,11 +44,16 @@ def make_unscented(
     session's sensor spec); a packet's own R still overrides per sample.
     Every problem raises ValueError naming the field.
     """
-    if not isinstance(model_name, str):
+    if isinstance(model_name, NonlinearModel):
+        if model_params is not None:
+            raise ValueError("model_params: the model is already built")
+        model, model_name = model_name, model_name.name
+    elif not isinstance(model_name, str):
         raise ValueError("model: expected a registered model name")
-    if model_params is not None and not isinstance(model_params, Mapping):
+    elif model_params is not None and not isinstance(model_params, Mapping):
         raise ValueError("model_params: expected a map of parameters")
-    model = make_model(model_name, **dict(model_params or {}))
+    else:
+        model = make_model(model_name, **dict(model_params or {}))
     weights = None
     if sigma is not None:
         if not isinstance(sigma, Mapping) or set(sigma) - {"alpha", "beta", "kappa"}:

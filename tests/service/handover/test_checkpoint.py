@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
+from pd_service.service.handover.checkpoint import encode_state, from_message, to_message
 from pd_service.estimation import EstimatorState, StateError
 from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario
 from pd_service.service.handover.checkpoint import encode_state, from_message, to_message
@@ -17,7 +18,7 @@ def _fed(name: str, steps: int = 40) -> EstimatorState:
     and commands, exported."""
     scn = get_scenario(name)
     spec = scn.spec(name, 0)
-    est = build_estimator(spec)
+    est = build(spec).est
     sim = ScenarioSim(scn, seed=3, loss=0.2)
     names = {s.name for s in spec.sensors}
     held: list = []
@@ -55,14 +56,14 @@ def test_a_state_of_the_former_stacked_engine_still_restores():
     spec = get_scenario("paper").spec("paper", 0)
     old = decode(encode(to_message(st, **KW)), SessionState).model_copy(  # type: ignore[arg-type]
         update={"kind": "StackedObserverPredictor"})
-    est = build_estimator(spec)
+    est = build(spec).est
     est.restore_state(from_message(old, 4))  # type: ignore[attr-defined]
-    want = build_estimator(spec)
+    want = build(spec).est
     want.restore_state(st)  # type: ignore[attr-defined]
     got, ref = est.predict(st.now + 1), want.predict(st.now + 1)
     assert np.array_equal(got.x, ref.x) and np.array_equal(got.P, ref.P)
     with pytest.raises(StateError, match="kind"):
-        build_estimator(spec).restore_state(  # type: ignore[attr-defined]
+        build(spec).est.restore_state(  # type: ignore[attr-defined]
             from_message(old.model_copy(update={"kind": "AugmentedStateKF"}), 4))
 
 

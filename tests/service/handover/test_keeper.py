@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.service import ServiceCore, Settings, SpecStore
 from pd_service.service.handover.keeper import replica_key
 from pd_service.service.session import READ_BACK_COPIES
@@ -31,7 +31,7 @@ class Driver:
     def __init__(self, cli, clock, col, session="s1"):
         self.cli, self.clock, self.col, self.s = cli, clock, col, session
         self.spec = paper_spec(session)
-        self.off = build_estimator(self.spec)
+        self.off = build(self.spec).est
         self.snap = None
         self.rng = np.random.default_rng(3)
 
@@ -104,7 +104,7 @@ def test_restart_resumes_from_the_checkpoint_exactly(tmp_path):
     assert st.origin == "checkpoint" and st.origin_step is not None and 30 <= st.origin_step < 40
     assert b.counters["resumed_from_checkpoint"] == 1
     # the run from the prior would be far off: P(p2) back near the prior's 100
-    fresh = build_estimator(d.spec)
+    fresh = build(d.spec).est
     assert float(col.predictions["s1"][-1].P[1, 1]) < 0.1 * float(fresh.predict(43).P[1, 1])
 
 
@@ -161,7 +161,7 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     assert any(f"({reason})" in e.reason for e in col.errors["s1"])
     clock.t = int((restart_step + 0.6) * PERIOD_NS)
     b.run_once()  # the tick: a prediction from the prior
-    prior = build_estimator(d.spec).predict(restart_step)
+    prior = build(d.spec).est.predict(restart_step)
     assert col.predictions["s1"][-1].step == prior.step
     np.testing.assert_allclose(col.predictions["s1"][-1].P, prior.P, rtol=1e-9)
 
@@ -198,7 +198,7 @@ def test_a_replica_for_another_spec_is_refused(tmp_path):
     a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
     a.run_once()
-    other = build_estimator(paper_spec("s1", max_delay=20))
+    other = build(paper_spec("s1", max_delay=20)).est
     from pd_service.service.handover.checkpoint import to_message
     from pd_service.wire.state import spec_fingerprint
     msg = to_message(other.export_state(), session="s1", instance="inst-x",
@@ -224,7 +224,7 @@ def test_a_replica_is_only_unpacked_on_arrival_and_validated_at_the_takeover(tmp
     a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR)
     cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
     a.run_once()
-    est = build_estimator(paper_spec("s1"))
+    est = build(paper_spec("s1")).est
     good = to_message(est.export_state(), session="s1", instance="inst-x",
                       fingerprint=spec_fingerprint(paper_spec("s1")), made_ns=0)
     obj = msgpack.unpackb(encode(good))

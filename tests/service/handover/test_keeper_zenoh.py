@@ -44,7 +44,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
+from pd_service.service.handover.checkpoint import from_message
 from pd_service.scenarios.paper import paper_command, simulate_paper
 from pd_service.service import SpecStore
 from pd_service.service.handover.checkpoint import from_message
@@ -141,7 +142,7 @@ class Outbox(threading.Thread):
 def reference(feed: Feed) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """The run that never stopped: for each step k, diag P of predict(k) having been fed
     everything put up to step k (``full``) and up to step k - 1 (``prev``)."""
-    est = build_estimator(feed.spec)
+    est = build(feed.spec).est
     full, prev = [], []
     mi = ci = 0
     for k in range(feed.steps):
@@ -165,7 +166,7 @@ def check_resumed(preds: list[Prediction], feed: Feed, state: SessionState | Non
     prediction counters reveal them. Returns the number of predictions and of packets
     (measurements + commands) put after the state that the daemon never accepted (lost)."""
     spec = feed.spec
-    est = build_estimator(spec)  # ObserverPredictor, as the daemon's
+    est = build(spec).est  # ObserverPredictor, as the daemon's
     base: dict[str, int] = {}
     if state is not None:
         assert state.kind == "ObserverPredictor"
@@ -307,7 +308,7 @@ def test_kill_and_restart_resumes_from_the_checkpoint_and_the_senders_caches(wor
         full, prev = reference(feed)
         r_prev = ratios(resumed, feed, prev)
         r_full = ratios(resumed, feed, full)
-        prior = np.diag(build_estimator(feed.spec).predict(first_now).P)
+        prior = np.diag(build(feed.spec).est.predict(first_now).P)
         c = first.counters
         print(f"\nrestart: checkpoint of step {state.now_step}, first prediction at step "
               f"{first_now}; recovered at the start: {c.get('recovered_accepted', 0)} "

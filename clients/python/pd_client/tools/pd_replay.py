@@ -7,7 +7,7 @@
 The recorded sensor packets and commands are given, in the order they arrived, to an
 estimator built from the recorded SessionSpec (or ``--spec``, a SessionSpec JSON file: the
 wire form, as in docs/schemas/SessionSpec.json; ``--session`` picks the session when a
-recording holds several) by :func:`pd_service.backends.build_estimator`, with the daemon's
+recording holds several) by :func:`pd_service.backends.build`, with the daemon's
 per-message handling: a Measurement's ``step`` (or ``floor((t_ns - epoch) / period)``) is its
 sample step, it is windowed at the daemon's current step, a Command applies at its ``step``
 (or ``step_of(issued_ns) + lead``).
@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pd_service.backends import build_estimator
+from pd_service.backends import build
 from pd_service.estimation import Estimator, PredictedState
 from pd_service.intake import COMMAND_OUTCOMES, MAX_ABS_INPUT, MEASUREMENT_OUTCOMES, Intake
 from pd_service.wire import (
@@ -78,8 +78,9 @@ class OfflineSession:
 
     def __init__(self, spec: SessionSpec, max_abs: float = MAX_ABS_INPUT) -> None:
         self.spec = spec
-        self.est: Estimator = build_estimator(spec)
-        self.intake = Intake(spec, self.est, max_abs)
+        built = build(spec)
+        self.est: Estimator = built.est
+        self.intake = Intake(spec, self.est, built.nu, max_abs)
         self.counters: Counter[str] = Counter()
 
     def measurement(self, rec: Record, now: int) -> str:
