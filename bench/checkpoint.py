@@ -22,7 +22,6 @@ import time
 import numpy as np
 
 from pd_service.backends import build
-from pd_service.service.handover.checkpoint import encode_state, to_message
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.scenarios.paper import paper_scenario
 from pd_service.service.handover.checkpoint import encode_state, to_message

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from pd_service.backends import build
-from pd_service.service.handover.checkpoint import encode_state, from_message, to_message
 from pd_service.estimation import EstimatorState, StateError
 from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario
 from pd_service.service.handover.checkpoint import encode_state, from_message, to_message

@@ -45,7 +45,6 @@ import pytest
 import zenoh
 
 from pd_service.backends import build
-from pd_service.service.handover.checkpoint import from_message
 from pd_service.scenarios.paper import paper_command, simulate_paper
 from pd_service.service import SpecStore
 from pd_service.service.handover.checkpoint import from_message
