@@ -2,7 +2,7 @@
 
 Nothing else in the project formats a key by hand: call these functions.
 
-Key layout 2 (protocol.md §2): every per-session key carries the session's **partition**
+Key layout 2 (protocol.md §3): every per-session key carries the session's **partition**
 ``p<k>`` before the session, ``k = partition_of(session)``, so that an instance subscribes
 with one wildcard per partition it owns and Zenoh's routers deliver it only those samples.
 
@@ -61,7 +61,7 @@ SERVICE_CHUNK = "@service"
 LINK_CHUNK = "@link"
 ROS2_CHUNK = "@ros2"
 
-#: The key layout this build speaks (protocol.md §2).
+#: The key layout this build speaks (protocol.md §3).
 KEY_LAYOUT = 2
 #: The environment variable that sets the deployment's partition count, and its default.
 PARTITIONS_ENV = "PD_PARTITIONS"
@@ -128,7 +128,7 @@ def fnv1a32(data: bytes) -> int:
 
 def partition_of(session: str, n: int | None = None) -> int:
     """The partition of ``session``: FNV-1a-32 of its UTF-8 bytes mod P (``n``, default
-    :func:`partitions`). Test vectors in protocol.md §2."""
+    :func:`partitions`). Test vectors in protocol.md §3."""
     return fnv1a32(check_name(session, "session").encode()) % (partitions() if n is None else n)
 
 
@@ -234,7 +234,7 @@ def legacy_reason(key: str) -> str:
     session = str(key).split("/")[1]
     return (f"key {key!r} is of key layout 1; this service speaks key layout {KEY_LAYOUT}: "
             f"a session's keys carry its partition, e.g. {config_key(session)!r} "
-            f"(partition = FNV-1a-32(name) mod {partitions()}, protocol.md §2): upgrade the client")
+            f"(partition = FNV-1a-32(name) mod {partitions()}, protocol.md §3): upgrade the client")
 
 
 # --- robot side ------------------------------------------------------------------------
