@@ -442,7 +442,7 @@ ModelSpec = Annotated[
 
 
 class SessionSpec(Message):
-    """Creates or replaces a session (put on ``pd/<session>/config``).
+    """Creates or replaces a session (put on ``pd/p<k>/<session>/config``).
 
     Rules: n = state dimension (1..64): the rows of model.A for a linear model, the length
     of x0 otherwise; x0 has n values; P0 is n x n; sensor names are unique; every sensor
@@ -583,7 +583,7 @@ class SessionSpec(Message):
 # --- streams into the daemon ------------------------------------------------------------
 
 class Measurement(Message):
-    """One sensor sample (``pd/<session>/sensor/<name>``): z = H x(s) + v (or h(x(s)) + v).
+    """One sensor sample (``pd/p<k>/<session>/sensor/<name>``): z = H x(s) + v (or h(x(s)) + v).
 
     Rules: exactly one of step / t_ns; R, if given, is m x m (m = len(z)) symmetric PSD.
     Against the session: the sensor exists and z has its dimension m (rows of its R).
@@ -617,7 +617,7 @@ class Measurement(Message):
 
 
 class Command(Message):
-    """One operator command (``pd/<session>/cmd``): u applies from its apply step on.
+    """One operator command (``pd/p<k>/<session>/cmd``): u applies from its apply step on.
 
     Rules: exactly one of step / issued_ns. Against the session: u has r values (the
     columns of model.B, or the registered model's input dimension).
@@ -644,7 +644,7 @@ class Command(Message):
 # --- streams out of the daemon ----------------------------------------------------------
 
 class Prediction(Message):
-    """The predicted state at a target step (``pd/<session>/prediction``).
+    """The predicted state at a target step (``pd/p<k>/<session>/prediction``).
 
     Rules: P is n x n (n = len(x)), symmetric PSD.
     """
@@ -673,7 +673,7 @@ class Prediction(Message):
 
 
 class ErrorReport(Message):
-    """Why a message was refused (``pd/<session>/error``, rate-limited by the daemon)."""
+    """Why a message was refused (``pd/p<k>/<session>/error``, rate-limited by the daemon)."""
 
     session: Name = Field(description="Session id.")
     key: Annotated[str, StringConstraints(max_length=512)] = Field(
@@ -684,7 +684,7 @@ class ErrorReport(Message):
 
 
 class SessionStatus(Message):
-    """Reply of ``pd/<session>/status``, and the answer to every config change."""
+    """Reply of ``pd/p<k>/<session>/status``, and the answer to every config change."""
 
     session: Name = Field(description="Session id.")
     instance: Name = Field(description="Daemon instance serving the session.")

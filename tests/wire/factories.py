@@ -109,7 +109,7 @@ def prediction(n: int = 4, **kw) -> Prediction:
 
 
 def error_report(**kw) -> ErrorReport:
-    base = dict(session="s1", key="pd/s1/sensor/camera", seq=7,
+    base = dict(session="s1", key="pd/p9/s1/sensor/camera", seq=7,
                 reason="Measurement.z: expected 2 values", t_ns=123)
     base.update(kw)
     return ErrorReport(**base)

@@ -9,7 +9,7 @@ import pytest
 from pd_service.backends import build
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.estimation.checks import PSD_RTOL as ESTIMATION_PSD_RTOL
-from pd_service.wire import PSD_RTOL, Prediction, WireError, decode, encode
+from pd_service.wire import PSD_RTOL, Prediction, WireError, decode, encode, keys
 from pd_service.wire.convert import (
     PredictionEncoder,
     check_command,
@@ -212,17 +212,20 @@ def test_prediction_from_refuses_bad_estimates():
 
 
 def test_check_key():
-    assert check_key(measurement(), "pd/s1/sensor/camera").sensor == "camera"
-    assert check_key(measurement(), "robot/s1/sensor/camera").side == "robot"
-    assert check_key(command(), "pd/s1/cmd").kind == "cmd"
+    assert check_key(measurement(), keys.sensor_key("s1", "camera")).sensor == "camera"
+    assert check_key(measurement(), keys.robot_sensor_key("s1", "camera")).side == "robot"
+    assert check_key(command(), keys.command_key("s1")).kind == "cmd"
+    ranger1, camera2 = keys.sensor_key("s1", "ranger"), keys.sensor_key("s2", "camera")
+    bogus = f"{keys.session_prefix('s1')}/bogus"
     cases = [
-        (measurement(), "pd/s1/sensor/ranger",
-         "Measurement.sensor: 'camera' does not match the key 'pd/s1/sensor/ranger'"),
-        (measurement(), "pd/s2/sensor/camera",
-         "Measurement.session: 's1' does not match the key 'pd/s2/sensor/camera'"),
-        (command(), "pd/s2/cmd", "Command.session: 's1' does not match the key 'pd/s2/cmd'"),
-        (command(), "pd/s1/bogus",
-         "Command: key 'pd/s1/bogus': unknown stream 'bogus' for the operator side"),
+        (measurement(), ranger1,
+         f"Measurement.sensor: 'camera' does not match the key '{ranger1}'"),
+        (measurement(), camera2,
+         f"Measurement.session: 's1' does not match the key '{camera2}'"),
+        (command(), keys.command_key("s2"),
+         f"Command.session: 's1' does not match the key '{keys.command_key('s2')}'"),
+        (command(), bogus,
+         f"Command: key '{bogus}': unknown stream 'bogus' for the operator side"),
     ]
     for msg, key, text in cases:
         with pytest.raises(WireError) as info:
