@@ -36,8 +36,9 @@ class Collector:
 
 
 class MemLink:
-    """In-memory link emulator: robot/<s>/sensor/<n> -> pd/<s>/sensor/<n> after the sensor's
-    nominal delay, pd/<s>/cmd -> robot/<s>/cmd after ``uplink`` steps (test clock ``now``)."""
+    """In-memory link emulator: robot/p<k>/<s>/sensor/<n> -> pd/p<k>/<s>/sensor/<n> after the
+    sensor's nominal delay, pd/p<k>/<s>/cmd -> robot/p<k>/<s>/cmd after ``uplink`` steps (test
+    clock ``now``)."""
 
     def __init__(self, bus, delays: dict[str, int], uplink: int) -> None:
         self.t = bus.transport()

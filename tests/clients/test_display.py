@@ -53,10 +53,10 @@ def test_gaps_invalid_payloads_and_errors_are_counted(bus):
         daemon.put(keys.prediction_key("s1"), encode(_pred(4, 14)))  # 1..3 lost
         daemon.put(keys.prediction_key("s1"), b"\x81\xa1v\x02")  # not a Prediction
         daemon.put(keys.error_key("s1"), encode(ErrorReport(
-            session="s1", key="pd/s1/sensor/camera", seq=3, reason="late", t_ns=1)))
+            session="s1", key="pd/p9/s1/sensor/camera", seq=3, reason="late", t_ns=1)))
         st = d.stats()
         assert (st.received, st.missed, st.invalid, st.errors) == (2, 3, 1, 1)
-        assert st.last_error == "pd/s1/sensor/camera: late"
+        assert st.last_error == "pd/p9/s1/sensor/camera: late"
 
 
 def test_latency_is_receipt_minus_made(bus):

@@ -15,20 +15,21 @@ from .conftest import EPOCH_NS, Collector
 
 
 def test_publish_stamps_step_and_counts_seq_per_sensor(bus):
-    sink = Collector(bus, "robot/s1/sensor/*")
+    sink = Collector(bus, keys.ROBOT_ALL_SENSORS)
     with Robot(bus.transport(), "s1") as robot:
         robot.publish("camera", [1.0, 5.0], step=4)
         robot.publish("camera", np.array([1.1, 5.1]), step=6)
         robot.publish("ranger", 3.9, step=6)
     msgs = [(s.key, decode(s.payload, Measurement)) for s in sink.samples]
-    assert [k for k, _ in msgs] == ["robot/s1/sensor/camera"] * 2 + ["robot/s1/sensor/ranger"]
+    assert [k for k, _ in msgs] == [keys.robot_sensor_key("s1", "camera")] * 2 + [
+        keys.robot_sensor_key("s1", "ranger")]
     assert [(m.sensor, m.seq, m.step, m.t_ns) for _, m in msgs] == [
         ("camera", 0, 4, None), ("camera", 1, 6, None), ("ranger", 0, 6, None)]
     np.testing.assert_array_equal(msgs[2][1].z, [3.9])
 
 
 def test_publish_with_t_ns_and_own_R(bus):
-    sink = Collector(bus, "robot/s1/sensor/*")
+    sink = Collector(bus, keys.ROBOT_ALL_SENSORS)
     with Robot(bus.transport(), "s1") as robot:
         m = robot.publish("camera", [1.0, 2.0], t_ns=EPOCH_NS + 123, R=[[0.1, 0], [0, 0.2]])
     got = decode(sink.payloads()[0], Measurement)
@@ -37,7 +38,7 @@ def test_publish_with_t_ns_and_own_R(bus):
 
 
 def test_direct_mode_uses_service_keys(bus):
-    sink = Collector(bus, "pd/s1/sensor/*")
+    sink = Collector(bus, keys.sensors_of("s1"))
     with Robot(bus.transport(), "s1", direct=True) as robot:
         robot.publish("camera", [1.0, 2.0], step=0)
     assert [s.key for s in sink.samples] == [keys.sensor_key("s1", "camera")]
@@ -185,15 +186,15 @@ def test_robot_and_operator_keep_their_last_samples_for_a_restarted_service(bus)
             robot.publish("camera", [1.0, float(k)], step=k)
             op.send([float(k)], step=k + 10)
         got: list = []
-        bus.transport().recover("pd/*/sensor/*", got.append, max_samples=100)
+        bus.transport().recover(keys.ALL_SENSORS, got.append, max_samples=100)
         assert [decode(s.payload, Measurement).step for s in got] == [2, 3]
         got.clear()
-        bus.transport().recover("pd/*/cmd", got.append, max_samples=100)
+        bus.transport().recover(keys.ALL_COMMANDS, got.append, max_samples=100)
         assert [decode(s.payload, Command).step for s in got] == [11, 12, 13]
     got.clear()  # closed with the clients: nothing kept
     bus.transport().recover("pd/**", got.append, max_samples=100)
     assert got == []
     with Robot(t, "s2", direct=True, cache=0) as robot:  # cache=0: plain publishers
         robot.publish("camera", [1.0, 2.0], step=1)
-        bus.transport().recover("pd/*/sensor/*", got.append, max_samples=100)
+        bus.transport().recover(keys.ALL_SENSORS, got.append, max_samples=100)
         assert got == []

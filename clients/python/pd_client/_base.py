@@ -49,6 +49,11 @@ def connect(
     command-line tools; with ``config_file`` (a Zenoh JSON5 file, read first) the file
     decides what the arguments do not say. Raises :class:`ServiceUnavailable` when Zenoh
     cannot open the session (in client mode: nothing listens at ``endpoint``).
+
+    Every session key carries the session's partition (key layout 2, docs/protocol.md §3),
+    computed with the partition count P of the environment variable ``PD_PARTITIONS``
+    (default 64), read once when ``pd_service.wire.keys`` is imported: it must be the same
+    as the deployment's, or this client's keys reach nobody (a spec put is refused).
     """
     if isinstance(endpoint, str):
         endpoints: tuple[str, ...] = (endpoint,) if endpoint else ()

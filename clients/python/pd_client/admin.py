@@ -91,12 +91,12 @@ class _Ack:
 class Admin(ClientBase):
     """Manages sessions of a pd-service deployment.
 
-    A session is created by putting its SessionSpec on ``pd/<session>/config`` and removed by
+    A session is created by putting its SessionSpec on ``pd/p<k>/<session>/config`` and removed by
     deleting that key. The service acknowledges each change by putting a SessionStatus on
-    ``pd/<session>/status`` (or an ErrorReport on ``pd/<session>/error`` naming the config
+    ``pd/p<k>/<session>/status`` (or an ErrorReport on ``pd/p<k>/<session>/error`` naming the config
     key when it refuses the spec); with ``wait=True`` the methods below wait for that.
 
-    ``serve_spec=True`` (default) also answers queries on ``pd/<session>/config`` with the
+    ``serve_spec=True`` (default) also answers queries on ``pd/p<k>/<session>/config`` with the
     spec while this Admin is open, so that other clients (a robot, an operator) can learn
     the session's clock and model: :meth:`get_spec`, :meth:`wait_for_spec`.
     """
@@ -272,7 +272,7 @@ class Admin(ClientBase):
         self._served[spec.session] = (spec, h)
 
     def get_spec(self, session: str, timeout: float = 1.0) -> SessionSpec | None:
-        """The session's SessionSpec from whoever answers ``pd/<session>/config`` queries
+        """The session's SessionSpec from whoever answers ``pd/p<k>/<session>/config`` queries
         (an Admin serving it, or the service), or None."""
         session = self._check(session)
         for r in self.transport.get(keys.config_key(session), timeout=timeout):

@@ -54,9 +54,9 @@ class DisplayStats:
 
 
 class Display(ClientBase):
-    """Predictions of one session, from ``pd/<session>/prediction``.
+    """Predictions of one session, from ``pd/p<k>/<session>/prediction``.
 
-    ``truth=True`` also reads a simulator's ground truth (``robot/<session>/truth``) and
+    ``truth=True`` also reads a simulator's ground truth (``robot/p<k>/<session>/truth``) and
     pairs each prediction with the truth at its target step (:meth:`latest_pair`).
     ``errors=True`` (default) counts the service's ErrorReports for the session.
     ``history``: predictions and truths kept for matching, and the iterator's queue size.

@@ -23,7 +23,7 @@ from .errors import InvalidMessage
 
 
 class Operator(ClientBase):
-    """Sends Commands on ``pd/<session>/cmd`` (the service reads them there, and the link
+    """Sends Commands on ``pd/p<k>/<session>/cmd`` (the service reads them there, and the link
     emulator carries them to the robot). ``seq`` counts up from 0.
 
     ``spec`` (optional): the session's SessionSpec; with it, ``u`` is checked against the

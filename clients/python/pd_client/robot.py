@@ -33,9 +33,9 @@ CommandCallback = Callable[[Command], None]
 class Robot(ClientBase):
     """The robot's end of a session.
 
-    Measurements go to ``robot/<session>/sensor/<name>`` (the link emulator carries them to
-    the service); commands are read from ``robot/<session>/cmd``. With ``direct=True`` the
-    operator-side keys (``pd/<session>/...``) are used instead: no link emulator between.
+    Measurements go to ``robot/p<k>/<session>/sensor/<name>`` (the link emulator carries them to
+    the service); commands are read from ``robot/p<k>/<session>/cmd``. With ``direct=True`` the
+    operator-side keys (``pd/p<k>/<session>/...``) are used instead: no link emulator between.
 
     ``spec`` (optional): the session's SessionSpec. With it, measurements are checked
     against the session (known sensor, dimension) before they are sent, truth gets its
@@ -101,7 +101,7 @@ class Robot(ClientBase):
     def publish_truth(self, step: int, x: Sequence[float] | np.ndarray, *,
                       t_ns: int | None = None, names: Sequence[str] = (),
                       angles: Sequence[int] = ()) -> Truth:
-        """Publish the true state x(step) on ``robot/<session>/truth`` (simulators only:
+        """Publish the true state x(step) on ``robot/p<k>/<session>/truth`` (simulators only:
         used by recorders and displays for evaluation, never by the service). ``t_ns``
         defaults to the step's time when the spec is known."""
         if t_ns is None:

@@ -1,4 +1,4 @@
-"""Ground truth of a simulated robot (``robot/<session>/truth``), for evaluation only.
+"""Ground truth of a simulated robot (``robot/p<k>/<session>/truth``), for evaluation only.
 
 The daemon never reads it. It is encoded with the same msgpack codec as the protocol's
 messages (:func:`pd_service.wire.encode` / ``decode``).

@@ -14,7 +14,7 @@ pytest.importorskip("mcap")
 from pd_client.tools import pd_replay  # noqa: E402
 from pd_client.tools.mcap_log import McapRecorder, read_records  # noqa: E402
 from pd_service.transport import InMemoryBus  # noqa: E402
-from pd_service.wire import Prediction, decode, encode, keys  # noqa: E402
+from pd_service.wire import Measurement, Prediction, decode, encode, keys  # noqa: E402
 from tests.service.helpers import Clock, Collector  # noqa: E402
 from tests.service.test_core import PaperFeed, make_core  # noqa: E402
 
@@ -49,12 +49,13 @@ def test_mcap_holds_every_stream_with_schemas(recorded):
         summary = reader.get_summary()
         topics = {ch.topic: summary.schemas[ch.schema_id] for ch in summary.channels.values()}
         msgs = list(reader.iter_messages())
-    assert topics["/pd/s1/prediction"].name == "Prediction"
-    assert topics["/pd/s1/prediction"].encoding == "jsonschema"
-    assert json.loads(topics["/pd/s1/config"].data)["title"] == "SessionSpec"
-    assert {"/pd/s1/sensor/camera", "/pd/s1/sensor/ranger", "/pd/s1/cmd",
-            "/pd/s1/error"} <= set(topics)
-    n_pred = sum(1 for _, ch, _ in msgs if ch.topic == "/pd/s1/prediction")
+    pred_topic = "/" + keys.prediction_key("s1")
+    assert topics[pred_topic].name == "Prediction"
+    assert topics[pred_topic].encoding == "jsonschema"
+    assert json.loads(topics["/" + keys.config_key("s1")].data)["title"] == "SessionSpec"
+    assert {"/" + k for k in (keys.sensor_key("s1", "camera"), keys.sensor_key("s1", "ranger"),
+                              keys.command_key("s1"), keys.error_key("s1"))} <= set(topics)
+    n_pred = sum(1 for _, ch, _ in msgs if ch.topic == pred_topic)
     assert n_pred == len(preds) >= STEPS
     # the JSON messages read back to the exact published predictions
     back = [decode(r.payload, Prediction) for r in read_records(path) if r.stream == "prediction"]
@@ -139,7 +140,7 @@ def test_records_status_spec_and_raw_samples(tmp_path):
     pub.put(keys.prediction_key("s2"), b"not recorded")
     rec.close()
     got = list(read_records(path))
-    assert [(r.key, r.payload) for r in got] == [("pd/s1/sensor/camera", b"\xc1junk")]
+    assert [(r.key, r.payload) for r in got] == [(keys.sensor_key("s1", "camera"), b"\xc1junk")]
 
 
 def test_ros2_outputs_are_recorded_in_the_ros2_profile(tmp_path):
@@ -164,11 +165,49 @@ def test_ros2_outputs_are_recorded_in_the_ros2_profile(tmp_path):
     with open(tmp_path / "r.mcap", "rb") as f:
         got = {ch.topic: (sc.encoding, sc.name, ch.message_encoding, m.data)
                for sc, ch, m in make_reader(f).iter_messages()}
-    enc, name, menc, data = got["/pd/bot/ros2/odom"]
+    prefix = "/" + keys.session_prefix("bot")
+    enc, name, menc, data = got[f"{prefix}/ros2/odom"]
     assert (enc, name, menc) == ("ros2msg", "nav_msgs/msg/Odometry", "cdr")
     odom = decode_ros(data, "nav_msgs/msg/Odometry")
     p = odom.pose.pose.position
     assert (p.x, p.y) == (1.5, -2.0) and abs(yaw_of(odom.pose.pose.orientation) - 0.3) < 1e-12
     assert odom.header.stamp.sec * 10**9 + odom.header.stamp.nanosec == spec.time_of(40)
-    assert got["/pd/bot/ros2/pose"][1] == "geometry_msgs/msg/PoseWithCovarianceStamped"
+    assert got[f"{prefix}/ros2/pose"][1] == "geometry_msgs/msg/PoseWithCovarianceStamped"
     assert [r.stream for r in read_records(tmp_path / "r.mcap")] == ["config", "prediction"]
+
+
+def test_logs_of_key_layout_1_and_of_another_partition_count_read_back_rekeyed(tmp_path):
+    """A log without the pd-keys metadata has layout-1 topics (/pd/<s>/...); one recorded with
+    another PD_PARTITIONS has other partition chunks: both read back with this process's keys."""
+    from mcap.writer import Writer
+
+    from pd_client.tools.mcap_log import McapLog, to_json
+
+    meas = encode(Measurement(session="s1", sensor="camera", seq=1, step=3,
+                              z=np.array([1.0, 2.0])))
+    old = tmp_path / "layout1.mcap"
+    with open(old, "wb") as f:
+        w = Writer(f)
+        w.start()
+        sid = w.register_schema(name="Measurement", encoding="jsonschema", data=b"{}")
+        cid = w.register_channel(topic="/pd/s1/sensor/camera", message_encoding="json",
+                                 schema_id=sid)
+        w.add_message(channel_id=cid, log_time=5, data=to_json(meas) or b"", publish_time=5,
+                      sequence=0)
+        raw = w.register_channel(topic="/pd/s1/raw", message_encoding="json", schema_id=sid)
+        w.add_message(channel_id=raw, log_time=6, publish_time=6, sequence=1, data=json.dumps(
+            {"key": "pd/s1/cmd", "kind": "delete", "payload_b64": ""}).encode())
+        w.finish()
+    got = [(r.key, r.stream, r.session, r.kind) for r in read_records(old)]
+    assert got == [(keys.sensor_key("s1", "camera"), "sensor", "s1", "put"),
+                   (keys.command_key("s1"), "cmd", "s1", "delete")]
+    assert decode(next(iter(read_records(old))).payload, Measurement) == decode(meas, Measurement)
+    before = keys.partitions()
+    try:
+        keys.set_partitions(256)
+        log = McapLog(tmp_path / "p256.mcap")
+        log.write_sample(keys.sensor_key("s1", "camera"), meas, 7)
+        log.close()
+    finally:
+        keys.set_partitions(before)
+    assert [r.key for r in read_records(tmp_path / "p256.mcap")] == [keys.sensor_key("s1", "camera")]

@@ -29,15 +29,15 @@ def test_tick_publishes_truth_and_stamped_samples_per_session(bus):
     by_key = defaultdict(list)
     for s in sink.samples:
         by_key[s.key].append(s.payload)
-    truth = [decode(p, Truth) for p in by_key["robot/full/truth"]]
+    truth = [decode(p, Truth) for p in by_key[keys.truth_key("full")]]
     assert [t.step for t in truth] == [0, 1, 2, 3] and truth[0].names == ["p1", "v1", "p2", "v2"]
     np.testing.assert_array_equal(truth[0].x, sc.x0_true)
-    cam_truth = [decode(p, Truth) for p in by_key["robot/cam/truth"]]
+    cam_truth = [decode(p, Truth) for p in by_key[keys.truth_key("cam")]]
     assert [(t.step, t.x.tolist()) for t in cam_truth] == [(t.step, t.x.tolist()) for t in truth]
-    cams = [decode(p, Measurement) for p in by_key["robot/full/sensor/camera"]]
+    cams = [decode(p, Measurement) for p in by_key[keys.robot_sensor_key("full", "camera")]]
     assert [(m.step, m.seq) for m in cams] == [(0, 0), (2, 1)]  # every 2 steps
-    assert "robot/cam/sensor/ranger" not in by_key  # the camera-only session
-    assert [decode(p, Measurement).step for p in by_key["robot/cam/sensor/camera"]] == [0, 2]
+    assert keys.robot_sensor_key("cam", "ranger") not in by_key  # the camera-only session
+    assert [decode(p, Measurement).step for p in by_key[keys.robot_sensor_key("cam", "camera")]] == [0, 2]
     with pytest.raises(ValueError, match="expected step 4"):
         sim.tick(6)
     sim.close()

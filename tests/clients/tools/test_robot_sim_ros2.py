@@ -25,7 +25,7 @@ from pd_service.ros2.extract import decode_measurement  # noqa: E402
 from pd_service.ros2.keys import parse_token, topic_keyexpr  # noqa: E402
 from pd_service.ros2.messages import Twist, encode, type_hash  # noqa: E402
 from pd_service.scenarios import ScenarioSim, get_scenario  # noqa: E402
-from pd_service.wire import decode  # noqa: E402
+from pd_service.wire import decode, keys  # noqa: E402
 
 from ..conftest import EPOCH_NS, Collector  # noqa: E402
 
@@ -59,7 +59,7 @@ def test_samples_are_ros_messages_of_the_simulated_values(bus):
     for s in sink.samples:
         by_key[s.key].append(s)
     assert not [k for k in by_key if "/sensor/" in k]  # no native measurement
-    truth = [decode(s.payload, Truth) for s in by_key["robot/bot/truth"]]
+    truth = [decode(s.payload, Truth) for s in by_key[keys.truth_key("bot")]]
     assert [t.step for t in truth] == list(range(25))  # the truth stays native
     assert spec.ros2 is not None
     for name, binding in spec.ros2.sensors.items():

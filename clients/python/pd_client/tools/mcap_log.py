@@ -1,8 +1,9 @@
 """MCAP logs of pd-service sessions: what ``pd-record --mcap`` writes and ``pd-replay`` reads.
 
-One MCAP channel per Zenoh key, topic ``/`` + key (``/pd/<s>/sensor/<name>``, ``/pd/<s>/cmd``,
-``/pd/<s>/prediction``, ``/pd/<s>/error``, ``/pd/<s>/status``, ``/pd/<s>/config``,
-``/robot/<s>/truth``), message encoding ``json`` with the message type's JSON Schema
+One MCAP channel per Zenoh key, topic ``/`` + key (``/pd/p<k>/<s>/sensor/<name>``,
+``/pd/p<k>/<s>/cmd``, ``/pd/p<k>/<s>/prediction``, ``/pd/p<k>/<s>/error``,
+``/pd/p<k>/<s>/status``, ``/pd/p<k>/<s>/config``, ``/robot/p<k>/<s>/truth``; key layout 2,
+protocol.md §3), message encoding ``json`` with the message type's JSON Schema
 (``jsonschema`` schema encoding; the same schemas as docs/schemas, from
 :func:`pd_service.wire.schemas.schemas`, and :class:`pd_client.Truth`'s).
 
@@ -12,15 +13,20 @@ Each message is the payload's msgpack map, unpacked (the wire form: arrays are
 ``msgpack.packb(json.loads(data))`` decodes to exactly the numbers the daemon decoded: this
 is what makes an exact offline replay possible without storing the msgpack bytes twice.
 A payload that is not such a map (undecodable bytes, bin fields, NaN/inf, a delete) goes to
-``/pd/<s>/raw`` as ``{"key", "kind", "payload_b64"}`` so a replay still sees it.
+``/pd/p<k>/<s>/raw`` as ``{"key", "kind", "payload_b64"}`` so a replay still sees it.
+
+The metadata record ``pd-keys`` holds the key layout and partition count P of the recording;
+a log without it is of key layout 1 (``/pd/<s>/...``). Reading re-keys every message into
+this process's layout and P, so an older log, or one recorded with another
+``PD_PARTITIONS``, replays the same.
 
 Log time and publish time are the recorder's receipt time (wall clock, ns); the MCAP
 ``sequence`` of each message is its arrival order at the recorder (over all channels).
 
 ROS 2 profile where a ROS message type exists: for a session whose spec binds ROS 2 outputs
 (``SessionSpec.ros2.outputs``), every prediction is also written as ``nav_msgs/msg/Odometry``
-and ``geometry_msgs/msg/PoseWithCovarianceStamped`` on ``/pd/<s>/ros2/odom`` and
-``/pd/<s>/ros2/pose`` (``cdr`` messages, ``ros2msg`` schemas: the message definitions from the
+and ``geometry_msgs/msg/PoseWithCovarianceStamped`` on ``/pd/p<k>/<s>/ros2/odom`` and
+``/pd/p<k>/<s>/ros2/pose`` (``cdr`` messages, ``ros2msg`` schemas: the message definitions from the
 rosbags Jazzy typestore), the same messages the ``pd-ros2`` bridge publishes, so ROS tools
 plot the predicted pose directly. They need the ``ros2`` extra (rosbags); without it they are
 left out (said once on stderr). Replay ignores them (the JSON predictions are the record).
@@ -75,6 +81,26 @@ def key_of(topic: str) -> str:
     return topic.removeprefix("/")
 
 
+#: Name of the metadata record that says which key layout (and P) a log's topics use.
+KEYS_METADATA = "pd-keys"
+
+
+def rekey(key: str, layout: int) -> str:
+    """A recorded key (of key ``layout`` 1 or 2, any P) in this process's layout and P:
+    the session's partition chunk recomputed. A key that is not a session's is returned
+    unchanged (parsing refuses it later)."""
+    parts = key.split("/")
+    if layout >= 2:
+        del parts[1:2]  # the recorded partition chunk
+    if len(parts) < 3:
+        return key
+    try:
+        parts.insert(1, keys.partition_chunk(keys.partition_of(parts[1])))
+    except keys.KeyError_:
+        return key
+    return "/".join(parts)
+
+
 def to_json(payload: bytes) -> bytes | None:
     """The payload's msgpack map as JSON bytes, or None if it is not one (or holds NaN/inf
     or bytes, which JSON cannot carry)."""
@@ -103,6 +129,8 @@ class McapLog:
         self._file: IO[bytes] = open(self.path, "wb")
         self._w = Writer(self._file, compression=CompressionType.ZSTD)
         self._w.start(profile="", library=library)
+        self._w.add_metadata(KEYS_METADATA, {"key_layout": str(keys.KEY_LAYOUT),
+                                             "partitions": str(keys.partitions())})
         self._schemas = _json_schemas()
         self._schema_ids: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -148,8 +176,9 @@ class McapLog:
             odom = odometry_from_state(pred.x, pred.P, out.layout, pred.t_ns, out.frame_id,
                                        out.child_frame_id)
             pose = pose_from_state(pred.x, pred.P, out.layout, pred.t_ns, out.frame_id)
-            msgs = ((f"/pd/{session}/ros2/odom", "nav_msgs/msg/Odometry", odom),
-                    (f"/pd/{session}/ros2/pose", "geometry_msgs/msg/PoseWithCovarianceStamped",
+            prefix = topic_of(keys.session_prefix(session))
+            msgs = ((f"{prefix}/ros2/odom", "nav_msgs/msg/Odometry", odom),
+                    (f"{prefix}/ros2/pose", "geometry_msgs/msg/PoseWithCovarianceStamped",
                      pose))
             for topic, msg_type, msg in msgs:
                 data = encode_ros(msg, msg_type)
@@ -205,7 +234,7 @@ class McapLog:
                 self._write_ros2(parsed.session, payload, log_ns)
             return
         raw = {"key": key, "kind": kind, "payload_b64": base64.b64encode(payload).decode()}
-        self.write(topic_of(f"{keys.OPERATOR_ROOT}/{parsed.session}/raw"), "RawSample",
+        self.write(topic_of(f"{keys.session_prefix(parsed.session)}/raw"), "RawSample",
                    json.dumps(raw).encode(), log_ns)
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
@@ -223,7 +252,7 @@ class McapLog:
 
 class McapRecorder:
     """Records every input and output of ``sessions`` to an MCAP file: the sensor packets on
-    the daemon's side of the link (``pd/<s>/sensor/*``), commands, predictions, error
+    the daemon's side of the link (``pd/p<k>/<s>/sensor/*``), commands, predictions, error
     reports, configs (the SessionSpec, also fetched from the daemon at start), the truth,
     and the session status (queried every ``status_every`` s on a background thread)."""
 
@@ -235,7 +264,7 @@ class McapRecorder:
         self.log.metadata("pd-record", {"sessions": ",".join(self.sessions)})
         self._handles: list[Handle] = []
         for s in self.sessions:
-            for kx in (keys.ALL_SENSORS.replace("*", s, 1), keys.command_key(s), keys.prediction_key(s),
+            for kx in (keys.sensors_of(s), keys.command_key(s), keys.prediction_key(s),
                        keys.error_key(s), keys.status_key(s), keys.config_key(s),
                        keys.truth_key(s)):
                 self._handles.append(transport.subscribe(kx, self._on_sample))
@@ -306,16 +335,18 @@ def read_records(path: str | Path) -> Iterator[Record]:
 
     with open(path, "rb") as f:
         reader = make_reader(f)
+        meta = {m.name: m.metadata for m in reader.iter_metadata()}
+        layout = int(meta.get(KEYS_METADATA, {}).get("key_layout", "1"))
         msgs = [(m.sequence, m.log_time, ch.topic, m.data)
                 for _, ch, m in reader.iter_messages(log_time_order=False)
                 if ch.message_encoding == "json"]  # the ROS 2 (cdr) copies are not the record
     msgs.sort(key=lambda t: t[0])
     for _, log_ns, topic, data in msgs:
-        key = key_of(topic)
-        parts = key.split("/")
-        if len(parts) == 3 and parts[2] == "raw":
+        key = rekey(key_of(topic), layout)
+        if key.endswith("/raw") and key.count("/") == 3:
             raw = json.loads(data)
-            key, kind, payload = raw["key"], raw["kind"], base64.b64decode(raw["payload_b64"])
+            key, kind = rekey(raw["key"], layout), raw["kind"]
+            payload = base64.b64decode(raw["payload_b64"])
         else:
             kind, payload = "put", to_payload(data)
         try:

@@ -8,10 +8,11 @@
 
 Every step k (wall time ``epoch_ns + k * period_ns``; the period is the scenario's divided by
 ``--time-scale``) it moves the true state with the command in force for step k - 1, then
-publishes the truth x(k) on ``robot/<s>/truth`` and each sensor's sample of x(k), stamped
-with step k, on ``robot/<s>/sensor/<name>`` (the link emulator carries them to the service;
-``--direct`` publishes on ``pd/<s>/sensor/<name>`` instead). Commands are read from
-``robot/<s>/cmd`` (``pd/<s>/cmd`` with ``--direct``) of the first session and apply from their
+publishes the truth x(k) on ``robot/p<j>/<s>/truth`` and each sensor's sample of x(k),
+stamped with step k, on ``robot/p<j>/<s>/sensor/<name>`` (``p<j>``: the session's partition,
+protocol.md §3; the link emulator carries them to the service; ``--direct`` publishes on
+``pd/p<j>/<s>/sensor/<name>`` instead). Commands are read from ``robot/p<j>/<s>/cmd``
+(``pd/p<j>/<s>/cmd`` with ``--direct``) of the first session and apply from their
 apply step, holding the last one; a command that arrives after its apply step applies on
 arrival. The transition k-1 -> k is computed at the start of step k, so a command has up to
 one period of slack after its apply step begins.

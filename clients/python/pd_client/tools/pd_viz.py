@@ -142,7 +142,7 @@ class SessionView:
         self.display.on_prediction(self._on_prediction)
         self.display.on_truth(self._on_truth)
         self._handles: list[Handle] = [
-            transport.subscribe(keys.ALL_SENSORS.replace("*", session, 1), self._on_sensor),
+            transport.subscribe(keys.sensors_of(session), self._on_sensor),
             transport.subscribe(keys.command_key(session), self._on_command),
             transport.subscribe(keys.error_key(session), self._on_error),
         ]

@@ -1,8 +1,8 @@
 """What pd-web's page shows, computed on the server: one compact JSON event per prediction.
 
 :class:`LiveFeed` subscribes (wildcards, every session) to the daemon's predictions
-(``pd/*/prediction``), the measurements it receives (``pd/*/sensor/*``, after the downlink),
-the operator's commands (``pd/*/cmd``) and a simulator's truth (``robot/*/truth``), and turns
+(``pd/*/*/prediction``), the measurements it receives (``pd/*/*/sensor/*``, after the downlink),
+the operator's commands (``pd/*/*/cmd``) and a simulator's truth (``robot/*/*/truth``), and turns
 each prediction into one event for the page (:meth:`SessionView.event`)::
 
     {"type": "pred", "i": 17, "s": "paper", "ts": 1.7e12,     # server event id, send time (ms)
@@ -274,7 +274,7 @@ class LiveFeed:
             (keys.ALL_CONFIGS, self._on_config),
             (keys.ALL_SENSORS, self._on_measurement),
             (keys.ALL_COMMANDS, self._on_command),
-            (f"{keys.ROBOT_ROOT}/*/truth", self._on_truth),
+            (keys.ALL_TRUTHS, self._on_truth),
         ]
         self._handles: list[Handle] = [transport.subscribe(k, cb) for k, cb in subs]
 
@@ -357,7 +357,7 @@ class LiveFeed:
 
     def poll_status(self, timeout: float = 0.5) -> None:
         """Sessions the daemons report (ServiceStatus), and the specs of the sessions seen
-        that were not put while this feed listened (queried on ``pd/<s>/config``: the daemon
+        that were not put while this feed listened (queried on ``pd/p<k>/<s>/config``: the daemon
         answers them; at most every 10 s per session)."""
         try:
             reported = sorted({s for st in self.admin.service_status(timeout=timeout)
