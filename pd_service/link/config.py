@@ -7,7 +7,7 @@ Example (TOML)::
 
     [[downlink]]
     name = "camera"
-    match = "robot/*/sensor/camera"
+    match = "robot/*/*/sensor/camera"
     delay = "10 steps"
     loss = "1%"
 
@@ -192,7 +192,7 @@ class _Doc(BaseModel):
 
 # --- key mappings ------------------------------------------------------------------------
 
-_PLACEHOLDER = re.compile(r"\{(\d+)\}")
+_PLACEHOLDER = re.compile(r"\{(p?)(\d+)\}")
 
 
 class KeyMapping(_Doc):
@@ -200,7 +200,10 @@ class KeyMapping(_Doc):
 
     ``publish``: ``"operator"`` (:func:`keys.to_operator_side`), ``"robot"``
     (:func:`keys.to_robot_side`), or a template where ``{1}``, ``{2}``, ... are the chunks the
-    1st, 2nd, ... ``*`` of ``subscribe`` matched (``"pd/{1}/sensor/{2}"``).
+    1st, 2nd, ... ``*`` of ``subscribe`` matched, and ``{p1}``, ``{p2}``, ... the partition
+    chunk ``p<k>`` of that chunk as a session name (protocol.md §3):
+    ``"pd/{p1}/{1}/sensor/{2}"`` maps ``lab/r2/imu`` (subscribed as ``lab/*/*``) to
+    ``pd/p37/r2/sensor/imu`` (P = 64).
     """
 
     model_config = ConfigDict(frozen=True)
@@ -217,8 +220,8 @@ class KeyMapping(_Doc):
             raise ValueError("a template mapping cannot subscribe with '**'")
         stars = self.subscribe.split("/").count("*")
         for m in _PLACEHOLDER.finditer(self.publish):
-            if not 1 <= int(m.group(1)) <= stars:
-                raise ValueError(f"publish: {{{m.group(1)}}} but {self.subscribe!r} has {stars} '*'")
+            if not 1 <= int(m.group(2)) <= stars:
+                raise ValueError(f"publish: {m.group(0)} but {self.subscribe!r} has {stars} '*'")
         check_keyexpr(_PLACEHOLDER.sub("x", self.publish))
         if "*" in self.publish.replace("$*", "*"):
             raise ValueError("publish: the output key cannot contain wildcards")
@@ -235,7 +238,14 @@ class KeyMapping(_Doc):
         if len(pattern) != len(chunks):
             raise ValueError(f"key {key!r} does not match {self.subscribe!r}")
         caught = [c for p, c in zip(pattern, chunks, strict=True) if p == "*"]
-        return _PLACEHOLDER.sub(lambda m: caught[int(m.group(1)) - 1], self.publish)
+        return _PLACEHOLDER.sub(lambda m: self._chunk(caught[int(m.group(2)) - 1], m.group(1)),
+                                self.publish)
+
+    @staticmethod
+    def _chunk(caught: str, partition: str) -> str:
+        """A caught chunk, or (``{p<n>}``) its partition chunk as a session's (KeyError_,
+        a ValueError, if it is no name)."""
+        return keys.partition_chunk(keys.partition_of(caught)) if partition else caught
 
     def to_dict(self) -> dict[str, str]:
         return self.model_dump()

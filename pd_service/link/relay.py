@@ -202,8 +202,8 @@ class LinkRelay:
     it costs CPU at high rates without lowering the latency (docs/link.md, "Timing").
     ``max_inbox``: messages waiting for the worker beyond this are dropped (and counted as
     ``overflow``).
-    ``cache``: the output publishers of keys the service reads (``pd/<s>/sensor/<name>``,
-    ``pd/<s>/cmd``) keep their last ``cache`` samples (0: none), which a restarted service
+    ``cache``: the output publishers of keys the service reads (``pd/p<k>/<s>/sensor/<name>``,
+    ``pd/p<k>/<s>/cmd``) keep their last ``cache`` samples (0: none), which a restarted service
     reads back (``Transport.publisher(key, cache=...)``): what the link released while no
     service ran is not lost. Memory: at most ``limits.max_keys`` x ``cache`` samples (about
     26 MB for 1,024 keys of 100-byte samples at the default 256).

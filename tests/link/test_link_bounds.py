@@ -88,7 +88,7 @@ def test_hour_delay_flood_stays_under_the_caps_and_drops_are_counted(caplog):
     limits = {"max_held_messages": 4000, "max_held_bytes": 4000 * (100 + HELD_OVERHEAD_BYTES),
               "max_delay": "7200s"}
     link = Link({"limits": limits,
-                 "downlink": [{"name": "slow", "match": "robot/flood/sensor/*", "delay": HOUR}],
+                 "downlink": [{"name": "slow", "match": "robot/*/flood/sensor/*", "delay": HOUR}],
                  "uplink": [{"name": "cmd", "delay": 20}]})  # fmt: skip
     relay = link.relay
     payload = b"x" * 100
@@ -143,12 +143,12 @@ def test_many_keys_keep_publishers_at_the_lru_size_and_other_streams_their_delay
     now = [0]
     relay = LinkRelay(transport, parse_config({
         "limits": {"max_keys": 16},
-        "downlink": [{"name": "victim", "match": "robot/good/sensor/*", "delay": 30},
-                     {"name": "many", "match": "robot/*/sensor/*", "delay": 10}]}),
+        "downlink": [{"name": "victim", "match": "robot/*/good/sensor/*", "delay": 30},
+                     {"name": "many", "match": "robot/*/*/sensor/*", "delay": 10}]}),
         "lru", clock=lambda: now[0]).attach()  # fmt: skip
     client = bus.transport()
     got: list[tuple[int, str]] = []
-    client.subscribe("pd/*/sensor/*", lambda s: got.append((now[0], s.key)))
+    client.subscribe(keys.ALL_SENSORS, lambda s: got.append((now[0], s.key)))
     victim_sent: list[int] = []
     for i in range(2000):
         now[0] = i * MS
@@ -166,7 +166,7 @@ def test_many_keys_keep_publishers_at_the_lru_size_and_other_streams_their_delay
     assert st["publishers"] <= 16 and transport.most_open == 16
     assert st["keys"] <= 16 and st["keys_evicted"] > 1900 and st["publishers_evicted"] > 1900
     assert rule_stats(relay, "many")["forwarded"] == 2000  # evicted keys still relayed
-    victim_out = [t for t, k in got if k == "pd/good/sensor/cam"]
+    victim_out = [t for t, k in got if k == keys.sensor_key("good", "cam")]
     assert [t - s for t, s in zip(victim_out, victim_sent, strict=True)] == [30 * MS] * len(
         victim_sent)  # every victim release exactly on time
     assert rule_stats(relay, "victim")["delay_ms"]["p50"] == 30.0
@@ -181,8 +181,8 @@ def test_shipped_link_configs_fit_the_default_limits():
 
 
 def test_outputs_to_the_service_keep_their_last_samples():
-    """Sensor outputs (pd/<s>/sensor/<name>) keep a cache a restarted service reads back;
-    outputs the service does not read (robot/<s>/cmd) keep none."""
+    """Sensor outputs (pd/p<k>/<s>/sensor/<name>) keep a cache a restarted service reads back;
+    outputs the service does not read (robot/p<k>/<s>/cmd) keep none."""
     bus = InMemoryBus()
     now = [0]
     relay = LinkRelay(bus.transport(), parse_config({"downlink": [{"name": "d", "delay": 0}],
@@ -195,9 +195,9 @@ def test_outputs_to_the_service_keep_their_last_samples():
         client.put(keys.command_key("s"), f"u{i}".encode())
         relay.step()
     got: list = []
-    client.recover("pd/*/sensor/*", got.append, max_samples=10)
+    client.recover(keys.ALL_SENSORS, got.append, max_samples=10)
     assert [s.payload for s in got] == [b"z2", b"z3", b"z4"] and all(s.recovered for s in got)
     got.clear()
-    client.recover("robot/*/cmd", got.append, max_samples=10)
+    client.recover(keys.ROBOT_ALL_COMMANDS, got.append, max_samples=10)
     assert got == []
     relay.close()

@@ -71,8 +71,8 @@ def test_bad_config_exits_2_with_a_clear_message(tmp_path):
 def test_paper_link_end_to_end(zenoh_pair, collector_factory):
     test_s, _, endpoint = zenoh_pair
     got = collector_factory()
-    sub = test_s.declare_subscriber("pd/cli/sensor/*", got)
-    sub_cmd = test_s.declare_subscriber("robot/cli/cmd", got)
+    sub = test_s.declare_subscriber(keys.sensors_of("cli"), got)
+    sub_cmd = test_s.declare_subscriber(keys.robot_command_key("cli"), got)
     proc = pd_link("--config", str(ROOT / "deploy" / "link-paper.toml"), "--connect", endpoint,
                    "--instance", "itest", "--log-format", "json")  # fmt: skip
     watch = StderrWatcher(proc)
@@ -110,7 +110,8 @@ def test_paper_link_end_to_end(zenoh_pair, collector_factory):
             assert min(delays[name]) >= configured - 1  # never early
             assert np.median(delays[name]) < configured + 80  # loose: loaded 2-core machine
         keys_seen = {key for _, key, _ in got.items}
-        assert keys_seen == {"pd/cli/sensor/camera", "pd/cli/sensor/ranger", "robot/cli/cmd"}
+        assert keys_seen == {keys.sensor_key("cli", "camera"), keys.sensor_key("cli", "ranger"),
+                             keys.robot_command_key("cli")}
 
         deadline = time.monotonic() + 5  # counters move just after put(): poll briefly
         while True:
@@ -125,7 +126,7 @@ def test_paper_link_end_to_end(zenoh_pair, collector_factory):
         assert 499 <= by_name["ranger"]["delay_ms"]["p50"] < 680
 
         # replace the rules at runtime: the camera now goes through in ~0 ms
-        new = {"downlink": [{"name": "camera-fast", "match": "robot/*/sensor/camera"}]}
+        new = {"downlink": [{"name": "camera-fast", "match": "robot/*/*/sensor/camera"}]}
         replies = list(test_s.get(keys.link_rules_key("itest"),
                                   payload=json.dumps(new).encode(), timeout=10.0))  # fmt: skip
         assert json.loads(replies[0].ok.payload.to_bytes())["generation"] == 2

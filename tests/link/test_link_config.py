@@ -20,6 +20,7 @@ from pd_service.link.config import (
 )
 from pd_service.link.model import FourStateLoss, GilbertElliott, RandomLoss
 from pd_service.transport.keyexpr import intersects
+from pd_service.wire import keys
 
 MS = 1_000_000
 ROOT = Path(__file__).resolve().parents[2]
@@ -30,7 +31,7 @@ step_ms = 50
 
 [[downlink]]
 name = "camera"
-match = "robot/*/sensor/camera"
+match = "robot/*/*/sensor/camera"
 delay = "10 steps"
 jitter = "2ms"
 distribution = "normal"
@@ -92,29 +93,29 @@ def test_round_trip_through_normalised_json():
 def test_first_match_wins_and_unmatched_is_none():
     cfg = parse_config({
         "downlink": [
-            {"name": "cam", "match": "robot/*/sensor/camera", "delay": 1},
-            {"name": "s1", "match": "robot/s1/**", "delay": 2},
+            {"name": "cam", "match": "robot/*/*/sensor/camera", "delay": 1},
+            {"name": "s1", "match": "robot/*/s1/**", "delay": 2},
         ],
-        "uplink": [{"name": "only-a", "match": "pd/a/cmd"}],
+        "uplink": [{"name": "only-a", "match": "pd/*/a/cmd"}],
     })  # fmt: skip
-    assert cfg.rule_for("downlink", "robot/s1/sensor/camera")[1].name == "cam"
-    assert cfg.rule_for("downlink", "robot/s1/sensor/ranger") == (1, cfg.downlink[1])
-    assert cfg.rule_for("downlink", "robot/s2/sensor/ranger") is None
-    assert cfg.rule_for("uplink", "pd/a/cmd")[1].name == "only-a"
-    assert cfg.rule_for("uplink", "pd/b/cmd") is None
+    assert cfg.rule_for("downlink", keys.robot_sensor_key("s1", "camera"))[1].name == "cam"
+    assert cfg.rule_for("downlink", keys.robot_sensor_key("s1", "ranger")) == (1, cfg.downlink[1])
+    assert cfg.rule_for("downlink", keys.robot_sensor_key("s2", "ranger")) is None
+    assert cfg.rule_for("uplink", keys.command_key("a"))[1].name == "only-a"
+    assert cfg.rule_for("uplink", keys.command_key("b")) is None
 
 
 @pytest.mark.parametrize("pattern,key,expected", [
-    ("robot/*/sensor/*", "robot/s1/sensor/camera", True),
-    ("robot/*/sensor/*", "robot/s1/sensor/camera/x", False),
-    ("robot/**", "robot/s1/sensor/camera", True),
+    ("robot/*/*/sensor/*", "robot/p9/s1/sensor/camera", True),
+    ("robot/*/*/sensor/*", "robot/p9/s1/sensor/camera/x", False),
+    ("robot/**", "robot/p9/s1/sensor/camera", True),
     ("robot/**/camera", "robot/camera", True),
-    ("**", "pd/s/cmd", True),
-    ("pd/*/cmd", "pd/@service/cmd", False),  # '@' chunks are verbatim
+    ("**", "pd/p1/s/cmd", True),
+    ("pd/*/*/cmd", "pd/@service/x/cmd", False),  # '@' chunks are verbatim
     ("**", "pd/@link/x/rules", False),
-    ("robot/*/sensor/cam$*", "robot/s/sensor/camera2", True),
-    ("robot/*/sensor/cam$*", "robot/s/sensor/ranger", False),
-    ("robot/s1/sensor/camera", "robot/s1/sensor/camera", True),
+    ("robot/*/*/sensor/cam$*", "robot/p1/s/sensor/camera2", True),
+    ("robot/*/*/sensor/cam$*", "robot/p1/s/sensor/ranger", False),
+    ("robot/p9/s1/sensor/camera", "robot/p9/s1/sensor/camera", True),
 ])  # fmt: skip
 def test_keyexpr_matching(pattern, key, expected):
     assert intersects(pattern, key) is expected
@@ -123,26 +124,31 @@ def test_keyexpr_matching(pattern, key, expected):
 
 def test_default_mapping_uses_keys_module():
     down, up = DEFAULT_MAPPINGS
-    assert (down.subscribe, up.subscribe) == ("robot/*/sensor/*", "pd/*/cmd")
-    assert down.map_key("robot/s1/sensor/camera") == "pd/s1/sensor/camera"
-    assert up.map_key("pd/s1/cmd") == "robot/s1/cmd"
+    assert (down.subscribe, up.subscribe) == ("robot/*/*/sensor/*", "pd/*/*/cmd")
+    assert down.map_key(keys.robot_sensor_key("s1", "camera")) == keys.sensor_key("s1", "camera")
+    assert up.map_key(keys.command_key("s1")) == keys.robot_command_key("s1")
     with pytest.raises(ValueError):
-        down.map_key("robot/BAD KEY/sensor/camera")
+        down.map_key("robot/p9/BAD KEY/sensor/camera")
 
 
 def test_template_mapping():
     cfg = parse_config({"mapping": [
-        {"direction": "downlink", "subscribe": "lab/*/imu/*", "publish": "pd/{1}/sensor/imu-{2}"},
-        {"direction": "uplink", "subscribe": "pd/*/cmd", "publish": "robot"},
+        {"direction": "downlink", "subscribe": "lab/*/imu/*", "publish": "pd/{p1}/{1}/sensor/imu-{2}"},
+        {"direction": "uplink", "subscribe": "pd/*/*/cmd", "publish": "robot"},
+        {"direction": "downlink", "subscribe": "raw/*/*", "publish": "x/{1}/{2}"},
     ]})  # fmt: skip
-    assert cfg.mappings[0].map_key("lab/r2/imu/front") == "pd/r2/sensor/imu-front"
+    assert cfg.mappings[0].map_key("lab/r2/imu/front") == keys.sensor_key("r2", "imu-front")
     assert cfg.mappings[0] == KeyMapping(direction="downlink", subscribe="lab/*/imu/*",
-                                        publish="pd/{1}/sensor/imu-{2}")
+                                        publish="pd/{p1}/{1}/sensor/imu-{2}")
+    assert cfg.mappings[2].map_key("raw/R2/p") == "x/R2/p"  # {n}: the chunk as it is
+    with pytest.raises(ValueError, match="session 'R2' must match"):  # {p<n>}: a session name
+        cfg.mappings[0].map_key("lab/R2/imu/front")
 
 
 @pytest.mark.parametrize("mapping,match", [
     ({"direction": "sideways", "subscribe": "a/*", "publish": "b/{1}"}, "direction"),
     ({"direction": "uplink", "subscribe": "a/*", "publish": "b/{2}"}, "has 1"),
+    ({"direction": "uplink", "subscribe": "a/*", "publish": "b/{p2}/{1}"}, r"\{p2\} but 'a/\*' has 1"),
     ({"direction": "uplink", "subscribe": "a/**", "publish": "b/{1}"}, r"\*\*"),
     ({"direction": "uplink", "subscribe": "a/*", "publish": "b/*"}, "wildcards"),
     ({"direction": "uplink", "subscribe": "a//b", "publish": "robot"}, "empty chunk"),
@@ -266,10 +272,10 @@ def test_load_config_file_errors(tmp_path):
 def test_paper_link_file():
     cfg = load_config(ROOT / "deploy" / "link-paper.toml")
     assert cfg.step_ms == 50
-    cam = cfg.rule_for("downlink", "robot/paper/sensor/camera")[1]
-    rng = cfg.rule_for("downlink", "robot/paper/sensor/ranger")[1]
-    other = cfg.rule_for("downlink", "robot/paper/sensor/imu")[1]
-    cmd = cfg.rule_for("uplink", "pd/paper/cmd")[1]
+    cam = cfg.rule_for("downlink", keys.robot_sensor_key("paper", "camera"))[1]
+    rng = cfg.rule_for("downlink", keys.robot_sensor_key("paper", "ranger"))[1]
+    other = cfg.rule_for("downlink", keys.robot_sensor_key("paper", "imu"))[1]
+    cmd = cfg.rule_for("uplink", keys.command_key("paper"))[1]
     assert cam.params.delay.delay_ns == 10 * 50 * MS
     assert rng.params.delay.delay_ns == 12 * 50 * MS
     assert cmd.params.delay.delay_ns == 10 * 50 * MS

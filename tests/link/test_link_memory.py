@@ -35,7 +35,7 @@ class Link:
                                clock=self.clock).attach()
         self.client = bus.transport()
         self.out: list[tuple[int, Sample]] = []
-        for ke in ("pd/*/sensor/*", "robot/*/cmd"):
+        for ke in (keys.ALL_SENSORS, keys.ROBOT_ALL_COMMANDS):
             self.client.subscribe(ke, lambda s: self.out.append((self.clock.now, s)))
 
     def at(self, t_ms: float) -> int:
@@ -50,8 +50,8 @@ class Link:
 
 def test_delays_are_exact_and_keys_are_mapped():
     link = Link({"downlink": [
-        {"name": "cam", "match": "robot/*/sensor/camera", "delay": 120},
-        {"name": "rng", "match": "robot/*/sensor/ranger", "delay": "40ms"},
+        {"name": "cam", "match": "robot/*/*/sensor/camera", "delay": 120},
+        {"name": "rng", "match": "robot/*/*/sensor/ranger", "delay": "40ms"},
     ], "uplink": [{"name": "cmd", "delay": 30}]})  # fmt: skip
     link.client.put(keys.robot_sensor_key("m", "camera"), b"c0")
     link.client.put(keys.robot_sensor_key("m", "ranger"), b"r0")
@@ -63,8 +63,8 @@ def test_delays_are_exact_and_keys_are_mapped():
     assert link.at(119) == 0
     assert link.at(500) == 1
     got = [(t / MS, s.key, s.payload) for t, s in link.out]
-    assert got == [(30, "robot/m/cmd", b"u0"), (40, "pd/m/sensor/ranger", b"r0"),
-                   (500, "pd/m/sensor/camera", b"c0")]  # fmt: skip
+    assert got == [(30, keys.robot_command_key("m"), b"u0"), (40, keys.sensor_key("m", "ranger"), b"r0"),
+                   (500, keys.sensor_key("m", "camera"), b"c0")]  # fmt: skip
     rules = {r["name"]: r for r in link.relay.stats()["rules"]}
     assert rules["cam"]["forwarded"] == 1 and rules["cam"]["delay_ms"]["p50"] == 500.0
     assert rules["cam"]["lateness_ms"]["p50"] == 380.0  # due at 120 ms, stepped at 500 ms
@@ -80,7 +80,7 @@ def test_encoding_attachment_and_deletes_are_kept():
     (_, put), (_, deleted) = link.out
     assert (put.kind, put.payload, put.encoding, put.attachment) == (
         "put", b"\x00\x01", "application/json", b"meta")
-    assert (deleted.kind, deleted.key, deleted.attachment) == ("delete", "pd/m/sensor/x", b"gone")
+    assert (deleted.kind, deleted.key, deleted.attachment) == ("delete", keys.sensor_key("m", "x"), b"gone")
 
 
 def test_same_seed_same_run():
@@ -102,10 +102,10 @@ def test_same_seed_same_run():
 
 
 def test_unmatched_passes_at_once_and_unmapped_is_counted():
-    link = Link({"downlink": [{"name": "cam", "match": "robot/*/sensor/camera", "loss": 100}]})
+    link = Link({"downlink": [{"name": "cam", "match": "robot/*/*/sensor/camera", "loss": 100}]})
     link.client.put(keys.robot_sensor_key("m", "camera"), b"lost")
     link.client.put(keys.robot_sensor_key("m", "imu"), b"imu")
-    link.client.put("robot/m/sensor/bad key", b"unmapped")
+    link.client.put("robot/p56/m/sensor/bad key", b"unmapped")
     assert link.at(0) == 1
     assert [s.payload for _, s in link.out] == [b"imu"]
     stats = link.relay.stats()

@@ -77,10 +77,10 @@ def relay_env(zenoh_pair, collector_factory):
 def test_downlink_delay_is_applied(relay_env):
     test_s, make = relay_env
     doc = {"downlink": [
-        {"name": "cam", "match": "robot/*/sensor/camera", "delay": 120},
-        {"name": "rng", "match": "robot/*/sensor/ranger", "delay": 40},
+        {"name": "cam", "match": "robot/*/*/sensor/camera", "delay": 120},
+        {"name": "rng", "match": "robot/*/*/sensor/ranger", "delay": 40},
     ]}  # fmt: skip
-    relay, got = make(doc, "t-delay", "pd/rd/sensor/*")
+    relay, got = make(doc, "t-delay", keys.sensors_of("rd"))
     cam = test_s.declare_publisher(keys.robot_sensor_key("rd", "camera"))
     rng = test_s.declare_publisher(keys.robot_sensor_key("rd", "ranger"))
     prime(cam, got)
@@ -112,22 +112,22 @@ def test_downlink_delay_is_applied(relay_env):
 
 def test_uplink_maps_commands_to_robot_side(relay_env):
     test_s, make = relay_env
-    relay, got = make({"uplink": [{"name": "cmd", "delay": 30}]}, "t-up", "robot/ru/cmd")
+    relay, got = make({"uplink": [{"name": "cmd", "delay": 30}]}, "t-up", keys.robot_command_key("ru"))
     pub = test_s.declare_publisher(keys.command_key("ru"))
     prime(pub, got)
     t0 = time.monotonic_ns()
     pub.put(b"\x01\x02cmd")
     assert got.wait_for(lambda items: len(items) == 1)
     t, key, payload = got.items[0]
-    assert key == "robot/ru/cmd" and payload == b"\x01\x02cmd"
+    assert key == keys.robot_command_key("ru") and payload == b"\x01\x02cmd"
     assert (t - t0) / MS >= 29.0
 
 
 def test_payload_bytes_are_relayed_verbatim_and_corrupt_flips_bits(relay_env):
     test_s, make = relay_env
-    doc = {"downlink": [{"name": "bad", "match": "robot/*/sensor/bad", "corrupt": 100},
-                        {"name": "good", "match": "robot/*/sensor/good"}]}  # fmt: skip
-    relay, got = make(doc, "t-bytes", "pd/rb/sensor/*")
+    doc = {"downlink": [{"name": "bad", "match": "robot/*/*/sensor/bad", "corrupt": 100},
+                        {"name": "good", "match": "robot/*/*/sensor/good"}]}  # fmt: skip
+    relay, got = make(doc, "t-bytes", keys.sensors_of("rb"))
     good = test_s.declare_publisher(keys.robot_sensor_key("rb", "good"))
     bad = test_s.declare_publisher(keys.robot_sensor_key("rb", "bad"))
     prime(good, got)
@@ -144,9 +144,9 @@ def test_payload_bytes_are_relayed_verbatim_and_corrupt_flips_bits(relay_env):
 
 def test_unmatched_keys_pass_through_and_are_counted(relay_env):
     test_s, make = relay_env
-    doc = {"downlink": [{"name": "probes", "match": "robot/*/sensor/probe"},
-                        {"name": "cam-only", "match": "robot/*/sensor/camera", "loss": 100}]}
-    relay, got = make(doc, "t-pass", "pd/rp/sensor/*")
+    doc = {"downlink": [{"name": "probes", "match": "robot/*/*/sensor/probe"},
+                        {"name": "cam-only", "match": "robot/*/*/sensor/camera", "loss": 100}]}
+    relay, got = make(doc, "t-pass", keys.sensors_of("rp"))
     prime(test_s.declare_publisher(keys.robot_sensor_key("rp", "probe")), got)
     imu = test_s.declare_publisher(keys.robot_sensor_key("rp", "imu"))
     cam = test_s.declare_publisher(keys.robot_sensor_key("rp", "camera"))
@@ -163,7 +163,7 @@ def test_unmatched_keys_pass_through_and_are_counted(relay_env):
 
 def test_rules_queryable_get_replace_and_refuse(relay_env):
     test_s, make = relay_env
-    relay, got = make({"downlink": [{"name": "slow", "delay": 300}]}, "t-rules", "pd/rq/**")
+    relay, got = make({"downlink": [{"name": "slow", "delay": 300}]}, "t-rules", f"{keys.session_prefix('rq')}/**")
     rules_key = keys.link_rules_key("t-rules")
     ok, doc = query(test_s, rules_key)
     assert ok and doc["generation"] == 1 and doc["downlink"][0]["delay"] == "300ms"
@@ -194,9 +194,9 @@ def test_rules_queryable_get_replace_and_refuse(relay_env):
 
 def test_stats_queryable_counts(relay_env):
     test_s, make = relay_env
-    doc = {"seed": 4, "downlink": [{"name": "lossy", "match": "robot/*/sensor/x",
+    doc = {"seed": 4, "downlink": [{"name": "lossy", "match": "robot/*/*/sensor/x",
                                     "loss": 30, "duplicate": 10, "delay": 5}]}  # fmt: skip
-    relay, got = make(doc, "t-stats", "pd/rs/sensor/*")
+    relay, got = make(doc, "t-stats", keys.sensors_of("rs"))
     prime(test_s.declare_publisher(keys.robot_sensor_key("rs", "probe")), got)  # unmatched
     pub = test_s.declare_publisher(keys.robot_sensor_key("rs", "x"))
     n = 400
@@ -221,9 +221,9 @@ def test_stats_queryable_counts(relay_env):
 
 def test_outage_stall_over_zenoh(relay_env):
     test_s, make = relay_env
-    doc = {"downlink": [{"name": "flaky", "match": "robot/*/sensor/x",
+    doc = {"downlink": [{"name": "flaky", "match": "robot/*/*/sensor/x",
                          "outage": {"at": 0, "for": "300ms"}, "outage_mode": "stall"}]}
-    relay, got = make({}, "t-stall", "pd/ro/sensor/*")
+    relay, got = make({}, "t-stall", keys.sensors_of("ro"))
     prime(test_s.declare_publisher(keys.robot_sensor_key("ro", "probe")), got)
     pub = test_s.declare_publisher(keys.robot_sensor_key("ro", "x"))
     t0 = time.monotonic_ns()
@@ -243,10 +243,10 @@ def test_shared_rule_state_spans_keys(relay_env, shared):
     """A rate-limited rule: per-key state lets two keys go in parallel; shared state queues
     them behind each other on one link."""
     test_s, make = relay_env
-    doc = {"downlink": [{"name": "probes", "match": "robot/*/sensor/probe"},
-                        {"name": "slow", "match": "robot/*/sensor/*", "rate": "5msg/s",
+    doc = {"downlink": [{"name": "probes", "match": "robot/*/*/sensor/probe"},
+                        {"name": "slow", "match": "robot/*/*/sensor/*", "rate": "5msg/s",
                          "shared": shared}]}  # fmt: skip
-    relay, got = make(doc, f"t-shared-{int(shared)}", "pd/rh/sensor/*")
+    relay, got = make(doc, f"t-shared-{int(shared)}", keys.sensors_of("rh"))
     prime(test_s.declare_publisher(keys.robot_sensor_key("rh", "probe")), got)
     a = test_s.declare_publisher(keys.robot_sensor_key("rh", "a"))
     b = test_s.declare_publisher(keys.robot_sensor_key("rh", "b"))
