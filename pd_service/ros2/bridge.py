@@ -3,16 +3,16 @@ in and out of pd-service's native keys, on any :class:`~pd_service.transport.bas
 (Zenoh in the ``pd-ros2`` process, the in-memory bus in tests).
 
 What it does, per session whose :class:`~pd_service.wire.messages.SessionSpec` has ``ros2``
-bindings (learnt from ``pd/*/config`` puts and deletes, and from a query of ``pd/*/config`` at
+bindings (learnt from ``pd/*/*/config`` puts and deletes, and from a query of ``pd/*/*/config`` at
 start, which the daemon answers with every spec it knows):
 
 - **sensors**: each bound topic's key -> CDR decode of the bound type -> (z, R, header.stamp)
   -> a native ``Measurement`` (``t_ns`` = header.stamp, ``seq`` = the rmw_zenoh attachment's
-  sequence number, else the bridge's own counter per sensor) put on ``pd/<s>/sensor/<name>``;
+  sequence number, else the bridge's own counter per sensor) put on ``pd/p<k>/<s>/sensor/<name>``;
 - **commands**: Twist -> ``Command(issued_ns = arrival on the bridge's clock)``, TwistStamped ->
-  ``Command(issued_ns = header.stamp)``, u = (linear.x, angular.z), put on ``pd/<s>/cmd``; the
+  ``Command(issued_ns = header.stamp)``, u = (linear.x, angular.z), put on ``pd/p<k>/<s>/cmd``; the
   daemon applies it at step ``floor((issued_ns - epoch_ns) / period_ns) + lead``;
-- **outputs**: each ``Prediction`` on ``pd/<s>/prediction`` -> Odometry / PoseWithCovariance-
+- **outputs**: each ``Prediction`` on ``pd/p<k>/<s>/prediction`` -> Odometry / PoseWithCovariance-
   Stamped / TFMessage (header.stamp = ``Prediction.t_ns``), CDR, with the rmw_zenoh attachment
   (sequence number per publisher from 1, source timestamp, publisher GID);
 - **graph**: rmw_zenoh liveliness tokens (one node, a subscription per bound input, a publisher
@@ -22,7 +22,7 @@ start, which the daemon answers with every spec it knows):
 Bad input (not CDR of the bound type, a wrong type or type hash in the key, a bad attachment,
 stamp 0, NaN, a covariance that is not PSD, a wrong frame_id) is refused: counted per session
 (``refused`` and ``refused_<reason>``, reasons in :data:`REFUSAL_REASONS`) and reported as an
-``ErrorReport`` on ``pd/<s>/error`` (at most ``error_rate`` per second per session), never a
+``ErrorReport`` on ``pd/p<k>/<s>/error`` (at most ``error_rate`` per second per session), never a
 crash, never another session affected.
 
 Threads: transport callbacks only stamp and append to a bounded inbox (oldest dropped and
@@ -135,7 +135,7 @@ class BridgeSettings:
     error_burst: int = 20
     inbox_size: int = 4096
     query_timeout_s: float = 2.0
-    #: Samples each native publisher (``pd/<s>/sensor/<name>``, ``pd/<s>/cmd``) keeps for a
+    #: Samples each native publisher (``pd/p<k>/<s>/sensor/<name>``, ``pd/p<k>/<s>/cmd``) keeps for a
     #: restarted service to read back (``Transport.publisher(key, cache=...)``); 0: none.
     cache: int = DEFAULT_SENDER_CACHE
 

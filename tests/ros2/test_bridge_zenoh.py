@@ -125,7 +125,7 @@ def test_bridge_process_over_zenoh(tmp_path: Path) -> None:
         spec = unicycle_spec(SESSION, epoch_ns=epoch, tf=False)
         admin = Admin(t)
         admin.open_session(spec, timeout=20.0)
-        # the bridge learns the spec by querying pd/*/config at start
+        # the bridge learns the spec by querying pd/*/*/config at start
         tokens: set[str] = set()
         tok_cond = threading.Condition()
 

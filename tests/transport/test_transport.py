@@ -22,9 +22,9 @@ def free_port() -> int:
 @pytest.mark.parametrize(
     ("a", "b", "want"),
     [
-        ("pd/*/sensor/*", "pd/s1/sensor/camera", True),
-        ("pd/*/cmd", "pd/s1/sensor/camera", False),
-        ("pd/*/cmd", "pd/@service/x", False),  # verbatim chunks never match wildcards
+        ("pd/*/*/sensor/*", "pd/p9/s1/sensor/camera", True),
+        ("pd/*/*/cmd", "pd/p9/s1/sensor/camera", False),
+        ("pd/*/*/cmd", "pd/@service/x", False),  # verbatim chunks never match wildcards
         ("pd/**", "pd/@service/x", False),
         ("pd/@service/*", "pd/@service/inst", True),
         ("pd/**", "pd", True),
@@ -47,8 +47,8 @@ def exercise(t1, t2, wait) -> None:
         got.append((s.key, s.payload, s.kind))
         ev.set()
 
-    sub = t1.subscribe("pd/*/sensor/*", on)
-    t1.queryable("pd/*/status", lambda q: q.reply(q.key, b"status:" + (q.payload or b"")))
+    sub = t1.subscribe("pd/*/*/sensor/*", on)
+    t1.queryable("pd/*/*/status", lambda q: q.reply(q.key, b"status:" + (q.payload or b"")))
     t1.declare_token("pd/@service/a")
     live: list = []
     seen = threading.Event()
@@ -59,19 +59,19 @@ def exercise(t1, t2, wait) -> None:
 
     t2.subscribe_liveliness("pd/@service/*", on_live)
     wait()
-    t2.put("pd/s1/sensor/cam", b"abc")
+    t2.put("pd/p9/s1/sensor/cam", b"abc")
     assert ev.wait(5.0)
-    assert got == [("pd/s1/sensor/cam", b"abc", "put")]
-    replies = t2.get("pd/s1/status", payload=b"q", timeout=2.0)
-    assert [(r.key, r.payload, r.ok) for r in replies] == [("pd/s1/status", b"status:q", True)]
+    assert got == [("pd/p9/s1/sensor/cam", b"abc", "put")]
+    replies = t2.get("pd/p9/s1/status", payload=b"q", timeout=2.0)
+    assert [(r.key, r.payload, r.ok) for r in replies] == [("pd/p9/s1/status", b"status:q", True)]
     assert t2.get_liveliness("pd/@service/*", timeout=5.0) == ["pd/@service/a"]
     assert seen.wait(5.0)  # the subscriber's callback may come after the get's reply
     assert ("pd/@service/a", True) in live
     # declared keys: the receiver's and the sender's; puts on them arrive as any put,
     # also once the declarations are withdrawn (closing twice is harmless)
-    mine = t1.declare_keys(["pd/s1/sensor/cam", "pd/s2/sensor/cam"])
-    theirs = t2.declare_keys(["pd/s2/sensor/cam"])
-    for key, payload in (("pd/s2/sensor/cam", b"declared"), ("pd/s1/sensor/cam", b"half")):
+    mine = t1.declare_keys(["pd/p9/s1/sensor/cam", "pd/p16/s2/sensor/cam"])
+    theirs = t2.declare_keys(["pd/p16/s2/sensor/cam"])
+    for key, payload in (("pd/p16/s2/sensor/cam", b"declared"), ("pd/p9/s1/sensor/cam", b"half")):
         ev.clear()
         t2.put(key, payload)
         assert ev.wait(5.0) and got[-1] == (key, payload, "put")
@@ -79,14 +79,14 @@ def exercise(t1, t2, wait) -> None:
     mine.close()
     mine.close()
     ev.clear()
-    t2.put("pd/s2/sensor/cam", b"undeclared")
-    assert ev.wait(5.0) and got[-1] == ("pd/s2/sensor/cam", b"undeclared", "put")
-    for bad in (["pd/*/sensor/cam"], ["pd/s1/**"], ["pd//x"], [""], ["pd/$*x"]):
+    t2.put("pd/p16/s2/sensor/cam", b"undeclared")
+    assert ev.wait(5.0) and got[-1] == ("pd/p16/s2/sensor/cam", b"undeclared", "put")
+    for bad in (["pd/p9/*/sensor/cam"], ["pd/p9/s1/**"], ["pd//x"], [""], ["pd/$*x"]):
         with pytest.raises(ValueError, match="not an exact key"):
             t1.declare_keys(bad)
     sub.close()
     ev.clear()
-    t2.put("pd/s1/sensor/cam", b"again")
+    t2.put("pd/p9/s1/sensor/cam", b"again")
     assert not ev.wait(0.2)
 
 
@@ -94,8 +94,8 @@ def test_in_memory_transport() -> None:
     bus = InMemoryBus()
     with bus.transport() as t1, bus.transport() as t2:
         exercise(t1, t2, lambda: None)
-        kept = t1.declare_keys(["pd/s3/cmd"])
-        assert t1.declared == [("pd/s3/cmd",)] and t2.declared == []
+        kept = t1.declare_keys(["pd/p35/s3/cmd"])
+        assert t1.declared == [("pd/p35/s3/cmd",)] and t2.declared == []
         kept.close()
         assert t1.declared == []
     assert bus.subs == [] and bus.tokens == []
@@ -128,14 +128,14 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
             ZenohTransport(zenoh_config(mode="client", connect=[ep])) as t2:
         got: list[bytes] = []
         woke = threading.Event()
-        d = t1.subscribe_drained("pd/*/sensor/*", lambda s: got.append(s.payload), woke.set)
+        d = t1.subscribe_drained("pd/*/*/sensor/*", lambda s: got.append(s.payload), woke.set)
         assert d.pending and d.drain(10) == 0  # parked at first: the owner looks once
         assert d.pending  # not armed: the owner keeps taking the samples itself
         t1.declare_token("pd/@service/a")
         for _ in range(100):  # t2 sees t1's declarations (an event, not a sleep)
             if t2.get_liveliness("pd/@service/*", timeout=0.2):
                 break
-        t2.put("pd/s/sensor/-1", b"-1")
+        t2.put("pd/p2/s/sensor/-1", b"-1")
         for _ in range(500):  # not armed: nobody hands it over, it waits for the owner
             if d.drain(10):
                 break
@@ -144,23 +144,23 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
         got.clear()
         # the drain builds its Sample as a plain tuple: every field, defaults included
         whole: list[Sample] = []
-        d2 = t1.subscribe_drained("pd/*/cmd", whole.append, lambda: None)
-        t2.put("pd/s/cmd", b"c")
+        d2 = t1.subscribe_drained("pd/*/*/cmd", whole.append, lambda: None)
+        t2.put("pd/p2/s/cmd", b"c")
         for _ in range(500):
             if d2.drain(10):
                 break
             time.sleep(0.01)
         (s,) = whole
         assert type(s) is Sample and len(s) == len(Sample._fields)
-        assert s._replace(recv_ns=0, recv_mono_ns=0) == Sample("pd/s/cmd", b"c", "put", 0, 0)
+        assert s._replace(recv_ns=0, recv_mono_ns=0) == Sample("pd/p2/s/cmd", b"c", "put", 0, 0)
         d2.close()
         d.arm()
         assert not d.pending  # armed: the watcher waits in recv from now on
-        t2.put("pd/s/sensor/x", b"0")
+        t2.put("pd/p2/s/sensor/x", b"0")
         assert woke.wait(5.0)  # the watcher handed the first one over
         assert got == [b"0"] and d.pending
         for i in range(1, 2001):
-            t2.put("pd/s/sensor/x", str(i).encode())
+            t2.put("pd/p2/s/sensor/x", str(i).encode())
         for _ in range(10_000):  # bounded: a broken drain fails instead of hanging
             if len(got) == 2001:
                 break
@@ -183,24 +183,24 @@ def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> No
 def test_in_memory_cached_publisher_is_recovered() -> None:
     bus = InMemoryBus()
     snd, rcv = bus.transport(), bus.transport()
-    cam = snd.publisher("pd/s/sensor/cam", cache=3)
-    plain = snd.publisher("pd/s/sensor/ranger")
+    cam = snd.publisher("pd/p2/s/sensor/cam", cache=3)
+    plain = snd.publisher("pd/p2/s/sensor/ranger")
     for i in range(5):
         cam.put(f"c{i}".encode())
         plain.put(f"r{i}".encode())
-    snd.put("pd/s/cmd", b"not cached")
+    snd.put("pd/p2/s/cmd", b"not cached")
     got: list = []
-    h = rcv.recover("pd/*/sensor/*", got.append, max_samples=2)
+    h = rcv.recover("pd/*/*/sensor/*", got.append, max_samples=2)
     # the last max_samples of each cached publisher, oldest first; plain puts keep nothing
     assert [(s.key, s.payload, s.recovered) for s in got] == \
-        [("pd/s/sensor/cam", b"c3", True), ("pd/s/sensor/cam", b"c4", True)]
+        [("pd/p2/s/sensor/cam", b"c3", True), ("pd/p2/s/sensor/cam", b"c4", True)]
     got.clear()
-    cam2 = snd.publisher("pd/t/sensor/cam", cache=3)  # a later one is watched
+    cam2 = snd.publisher("pd/p35/t/sensor/cam", cache=3)  # a later one is watched
     cam2.put(b"x")
     assert got == []  # declared with an empty cache, and live samples are not recovered
     cam.close()  # a closed publisher's cache is gone
     got2: list = []
-    rcv.recover("pd/*/sensor/*", got2.append, max_samples=10)
+    rcv.recover("pd/*/*/sensor/*", got2.append, max_samples=10)
     assert [s.payload for s in got2] == [b"x"]
     h.close()
 
@@ -214,14 +214,14 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
     try:
         a = ZenohTransport(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{p1}"],
                                         multicast=False))
-        pub = a.publisher("pd/s/sensor/cam", cache=4)
+        pub = a.publisher("pd/p2/s/sensor/cam", cache=4)
         for i in range(6):
             pub.put(f"m{i}".encode())
         # c: a sender whose peer (b, on p2) is not there yet; it keeps retrying
         c = ZenohTransport(zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{p2}"],
                                         multicast=False, listen=[]))
-        pub_c = c.publisher("pd/u/sensor/ranger", cache=4)
-        other = c.publisher("pd/u/cmd", cache=4)  # not matched by pd/*/sensor/*
+        pub_c = c.publisher("pd/p16/u/sensor/ranger", cache=4)
+        other = c.publisher("pd/p16/u/cmd", cache=4)  # not matched by pd/*/*/sensor/*
         for i in range(2):
             pub_c.put(f"r{i}".encode())
             other.put(b"no")
@@ -236,18 +236,18 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
                 cond.notify_all()
 
         for _ in range(100):  # the routes to a's cache: wait on its token (an event)
-            if b.get_liveliness("pd/s/sensor/*/@adv/pub/**", timeout=0.5):
+            if b.get_liveliness("pd/p2/s/sensor/*/@adv/pub/**", timeout=0.5):
                 break
-        h = b.recover("pd/*/sensor/*", on, max_samples=3)
+        h = b.recover("pd/*/*/sensor/*", on, max_samples=3)
         at_once = list(got)
         # a's cache was read before recover returned: its last 3, oldest first (c's may come
         # before or after them, depending on when c reached b)
-        assert [x for x in at_once if x[0] == "pd/s/sensor/cam"] == \
-            [("pd/s/sensor/cam", f"m{i}".encode(), True) for i in (3, 4, 5)]
+        assert [x for x in at_once if x[0] == "pd/p2/s/sensor/cam"] == \
+            [("pd/p2/s/sensor/cam", f"m{i}".encode(), True) for i in (3, 4, 5)]
         with cond:
             assert cond.wait_for(lambda: len(got) >= 5, timeout=30), got
-        rest = sorted(x for x in got if x[0] != "pd/s/sensor/cam")
-        assert rest == [("pd/u/sensor/ranger", b"r0", True), ("pd/u/sensor/ranger", b"r1", True)]
+        rest = sorted(x for x in got if x[0] != "pd/p2/s/sensor/cam")
+        assert rest == [("pd/p16/u/sensor/ranger", b"r0", True), ("pd/p16/u/sensor/ranger", b"r1", True)]
         print(f"\nlate sender read {'after' if len(at_once) == 3 else 'before'} recover returned")
         h.close()
     finally:
@@ -277,7 +277,7 @@ def test_zenoh_cache_appearing_while_recover_starts_is_read_once() -> None:
             return self.inner.declare_subscriber(*args, **kwargs)
 
         def get(self, *args, **kwargs):
-            pub = c.publisher("pd/u/sensor/ranger", cache=4)
+            pub = c.publisher("pd/p16/u/sensor/ranger", cache=4)
             pub.put(b"r0")
             assert appeared.wait(10.0), "the late cache's token never reached the watch"
             return self.inner.get(*args, **kwargs)
@@ -289,12 +289,12 @@ def test_zenoh_cache_appearing_while_recover_starts_is_read_once() -> None:
         def liveliness(self):
             return Liveliness(real.liveliness())
 
-    watch = b.subscribe_liveliness("pd/*/sensor/*/@adv/pub/**",
+    watch = b.subscribe_liveliness("pd/*/*/sensor/*/@adv/pub/**",
                                    lambda key, alive: alive and appeared.set(), history=False)
     got: list = []
     try:
         b.session = Session()  # type: ignore[assignment]
-        h = b.recover("pd/*/sensor/*", lambda s: got.append(s.payload), max_samples=3)
+        h = b.recover("pd/*/*/sensor/*", lambda s: got.append(s.payload), max_samples=3)
         b.session = real
         time.sleep(0.5)  # room for a second read (the watch's), which answers in ms here
         assert got == [b"r0"]
