@@ -8,12 +8,16 @@ steps late, commands acting 10 steps after they are sent):
 1. opens a Zenoh session in client mode to the daemon's endpoint, multicast scouting off
    (retrying while nothing listens there yet);
 2. waits for readiness: a liveliness token on ``pd/@service/*`` (any daemon instance);
-3. puts the SessionSpec on ``pd/<session>/config`` and waits for the daemon's
-   SessionStatus (state "active") on ``pd/<session>/status``;
-4. every step, sends the samples that are due (stamped with their sample step) on
-   ``pd/<session>/sensor/<name>`` and a Command for step now + lead on ``pd/<session>/cmd``;
+3. computes the session's partition k (protocol.md section 3: FNV-1a-32 of the name mod
+   P, P from ``PD_PARTITIONS`` as for every party, default 64), so every key of the session
+   is ``pd/p<k>/<session>/...``;
+4. puts the SessionSpec on ``pd/p<k>/<session>/config`` and waits for the daemon's
+   SessionStatus (state "active") on ``pd/p<k>/<session>/status``;
+5. every step, sends the samples that are due (stamped with their sample step) on
+   ``pd/p<k>/<session>/sensor/<name>`` and a Command for step now + lead on
+   ``pd/p<k>/<session>/cmd``;
    at a few steps it sends a duplicate, a late and a future sample on purpose;
-5. prints every Prediction and ErrorReport it receives, and everything it sent, one JSON
+6. prints every Prediction and ErrorReport it receives, and everything it sent, one JSON
    object per line; exits after ``--steps`` steps.
 
 Usage::
@@ -26,6 +30,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import random
 import sys
 import threading
@@ -79,6 +84,23 @@ def mat_vec(m: list[list[float]], x: list[float]) -> list[float]:
     return [sum(a * b for a, b in zip(row, x, strict=True)) for row in m]
 
 
+# --- keys (key layout 2) -------------------------------------------------------------------
+
+def fnv1a32(data: bytes) -> int:
+    """32-bit FNV-1a: h = 2166136261; per byte: h = ((h XOR byte) * 16777619) mod 2^32."""
+    h = 2166136261
+    for b in data:
+        h = ((h ^ b) * 16777619) & 0xFFFFFFFF
+    return h
+
+
+def session_prefix(session: str) -> str:
+    """``pd/p<k>/<session>``: k = FNV-1a-32(name) mod P, P the deployment's partition count
+    (``PD_PARTITIONS``, default 64; every party must use the same)."""
+    partitions = int(os.environ.get("PD_PARTITIONS") or 64)
+    return f"pd/p{fnv1a32(session.encode()) % partitions}/{session}"
+
+
 # --- the client ----------------------------------------------------------------------------
 
 class Client:
@@ -96,13 +118,14 @@ class Client:
                     raise SystemExit(f"raw_client: nothing answers on {endpoint}") from None
                 time.sleep(0.2)
         self.session = session
+        self.prefix = session_prefix(session)
         self.out_lock = threading.Lock()
         self.active = threading.Event()
         self.seq = 0
         self.subs = [
-            self.z.declare_subscriber(f"pd/{session}/prediction", self._on("prediction")),
-            self.z.declare_subscriber(f"pd/{session}/error", self._on("error")),
-            self.z.declare_subscriber(f"pd/{session}/status", self._on("status")),
+            self.z.declare_subscriber(f"{self.prefix}/prediction", self._on("prediction")),
+            self.z.declare_subscriber(f"{self.prefix}/error", self._on("error")),
+            self.z.declare_subscriber(f"{self.prefix}/status", self._on("status")),
         ]
 
     def emit(self, record: dict) -> None:
@@ -142,12 +165,12 @@ class Client:
                     t_ns: int | None = None) -> None:
         msg = {"v": 1, "session": self.session, "sensor": sensor, "seq": self.next_seq(),
                "step": step, "t_ns": t_ns, "z": array(z), "R": None}
-        self.put(f"pd/{self.session}/sensor/{sensor}", msg, "measurement", at)
+        self.put(f"{self.prefix}/sensor/{sensor}", msg, "measurement", at)
 
     def command(self, apply_step: int, u: float, at: int) -> None:
         msg = {"v": 1, "session": self.session, "seq": self.next_seq(), "step": apply_step,
                "issued_ns": None, "u": array([u])}
-        self.put(f"pd/{self.session}/cmd", msg, "command", at)
+        self.put(f"{self.prefix}/cmd", msg, "command", at)
 
     def close(self) -> None:
         for s in self.subs:
@@ -165,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
         # the spec's handshake cannot race the first samples
         epoch_ns = (time.time_ns() // period_ns + 25) * period_ns
         spec = session_spec(args.session, period_ns, epoch_ns)
-        c.put(f"pd/{args.session}/config", spec, "spec")
+        c.put(f"{c.prefix}/config", spec, "spec")
         if not c.active.wait(args.ready_timeout):
             raise SystemExit("raw_client: the daemon did not answer the SessionSpec")
         rng = random.Random(args.seed)

@@ -1,7 +1,7 @@
 """The ROS 2 chain as separate processes over real Zenoh on loopback:
 
     pd-robot-sim --ros2 (rmw_zenoh CDR on robot/<key>) -> pd-link (deploy/link-ros2.toml)
-      -> <key> -> pd-ros2 -> pd/<s>/sensor/*, pd/<s>/cmd -> daemon -> pd/<s>/prediction
+      -> <key> -> pd-ros2 -> pd/p<k>/<s>/sensor/*, pd/p<k>/<s>/cmd -> daemon -> pd/p<k>/<s>/prediction
       -> pd-ros2 -> 0/predicted/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_... -> this test
     pd-operator --ros2 (Twist on 0/cmd_vel/...) -> pd-ros2 -> daemon, and -> pd-link -> robot
 
@@ -73,7 +73,7 @@ class Watcher:
         self.errors: list[ErrorReport] = []
         self.truth: dict[int, np.ndarray] = {}
         self.last_packet = time.monotonic()
-        t.subscribe(keys.ALL_SENSORS.replace("*", SESSION, 1), self._meas)
+        t.subscribe(keys.sensors_of(SESSION), self._meas)
         t.subscribe(keys.command_key(SESSION), self._cmd)
         t.subscribe(keys.prediction_key(SESSION), self._pred)
         t.subscribe(keys.error_key(SESSION), self._err)
