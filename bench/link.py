@@ -5,9 +5,10 @@
     .venv/bin/python bench/link.py --rates 1000 10000 --seconds 5 --delay-ms 100
 
 Setup, all on loopback: this process opens a Zenoh peer listening on a free port; pd-link
-connects to it.  This process publishes ``robot/bench/sensor/s`` at the given rate (payload: the
+connects to it.  This process publishes ``robot/p57/bench/sensor/s`` at the given rate (payload: the
 send time, ``time.monotonic_ns``, CLOCK_MONOTONIC is system-wide so comparable across
-processes) and subscribes to ``pd/bench/sensor/s``.  The rule is a fixed delay, no jitter, so
+processes) and subscribes to ``pd/p57/bench/sensor/s`` (p57: the partition of "bench" at
+P = 64).  The rule is a fixed delay, no jitter, so
 the configured delay of every message is known.
 
 Two figures per rate:

@@ -5,15 +5,15 @@
 
 Setup, all on loopback: this process opens a Zenoh peer listening on a free port; pd-link
 (``python -m pd_service.link``, default limits) connects to it.  Its rules: every robot sensor
-key ``robot/flood<j>/sensor/*`` delayed by 1 h, one rule per j < ``--rules`` (the configuration
-raises ``limits.max_delay`` to 2 h to allow it), a victim stream ``robot/victim/sensor/s``
+key ``robot/*/flood<j>/sensor/*`` delayed by 1 h, one rule per j < ``--rules`` (the configuration
+raises ``limits.max_delay`` to 2 h to allow it), a victim stream ``robot/p<k>/victim/sensor/s``
 delayed by 20 ms.  Each rule may hold ``limits / (rules + 3)`` (victim rule and the two
 directions' unmatched traffic included): more flooded rules, closer to the whole limit.
 
 Phases (a bounded loop each):
 1. flood: ``--messages`` puts of ``--size`` bytes, round-robin over the 1 h-delayed rules' keys,
    as fast as Zenoh takes them (congestion control BLOCK);
-2. keys: ``--keys`` puts, each on a new key ``robot/k<i>/sensor/s`` (passthrough: every one
+2. keys: ``--keys`` puts, each on a new key ``robot/p<k>/k<i>/sensor/s`` (passthrough: every one
    needs its own output publisher), with the victim stream sent every 10th put.
 
 After each phase: pd-link's RSS (``/proc/<pid>/status`` VmRSS) and its stats queryable (held
@@ -73,7 +73,7 @@ def main() -> int:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     doc = {"limits": {"max_delay": "7200s"},
            "downlink": [{"name": "victim", "match": VICTIM_IN, "delay": VICTIM_DELAY_MS},
-                        *({"name": f"hour{j}", "match": f"robot/flood{j}/sensor/*",
+                        *({"name": f"hour{j}", "match": f"robot/*/flood{j}/sensor/*",
                            "delay": "3600s"} for j in range(args.rules))]}
     victim_ms: list[float] = []
     lock = threading.Lock()

@@ -7,7 +7,7 @@ cost per message, against plain puts and plain declared publishers.
         --rate 20000 --modes put --rounds 1
 
 Setup, on loopback: a receiver process (a Zenoh peer listening on a free port) subscribes to
-``pd/*/sensor/*`` through ``ZenohTransport.subscribe`` with a callback that only counts, as
+``pd/*/*/sensor/*`` through ``ZenohTransport.subscribe`` with a callback that only counts, as
 the daemon's plain live subscription does (its callback is Dispatch's: split, append). This
 process connects to it and sends ``--messages`` messages of 80 bytes round-robin over
 ``--keys`` keys at ``--rate`` messages/s, in three modes:
@@ -18,7 +18,7 @@ process connects to it and sends ``--messages`` messages of 80 bytes round-robin
   a cache, a queryable and a liveliness token per key and a sequence number per sample.
 
 With ``--owned K`` the receiver subscribes to the first K sessions one by one
-(``pd/<s>/sensor/*``) instead of with one wildcard, and receives only their share: what an
+(``pd/p<k>/<s>/sensor/*``) instead of with one wildcard, and receives only their share: what an
 instance that received only the sessions it owns would pay, and what its senders would.
 
 Printed per mode: the sender's µs per put (wall time inside ``put``), and the receiver's
@@ -41,6 +41,7 @@ import time
 RECEIVER = r"""
 import json, resource, sys, threading, time
 from pd_service.transport import ZenohTransport, zenoh_config
+from pd_service.wire import keys
 port, total, owned = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
 t = ZenohTransport(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast=False))
 state = {"n": 0, "c0": 0.0, "t0": 0.0}
@@ -57,9 +58,9 @@ def on(s):
         done.set()
 if owned:  # one subscription per owned session, as an instance receiving only its own
     for i in range(owned):
-        t.subscribe(f"pd/b{i:04d}/sensor/*", on)
+        t.subscribe(keys.sensors_of(f"b{i:04d}"), on)
 else:
-    t.subscribe("pd/*/sensor/*", on)
+    t.subscribe(keys.ALL_SENSORS, on)
 print("ready", flush=True)
 for line in sys.stdin:
     if line.strip() == "go":
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=2, help="modes run this many times, in turn")
     ap.add_argument("--owned", type=int, default=0,
                     help="the receiver subscribes to the first OWNED keys' sessions one by one "
-                         "(pd/<s>/sensor/*) instead of to all with one wildcard: what an "
+                         "(pd/p<k>/<s>/sensor/*) instead of to all with one wildcard: what an "
                          "instance that received only the sessions it owns would pay")
     ap.add_argument("--modes", default="put,publisher,cached",
                     help="comma-separated; also 'cached-nodetect' (no liveliness token: no "
@@ -96,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from pd_service.transport import ZenohTransport, zenoh_config
+    from pd_service.wire.keys import sensor_key
 
     port = free_port()
     owned = min(args.owned, args.keys)
@@ -105,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert rx.stdout is not None and rx.stdin is not None
     assert rx.stdout.readline().strip() == "ready"
-    keys = [f"pd/b{i:04d}/sensor/cam" for i in range(args.keys)]
+    keys = [sensor_key(f"b{i:04d}", "cam") for i in range(args.keys)]
     payload = b"x" * 80
     period = 1.0 / args.rate
     print(f"{args.keys} keys, {args.messages} messages at {args.rate:.0f}/s, 80-byte payload; "

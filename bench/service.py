@@ -171,7 +171,7 @@ def run_loadgen(args: argparse.Namespace) -> None:
 
     def on_status(smp) -> None:
         with cond:
-            answered.add(smp.key.split("/")[1])
+            answered.add(keys.session_of(smp.key) or "")
             cond.notify_all()
 
     h = t.subscribe(keys.ALL_STATUS, on_status)
@@ -319,6 +319,7 @@ BENCH_ENV = {
 def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = False,
             pin: bool = False) -> dict:
     from pd_service.transport import ZenohTransport, zenoh_config
+    from pd_service.wire import keys
 
     unpin_self()
     gauge = gauge_ms()  # how fast the machine is right now (bench/gauge.py)
@@ -358,7 +359,7 @@ def one_run(n: int, args: argparse.Namespace, root: Path = ROOT, pure: bool = Fa
     try:
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
-            alive = probe.get_liveliness("pd/@service/*", timeout=1.0)
+            alive = probe.get_liveliness(keys.ALL_SERVICES, timeout=1.0)
             if len(alive) >= len(instances):
                 break
         now = time.time_ns()

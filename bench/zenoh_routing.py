@@ -3,11 +3,11 @@
 and what declared keys save: the reason the daemon declares its sessions' keys
 (``Transport.declare_keys``, docs/service.md "Declared keys").
 
-A sender process (this one) puts on 1,000 sensor keys ``pd/s<i>/sensor/ranger`` in 1 ms
+A sender process (this one) puts on 1,000 sensor keys ``pd/p<k>/s<i>/sensor/ranger`` in 1 ms
 slots of 50 messages (the rate of 1,000 sessions' range finders); a receiver process
-subscribes to ``pd/*/sensor/*`` as the daemon does (a FIFO drained by its main thread) and,
+subscribes to ``pd/*/*/sensor/*`` as the daemon does (a FIFO drained by its main thread) and,
 with ``declared``, declares the 1,000 keys it receives. The sender first declares
-``--displays`` subscriptions ``pd/s<i>/prediction`` (one display per session, as
+``--displays`` subscriptions ``pd/p<k>/s<i>/prediction`` (one display per session, as
 ``pd_client.Display`` does): exact keys whose chunk ``s<i>`` becomes one more sibling that
 Zenoh compares with every undeclared key it routes.
 
@@ -36,7 +36,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-KEYS = [f"pd/s{i:04d}/sensor/ranger" for i in range(1000)]
+from pd_service.wire import keys  # noqa: E402  (after the path)
+
+KEYS = [keys.sensor_key(f"s{i:04d}", "ranger") for i in range(1000)]
 CLK = os.sysconf("SC_CLK_TCK")
 
 
@@ -68,7 +70,7 @@ def receiver(endpoint: str, declared: bool) -> None:
     from pd_service.transport import ZenohTransport, zenoh_config
 
     t = ZenohTransport(zenoh_config(mode="peer", listen=[endpoint]))
-    sub = t.session.declare_subscriber("pd/*/sensor/*", zenoh.handlers.FifoChannel(1 << 20))
+    sub = t.session.declare_subscriber(keys.ALL_SENSORS, zenoh.handlers.FifoChannel(1 << 20))
     if declared:
         t.declare_keys(KEYS)
     print("ready", flush=True)
@@ -98,7 +100,7 @@ def one(displays: int, sender: str, declared: bool, messages: int) -> dict:
         if rp.stdout.readline().strip() != "ready":
             raise RuntimeError("receiver did not start")
         t = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=[ep]))
-        subs = [t.session.declare_subscriber(f"pd/s{i:04d}/prediction",
+        subs = [t.session.declare_subscriber(keys.prediction_key(f"s{i:04d}"),
                                              zenoh.handlers.RingChannel(1))
                 for i in range(displays)]
         if sender == "put":
