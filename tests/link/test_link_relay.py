@@ -163,7 +163,8 @@ def test_unmatched_keys_pass_through_and_are_counted(relay_env):
 
 def test_rules_queryable_get_replace_and_refuse(relay_env):
     test_s, make = relay_env
-    relay, got = make({"downlink": [{"name": "slow", "delay": 300}]}, "t-rules", f"{keys.session_prefix('rq')}/**")
+    relay, got = make({"downlink": [{"name": "slow", "delay": 300}]}, "t-rules",
+                      f"{keys.session_prefix('rq')}/**")
     rules_key = keys.link_rules_key("t-rules")
     ok, doc = query(test_s, rules_key)
     assert ok and doc["generation"] == 1 and doc["downlink"][0]["delay"] == "300ms"

@@ -94,8 +94,10 @@ def test_keys_are_canonical_zenoh_keys(key):
 @given(session=names, sensor=names)
 def test_build_parse_round_trip(session, sensor):
     k = keys.partition_of(session)
-    assert parse_key(keys.sensor_key(session, sensor)) == ParsedKey("operator", session, "sensor", sensor, k)
-    assert parse_key(keys.robot_sensor_key(session, sensor)) == ParsedKey("robot", session, "sensor", sensor, k)
+    assert parse_key(keys.sensor_key(session, sensor)) == \
+        ParsedKey("operator", session, "sensor", sensor, k)
+    assert parse_key(keys.robot_sensor_key(session, sensor)) == \
+        ParsedKey("robot", session, "sensor", sensor, k)
     for build in WILDCARDS.values():
         p = parse_key(build(session))
         assert p.session == session and p.sensor is None and p.partition == k
