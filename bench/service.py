@@ -162,7 +162,7 @@ def run_loadgen(args: argparse.Namespace) -> None:
     from pd_service.wire import encode, keys
 
     n = args.sessions
-    t = ZenohTransport(zenoh_config(mode="peer", listen=[], connect=args.connect))
+    t = ZenohTransport(zenoh_config(mode=args.mode, listen=[], connect=args.connect))
     epoch = args.epoch
     names = [session_name(i) for i in range(n)]
     # configure, wait for every answer (status put by the owner)
@@ -518,6 +518,7 @@ def main() -> None:
     ap.add_argument("--loadgen", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--connect", action="append", default=[], help=argparse.SUPPRESS)
     ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--mode", default="peer", help=argparse.SUPPRESS)  # client: via a router
     ap.add_argument("--epoch", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--measure-start", dest="measure_start_ns", type=int, help=argparse.SUPPRESS)
     ap.add_argument("--end", dest="end_ns", type=int, help=argparse.SUPPRESS)

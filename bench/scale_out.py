@@ -1,0 +1,321 @@
+#!/usr/bin/env python3
+"""Scale-out over a Zenoh router: what each of K instances receives and costs, and what a
+join, a leave and a kill move (key layout 2: keys carry the session's partition).
+
+Every process connects to one Python Zenoh router on loopback (a session in ``router``
+mode, its own process): the daemon instances (``python -m pd_service``, each trusting the
+others by name: explicit membership), the load generator of ``bench/service.py`` (N paper
+sessions at 20 Hz: a command and a range-finder sample every step, a camera sample every
+second step) and a probe. Per repetition:
+
+1. **one**: one instance serves all N sessions. Over the measurement interval: the data
+   samples it received (its ``samples_received`` counter), its CPU (utime + stime from
+   /proc, all threads) per session and 50 ms step.
+2. **K**: K fresh instances behind the same router. Per instance the share of the data
+   samples it received against total / K (goal: max <= 1.1), and the instances' CPU summed
+   per session-step against phase 1's (goal: <= 1.2x).
+3. **churn** (with --churn, on phase 2's instances, the load still running): a (K+1)-th
+   instance joins, then one leaves (SIGTERM), then one is killed (-9); each event is given
+   ``--settle`` s. Per event: the share of the partitions (of the sessions) whose owner
+   changed (from the instances' ServiceStatus.sessions before and after), for the sessions
+   that did not move the longest gap between two predictions the probe received (the probe
+   watches every 10th session; goal: none > 250 ms), and for the moved sessions their
+   SessionStatus.origin (goal: "replica", never "prior").
+
+The machine has 2 cores for everything (router, instances, generator, probe): capacity
+cannot grow here; the figures are the work each instance does and what it receives.
+Printed: a table per phase, then one JSON line with every figure (medians over --repeat).
+
+Usage: python bench/scale_out.py [--sessions 1000] [--instances 4] [--duration 6]
+       [--warmup 4] [--repeat 1] [--churn] [--settle 6]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+from gauge import gauge_ms
+from service import BENCH_ENV, PERIOD_NS, cpu_seconds, free_port, query_status, session_name
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_router(port: int) -> None:
+    """The router process: a Python Zenoh session in router mode on loopback, until killed."""
+    from pd_service.transport import ZenohTransport, zenoh_config
+
+    t = ZenohTransport(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"]))
+    print(json.dumps({"ready": True}), flush=True)
+    try:
+        signal.sigwait({signal.SIGTERM, signal.SIGINT})
+    finally:
+        t.close()
+
+
+class Cluster:
+    """The router, the instances and the probe of one phase."""
+
+    def __init__(self, names: list[str], trusted: list[str], state: str) -> None:
+        self.port = free_port()
+        self.ep = f"tcp/127.0.0.1:{self.port}"
+        self.state = state
+        self.trusted = trusted
+        self.env = dict(os.environ, PD_SERVICE_LOG_LEVEL="WARNING")
+        self.env.pop("PD_SERVICE_CONFIG", None)
+        for k, v in BENCH_ENV.items():
+            self.env.setdefault(k, v)
+        self.router = subprocess.Popen([sys.executable, __file__, "--router", str(self.port)],
+                                       stdout=subprocess.PIPE, text=True, cwd=ROOT)
+        if "ready" not in (self.router.stdout.readline() if self.router.stdout else ""):
+            raise RuntimeError("the router did not start")
+        self.daemons: dict[str, subprocess.Popen] = {}
+        for name in names:
+            self.start(name)
+        from pd_service.transport import ZenohTransport, zenoh_config
+
+        self.probe = ZenohTransport(zenoh_config(mode="client", connect=[self.ep]))
+        self.wait_members(len(names))
+
+    def start(self, name: str) -> None:
+        others = [x for n in self.trusted if n != name for x in ("--peer", n)]
+        self.daemons[name] = subprocess.Popen(
+            [sys.executable, "-m", "pd_service", "--instance", name, "--state-dir",
+             f"{self.state}/{name}", "--mode", "client", "--connect", self.ep, *others],
+            env=self.env, cwd=ROOT)
+
+    def wait_members(self, n: int, timeout: float = 30.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if len(self.probe.get_liveliness("pd/@service/*", timeout=1.0)) >= n:
+                return
+            time.sleep(0.2)
+        raise RuntimeError(f"fewer than {n} instances became alive")
+
+    def statuses(self) -> dict:
+        return {name: query_status(self.probe, name) for name, d in self.daemons.items()
+                if d.poll() is None}
+
+    def cpu(self) -> dict[str, float]:
+        return {name: cpu_seconds(d.pid) for name, d in self.daemons.items() if d.poll() is None}
+
+    def stop(self, name: str, sig: int) -> None:
+        d = self.daemons.pop(name)
+        d.send_signal(sig)
+        try:
+            d.wait(30)
+        except subprocess.TimeoutExpired:
+            d.kill()
+
+    def close(self) -> None:
+        self.probe.close()
+        for name in list(self.daemons):  # one at a time, as a rolling restart would
+            self.stop(name, signal.SIGTERM)
+        self.router.send_signal(signal.SIGTERM)
+        try:
+            self.router.wait(10)
+        except subprocess.TimeoutExpired:
+            self.router.kill()
+
+
+def received(st) -> int:
+    """The data samples an instance took from its subscriptions (ServiceStatus counter)."""
+    return int(st.counters.get("samples_received", 0))
+
+
+def loadgen(c: Cluster, n: int, epoch: int, measure_start: int, end: int) -> subprocess.Popen:
+    gen = subprocess.Popen(
+        [sys.executable, str(ROOT / "bench" / "service.py"), "--loadgen", "--n", str(n),
+         "--connect", c.ep, "--clients", "declared", "--epoch", str(epoch),
+         "--measure-start", str(measure_start), "--end", str(end), "--mode", "client"],
+        stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    line = gen.stdout.readline() if gen.stdout else ""
+    if "ready" not in line:
+        raise RuntimeError(f"load generator failed: {line}")
+    return gen
+
+
+def measure(c: Cluster, n: int, args: argparse.Namespace, churn: bool) -> dict:
+    """Run the load on the cluster; the steady interval's figures, and the churn's if asked."""
+    now = time.time_ns()
+    setup_s = 5.0 + n / 200.0
+    measure_start = now + int((setup_s + args.warmup) * 1e9)
+    steady_end = measure_start + int(args.duration * 1e9)
+    end = steady_end + (int(3 * args.settle * 1e9) + 2_000_000_000 if churn else 0)
+    gen = loadgen(c, n, now, measure_start, end)
+    while time.time_ns() < measure_start:
+        time.sleep(0.05)
+    s0, c0, w0 = c.statuses(), c.cpu(), time.monotonic()
+    while time.time_ns() < steady_end:
+        time.sleep(0.05)
+    s1, c1, wall = c.statuses(), c.cpu(), time.monotonic() - w0
+    steps = n * wall / (PERIOD_NS / 1e9)
+    per = {name: received(s1[name]) - received(s0[name]) for name in s1}
+    total = sum(per.values())
+    res = {"n": n, "instances": len(s1), "wall_s": wall,
+           "received": per, "received_total": total,
+           "max_share": max(per.values()) / (total / len(per)) if total else float("nan"),
+           "us_per_session_step": 1e6 * sum(c1[k] - c0[k] for k in c1) / steps,
+           "late": sum(s1[k].counters.get("late_total", 0) - s0[k].counters.get("late_total", 0)
+                       for k in s1)}
+    if churn:
+        res["churn"] = churn_events(c, args)
+    gen.wait(max(30.0, (end - time.time_ns()) / 1e9 + 30))
+    return res
+
+
+def owners(c: Cluster) -> dict[str, str]:
+    """Session -> the instance that serves it, from every live instance's ServiceStatus."""
+    return {s: name for name, st in c.statuses().items() for s in st.sessions}
+
+
+def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
+    from pd_service.wire import SessionStatus, decode, keys
+
+    watched = [session_name(i) for i in range(0, args.sessions, 10)]
+    last: dict[str, int] = {}
+    gaps: dict[str, int] = {}
+    lock = threading.Lock()
+
+    def on_pred(smp) -> None:
+        t = time.monotonic_ns()
+        s = keys.parse_key(smp.key).session
+        with lock:
+            p = last.get(s)
+            if p is not None and t - p > gaps.get(s, 0):
+                gaps[s] = t - p
+            last[s] = t
+
+    handles = [c.probe.subscribe(keys.prediction_key(s), on_pred) for s in watched]
+    events = []
+    spare = [n for n in c.trusted if n not in c.daemons]
+    plan = [("join", spare[0], None), ("leave (SIGTERM)", None, signal.SIGTERM),
+            ("kill -9", None, signal.SIGKILL)]
+    time.sleep(1.0)
+    for what, name, sig in plan:
+        before = owners(c)
+        with lock:
+            gaps.clear()
+        if sig is None:
+            assert name is not None
+            c.start(name)
+        else:
+            name = sorted(c.daemons)[0]
+            c.stop(name, sig)
+        time.sleep(args.settle)
+        after = owners(c)
+        with lock:
+            g = dict(gaps)
+        moved = [s for s in before if after.get(s) != before[s]]
+        parts_before = {keys.partition_of(s): o for s, o in before.items()}
+        parts_after = {keys.partition_of(s): o for s, o in after.items()}
+        moved_parts = [p for p in parts_before if parts_after.get(p) != parts_before[p]]
+        stayed = [s for s in watched if s in before and s not in moved]
+        origins: dict[str, int] = {}
+        for s in moved[:50]:
+            for r in c.probe.get(keys.status_key(s), timeout=5.0):
+                if r.ok:
+                    o = decode(r.payload, SessionStatus).origin
+                    origins[o] = origins.get(o, 0) + 1
+        worst = max((g.get(s, 0) for s in stayed), default=0) / 1e6
+        events.append({"event": what, "instance": name, "members_after": len(c.daemons),
+                       "partitions_moved": len(moved_parts), "partitions": len(parts_before),
+                       "sessions_moved": len(moved), "unserved_after": args.sessions - len(after),
+                       "stayed_watched": len(stayed), "stayed_gap_max_ms": round(worst, 1),
+                       "stayed_gaps_over_250ms": sum(1 for s in stayed if g.get(s, 0) > 250e6),
+                       "moved_origins": origins})
+    for h in handles:
+        h.close()
+    return events
+
+
+def one_repetition(args: argparse.Namespace) -> dict:
+    k = args.instances
+    names = [f"inst-{j}" for j in range(k + 1)]
+    out: dict = {"gauge_ms": gauge_ms()}
+    state = tempfile.mkdtemp(prefix="pd-scale-")
+    try:
+        c = Cluster(["inst-0"], ["inst-0"], f"{state}/one")
+        try:
+            out["one"] = measure(c, args.sessions, args, churn=False)
+        finally:
+            c.close()
+        c = Cluster(names[:k], names, f"{state}/many")
+        try:
+            out["many"] = measure(c, args.sessions, args, churn=args.churn)
+        finally:
+            c.close()
+    finally:
+        shutil.rmtree(state, ignore_errors=True)
+    out["cpu_ratio"] = out["many"]["us_per_session_step"] / out["one"]["us_per_session_step"]
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--sessions", type=int, default=1000)
+    ap.add_argument("--instances", type=int, default=4)
+    ap.add_argument("--duration", type=float, default=6.0)
+    ap.add_argument("--warmup", type=float, default=4.0)
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--churn", action="store_true", help="join, leave and kill after phase 2")
+    ap.add_argument("--settle", type=float, default=6.0, help="seconds after each churn event")
+    ap.add_argument("--router", type=int, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.router:
+        run_router(args.router)
+        return
+    from pd_service.wire import keys
+
+    print(f"scale-out: {args.sessions} paper sessions at 20 Hz through one Python Zenoh router, "
+          f"1 then {args.instances} instances, P = {keys.partitions()} partitions, "
+          f"{os.cpu_count()} CPUs, {args.duration:g} s measured after {args.warmup:g} s warm-up")
+    reps = []
+    for r in range(args.repeat):
+        res = one_repetition(args)
+        reps.append(res)
+        one, many = res["one"], res["many"]
+        print(f"run {r + 1}: gauge {res['gauge_ms']:.1f} ms")
+        print(f"  1 instance: {one['received_total']} samples received, "
+              f"{one['us_per_session_step']:.1f} µs CPU per session-step, late {one['late']}")
+        shares = ", ".join(f"{name} {v / (many['received_total'] / len(many['received'])):.3f}"
+                           for name, v in sorted(many["received"].items()))
+        print(f"  {many['instances']} instances: {many['received_total']} samples received; "
+              f"share of total/{many['instances']}: {shares} (max {many['max_share']:.3f}); "
+              f"{many['us_per_session_step']:.1f} µs CPU per session-step summed "
+              f"({res['cpu_ratio']:.2f}x one), late {many['late']}")
+        for ev in many.get("churn", []):
+            print(f"  {ev['event']:<16} {ev['instance']}: partitions moved "
+                  f"{ev['partitions_moved']}/{ev['partitions']}, sessions moved "
+                  f"{ev['sessions_moved']}, unserved {ev['unserved_after']}; sessions that "
+                  f"stayed (watched {ev['stayed_watched']}): longest gap "
+                  f"{ev['stayed_gap_max_ms']} ms, {ev['stayed_gaps_over_250ms']} over 250 ms; "
+                  f"moved sessions' origin {ev['moved_origins']}", flush=True)
+
+    def med(get) -> float:
+        return round(statistics.median(get(r) for r in reps), 3)
+
+    print(json.dumps({
+        "sessions": args.sessions, "instances": args.instances, "partitions": keys.partitions(),
+        "runs": len(reps), "gauge_ms": med(lambda r: r["gauge_ms"]),
+        "one_us_per_session_step": med(lambda r: r["one"]["us_per_session_step"]),
+        "many_us_per_session_step": med(lambda r: r["many"]["us_per_session_step"]),
+        "cpu_ratio": med(lambda r: r["cpu_ratio"]),
+        "cpu_ratio_runs": [round(r["cpu_ratio"], 3) for r in reps],
+        "max_share": med(lambda r: r["many"]["max_share"]),
+        "max_share_runs": [round(r["many"]["max_share"], 3) for r in reps],
+        "churn": [r["many"].get("churn", []) for r in reps]}))
+
+
+if __name__ == "__main__":
+    main()
