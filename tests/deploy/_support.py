@@ -56,14 +56,17 @@ def read_users(path: Path = ZENOH_DIR / "users.txt") -> dict[str, str]:
 
 def open_router(endpoint: str, *, acl: bool = True, file: Path = ZENOH_DIR / "router.json5",
                 users: Path = ZENOH_DIR / "users.txt", zid: str | None = None,
-                connect: Sequence[str] = ()) -> ZenohTransport:
+                connect: Sequence[str] = (), admin_read: bool = False) -> ZenohTransport:
     """A router session configured by ``file`` (deploy/zenoh/router.json5), listening on
     ``endpoint``, its user list ``users``; ``zid`` its Zenoh id (zenohd ``--id``) and
     ``connect`` the routers it connects to (zenohd ``--connect``), for a mesh.
 
     ``acl=False`` turns access control off (authentication stays on): the control case that
-    shows a test would notice a message the ACL failed to stop."""
+    shows a test would notice a message the ACL failed to stop.  ``admin_read`` opens the
+    router's admin space for reading (its routing tables, ``@/<zid>/router/**``)."""
     conf = zenoh_config(file=file, listen=[endpoint], connect=connect)
+    if admin_read:
+        conf.insert_json5("adminspace", '{"enabled": true, "permissions": {"read": true}}')
     conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
     if zid is not None:
         conf.insert_json5("id", json.dumps(zid))

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 
 import pytest
 
+from pd_service.transport import ZenohTransport
 from pd_service.wire import keys
 
 from ._support import compose_routers, free_port, open_client, open_router, wait_for
@@ -31,18 +32,30 @@ pytestmark = pytest.mark.integration
 
 
 @contextlib.contextmanager
-def mesh(acl: bool = True) -> Iterator[dict[str, str]]:
+def mesh(acl: bool = True, tables: dict[str, ZenohTransport] | None = None
+         ) -> Iterator[dict[str, str]]:
     """router-a and router-b as compose.yml runs them (ids, who connects to whom), on
-    loopback; yields {router name: its client endpoint}."""
+    loopback; yields {router name: its client endpoint}.  With ``tables`` (a dict, filled
+    with {router name: its session}) the routers' admin spaces are readable."""
     routers = compose_routers()
     endpoints = {name: f"tcp/127.0.0.1:{free_port()}" for name in routers}
     with contextlib.ExitStack() as stack:
         # routers that connect to others start after those (compose: depends_on)
         for name in sorted(routers, key=lambda n: len(routers[n].connect)):
             connect = [endpoints[ep.split("/")[1].split(":")[0]] for ep in routers[name].connect]
-            stack.enter_context(open_router(endpoints[name], acl=acl, zid=routers[name].id,
-                                            connect=connect))
+            r = stack.enter_context(open_router(endpoints[name], acl=acl, zid=routers[name].id,
+                                                connect=connect, admin_read=tables is not None))
+            if tables is not None:
+                tables[name] = r
         yield endpoints
+
+
+def routing_table(router: ZenohTransport, zid: str, kind: str) -> list[str]:
+    """The key expressions of one table (``subscriber``, ``publisher``) of a router, read
+    from its admin space (``@/<zid>/router/<kind>/<key expr>``), sorted."""
+    prefix = f"@/{zid}/router/{kind}/"
+    return sorted(str(r.ok.key_expr)[len(prefix):] for r in router.session.get(
+        f"{prefix}**", timeout=TIMEOUT_S) if r.ok is not None)
 
 
 def sessions_in_two_partitions() -> tuple[str, str]:
@@ -128,3 +141,41 @@ def test_queries_and_liveliness_cross_the_mesh() -> None:
                 if r.ok] == []
 
 
+
+
+def test_routing_tables_grow_with_partitions_not_sessions() -> None:
+    """A daemon instance on router-a owning 8 partitions declares 2 wildcards per partition;
+    senders on router-b declare a publisher per session.  Both routers' subscriber tables hold
+    exactly the 16 wildcards, with 10 sessions and with 40; router-b's publisher table holds
+    its own clients' publishers (one per session), router-a's none: per-session entries stay
+    at the sender's router (deploy/README.md, "Routed deployment")."""
+    ids = {name: a.id for name, a in compose_routers().items()}
+    owned = range(8)
+    wildcards = sorted([keys.partition_sensors(k) for k in owned]
+                       + [keys.partition_commands(k) for k in owned])
+    tables: dict[str, ZenohTransport] = {}
+    with mesh(tables=tables) as ep, open_client("service", ep["router-a"]) as daemon, \
+            open_client("link", ep["router-b"]) as sender:
+        got = Collector()
+        for w in wildcards:
+            daemon.subscribe(w, got)
+        names = [f"s{i}" for i in range(1000) if keys.partition_of(f"s{i}") in owned]
+        publishers = []
+        for n in (10, 40):
+            while len(publishers) < n:
+                name = names[len(publishers)]
+                publishers.append(sender.session.declare_publisher(keys.sensor_key(name, "x")))
+
+            def learnt(n: int = n) -> bool:  # every publisher knows the daemon's wildcard
+                return all(p.matching_status.matching for p in publishers[:n])
+            wait_for(learnt, TIMEOUT_S, "the publishers to learn of the daemon's subscribers")
+            for name in ("router-a", "router-b"):
+                subs = routing_table(tables[name], ids[name], "subscriber")
+                assert subs == wildcards, (name, n)
+            assert routing_table(tables["router-a"], ids["router-a"], "publisher") == []
+            pubs = routing_table(tables["router-b"], ids["router-b"], "publisher")
+            assert pubs == sorted(keys.sensor_key(s, "x") for s in names[:n])
+        publishers[0].put(b"x")
+        assert got.wait_count(b"x", 1, TIMEOUT_S)
+        for p in publishers:
+            p.undeclare()
