@@ -32,9 +32,9 @@ from pd_service.wire import keys
 
 from ._support import (
     DEPLOY,
+    MESH_USER,
     REPO,
     ROLES,
-    MESH_USER,
     ZENOH_DIR,
     compose_routers,
     load_deploy_script,
