@@ -68,9 +68,9 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-_NAME = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")  # keys.NAME_PATTERN: a session name
-_USER = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
-_ZID = re.compile(r"^[1-9a-f][0-9a-f]{0,31}$")  # Zenoh: lowercase hex, no leading zero
+_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,63}")  # keys.NAME_PATTERN: a session name
+_USER = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+_ZID = re.compile(r"[1-9a-f][0-9a-f]{0,31}")  # Zenoh: lowercase hex, no leading zero
 _ROLE_LISTS = ("admins", "link_admins", "services", "links", "displays")
 _TOP = {*_ROLE_LISTS, "users_file", "listen", "mesh", "session"}
 _SESSION = {"name", "robot", "operator", "direct", "robot_creates"}
@@ -136,7 +136,7 @@ def _users(doc: dict[str, Any], field: str) -> list[str]:
     if not isinstance(value, list) or not all(isinstance(u, str) for u in value):
         raise InputError(f"{field}: expected a list of user names")
     for u in value:
-        if not _USER.match(u):
+        if not _USER.fullmatch(u):
             raise InputError(f"{field}: bad user name {u!r}")
     return value
 
@@ -165,8 +165,8 @@ def read_sessions(doc: dict[str, Any]) -> dict[str, Any]:
         if set(s) - _SESSION:
             raise InputError(f"{where}: unknown field(s) {sorted(set(s) - _SESSION)}")
         name = s.get("name")
-        if not isinstance(name, str) or not _NAME.match(name):
-            raise InputError(f"{where}.name: a session name ([A-Za-z0-9_.-], no wildcard), "
+        if not isinstance(name, str) or not _NAME.fullmatch(name):
+            raise InputError(f"{where}.name: a session name ({_NAME.pattern}, no wildcard), "
                              f"got {name!r}")
         if name in seen:
             raise InputError(f"{where}.name: {name!r} listed twice")
@@ -187,10 +187,10 @@ def _read_mesh(mesh: object) -> dict[str, Any] | None:
         raise InputError(f"mesh: a table with exactly {sorted(_MESH)}")
     zids = mesh["zids"]
     if not isinstance(zids, list) or len(zids) < 2 or len(set(zids)) != len(zids) or not all(
-            isinstance(z, str) and _ZID.match(z) for z in zids):
+            isinstance(z, str) and _ZID.fullmatch(z) for z in zids):
         raise InputError("mesh.zids: two or more distinct Zenoh ids (lowercase hex, no "
                          f"leading zero), got {zids!r}")
-    if not isinstance(mesh["user"], str) or not _USER.match(mesh["user"]):
+    if not isinstance(mesh["user"], str) or not _USER.fullmatch(mesh["user"]):
         raise InputError(f"mesh.user: bad user name {mesh['user']!r}")
     if not isinstance(mesh["password"], str) or not mesh["password"]:
         raise InputError("mesh.password: a non-empty string")

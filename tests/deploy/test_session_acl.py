@@ -345,6 +345,7 @@ def test_generator_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixtu
         "twice": 'services = ["s"]\n[[session]]\nname = "a"\n[[session]]\nname = "a"\n',
         "bad user": 'services = ["s"]\n[[session]]\nname = "a"\nrobot = "r/x"\n',
         "not a session name": 'services = ["s"]\n[[session]]\nname = "Paper"\n',
+        "a name and a newline": 'services = ["s"]\n[[session]]\nname = "a\\n"\n',
         "one router": 'services = ["s"]\n[mesh]\nzids = ["a1"]\nuser = "r"\n'
                       'password = "p"\n[[session]]\nname = "a"\n',
         "bad zid": 'services = ["s"]\n[mesh]\nzids = ["a1", "0b"]\nuser = "r"\n'
