@@ -4,6 +4,13 @@ deployment from a short list of sessions and users.
 
     python deploy/make_acl.py deploy/sessions.toml > deploy/zenoh/router.json5
     python deploy/make_acl.py deploy/sessions.toml --check deploy/zenoh/router.json5
+    python deploy/make_acl.py deploy/sessions.toml --partitions 256 > ...   # P (else
+                                                            # PD_PARTITIONS, else 64)
+
+Keys are of key layout 2 (protocol.md §2): a session's keys carry its partition,
+``pd/p<k>/<s>/...`` and ``robot/p<k>/<s>/...`` with ``k = FNV-1a-32(s) mod P``; P is the
+deployment's partition count, the same for every party (``PD_PARTITIONS``), and is written into
+the generated file's header.  Below, ``<s>`` stands for ``p<k>/<s>``.
 
 The input (TOML; every list of users may name several users, a user may have several roles)::
 
@@ -14,6 +21,11 @@ The input (TOML; every list of users may name several users, a user may have sev
     displays = ["display"]    # read-only: predictions, errors, statuses, specs, truth, stats
     users_file = "/etc/zenoh/users.txt"   # optional (router's path of the user:password list)
     listen = ["tcp/[::]:7447"]            # optional
+
+    [mesh]                    # optional: several routers meshed, each with this configuration
+    zids = ["a1a1", "b2b2"]   # every router's Zenoh id (zenohd -i <zid>): they trust each other
+    user = "router"           # the user a router logs in with to the router it connects to
+    password = "..."          # (must be in users.txt)
 
     [[session]]
     name = "paper"
@@ -29,6 +41,14 @@ Sender caches (zenoh-ext advanced publishers: a queryable and a liveliness token
 ``pd/<s>/sensor/*`` and ``pd/<s>/cmd``, links on every session's; only services may query them
 and watch their tokens (deploy/README.md, "Sender caches").
 
+Key layout 1 (``pd/<s>/config``, ``pd/<s>/status``, ``pd/<s>/error``: clients before
+partitions) passes only where the daemon refuses it with a reason: services subscribe and
+answer there, admins and a session's operator (and a ``robot_creates`` robot) reach it.
+
+Routers of a mesh recognise each other by Zenoh id (the router that connects out sees the
+other without a user name, so a user alone cannot match it) and relay between them whatever
+any rule allows a client; each router enforces its own clients' rules (deploy/README.md).
+
 Only stdlib; the output is JSON (valid JSON5) behind a comment header.  Rules come in the pairs
 of Zenoh's model: what a client may send in (``ingress``: put, declare_subscriber, query,
 declare_queryable, reply, liveliness_token) and what the router may deliver to it (``egress``).
@@ -40,6 +60,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 import tomllib
@@ -47,12 +68,22 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # keys.check_name's alphabet
-_USER = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,63}")  # keys.NAME_PATTERN: a session name
+_USER = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+_ZID = re.compile(r"[1-9a-f][0-9a-f]{0,31}")  # Zenoh: lowercase hex, no leading zero
 _ROLE_LISTS = ("admins", "link_admins", "services", "links", "displays")
-_TOP = {*_ROLE_LISTS, "users_file", "listen", "session"}
+_TOP = {*_ROLE_LISTS, "users_file", "listen", "mesh", "session"}
 _SESSION = {"name", "robot", "operator", "direct", "robot_creates"}
+_MESH = {"zids", "user", "password"}
 RESULTS = ("prediction", "error", "status")
+#: every session of every partition (key layout 2): pd/p<k>/<s>, robot/p<k>/<s>
+PD = "pd/*/*"
+ROBOT = "robot/*/*"
+#: key layout 1 (before partitions), let through only to be refused by the daemon
+LEGACY = "pd/*"
+PARTITIONS_ENV = "PD_PARTITIONS"  # pd_service.wire.keys: the same variable, default, bounds
+DEFAULT_PARTITIONS = 64
+MAX_PARTITIONS = 4096
 #: zenoh-ext 1.10's advanced publisher on K keeps its cache behind a queryable and a liveliness
 #: token on K/@adv/pub/<zid>/<eid>/<meta>; "@adv" is a verbatim chunk, which no wildcard matches
 ADV = "@adv/pub/**"
@@ -67,6 +98,37 @@ class InputError(ValueError):
     """The sessions file is not valid (the message names the field)."""
 
 
+def fnv1a32(data: bytes) -> int:
+    """32-bit FNV-1a (protocol.md §2); equal to pd_service.wire.keys.fnv1a32 (tested), kept
+    here so that this script needs only the standard library."""
+    h = 0x811C9DC5
+    for b in data:
+        h = ((h ^ b) * 0x01000193) & 0xFFFFFFFF
+    return h
+
+
+def check_partitions(value: object, what: str) -> int:
+    """A partition count 1..MAX_PARTITIONS (an integer or its decimal string)."""
+    try:
+        n = int(str(value).strip())
+    except ValueError:
+        n = 0
+    if isinstance(value, bool) or not 1 <= n <= MAX_PARTITIONS:
+        raise InputError(f"{what}: an integer from 1 to {MAX_PARTITIONS}, got {value!r}")
+    return n
+
+
+def partitions_from_env() -> int:
+    """P from ``PD_PARTITIONS`` (default 64), as every party of the deployment reads it."""
+    raw = os.environ.get(PARTITIONS_ENV, "")
+    return DEFAULT_PARTITIONS if raw == "" else check_partitions(raw, PARTITIONS_ENV)
+
+
+def session_path(session: str, partitions: int) -> str:
+    """``p<k>/<session>``: the chunks that name a session in its keys (key layout 2)."""
+    return f"p{fnv1a32(session.encode()) % partitions}/{session}"
+
+
 def _users(doc: dict[str, Any], field: str) -> list[str]:
     value = doc.get(field, [])
     if isinstance(value, str):
@@ -74,7 +136,7 @@ def _users(doc: dict[str, Any], field: str) -> list[str]:
     if not isinstance(value, list) or not all(isinstance(u, str) for u in value):
         raise InputError(f"{field}: expected a list of user names")
     for u in value:
-        if not _USER.match(u):
+        if not _USER.fullmatch(u):
             raise InputError(f"{field}: bad user name {u!r}")
     return value
 
@@ -90,6 +152,7 @@ def read_sessions(doc: dict[str, Any]) -> dict[str, Any]:
     out["users_file"] = doc.get("users_file", "/etc/zenoh/users.txt")
     listen = doc.get("listen", ["tcp/[::]:7447"])
     out["listen"] = [listen] if isinstance(listen, str) else listen
+    out["mesh"] = _read_mesh(doc.get("mesh"))
     sessions = doc.get("session", [])
     if not isinstance(sessions, list) or not sessions:
         raise InputError("session: at least one [[session]] table")
@@ -102,8 +165,8 @@ def read_sessions(doc: dict[str, Any]) -> dict[str, Any]:
         if set(s) - _SESSION:
             raise InputError(f"{where}: unknown field(s) {sorted(set(s) - _SESSION)}")
         name = s.get("name")
-        if not isinstance(name, str) or not _NAME.match(name):
-            raise InputError(f"{where}.name: a session name ([A-Za-z0-9_.-], no wildcard), "
+        if not isinstance(name, str) or not _NAME.fullmatch(name):
+            raise InputError(f"{where}.name: a session name ({_NAME.pattern}, no wildcard), "
                              f"got {name!r}")
         if name in seen:
             raise InputError(f"{where}.name: {name!r} listed twice")
@@ -115,6 +178,23 @@ def read_sessions(doc: dict[str, Any]) -> dict[str, Any]:
                 raise InputError(f"{where}.{flag}: true or false")
         out["session"].append(entry)
     return out
+
+
+def _read_mesh(mesh: object) -> dict[str, Any] | None:
+    if mesh is None:
+        return None
+    if not isinstance(mesh, dict) or set(mesh) != _MESH:
+        raise InputError(f"mesh: a table with exactly {sorted(_MESH)}")
+    zids = mesh["zids"]
+    if not isinstance(zids, list) or len(zids) < 2 or len(set(zids)) != len(zids) or not all(
+            isinstance(z, str) and _ZID.fullmatch(z) for z in zids):
+        raise InputError("mesh.zids: two or more distinct Zenoh ids (lowercase hex, no "
+                         f"leading zero), got {zids!r}")
+    if not isinstance(mesh["user"], str) or not _USER.fullmatch(mesh["user"]):
+        raise InputError(f"mesh.user: bad user name {mesh['user']!r}")
+    if not isinstance(mesh["password"], str) or not mesh["password"]:
+        raise InputError("mesh.password: a non-empty string")
+    return dict(mesh)
 
 
 def _rule(rid: str, flows: Iterable[str], messages: Iterable[str], key_exprs: Iterable[str]
@@ -130,13 +210,18 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
     # as egress "declare_subscriber".  Reveals key expressions, never data.
     "learn-subscribers": (("egress",), ("declare_subscriber",), ("pd/**", "robot/**")),
     # admins: create = put, remove = delete; serve the spec to queries; follow the result
+    # (and an old client's spec put on layout 1, which the daemon answers with a refusal)
     "admin-specs-in": (("ingress",), ("put", "delete", "declare_subscriber", "query",
-                                      "declare_queryable", "reply"), ("pd/*/config",)),
-    "admin-specs-out": (("egress",), ("put", "delete", "query", "reply"), ("pd/*/config",)),
+                                      "declare_queryable", "reply"),
+                       (f"{PD}/config", f"{LEGACY}/config")),
+    "admin-specs-out": (("egress",), ("put", "delete", "query", "reply"),
+                        (f"{PD}/config", f"{LEGACY}/config")),
     "admin-results-ask": (("ingress",), ("declare_subscriber", "query"),
-                          tuple(f"pd/*/{r}" for r in RESULTS)),
+                          (*(f"{PD}/{r}" for r in RESULTS), f"{LEGACY}/error",
+                           f"{LEGACY}/status")),
     "admin-results-get": (("egress",), ("put", "delete", "reply"),
-                          tuple(f"pd/*/{r}" for r in RESULTS)),
+                          (*(f"{PD}/{r}" for r in RESULTS), f"{LEGACY}/error",
+                           f"{LEGACY}/status")),
     # which daemon instances are alive and their status (read-only for everybody but services)
     "watch-services-ask": (("ingress",), ("declare_liveliness_subscriber", "liveliness_query",
                                           "query"), ("pd/@service/*", "pd/@service/*/status")),
@@ -147,13 +232,17 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
     # a query on .../rules with a payload replaces pd-link's rules: link admins only
     "admin-link-rules-ask": (("ingress",), ("query", "put"), ("pd/@link/*/rules",)),
     "admin-link-rules-get": (("egress",), ("reply",), ("pd/@link/*/rules",)),
-    # the daemon: every session (it serves them all)
-    "service-write": (("ingress",), ("put", "delete"), tuple(f"pd/*/{r}" for r in RESULTS)),
-    "service-retire-specs": (("ingress",), ("delete",), ("pd/*/config",)),
+    # the daemon: every session of every partition (it serves them all); on key layout 1 it
+    # hears specs and status queries and puts errors only to refuse them
+    "service-write": (("ingress",), ("put", "delete"),
+                      (*(f"{PD}/{r}" for r in RESULTS), f"{LEGACY}/error")),
+    "service-retire-specs": (("ingress",), ("delete",), (f"{PD}/config",)),
     "service-ask": (("ingress",), ("declare_subscriber", "query", "declare_queryable", "reply"),
-                    ("pd/*/config", "pd/*/sensor/*", "pd/*/cmd", "pd/*/status")),
+                    (f"{PD}/config", f"{PD}/sensor/*", f"{PD}/cmd", f"{PD}/status",
+                     f"{LEGACY}/config", f"{LEGACY}/status")),
     "service-get": (("egress",), ("put", "delete", "reply", "query"),
-                    ("pd/*/config", "pd/*/sensor/*", "pd/*/cmd", "pd/*/status")),
+                    (f"{PD}/config", f"{PD}/sensor/*", f"{PD}/cmd", f"{PD}/status",
+                     f"{LEGACY}/config", f"{LEGACY}/status")),
     # daemon instances among themselves: liveliness tokens (session membership), status,
     # peer queries, replicated state.  ONLY services: a token here takes sessions over.
     "service-coordination": (("ingress", "egress"), (
@@ -162,30 +251,40 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
         ("pd/@service/**",)),
     # sender caches (zenoh-ext advanced publishers) read back by the daemon after a restart,
     # a takeover, or when a sender appears: it watches their liveliness tokens and queries each
-    # on its token's key; the replies carry the cached samples' own keys (pd/<s>/sensor/<name>,
-    # pd/<s>/cmd), which "service-get" already lets out to it
+    # on its token's key; the replies carry the cached samples' own keys
+    # (pd/p<k>/<s>/sensor/<name>, pd/p<k>/<s>/cmd), which "service-get" already lets out to it
     "service-recover-ask": (("ingress",), ("query", "declare_liveliness_subscriber",
                                            "liveliness_query"),
-                            (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
+                            (_cache(f"{PD}/sensor/*"), _cache(f"{PD}/cmd"))),
     "service-recover-get": (("egress",), ("liveliness_token",),
-                            (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
+                            (_cache(f"{PD}/sensor/*"), _cache(f"{PD}/cmd"))),
     # the link emulator: every session
-    "link-ask": (("ingress",), ("declare_subscriber",), ("robot/*/sensor/*", "pd/*/cmd")),
-    "link-get": (("egress",), ("put", "delete"), ("robot/*/sensor/*", "pd/*/cmd")),
-    "link-write": (("ingress",), ("put", "delete"), ("pd/*/sensor/*", "robot/*/cmd")),
+    "link-ask": (("ingress",), ("declare_subscriber",), (f"{ROBOT}/sensor/*", f"{PD}/cmd")),
+    "link-get": (("egress",), ("put", "delete"), (f"{ROBOT}/sensor/*", f"{PD}/cmd")),
+    "link-write": (("ingress",), ("put", "delete"), (f"{PD}/sensor/*", f"{ROBOT}/cmd")),
     "link-serve-in": (("ingress",), ("declare_queryable", "reply"),
                       ("pd/@link/*/rules", "pd/@link/*/stats")),
     "link-serve-out": (("egress",), ("query",), ("pd/@link/*/rules", "pd/@link/*/stats")),
     # the caches of its outputs to the daemon (pd-link --cache N); see _cache_rules
     "link-cache-in": (("ingress",), ("declare_queryable", "liveliness_token"),
-                      (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
-    "link-cache-reply": (("ingress",), ("reply",), ("pd/*/sensor/*", "pd/*/cmd")),
-    "link-cache-out": (("egress",), ("query",), (_cache("pd/*/sensor/*"), _cache("pd/*/cmd"))),
+                      (_cache(f"{PD}/sensor/*"), _cache(f"{PD}/cmd"))),
+    "link-cache-reply": (("ingress",), ("reply",), (f"{PD}/sensor/*", f"{PD}/cmd")),
+    "link-cache-out": (("egress",), ("query",),
+                       (_cache(f"{PD}/sensor/*"), _cache(f"{PD}/cmd"))),
     # displays: read-only, every session
     "display-ask": (("ingress",), ("declare_subscriber", "query"),
-                    (*(f"pd/*/{r}" for r in RESULTS), "pd/*/config", "robot/*/truth")),
+                    (*(f"{PD}/{r}" for r in RESULTS), f"{PD}/config", f"{ROBOT}/truth")),
     "display-get": (("egress",), ("put", "delete", "reply"),
-                    (*(f"pd/*/{r}" for r in RESULTS), "pd/*/config", "robot/*/truth")),
+                    (*(f"{PD}/{r}" for r in RESULTS), f"{PD}/config", f"{ROBOT}/truth")),
+    # routers of a mesh ([mesh]) relay to each other every message, both ways, on every key
+    # some rule above grants a client: each router enforces its own clients' rules, the mesh
+    # carries what one router let in to where another may let it out.  "**" never matches a
+    # verbatim chunk (@service, @link, @adv): those are named.
+    "mesh": (("ingress", "egress"), (
+        "put", "delete", "declare_subscriber", "query", "declare_queryable", "reply",
+        "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"),
+        ("pd/**", "robot/**", "pd/@service/**", "pd/@link/**", _cache(f"{PD}/sensor/*"),
+         _cache(f"{PD}/cmd"))),
 }
 
 _ROLE_RULES = {
@@ -203,14 +302,16 @@ _ROLE_RULES = {
 }
 
 
-def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[dict[str, Any]]
-                   ) -> tuple[list[dict[str, Any]], list[str]]:
-    """The rules of one user scoped to its sessions, and the fixed rules it also needs."""
+def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[dict[str, Any]],
+                   partitions: int) -> tuple[list[dict[str, Any]], list[str]]:
+    """The rules of one user scoped to its sessions, and the fixed rules it also needs.
+    Keys name a session as ``p<k>/<s>`` (key layout 2); a layout-1 key (``pd/<s>/...``) only
+    where the daemon answers an old client with a refusal (status, error; a spec put)."""
     rules: list[dict[str, Any]] = []
     fixed: list[str] = []
     if robot_of:
-        names = [s["name"] for s in robot_of]
-        direct = [s["name"] for s in robot_of if s["direct"]]
+        names = [session_path(s["name"], partitions) for s in robot_of]
+        direct = [session_path(s["name"], partitions) for s in robot_of if s["direct"]]
         creates = [s["name"] for s in robot_of if s["robot_creates"]]
         rules += [
             _rule(f"robot-{user}-write", ["ingress"], ["put", "delete"],
@@ -226,13 +327,14 @@ def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[
         if direct:  # the caches of its sensor publishers, read back by the daemon
             rules += _cache_rules(f"robot-{user}", [f"pd/{s}/sensor/*" for s in direct])
         if creates:
-            results = [f"pd/{s}/{r}" for s in creates for r in RESULTS]
+            paths = [session_path(s, partitions) for s in creates]
+            specs = [*(f"pd/{s}/config" for s in paths), *(f"pd/{s}/config" for s in creates)]
+            results = [*(f"pd/{s}/{r}" for s in paths for r in RESULTS),
+                       *(f"pd/{s}/{r}" for s in creates for r in ("error", "status"))]
             rules += [  # put/delete/serve its sessions' specs; follow the daemon's answer
                 _rule(f"robot-{user}-create-in", ["ingress"],
-                      ["put", "delete", "declare_queryable", "reply"],
-                      [f"pd/{s}/config" for s in creates]),
-                _rule(f"robot-{user}-create-out", ["egress"], ["query"],
-                      [f"pd/{s}/config" for s in creates]),
+                      ["put", "delete", "declare_queryable", "reply"], specs),
+                _rule(f"robot-{user}-create-out", ["egress"], ["query"], specs),
                 _rule(f"robot-{user}-results-ask", ["ingress"], ["declare_subscriber", "query"],
                       results),
                 _rule(f"robot-{user}-results-get", ["egress"], ["put", "delete", "reply"],
@@ -240,8 +342,10 @@ def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[
             ]
             fixed += ["watch-services-ask", "watch-services-get"]
     if operator_of:
-        names = [s["name"] for s in operator_of]
-        readable = [f"pd/{s}/{r}" for s in names for r in (*RESULTS, "config")]
+        plain = [s["name"] for s in operator_of]
+        names = [session_path(s, partitions) for s in plain]
+        readable = [*(f"pd/{s}/{r}" for s in names for r in (*RESULTS, "config")),
+                    *(f"pd/{s}/{r}" for s in plain for r in ("error", "status"))]
         rules += [
             _rule(f"operator-{user}-write", ["ingress"], ["put", "delete"],
                   [f"pd/{s}/cmd" for s in names]),
@@ -269,8 +373,11 @@ def _cache_rules(prefix: str, keys: list[str]) -> list[dict[str, Any]]:
     ]
 
 
-def build(sessions: dict[str, Any]) -> dict[str, Any]:
-    """The router configuration (a dict) for a checked sessions description."""
+def build(sessions: dict[str, Any], partitions: int | None = None) -> dict[str, Any]:
+    """The router configuration (a dict) for a checked sessions description and ``partitions``
+    (P; default: ``PD_PARTITIONS``, else 64)."""
+    n = partitions_from_env() if partitions is None else check_partitions(partitions,
+                                                                          "partitions")
     per_user_fixed: dict[str, list[str]] = {}
     for role, rule_ids in _ROLE_RULES.items():
         for u in sessions[role]:
@@ -286,25 +393,34 @@ def build(sessions: dict[str, Any]) -> dict[str, Any]:
     scoped: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []
     for u in users:
-        rules, fixed = _session_rules(u, robot_of.get(u, []), operator_of.get(u, []))
+        rules, fixed = _session_rules(u, robot_of.get(u, []), operator_of.get(u, []), n)
         scoped += rules
         wanted = ["learn-subscribers", *per_user_fixed.get(u, []), *fixed]
         ids = list(dict.fromkeys([*wanted, *(r["id"] for r in rules)]))
         policies.append({"id": f"user-{u}", "subjects": [f"user-{u}"], "rules": ids})
+    subjects: list[dict[str, Any]] = [{"id": f"user-{u}", "usernames": [u]} for u in users]
+    usrpwd: dict[str, str] = {"dictionary_file": sessions["users_file"]}
+    mesh = sessions.get("mesh")
+    if mesh:
+        # a router that connected out sees its peer without a user name (user/password
+        # authenticates one way only): the routers are matched by their Zenoh ids
+        subjects.append({"id": "routers", "zids": list(mesh["zids"])})
+        policies.append({"id": "routers", "subjects": ["routers"], "rules": ["mesh"]})
+        usrpwd.update(user=mesh["user"], password=mesh["password"])
     used = {rid for p in policies for rid in p["rules"]}
-    fixed_rules = [_rule(rid, *spec) for rid, spec in _FIXED.items() if rid in used]
+    all_rules = [_rule(rid, *spec) for rid, spec in _FIXED.items() if rid in used] + scoped
     return {
         "mode": "router",
         "listen": {"endpoints": sessions["listen"]},
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"auth": {"usrpwd": {"dictionary_file": sessions["users_file"]}}},
+        "transport": {"auth": {"usrpwd": usrpwd}},
         "adminspace": {"enabled": False, "permissions": {"read": False, "write": False}},
         "access_control": {
             "enabled": True,
             "default_permission": "deny",
-            "rules": fixed_rules + scoped,
-            "subjects": [{"id": f"user-{u}", "usernames": [u]} for u in users],
+            "rules": all_rules,
+            "subjects": subjects,
             "policies": policies,
         },
     }
@@ -314,7 +430,10 @@ HEADER = """\
 // Zenoh router (zenohd) of a pd-service deployment: user/password authentication and access
 // control scoped by session.  GENERATED by deploy/make_acl.py from {source}; do not edit:
 // change the sessions file and run
-//     python deploy/make_acl.py {source} > router.json5
+//     python deploy/make_acl.py {source} --partitions {partitions} > router.json5
+// Key layout 2 with P = {partitions} partitions: a session's keys are pd/p<k>/<s>/... and
+// robot/p<k>/<s>/..., k = FNV-1a-32(s) mod {partitions}; every party of the deployment must
+// run with PD_PARTITIONS={partitions} (protocol.md §2).
 // Zenoh 1.10.x syntax.  Deny by default; a message crosses the router only if a rule allows it
 // for the SENDER's user on the way in (ingress) AND for the RECEIVER's user on the way out
 // (egress).  Access control applies only to traffic THROUGH this router: every process must
@@ -322,8 +441,10 @@ HEADER = """\
 """
 
 
-def render(sessions: dict[str, Any], source: str) -> str:
-    return HEADER.format(source=source) + json.dumps(build(sessions), indent=2) + "\n"
+def render(sessions: dict[str, Any], source: str, partitions: int | None = None) -> str:
+    n = partitions_from_env() if partitions is None else partitions
+    return (HEADER.format(source=source, partitions=n)
+            + json.dumps(build(sessions, n), indent=2) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -331,11 +452,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("sessions", help="the sessions file (.toml)")
     ap.add_argument("--check", metavar="FILE",
                     help="exit 1 if FILE differs from the generated configuration")
+    ap.add_argument("--partitions", metavar="P",
+                    help=f"the deployment's partition count (default: ${PARTITIONS_ENV}, "
+                         f"else {DEFAULT_PARTITIONS})")
     args = ap.parse_args(argv)
     path = Path(args.sessions)
     try:
+        n = (partitions_from_env() if args.partitions is None
+             else check_partitions(args.partitions, "--partitions"))
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
-        text = render(read_sessions(doc), path.as_posix())
+        text = render(read_sessions(doc), path.as_posix(), n)
     except (OSError, tomllib.TOMLDecodeError, InputError) as e:
         print(f"make_acl.py: {path}: {e}", file=sys.stderr)
         return 2

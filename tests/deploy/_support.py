@@ -1,22 +1,26 @@
 """Shared helpers of the deploy tests: paths, the users file, a router and per-role clients.
 
 The router is a Python Zenoh session in router mode opened with deploy/zenoh/router.json5
-(only its listen endpoint and the path of users.txt are overridden): in zenoh-python 1.x such
-a session relays pub/sub, queries and liveliness and enforces the same access control and
-user/password authentication as zenohd.  Clients are opened with the role files
+(only its listen endpoint and the path of users.txt are overridden; for a mesh also its Zenoh
+id and the router it connects to, as compose.yml gives them to zenohd): in zenoh-python 1.x
+such a session relays pub/sub, queries and liveliness and enforces the same access control
+and user/password authentication as zenohd.  Clients are opened with the role files
 deploy/zenoh/<role>.json5, their connect endpoint overridden.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
 import json
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import TypeVar
+
+import yaml
 
 from pd_service.transport import ZenohTransport, zenoh_config
 
@@ -24,6 +28,8 @@ REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
 ZENOH_DIR = DEPLOY / "zenoh"
 ROLES = ("admin", "operator", "robot", "service", "link", "display")
+#: the user the routers of the mesh log in with to each other (sessions.toml [mesh])
+MESH_USER = "router"
 
 T = TypeVar("T")
 
@@ -49,14 +55,21 @@ def read_users(path: Path = ZENOH_DIR / "users.txt") -> dict[str, str]:
 
 
 def open_router(endpoint: str, *, acl: bool = True, file: Path = ZENOH_DIR / "router.json5",
-                users: Path = ZENOH_DIR / "users.txt") -> ZenohTransport:
+                users: Path = ZENOH_DIR / "users.txt", zid: str | None = None,
+                connect: Sequence[str] = (), admin_read: bool = False) -> ZenohTransport:
     """A router session configured by ``file`` (deploy/zenoh/router.json5), listening on
-    ``endpoint``, its user list ``users``.
+    ``endpoint``, its user list ``users``; ``zid`` its Zenoh id (zenohd ``--id``) and
+    ``connect`` the routers it connects to (zenohd ``--connect``), for a mesh.
 
     ``acl=False`` turns access control off (authentication stays on): the control case that
-    shows a test would notice a message the ACL failed to stop."""
-    conf = zenoh_config(file=file, listen=[endpoint])
+    shows a test would notice a message the ACL failed to stop.  ``admin_read`` opens the
+    router's admin space for reading (its routing tables, ``@/<zid>/router/**``)."""
+    conf = zenoh_config(file=file, listen=[endpoint], connect=connect)
+    if admin_read:
+        conf.insert_json5("adminspace", '{"enabled": true, "permissions": {"read": true}}')
     conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+    if zid is not None:
+        conf.insert_json5("id", json.dumps(zid))
     if not acl:
         conf.insert_json5("access_control/enabled", "false")
     return ZenohTransport(conf)
@@ -102,3 +115,21 @@ def load_deploy_script(name: str) -> ModuleType:
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def zenohd_args(argv: list[str]) -> argparse.Namespace:
+    """A zenohd command line of compose.yml (the flags it uses: ``-c``, ``--id``,
+    ``--connect``, ``--listen``); SystemExit on anything else."""
+    p = argparse.ArgumentParser(prog="zenohd", exit_on_error=False)
+    p.add_argument("-c", "--config", required=True)
+    p.add_argument("-i", "--id")
+    p.add_argument("-e", "--connect", action="append", default=[])
+    p.add_argument("-l", "--listen", action="append", default=[])
+    return p.parse_args(argv)
+
+
+def compose_routers() -> dict[str, argparse.Namespace]:
+    """compose.yml's zenohd services (the eclipse/zenoh image): name -> parsed command."""
+    services = yaml.safe_load((DEPLOY / "compose.yml").read_text(encoding="utf-8"))["services"]
+    return {name: zenohd_args(svc["command"]) for name, svc in services.items()
+            if str(svc.get("image", "")).startswith("eclipse/zenoh:")}

@@ -1,17 +1,20 @@
-"""compose.yml's Python services, run as local processes behind a router with router.json5.
+"""compose.yml's Python services, run as local processes behind its two meshed routers.
 
 No Docker here: the test reads the command lines of compose.yml, maps the container paths to
-the repository's files (``/etc/pd-service/zenoh/X`` -> deploy/zenoh/X, ...), adds
-``--connect`` to a loopback router (a Python Zenoh router session with router.json5), starts
-the daemon, the link emulator, the simulated robot and the operator exactly as compose would,
-and checks that the whole system works under the access control: the daemon accepts the
-robot's measurements (through the link emulator) and the operator's commands, a display
-client receives predictions, and every service's compose health check passes.
+the repository's files (``/etc/pd-service/zenoh/X`` -> deploy/zenoh/X, ...), runs router-a and
+router-b as Python Zenoh router sessions with router.json5 (ids and mesh link as compose gives
+them), adds ``--connect`` to the loopback endpoint of the router the role file names, starts
+the two daemon instances, the link emulator, the simulated robot and the operator exactly as
+compose would, and checks that the whole system works under the access control: the daemon
+accepts the robot's measurements (through the link emulator, across the mesh) and the
+operator's commands, a display client receives predictions, and every service's compose
+health check passes.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import subprocess
@@ -22,22 +25,25 @@ from pathlib import Path
 
 import pytest
 import yaml
+import zenoh
 
 from pd_service.wire import SessionStatus, decode, keys
 
-from ._support import DEPLOY, ZENOH_DIR, free_port, open_client, open_router, wait_for
+from ._support import DEPLOY, ZENOH_DIR, open_client, wait_for
+from .test_router_mesh import mesh
 
 pytestmark = pytest.mark.integration
 
 BIN = Path(sys.executable).parent
 SESSION = "paper"  # compose.yml's session
-START_ORDER = ("pd-service", "link", "session", "robot-sim", "operator")
+START_ORDER = ("pd-service", "pd-service-b", "link", "session", "robot-sim", "operator")
 #: Services that run once and exit 0 (compose: restart "no"); no health check.
 ONE_SHOT = ("session",)
 
 
-def local_argv(argv: list[str], endpoint: str, state_dir: Path) -> list[str]:
-    """A compose command line with container paths replaced by the repository's files."""
+def local_argv(argv: list[str], endpoints: dict[str, str], state_dir: Path) -> list[str]:
+    """A compose command line with container paths replaced by the repository's files and
+    ``--connect`` to the loopback endpoint of the router its role file names."""
     mapping = {"/etc/pd-service/zenoh/": f"{ZENOH_DIR}/",
                "/etc/pd-service/link-paper.toml": str(DEPLOY / "link-paper.toml"),
                "/var/lib/pd-service": str(state_dir),
@@ -48,6 +54,9 @@ def local_argv(argv: list[str], endpoint: str, state_dir: Path) -> list[str]:
             if word.startswith(container):
                 word = local + word[len(container):]
         out.append(word)
+    role_file = Path(out[out.index("--zenoh-config") + 1])
+    router = json.loads(str(zenoh.Config.from_file(str(role_file))))["connect"]["endpoints"]
+    endpoint = endpoints[router[0].split("/")[1].split(":")[0]]
     if out[0] == "python":
         return [sys.executable, *out[1:], "--connect", endpoint]
     return [str(BIN / out[0]), *out[1:], "--connect", endpoint]
@@ -82,16 +91,20 @@ def test_compose_services_work_under_the_acl(tmp_path: Path) -> None:
     for name in START_ORDER:
         if not (BIN / services[name]["command"][0]).exists():
             pytest.skip(f"{services[name]['command'][0]} is not installed in this venv")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    commands = {name: local_argv(services[name]["command"], endpoint, tmp_path / "state")
-                for name in START_ORDER}
+    with mesh() as endpoints:
+        run_compose(services, endpoints, tmp_path)
+
+
+def run_compose(services: dict, endpoints: dict[str, str], tmp_path: Path) -> None:
+    commands = {name: local_argv(services[name]["command"], endpoints,
+                                 tmp_path / f"state-{name}") for name in START_ORDER}
 
     def logs() -> str:
         return "\n".join(f"--- {p.name}\n{p.read_text(errors='replace')[-3000:]}"
                          for p in sorted(tmp_path.glob("*.log")))
 
-    with open_router(endpoint) as _router, processes(commands, tmp_path) as procs, \
-            open_client("display", endpoint) as display:
+    with processes(commands, tmp_path) as procs, \
+            open_client("display", endpoints["router-a"]) as display:
         predictions = threading.Event()
         count = [0]
 
@@ -130,6 +143,6 @@ def test_compose_services_work_under_the_acl(tmp_path: Path) -> None:
             if name in ONE_SHOT:
                 continue
             test = services[name]["healthcheck"]["test"]
-            argv = local_argv(test[1:], endpoint, tmp_path / "state")
+            argv = local_argv(test[1:], endpoints, tmp_path / f"state-{name}")
             done = subprocess.run(argv, capture_output=True, text=True, timeout=60, env=env)
             assert done.returncode == 0, f"{name}: {done.stdout}{done.stderr}"

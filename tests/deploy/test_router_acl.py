@@ -118,7 +118,7 @@ CASES = {
     "commands": ("service", keys.ALL_COMMANDS, keys.command_key("paper"), "operator", "robot"),
     "robot-data": ("link", keys.ROBOT_ALL_SENSORS, keys.robot_sensor_key("paper", "camera"),
                    "robot", "operator"),
-    "truth": ("display", "robot/*/truth", keys.truth_key("paper"), "robot", "link"),
+    "truth": ("display", keys.ALL_TRUTHS, keys.truth_key("paper"), "robot", "link"),
     "predictions": ("display", keys.ALL_PREDICTIONS, keys.prediction_key("paper"), "service",
                     "operator"),
 }
@@ -174,7 +174,7 @@ def test_deployment_traffic_passes_the_acl(endpoint: str) -> None:
         c["robot"].subscribe(keys.robot_command_key("paper"), subs["robot_cmd"])  # own session
         c["display"].subscribe(keys.ALL_PREDICTIONS, subs["display_pred"])
         c["operator"].subscribe(keys.prediction_key("paper"), subs["operator_pred"])
-        c["display"].subscribe("robot/*/truth", subs["display_truth"])
+        c["display"].subscribe(keys.ALL_TRUTHS, subs["display_truth"])
         c["operator"].subscribe(keys.status_key("paper"), subs["operator_status"])
         c["service"].queryable(keys.ALL_STATUS, lambda q: q.reply(q.key, b"status"))
         c["service"].queryable(keys.service_status_key("pd-a"),

@@ -84,12 +84,21 @@ CASES = {
     "robot-a on b's operator-side sensors": ("service", keys.ALL_SENSORS,
                                              keys.sensor_key("b", "camera"), "robot-b",
                                              "robot-a"),
-    "robot-a creates a session": ("service", "pd/*/config", keys.config_key("new"), "admin",
+    "robot-a creates a session": ("service", keys.ALL_CONFIGS, keys.config_key("new"), "admin",
                                   "robot-a"),
-    "robot-b replaces its own session": ("service", "pd/*/config", keys.config_key("b"),
+    "robot-b replaces its own session": ("service", keys.ALL_CONFIGS, keys.config_key("b"),
                                          "admin", "robot-b"),
     "op-a commands b": ("service", keys.ALL_COMMANDS, keys.command_key("b"), "op-b", "op-a"),
-    "op-a creates a session": ("service", "pd/*/config", keys.config_key("a"), "admin", "op-a"),
+    "op-a creates a session": ("service", keys.ALL_CONFIGS, keys.config_key("a"), "admin",
+                               "op-a"),
+    # key layout 1: an old admin's spec put reaches the daemon (which refuses it with a
+    # reason), an old robot's does not
+    "robot-a's layout-1 spec": ("service", keys.LEGACY_CONFIGS, "pd/a/config", "admin",
+                                "robot-a"),
+    # the right session under another partition (another P): nobody's
+    "robot-a in a wrong partition": ("service", keys.ALL_SENSORS,
+                                     f"pd/p{(keys.partition_of('a') + 1) % keys.partitions()}"
+                                     "/a/sensor/camera", "link", "robot-a"),
 }
 
 
@@ -239,8 +248,8 @@ def test_service_reads_back_sender_caches(generated) -> None:
             for i in range(3):
                 pub.put(f"{user}-{i}".encode())
                 sent.add((key, f"{user}-{i}".encode()))
-        wait_for(lambda: len(cache_tokens(c["service"], "pd/*/sensor/*")) == 2
-                 and len(cache_tokens(c["service"], "pd/*/cmd")) == 1,
+        wait_for(lambda: len(cache_tokens(c["service"], keys.ALL_SENSORS)) == 2
+                 and len(cache_tokens(c["service"], keys.ALL_COMMANDS)) == 1,
                  TIMEOUT_S, "the daemon to see the three caches' tokens")
         got = Recovered()
         c["service"].recover(keys.ALL_SENSORS, got, max_samples=8, timeout=TIMEOUT_S)
@@ -266,7 +275,7 @@ def over_broad(router: Path, out: Path) -> Path:
         "id": "too-broad", "permission": "allow", "flows": ["ingress", "egress"],
         "messages": ["declare_queryable", "liveliness_token", "reply", "query",
                      "declare_liveliness_subscriber", "liveliness_query"],
-        "key_exprs": ["pd/*/sensor/*/@adv/pub/**", "pd/*/sensor/*"]})
+        "key_exprs": [f"{keys.ALL_SENSORS}/@adv/pub/**", keys.ALL_SENSORS]})
     next(p for p in acl["policies"] if p["id"] == "user-robot-a")["rules"].append("too-broad")
     out.write_text(json.dumps(conf), encoding="utf-8")
     return out
@@ -293,7 +302,8 @@ def test_robot_cannot_read_or_fake_another_sessions_cache(generated, tmp_path: P
         fake.put(b"fake-0")
         mine = c["robot-a"].publisher(keys.sensor_key("a", "camera"), cache=8)
         mine.put(b"a-0")
-        wait_for(lambda: {t.split("/@adv/")[0] for t in cache_tokens(c["service"], "pd/*/sensor/*")}
+        wait_for(lambda: {t.split("/@adv/")[0] for t in cache_tokens(c["service"],
+                                                                      keys.ALL_SENSORS)}
                  >= {keys.sensor_key("a", "camera"), keys.sensor_key("b", "camera")},
                  TIMEOUT_S, "the daemon to see robot A's and robot B's caches")
         got = Recovered()
@@ -304,15 +314,15 @@ def test_robot_cannot_read_or_fake_another_sessions_cache(generated, tmp_path: P
         else:  # read at once: every cache the daemon could see was read before recover returned
             assert b"fake-0" not in got.payloads()
             assert keys.sensor_key("b", "fake") not in {
-                t.split("/@adv/")[0] for t in cache_tokens(c["service"], "pd/*/sensor/*")}
+                t.split("/@adv/")[0] for t in cache_tokens(c["service"], keys.ALL_SENSORS)}
 
         # robot A reads B's cache: its tokens, a query on the cache's own key, recover (its
         # own cache on B's key, "fake", it sees and reads locally, without the router)
-        token_b = next(t for t in cache_tokens(c["service"], "pd/b/sensor/camera"))
-        seen = cache_tokens(c["robot-a"], "pd/b/sensor/*")
+        token_b = next(t for t in cache_tokens(c["service"], keys.sensor_key("b", "camera")))
+        seen = cache_tokens(c["robot-a"], keys.sensors_of("b"))
         replies = read_cache(c["robot-a"], token_b)
         stolen = Recovered()
-        c["robot-a"].recover("pd/b/sensor/*", stolen, max_samples=8, timeout=NEGATIVE_WAIT_S)
+        c["robot-a"].recover(keys.sensors_of("b"), stolen, max_samples=8, timeout=NEGATIVE_WAIT_S)
         if leaks:
             assert token_b in seen
             assert [p for _, p in replies] == [b"b-0", b"b-1", b"b-2"]
@@ -325,7 +335,8 @@ def test_robot_cannot_read_or_fake_another_sessions_cache(generated, tmp_path: P
             assert [p for _, p in read_cache(c["service"], token_b)] == [b"b-0", b"b-1", b"b-2"]
 
 
-def test_generator_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_generator_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
     make_acl = load_deploy_script("make_acl.py")
     bad = {
         "unknown field": 'services = ["s"]\nadmin = ["x"]\n[[session]]\nname = "a"\n',
@@ -333,6 +344,14 @@ def test_generator_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixtu
         "no service": '[[session]]\nname = "a"\n',
         "twice": 'services = ["s"]\n[[session]]\nname = "a"\n[[session]]\nname = "a"\n',
         "bad user": 'services = ["s"]\n[[session]]\nname = "a"\nrobot = "r/x"\n',
+        "not a session name": 'services = ["s"]\n[[session]]\nname = "Paper"\n',
+        "a name and a newline": 'services = ["s"]\n[[session]]\nname = "a\\n"\n',
+        "one router": 'services = ["s"]\n[mesh]\nzids = ["a1"]\nuser = "r"\n'
+                      'password = "p"\n[[session]]\nname = "a"\n',
+        "bad zid": 'services = ["s"]\n[mesh]\nzids = ["a1", "0b"]\nuser = "r"\n'
+                   'password = "p"\n[[session]]\nname = "a"\n',
+        "mesh without password": 'services = ["s"]\n[mesh]\nzids = ["a1", "b2"]\n'
+                                 'user = "r"\n[[session]]\nname = "a"\n',
     }
     for what, text in bad.items():
         path = tmp_path / "s.toml"
@@ -340,7 +359,16 @@ def test_generator_refuses_bad_input(tmp_path: Path, capsys: pytest.CaptureFixtu
         assert make_acl.main([str(path)]) == 2, what
     ok = tmp_path / "ok.toml"
     ok.write_text(SESSIONS_TOML, encoding="utf-8")
+    for bad_p in ("0", "4097", "x"):
+        assert make_acl.main([str(ok), "--partitions", bad_p]) == 2, bad_p
+        monkeypatch.setenv("PD_PARTITIONS", bad_p)
+        assert make_acl.main([str(ok)]) == 2, bad_p
+    monkeypatch.delenv("PD_PARTITIONS")
     capsys.readouterr()
+    assert make_acl.main([str(ok), "--partitions", "7"]) == 0
+    seven = capsys.readouterr().out
+    assert "PD_PARTITIONS=7" in seven
+    assert f'"pd/p{keys.partition_of("a", 7)}/a/cmd"' in seven
     assert make_acl.main([str(ok)]) == 0
     text = capsys.readouterr().out
     out = tmp_path / "router.json5"
