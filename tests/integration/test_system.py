@@ -50,7 +50,7 @@ class Watcher:
         self.errors: list[ErrorReport] = []
         self.truth: dict[int, np.ndarray] = {}
         self.last_packet = time.monotonic()
-        t.subscribe(keys.ALL_SENSORS.replace("*", SESSION, 1), self._meas)
+        t.subscribe(keys.sensors_of(SESSION), self._meas)
         t.subscribe(keys.command_key(SESSION), self._cmd)
         t.subscribe(keys.prediction_key(SESSION), self._pred)
         t.subscribe(keys.error_key(SESSION), self._err)
@@ -105,17 +105,17 @@ seed = 11
 step_ms = 50
 [[downlink]]
 name = "camera"
-match = "robot/*/sensor/camera"
+match = "robot/*/*/sensor/camera"
 delay = "10 steps"
 loss = "5%"
 [[downlink]]
 name = "ranger"
-match = "robot/*/sensor/ranger"
+match = "robot/*/*/sensor/ranger"
 delay = "12 steps"
 loss = "5%"
 [[uplink]]
 name = "commands"
-match = "pd/*/cmd"
+match = "pd/*/*/cmd"
 delay = "9 steps"     # one step of slack before the apply step (lead 10), as a deployment would
 """
 
@@ -125,7 +125,7 @@ seed = 5
 step_ms = 50
 [[downlink]]
 name = "sensors"
-match = "robot/*/sensor/*"
+match = "robot/*/*/sensor/*"
 delay = "10 steps"
 jitter = "60ms"
 distribution = "normal"
@@ -134,7 +134,7 @@ reorder = "10%"
 gap = 3
 [[uplink]]
 name = "commands"
-match = "pd/*/cmd"
+match = "pd/*/*/cmd"
 delay = "10 steps"
 """
 

@@ -184,7 +184,7 @@ def test_malformed_on_one_session_leaves_another_untouched(net, daemon_a):
     assert col.wait_for(lambda c: all_used(c.predictions["good"], good))
     check_against_offline(list(col.predictions["good"]), good)
     assert col.errors["good"] == []
-    n_bad = sum(1 for _, key, _ in bad if key.startswith("pd/bad/"))
+    n_bad = sum(1 for _, key, _ in bad if key.startswith(keys.session_prefix("bad") + "/"))
     deadline = time.monotonic() + 10
     while True:  # the bad session's inbox is drained in the same rounds; poll its status
         st = query_session_status(t, "bad")
