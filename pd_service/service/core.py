@@ -128,6 +128,7 @@ class ServiceCore:
         """
         t, s, d, q = self.t, self.settings, self.dispatch, self.queries
         event(log, "starting", instance=self.instance, shard=s.shard or "rendezvous",
+              partitions=self.ownership.partitions, key_layout=keys.KEY_LAYOUT,
               state_dir=str(self.store.dir) if self.store else "", hot_path=native.STATUS)
         self._handles.append(t.subscribe(keys.ALL_CONFIGS, d.on_config_sample))
         # an old client's (key layout 1) spec puts: refused (Lifecycle.apply_config)
