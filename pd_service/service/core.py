@@ -101,7 +101,8 @@ class ServiceCore:
                                    keeper=self.keeper)
         self.queries = Queries(settings, self.lock, self.counters, self.latency,
                                self.ownership, self.dispatch.routes, self.lifecycle.specs,
-                               now_ns, mono_ns, outbox=self.outbox, dispatch=self.dispatch)
+                               now_ns, mono_ns, refuse=self.outbox.refuse,
+                               received=self._received)
         #: The data subscriptions of the owned partitions; they follow the ownership.
         self.subs = DataSubscriptions(transport, self.dispatch.on_sensor_sample,
                                       self.dispatch.on_command_sample, self.wake.set,
@@ -225,6 +226,9 @@ class ServiceCore:
               published=self.counters["published"])
 
     # ================================================================== worker ========
+
+    def _received(self) -> int:
+        return self.dispatch.received
 
     def _follow_ownership(self) -> None:
         """Worker (or the start): subscribe to the data of the partitions owned now, and

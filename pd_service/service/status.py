@@ -13,7 +13,7 @@ import logging
 import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Protocol, cast
+from typing import Literal, Protocol, cast
 
 import numpy as np
 
@@ -29,9 +29,8 @@ from .latency import LatencyWindow, percentiles
 from .ownership import Ownership
 from .session import Refusal, Session
 
-if TYPE_CHECKING:
-    from .dispatch import Dispatch
-    from .outbox import Outbox
+#: ``Outbox.refuse``: the refusal funnel (counted, reported within the error limits).
+Refuse = Callable[..., "ErrorReport | None"]
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -114,8 +113,8 @@ class Queries:
                  latency: LatencyWindow, ownership: Ownership,
                  routes: Mapping[str, Routed],
                  specs: Mapping[str, SessionSpec], now_ns: Callable[[], int],
-                 mono_ns: Callable[[], int], *, outbox: Outbox | None = None,
-                 dispatch: Dispatch | None = None) -> None:
+                 mono_ns: Callable[[], int], *, refuse: Refuse | None = None,
+                 received: Callable[[], int] = lambda: 0) -> None:
         self.settings = settings
         self.instance = settings.instance
         self.lock = lock
@@ -128,9 +127,9 @@ class Queries:
         self.mono_ns = mono_ns
         self._started_mono = mono_ns()
         #: The refusal funnel (a layout-1 status query's refusal is rate-limited by it).
-        self.outbox = outbox
-        #: Its ``received`` count is the ``samples_received`` counter.
-        self.dispatch = dispatch
+        self.refuse = refuse
+        #: The data samples received so far (``samples_received``; read under the lock).
+        self.received = received
 
     # --- the daemon's API (any thread) ----------------------------------------------------
 
@@ -150,7 +149,7 @@ class Queries:
             c = {k: int(v) for k, v in self.counters.items() if v}
             known, members = len(self.specs), len(self.ownership.members)
             owned = len(self.ownership.owned_partitions())
-            received = self.dispatch.received if self.dispatch is not None else 0
+            received = self.received()
             latency = self.latency.values()
         c.setdefault("refused", 0)
         c["late_total"] = c.get("late", 0) + c.get("commands_late", 0)
@@ -212,20 +211,19 @@ class Queries:
     def on_legacy_status_query(self, q: Query) -> None:
         """A status query of key layout 1 (``pd/<session>/status``, an old client): its
         session's owner answers with an error reply saying where the keys are now, within
-        the error-report limits (:meth:`Outbox.refuse`); counted ``legacy_keys``. A wildcard
+        the error-report limits (``Outbox.refuse``); counted ``legacy_keys``. A wildcard
         query names no session: counted, not answered."""
         sel = q.key
         name = sel.split("/")[1] if keys.is_legacy_key(sel) else ""
         err: ErrorReport | None = None
         with self.lock:
-            if self.outbox is None:
+            if self.refuse is None:
                 return
             now = self.now_ns()
-            err = self.outbox.refuse(None, sel, Refusal("legacy_keys", keys.legacy_reason(sel)
-                                                        if name else ""), now, session=name,
-                                     counted=("legacy_keys",),
-                                     report=bool(name) and self.ownership.owns(name),
-                                     put=False)
+            why = keys.legacy_reason(sel) if name else ""
+            err = self.refuse(None, sel, Refusal("legacy_keys", why), now, session=name,
+                              counted=("legacy_keys",),
+                              report=bool(name) and self.ownership.owns(name), put=False)
         if err is not None:
             try:
                 q.reply_err(encode(err))
