@@ -236,6 +236,10 @@ def test_two_instances_split_sessions_and_take_over(own_net, tmp_path):
     b = Daemon("inst-y", tmp_path / "inst-y", [peer, a.endpoint], ["--peer", "inst-x"]).start()
     try:
         assert pres.wait("inst-y"), b.log()
+        # inst-x has seen inst-y too (the test may see its token first: a config put
+        # meanwhile would be answered by both, the first name's owner differing)
+        st = await_service_status(t, "inst-x", lambda st: st.counters["members"] == 2)
+        assert st is not None and st.counters["members"] == 2, a.log()
         epoch = time.time_ns()
         names = [f"split{i:02d}" for i in range(20)]
         for s in names:
