@@ -16,6 +16,9 @@ from collections.abc import Callable, Collection
 from pd_service.transport import Drain, Sample, Transport
 from pd_service.wire import keys
 
+#: Most samples taken from a subscription per call while emptying it before its close.
+_TAKE = 4096
+
 #: Key of the wildcard pair (every partition) in :attr:`DataSubscriptions.by_partition`.
 ALL = -1
 
@@ -49,12 +52,15 @@ class DataSubscriptions:
         Between the wildcard pair and per-partition pairs (one member <-> two) the old pair
         is closed before the new one is declared: a sample in between is lost (the
         estimator takes losses), where both at once would deliver it twice and the second
-        copy would be reported to its sender as a duplicate."""
+        copy would be reported to its sender as a duplicate. A closed subscription is
+        emptied first (what it holds goes to dispatch, as in a round). Worker thread only."""
         want = data_keyexprs(owned, self.partitions)
         have = self.by_partition
         gone = [k for k in have if k not in want]
         for k in gone:
             for dr in have.pop(k):
+                while dr.drain(_TAKE):  # what it holds still reaches dispatch
+                    pass
                 dr.close()
         new = [k for k in want if k not in have]
         t = self.t
