@@ -44,6 +44,7 @@ from .ownership import Ownership
 from .session import Session
 from .spec_store import SpecStore
 from .status import Queries
+from .subscriptions import DataSubscriptions, data_keyexprs
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -100,7 +101,13 @@ class ServiceCore:
                                    keeper=self.keeper)
         self.queries = Queries(settings, self.lock, self.counters, self.latency,
                                self.ownership, self.dispatch.routes, self.lifecycle.specs,
-                               now_ns, mono_ns)
+                               now_ns, mono_ns, refuse=self.outbox.refuse,
+                               received=self._received)
+        #: The data subscriptions of the owned partitions; they follow the ownership.
+        self.subs = DataSubscriptions(transport, self.dispatch.on_sensor_sample,
+                                      self.dispatch.on_command_sample, self.wake.set,
+                                      self.ownership.partitions)
+        self.lifecycle.follow = self._follow_ownership
         #: Every known session's route (the dispatch's table; read by tests).
         self._routes: dict[str, Route] = self.dispatch.routes
         self._next_expiry_ns = 0
@@ -122,8 +129,11 @@ class ServiceCore:
         """
         t, s, d, q = self.t, self.settings, self.dispatch, self.queries
         event(log, "starting", instance=self.instance, shard=s.shard or "rendezvous",
+              partitions=self.ownership.partitions, key_layout=keys.KEY_LAYOUT,
               state_dir=str(self.store.dir) if self.store else "", hot_path=native.STATUS)
         self._handles.append(t.subscribe(keys.ALL_CONFIGS, d.on_config_sample))
+        # an old client's (key layout 1) spec puts: refused (Lifecycle.apply_config)
+        self._handles.append(t.subscribe(keys.LEGACY_CONFIGS, d.on_config_sample))
         self._handles.append(t.subscribe(replicas_for(self.instance), self.keeper.on_replica))
         self._handles.append(t.queryable(replicas_for(self.instance),
                                          self.keeper.on_replica_query))
@@ -135,21 +145,22 @@ class ServiceCore:
         now = self.now_ns()
         with self.lock:
             self.lifecycle.install_loaded(specs, origin, now)
-        # Data arrives through drained queues: the worker takes samples in batches at the
-        # start of each loop (no GIL hand-off per sample while it is busy).
-        self._drains = [t.subscribe_drained(keys.ALL_SENSORS, d.on_sensor_sample, self.wake.set),
-                        t.subscribe_drained(keys.ALL_COMMANDS, d.on_command_sample,
-                                            self.wake.set)]
-        self._handles.extend(self._drains)
+        # Data arrives through drained queues, one pair per owned partition: the worker
+        # takes samples in batches at the start of each loop (no GIL hand-off per sample
+        # while it is busy).
+        self._follow_ownership()
         if s.recover_samples > 0:
-            # What the senders kept while no daemon received it (their caches). Read after
-            # the live subscriptions and handled before the worker runs, behind the live
-            # messages that arrived meanwhile (a message both received live and read back
-            # is refused as the recovered copy, quietly): the first prediction has it all.
-            for ke, cb in ((keys.ALL_SENSORS, d.on_read_back_sensor),
-                           (keys.ALL_COMMANDS, d.on_read_back_command)):
-                self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
-                                               timeout=s.recover_timeout_s))
+            # What the senders of the owned partitions kept while no daemon received it
+            # (their caches). Read after the live subscriptions and handled before the
+            # worker runs, behind the live messages that arrived meanwhile (a message both
+            # received live and read back is refused as the recovered copy, quietly): the
+            # first prediction has it all.
+            owned = self.ownership.owned_partitions()
+            for sensors, commands in data_keyexprs(owned, self.ownership.partitions).values():
+                for ke, cb in ((sensors, d.on_read_back_sensor),
+                               (commands, d.on_read_back_command)):
+                    self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
+                                                   timeout=s.recover_timeout_s))
         for dr in self._drains:  # the live messages that arrived meanwhile, first
             while dr.pending and dr.drain(_DRAIN_LIMIT):
                 pass
@@ -162,6 +173,7 @@ class ServiceCore:
                 self.outbox.flush()
         self._handles.append(t.queryable(keys.ALL_STATUS, q.on_status_query))
         self._handles.append(t.queryable(keys.ALL_CONFIGS, q.on_config_query))
+        self._handles.append(t.queryable(keys.LEGACY_STATUS, q.on_legacy_status_query))
         self._handles.append(t.queryable(keys.service_status_key(self.instance),
                                          q.on_service_query))
         self._handles.append(t.subscribe_liveliness(keys.ALL_SERVICES, d.on_liveliness,
@@ -206,12 +218,27 @@ class ServiceCore:
             except Exception:  # pragma: no cover - transport already gone
                 pass
         self._handles.clear()
+        self.subs.close()
+        self._drains = []
         with self.lock:
             served = sum(1 for r in self._routes.values() if r.sess is not None)
         event(log, "stopped", instance=self.instance, sessions_served=served,
               published=self.counters["published"])
 
     # ================================================================== worker ========
+
+    def _received(self) -> int:
+        return self.dispatch.received
+
+    def _follow_ownership(self) -> None:
+        """Worker (or the start): subscribe to the data of the partitions owned now, and
+        no other (:class:`DataSubscriptions`)."""
+        owned = self.ownership.owned_partitions()
+        declared, closed = self.subs.follow(owned)
+        self._drains = self.subs.drains
+        if declared or closed:
+            event(log, "subscriptions", instance=self.instance, partitions=len(owned),
+                  declared=declared, closed=closed)
 
     def has_work(self) -> bool:
         """Messages or control changes wait in the inboxes (not counting samples still in

@@ -4,10 +4,12 @@ Data path::
 
     transport thread(s)                         worker (one thread, under the core's lock)
     -------------------                         ------------------------------------------
-    pd/*/sensor/*  --\\                          control inbox: configs, presence  (all)
-    pd/*/cmd       ---+-> parse session (split)  unknown inbox: unknown sessions   (all)
-    pd/*/config    --/   append to an inbox,    ready sessions, round-robin: <= batch_budget
-                         wake the worker           messages each per round
+    pd/p<k>/*/sensor/*  --\\                     control inbox: configs, presence  (all)
+    pd/p<k>/*/cmd       ---+-> session (split)  unknown inbox: unknown sessions   (all)
+    pd/*/*/config       --/   append to an      ready sessions, round-robin: <= batch_budget
+                              inbox, wake         messages each per round
+
+(one sensors and one commands subscription per owned partition k, :mod:`.subscriptions`)
 
 Callbacks never block and never take the core's lock: they append ``(stream, key, payload,
 recv_mono_ns, kind)`` to a bounded deque (the oldest entry is dropped when full and counted
@@ -134,6 +136,9 @@ class Dispatch:
         self.read_back_drops = 0
         #: Read-backs finished off the worker for parked sessions: (sessions, messages).
         self.released: deque[tuple[list[str], list[tuple[int, Sample]]]] = deque()
+        #: Data samples (sensors and commands) taken from the subscriptions: what this
+        #: instance receives (``samples_received``). Written by the one thread that drains.
+        self.received = 0
 
     # ================================================================== callbacks ======
     # Transport threads. No lock, no decoding, no blocking: split the key, append, wake.
@@ -178,8 +183,8 @@ class Dispatch:
 
     def _offer_read_back(self, stream: int, sample: Sample, recv_now: int, now: int,
                          touched: list[Session]) -> None:
-        parts = sample.key.split("/", 2)
-        route = self.routes.get(parts[1]) if len(parts) == 3 else None
+        name = keys.session_of(sample.key)
+        route = self.routes.get(name) if name is not None else None
         sess = route.sess if route is not None else None
         if sess is None or route is None or route.inbox is None:
             # unknown, or served by another instance: nothing to do with it here
@@ -240,16 +245,17 @@ class Dispatch:
 
     def _enqueue(self, stream: int, sample: Sample) -> None:
         key = sample.key
-        parts = key.split("/", 2)
-        if len(parts) < 3:
+        self.received += 1
+        parts = key.split("/", 3)  # keys.session_of, inline: pd/p<k>/<session>/...
+        if len(parts) < 4:
             return
-        route = self.routes.get(parts[1])
+        route = self.routes.get(parts[2])
         item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind, self.now_ns())
         if route is None:
             q = self.unknown
             if len(q) == q.maxlen:
                 self.unknown_drops += 1
-            q.append((parts[1], item))
+            q.append((parts[2], item))
             self._notify()
             return
         inbox = route.inbox
@@ -406,7 +412,7 @@ class Dispatch:
         seen = route.flood
         dropped = seen - route.flood_seen
         route.flood_seen = seen
-        self.pub.refuse(sess, keys.ALL_SENSORS.replace("*", sess.name, 1), Refusal(
+        self.pub.refuse(sess, keys.sensors_of(sess.name), Refusal(
             "flood", f"inbox full: dropped {dropped} oldest unread message(s) "
             f"(more than {self.settings.inbox_size} waiting)"), now, count=dropped)
 

@@ -48,6 +48,25 @@ _MAX_CONFIG_BUCKETS = 10_000
 READ_BACKS_IN_FLIGHT = 32
 
 
+def config_session(key: str) -> str:
+    """The session chunk of a config key of either layout (``pd/p<k>/<s>/config``,
+    ``pd/<s>/config``) if it is a valid name, else ""."""
+    parts = key.split("/")
+    name = parts[2] if len(parts) == 4 else parts[1] if len(parts) == 3 else ""
+    try:
+        return check_name(name, "session")
+    except KeyError_:
+        return ""
+
+
+def is_partition_chunk(chunk: str) -> bool:
+    try:
+        keys.parse_partition(chunk)
+        return True
+    except KeyError_:
+        return False
+
+
 def spawn_thread(fn: Callable[[], None]) -> None:
     threading.Thread(target=fn, name="pd-service-sync", daemon=True).start()
 
@@ -86,6 +105,9 @@ class Lifecycle:
         #: The busy keys declared for each known session, with the spec they are of
         #: (:meth:`_declare_keys`).
         self._declared: dict[str, tuple[SessionSpec, Handle]] = {}
+        #: Called after an ownership change, before the sessions move: the data
+        #: subscriptions follow the owned partitions (set by the core).
+        self.follow: Callable[[], None] | None = None
 
     # ================================================================== start =========
 
@@ -208,7 +230,7 @@ class Lifecycle:
         """Take a token from the sender session's bucket and the service's; refuse
         (counted ``config_rate_limited``, reported within the error budget) if either is
         empty."""
-        session = sample.key.split("/")[1] if sample.key.count("/") == 2 else ""
+        session = config_session(sample.key)
         s = self.settings
         b = self._config_buckets.get(session)
         if b is None:
@@ -226,14 +248,20 @@ class Lifecycle:
         return False
 
     def apply_config(self, sample: Sample, now: int) -> None:
-        """A put (checked, then installed) or delete (removed) on ``pd/<session>/config``."""
-        parts = sample.key.split("/")
+        """A put (checked, then installed) or delete (removed) on ``pd/p<k>/<session>/config``;
+        one on a key of layout 1 (``pd/<session>/config``) or on another partition than the
+        session's (a client with another P) is refused with the reason."""
+        key = sample.key
+        if keys.is_legacy_key(key):
+            self._refuse_key(key, keys.legacy_reason(key), "legacy_keys", now)
+            return
         try:
-            if len(parts) != 3:
-                raise KeyError_(sample.key)
-            session = check_name(parts[1], "session")
-        except KeyError_:
-            self.counters["bad_key"] += 1
+            session = keys.parse_key(key).session
+        except KeyError_ as exc:
+            if config_session(key) and is_partition_chunk(key.split("/")[1]):
+                self._refuse_key(key, str(exc), "wrong_partition", now)
+            else:
+                self.counters["bad_key"] += 1
             return
         if sample.kind == "delete":
             self.remove(session, "removed", "config deleted", now, answer=True)
@@ -293,6 +321,16 @@ class Lifecycle:
             detail = f"{detail}; {failed}"
         self.install(session, "active", detail, now, answer=True, built=checked)
 
+    def _refuse_key(self, key: str, reason: str, counter: str, now: int) -> None:
+        """A config on a key this service does not take (layout 1, or another partition):
+        counted ``counter`` and reported by the session's owner on the error key beside the
+        sender's (``keys.error_key_beside``: where that client listens), within the limits."""
+        session = config_session(key)
+        event(log, "config_refused", session=session, reason=reason)
+        self.pub.refuse(None, key, Refusal(counter, reason), now, session=session,
+                        counted=(counter,), report=self.ownership.owns(session),
+                        to=keys.error_key_beside(key))
+
     def _sync_in_background(self) -> None:
         specs = self.fetch_peer_specs()
         if specs:
@@ -343,8 +381,9 @@ class Lifecycle:
         old = route.sess
         if old is not None:
             old.alive = False
-        self._declare_keys(session, self.specs.get(session))
-        if not self.ownership.owns(session):
+        owns = self.ownership.owns(session)
+        self._declare_keys(session, self.specs.get(session) if owns else None)
+        if not owns:
             self.ledger.release(session)
             self.refused.pop(session, None)
             route.sess, route.inbox = None, None
@@ -450,9 +489,9 @@ class Lifecycle:
         sensors, predictions and error reports, the keys of nearly every message it
         receives or sends (Transport.declare_keys: routed by cached routes; an overloaded
         daemon refusing late samples sends up to ``error_rate_total`` reports a second).
-        Every known session's, not only the served ones': an instance receives the samples
-        of all sessions (one wildcard) and drops those of the sessions others serve, and an
-        undeclared key costs Zenoh a comparison with every sibling key per message."""
+        Only the sessions served here: an instance receives the samples of its own
+        partitions only, and what it declares stays in the routers' tables (declarations
+        per instance grow with its share of the sessions, not with all of them)."""
         old = self._declared.get(session)
         if old is not None and old[0] is spec:
             return
@@ -511,7 +550,7 @@ class Lifecycle:
                     items.append((stream + READ_BACK, sample))
 
             key = keys.command_key(name) if stream == COMMAND \
-                else keys.ALL_SENSORS.replace("*", name, 1)
+                else keys.sensors_of(name)
             try:
                 if not self.closed:
                     self.t.recover(key, on, max_samples=s.recover_samples,
@@ -562,7 +601,11 @@ class Lifecycle:
         return not any(th.is_alive() for th in self._readers)
 
     def reassign(self, now: int) -> None:
-        """Membership changed: start the sessions we now own, stop those we no longer own."""
+        """Membership changed: subscribe to the data of the partitions gained and unsubscribe
+        from those lost (:attr:`follow`), start the sessions we now own, stop those we no
+        longer own."""
+        if self.follow is not None:
+            self.follow()
         members = ",".join(sorted(self.ownership.members))
         routes = self.dispatch.routes
         taken: list[str] = []

@@ -99,7 +99,7 @@ class Outbox:
 
     def refuse(self, sess: Session | None, key: str, r: Refusal, now: int, *,
                session: str = "", count: int = 1, counted: tuple[str, ...] | None = None,
-               report: bool = True) -> None:
+               report: bool = True, to: str = "", put: bool = True) -> ErrorReport | None:
         """The daemon's one way to refuse: count ``r`` and report it in an ErrorReport.
 
         Counted: ``count`` times each name of ``counted`` (default ``r.reason`` and
@@ -107,7 +107,9 @@ class Outbox:
         ``session`` names it) and service-wide. Reported (``report``: this instance owns the
         name) on the session's error key within the limits: its own bucket (``error_rate``,
         ``error_burst``; the names not served here share one), then the service's
-        (``error_rate_total``); over either, counted ``errors_suppressed`` instead."""
+        (``error_rate_total``); over either, counted ``errors_suppressed`` instead. ``to``:
+        report on this key instead of the session's error key; ``put`` False: not put but
+        returned, for the caller to send (a query's error reply). Returns the report made."""
         if counted is None:
             counted = (r.reason, "refused")
         for name in counted:
@@ -118,19 +120,21 @@ class Outbox:
             event(log, "refused", logging.DEBUG, session=session if sess is None else sess.name,
                   key=key, reason=r.reason, text=r.text)
         if not report:
-            return
+            return None
         limiter = self.unknown_limiter if sess is None else sess.limiter
         if limiter.allow(now) and self.total_limiter.allow(now):
-            err_key = keys.error_key(session) if sess is None else sess.error_key
+            err_key = to or (keys.error_key(session) if sess is None else sess.error_key)
             name = session if sess is None else sess.name
             rep = ErrorReport(session=name, key=key[:512], seq=r.seq, reason=r.text[:1024],
                               t_ns=now)
-            self.pending.append(Out(err_key, encode(rep)))
+            if put:
+                self.pending.append(Out(err_key, encode(rep)))
             self.counters["errors_sent"] += 1
-        else:
-            if sess is not None:
-                sess.counters["errors_suppressed"] += 1
-            self.counters["errors_suppressed"] += 1
+            return rep
+        if sess is not None:
+            sess.counters["errors_suppressed"] += 1
+        self.counters["errors_suppressed"] += 1
+        return None
 
     # --- status answers -------------------------------------------------------------------
 

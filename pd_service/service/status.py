@@ -27,7 +27,10 @@ from pd_service.wire.keys import KeyError_, check_name
 from .config import Settings
 from .latency import LatencyWindow, percentiles
 from .ownership import Ownership
-from .session import Session
+from .session import Refusal, Session
+
+#: ``Outbox.refuse``: the refusal funnel (counted, reported within the error limits).
+Refuse = Callable[..., "ErrorReport | None"]
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -110,7 +113,8 @@ class Queries:
                  latency: LatencyWindow, ownership: Ownership,
                  routes: Mapping[str, Routed],
                  specs: Mapping[str, SessionSpec], now_ns: Callable[[], int],
-                 mono_ns: Callable[[], int]) -> None:
+                 mono_ns: Callable[[], int], *, refuse: Refuse | None = None,
+                 received: Callable[[], int] = lambda: 0) -> None:
         self.settings = settings
         self.instance = settings.instance
         self.lock = lock
@@ -122,6 +126,10 @@ class Queries:
         self.now_ns = now_ns
         self.mono_ns = mono_ns
         self._started_mono = mono_ns()
+        #: The refusal funnel (a layout-1 status query's refusal is rate-limited by it).
+        self.refuse = refuse
+        #: The data samples received so far (``samples_received``; read under the lock).
+        self.received = received
 
     # --- the daemon's API (any thread) ----------------------------------------------------
 
@@ -140,17 +148,22 @@ class Queries:
             served = [n for n, r in self.routes.items() if r.sess is not None]
             c = {k: int(v) for k, v in self.counters.items() if v}
             known, members = len(self.specs), len(self.ownership.members)
+            owned = len(self.ownership.owned_partitions())
+            received = self.received()
             latency = self.latency.values()
         c.setdefault("refused", 0)
         c["late_total"] = c.get("late", 0) + c.get("commands_late", 0)
         c["sessions_served"] = len(served)
         c["sessions_known"] = known
         c["members"] = members
+        c["samples_received"] = received
         p50, p99 = percentiles(latency)
         return ServiceStatus(instance=self.instance, sessions=sorted(served), counters=c,
                              latency_p50_us=p50, latency_p99_us=p99,
                              uptime_s=(self.mono_ns() - self._started_mono) / 1e9,
-                             shard=self.settings.shard or "")
+                             shard=self.settings.shard or "",
+                             partitions=self.ownership.partitions, key_layout=keys.KEY_LAYOUT,
+                             owned_partitions=owned)
 
     def served_sessions(self) -> list[str]:
         with self.lock:
@@ -171,7 +184,7 @@ class Queries:
                 views = [current_snapshot(s) for s in sessions if intersects(sel, s.status_key)]
             else:
                 parts = sel.split("/")
-                name = parts[1] if len(parts) == 3 else ""
+                name = parts[2] if len(parts) == 4 else ""
                 route = self.routes.get(name)
                 if route is not None and route.sess is not None:
                     views = [current_snapshot(route.sess)]
@@ -194,6 +207,28 @@ class Queries:
                 q.reply_err(encode(err))
             except Exception as exc:
                 log.debug("status reply_err failed: %s", exc)
+
+    def on_legacy_status_query(self, q: Query) -> None:
+        """A status query of key layout 1 (``pd/<session>/status``, an old client): its
+        session's owner answers with an error reply saying where the keys are now, within
+        the error-report limits (``Outbox.refuse``); counted ``legacy_keys``. A wildcard
+        query names no session: counted, not answered."""
+        sel = q.key
+        name = sel.split("/")[1] if keys.is_legacy_key(sel) else ""
+        err: ErrorReport | None = None
+        with self.lock:
+            if self.refuse is None:
+                return
+            now = self.now_ns()
+            why = keys.legacy_reason(sel) if name else ""
+            err = self.refuse(None, sel, Refusal("legacy_keys", why), now, session=name,
+                              counted=("legacy_keys",),
+                              report=bool(name) and self.ownership.owns(name), put=False)
+        if err is not None:
+            try:
+                q.reply_err(encode(err))
+            except Exception as exc:
+                log.debug("legacy status reply_err failed: %s", exc)
 
     def on_service_query(self, q: Query) -> None:
         try:

@@ -237,6 +237,13 @@ def legacy_reason(key: str) -> str:
             f"(partition = FNV-1a-32(name) mod {partitions()}, protocol.md §3): upgrade the client")
 
 
+def error_key_beside(key: str) -> str:
+    """The error key next to a config or status key, whatever its layout or partition
+    (``pd/p<k>/<s>/config`` -> ``pd/p<k>/<s>/error``, ``pd/<s>/config`` -> ``pd/<s>/error``):
+    where the client that used ``key`` listens, when the daemon refuses the key itself."""
+    return f"{str(key).rsplit('/', 1)[0]}/error"
+
+
 # --- robot side ------------------------------------------------------------------------
 
 def robot_sensor_key(session: str, sensor: str) -> str:

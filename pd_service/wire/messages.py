@@ -715,6 +715,14 @@ class ServiceStatus(Message):
     uptime_s: NonNegFloat = Field(description="Seconds since the instance started.")
     shard: Annotated[str, StringConstraints(max_length=64)] = Field(
         "", description="Which share of the sessions this instance takes, e.g. '0/2'.")
+    partitions: Annotated[int, Field(ge=1, le=4096)] = Field(
+        1, description="The deployment's partition count P (PD_PARTITIONS) this instance "
+        "uses (absent: 1, an instance of key layout 1).")
+    key_layout: Annotated[int, Field(ge=1, le=255)] = Field(
+        1, description="The key layout this instance speaks, protocol.md section 2 (absent: "
+        "1).")
+    owned_partitions: NonNegInt = Field(0, description="How many of the P partitions this "
+                                        "instance owns now.")
 
 
 #: Every top-level message type, in protocol order.

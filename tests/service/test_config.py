@@ -9,7 +9,6 @@ import pytest
 from pd_service.errors import ConfigError
 from pd_service.service.__main__ import main, settings_from_args
 from pd_service.service.config import load_settings
-from pd_service.service.ownership import Ownership, rendezvous_owner, stable_hash
 from pd_service.transport.options import DAEMON, DEFAULT_ENDPOINT
 
 
@@ -85,16 +84,3 @@ def test_print_config_shows_the_zenoh_values_in_force(monkeypatch, capsys, tmp_p
     assert main(["--print-config", "--zenoh-config", str(f)]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert (shown["mode"], shown["listen"]) == (None, None)
-
-
-def test_rendezvous_is_stable_and_moves_only_the_leavers_sessions():
-    assert stable_hash("abc") == stable_hash("abc")
-    insts = ["a", "b", "c"]
-    names = [f"s{i}" for i in range(300)]
-    before = {s: rendezvous_owner(s, insts) for s in names}
-    counts = {i: list(before.values()).count(i) for i in insts}
-    assert all(60 <= c <= 140 for c in counts.values())
-    after = {s: rendezvous_owner(s, ["a", "c"]) for s in names}
-    assert all(after[s] == before[s] for s in names if before[s] != "b")
-    o = Ownership("a")
-    assert o.join("b") and not o.join("b") and not o.leave("a") and o.leave("b")

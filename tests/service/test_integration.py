@@ -184,7 +184,7 @@ def test_malformed_on_one_session_leaves_another_untouched(net, daemon_a):
     assert col.wait_for(lambda c: all_used(c.predictions["good"], good))
     check_against_offline(list(col.predictions["good"]), good)
     assert col.errors["good"] == []
-    n_bad = sum(1 for _, key, _ in bad if key.startswith("pd/bad/"))
+    n_bad = sum(1 for _, key, _ in bad if key.startswith(keys.session_prefix("bad") + "/"))
     deadline = time.monotonic() + 10
     while True:  # the bad session's inbox is drained in the same rounds; poll its status
         st = query_session_status(t, "bad")
@@ -236,6 +236,10 @@ def test_two_instances_split_sessions_and_take_over(own_net, tmp_path):
     b = Daemon("inst-y", tmp_path / "inst-y", [peer, a.endpoint], ["--peer", "inst-x"]).start()
     try:
         assert pres.wait("inst-y"), b.log()
+        # inst-x has seen inst-y too (the test may see its token first: a config put
+        # meanwhile would be answered by both, the first name's owner differing)
+        st = await_service_status(t, "inst-x", lambda st: st.counters["members"] == 2)
+        assert st is not None and st.counters["members"] == 2, a.log()
         epoch = time.time_ns()
         names = [f"split{i:02d}" for i in range(20)]
         for s in names:

@@ -661,7 +661,7 @@ class SlowReadBack:
         return getattr(self._t, name)
 
     def recover(self, keyexpr, callback, **kw):
-        if keyexpr.split("/")[1] == self.session:
+        if keys.session_of(keyexpr) == self.session:
             assert self.gate.wait(10)
         return self._t.recover(keyexpr, callback, **kw)
 
