@@ -139,6 +139,8 @@ class Settings(BaseSettings):
     error_burst: int = Field(20, ge=1, description="ErrorReport burst per session.")
     error_rate_total: float = Field(500.0, gt=0, description="ErrorReports per second, all "
                                     "sessions together (overload must not feed itself).")
+    latency_window: int = Field(4096, ge=16, description="Latency samples kept service-wide for "
+                                "the status' p50 / p99 (a benchmark sizes it to its interval).")
     sync_timeout_s: float = Field(1.0, gt=0, description="Wait for peers' specs at startup.")
 
     # restart and takeover (see pd_service.service.handover.keeper)
