@@ -98,3 +98,13 @@ def test_rendezvous_is_stable_and_moves_only_the_leavers_sessions():
     assert all(after[s] == before[s] for s in names if before[s] != "b")
     o = Ownership("a")
     assert o.join("b") and not o.join("b") and not o.leave("a") and o.leave("b")
+
+
+def test_unknown_environment_setting_is_refused_by_name():
+    # a misspelt or retired PD_SERVICE_ variable is refused, never silently ignored
+    with pytest.raises(ConfigError, match="unknown setting 'PD_SERVICE_LATENCY_WINDW'"):
+        load_settings(environ={"PD_SERVICE_LATENCY_WINDW": "100"})
+    # the prefix's non-settings (config file, pure switch, profile) are not settings
+    s = load_settings(environ={"PD_SERVICE_PURE": "1", "PD_SERVICE_PROFILE": "/tmp/x.prof",
+                               "PD_SERVICE_LATENCY_WINDOW": "100"})
+    assert s.latency_window == 100
