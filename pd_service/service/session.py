@@ -97,7 +97,7 @@ class Session:
     def __init__(self, spec: SessionSpec, built: Built, state: str, detail: str, now_ns: int,
                  error_rate: float, error_burst: int, max_abs: float = 1e12) -> None:
         """``built``: ``spec``'s estimator, command dimension and cost
-        (:meth:`pd_service.backends.Blueprint.build`)."""
+        (:func:`pd_service.backends.build`)."""
         self.spec = spec
         self.name = spec.session
         #: The spec's clock (ns) and publish_every as plain attributes: read several times
