@@ -21,7 +21,7 @@ from .estimator import Estimator
 from .model import LinearModel, Sensor
 from .observer import ObserverPredictor
 from .replay import COUNTER_NAMES, Backend, Packet, PredictedState, ReplayEstimator
-from .state import STATE_VERSION, EstimatorState, StateError
+from .estimator_state import STATE_VERSION, EstimatorState, StateError
 
 __all__ = [
     "Backend",

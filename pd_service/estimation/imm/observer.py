@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..replay import Packet, ReplayEstimator
-from ..state import StateError, check_names, take
+from ..estimator_state import StateError, check_names, take
 from .filter import ImmFilter, ImmState
 
 

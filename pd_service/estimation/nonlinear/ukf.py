@@ -28,7 +28,7 @@ import numpy as np
 
 from ..checks import as_covariance, as_vector
 from ..replay import Packet, ReplayEstimator
-from ..state import EstimatorState, StateError
+from ..estimator_state import EstimatorState, StateError
 from .adaptive import Adapter
 from .registry import NonlinearModel, wrap_angle
 from .sigma import SigmaWeights

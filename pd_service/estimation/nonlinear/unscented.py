@@ -36,7 +36,7 @@ import numpy as np
 
 from ..linear import block_diag
 from ..replay import Packet
-from ..state import check_names, take
+from ..estimator_state import check_names, take
 from .registry import MeasurementModel, NonlinearModel, wrap_angle
 from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
 
