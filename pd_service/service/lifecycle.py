@@ -514,8 +514,8 @@ class Lifecycle:
                 else keys.ALL_SENSORS.replace("*", name, 1)
             try:
                 if not self.closed:
-                    self.t.recover(key, on, max_samples=s.recover_samples,
-                                   timeout=s.recover_timeout_s).close()
+                    self.t.read_back(key, on, max_samples=s.recover_samples,
+                                     timeout=s.recover_timeout_s).close()
             except Exception as exc:  # the transport is closing, say
                 failed.append(f"{key}: {exc}")
             with lock:

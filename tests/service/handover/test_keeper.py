@@ -660,10 +660,10 @@ class SlowReadBack:
     def __getattr__(self, name):
         return getattr(self._t, name)
 
-    def recover(self, keyexpr, callback, **kw):
+    def read_back(self, keyexpr, callback, **kw):
         if keyexpr.split("/")[1] == self.session:
             assert self.gate.wait(10)
-        return self._t.recover(keyexpr, callback, **kw)
+        return self._t.read_back(keyexpr, callback, **kw)
 
 
 def test_a_slow_read_back_holds_only_its_own_session(tmp_path):
