@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..replay import Packet, ReplayEstimator
 from ..estimator_state import StateError, check_names, take
+from ..replay import Packet, ReplayEstimator
 from .filter import ImmFilter, ImmState
 
 
