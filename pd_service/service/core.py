@@ -148,8 +148,8 @@ class ServiceCore:
             # is refused as the recovered copy, quietly): the first prediction has it all.
             for ke, cb in ((keys.ALL_SENSORS, d.on_read_back_sensor),
                            (keys.ALL_COMMANDS, d.on_read_back_command)):
-                self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
-                                               timeout=s.recover_timeout_s))
+                self._handles.append(t.read_back(ke, cb, max_samples=s.recover_samples,
+                                                 timeout=s.recover_timeout_s))
         for dr in self._drains:  # the live messages that arrived meanwhile, first
             while dr.pending and dr.drain(_DRAIN_LIMIT):
                 pass
