@@ -552,7 +552,7 @@ class Lifecycle:
               seconds=f"{time.monotonic() - t0:.3f}")
 
     def join_background(self, timeout: float) -> bool:
-        """At a stop (``closed`` set, the transport closed): wait up to ``timeout`` s for the
+        """At a stop (``closed`` set, before the transport closes): wait up to ``timeout`` s for the
         read-back threads still inside a transport call; a process that exits under them
         can crash in Zenoh's native code. True if none is left."""
         deadline = time.monotonic() + timeout
