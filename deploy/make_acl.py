@@ -14,10 +14,10 @@ the generated file's header.  Below, ``<s>`` stands for ``p<k>/<s>``.
 
 The input (TOML; every list of users may name several users, a user may have several roles)::
 
-    admins = ["admin"]        # create, replace, delete ANY session: pd/<s>/config
+    admins = ["admin"]        # create, replace, delete ANY session: pd/p<k>/<s>/config
     link_admins = ["admin"]   # read and replace pd-link's rules: pd/@link/<i>/rules
     services = ["service"]    # the pd-service daemon instances (pd/@service/** is theirs only)
-    links = ["link"]          # the link emulator (bridges robot/<s>/... <-> pd/<s>/...)
+    links = ["link"]          # the link emulator (bridges robot/p<k>/<s>/... <-> pd/p<k>/<s>/...)
     displays = ["display"]    # read-only: predictions, errors, statuses, specs, truth, stats
     users_file = "/etc/zenoh/users.txt"   # optional (router's path of the user:password list)
     listen = ["tcp/[::]:7447"]            # optional
@@ -38,7 +38,7 @@ The input (TOML; every list of users may name several users, a user may have sev
 
 Sender caches (zenoh-ext advanced publishers: a queryable and a liveliness token on
 ``<key>/@adv/pub/**``): a direct robot and an operator may serve them on their sessions'
-``pd/<s>/sensor/*`` and ``pd/<s>/cmd``, links on every session's; only services may query them
+``pd/p<k>/<s>/sensor/*`` and ``pd/p<k>/<s>/cmd``, links on every session's; only services may query them
 and watch their tokens (deploy/README.md, "Sender caches").
 
 Key layout 1 (``pd/<s>/config``, ``pd/<s>/status``, ``pd/<s>/error``: clients before

@@ -1,12 +1,12 @@
 """SessionSpec -> (estimator, command dimension, cost): the one place a spec becomes an
 estimator, in one trip.
 
-:class:`Blueprint` reads a spec once: it builds the nonlinear model (the first IMM mode) that
-gives the command dimension ``nu``, and prices the session (:func:`spec_cost`) without
-allocating anything in proportion to it, so the daemon can check the cost against its budgets
-first; :meth:`Blueprint.build` then builds the estimator on the model already built and
-returns a :class:`Built` (estimator, nu, cost) that the session, its intake and the admission
-ledger take as they are. :func:`build` is both steps at once (tools, tests).
+:func:`build` reads a spec once, in one call: it builds the nonlinear model (the first IMM
+mode) that gives the command dimension ``nu``, prices the session (:func:`spec_cost`) and hands
+the cost to the caller's ``admit`` (the daemon's budget check) before allocating anything in
+proportion to it, then builds the estimator on the model already built and returns a
+:class:`Built` (estimator, nu, cost) that the session, its intake and the admission ledger
+take as they are. :func:`command_dim` is the first step alone (a client's ``nu``).
 
 - "linear": :class:`~pd_service.estimation.ObserverPredictor` (LinearModel, [Sensor], x0,
   P0, lead, max_delay, command_hold); nu = the columns of B;
@@ -58,7 +58,7 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,7 +77,7 @@ from pd_service.wire import (
 )
 from pd_service.wire.messages import ModeSpec
 
-__all__ = ["Blueprint", "Built", "Cost", "build", "estimator_refusal", "imm_sensor",
+__all__ = ["Built", "Cost", "build", "command_dim", "estimator_refusal", "imm_sensor",
            "spec_cost"]
 
 SESSION_FIXED_BYTES = 32 * 1024
@@ -124,7 +124,7 @@ class Cost:
 
 def spec_cost(spec: SessionSpec, nu: int) -> Cost:
     """The cost model of the module docstring for ``spec`` with ``nu`` inputs (the
-    :attr:`Blueprint.nu`). Allocates nothing in proportion to the spec."""
+    :func:`command_dim`). Allocates nothing in proportion to the spec."""
     model = spec.model
     n = spec.n
     W = spec.max_delay + 1
@@ -194,99 +194,101 @@ class Built:
     cost: Cost
 
 
-class Blueprint:
-    """A spec read once: ``nu`` and ``cost`` known, the estimator not yet built.
+def command_dim(spec: SessionSpec) -> int:
+    """The spec's command dimension ``nu`` (0: it takes no commands), as :func:`build` finds
+    it: linear, the columns of B; nonlinear, the registered model's (IMM: the first mode's).
 
-    WireError "SessionSpec.model: refused by the estimator: ..." if the model that gives nu
-    (unscented: the registered model; IMM: the first mode) cannot be built.
+    WireError "SessionSpec.model: refused by the estimator: ..." if that model cannot be built.
     """
-
-    def __init__(self, spec: SessionSpec) -> None:
-        self.spec = spec
-        model = spec.model
-        #: the nonlinear model built for nu, reused by :meth:`build` (None: linear)
-        self._model: NonlinearModel | None = None
-        try:
-            if isinstance(model, LinearModelSpec):
-                nu = model.r
-            elif isinstance(model, UnscentedModelSpec):
-                self._model = make_model(model.model, **_params(model.params))
-                nu = int(self._model.nu)
-            else:
-                self._model = make_mode(_mode_map(model.modes[0]))
-                nu = int(self._model.nu)
-        except Exception as exc:  # ValueError, or a registered model's own code failing
-            raise estimator_refusal(exc) from None
-        self.nu: int = nu
-        self.cost: Cost = spec_cost(spec, nu)
-
-    def build(self) -> Built:
-        """The session's estimator, by ``spec.model.kind`` (see the module docstring).
-
-        WireError "SessionSpec.<field>: refused by the estimator: ..." if the estimator's
-        constructor refuses the spec.
-        """
-        spec, model = self.spec, self.spec.model
-        try:
-            if isinstance(model, LinearModelSpec):
-                est: Estimator = ObserverPredictor(
-                    LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
-                    [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R))
-                     for s in spec.sensors],
-                    np.array(spec.x0), np.array(spec.P0), spec.lead, spec.max_delay,
-                    spec.command_hold,
-                )
-            elif isinstance(model, UnscentedModelSpec):
-                est = self._unscented(model)
-            elif isinstance(model, ImmModelSpec):
-                est = self._imm(model)
-            else:  # a model kind the wire accepts but no backend builds: a programming error
-                raise TypeError(f"no backend for model kind {model.kind!r}")
-        except WireError:
-            raise
-        except Exception as exc:  # ValueError, or a registered model's own code failing
-            raise estimator_refusal(exc) from None
-        if est.n != spec.n:  # the constructors check x0 against the model; kept as a guard
-            raise WireError(f"SessionSpec.x0: refused by the estimator: the model has "
-                            f"n={est.n} states, x0 has {spec.n}")
-        return Built(est, self.nu, self.cost)
-
-    def _unscented(self, model: UnscentedModelSpec) -> Estimator:
-        spec = self.spec
-        assert self._model is not None  # built in __init__
-        adapt = None
-        if model.adapt is not None:
-            adapt = {k: v for k, v in model.adapt.model_dump().items() if v is not None}
-        sigma = None if model.sigma is None else model.sigma.model_dump()
-        return make_unscented(
-            self._model, None,
-            x0=np.array(spec.x0), P0=np.array(spec.P0),
-            lead=spec.lead, max_delay=spec.max_delay, command_hold=spec.command_hold,
-            adapt=adapt, sigma=sigma,
-            sensors=[s.name for s in spec.sensors],
-            sensor_R={s.name: np.array(s.R) for s in spec.sensors},
-        )
-
-    def _imm(self, model: ImmModelSpec) -> Estimator:
-        spec = self.spec
-        assert self._model is not None  # the first mode, built in __init__
-        modes: list[NonlinearModel | Mapping[str, object]] = [
-            self._model, *(_mode_map(m) for m in model.modes[1:])]
-        return make_imm(
-            modes=modes,
-            transition=np.array(model.transition),
-            sensors=[imm_sensor(s) for s in spec.sensors],
-            variant=model.variant,
-            x0=np.array(spec.x0), P0=np.array(spec.P0),
-            lead=spec.lead, max_delay=spec.max_delay,
-            mu0=None if model.mu0 is None else np.array(model.mu0),
-            node=model.node, kappa=model.kappa, command_hold=spec.command_hold,
-        )
+    return _nu_model(spec)[0]
 
 
-def build(spec: SessionSpec) -> Built:
-    """``Blueprint(spec).build()``: the spec's estimator, nu and cost, no budget checked."""
-    return Blueprint(spec).build()
+def _nu_model(spec: SessionSpec) -> tuple[int, NonlinearModel | None]:
+    """``nu`` and the nonlinear model built to find it (None: linear), kept for the build."""
+    model = spec.model
+    try:
+        if isinstance(model, LinearModelSpec):
+            return model.r, None
+        if isinstance(model, UnscentedModelSpec):
+            built = make_model(model.model, **_params(model.params))
+        else:
+            built = make_mode(_mode_map(model.modes[0]))
+        return int(built.nu), built
+    except Exception as exc:  # ValueError, or a registered model's own code failing
+        raise estimator_refusal(exc) from None
+
+
+def build(spec: SessionSpec, admit: Callable[[Cost], None] | None = None) -> Built:
+    """The spec's estimator, nu and cost, by ``spec.model.kind`` (see the module docstring).
+
+    ``admit(cost)`` is called once the spec is priced and before anything is allocated in
+    proportion to it (the daemon's budget check: whatever it raises, e.g. ``OverBudget``,
+    leaves here with nothing built); None: no budget.
+
+    WireError "SessionSpec.<field>: refused by the estimator: ..." if the model or the
+    estimator's constructor refuses the spec.
+    """
+    nu, first = _nu_model(spec)
+    cost = spec_cost(spec, nu)
+    if admit is not None:
+        admit(cost)
+    model = spec.model
+    try:
+        if isinstance(model, LinearModelSpec):
+            est: Estimator = ObserverPredictor(
+                LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
+                [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R))
+                 for s in spec.sensors],
+                np.array(spec.x0), np.array(spec.P0), spec.lead, spec.max_delay,
+                spec.command_hold,
+            )
+        elif isinstance(model, UnscentedModelSpec):
+            assert first is not None  # built by _nu_model
+            est = _unscented(spec, model, first)
+        elif isinstance(model, ImmModelSpec):
+            assert first is not None  # the first mode, built by _nu_model
+            est = _imm(spec, model, first)
+        else:  # a model kind the wire accepts but no backend builds: a programming error
+            raise TypeError(f"no backend for model kind {model.kind!r}")
+    except WireError:
+        raise
+    except Exception as exc:  # ValueError, or a registered model's own code failing
+        raise estimator_refusal(exc) from None
+    if est.n != spec.n:  # the constructors check x0 against the model; kept as a guard
+        raise WireError(f"SessionSpec.x0: refused by the estimator: the model has "
+                        f"n={est.n} states, x0 has {spec.n}")
+    return Built(est, nu, cost)
+
+
+def _unscented(spec: SessionSpec, model: UnscentedModelSpec,
+               built: NonlinearModel) -> Estimator:
+    adapt = None
+    if model.adapt is not None:
+        adapt = {k: v for k, v in model.adapt.model_dump().items() if v is not None}
+    sigma = None if model.sigma is None else model.sigma.model_dump()
+    return make_unscented(
+        built, None,
+        x0=np.array(spec.x0), P0=np.array(spec.P0),
+        lead=spec.lead, max_delay=spec.max_delay, command_hold=spec.command_hold,
+        adapt=adapt, sigma=sigma,
+        sensors=[s.name for s in spec.sensors],
+        sensor_R={s.name: np.array(s.R) for s in spec.sensors},
+    )
+
+
+def _imm(spec: SessionSpec, model: ImmModelSpec, first: NonlinearModel) -> Estimator:
+    modes: list[NonlinearModel | Mapping[str, object]] = [
+        first, *(_mode_map(m) for m in model.modes[1:])]
+    return make_imm(
+        modes=modes,
+        transition=np.array(model.transition),
+        sensors=[imm_sensor(s) for s in spec.sensors],
+        variant=model.variant,
+        x0=np.array(spec.x0), P0=np.array(spec.P0),
+        lead=spec.lead, max_delay=spec.max_delay,
+        mu0=None if model.mu0 is None else np.array(model.mu0),
+        node=model.node, kappa=model.kappa, command_hold=spec.command_hold,
+    )
 
 
 def imm_sensor(sensor: SensorSpec) -> dict[str, Any]:

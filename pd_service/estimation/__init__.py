@@ -18,10 +18,10 @@ estimators are in :mod:`pd_service.research`, outside the daemon's path.
 """
 
 from .estimator import Estimator
+from .estimator_state import STATE_VERSION, EstimatorState, StateError
 from .model import LinearModel, Sensor
 from .observer import ObserverPredictor
 from .replay import COUNTER_NAMES, Backend, Packet, PredictedState, ReplayEstimator
-from .state import STATE_VERSION, EstimatorState, StateError
 
 __all__ = [
     "Backend",

@@ -34,9 +34,9 @@ from mypy_extensions import mypyc_attr
 
 from pd_service.native import kernel, kernel_function
 
+from .estimator_state import check_names, take
 from .model import LinearModel, Sensor
 from .replay import Packet
-from .state import check_names, take
 
 #: The C form of :meth:`LinearBackend.advance`'s step (pd_service/estimation/_kalman.c), None
 #: where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale

@@ -63,8 +63,8 @@ from mypy_extensions import mypyc_attr
 from pd_service.native import kernel_function
 
 from .checks import as_covariance, as_step, as_vector
+from .estimator_state import STATE_VERSION, EstimatorState, PacketRecord, StateError
 from .inputs import InputBuffer
-from .state import STATE_VERSION, EstimatorState, PacketRecord, StateError
 from .tally import Tally
 
 S = TypeVar("S")

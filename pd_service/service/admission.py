@@ -1,8 +1,9 @@
 """Admission control: the budgets a session's cost must fit.
 
 A spec's cost (:class:`~pd_service.backends.Cost`, bytes and µs per step) is computed from
-its spec before anything is allocated, by :class:`pd_service.backends.Blueprint` (the cost
-model: :func:`pd_service.backends.spec_cost`).
+its spec before anything is allocated, by :func:`pd_service.backends.build`, which hands it
+to the caller's ``admit`` (the daemon passes :meth:`Ledger.check` or :meth:`Ledger.admit`)
+before it builds the estimator (the cost model: :func:`pd_service.backends.spec_cost`).
 
 Budgets (:class:`~pd_service.service.config.Settings`): one spec may use at most
 ``max_session_bytes`` and ``max_session_cpu`` (fraction of a core = cpu / period); all the

@@ -47,6 +47,9 @@ from pd_service.transport.options import DEFAULT_ENDPOINT, ZenohOptions
 from pd_service.wire.keys import NAME_PATTERN
 
 ENV_PREFIX = "PD_SERVICE_"
+#: Variables with the prefix that are not settings: the config file's path, the switch to the
+#: .py files (pd_service.native) and the worker's profile (daemon.py).
+NOT_SETTINGS_ENV = frozenset({"PD_SERVICE_CONFIG", "PD_SERVICE_PURE", "PD_SERVICE_PROFILE"})
 _SHARD_RE = re.compile(r"^(\d+)/(\d+)$")
 
 
@@ -139,6 +142,8 @@ class Settings(BaseSettings):
     error_burst: int = Field(20, ge=1, description="ErrorReport burst per session.")
     error_rate_total: float = Field(500.0, gt=0, description="ErrorReports per second, all "
                                     "sessions together (overload must not feed itself).")
+    latency_window: int = Field(4096, ge=16, description="Latency samples kept service-wide for "
+                                "the status' p50 / p99 (a benchmark sizes it to its interval).")
     sync_timeout_s: float = Field(1.0, gt=0, description="Wait for peers' specs at startup.")
 
     # restart and takeover (see pd_service.service.handover.keeper)
@@ -340,6 +345,12 @@ def load_settings(
     command line (None values are ignored). The file is ``config_file``, else
     ``$PD_SERVICE_CONFIG``, else none."""
     environ = os.environ if environ is None else environ
+    unknown = sorted(k for k in environ if k.upper().startswith(ENV_PREFIX)
+                     and k.upper()[len(ENV_PREFIX):].lower() not in Settings.model_fields
+                     and k.upper() not in NOT_SETTINGS_ENV)
+    if unknown:  # a misspelt or retired variable would otherwise be ignored silently
+        raise ConfigError(f"environment: unknown setting {unknown[0]!r} (settings: "
+                          "docs/service.md, 'Settings')")
     given = {k: v for k, v in (flags or {}).items() if v is not None}
     path = config_file or environ.get(ENV_PREFIX + "CONFIG")
     layers = _Layers(environ, Path(path) if path else None)

@@ -37,7 +37,7 @@ from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 from .config import Settings
 from .dispatch import ROUND_SESSIONS, Dispatch, Route
 from .handover.keeper import HandoverKeeper, replicas_for
-from .latency import SERVICE_LATENCY_WINDOW, LatencyWindow
+from .latency import LatencyWindow
 from .lifecycle import Lifecycle, spawn_thread
 from .outbox import Outbox
 from .ownership import Ownership
@@ -88,7 +88,7 @@ class ServiceCore:
         self.wake = threading.Event()
         self.ownership = Ownership(self.instance, settings.shard_tuple)
         self.counters = Tally()
-        self.latency = LatencyWindow(SERVICE_LATENCY_WINDOW)
+        self.latency = LatencyWindow(settings.latency_window)
         self.outbox = Outbox(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())
         self.dispatch = Dispatch(settings, self.counters, self.outbox, self.ownership,
@@ -159,8 +159,8 @@ class ServiceCore:
             for sensors, commands in data_keyexprs(owned, self.ownership.partitions).values():
                 for ke, cb in ((sensors, d.on_read_back_sensor),
                                (commands, d.on_read_back_command)):
-                    self._handles.append(t.recover(ke, cb, max_samples=s.recover_samples,
-                                                   timeout=s.recover_timeout_s))
+                    self._handles.append(t.read_back(ke, cb, max_samples=s.recover_samples,
+                                                     timeout=s.recover_timeout_s))
         for dr in self._drains:  # the live messages that arrived meanwhile, first
             while dr.pending and dr.drain(_DRAIN_LIMIT):
                 pass

@@ -140,15 +140,16 @@ class Daemon:
             self._worker.join(timeout=10.0)
         if self.core is not None:
             self.core.close()
+            # read-backs still inside a Zenoh query end (answered, or their timeout) before
+            # the session closes: closing it under them can abort the process in native code
+            s = self.core.settings
+            if not self.core.lifecycle.join_background(2 * s.recover_timeout_s + 1.0):
+                log.warning("takeover read-backs still running at exit")
         if self.transport is not None and self._given_transport is None:
             try:
                 self.transport.close()
             except Exception:  # pragma: no cover
                 log.exception("transport close failed")
-        if self.core is not None:
-            s = self.core.settings
-            if not self.core.lifecycle.join_background(2 * s.recover_timeout_s + 1.0):
-                log.warning("takeover read-backs still running at exit")
 
     def run_forever(self) -> int:
         """Start, serve until SIGTERM / SIGINT, stop cleanly. Returns the exit status."""

@@ -78,7 +78,7 @@ class Route:
 
 @dataclass(frozen=True, slots=True)
 class ConfigChange:
-    """A put or delete on ``pd/<session>/config``."""
+    """A put or delete on ``pd/p<k>/<session>/config``."""
 
     sample: Sample
 
@@ -150,7 +150,7 @@ class Dispatch:
         self._enqueue(COMMAND, sample)
 
     def on_read_back_sensor(self, sample: Sample) -> None:
-        """A measurement read back from a sender's cache (``Transport.recover``)."""
+        """A measurement read back from a sender's cache (``Transport.read_back``)."""
         self._read_back(SENSOR + READ_BACK, sample)
 
     def on_read_back_command(self, sample: Sample) -> None:

@@ -8,9 +8,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-#: Latencies kept service-wide for the status' p50 / p99 (a session keeps its own, fewer).
-SERVICE_LATENCY_WINDOW = 4096
-
 
 def percentiles(values: Sequence[float] | np.ndarray) -> tuple[float, float]:
     """(p50, p99) of ``values`` (µs), clipped at 0; (0, 0) when empty.

@@ -16,8 +16,9 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from functools import partial
 
-from pd_service.backends import Blueprint
+from pd_service.backends import Cost, build
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
@@ -281,16 +282,15 @@ class Lifecycle:
                 raise WireError(f"SessionSpec.session: this service already holds "
                                 f"{self.settings.max_sessions} sessions (max_sessions)")
             if self.ownership.owns(session):
-                # Its cost against the budgets first (nothing allocated yet), then let the
-                # estimator check the spec before anything changes.
-                blueprint = Blueprint(spec)
+                # build checks the cost against the budgets before it allocates anything,
+                # then the estimator checks the spec, before anything here changes.
                 try:
-                    self.ledger.check(session, blueprint.cost)
+                    built = build(spec, admit=partial(self.ledger.check, session))
                 except OverBudget as ref:
                     self.counters["admission_refused"] += 1
                     raise WireError(ref.reason) from None
                 st = self.settings
-                checked = Session(spec, blueprint.build(), "active", "", now, st.error_rate,
+                checked = Session(spec, built, "active", "", now, st.error_rate,
                                   st.error_burst, st.max_abs_input)  # installed below: built once
         except WireError as exc:
             event(log, "config_refused", session=session, reason=exc.reason)
@@ -393,16 +393,31 @@ class Lifecycle:
                       owner=self.ownership.owner(session) or "")
             return
         spec = self.specs[session]
-        blueprint: Blueprint | None = None
+        admitted = False  # a refusal before the ledger took the cost, or a failure after
+
+        def admit(cost: Cost) -> None:
+            nonlocal admitted
+            self.ledger.admit(session, cost)
+            admitted = True
+
         try:
             if built is not None and built.spec is spec:
-                cost = built.cost
+                admit(built.cost)
+                sess = built
+                sess.state, sess.detail = state, detail
             else:
-                built, blueprint = None, Blueprint(spec)
-                cost = blueprint.cost
-            self.ledger.admit(session, cost)
-        except (OverBudget, WireError) as exc:  # e.g. a persisted spec over today's budget
+                st = self.settings
+                sess = Session(spec, build(spec, admit), state, detail, now, st.error_rate,
+                               st.error_burst, st.max_abs_input)
+        except (OverBudget, WireError) as exc:
             self.ledger.release(session)
+            if admitted:  # a persisted or synced spec the estimator refuses
+                route.sess, route.inbox = None, None
+                routes[session] = route
+                event(log, "session_failed", logging.ERROR, session=session,
+                      reason=exc.reason)
+                return
+            # e.g. a persisted spec over today's budget
             self.counters["admission_refused"] += 1
             event(log, "session_refused", logging.WARNING, session=session, reason=exc.reason)
             if state == "restored":  # a persisted spec that no longer fits: set aside
@@ -415,21 +430,6 @@ class Lifecycle:
             route.sess, route.inbox = None, None
             routes[session] = route
             self.refused[session] = exc.reason
-            return
-        try:
-            if built is not None:
-                sess = built
-                sess.state, sess.detail = state, detail
-            else:
-                assert blueprint is not None
-                sess = Session(spec, blueprint.build(), state, detail, now,
-                               self.settings.error_rate, self.settings.error_burst,
-                               self.settings.max_abs_input)
-        except WireError as exc:  # a persisted or synced spec the estimator refuses
-            self.ledger.release(session)
-            route.sess, route.inbox = None, None
-            routes[session] = route
-            event(log, "session_failed", logging.ERROR, session=session, reason=exc.reason)
             return
         self.refused.pop(session, None)
         if resume != "prior" and self.keeper is not None:
@@ -553,8 +553,8 @@ class Lifecycle:
                 else keys.sensors_of(name)
             try:
                 if not self.closed:
-                    self.t.recover(key, on, max_samples=s.recover_samples,
-                                   timeout=s.recover_timeout_s).close()
+                    self.t.read_back(key, on, max_samples=s.recover_samples,
+                                     timeout=s.recover_timeout_s).close()
             except Exception as exc:  # the transport is closing, say
                 failed.append(f"{key}: {exc}")
             with lock:
@@ -591,7 +591,7 @@ class Lifecycle:
               seconds=f"{time.monotonic() - t0:.3f}")
 
     def join_background(self, timeout: float) -> bool:
-        """At a stop (``closed`` set, the transport closed): wait up to ``timeout`` s for the
+        """At a stop (``closed`` set, before the transport closes): wait up to ``timeout`` s for the
         read-back threads still inside a transport call; a process that exits under them
         can crash in Zenoh's native code. True if none is left."""
         deadline = time.monotonic() + timeout

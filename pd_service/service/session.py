@@ -50,7 +50,7 @@ import numpy as np
 
 from pd_service.backends import Built, build
 from pd_service.estimation import Estimator, PredictedState
-from pd_service.estimation.state import untracked
+from pd_service.estimation.estimator_state import untracked
 from pd_service.estimation.tally import Tally
 from pd_service.intake import Intake, Refusal
 from pd_service.ratelimit import TokenBucket
@@ -61,7 +61,7 @@ from pd_service.wire import (
 from pd_service.wire.convert import (
     PredictionEncoder,
 )
-from pd_service.wire.state import spec_fingerprint
+from pd_service.wire.session_state import spec_fingerprint
 
 from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
 from .latency import LatencyWindow
@@ -97,7 +97,7 @@ class Session:
     def __init__(self, spec: SessionSpec, built: Built, state: str, detail: str, now_ns: int,
                  error_rate: float, error_burst: int, max_abs: float = 1e12) -> None:
         """``built``: ``spec``'s estimator, command dimension and cost
-        (:meth:`pd_service.backends.Blueprint.build`)."""
+        (:func:`pd_service.backends.build`)."""
         self.spec = spec
         self.name = spec.session
         #: The spec's clock (ns) and publish_every as plain attributes: read several times

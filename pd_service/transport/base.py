@@ -25,7 +25,7 @@ class Sample(NamedTuple):
     ``recv_mono_ns``: monotonic clock at receipt (for latency); ``encoding`` (None: the
     default, Zenoh's ``zenoh/bytes``) and ``attachment`` as the publisher set them.
     ``recovered``: True for a sample read back from a sender's cache
-    (:meth:`Transport.recover`), not received live: it may repeat one received live or be
+    (:meth:`Transport.read_back`), not received live: it may repeat one received live or be
     older than the receiver can use. (A NamedTuple: built per received message, and cheaper
     to build than a frozen dataclass.)"""
 
@@ -107,7 +107,7 @@ class Transport(Protocol):
     def publisher(self, key: str, *, express: bool = False, cache: int = 0) -> Publisher:
         """``express``: send at once, without batching (Zenoh's express flag). ``cache`` > 0:
         the publisher keeps its last ``cache`` samples, which a receiver that was away
-        (restarted, or not yet connected) reads back with :meth:`recover` (Zenoh: a zenoh-ext
+        (restarted, or not yet connected) reads back with :meth:`read_back` (Zenoh: a zenoh-ext
         advanced publisher with a cache, publisher detection and sequence numbers)."""
         ...
 
@@ -124,8 +124,8 @@ class Transport(Protocol):
         ``attachment`` are not read (None): drained streams carry messages whose encoding
         the protocol fixes, and reading the two costs time on every sample."""
 
-    def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                max_samples: int, timeout: float = 2.0) -> Handle:
+    def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
+                  max_samples: int, timeout: float = 2.0) -> Handle:
         """Read back what cached publishers (``publisher(key, cache=N)``) on keys matching
         ``keyexpr`` hold: at most ``max_samples`` of each, oldest first, as samples with
         ``recovered`` True. The caches present now are read before this returns (each

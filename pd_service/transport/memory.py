@@ -60,7 +60,7 @@ class _MemQuery:
 
 @dataclass(eq=False)
 class _Publisher:
-    """``cache`` set: the publisher's last samples, readable by ``recover`` while it is open
+    """``cache`` set: the publisher's last samples, readable by ``read_back`` while it is open
     (like a zenoh-ext advanced publisher's cache)."""
 
     transport: InMemoryTransport
@@ -105,7 +105,7 @@ class InMemoryBus:
         self.queryables: list[tuple[str, Callable]] = []
         self.tokens: list[str] = []
         self.live_subs: list[tuple[str, Callable[[str, bool], None]]] = []
-        #: open publishers with a cache, and who reads the caches of new ones (recover)
+        #: open publishers with a cache, and who reads the caches of new ones (read_back)
         self.cached: list[_Publisher] = []
         self.recoverers: list[tuple[str, Callable[[Sample], None], int]] = []
         self.transports = 0  # how many transports were made on this bus (their session ids)
@@ -170,8 +170,8 @@ class InMemoryTransport(HandleOwner):
 
         return _Drain(self.subscribe(keyexpr, bare))
 
-    def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                max_samples: int, timeout: float = 2.0) -> _Handle:
+    def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
+                  max_samples: int, timeout: float = 2.0) -> _Handle:
         """The caches of the open cached publishers matching ``keyexpr`` (last
         ``max_samples`` of each, oldest first), at once; later ones when declared."""
         with self.bus.lock:

@@ -274,8 +274,8 @@ class ZenohTransport(HandleOwner):
         self._handles.append(d)
         return d
 
-    def recover(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                max_samples: int, timeout: float = 2.0) -> _Handle:
+    def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
+                  max_samples: int, timeout: float = 2.0) -> _Handle:
         # zenoh-ext 1.10's layout: a cached publisher on K answers queries and holds its
         # liveliness token on K/@adv/pub/<zid>/<eid>/<meta> (the queryable's key too); "_max=N"
         # asks for its last N samples (tests/transport pins this against a real advanced

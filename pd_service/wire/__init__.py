@@ -32,7 +32,7 @@ from .messages import (
     SessionStatus,
     UnscentedModelSpec,
 )
-from .state import SessionState, spec_fingerprint
+from .session_state import SessionState, spec_fingerprint
 
 __all__ = [
     "MAX_DIM",

@@ -26,7 +26,7 @@
    msgpack of a tree of dict, list, tuple, str, int, float, bool and None, byte for byte as
    msgpack-python's ``packb(obj, use_bin_type=True)`` writes it (maps in the dict's order),
    where a float64 numpy array stands for its wire form {"shape": [...], "data": [...]}
-   (pd_service.wire.state.Tensors: the values in C order). What the checkpoints' encoder
+   (pd_service.wire.session_state.Tensors: the values in C order). What the checkpoints' encoder
    (pd_service.service.handover.checkpoint.encode_state) builds per session and second, without the Python
    dicts and lists of floats the wire form would need. None (the Python form, the
    reference, then runs) for anything else: another type or a subclass, an array of

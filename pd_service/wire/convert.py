@@ -100,7 +100,7 @@ def check_measurement(msg: Measurement, spec: SessionSpec) -> None:
 
 def check_command(msg: Command, spec: SessionSpec, r: int) -> None:
     """Raise WireError unless ``msg`` fits ``spec``: same session, u of dimension r (the
-    session's command dimension, :attr:`pd_service.backends.Blueprint.nu`), apply step >= 0."""
+    session's command dimension, :func:`pd_service.backends.command_dim`), apply step >= 0."""
     if msg.session != spec.session:
         raise WireError(f"Command.session: {msg.session!r} is not session {spec.session!r}")
     if msg.u.shape[0] != r:

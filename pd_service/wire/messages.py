@@ -428,7 +428,7 @@ def _model_kind(value: Any) -> str | None:
 
 #: Every model kind, discriminated by ``kind`` (absent means "linear"). A new kind is one
 #: more ``Annotated[NewModelSpec, Tag("new")]`` here, plus its case in
-#: ``pd_service.backends.Blueprint`` (its nu, cost and estimator).
+#: ``pd_service.backends.build`` (its nu, cost and estimator).
 ModelSpec = Annotated[
     Annotated[LinearModelSpec, Tag("linear")]
     | Annotated[UnscentedModelSpec, Tag("unscented")]
@@ -485,7 +485,7 @@ class SessionSpec(Message):
     @property
     def r(self) -> int | None:
         """Command (input) dimension of a linear model; None for the other kinds, whose
-        registered model knows it (:attr:`pd_service.backends.Blueprint.nu`)."""
+        registered model knows it (:func:`pd_service.backends.command_dim`)."""
         return self.model.r if isinstance(self.model, LinearModelSpec) else None
 
     def sensor(self, name: str) -> SensorSpec | None:

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from .messages import MESSAGE_TYPES, Message
-from .state import SessionState
+from .session_state import SessionState
 
 DEFAULT_DIR = Path("docs/schemas")
 DIALECT = "https://json-schema.org/draft/2020-12/schema"

@@ -186,15 +186,15 @@ def test_robot_and_operator_keep_their_last_samples_for_a_restarted_service(bus)
             robot.publish("camera", [1.0, float(k)], step=k)
             op.send([float(k)], step=k + 10)
         got: list = []
-        bus.transport().recover(keys.ALL_SENSORS, got.append, max_samples=100)
+        bus.transport().read_back(keys.ALL_SENSORS, got.append, max_samples=100)
         assert [decode(s.payload, Measurement).step for s in got] == [2, 3]
         got.clear()
-        bus.transport().recover(keys.ALL_COMMANDS, got.append, max_samples=100)
+        bus.transport().read_back(keys.ALL_COMMANDS, got.append, max_samples=100)
         assert [decode(s.payload, Command).step for s in got] == [11, 12, 13]
     got.clear()  # closed with the clients: nothing kept
-    bus.transport().recover("pd/**", got.append, max_samples=100)
+    bus.transport().read_back("pd/**", got.append, max_samples=100)
     assert got == []
     with Robot(t, "s2", direct=True, cache=0) as robot:  # cache=0: plain publishers
         robot.publish("camera", [1.0, 2.0], step=1)
-        bus.transport().recover(keys.ALL_SENSORS, got.append, max_samples=100)
+        bus.transport().read_back(keys.ALL_SENSORS, got.append, max_samples=100)
         assert got == []

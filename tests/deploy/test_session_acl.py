@@ -201,7 +201,7 @@ def test_only_services_declare_membership_tokens(generated, acl: bool) -> None:
 
 
 class Recovered:
-    """``Transport.recover`` callback: keeps (key, payload), signals each arrival."""
+    """``Transport.read_back`` callback: keeps (key, payload), signals each arrival."""
 
     def __init__(self) -> None:
         self.got: list[tuple[str, bytes]] = []
@@ -237,7 +237,7 @@ def read_cache(t: ZenohTransport, token: str) -> list[tuple[str, bytes]]:
 def test_service_reads_back_sender_caches(generated) -> None:
     """The daemon's read-back through the router: the caches of a direct robot (sensors), an
     operator (commands) and pd-link (its outputs) are read at once, oldest first, and a cache
-    declared later is read when its token appears (Transport.recover, as ServiceCore.start
+    declared later is read when its token appears (Transport.read_back, as ServiceCore.start
     calls it)."""
     with system(generated, True, "service", "robot-b", "op-a", "link") as c:
         sent: set[tuple[str, bytes]] = set()
@@ -252,9 +252,9 @@ def test_service_reads_back_sender_caches(generated) -> None:
                  and len(cache_tokens(c["service"], keys.ALL_COMMANDS)) == 1,
                  TIMEOUT_S, "the daemon to see the three caches' tokens")
         got = Recovered()
-        c["service"].recover(keys.ALL_SENSORS, got, max_samples=8, timeout=TIMEOUT_S)
-        c["service"].recover(keys.ALL_COMMANDS, got, max_samples=8, timeout=TIMEOUT_S)
-        with got.cond:  # read before recover returned, each cache in its order
+        c["service"].read_back(keys.ALL_SENSORS, got, max_samples=8, timeout=TIMEOUT_S)
+        c["service"].read_back(keys.ALL_COMMANDS, got, max_samples=8, timeout=TIMEOUT_S)
+        with got.cond:  # read before read_back returned, each cache in its order
             assert sorted(got.got) == sorted(sent)
             for key in {k for k, _ in sent}:
                 assert [p for k, p in got.got if k == key] == sorted(
@@ -285,7 +285,7 @@ def over_broad(router: Path, out: Path) -> Path:
 def test_robot_cannot_read_or_fake_another_sessions_cache(generated, tmp_path: Path,
                                                            variant: str) -> None:
     """Robot A (a direct robot, whose own sensor cache the daemon reads) neither sees nor
-    reads robot B's cache (liveliness, a query on the cache's own key, Transport.recover),
+    reads robot B's cache (liveliness, a query on the cache's own key, Transport.read_back),
     nor declares a cache on B's keys that the daemon would read back.  Controls: access
     control off, and robot A given an over-broad cache rule: the same sequence leaks."""
     router = over_broad(generated[0], tmp_path / "broad.json5") \
@@ -307,22 +307,22 @@ def test_robot_cannot_read_or_fake_another_sessions_cache(generated, tmp_path: P
                  >= {keys.sensor_key("a", "camera"), keys.sensor_key("b", "camera")},
                  TIMEOUT_S, "the daemon to see robot A's and robot B's caches")
         got = Recovered()
-        c["service"].recover(keys.ALL_SENSORS, got, max_samples=8, timeout=TIMEOUT_S)
+        c["service"].read_back(keys.ALL_SENSORS, got, max_samples=8, timeout=TIMEOUT_S)
         assert {b"a-0", b"b-0", b"b-1", b"b-2"} <= got.payloads()  # the rightful caches
         if leaks:
             assert got.wait_for({(keys.sensor_key("b", "fake"), b"fake-0")}, TIMEOUT_S)
-        else:  # read at once: every cache the daemon could see was read before recover returned
+        else:  # read at once: every cache the daemon could see was read before read_back returned
             assert b"fake-0" not in got.payloads()
             assert keys.sensor_key("b", "fake") not in {
                 t.split("/@adv/")[0] for t in cache_tokens(c["service"], keys.ALL_SENSORS)}
 
-        # robot A reads B's cache: its tokens, a query on the cache's own key, recover (its
+        # robot A reads B's cache: its tokens, a query on the cache's own key, read_back (its
         # own cache on B's key, "fake", it sees and reads locally, without the router)
         token_b = next(t for t in cache_tokens(c["service"], keys.sensor_key("b", "camera")))
         seen = cache_tokens(c["robot-a"], keys.sensors_of("b"))
         replies = read_cache(c["robot-a"], token_b)
         stolen = Recovered()
-        c["robot-a"].recover(keys.sensors_of("b"), stolen, max_samples=8, timeout=NEGATIVE_WAIT_S)
+        c["robot-a"].read_back(keys.sensors_of("b"), stolen, max_samples=8, timeout=NEGATIVE_WAIT_S)
         if leaks:
             assert token_b in seen
             assert [p for _, p in replies] == [b"b-0", b"b-1", b"b-2"]

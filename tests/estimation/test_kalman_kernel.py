@@ -375,7 +375,7 @@ def test_a_snapshot_is_left_out_of_the_cycle_collector() -> None:
     import weakref
 
     from pd_service.backends import build
-    from pd_service.estimation.state import untracked
+    from pd_service.estimation.estimator_state import untracked
     from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario, simulate_paper
 
     sc = paper_scenario()

@@ -19,7 +19,7 @@ from pd_service.estimation.linear import _REPLAY, Gaussian, LinearBackend, _chol
 from pd_service.scenarios.paper import paper_model, paper_prior, paper_sensors
 
 from .reference import batch_predict
-from .test_state import feed, linear_events
+from .test_estimator_state import feed, linear_events
 
 RTOL = 1e-9
 
@@ -60,7 +60,7 @@ class RunCountingBackend(LinearBackend):
 
 
 def command_heavy(seed: int, ticks: int):
-    """test_state's random traffic plus, in most ticks, a command for a past step inside
+    """test_estimator_state's random traffic plus, in most ticks, a command for a past step inside
     the window: replays that a command alone triggers reuse covariances."""
     case, events = linear_events(seed, ticks)
     rng = np.random.default_rng(seed)

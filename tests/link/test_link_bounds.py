@@ -195,9 +195,9 @@ def test_outputs_to_the_service_keep_their_last_samples():
         client.put(keys.command_key("s"), f"u{i}".encode())
         relay.step()
     got: list = []
-    client.recover(keys.ALL_SENSORS, got.append, max_samples=10)
+    client.read_back(keys.ALL_SENSORS, got.append, max_samples=10)
     assert [s.payload for s in got] == [b"z2", b"z3", b"z4"] and all(s.recovered for s in got)
     got.clear()
-    client.recover(keys.ROBOT_ALL_COMMANDS, got.append, max_samples=10)
+    client.read_back(keys.ROBOT_ALL_COMMANDS, got.append, max_samples=10)
     assert got == []
     relay.close()

@@ -36,6 +36,7 @@ from pd_service.wire import ErrorReport, Prediction, keys
 from pd_service.wire import decode as wire_decode
 from tests.ros2.specs import IMU, ODOM, PERIOD_NS, POSE, imu, odometry, pose_fix, twist, unicycle_spec
 from tests.service.procs import (
+    ANSWER_TIMEOUT_S,
     Daemon,
     Presence,
     client,
@@ -104,7 +105,7 @@ def cpu_ticks(pid: int) -> int:
 
 
 def bridge_status(t: ZenohTransport) -> dict:
-    for r in t.get(keys.ros2_status_key("it"), timeout=3.0):
+    for r in t.get(keys.ros2_status_key("it"), timeout=ANSWER_TIMEOUT_S):
         if r.ok:
             return json.loads(r.payload)
     raise AssertionError("no status reply from pd-ros2")

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pd_service.backends import Blueprint, build
+from pd_service.backends import build, command_dim
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
 from pd_service.scenarios import SCENARIOS, ScenarioSim, get_scenario
 from pd_service.scenarios.diffdrive import PROFILE, drive_turn_stop
@@ -23,7 +23,7 @@ def test_spec_is_an_unscented_unicycle_session_with_ros2_topics():
     assert decode(encode(spec), SessionSpec) == spec
     assert SessionSpec.model_validate_json(spec.model_dump_json()) == spec
     assert spec.model.kind == "unscented" and spec.model.model == "unicycle"
-    assert (spec.n, Blueprint(spec).nu, spec.period_ns) == (5, 2, 20_000_000)
+    assert (spec.n, command_dim(spec), spec.period_ns) == (5, 2, 20_000_000)
     timing = {s.name: (s.kind, s.interval, s.delay) for s in spec.sensors}
     assert timing == {"odom_twist": ("model", 2, 2), "imu": ("model", 1, 1),
                       "pose": ("model", 10, 15)}

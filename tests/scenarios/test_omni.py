@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pd_service.backends import Blueprint, build
+from pd_service.backends import build, command_dim
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor
 from pd_service.estimation.nonlinear.adaptive import MITAdapter
 from pd_service.estimation.nonlinear.models_omni import OMNI_Q0
@@ -38,7 +38,7 @@ def test_omni_spec_selects_the_adaptive_ukf():
                                                                 OMNI_POSE_DELAY)
     np.testing.assert_allclose(pose.R, 1e-8 * np.eye(3), rtol=1e-12)
     assert (spec.lead, spec.max_delay) == (OMNI_LEAD, OMNI_MAX_DELAY)
-    assert Blueprint(spec).nu == 3 and spec.n == 6
+    assert command_dim(spec) == 3 and spec.n == 6
 
     est = build(decode(encode(spec), SessionSpec)).est
     assert isinstance(est, UnscentedObserverPredictor)

@@ -20,6 +20,10 @@ from pathlib import Path
 from pd_service.transport import ZenohTransport, zenoh_config
 from pd_service.wire import ServiceStatus, SessionStatus, decode, keys
 
+#: How long a query that must be answered may take: a loaded machine's daemon answers late,
+#: not never (a get returns as soon as every queryable answered; only a lost answer waits it out).
+ANSWER_TIMEOUT_S = 10.0
+
 
 def free_port() -> int:
     with socket.socket() as s:
@@ -101,14 +105,14 @@ def client(port: int) -> ZenohTransport:
 
 
 def query_session_status(t: ZenohTransport, session: str) -> SessionStatus | None:
-    for r in t.get(keys.status_key(session), timeout=3.0):
+    for r in t.get(keys.status_key(session), timeout=ANSWER_TIMEOUT_S):
         if r.ok:
             return decode(r.payload, SessionStatus)
     return None
 
 
 def query_service_status(t: ZenohTransport, instance: str) -> ServiceStatus | None:
-    for r in t.get(keys.service_status_key(instance), timeout=3.0):
+    for r in t.get(keys.service_status_key(instance), timeout=ANSWER_TIMEOUT_S):
         if r.ok:
             return decode(r.payload, ServiceStatus)
     return None

@@ -84,3 +84,13 @@ def test_print_config_shows_the_zenoh_values_in_force(monkeypatch, capsys, tmp_p
     assert main(["--print-config", "--zenoh-config", str(f)]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert (shown["mode"], shown["listen"]) == (None, None)
+
+
+def test_unknown_environment_setting_is_refused_by_name():
+    # a misspelt or retired PD_SERVICE_ variable is refused, never silently ignored
+    with pytest.raises(ConfigError, match="unknown setting 'PD_SERVICE_LATENCY_WINDW'"):
+        load_settings(environ={"PD_SERVICE_LATENCY_WINDW": "100"})
+    # the prefix's non-settings (config file, pure switch, profile) are not settings
+    s = load_settings(environ={"PD_SERVICE_PURE": "1", "PD_SERVICE_PROFILE": "/tmp/x.prof",
+                               "PD_SERVICE_LATENCY_WINDOW": "100"})
+    assert s.latency_window == 100

@@ -8,7 +8,7 @@ import zlib
 
 import numpy as np
 
-from pd_service.backends import Blueprint
+from pd_service.backends import Cost, command_dim, spec_cost
 from pd_service.estimation import linear as linear_mod
 from pd_service.service import Settings, SpecStore
 from pd_service.service.admission import Ledger, OverBudget
@@ -24,6 +24,11 @@ from pd_service.wire import (
 from .helpers import PERIOD_NS, Clock, Collector, paper_spec
 from .test_core import at, make_core
 from .test_nonlinear import omni_spec
+
+
+def price(spec: SessionSpec) -> Cost:
+    """The spec's cost, as ``backends.build`` hands it to ``admit`` (nothing allocated)."""
+    return spec_cost(spec, command_dim(spec))
 
 
 def big_linear_spec(session: str, seed: int) -> SessionSpec:
@@ -47,11 +52,11 @@ def world():
 # ---------------------------------------------------------------- admission ---------------
 
 def test_cost_model_counts_the_tables_of_the_big_spec():
-    c = Blueprint(big_linear_spec("big", 0)).cost
+    c = price(big_linear_spec("big", 0))
     C = 3 * 1000 + 10_000 + 4
     assert c.table_bytes == 8 * ((C + 1) * 2 * 64 * 64 + C * 64 * 64)
     assert c.bytes > 10**9  # the 1.2 GB the attack allocated
-    small = Blueprint(paper_spec("p")).cost
+    small = price(paper_spec("p"))
     assert small.bytes < 2**20 and small.cpu_share < 0.01
 
 
@@ -89,18 +94,18 @@ def test_unscented_long_lead_at_1ms_is_refused_by_the_cpu_budget(tmp_path):
 
 
 def test_service_wide_budgets_and_shared_tables_counted_once():
-    a = Blueprint(paper_spec("a")).cost
+    a = price(paper_spec("a"))
     led = Ledger(2**30, 1.0, a.bytes + a.session_bytes, 10.0)
     led.admit("a", a)
-    led.admit("b", Blueprint(paper_spec("b")).cost)  # same model: its tables are not charged again
+    led.admit("b", price(paper_spec("b")))  # same model: its tables are not charged again
     assert led.bytes == a.bytes + a.session_bytes
     try:
-        led.admit("c", Blueprint(paper_spec("c")).cost)
+        led.admit("c", price(paper_spec("c")))
     except OverBudget as exc:
         assert "memory_budget_bytes" in exc.reason
     else:
         raise AssertionError("over the memory budget")
-    led.admit("a", Blueprint(paper_spec("a", max_delay=12)).cost)  # replacing itself fits
+    led.admit("a", price(paper_spec("a", max_delay=12)))  # replacing itself fits
     led.release("a")
     led.release("b")
     assert (led.bytes, led.cpu) == (0, 0.0)
@@ -121,7 +126,7 @@ def test_restart_never_readmits_more_than_the_budget(tmp_path):
     store = SpecStore(d)
     for s in ("s1", "s2", "s3"):
         store.save(paper_spec(s))
-    one = Blueprint(paper_spec("x")).cost.cpu_share
+    one = price(paper_spec("x")).cpu_share
     core = make_core(bus, clock, tmp_path, cpu_budget=2.5 * one)
     assert core.served_sessions() == ["s1", "s2"]
     assert (d / "s3.msgpack.refused").exists() and not (d / "s3.msgpack").exists()

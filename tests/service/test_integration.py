@@ -6,6 +6,7 @@ Run alone with ``pytest tests/service -m integration``.
 from __future__ import annotations
 
 import signal
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -283,7 +284,15 @@ def test_a_stop_during_a_takeover_read_back_exits_cleanly(own_net, tmp_path):
     a = Daemon("inst-x", tmp_path / "inst-x", [peer], ["--peer", "inst-y"]).start()
     assert pres.wait("inst-x"), a.log()
     b = Daemon("inst-y", tmp_path / "inst-y", [peer, a.endpoint], ["--peer", "inst-x"]).start()
-    held: list = []  # the caches' queries, never answered
+    held: list = []  # the caches' queryables and tokens
+    asked: list = []  # their queries, never answered
+    queried = threading.Condition()
+
+    def on_query(q) -> None:
+        with queried:
+            asked.append(q)
+            queried.notify_all()
+
     try:
         assert pres.wait("inst-y"), b.log()
         names = [f"rb{i:02d}" for i in range(40)]
@@ -295,9 +304,11 @@ def test_a_stop_during_a_takeover_read_back_exits_cleanly(own_net, tmp_path):
         for i, key in enumerate(k for s in by_y for k in (keys.command_key(s),
                                                            keys.sensor_key(s, "ranger"))):
             at = f"{key}/@adv/pub/{zid}/{i}/_"
-            held += [t.session.declare_queryable(at, held.append),
+            held += [t.session.declare_queryable(at, on_query),
                      t.session.liveliness().declare_token(at)]
-        time.sleep(0.5)  # the tokens reach inst-x
+        caches = len(held) // 2
+        with queried:  # the tokens reached both: each instance asked each cache once
+            assert queried.wait_for(lambda: len(asked) >= 2 * caches, 60), (a.log(), b.log())
         assert b.stop(signal.SIGKILL) == -signal.SIGKILL
         assert col.wait_for(lambda c: all(c.statuses[s][-1].instance == "inst-x"
                                           for s in by_y)), a.log()
@@ -307,3 +318,4 @@ def test_a_stop_during_a_takeover_read_back_exits_cleanly(own_net, tmp_path):
         b.stop()
         a.stop()
         held.clear()
+        asked.clear()

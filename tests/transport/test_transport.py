@@ -190,7 +190,7 @@ def test_in_memory_cached_publisher_is_recovered() -> None:
         plain.put(f"r{i}".encode())
     snd.put("pd/p2/s/cmd", b"not cached")
     got: list = []
-    h = rcv.recover("pd/*/*/sensor/*", got.append, max_samples=2)
+    h = rcv.read_back("pd/*/*/sensor/*", got.append, max_samples=2)
     # the last max_samples of each cached publisher, oldest first; plain puts keep nothing
     assert [(s.key, s.payload, s.recovered) for s in got] == \
         [("pd/p2/s/sensor/cam", b"c3", True), ("pd/p2/s/sensor/cam", b"c4", True)]
@@ -200,7 +200,7 @@ def test_in_memory_cached_publisher_is_recovered() -> None:
     assert got == []  # declared with an empty cache, and live samples are not recovered
     cam.close()  # a closed publisher's cache is gone
     got2: list = []
-    rcv.recover("pd/*/*/sensor/*", got2.append, max_samples=10)
+    rcv.read_back("pd/*/*/sensor/*", got2.append, max_samples=10)
     assert [s.payload for s in got2] == [b"x"]
     h.close()
 
@@ -208,7 +208,7 @@ def test_in_memory_cached_publisher_is_recovered() -> None:
 @pytest.mark.integration
 def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() -> None:
     """Pins zenoh-ext 1.10's cache layout (<key>/@adv/pub/..., '_max'): read at once from a
-    connected sender, and from one that connects only after ``recover`` was declared."""
+    connected sender, and from one that connects only after ``read_back`` was declared."""
     p1, p2 = free_port(), free_port()
     a = b = c = None
     try:
@@ -238,9 +238,9 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
         for _ in range(100):  # the routes to a's cache: wait on its token (an event)
             if b.get_liveliness("pd/p2/s/sensor/*/@adv/pub/**", timeout=0.5):
                 break
-        h = b.recover("pd/*/*/sensor/*", on, max_samples=3)
+        h = b.read_back("pd/*/*/sensor/*", on, max_samples=3)
         at_once = list(got)
-        # a's cache was read before recover returned: its last 3, oldest first (c's may come
+        # a's cache was read before read_back returned: its last 3, oldest first (c's may come
         # before or after them, depending on when c reached b)
         assert [x for x in at_once if x[0] == "pd/p2/s/sensor/cam"] == \
             [("pd/p2/s/sensor/cam", f"m{i}".encode(), True) for i in (3, 4, 5)]
@@ -248,7 +248,7 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
             assert cond.wait_for(lambda: len(got) >= 5, timeout=30), got
         rest = sorted(x for x in got if x[0] != "pd/p2/s/sensor/cam")
         assert rest == [("pd/p16/u/sensor/ranger", b"r0", True), ("pd/p16/u/sensor/ranger", b"r1", True)]
-        print(f"\nlate sender read {'after' if len(at_once) == 3 else 'before'} recover returned")
+        print(f"\nlate sender read {'after' if len(at_once) == 3 else 'before'} read_back returned")
         h.close()
     finally:
         for t in (c, b, a):
@@ -258,7 +258,7 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
 
 @pytest.mark.integration
 def test_zenoh_cache_appearing_while_recover_starts_is_read_once() -> None:
-    """A sender whose cache appears after ``recover`` began watching for new caches and
+    """A sender whose cache appears after ``read_back`` began watching for new caches and
     before it read the present ones is seen by both, and read once (CI caught it read twice,
     its samples given twice)."""
     port = free_port()
@@ -294,7 +294,7 @@ def test_zenoh_cache_appearing_while_recover_starts_is_read_once() -> None:
     got: list = []
     try:
         b.session = Session()  # type: ignore[assignment]
-        h = b.recover("pd/*/*/sensor/*", lambda s: got.append(s.payload), max_samples=3)
+        h = b.read_back("pd/*/*/sensor/*", lambda s: got.append(s.payload), max_samples=3)
         b.session = real
         time.sleep(0.5)  # room for a second read (the watch's), which answers in ms here
         assert got == [b"r0"]

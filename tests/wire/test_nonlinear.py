@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from pd_service.backends import Blueprint, build, imm_sensor
+from pd_service.backends import build, command_dim, imm_sensor
 from pd_service.wire import SensorSpec, SessionSpec, WireError, decode, encode
 from pd_service.wire.convert import (
     check_command,
@@ -400,8 +400,8 @@ def test_refused_by_the_estimator(make, expected):
 
 def test_command_dim_and_check_command():
     u, i = omni_spec(), imm_spec()
-    nu_u, nu_i = Blueprint(u).nu, Blueprint(i).nu
-    assert Blueprint(paper_spec()).nu == 1 and nu_u == 3 and nu_i == 0
+    nu_u, nu_i = command_dim(u), command_dim(i)
+    assert command_dim(paper_spec()) == 1 and nu_u == 3 and nu_i == 0
     check_command(command(session="u1", u=np.array([0.1, 0.2, 0.3])), u, nu_u)
     check_command(command(session="u1", u=np.array([0.1, 0.2, 0.3])), u, r=3)
     with pytest.raises(WireError, match=r"^Command.u: expected 3 values \(model 'omni3' has 3 inputs\), got 1$"):
@@ -409,7 +409,7 @@ def test_command_dim_and_check_command():
     with pytest.raises(WireError, match=r"^Command.u: session 'i1' takes no commands \(its model has no inputs\)$"):
         check_command(command(session="i1"), i, nu_i)
     with pytest.raises(WireError, match="refused by the estimator: model: unknown model"):
-        Blueprint(_unscented(model="nope"))
+        command_dim(_unscented(model="nope"))
 
 
 def test_check_measurement_uses_the_sensor_R_dimension():

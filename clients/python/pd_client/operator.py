@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from pd_service.backends import Blueprint
+from pd_service.backends import command_dim
 from pd_service.transport import DEFAULT_SENDER_CACHE, Transport
 from pd_service.wire import Command, SessionSpec, WireError, encode, keys
 from pd_service.wire.convert import check_command
@@ -57,7 +57,7 @@ class Operator(ClientBase):
         if self.spec is not None:
             try:
                 if self._nu is None:  # a nonlinear model's is its registered model's
-                    self._nu = Blueprint(self.spec).nu
+                    self._nu = command_dim(self.spec)
                 check_command(msg, self.spec, self._nu)
             except WireError as exc:
                 raise InvalidMessage(exc.reason) from None

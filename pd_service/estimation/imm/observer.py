@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..estimator_state import StateError, check_names, take
 from ..replay import Packet, ReplayEstimator
-from ..state import StateError, check_names, take
 from .filter import ImmFilter, ImmState
 
 

@@ -47,7 +47,7 @@ from typing import Protocol
 
 import numpy as np
 
-from ..state import StateError
+from ..estimator_state import StateError
 from .unscented import InnovationRecord
 
 

@@ -27,8 +27,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from ..checks import as_covariance, as_vector
+from ..estimator_state import EstimatorState, StateError
 from ..replay import Packet, ReplayEstimator
-from ..state import EstimatorState, StateError
 from .adaptive import Adapter
 from .registry import NonlinearModel, wrap_angle
 from .sigma import SigmaWeights

@@ -34,9 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..estimator_state import check_names, take
 from ..linear import block_diag
 from ..replay import Packet
-from ..state import check_names, take
 from .registry import MeasurementModel, NonlinearModel, wrap_angle
 from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
 

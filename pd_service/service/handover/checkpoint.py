@@ -25,7 +25,7 @@ from pydantic import ValidationError
 from pd_service.estimation import STATE_VERSION, Estimator, EstimatorState, StateError
 from pd_service.wire import MAX_MESSAGE_BYTES, SessionSpec, WireError, decode, encode
 from pd_service.wire.codec import error_kind, validation_reason
-from pd_service.wire.state import (
+from pd_service.wire.session_state import (
     PACK_WITH_ARRAYS,
     SessionState,
     StateCommand,
@@ -48,7 +48,7 @@ class Refused:
 def to_message(st: EstimatorState, *, session: str, instance: str, fingerprint: str,
                made_ns: int, session_counters: dict[str, int] | None = None,
                published: int = 0, seq: int = 0) -> SessionState:
-    """The wire form of ``st`` (see :class:`~pd_service.wire.state.SessionState`)."""
+    """The wire form of ``st`` (see :class:`~pd_service.wire.session_state.SessionState`)."""
     base = dict(st.base)
     x, P = st.mean, st.cov
     if "mu" not in base:  # linear / UKF: x and P are the base itself, sent once

@@ -5,7 +5,7 @@ going back to the prior.
   new steps, accepted packets or commands) since its last checkpoint, and whose checkpoint
   is due (the first at once, then one per ``checkpoint_interval_s`` at the session's own
   phase, :func:`~.session.next_slot`, never two within half an interval), writes its
-  :class:`~pd_service.wire.state.SessionState` to the state directory's checkpoint log
+  :class:`~pd_service.wire.session_state.SessionState` to the state directory's checkpoint log
   (``checkpoints.log``, :mod:`.checkpoint_log`, by the daemon's writer thread). A restarted daemon
   resumes each restored session from it.
 - **Replica** (takeover): at the same moments, rate-bounded by ``replica_interval_s``, the

@@ -102,7 +102,7 @@ def test_finite_values_whose_sum_overflows_are_encoded():
 
 
 def test_tensors_of_mixed_shapes_are_converted_one_by_one():
-    from pd_service.wire.state import Tensors
+    from pd_service.wire.session_state import Tensors
 
     t = Tensors()
     rows = t.rows([np.zeros(2), np.ones(3)])

@@ -200,7 +200,7 @@ def test_a_replica_for_another_spec_is_refused(tmp_path):
     a.run_once()
     other = build(paper_spec("s1", max_delay=20)).est
     from pd_service.service.handover.checkpoint import to_message
-    from pd_service.wire.state import spec_fingerprint
+    from pd_service.wire.session_state import spec_fingerprint
     msg = to_message(other.export_state(), session="s1", instance="inst-x",
                      fingerprint=spec_fingerprint(paper_spec("s1", max_delay=20)), made_ns=0)
     cli.put(replica_key("inst-a", "s1"), encode(msg))
@@ -217,7 +217,7 @@ def test_a_replica_is_only_unpacked_on_arrival_and_validated_at_the_takeover(tmp
     import msgpack
 
     from pd_service.service.handover.checkpoint import to_message
-    from pd_service.wire.state import spec_fingerprint
+    from pd_service.wire.session_state import spec_fingerprint
 
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
@@ -660,10 +660,10 @@ class SlowReadBack:
     def __getattr__(self, name):
         return getattr(self._t, name)
 
-    def recover(self, keyexpr, callback, **kw):
+    def read_back(self, keyexpr, callback, **kw):
         if keys.session_of(keyexpr) == self.session:
             assert self.gate.wait(10)
-        return self._t.recover(keyexpr, callback, **kw)
+        return self._t.read_back(keyexpr, callback, **kw)
 
 
 def test_a_slow_read_back_holds_only_its_own_session(tmp_path):

@@ -108,7 +108,7 @@ def make_feed(session: str, epoch: int, seed: int, steps: int, max_delay: int) -
     return feed
 
 
-class Outbox(threading.Thread):
+class FeedSender(threading.Thread):
     """Puts every feed's schedule on time, whoever is listening. ``cache`` 0: plain puts (a
     dead daemon loses them); > 0: one publisher per key keeping its last ``cache`` samples,
     as the SDK's Robot and Operator do (a restarted daemon reads them back)."""
@@ -270,7 +270,7 @@ def test_kill_and_restart_resumes_from_the_checkpoint_and_the_senders_caches(wor
     feed = make_feed("ck", epoch, seed=21, steps=steps, max_delay=max_delay)
     t.put(keys.config_key("ck"), encode(feed.spec))
     assert col.wait_for(lambda c: c.statuses["ck"], WAIT_S), d.log()
-    pub = Outbox(t, [feed], cache=DEFAULT_SENDER_CACHE)
+    pub = FeedSender(t, [feed], cache=DEFAULT_SENDER_CACHE)
     pub.start()
     assert col.wait_for(lambda c: any(p.step - feed.spec.lead >= kill_at
                                       for p in c.predictions["ck"]), WAIT_S), d.log()
@@ -394,7 +394,7 @@ def test_owner_killed_survivor_resumes_from_its_replicas(world):
         lost = [s for s in names if owners[s] == "inst-y"]
         kept = [s for s in names if owners[s] == "inst-x"]
         assert lost and kept, owners
-        pub = Outbox(t, list(feeds.values()))
+        pub = FeedSender(t, list(feeds.values()))
         pub.start()
         # kill once every session of inst-y has been replicated past kill_at
         assert col.wait_for(lambda c: all(any(k >= kill_at for k in replicas.steps(s))
@@ -457,7 +457,7 @@ def test_sigterm_hands_the_final_state_to_the_successor(world):
         names = list(feeds)
         moved = [s for s in names if owners[s] == "inst-y"]
         assert moved and len(moved) < len(names), owners
-        pub = Outbox(t, list(feeds.values()), cache=DEFAULT_SENDER_CACHE)
+        pub = FeedSender(t, list(feeds.values()), cache=DEFAULT_SENDER_CACHE)
         pub.start()
         assert col.wait_for(lambda c: all(any(p.step - feeds[s].spec.lead >= stop_at
                                               for p in c.predictions[s]) for s in moved),

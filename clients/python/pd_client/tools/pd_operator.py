@@ -27,7 +27,7 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
-from pd_service.backends import Blueprint
+from pd_service.backends import command_dim
 from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, get_scenario
 from pd_service.transport import Sample, Transport
 from pd_service.wire import SessionSpec, WireError, keys
@@ -114,7 +114,7 @@ def _run(transport: Transport, scenario: Scenario, names: list[str], steps: int,
             common.progress(TOOL, f"waiting for the spec of session {name} ...")
             spec = admin.wait_for_spec(name, args.spec_timeout)
             try:
-                r = Blueprint(spec).nu  # a nonlinear model's is its registered model's
+                r = command_dim(spec)  # a nonlinear model's is its registered model's
             except WireError as exc:
                 return common.fail(TOOL, f"session {name}: {exc.reason}", 2)
             if r != scenario.nu:

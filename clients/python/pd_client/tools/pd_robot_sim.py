@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pd_service.backends import Blueprint
+from pd_service.backends import command_dim
 from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
 from pd_service.transport import Transport
 from pd_service.wire import Command, SessionSpec, WireError
@@ -105,7 +105,7 @@ class RobotSim:
                 raise ValueError(f"session {spec.session!r} is on another clock than "
                                  f"{first.session!r} (epoch_ns/period_ns differ)")
             try:
-                r = Blueprint(spec).nu  # a nonlinear model's is its registered model's
+                r = command_dim(spec)  # a nonlinear model's is its registered model's
             except WireError as exc:
                 raise ValueError(f"session {spec.session!r}: {exc.reason}") from None
             if spec.n != scenario.n or r != scenario.nu:

@@ -3,7 +3,7 @@
 :class:`LiveFeed` subscribes (wildcards, every session) to the daemon's predictions
 (``pd/*/*/prediction``), the measurements it receives (``pd/*/*/sensor/*``, after the downlink),
 the operator's commands (``pd/*/*/cmd``) and a simulator's truth (``robot/*/*/truth``), and turns
-each prediction into one event for the page (:meth:`SessionView.event`)::
+each prediction into one event for the page (:meth:`FeedSession.event`)::
 
     {"type": "pred", "i": 17, "s": "paper", "ts": 1.7e12,     # server event id, send time (ms)
      "k": 130, "now": 120, "lead": 10, "period_ms": 50.0,     # target step, session's step now
@@ -89,7 +89,7 @@ def _vec(a: np.ndarray) -> list[float | None]:
     return [_num(v) for v in np.asarray(a, dtype=float).ravel()]
 
 
-class SessionView:
+class FeedSession:
     """Everything known about one session, and its page event per prediction."""
 
     def __init__(self, name: str, keep: int = 512) -> None:
@@ -264,7 +264,7 @@ class LiveFeed:
         self._now_ns = now_ns
         self._mono = mono
         self.lock = threading.Lock()
-        self.views: dict[str, SessionView] = {}
+        self.views: dict[str, FeedSession] = {}
         self.reported: list[str] = []  # sessions the daemons report
         self.events = 0
         self.invalid = 0
@@ -278,10 +278,10 @@ class LiveFeed:
         ]
         self._handles: list[Handle] = [transport.subscribe(k, cb) for k, cb in subs]
 
-    def _view(self, session: str) -> SessionView:
+    def _view(self, session: str) -> FeedSession:
         v = self.views.get(session)
         if v is None:
-            v = self.views[session] = SessionView(session)
+            v = self.views[session] = FeedSession(session)
         return v
 
     def _session_of(self, sample: Sample) -> str | None:
