@@ -91,7 +91,9 @@ class Cluster:
         others = [x for n in self.trusted if n != name for x in ("--peer", n)]
         self.daemons[name] = subprocess.Popen(
             [sys.executable, "-m", "pd_service", "--instance", name, "--state-dir",
-             f"{self.state}/{name}", "--mode", "client", "--connect", self.ep, *others],
+             f"{self.state}/{name}", "--mode", "client", "--connect", self.ep,
+             # the daemon's role listens by default (7447): one free port each
+             "--listen", f"tcp/127.0.0.1:{free_port()}", *others],
             env=self.env, cwd=ROOT)
 
     def wait_members(self, n: int, timeout: float = 30.0) -> None:
