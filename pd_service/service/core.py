@@ -108,6 +108,9 @@ class ServiceCore:
                                       self.dispatch.on_command_sample, self.wake.set,
                                       self.ownership.partitions)
         self.lifecycle.follow = self._follow_ownership
+        #: A state some awaited session waits for arrived (set on a transport thread).
+        self._handed_in = False
+        self.keeper.arrived = self._on_state_arrived
         #: Every known session's route (the dispatch's table; read by tests).
         self._routes: dict[str, Route] = self.dispatch.routes
         self._next_expiry_ns = 0
@@ -240,10 +243,16 @@ class ServiceCore:
             event(log, "subscriptions", instance=self.instance, partitions=len(owned),
                   declared=declared, closed=closed)
 
+    def _on_state_arrived(self, session: str) -> None:
+        """Transport thread: wake the worker if ``session`` waits for its hand-over state."""
+        if session in self.lifecycle.awaiting:
+            self._handed_in = True
+            self.wake.set()
+
     def has_work(self) -> bool:
-        """Messages or control changes wait in the inboxes (not counting samples still in
+        """Messages, control changes or hand-over states wait (not counting samples still in
         the drains' queues: :meth:`run_once` takes those first)."""
-        return self.dispatch.has_work()
+        return self.dispatch.has_work() or self._handed_in
 
     def arm(self) -> None:
         """Before the worker waits idle: the drains hand the next sample over themselves
@@ -272,6 +281,9 @@ class ServiceCore:
                 now = self.now_ns()
                 if d.control or d.configs:
                     self.lifecycle.process_control(now)
+                if self.lifecycle.awaiting:  # sessions moved here by a join
+                    self._handed_in = False
+                    self.lifecycle.adopt_handed(now)
                 touched: list[Session] = []
                 if d.unknown:
                     handled += d.process_unknown(now, touched)
@@ -319,8 +331,9 @@ class ServiceCore:
     def next_deadline_ns(self) -> int:
         """Wall-clock time (ns) at which run_once has timed work (next tick or expiry check)."""
         with self.lock:
-            tick = self.outbox.next_tick_ns()
-            return self._next_expiry_ns if tick is None else min(self._next_expiry_ns, tick)
+            due = [t for t in (self.outbox.next_tick_ns(), self.lifecycle.next_await_ns())
+                   if t is not None]
+            return min([self._next_expiry_ns, *due])
 
     # ================================================================== status ========
 

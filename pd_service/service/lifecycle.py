@@ -109,6 +109,11 @@ class Lifecycle:
         #: Called after an ownership change, before the sessions move: the data
         #: subscriptions follow the owned partitions (set by the core).
         self.follow: Callable[[], None] | None = None
+        #: Sessions gained from an owner that is still up (it hands their state over when
+        #: it sees the new membership): name -> (deadline ns, resume source if no state
+        #: came by then, the previous owner, an older replica held before). Not served
+        #: until then (:meth:`adopt_handed`).
+        self.awaiting: dict[str, tuple[int, Origin, str, tuple[int, bytes] | None]] = {}
 
     # ================================================================== start =========
 
@@ -156,8 +161,13 @@ class Lifecycle:
     def install_loaded(self, specs: dict[str, SessionSpec],
                           origin: dict[str, SessionPhase], now: int) -> None:
         """Start the sessions :meth:`load_specs` found (not answered: nobody asked)."""
+        own = self.ownership
         for name, spec in specs.items():
             self.specs[name] = spec
+            prev = own.successor(name) if own.shard is None and own.owns(name) else None
+            if prev is not None:  # a live peer serves it: it hands it over on our token
+                self._await_handover(name, prev, "checkpoint", now)
+                continue
             detail = "restored from the state directory" if origin[name] == "restored" \
                 else "synced from peers"
             self.install(name, origin[name], detail, now, answer=False, resume="checkpoint")
@@ -192,6 +202,7 @@ class Lifecycle:
             d.control_drops = 0
         q = d.control
         membership_changed = False
+        before: list[str | None] | None = None  # the partition table before the changes
         # Config changes: rate-limited per session and service-wide, at most config_slice
         # per round, so that replacing specs in a loop costs its sender, not the others.
         cq = d.configs
@@ -215,6 +226,8 @@ class Lifecycle:
                 alive = item.alive
                 if inst != self.ownership.instance and not self.trusted_peers([inst]):
                     continue
+                if before is None:
+                    before = self.ownership.owners()
                 changed = self.ownership.join(inst) if alive else self.ownership.leave(inst)
                 if changed:
                     membership_changed = True
@@ -225,7 +238,7 @@ class Lifecycle:
                         # we started): fetch them off the worker thread.
                         self._spawn(self._sync_in_background)
         if membership_changed and self.ownership.shard is None:
-            self.reassign(now)
+            self.reassign(now, before)
 
     def _config_allowed(self, sample: Sample, now: int) -> bool:
         """Take a token from the sender session's bucket and the service's; refuse
@@ -374,6 +387,7 @@ class Lifecycle:
         (pd_service.service.handover.keeper), else from the spec's prior. ``built``: a session
         just built from this spec at ``now`` (by the config check), used instead of a new
         one."""
+        self.awaiting.pop(session, None)
         routes = self.dispatch.routes
         route = routes.get(session)
         if route is None:
@@ -600,26 +614,100 @@ class Lifecycle:
                 th.join(max(0.0, deadline - time.monotonic()))
         return not any(th.is_alive() for th in self._readers)
 
-    def reassign(self, now: int) -> None:
+    def reassign(self, now: int, before: list[str | None] | None = None) -> None:
         """Membership changed: subscribe to the data of the partitions gained and unsubscribe
         from those lost (:attr:`follow`), start the sessions we now own, stop those we no
-        longer own."""
+        longer own.
+
+        A session that moves between two live instances (a join; ``before``: the partition
+        table before the change) is handed over: its old owner sends its state to the new
+        one before it stops serving it (:meth:`HandoverKeeper.hand_to`); the new owner
+        waits for that state (:meth:`adopt_handed`). A session whose owner went away is
+        taken over at once from the replica held for it."""
         if self.follow is not None:
             self.follow()
-        members = ",".join(sorted(self.ownership.members))
+        own = self.ownership
+        members = ",".join(sorted(own.members))
         routes = self.dispatch.routes
         taken: list[str] = []
         for name in self.specs:
             route = routes.get(name)
             running = route is not None and route.sess is not None
-            owns = self.ownership.owns(name)
+            owns = own.owns(name)
             if owns and not running:
+                if name in self.awaiting:
+                    continue
+                prev = None if before is None else \
+                    before[keys.partition_of(name, own.partitions)]
+                if prev is not None and prev != own.instance and prev in own.members:
+                    self._await_handover(name, prev, "replica", now)
+                    continue
                 self.install(name, "active", f"taken over (members {members})", now,
                              answer=True, resume="replica")
                 if self.settings.recover_samples > 0 and not self.closed:
                     taken.append(name)
                     self.dispatch.park(routes[name])
             elif running and not owns:
+                assert route is not None and route.sess is not None
+                new = own.owner(name)
+                if self.keeper is not None and new is not None and not self.closed:
+                    self.keeper.hand_to(route.sess, new, now)
                 self.install(name, "active", "", now, answer=False)
+            elif not owns:
+                self.awaiting.pop(name, None)
+        if taken:
+            self._spawn(lambda: self.read_back_taken(taken))
+
+    def _await_handover(self, name: str, prev: str, fallback: Origin, now: int) -> None:
+        """``name`` is ours now but ``prev`` (alive) served it: known here, not served, until
+        its state arrives or ``recover_timeout_s`` passes (:meth:`adopt_handed`)."""
+        deadline = now + int(self.settings.recover_timeout_s * 1e9)
+        older = self.keeper.set_aside(name) if self.keeper is not None else None
+        self.awaiting[name] = (deadline, fallback, prev, older)
+        self._declare_keys(name, self.specs.get(name))
+        routes = self.dispatch.routes
+        route = routes.get(name) or Route(name)
+        route.sess, route.inbox = None, None  # its messages are read back from the caches
+        routes[name] = route
+        event(log, "handover_awaited", session=name, previous_owner=prev)
+
+    def next_await_ns(self) -> int | None:
+        """When the first wait for a hand-over state ends (None: none waits)."""
+        return min((w[0] for w in self.awaiting.values()), default=None)
+
+    def adopt_handed(self, now: int) -> None:
+        """Start the awaited sessions whose hand-over state arrived (resumed from it), or
+        whose wait ended (from the fallback: checkpoint or older replica, else the prior,
+        said in their status detail and the log); then read back their senders' caches as a
+        takeover does (what the old owner accepted after the state, what came meanwhile)."""
+        if self.keeper is None:
+            return
+        members = ",".join(sorted(self.ownership.members))
+        taken: list[str] = []
+        for name, (deadline, fallback, prev, older) in list(self.awaiting.items()):
+            arrived = self.keeper.handed(name)
+            if not arrived and now < deadline:
+                continue
+            del self.awaiting[name]
+            if name not in self.specs or not self.ownership.owns(name):
+                continue
+            if arrived:
+                self.install(name, "active", f"handed over by {prev} (members {members})",
+                             now, answer=True, resume="replica" if arrived == "replica"
+                             else "prior")
+            else:
+                self.keeper.put_back(name, older)
+                self.counters["handover_timeout"] += 1
+                event(log, "handover_timeout", logging.WARNING, session=name,
+                      previous_owner=prev, waited_s=self.settings.recover_timeout_s)
+                self.install(name, "active", f"no state handed over by {prev} within "
+                             f"recover_timeout_s (members {members})", now, answer=True,
+                             resume=fallback)
+            if self.settings.recover_samples > 0 and not self.closed \
+                    and name in self.dispatch.routes:
+                route = self.dispatch.routes[name]
+                if route.sess is not None:
+                    taken.append(name)
+                    self.dispatch.park(route)
         if taken:
             self._spawn(lambda: self.read_back_taken(taken))

@@ -93,6 +93,11 @@ class Ownership:
         """Owning instance of ``session``, or None when unknown (another static shard)."""
         return self._table[keys.partition_of(session, self.partitions)]
 
+    def owners(self) -> list[str | None]:
+        """A copy of the partition table (owner of each partition): the view before a
+        membership change, to tell who served a session that moves."""
+        return list(self._table)
+
     def successor(self, session: str) -> str | None:
         """Who would own ``session`` if this instance went away (rendezvous only). None with
         static shards or alone."""

@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
@@ -107,6 +108,12 @@ class HandoverKeeper:
         self._failed_logged_at = -FAILED_LOG_EVERY_S
         #: session -> (now_step of the state, encoded SessionState), newest received
         self.replicas: dict[str, tuple[int, bytes]] = {}
+        #: Called (transport thread) with the session of each replica kept: the core
+        #: wakes the worker when a session waits for its hand-over state.
+        self.arrived: Callable[[str], None] | None = None
+        #: Sessions whose previous owner handed over only their prior (a delete on the
+        #: replica key, :meth:`hand_to`), until :meth:`handed` reads it.
+        self.at_prior: set[str] = set()
 
     # ================================================================== outgoing ======
 
@@ -173,6 +180,46 @@ class HandoverKeeper:
                     sent.setdefault(succ, {})[sess.name] = data
                 self.counters["replicas_handover"] += 1
         return sent
+
+    def hand_to(self, sess: Session, instance: str, now: int) -> bool:
+        """A session this instance stops serving while it stays up (``instance`` joined and
+        owns it now): its current state to ``instance`` at once, on its replica key; a
+        session at its prior alone gets a delete there ("start from the prior": the new
+        owner waits for one or the other, :meth:`Lifecycle.adopt_handed`). Not confirmed:
+        a lost one costs the new owner ``recover_timeout_s``. True if a state was sent."""
+        key = replica_key(instance, sess.name)
+        data = None if sess.prior_alone() else self.encode_state(sess, now)
+        self.counters["replicas_handover_join"] += 1
+        if data is None:
+            self.pub.delete(key)
+            return False
+        self.pub.pending.append(Out(key, data))
+        self.counters["replica_bytes"] += len(data)
+        return True
+
+    def handed(self, session: str) -> str:
+        """What came for ``session`` from its previous owner: "replica" (a state is held),
+        "prior" (its owner said it had only the prior), or "" (nothing yet). Any thread."""
+        with self._lock:
+            if session in self.replicas:
+                return "replica"
+            if session in self.at_prior:
+                self.at_prior.discard(session)
+                return "prior"
+        return ""
+
+    def set_aside(self, session: str) -> tuple[int, bytes] | None:
+        """Take the replica held for ``session`` out (one older than the hand-over state
+        awaited); :meth:`put_back` it if that state does not come."""
+        with self._lock:
+            self.at_prior.discard(session)
+            return self.replicas.pop(session, None)
+
+    def put_back(self, session: str, held: tuple[int, bytes] | None) -> None:
+        """Hold ``held`` (from :meth:`set_aside`) again unless a replica arrived since."""
+        if held is not None:
+            with self._lock:
+                self.replicas.setdefault(session, held)
 
     def confirm_handover(self, succ: str, states: dict[str, bytes], timeout: float) -> list[str]:
         """Ask ``succ`` for the replicas it holds (:meth:`on_replica_query`) until it holds
@@ -301,6 +348,7 @@ class HandoverKeeper:
             self.store.remove_state(session)
         with self._lock:
             self.replicas.pop(session, None)
+            self.at_prior.discard(session)
 
     # ================================================================== incoming ======
 
@@ -313,6 +361,13 @@ class HandoverKeeper:
         on arrival would hold the GIL against the worker."""
         session = sample.key.rsplit("/", 1)[-1]
         if sample.kind == "delete" or sample.payload is None:
+            # a hand-over of a session at its prior alone (hand_to): no state to resume
+            with self._lock:
+                self.replicas.pop(session, None)
+                if len(self.at_prior) < MAX_REPLICAS:
+                    self.at_prior.add(session)
+            if self.arrived is not None:
+                self.arrived(session)
             return
         try:
             check_name(session, "session")
@@ -331,6 +386,8 @@ class HandoverKeeper:
                     self.replicas.pop(next(iter(self.replicas)))
                 self.replicas[session] = (step, bytes(sample.payload))
         self.counters["replicas_received"] += 1
+        if self.arrived is not None:
+            self.arrived(session)
 
     def on_replica_query(self, query: Query) -> None:
         """Transport thread: answer a query on this instance's replica keys with each

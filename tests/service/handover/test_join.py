@@ -1,0 +1,116 @@
+"""A join hands sessions over: the sessions that move to a joining instance resume from their
+previous owner's state (sent when it sees the joiner, :meth:`HandoverKeeper.hand_to`), not
+from the prior, and continue exactly as the estimator that never stopped; what was sent
+during the hand-over comes back from the senders' caches; a state that never comes leaves
+the session at its prior after ``recover_timeout_s``, said in its status."""
+
+from __future__ import annotations
+
+from pd_service.backends import build
+from pd_service.service.ownership import Ownership
+from pd_service.transport import InMemoryBus
+from pd_service.wire import encode, keys
+
+from ..helpers import Clock, Collector, paper_spec
+from ..test_core import make_core, settle
+from .test_keeper import CachedSender, Driver, status
+
+TRIO = ["inst-a", "inst-b", "inst-c"]
+
+
+def pair_with_sessions(bus, clock, tmp_path, cli, n=40, **kw):
+    """inst-a and inst-b (inst-c trusted too) serving n paper sessions; returns them and
+    the name of a session that moves to inst-c when it joins, and its owner before."""
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=TRIO, **kw)
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=TRIO, **kw)
+    names = [f"s{i:02d}" for i in range(n)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(a, b)
+    three = Ownership("inst-c")
+    three.join("inst-a")
+    three.join("inst-b")
+    moving = [s for s in names if three.owns(s)]
+    assert moving
+    s = moving[0]
+    old = a if s in a.served_sessions() else b
+    return a, b, names, moving, s, old
+
+
+def test_a_join_hands_the_moved_sessions_over_exactly(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a, b, names, moving, s, old = pair_with_sessions(bus, clock, tmp_path, cli)
+    before = {n: "inst-a" if n in a.served_sessions() else "inst-b" for n in names}
+    d = Driver(cli, clock, col, s)
+    for k in range(30):
+        d.step([a, b], k)
+    sent0 = a.counters["replicas_handover_join"] + b.counters["replicas_handover_join"]
+    c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO)
+    assert s in c.lifecycle.awaiting and s not in c.served_sessions()  # not from the prior
+    settle(a, b, c)  # a and b see c: they hand the moved sessions over, c resumes them
+    assert not c.lifecycle.awaiting
+    assert sorted(c.served_sessions()) == sorted(moving)
+    assert s not in old.served_sessions()
+    for k in range(30, 50):
+        d.step([a, b, c], k)
+        d.check(k, d.off)  # as if it never moved
+    st = status(cli, s)
+    assert st.instance == "inst-c" and st.origin == "replica" and st.origin_step is not None
+    assert "handed over by " + old.instance in st.detail
+    # the others, at their prior alone, were handed over as such (no state, no refusal)
+    assert c.counters["resumed_from_replica"] == 1 and "restore_refused" not in c.counters
+    # every session that changed owner was handed over (bounded load may move a partition
+    # between the two old members too), each served once
+    moved = [n for n in names if c.ownership.owner(n) != before[n]]
+    sent = a.counters["replicas_handover_join"] + b.counters["replicas_handover_join"] - sent0
+    assert sent == len(moved) >= len(moving) and "handover_timeout" not in c.counters
+    served = a.served_sessions() + b.served_sessions() + c.served_sessions()
+    assert sorted(served) == sorted(names)
+    assert not (a.lifecycle.awaiting or b.lifecycle.awaiting)
+    # the estimate continued: far from a fresh start's covariance
+    fresh = build(d.spec).est
+    assert float(col.predictions[s][-1].P[1, 1]) < 0.1 * float(fresh.predict(49).P[1, 1])
+
+
+def test_what_was_sent_during_the_hand_over_is_read_back(tmp_path):
+    """Inputs of the step at which the old owner sees the joiner reach the old owner (it
+    drops them: no longer its session) and not the joiner (still waiting): the joiner reads
+    them back from the senders' caches after resuming, and continues exactly."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a, b, _, _, s, old = pair_with_sessions(bus, clock, tmp_path, cli)
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    for k in range(30):
+        d.step([a, b], k)
+    c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO)
+    for k in range(30, 50):
+        d.step([a, b, c], k)  # the first one: the hand-over with inputs on their way
+        settle(a, b, c)
+        d.check(k, d.off)
+    st = status(cli, s)
+    assert st.instance == "inst-c" and st.origin == "replica"
+    assert c.counters["recovered_accepted"] > 0 and c.counters["refused"] == 0
+
+
+def test_a_state_that_never_comes_leaves_the_session_at_its_prior_after_the_wait(tmp_path):
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a, b, _, moving, s, old = pair_with_sessions(bus, clock, tmp_path, cli)
+    d = Driver(cli, clock, col, s)
+    for k in range(10):
+        d.step([a, b], k)
+    old.keeper.hand_to = lambda *args: False  # type: ignore[method-assign]  # lost on the way
+    c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO, recover_timeout_s=0.5)
+    settle(a, b, c)
+    assert s in c.lifecycle.awaiting and s not in c.served_sessions()
+    wait_end = c.lifecycle.next_await_ns()
+    assert wait_end is not None and c.next_deadline_ns() <= wait_end
+    clock.t = wait_end
+    c.run_once()
+    assert s in c.served_sessions() and c.counters["handover_timeout"] >= 1
+    st = status(cli, s)
+    assert st.origin == "prior" and "no state handed over by " + old.instance in st.detail
+    d.step([a, b, c], 11)
+    prior = build(d.spec).est
+    assert float(col.predictions[s][-1].P[1, 1]) > 0.1 * float(prior.predict(11).P[1, 1])
