@@ -5,7 +5,9 @@ Every instance keeps every spec (``specs``) and runs the sessions it owns (rende
 the live instances, or a static shard; :class:`Ownership`). A spec comes from a config put
 (checked, persisted, answered with a SessionStatus), from the state directory at start, or
 from the peers (at start and whenever an instance joins). A session is (re)started from its
-spec's prior on every change: spec replaced, ownership gained. Worker thread only (under the
+spec's prior on every change (spec replaced), or continued from the state it had: its
+checkpoint at restart, the replica held for it at a takeover, the state its previous owner
+hands over when it moves to an instance that joins (:meth:`Lifecycle.reassign`). Worker thread only (under the
 core's lock), except :meth:`Lifecycle.load_specs` and the background sync.
 """
 

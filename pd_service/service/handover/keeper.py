@@ -12,7 +12,9 @@ going back to the prior.
   owner puts the same message on ``pd/@service/<successor>/replica/<session>``, the successor
   being the instance that owns the session if this one goes away (the rendezvous order
   without this instance). Every instance keeps the newest replica per session it received;
-  when it takes a session over it resumes from it.
+  when it takes a session over it resumes from it. On a join, the owner that loses a
+  session sends its state at once to the new owner, on that owner's replica key
+  (:meth:`HandoverKeeper.hand_to`), which waits for it (``Lifecycle.adopt_handed``).
 - A state that is stale, corrupt, from another spec or of another version is refused
   (:mod:`pd_service.service.handover.checkpoint`): the session starts from its prior, the refusal is counted
   (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.

@@ -100,7 +100,7 @@ def test_a_state_that_never_comes_leaves_the_session_at_its_prior_after_the_wait
     d = Driver(cli, clock, col, s)
     for k in range(10):
         d.step([a, b], k)
-    old.keeper.hand_to = lambda *args: False  # type: ignore[method-assign]  # lost on the way
+    old.keeper.hand_to = lambda *args: False  # lost on the way
     c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO, recover_timeout_s=0.5)
     settle(a, b, c)
     assert s in c.lifecycle.awaiting and s not in c.served_sessions()
