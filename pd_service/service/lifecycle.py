@@ -113,9 +113,8 @@ class Lifecycle:
         self.follow: Callable[[], None] | None = None
         #: Sessions gained from an owner that is still up (it hands their state over when
         #: it sees the new membership): name -> (deadline ns, resume source if no state
-        #: came by then, the previous owner, an older replica held before). Not served
-        #: until then (:meth:`adopt_handed`).
-        self.awaiting: dict[str, tuple[int, Origin, str, tuple[int, bytes] | None]] = {}
+        #: came by then, the previous owner). Not served until then (:meth:`adopt_handed`).
+        self.awaiting: dict[str, tuple[int, Origin, str]] = {}
 
     # ================================================================== start =========
 
@@ -637,8 +636,10 @@ class Lifecycle:
             running = route is not None and route.sess is not None
             owns = own.owns(name)
             if owns and not running:
-                if name in self.awaiting:
-                    continue
+                waiting = self.awaiting.get(name)
+                if waiting is not None and waiting[2] in own.members:
+                    continue  # its previous owner's state is on its way
+                # (one whose previous owner went away before handing it over: taken over)
                 prev = None if before is None else \
                     before[keys.partition_of(name, own.partitions)]
                 if prev is not None and prev != own.instance and prev in own.members:
@@ -662,10 +663,12 @@ class Lifecycle:
 
     def _await_handover(self, name: str, prev: str, fallback: Origin, now: int) -> None:
         """``name`` is ours now but ``prev`` (alive) served it: known here, not served, until
-        its state arrives or ``recover_timeout_s`` passes (:meth:`adopt_handed`)."""
+        a state is held for it or ``recover_timeout_s`` passes (:meth:`adopt_handed`). A
+        replica held already (an instance that gains a partition from another old member,
+        often its successor) is resumed from at once, as at a takeover, the senders' caches
+        filling the gap: its hand-over state may have come before this wait began."""
         deadline = now + int(self.settings.recover_timeout_s * 1e9)
-        older = self.keeper.set_aside(name) if self.keeper is not None else None
-        self.awaiting[name] = (deadline, fallback, prev, older)
+        self.awaiting[name] = (deadline, fallback, prev)
         self._declare_keys(name, self.specs.get(name))
         routes = self.dispatch.routes
         route = routes.get(name) or Route(name)
@@ -686,7 +689,7 @@ class Lifecycle:
             return
         members = ",".join(sorted(self.ownership.members))
         taken: list[str] = []
-        for name, (deadline, fallback, prev, older) in list(self.awaiting.items()):
+        for name, (deadline, fallback, prev) in list(self.awaiting.items()):
             arrived = self.keeper.handed(name)
             if not arrived and now < deadline:
                 continue
@@ -698,7 +701,6 @@ class Lifecycle:
                              now, answer=True, resume="replica" if arrived == "replica"
                              else "prior")
             else:
-                self.keeper.put_back(name, older)
                 self.counters["handover_timeout"] += 1
                 event(log, "handover_timeout", logging.WARNING, session=name,
                       previous_owner=prev, waited_s=self.settings.recover_timeout_s)

@@ -210,19 +210,6 @@ class HandoverKeeper:
                 return "prior"
         return ""
 
-    def set_aside(self, session: str) -> tuple[int, bytes] | None:
-        """Take the replica held for ``session`` out (one older than the hand-over state
-        awaited); :meth:`put_back` it if that state does not come."""
-        with self._lock:
-            self.at_prior.discard(session)
-            return self.replicas.pop(session, None)
-
-    def put_back(self, session: str, held: tuple[int, bytes] | None) -> None:
-        """Hold ``held`` (from :meth:`set_aside`) again unless a replica arrived since."""
-        if held is not None:
-            with self._lock:
-                self.replicas.setdefault(session, held)
-
     def confirm_handover(self, succ: str, states: dict[str, bytes], timeout: float) -> list[str]:
         """Ask ``succ`` for the replicas it holds (:meth:`on_replica_query`) until it holds
         every one of ``states`` (session -> encoded state) byte for byte, for at most

@@ -114,3 +114,20 @@ def test_a_state_that_never_comes_leaves_the_session_at_its_prior_after_the_wait
     d.step([a, b, c], 11)
     prior = build(d.spec).est
     assert float(col.predictions[s][-1].P[1, 1]) > 0.1 * float(prior.predict(11).P[1, 1])
+
+
+def test_a_previous_owner_that_goes_away_during_the_wait_ends_it(tmp_path):
+    """The state does not come and its sender dies: the session is taken over at once (as
+    at any takeover), not after the rest of the wait."""
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a, b, _, _, s, old = pair_with_sessions(bus, clock, tmp_path, cli)
+    old.keeper.hand_to = lambda *args: False  # lost on the way
+    c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO, recover_timeout_s=60.0)
+    settle(a, b, c)
+    assert s in c.lifecycle.awaiting
+    old.t.close()  # it dies
+    c.dispatch.on_liveliness(keys.service_token_key(old.instance), False)
+    c.run_once()
+    assert s not in c.lifecycle.awaiting and s in c.served_sessions()
+    assert "taken over" in status(cli, s).detail
