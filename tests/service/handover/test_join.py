@@ -7,6 +7,7 @@ the session at its prior after ``recover_timeout_s``, said in its status."""
 from __future__ import annotations
 
 from pd_service.backends import build
+from pd_service.service.handover.keeper import replica_key
 from pd_service.service.ownership import Ownership
 from pd_service.transport import InMemoryBus
 from pd_service.wire import encode, keys
@@ -16,6 +17,24 @@ from ..test_core import make_core, settle
 from .test_keeper import CachedSender, Driver, status
 
 TRIO = ["inst-a", "inst-b", "inst-c"]
+
+
+class LosesHandovers:
+    """A transport that loses every put and delete to inst-c's replica keys."""
+
+    def __init__(self, t):
+        self._t = t
+
+    def __getattr__(self, name):
+        return getattr(self._t, name)
+
+    def put(self, key, payload):
+        if not key.startswith(replica_key("inst-c", "x")[:-1]):
+            self._t.put(key, payload)
+
+    def delete(self, key):
+        if not key.startswith(replica_key("inst-c", "x")[:-1]):
+            self._t.delete(key)
 
 
 def pair_with_sessions(bus, clock, tmp_path, cli, n=40, **kw):
@@ -100,7 +119,7 @@ def test_a_state_that_never_comes_leaves_the_session_at_its_prior_after_the_wait
     d = Driver(cli, clock, col, s)
     for k in range(10):
         d.step([a, b], k)
-    old.keeper.hand_to = lambda *args: False  # lost on the way
+    old.outbox.t = LosesHandovers(old.outbox.t)  # the states are lost on the way
     c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO, recover_timeout_s=0.5)
     settle(a, b, c)
     assert s in c.lifecycle.awaiting and s not in c.served_sessions()
@@ -122,7 +141,7 @@ def test_a_previous_owner_that_goes_away_during_the_wait_ends_it(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     cli = bus.transport()
     a, b, _, _, s, old = pair_with_sessions(bus, clock, tmp_path, cli)
-    old.keeper.hand_to = lambda *args: False  # lost on the way
+    old.outbox.t = LosesHandovers(old.outbox.t)  # the states are lost on the way
     c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO, recover_timeout_s=60.0)
     settle(a, b, c)
     assert s in c.lifecycle.awaiting
