@@ -20,15 +20,22 @@ pytestmark = pytest.mark.integration
 PERIOD = 100_000_000
 
 
-def test_each_instance_receives_only_its_partitions_through_a_router(tmp_path):
+def router_and_pair(tmp_path):
+    """A Python Zenoh router on loopback, a client of it (with a Collector and a Presence),
+    inst-x started as its client and inst-y ready to start (each the other's peer)."""
     router_ep = endpoint(free_port())
     router = ZenohTransport(zenoh_config(mode="router", listen=[router_ep]))
     t = ZenohTransport(zenoh_config(mode="client", connect=[router_ep]))
-    col, pres = Collector().attach(t), Presence(t)
     x = Daemon("inst-x", tmp_path / "inst-x", [router_ep],
                ["--mode", "client", "--peer", "inst-y"]).start()
     y = Daemon("inst-y", tmp_path / "inst-y", [router_ep],
-               ["--mode", "client", "--peer", "inst-x"]).start()
+               ["--mode", "client", "--peer", "inst-x"])
+    return router, t, Collector().attach(t), Presence(t), x, y
+
+
+def test_each_instance_receives_only_its_partitions_through_a_router(tmp_path):
+    router, t, col, pres, x, y = router_and_pair(tmp_path)
+    y.start()
     try:
         assert pres.wait("inst-x"), x.log()
         assert pres.wait("inst-y"), y.log()
@@ -72,14 +79,7 @@ def test_each_instance_receives_only_its_partitions_through_a_router(tmp_path):
 def test_a_joining_instance_resumes_the_sessions_it_takes_from_their_state(tmp_path):
     """inst-x serves every session, fed each step; inst-y joins: the sessions that move to it
     continue from inst-x's state (origin "replica", "handed over by inst-x"), not the prior."""
-    router_ep = endpoint(free_port())
-    router = ZenohTransport(zenoh_config(mode="router", listen=[router_ep]))
-    t = ZenohTransport(zenoh_config(mode="client", connect=[router_ep]))
-    col, pres = Collector().attach(t), Presence(t)
-    x = Daemon("inst-x", tmp_path / "inst-x", [router_ep],
-               ["--mode", "client", "--peer", "inst-y"]).start()
-    y = Daemon("inst-y", tmp_path / "inst-y", [router_ep],
-               ["--mode", "client", "--peer", "inst-x"])
+    router, t, col, pres, x, y = router_and_pair(tmp_path)
     stop = threading.Event()
     try:
         assert pres.wait("inst-x"), x.log()
