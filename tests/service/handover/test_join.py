@@ -10,11 +10,11 @@ from pd_service.backends import build
 from pd_service.service.handover.keeper import replica_key
 from pd_service.service.ownership import Ownership
 from pd_service.transport import InMemoryBus
-from pd_service.wire import encode, keys
+from pd_service.wire import keys
 
-from ..helpers import Clock, Collector, paper_spec
+from ..helpers import Clock, Collector
 from ..test_core import make_core, settle
-from .test_keeper import CachedSender, Driver, status
+from .test_keeper import CachedSender, Driver, status, two_instances
 
 TRIO = ["inst-a", "inst-b", "inst-c"]
 
@@ -40,12 +40,7 @@ class LosesHandovers:
 def pair_with_sessions(bus, clock, tmp_path, cli, n=40, **kw):
     """inst-a and inst-b (inst-c trusted too) serving n paper sessions; returns them and
     the name of a session that moves to inst-c when it joins, and its owner before."""
-    a = make_core(bus, clock, tmp_path, "inst-a", peers=TRIO, **kw)
-    b = make_core(bus, clock, tmp_path, "inst-b", peers=TRIO, **kw)
-    names = [f"s{i:02d}" for i in range(n)]
-    for s in names:
-        cli.put(keys.config_key(s), encode(paper_spec(s)))
-    settle(a, b)
+    a, b, names = two_instances(bus, clock, tmp_path, cli, sessions=n, peers=TRIO, **kw)
     three = Ownership("inst-c")
     three.join("inst-a")
     three.join("inst-b")

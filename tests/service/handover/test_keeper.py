@@ -72,11 +72,11 @@ def status(cli, s):
 
 
 
-def two_instances(bus, clock, tmp_path, cli, sessions: int = 12, **kw):
-    """inst-a and inst-b (explicit peers, settings ``kw``) sharing ``sessions`` paper
+def two_instances(bus, clock, tmp_path, cli, sessions: int = 12, peers=PAIR, **kw):
+    """inst-a and inst-b (explicit ``peers``, settings ``kw``) sharing ``sessions`` paper
     sessions s00, s01, ...; returns (a, b, names) once both have applied every config."""
-    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, **kw)
-    b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, **kw)
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=peers, **kw)
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=peers, **kw)
     names = [f"s{i:02d}" for i in range(sessions)]
     for s in names:
         cli.put(keys.config_key(s), encode(paper_spec(s)))
