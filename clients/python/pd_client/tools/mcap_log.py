@@ -20,8 +20,11 @@ a log without it is of key layout 1 (``/pd/<s>/...``). Reading re-keys every mes
 this process's layout and P, so an older log, or one recorded with another
 ``PD_PARTITIONS``, replays the same.
 
-Log time and publish time are the recorder's receipt time (wall clock, ns); the MCAP
-``sequence`` of each message is its arrival order at the recorder (over all channels).
+Publish time is the recorder's receipt time (wall clock, ns). Log time is the same, raised
+to the previous message's log time when a sample written later was received earlier (two
+transport threads, or the ROS 2 copies of a prediction written after it): log times never
+decrease in the file, the order MCAP readers and players expect. The MCAP ``sequence`` of
+each message is its arrival order at the recorder (over all channels).
 
 ROS 2 profile where a ROS message type exists: for a session whose spec binds ROS 2 outputs
 (``SessionSpec.ros2.outputs``), every prediction is also written as ``nav_msgs/msg/Odometry``
@@ -136,6 +139,7 @@ class McapLog:
         self._channels: dict[str, int] = {}
         self._lock = threading.Lock()
         self._seq = 0
+        self._last_log = 0  # ns: the log time of the newest message written
         self.messages = 0
         self._closed = False
         self._specs: dict[str, SessionSpec] = {}  # session -> newest spec seen
@@ -185,11 +189,7 @@ class McapLog:
                 with self._lock:
                     if self._closed:
                         return
-                    cid = self._ros2_channel(topic, msg_type)
-                    self._w.add_message(channel_id=cid, log_time=log_ns, data=data,
-                                        publish_time=log_ns, sequence=self._seq)
-                    self._seq += 1
-                    self.messages += 1
+                    self._add(self._ros2_channel(topic, msg_type), data, log_ns)
         except (WireError, ValueError):  # a prediction the JSON channel keeps anyway
             return
 
@@ -206,15 +206,19 @@ class McapLog:
             self._channels[topic] = cid
         return cid
 
+    def _add(self, cid: int, data: bytes, recv_ns: int) -> None:
+        """One message (lock held): log time max(receipt, previous log time), module docstring."""
+        self._last_log = max(self._last_log, recv_ns)
+        self._w.add_message(channel_id=cid, log_time=self._last_log, data=data,
+                            publish_time=recv_ns, sequence=self._seq)
+        self._seq += 1
+        self.messages += 1
+
     def write(self, topic: str, type_name: str, data: bytes, log_ns: int) -> None:
         with self._lock:
             if self._closed:
                 return
-            cid = self._channel(topic, type_name)
-            self._w.add_message(channel_id=cid, log_time=log_ns, data=data,
-                                publish_time=log_ns, sequence=self._seq)
-            self._seq += 1
-            self.messages += 1
+            self._add(self._channel(topic, type_name), data, log_ns)
 
     def write_sample(self, key: str, payload: bytes, log_ns: int, kind: str = "put") -> None:
         """One received sample: on its key's channel, or the session's raw channel."""
