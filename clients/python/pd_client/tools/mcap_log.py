@@ -4,8 +4,10 @@ One MCAP channel per Zenoh key, topic ``/`` + key (``/pd/p<k>/<s>/sensor/<name>`
 ``/pd/p<k>/<s>/cmd``, ``/pd/p<k>/<s>/prediction``, ``/pd/p<k>/<s>/error``,
 ``/pd/p<k>/<s>/status``, ``/pd/p<k>/<s>/config``, ``/robot/p<k>/<s>/truth``; key layout 2,
 protocol.md §3), message encoding ``json`` with the message type's JSON Schema
-(``jsonschema`` schema encoding; the same schemas as docs/schemas, from
-:func:`pd_service.wire.schemas.schemas`, and :class:`pd_client.Truth`'s).
+(``jsonschema`` schema encoding, named for the type: docs/schemas' schemas, from
+:func:`pd_service.wire.schemas.schemas`, rewritten by :func:`.flat_schema.flat_schema` into
+the form Lichtblick's and Foxglove's parsers read: no ``$ref`` / ``anyOf``, every property
+typed; a type that cannot be said so would be written schemaless).
 
 Each message is the payload's msgpack map, unpacked (the wire form: arrays are
 ``{"shape": [...], "data": [...]}``) and written as JSON. Python writes a float with
@@ -53,7 +55,7 @@ from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import Prediction, SessionSpec, WireError, decode, keys
 from pd_service.wire.schemas import schemas
 
-from ..truth import Truth
+from .flat_schema import Inexpressible, flat_schema
 
 #: Stream kind of a key -> message type name (its JSON Schema's title).
 TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Prediction",
@@ -62,17 +64,22 @@ TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Predic
 RAW_SCHEMA: dict[str, Any] = {
     "title": "RawSample", "type": "object",
     "description": "A sample that is not a JSON-representable msgpack map (kept for replay).",
-    "properties": {"key": {"type": "string"}, "kind": {"enum": ["put", "delete"]},
+    "properties": {"key": {"type": "string"}, "kind": {"type": "string", "enum": ["put", "delete"]},
                    "payload_b64": {"type": "string"}},
     "required": ["key", "kind", "payload_b64"],
 }
 _UNPACK: dict[str, Any] = {"raw": False, "strict_map_key": True, "use_list": True}
 
 
-def _json_schemas() -> dict[str, dict[str, Any]]:
-    out = {name.removesuffix(".json"): s for name, s in schemas().items()}
-    out["Truth"] = Truth.model_json_schema(mode="validation")
-    out["RawSample"] = RAW_SCHEMA
+def json_schemas() -> dict[str, dict[str, Any] | None]:
+    """Type name -> the schema its MCAP channels get (None: written schemaless)."""
+    out: dict[str, dict[str, Any] | None] = {}
+    for name, s in (*((n.removesuffix(".json"), s) for n, s in schemas().items()),
+                    ("RawSample", RAW_SCHEMA)):
+        try:
+            out[name] = flat_schema(s)
+        except Inexpressible:
+            out[name] = None
     return out
 
 
@@ -134,7 +141,7 @@ class McapLog:
         self._w.start(profile="", library=library)
         self._w.add_metadata(KEYS_METADATA, {"key_layout": str(keys.KEY_LAYOUT),
                                              "partitions": str(keys.partitions())})
-        self._schemas = _json_schemas()
+        self._schemas = json_schemas()
         self._schema_ids: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._lock = threading.Lock()
@@ -198,9 +205,9 @@ class McapLog:
         if cid is None:
             sid = self._schema_ids.get(type_name)
             if sid is None:
-                sid = self._w.register_schema(
-                    name=type_name, encoding="jsonschema",
-                    data=json.dumps(self._schemas[type_name]).encode())
+                schema = self._schemas[type_name]
+                sid = 0 if schema is None else self._w.register_schema(  # 0: schemaless
+                    name=type_name, encoding="jsonschema", data=json.dumps(schema).encode())
                 self._schema_ids[type_name] = sid
             cid = self._w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
             self._channels[topic] = cid
