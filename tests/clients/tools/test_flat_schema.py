@@ -94,3 +94,13 @@ def test_flat_schema_rules() -> None:
         "type": "object", "properties": {"a": {"type": "integer"},
                                          "b": {"type": "array", "items": {"type": "number"}},
                                          "c": {"type": "object", "properties": {"d": {"type": "string"}}}}}
+
+
+@needs_node
+def test_lichtblick_reads_pd_viz_json_schemas() -> None:
+    pytest.importorskip("foxglove")
+    from pd_client.tools.pd_viz import JSON_SCHEMAS
+
+    got = lichtblick({s["title"]: s for s in JSON_SCHEMAS.values()})
+    assert all("error" not in r for r in got.values()), got
+    assert got["pd_viz.Prediction"]["fields"][:3] == ["step", "seq", "newest_step"]

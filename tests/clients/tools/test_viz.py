@@ -85,3 +85,67 @@ def test_position_and_ellipse_helpers():
     assert np.allclose(pts, [[5.0, 2.0], [1.0, 4.0], [-3.0, 2.0], [1.0, 0.0]]) or np.allclose(
         np.sort(pts, axis=0), np.sort(np.array([[5.0, 2.0], [1.0, 4.0], [-3.0, 2.0],
                                                 [1.0, 0.0]]), axis=0))
+
+
+def plotjuggler_lists(channel: dict) -> bool:
+    """PlotJuggler 3.16+'s Foxglove client keeps a channel only if this holds
+    (plotjuggler_plugins/DataStreamFoxgloveBridge/foxglove_client.cpp, canUseChannel)."""
+    return (channel.get("encoding") == "cdr" and channel.get("schemaEncoding") == "ros2msg"
+            and bool(channel.get("schema")) and bool(channel.get("schemaName"))
+            and bool(channel.get("topic")))
+
+
+def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
+    """The ros2/* channels pass PlotJuggler's filter (the others do not: it lists nothing
+    else), and rosbags (an independent ROS 2 message and CDR implementation) reads their
+    messages, from the advertised definition alone, as the daemon's predictions."""
+    rosbags = pytest.importorskip("rosbags.typesys")
+
+    bus = InMemoryBus()
+    clock = Clock(0)
+    col = Collector().attach(bus.transport())
+    core = make_core(bus, clock, tmp_path)
+    feed = PaperFeed(core, bus.transport(), clock, col, "s1", steps=60, check=False)
+    feed.configure()
+    server = VizServer(bus.transport(), ["s1"], port=0, xy=(0, 2), status_every=0)
+    client = FoxgloveClient(server.url)
+    series = ["/s1/ros2/prediction", "/s1/ros2/status"]
+    try:
+        client.wait_channels(TOPICS)
+        assert not [t for t, ch in client.channels.items() if plotjuggler_lists(ch)]
+        pred = client.channels["/s1/prediction"]  # JSON: a real schema with a stable name
+        assert (pred["schemaName"], pred["schemaEncoding"]) == ("pd_viz.Prediction", "jsonschema")
+        assert json.loads(pred["schema"])["properties"]["step"] == {"type": "integer"}
+        for k in range(10):
+            feed.step(k)
+        client.wait_channels(series)  # advertised at the first prediction
+        listed = sorted(t for t, ch in client.channels.items() if plotjuggler_lists(ch))
+        assert listed == series
+        client.subscribe(series)
+        client.pump(0.5)
+        for k in range(10, 60):
+            feed.step(k)
+        client.pump(1.0)
+    finally:
+        client.close()
+        server.close()
+        core.close()
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    for t in series:
+        ch = client.channels[t]
+        own = ch["schema"].split("\n" + "=" * 80)[0]  # the message; its dependency is Jazzy's
+        ts.register(rosbags.get_types_from_msg(own, ch["schemaName"]))
+    by_step = {p.step: p for p in col.predictions["s1"]}
+    ch = client.channels["/s1/ros2/prediction"]
+    assert ch["schemaName"] == "pd_viz_msgs/msg/S1Prediction"
+    msgs = [ts.deserialize_cdr(d, ch["schemaName"]) for _, d in client.messages[series[0]]]
+    assert len(msgs) >= 40
+    for m in msgs:
+        p = by_step[m.step]
+        assert m.stamp.sec * 10**9 + m.stamp.nanosec == p.t_ns
+        assert m.newest_step == (-1 if p.newest_step is None else p.newest_step)
+        assert [m.x_x0, m.x_x1, m.x_x2, m.x_x3] == p.x.tolist()  # no truth: names x0..x3
+        assert m.sd_x2 == np.sqrt(p.P[2, 2]) and m.latency_ms >= 0
+    st = [ts.deserialize_cdr(d, client.channels[series[1]]["schemaName"])
+          for _, d in client.messages[series[1]]]
+    assert st[-1].accepted == col.predictions["s1"][-1].counters["accepted"]
