@@ -151,6 +151,8 @@ class McapLog:
         self._closed = False
         self._specs: dict[str, SessionSpec] = {}  # session -> newest spec seen
         self._ros2_ok: bool | None = None  # None: not tried yet
+        self.ros2_errors = 0  # predictions the ROS 2 profile could not convert
+        self._ros2_failed: set[str] = set()
 
     def _ros2_channel(self, topic: str, msg_type: str) -> int:
         cid = self._channels.get(topic)
@@ -197,8 +199,15 @@ class McapLog:
                     if self._closed:
                         return
                     self._add(self._ros2_channel(topic, msg_type), data, log_ns)
-        except (WireError, ValueError):  # a prediction the JSON channel keeps anyway
-            return
+        except (WireError, ValueError) as exc:  # the JSON channel keeps the prediction
+            with self._lock:
+                self.ros2_errors += 1
+                first = session not in self._ros2_failed
+                self._ros2_failed.add(session)
+            if first:
+                print(f"pd-record: session {session}: a prediction not written as ROS 2 "
+                      f"messages ({exc}); the JSON prediction is recorded (counted in "
+                      "ros2_errors, said once per session)", file=sys.stderr)
 
     def _channel(self, topic: str, type_name: str) -> int:
         cid = self._channels.get(topic)
