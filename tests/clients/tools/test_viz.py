@@ -6,6 +6,7 @@ equals the daemon's Prediction for the same step."""
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -25,7 +26,10 @@ TOPICS = ["/s1/pose", "/s1/ellipse", "/s1/prediction", "/s1/measurement", "/s1/c
           "/s1/status", "/s1/log"]
 
 
-def test_pose_equals_the_daemons_prediction(tmp_path):
+@contextmanager
+def viz_on_paper(tmp_path):
+    """The daemon core running the paper scenario (session s1, 60 steps) on the in-memory
+    bus, pd-viz serving it, and a Foxglove client connected: (feed, collector, client)."""
     bus = InMemoryBus()
     clock = Clock(0)
     col = Collector().attach(bus.transport())
@@ -35,6 +39,15 @@ def test_pose_equals_the_daemons_prediction(tmp_path):
     server = VizServer(bus.transport(), ["s1"], port=0, xy=(0, 2), status_every=0)
     client = FoxgloveClient(server.url)
     try:
+        yield feed, col, client
+    finally:
+        client.close()
+        server.close()
+        core.close()
+
+
+def test_pose_equals_the_daemons_prediction(tmp_path):
+    with viz_on_paper(tmp_path) as (feed, col, client):
         client.wait_channels(TOPICS)
         assert client.server_info is not None
         assert client.subprotocol == "foxglove.sdk.v1"
@@ -43,10 +56,6 @@ def test_pose_equals_the_daemons_prediction(tmp_path):
         for k in range(60):
             feed.step(k)
         client.pump(1.0)
-    finally:
-        client.close()
-        server.close()
-        core.close()
     preds = {p.t_ns: p for p in col.predictions["s1"]}
     Pose = client.protobuf_class("/s1/pose")
     poses = [Pose.FromString(data) for _, data in client.messages.get("/s1/pose", [])]
@@ -101,16 +110,8 @@ def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
     messages, from the advertised definition alone, as the daemon's predictions."""
     rosbags = pytest.importorskip("rosbags.typesys")
 
-    bus = InMemoryBus()
-    clock = Clock(0)
-    col = Collector().attach(bus.transport())
-    core = make_core(bus, clock, tmp_path)
-    feed = PaperFeed(core, bus.transport(), clock, col, "s1", steps=60, check=False)
-    feed.configure()
-    server = VizServer(bus.transport(), ["s1"], port=0, xy=(0, 2), status_every=0)
-    client = FoxgloveClient(server.url)
     series = ["/s1/ros2/prediction", "/s1/ros2/status"]
-    try:
+    with viz_on_paper(tmp_path) as (feed, col, client):
         client.wait_channels(TOPICS)
         assert not [t for t, ch in client.channels.items() if plotjuggler_lists(ch)]
         pred = client.channels["/s1/prediction"]  # JSON: a real schema with a stable name
@@ -126,10 +127,6 @@ def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
         for k in range(10, 60):
             feed.step(k)
         client.pump(1.0)
-    finally:
-        client.close()
-        server.close()
-        core.close()
     ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
     for t in series:
         ch = client.channels[t]

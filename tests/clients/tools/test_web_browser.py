@@ -22,9 +22,8 @@ from __future__ import annotations
 import json
 import os
 import re
-import socket
 import signal
-import threading
+import socket
 import time
 import urllib.request
 
@@ -233,7 +232,8 @@ def test_names_like_object_properties_and_markup_are_shown_as_names(browser) -> 
                                  P=np.diag([0.04, 0.01, 0.09, 0.01]), newest_step=2,
                                  made_ns=time.time_ns(), counters={"accepted": 3})
             transport.put(keys.prediction_key(s), encode(sent[s]))
-        overview = "return Array.from(document.getElementById('overview').rows).map((r) => [r.dataset.session, r.cells[1].textContent])"
+        overview = ("return Array.from(document.getElementById('overview').rows)"
+                    ".map((r) => [r.dataset.session, r.cells[1].textContent])")
         rows = wait_until("both sessions in the overview",
                           lambda: (lambda r: r if len(r) == 2 else None)(browser.execute_script(overview)))
         assert rows == [["constructor", "1"], ["paper", "1"]]
@@ -250,7 +250,8 @@ def test_names_like_object_properties_and_markup_are_shown_as_names(browser) -> 
             layout: "axis", x: [1, 2], var: [1, 1], ell: null, meas: {}, truth: null, err: null,
             delay_ms: {}, lat_ms: 1, c: {accepted: 1}, cmd: null});""", markup)
         wait_until("the picker to list it", lambda: browser.execute_script(
-            "return Array.from(document.getElementById('session').options).some((o) => o.value === arguments[0])",
+            "return Array.from(document.getElementById('session').options)"
+            ".some((o) => o.value === arguments[0])",
             markup))
         Select(browser.find_element("id", "session")).select_by_value(markup)
         shown = browser.execute_script("""return {imgs: document.querySelectorAll('img').length,
@@ -312,13 +313,14 @@ def test_pages_keep_up_with_10_sessions_at_20_hz_and_200_idle_connections(browse
         assert server.feed.events == sent
         page_stats = """const l = stats.lags.slice().sort((a, b) => a - b);
             const q = (p) => (l.length ? l[Math.min(l.length - 1, Math.floor(p * l.length))] : 0);
-            return {received: stats.received, gaps: stats.gaps, p50: q(0.5), p95: q(0.95), max: stats.maxLag};"""
+            return {received: stats.received, gaps: stats.gaps, p50: q(0.5), p95: q(0.95),
+                    max: stats.maxLag};"""
         per_page = []
         for h in tabs:
             browser.switch_to.window(h)
-            st = wait_until("the page to receive every event",
-                            lambda: (lambda s: s if s["received"] >= sent else None)(browser.execute_script(page_stats)),
-                            timeout=30)
+            st = wait_until("the page to receive every event", lambda: (
+                lambda s: s if s["received"] >= sent else None)(browser.execute_script(page_stats)),
+                timeout=30)
             assert st["received"] == sent and st["gaps"] == 0  # none lost, none reordered
             per_page.append(st)
         browser.switch_to.window(tabs[0])

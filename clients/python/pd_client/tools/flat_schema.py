@@ -76,8 +76,8 @@ def flat_schema(schema: Json) -> Json:
         alts = node.get("anyOf") or node.get("oneOf")
         if alts is not None:
             alts = [conv(a, where) for a in alts if resolve(a).get("type") != "null"]
-            out = merge(alts, where)
-            return {**out, **{k: node[k] for k in ("description", "title") if k in node}}
+            one = merge(alts, where)
+            return {**one, **{k: node[k] for k in ("description", "title") if k in node}}
         t = typed(node, where)
         out: Json = {"type": t, **{k: node[k] for k in _KEEP if k in node}}
         if t == "object":

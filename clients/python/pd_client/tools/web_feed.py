@@ -20,8 +20,9 @@ each prediction into one event for the page (:meth:`FeedSession.event`)::
      "cmd": {"k": 131, "u": [0.5]} | null}
 
 and, twice a second, a ``tick`` event with the sessions the daemons report and the warnings
-(predictions stopped, sensors silent: ``[what, seconds since]`` pairs). The 2-sigma ellipse of the planar position (x, y)
-with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's eigenvectors.
+(predictions stopped, sensors silent: ``[what, seconds since]`` pairs). The 2-sigma ellipse
+of the planar position (x, y) with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's
+eigenvectors.
 """
 
 from __future__ import annotations
