@@ -344,3 +344,22 @@ def test_pages_keep_up_with_10_sessions_at_20_hz_and_200_idle_connections(browse
             browser.close()
         browser.switch_to.window(tabs[0])
         server.close()
+
+
+def test_a_page_over_the_cap_says_why(browser) -> None:
+    """At the page cap the stream is refused (503): the page says so, with pd-web's reason."""
+    bus = InMemoryBus()
+    server = pd_web.WebServer(bus.transport(), "127.0.0.1", 0, max_clients=1).start()
+    holder = socket.create_connection(("127.0.0.1", server.httpd.server_address[1]), timeout=5)
+    try:
+        holder.sendall(b"GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n")
+        wait_until("the first connection", lambda: server.fanout.listeners == 1, timeout=10)
+        browser.get(server.url)
+        text = wait_until("the refusal on the page", lambda: (
+            lambda t: t if "pages are connected" in t else None)(
+            browser.find_element("id", "conn").text), timeout=15)
+        assert text.startswith("stream refused: pd-web: 1 pages are connected, its cap")
+        assert server.fanout.refused >= 1
+    finally:
+        holder.close()
+        server.close()
