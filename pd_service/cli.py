@@ -4,11 +4,13 @@ waiting for the stop."""
 
 from __future__ import annotations
 
+import argparse
 import logging
 import signal
 import threading
 from typing import TYPE_CHECKING, Any
 
+from pd_service.metrics import Collect, MetricsServer, parse_address, serve
 from pd_service.transport import Transport
 
 if TYPE_CHECKING:
@@ -47,3 +49,25 @@ def wait_for_stop(stop: threading.Event) -> None:
     """Block until ``stop`` is set (checked every 0.5 s, so signals are handled promptly)."""
     while not stop.wait(timeout=0.5):
         pass
+
+
+def add_metrics_arg(ap: argparse.ArgumentParser) -> None:
+    """``--metrics HOST:PORT``: the Prometheus endpoint (off by default)."""
+    ap.add_argument("--metrics", metavar="HOST:PORT", type=_metrics_address,
+                    help="serve Prometheus / OpenMetrics metrics at http://HOST:PORT/metrics "
+                         "(port 0: any free port, logged; default: no endpoint; no "
+                         "authentication: bind loopback or a private network)")
+
+
+def _metrics_address(text: str) -> str:
+    try:
+        parse_address(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+def serve_metrics(address: str | None, collect: Collect, log: logging.Logger
+                  ) -> MetricsServer | None:
+    """The endpoint of ``--metrics`` (None without it); OSError if it cannot be bound."""
+    return None if address is None else serve(address, collect, log)

@@ -20,9 +20,16 @@ import sys
 from collections.abc import Sequence
 from dataclasses import replace
 
-from pd_service.cli import EXIT_NO_ZENOH, open_zenoh, stop_on_signals, wait_for_stop
+from pd_service.cli import (
+    EXIT_NO_ZENOH,
+    add_metrics_arg,
+    open_zenoh,
+    serve_metrics,
+    stop_on_signals,
+    wait_for_stop,
+)
 from pd_service.errors import ConfigError
-from pd_service.logs import add_logging_args, setup_logging
+from pd_service.logs import add_logging_args, level_of, setup_logging
 from pd_service.transport.base import DEFAULT_SENDER_CACHE
 from pd_service.transport.options import LINK, add_zenoh_args, options_from_args
 from pd_service.wire import keys
@@ -57,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="publish with Zenoh's express flag (no batching; about twice the CPU "
                         "at high rates, no latency gain measured on loopback)")
     p.add_argument("--stats-interval", type=float, default=10.0, metavar="S",
-                   help="log per-rule statistics every S seconds")
+                   help="log per-rule statistics every S seconds (default 10)")
+    add_metrics_arg(p)
     add_zenoh_args(p, LINK)
     add_logging_args(p)
     return p  # fmt: skip
@@ -65,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    setup_logging(args.log_level, args.log_format)
+    setup_logging(level_of(args) or "INFO", args.log_format)
     try:
         keys.check_name(args.instance, "instance")
         config = load_config(args.config)
@@ -83,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.switch_interval_us > 0:
         sys.setswitchinterval(args.switch_interval_us / 1e6)
 
-    from .relay import LinkRelay
+    from .relay import LinkRelay, link_metrics
 
     stop = stop_on_signals(log)
     try:
@@ -100,8 +108,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                           express=args.express, cache=max(0, args.cache))  # fmt: skip
         relay.start()
         try:
+            metrics = serve_metrics(args.metrics, lambda: link_metrics(relay), log)
+        except OSError as e:
+            relay.close()
+            log.error("cannot serve --metrics", extra={"fields": {"error": str(e)}})
+            return 2
+        try:
             wait_for_stop(stop)
         finally:
+            if metrics is not None:
+                metrics.close()
             relay.close()
             log.info("pd-link stopped", extra={"fields": {"instance": args.instance}})
     return 0

@@ -728,3 +728,21 @@ class Ros2Bridge:
         except Exception as exc:  # e.g. the query was dropped meanwhile
             log.debug("status reply failed: %s", exc)
 
+
+
+def bridge_metrics(bridge: Ros2Bridge) -> list[Any]:
+    """pd-ros2's metric families (``pd-ros2 --metrics``): the bridge's counters, its sessions'
+    counters summed over the sessions (per-session detail: the status queryable), the sessions
+    bridged and the inbox level."""
+    from pd_service.metrics import counters, gauge
+
+    with bridge.lock:
+        own = dict(bridge.counters)
+        summed: Counter[str] = Counter()
+        for sess in bridge.sessions.values():
+            summed.update(sess.counters)
+        n, inbox = len(bridge.sessions), len(bridge._inbox)
+    return [*counters("pd_ros2", own, "Bridge"),
+            *counters("pd_ros2_sessions", dict(summed), "Summed over the sessions, session"),
+            gauge("pd_ros2_sessions", "Sessions bridged.", n),
+            gauge("pd_ros2_inbox", "Items received, not yet handled.", inbox)]

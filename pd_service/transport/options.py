@@ -9,7 +9,7 @@ Every executable (``pd-service``, ``pd-link`` and the client tools) takes the sa
 ``--zenoh-config F``   Zenoh JSON5 file, read first; the flags above override it
 ``--multicast``        multicast scouting on (``--no-multicast``: off)
 ``--user``             user name for Zenoh's user/password authentication
-``--password``         its password (prefer the executable's environment variable)
+``--password``         its password (default ``$PD_ZENOH_PASSWORD``: prefer it)
 =====================  ==========================================================
 
 Only the defaults differ, by role (:data:`DAEMON`, :data:`LINK`, :data:`TOOL`). Each of mode,
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +33,8 @@ if TYPE_CHECKING:
 
 Mode = Literal["peer", "client", "router"]
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+#: The environment variable every executable reads the Zenoh password from.
+PASSWORD_ENV = "PD_ZENOH_PASSWORD"
 
 
 @dataclass(frozen=True)
@@ -95,9 +98,10 @@ def add_zenoh_args(ap: argparse.ArgumentParser, role: Role) -> None:
                    help="Zenoh JSON5 config file, read first; the other Zenoh flags override it")
     g.add_argument("--multicast", action=argparse.BooleanOptionalAction, default=None,
                    help="multicast scouting (default off)")
-    g.add_argument("--user", help="Zenoh user name (user/password authentication)")
-    g.add_argument("--password", help="Zenoh password (visible in the process list: prefer "
-                                      "the environment variable of the executable)")
+    g.add_argument("--user", help="Zenoh user name (user/password authentication; default "
+                                  "the --zenoh-config file's, else none)")
+    g.add_argument("--password", help=f"Zenoh password (default ${PASSWORD_ENV}; the flag is "
+                                      "visible in the process list, the variable is not)")
 
 
 def options_from_args(args: argparse.Namespace) -> ZenohOptions:
@@ -105,7 +109,8 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
     return ZenohOptions(
         mode=args.mode, listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
         config_file=Path(args.zenoh_config) if args.zenoh_config else None,
-        multicast=args.multicast, user=args.user, password=args.password)
+        multicast=args.multicast, user=args.user,
+        password=args.password if args.password is not None else os.environ.get(PASSWORD_ENV))
 
 
 def zenoh_config(
@@ -124,6 +129,8 @@ def zenoh_config(
     """
     import zenoh  # here, so that `import pd_client` does not load Zenoh
 
+    if file and not Path(file).is_file():  # zenoh's own error names a Rust source line
+        raise FileNotFoundError(f"Zenoh config file not found: {file}")
     conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
     if mode is None and not file:
         mode = "peer"

@@ -6,6 +6,7 @@ logged by Zenoh, so every callback here is wrapped to log and swallow errors its
 
 from __future__ import annotations
 
+import atexit
 import logging
 import threading
 import time
@@ -220,12 +221,29 @@ class _ZQuery:
         self._q.reply_err(payload, encoding=encoding)
 
 
+#: Transports not closed yet: closed at interpreter exit (below). Held strongly (a compiled
+#: class takes no weak reference); each leaves it when closed.
+_OPEN: set[ZenohTransport] = set()
+
+
+@atexit.register
+def _close_open_transports() -> None:
+    """Close the sessions a program left open: an interpreter finalising while a Zenoh session
+    still runs callbacks can hang at exit (a snippet that subscribes and returns)."""
+    for transport in list(_OPEN):
+        try:
+            transport.close()
+        except Exception:  # exiting anyway: a failed close must not mask the exit status
+            pass
+
+
 class ZenohTransport(HandleOwner):
     """A Zenoh session behind the :class:`~pd_service.transport.base.Transport` interface."""
 
     def __init__(self, conf: zenoh.Config | None = None) -> None:
         self.session = zenoh.open(conf if conf is not None else zenoh_config())
         super().__init__()
+        _OPEN.add(self)
         #: key -> its declared key expression (declare_keys), which put() uses
         self._declared: dict[str, zenoh.KeyExpr] = {}
 
@@ -404,4 +422,5 @@ class ZenohTransport(HandleOwner):
         return h
 
     def _close_more(self) -> None:
+        _OPEN.discard(self)
         self.session.close()

@@ -104,7 +104,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         ap.error("--count must be >= 1")
     plain = args.plain or args.once or not sys.stdout.isatty()
     return common.run_on_transport(
-        TOOL, args, lambda transport: _show(transport, args, plain, stop), error_code=2)
+        TOOL, args, lambda transport: _show(transport, args, plain, stop), error_code=2,
+        stop=stop)
 
 
 def _show(transport: Transport, args: argparse.Namespace, plain: bool,

@@ -75,7 +75,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     if ros2 is not None and len(names) != 1:
         ap.error("--ros2: exactly one --session")
     return common.run_on_transport(
-        TOOL, args, lambda transport: _run(transport, scenario, names, steps, args, stop, ros2))
+        TOOL, args, lambda transport: _run(transport, scenario, names, steps, args, stop, ros2),
+        stop=stop)
 
 
 class _Followed:

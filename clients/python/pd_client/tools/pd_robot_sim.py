@@ -252,7 +252,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     if steps < 0:
         ap.error("--steps must be >= 0")
     return common.run_on_transport(
-        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop, ros2))
+        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop, ros2),
+        stop=stop)
 
 
 def _run(args: argparse.Namespace, scenario: Scenario,

@@ -215,7 +215,7 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     if not 0 <= args.port <= 65535:
         ap.error("--port must be 0..65535")
-    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop))
+    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop), stop=stop)
 
 
 def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event) -> int:
