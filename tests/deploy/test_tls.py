@@ -216,7 +216,7 @@ def test_routers_trust_each_other_by_certificate(certs: Path, tmp_path: Path) ->
                 open_client(display_file, f"tls/localhost:{port_a}") as reader, \
                 open_client(admin_file, f"tls/localhost:{port_b}") as writer:
             got = threading.Event()
-            reader.subscribe(keys.config_key(SESSION), lambda _s: got.set())
+            reader.subscribe(keys.config_key(SESSION), lambda _s, got=got: got.set())
 
             def sent(writer: ZenohTransport = writer, got: threading.Event = got) -> bool:
                 writer.put(keys.config_key(SESSION), b"{}")
