@@ -29,7 +29,8 @@ def _field_help(name: str) -> str:
     field = Settings.model_fields[name]
     default = field.get_default(call_default_factory=False)
     shown = "none" if default is None else default
-    return f"{(field.description or '').rstrip('.')} (default {shown})"
+    text = f"{(field.description or '').rstrip('.')} (default {shown})"
+    return text.replace("%", "%%")  # argparse formats help with %
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 import signal
 import sys
 import threading
@@ -52,9 +53,10 @@ class Tool:
     zenoh: bool = True
 
     def build_parser(self) -> argparse.ArgumentParser:
-        ap = argparse.ArgumentParser(prog=self.name, description=self.doc.split("\n\n")[0],
+        doc = plain_text(self.doc)
+        ap = argparse.ArgumentParser(prog=self.name, description=doc.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=self.doc.split("\n\n", 1)[1])
+                                     epilog=doc.split("\n\n", 1)[1])
         self.add_flags(ap)
         add_logging_args(ap, default_level="WARNING")
         if self.zenoh:
@@ -71,6 +73,14 @@ class Tool:
             args = ap.parse_args(argv)
             setup_logging(level_of(args) or "WARNING", args.log_format)
             return self.body(ap, args, stop)
+
+
+def plain_text(doc: str) -> str:
+    """A docstring as a terminal shows it: reStructuredText roles (:func:`x`), literals
+    (``x``) and literal-block markers (``::``) made plain."""
+    doc = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc)
+    doc = re.sub(r"``([^`]+)``", r"\1", doc)
+    return re.sub(r"::$", ":", doc, flags=re.M)
 
 
 def add_ros2_args(ap: argparse.ArgumentParser, ros2_help: str) -> None:

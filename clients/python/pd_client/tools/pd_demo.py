@@ -59,6 +59,7 @@ from pd_service.wire import keys
 
 from .._base import connect
 from ..errors import ServiceUnavailable
+from .common import plain_text
 from .record_csv import read_csv
 
 TOOL = "pd-demo"
@@ -173,7 +174,7 @@ def open_probe(endpoint: str, procs: list[Proc], timeout: float = 30.0) -> Trans
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog=TOOL, description=plain_text(__doc__).split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=None,
                     help="simulated steps, 50 ms each (default 420: about 30 s with start-up); "
                          "with --ros2 20 ms each (default 1000: one 20 s drive cycle)")

@@ -87,7 +87,7 @@ def render_frame(display: Display) -> str:
 
 
 def _add_flags(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--session", default="paper")
+    ap.add_argument("--session", default="paper", help="the session to show (default paper)")
     ap.add_argument("--no-truth", action="store_true", help="do not read the truth key")
     ap.add_argument("--once", action="store_true",
                     help="print one frame after the first prediction, then exit")

@@ -46,7 +46,8 @@ TOOL = "pd-operator"
 
 
 def _add_flags(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
+    ap.add_argument("--scenario", default="paper", choices=SCENARIOS,
+                    help="whose command profile to send (default paper)")
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help=argparse.SUPPRESS)
     ap.add_argument("--session", action="append", metavar="NAME",

@@ -203,7 +203,7 @@ class WebServer:
 def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--host", default="127.0.0.1",
                     help="interface to serve on (default 127.0.0.1: this machine only)")
-    ap.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any free)")
+    ap.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any free port)")
     ap.add_argument("--stale", type=float, default=1.0,
                     help="seconds without predictions / samples before the page warns (default 1)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
