@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from pd_service.metrics import Collect, MetricsServer, parse_address, serve
 from pd_service.transport import Transport
+from pd_service.transport.options import error_text
 
 if TYPE_CHECKING:
     import zenoh
@@ -41,7 +42,7 @@ def open_zenoh(conf: zenoh.Config, log: logging.Logger) -> Transport | None:
     try:
         return ZenohTransport(conf)
     except Exception as exc:
-        log.error("cannot open Zenoh session", extra={"fields": {"error": str(exc)}})
+        log.error("cannot open Zenoh session", extra={"fields": {"error": error_text(exc)}})
         return None
 
 

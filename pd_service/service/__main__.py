@@ -18,7 +18,7 @@ from typing import Any
 
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, setup_logging
-from pd_service.transport.options import DAEMON, add_zenoh_args
+from pd_service.transport.options import DAEMON, add_zenoh_args, error_text
 
 from .config import Settings, load_settings
 
@@ -108,7 +108,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:  # pragma: no cover - signal handler normally catches it
         return 0
     except Exception as exc:
-        print(f"pd-service: {type(exc).__name__}: {exc}", file=sys.stderr)
+        print(f"pd-service: {type(exc).__name__}: {error_text(exc)}", file=sys.stderr)
         return 1
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,6 +112,12 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
         config_file=Path(args.zenoh_config) if args.zenoh_config else None,
         multicast=args.multicast, user=args.user,
         password=args.password if args.password is not None else os.environ.get(PASSWORD_ENV))
+
+
+def error_text(exc: BaseException) -> str:
+    """A Zenoh error as a user reads it: without the Rust source location zenoh appends
+    (`` at /root/.cargo/.../orchestrator.rs:447.``)."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 def zenoh_config(

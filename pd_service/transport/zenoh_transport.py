@@ -226,15 +226,24 @@ class _ZQuery:
 _OPEN: set[ZenohTransport] = set()
 
 
-@atexit.register
 def _close_open_transports() -> None:
-    """Close the sessions a program left open: an interpreter finalising while a Zenoh session
-    still runs callbacks can hang at exit (a snippet that subscribes and returns)."""
+    """Close the sessions a program left open: zenoh-python runs subscriber callbacks on a
+    thread that is not a daemon, which the interpreter waits for at exit while the session is
+    open: a snippet that subscribes and returns would never exit."""
     for transport in list(_OPEN):
         try:
             transport.close()
         except Exception:  # exiting anyway: a failed close must not mask the exit status
             pass
+
+
+# threading's exit hook runs before the interpreter joins the threads that are not daemons
+# (atexit runs after: too late); the same hook concurrent.futures uses
+_register = getattr(threading, "_register_atexit", None)
+if _register is not None:
+    _register(_close_open_transports)
+else:  # pragma: no cover - Python without the hook
+    atexit.register(_close_open_transports)
 
 
 class ZenohTransport(HandleOwner):
