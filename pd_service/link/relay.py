@@ -730,7 +730,8 @@ def link_metrics(relay: LinkRelay) -> list[Any]:
                   st["generation"]),
             gauge("pd_link_uptime_seconds", "Seconds since the relay started.", st["uptime_s"])]
     for name in RULE_COUNTERS:
-        rows = {(r["direction"], r["name"]): r[name] for r in st["rules"]}
+        rows: dict[tuple[str, ...], float] = {(str(r["direction"]), str(r["name"])): r[name]
+                                              for r in st["rules"]}
         out.append(counter(f"pd_link_rule_{name}", f"Messages {name}, per rule.", rows=rows,
                            label_names=("direction", "rule")))
     return out
