@@ -43,7 +43,7 @@ from pd_service.service.scrape import collect  # noqa: E402
 from pd_service.service.spec_store import SpecStore  # noqa: E402
 from pd_service.transport import InMemoryBus  # noqa: E402
 from pd_service.wire import encode, keys  # noqa: E402
-from tests.service.helpers import PERIOD_NS, meas_bytes, paper_spec  # noqa: E402
+from tests.service.helpers import PERIOD_NS, Clock, meas_bytes, paper_spec  # noqa: E402
 
 
 def cpu_model() -> str:
@@ -51,14 +51,6 @@ def cpu_model() -> str:
         if line.startswith("model name"):
             return line.split(":", 1)[1].strip()
     return "unknown"
-
-
-class _Clock:
-    def __init__(self) -> None:
-        self.t = 0
-
-    def __call__(self) -> int:
-        return self.t
 
 
 class _TimedLock:
@@ -80,7 +72,7 @@ class _TimedLock:
 
 def build(n: int, state: Path) -> ServiceCore:
     """A core serving ``n`` sessions, each fed one sample, every third one late."""
-    clock = _Clock()
+    clock = Clock(0)
     settings = Settings(instance="bench", max_sessions=max(2_000, n), cpu_budget=1e6,
                         memory_budget_bytes=2**40, config_rate_total=1e9,
                         config_burst_total=10**9)

@@ -1,6 +1,6 @@
 """What the pd_service executables (``pd-link``, ``pd-ros2``) share around their work: the
-stop signal, opening the Zenoh session with the exit code when it cannot be opened, and
-waiting for the stop."""
+stop signal, opening the Zenoh session with the exit code when it cannot be opened,
+``--metrics``, and waiting for the stop."""
 
 from __future__ import annotations
 
@@ -68,7 +68,20 @@ def _metrics_address(text: str) -> str:
     return text
 
 
-def serve_metrics(address: str | None, collect: Collect, log: logging.Logger
-                  ) -> MetricsServer | None:
-    """The endpoint of ``--metrics`` (None without it); OSError if it cannot be bound."""
-    return None if address is None else serve(address, collect, log)
+def wait_serving_metrics(stop: threading.Event, address: str | None, collect: Collect,
+                         log: logging.Logger) -> int:
+    """Serve ``--metrics`` (when ``address`` is given) until ``stop`` is set; the exit code:
+    0, or 2 (logged) when the address cannot be bound."""
+    metrics: MetricsServer | None = None
+    if address is not None:
+        try:
+            metrics = serve(address, collect, log)
+        except OSError as exc:
+            log.error("cannot serve --metrics", extra={"fields": {"error": str(exc)}})
+            return 2
+    try:
+        wait_for_stop(stop)
+    finally:
+        if metrics is not None:
+            metrics.close()
+    return 0

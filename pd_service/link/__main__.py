@@ -24,9 +24,8 @@ from pd_service.cli import (
     EXIT_NO_ZENOH,
     add_metrics_arg,
     open_zenoh,
-    serve_metrics,
     stop_on_signals,
-    wait_for_stop,
+    wait_serving_metrics,
 )
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, level_of, setup_logging
@@ -108,19 +107,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                           express=args.express, cache=max(0, args.cache))  # fmt: skip
         relay.start()
         try:
-            metrics = serve_metrics(args.metrics, lambda: link_metrics(relay), log)
-        except OSError as e:
-            relay.close()
-            log.error("cannot serve --metrics", extra={"fields": {"error": str(e)}})
-            return 2
-        try:
-            wait_for_stop(stop)
+            code = wait_serving_metrics(stop, args.metrics, lambda: link_metrics(relay), log)
         finally:
-            if metrics is not None:
-                metrics.close()
             relay.close()
             log.info("pd-link stopped", extra={"fields": {"instance": args.instance}})
-    return 0
+    return code
 
 
 if __name__ == "__main__":

@@ -23,9 +23,8 @@ from pd_service.cli import (
     EXIT_NO_ZENOH,
     add_metrics_arg,
     open_zenoh,
-    serve_metrics,
     stop_on_signals,
-    wait_for_stop,
+    wait_serving_metrics,
 )
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, level_of, setup_logging
@@ -103,19 +102,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         bridge = Ros2Bridge(transport, settings)
         bridge.start()
         try:
-            metrics = serve_metrics(args.metrics, lambda: bridge_metrics(bridge), log)
-        except OSError as exc:
-            bridge.close()
-            log.error("cannot serve --metrics", extra={"fields": {"error": str(exc)}})
-            return 2
-        try:
-            wait_for_stop(stop)
+            code = wait_serving_metrics(stop, args.metrics, lambda: bridge_metrics(bridge), log)
         finally:
-            if metrics is not None:
-                metrics.close()
             bridge.close()
             log.info("pd-ros2 stopped", extra={"fields": {"instance": settings.instance}})
-    return 0
+    return code
 
 
 if __name__ == "__main__":
