@@ -227,3 +227,35 @@ def test_routers_trust_each_other_by_certificate(certs: Path, tmp_path: Path) ->
             else:
                 for _ in range(10):
                     assert not sent(), "relayed by a router that is not one of the mesh"
+
+
+def test_compose_tls_mounts_each_service_its_role_file_and_own_pair() -> None:
+    """compose.tls.yml over compose.yml: every service it names exists there; each gets the
+    TLS role file at the path its command reads and only its own certificate pair and the CA
+    (file names make_certs.py writes by default); each router its own pair as router.pem."""
+    import yaml
+
+    mod = load_deploy_script("make_certs.py")
+    base = yaml.safe_load((DEPLOY / "compose.yml").read_text(encoding="utf-8"))["services"]
+    tls = yaml.safe_load((DEPLOY / "compose.tls.yml").read_text(encoding="utf-8"))["services"]
+    certs = {f"{r}{s}" for r in (*mod.CLIENT_ROLES, *mod.ROUTER_ROLES)
+             for s in (".pem", "-key.pem")} | {"ca.pem"}
+    assert set(tls) <= set(base)
+    for name, svc in tls.items():
+        mounts = dict(v.rsplit(":", 1)[0].split(":", 1) for v in svc["volumes"])
+        for src in mounts:
+            if src.startswith("./certs/"):
+                assert src.removeprefix("./certs/") in certs, (name, src)
+            else:
+                assert (DEPLOY / src).is_file(), (name, src)
+        if name in mod.ROUTER_ROLES:
+            assert mounts["./zenoh/tls/router.json5"] == "/etc/zenoh/router.json5"
+            assert mounts[f"./certs/{name}.pem"] == "/etc/zenoh/certs/router.pem"
+            continue
+        argv = base[name]["command"]
+        role_path = argv[argv.index("--zenoh-config") + 1]
+        role = Path(role_path).stem
+        assert mounts[f"./zenoh/tls/{role}.json5"] == role_path, name
+        own = {Path(s).name for s in mounts if s.startswith("./certs/")}
+        assert own == {"ca.pem", f"{role}.pem", f"{role}-key.pem"}, name
+    assert "tls/router-a:7447" in tls["router-b"]["command"]
