@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from pd_service.metrics import Collect, MetricsServer, parse_address, serve
 from pd_service.transport import Transport
-from pd_service.transport.options import error_text
+from pd_service.transport.options import error_text, open_retrying
 
 if TYPE_CHECKING:
     import zenoh
@@ -34,13 +34,22 @@ def stop_on_signals(log: logging.Logger) -> threading.Event:
     return stop
 
 
-def open_zenoh(conf: zenoh.Config, log: logging.Logger) -> Transport | None:
-    """A :class:`ZenohTransport` on the Zenoh config ``conf``; None (the error logged) if the
-    session cannot be opened: the caller then exits with :data:`EXIT_NO_ZENOH`."""
+def open_zenoh(conf: zenoh.Config, log: logging.Logger, wait_s: float = 0.0,
+               stop: threading.Event | None = None) -> Transport | None:
+    """A :class:`ZenohTransport` on the Zenoh config ``conf``, retried with backoff for
+    ``wait_s`` seconds (``--connect-wait``: a router or daemon that does not answer yet, each
+    retry logged); None (the error logged) if it cannot be opened: the caller then exits
+    with :data:`EXIT_NO_ZENOH`."""
     from pd_service.transport.zenoh_transport import ZenohTransport
 
+    def report(exc: BaseException, pause: float, remaining: float) -> None:
+        log.warning("no answer yet, retrying", extra={"fields": {
+            "error": error_text(exc), "retry_in_s": round(pause, 2),
+            "left_s": round(remaining, 1)}})
+
     try:
-        return ZenohTransport(conf)
+        return open_retrying(lambda: ZenohTransport(conf), wait_s, stop, lambda _e: True,
+                             report)
     except Exception as exc:
         log.error("cannot open Zenoh session", extra={"fields": {"error": error_text(exc)}})
         return None

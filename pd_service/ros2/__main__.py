@@ -28,7 +28,12 @@ from pd_service.cli import (
 )
 from pd_service.errors import ConfigError
 from pd_service.logs import add_logging_args, level_of, setup_logging
-from pd_service.transport.options import TOOL, add_zenoh_args, options_from_args
+from pd_service.transport.options import (
+    TOOL,
+    add_connect_wait_arg,
+    add_zenoh_args,
+    options_from_args,
+)
 
 if TYPE_CHECKING:
     from .bridge import BridgeSettings
@@ -63,6 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="instance name for pd/@ros2/<instance>/status (default 'default')")
     add_metrics_arg(p)
     add_zenoh_args(p, TOOL)
+    add_connect_wait_arg(p)
     add_logging_args(p)
     return p
 
@@ -95,7 +101,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     stop = stop_on_signals(log)
-    transport = open_zenoh(conf, log)
+    transport = open_zenoh(conf, log, args.connect_wait, stop)
     if transport is None:
         return EXIT_NO_ZENOH
     with transport:

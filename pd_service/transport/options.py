@@ -24,15 +24,18 @@ import argparse
 import json
 import os
 import re
-from collections.abc import Sequence
+import threading
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 if TYPE_CHECKING:
     import zenoh
 
 Mode = Literal["peer", "client", "router"]
+T = TypeVar("T")
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 #: The environment variable every executable reads the Zenoh password from.
 PASSWORD_ENV = "PD_ZENOH_PASSWORD"
@@ -112,6 +115,45 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
         config_file=Path(args.zenoh_config) if args.zenoh_config else None,
         multicast=args.multicast, user=args.user,
         password=args.password if args.password is not None else os.environ.get(PASSWORD_ENV))
+
+
+#: How long an executable retries a router or daemon that does not answer (``--connect-wait``,
+#: s), and the backoff between attempts: first pause, longest pause (s).
+CONNECT_WAIT_S = 10.0
+RETRY_FIRST_S, RETRY_MAX_S = 0.25, 2.0
+
+
+def add_connect_wait_arg(ap: argparse.ArgumentParser) -> None:
+    """``--connect-wait S`` (read by :func:`open_retrying`)."""
+    ap.add_argument("--connect-wait", type=float, default=CONNECT_WAIT_S, metavar="S",
+                    help="retry a router or daemon that does not answer yet for S seconds, "
+                         f"with backoff (default {CONNECT_WAIT_S:g}; 0: one attempt)")
+
+
+def open_retrying(open_once: Callable[[], T], wait_s: float, stop: threading.Event | None,
+                  retriable: Callable[[BaseException], bool],
+                  report: Callable[[BaseException, float, float], None]) -> T:
+    """``open_once()``, retried while it raises a ``retriable`` error, with backoff
+    (RETRY_FIRST_S doubling to RETRY_MAX_S), for up to ``wait_s`` seconds or until ``stop``
+    is set; ``report(error, pause, seconds left)`` before each pause. The last error is
+    raised when the time is up (or ``stop`` set)."""
+    deadline = time.monotonic() + wait_s
+    delay = RETRY_FIRST_S
+    while True:
+        try:
+            return open_once()
+        except Exception as exc:
+            remaining = deadline - time.monotonic()
+            if not retriable(exc) or remaining <= 0:
+                raise
+            pause = min(delay, remaining)
+            report(exc, pause, remaining)
+            if stop is not None:
+                if stop.wait(pause):
+                    raise
+            else:
+                time.sleep(pause)
+            delay = min(2 * delay, RETRY_MAX_S)
 
 
 def error_text(exc: BaseException) -> str:

@@ -100,6 +100,19 @@ def test_a_tool_started_before_the_daemon_retries_then_works(tmp_path: Path) -> 
             assert p.wait(BOUND_S) == 0, f"{out.text}\n--- daemon\n{dout.text}"
 
 
+def test_pd_ros2_started_before_the_daemon_retries_then_serves(tmp_path: Path) -> None:
+    pytest.importorskip("rosbags")
+    endpoint = free_endpoint()
+    with process([tool("pd-ros2"), "--connect", endpoint, "--connect-wait", "45",
+                  "--instance", "early"]) as (bridge, out):
+        assert out.wait_for("no answer yet"), out.text
+        with process([tool("pd-service"), "--listen", endpoint, "--state-dir",
+                      str(tmp_path / "state"), "--instance", "late"]) as (_daemon, dout):
+            assert out.wait_for("event=ready"), f"{out.text}\n--- daemon\n{dout.text}"
+            bridge.send_signal(signal.SIGTERM)
+            assert bridge.wait(BOUND_S) == 0, out.text
+
+
 def test_a_tool_without_a_daemon_gives_up_with_a_clear_message() -> None:
     done = subprocess.run([tool("pd-display"), "--connect", free_endpoint(), "--connect-wait",
                            "1"], capture_output=True, text=True, timeout=BOUND_S, env=ENV)

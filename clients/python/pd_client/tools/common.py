@@ -18,14 +18,10 @@ import numpy as np
 
 from pd_service.logs import add_logging_args, level_of, setup_logging
 from pd_service.transport import TOOL, Transport, add_zenoh_args, options_from_args
+from pd_service.transport.options import add_connect_wait_arg, open_retrying
 
 from .._base import connect_options
 from ..errors import PdClientError, ServiceUnavailable
-
-#: Backoff of the first connection: first pause, longest pause (s).
-RETRY_FIRST_S, RETRY_MAX_S = 0.25, 2.0
-#: How long a tool retries a router or daemon that does not answer (``--connect-wait``), s.
-CONNECT_WAIT_S = 10.0
 
 #: What a tool runs once its flags are read: ``body(parser, args, stop)`` -> exit code.
 ToolBody = Callable[[argparse.ArgumentParser, argparse.Namespace, threading.Event], int]
@@ -61,10 +57,7 @@ class Tool:
         add_logging_args(ap, default_level="WARNING")
         if self.zenoh:
             add_zenoh_args(ap, TOOL)
-            ap.add_argument("--connect-wait", type=float, default=CONNECT_WAIT_S, metavar="S",
-                            help="retry a router or daemon that does not answer yet for S "
-                                 f"seconds, with backoff (default {CONNECT_WAIT_S:g}; 0: one "
-                                 "attempt)")
+            add_connect_wait_arg(ap)
         return ap
 
     def main(self, argv: Sequence[str] | None = None) -> int:
@@ -105,27 +98,19 @@ def open_transport(args: argparse.Namespace, stop: threading.Event | None = None
     seconds, each retry said on stderr; a bad configuration (a missing --zenoh-config file)
     is not retried. Raises :class:`ServiceUnavailable` (also when ``stop`` is set)."""
     wait_s = getattr(args, "connect_wait", 0.0)
-    deadline = time.monotonic() + wait_s
-    delay = RETRY_FIRST_S
-    while True:
-        try:
-            return connect_options(options_from_args(args))
-        except ServiceUnavailable as exc:
-            if isinstance(exc.__cause__, (OSError, ValueError)):
-                raise
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                if wait_s > 0:
-                    raise ServiceUnavailable(f"{exc} (retried for {wait_s:g} s)") from exc
-                raise
-            pause = min(delay, remaining)
-            progress(tool, f"no answer yet ({exc}); retrying in {pause:.1f} s, for up to "
-                           f"{remaining:.0f} s more (--connect-wait)")
-            if stop is not None and stop.wait(pause):
-                raise ServiceUnavailable("stopped while waiting for Zenoh") from exc
-            if stop is None:
-                time.sleep(pause)
-            delay = min(2 * delay, RETRY_MAX_S)
+
+    def report(exc: BaseException, pause: float, remaining: float) -> None:
+        progress(tool, f"no answer yet ({exc}); retrying in {pause:.1f} s, for up to "
+                       f"{remaining:.0f} s more (--connect-wait)")
+
+    try:
+        return open_retrying(lambda: connect_options(options_from_args(args)), wait_s, stop,
+                             lambda exc: not isinstance(exc.__cause__, (OSError, ValueError)),
+                             report)
+    except ServiceUnavailable as exc:
+        if wait_s > 0 and not isinstance(exc.__cause__, (OSError, ValueError)):
+            raise ServiceUnavailable(f"{exc} (retried for {wait_s:g} s)") from exc
+        raise
 
 
 def run_on_transport(tool: str, args: argparse.Namespace, body: Callable[[Transport], int],
