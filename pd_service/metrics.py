@@ -98,7 +98,7 @@ def gauge(name: str, doc: str, value: float | None = None,
 
 def top(values: Mapping[str, float], n: int = TOP_N) -> dict[str, float]:
     """The ``n`` largest non-zero values (ties by name), for a top-N gauge."""
-    ranked = sorted(((-v, k) for k, v in values.items() if v), )[:n]
+    ranked = sorted((-v, k) for k, v in values.items() if v)[:n]
     return {k: -neg for neg, k in ranked}
 
 
