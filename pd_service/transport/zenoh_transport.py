@@ -6,6 +6,7 @@ logged by Zenoh, so every callback here is wrapped to log and swallow errors its
 
 from __future__ import annotations
 
+import atexit
 import logging
 import threading
 import time
@@ -220,12 +221,38 @@ class _ZQuery:
         self._q.reply_err(payload, encoding=encoding)
 
 
+#: Transports not closed yet: closed at interpreter exit (below). Held strongly (a compiled
+#: class takes no weak reference); each leaves it when closed.
+_OPEN: set[ZenohTransport] = set()
+
+
+def _close_open_transports() -> None:
+    """Close the sessions a program left open: zenoh-python runs subscriber callbacks on a
+    thread that is not a daemon, which the interpreter waits for at exit while the session is
+    open: a snippet that subscribes and returns would never exit."""
+    for transport in list(_OPEN):
+        try:
+            transport.close()
+        except Exception:  # exiting anyway: a failed close must not mask the exit status
+            pass
+
+
+# threading's exit hook runs before the interpreter joins the threads that are not daemons
+# (atexit runs after: too late); the same hook concurrent.futures uses
+_register = getattr(threading, "_register_atexit", None)
+if _register is not None:
+    _register(_close_open_transports)
+else:  # pragma: no cover - Python without the hook
+    atexit.register(_close_open_transports)
+
+
 class ZenohTransport(HandleOwner):
     """A Zenoh session behind the :class:`~pd_service.transport.base.Transport` interface."""
 
     def __init__(self, conf: zenoh.Config | None = None) -> None:
         self.session = zenoh.open(conf if conf is not None else zenoh_config())
         super().__init__()
+        _OPEN.add(self)
         #: key -> its declared key expression (declare_keys), which put() uses
         self._declared: dict[str, zenoh.KeyExpr] = {}
 
@@ -404,4 +431,5 @@ class ZenohTransport(HandleOwner):
         return h
 
     def _close_more(self) -> None:
+        _OPEN.discard(self)
         self.session.close()

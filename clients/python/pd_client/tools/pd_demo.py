@@ -53,18 +53,22 @@ from typing import Any
 
 import numpy as np
 
+from pd_service.logs import add_logging_args, level_of, setup_logging
 from pd_service.transport import Transport
 from pd_service.wire import keys
 
 from .._base import connect
 from ..errors import ServiceUnavailable
+from .common import plain_text
 from .record_csv import read_csv
 
 TOOL = "pd-demo"
 SESSIONS = ("paper", "paper-cam")
 ROS2_SESSION = "bot"
 ROS2_STATES = "x,y,yaw"
-LEAD, RANGER_DELAY = 10, 12  # the paper's uplink and range-finder delays, steps
+LEAD, RANGER_DELAY = 10, 12
+#: How long one process is given to stop on each signal before the next one (s).
+STOP_TIMEOUT_S = 3.0  # the paper's uplink and range-finder delays, steps
 
 
 def free_port() -> int:
@@ -91,7 +95,10 @@ class Proc:
         self.quiet = quiet
         self.popen = subprocess.Popen(
             [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-            text=True, bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            text=True, bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            # its own session: a Ctrl-C in the terminal reaches pd-demo alone, which then
+            # stops the processes in order (the daemon last, so the others' goodbyes land)
+            start_new_session=True)
         self.lines: list[str] = []
         self._thread = threading.Thread(target=self._relay, daemon=True)
         self._thread.start()
@@ -104,8 +111,8 @@ class Proc:
             if not self.quiet:
                 print(f"[{self.name:8}] {line}", flush=True)
 
-    def stop(self, timeout: float = 10.0) -> int | None:
-        """SIGINT, then SIGTERM, then SIGKILL; returns the exit code."""
+    def stop(self, timeout: float = STOP_TIMEOUT_S) -> int | None:
+        """SIGINT, then SIGTERM, then SIGKILL, each given ``timeout`` s; the exit code."""
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             if self.popen.poll() is not None:
                 break
@@ -116,6 +123,13 @@ class Proc:
                 continue
         self._thread.join(2.0)
         return self.popen.returncode
+
+
+def stop_all(procs: list[Proc]) -> None:
+    """Stop ``procs`` in the reverse of their start order (the daemon, started first, last:
+    the others' last messages still reach it)."""
+    for p in reversed(procs):
+        p.stop()
 
 
 @contextlib.contextmanager
@@ -160,7 +174,7 @@ def open_probe(endpoint: str, procs: list[Proc], timeout: float = 30.0) -> Trans
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog=TOOL, description=plain_text(__doc__).split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=None,
                     help="simulated steps, 50 ms each (default 420: about 30 s with start-up); "
                          "with --ros2 20 ms each (default 1000: one 20 s drive cycle)")
@@ -170,15 +184,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
     ap.add_argument("--link-config", type=Path,
                     help="link emulator rules (default: the paper's link, shipped with pd-client)")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=1,
+                    help="the simulator's random seed (default 1)")
     ap.add_argument("--quiet", action="store_true", help="do not relay the processes' output")
     ap.add_argument("--viz-port", type=int, default=8765,
-                    help="pd-viz's WebSocket port (default 8765; -1: no pd-viz)")
+                    help="pd-viz's WebSocket port (default 8765; 0: any free port)")
+    ap.add_argument("--no-viz", action="store_true", help="do not start pd-viz")
     ap.add_argument("--web-port", type=int, default=8080,
-                    help="port of the live view (default 8080; a free one if taken; 0: no live view)")
+                    help="port of the live view (default 8080, a free one if taken; 0: any "
+                         "free port)")
+    ap.add_argument("--no-web", action="store_true", help="do not start the live view (pd-web)")
     ap.add_argument("--web-linger", type=float, default=10.0,
-                    help="seconds the live view keeps serving the final state after the run")
+                    help="seconds the live view keeps serving the final state after the run "
+                         "(default 10)")
+    add_logging_args(ap, default_level="WARNING")
     args = ap.parse_args(argv)
+    setup_logging(level_of(args) or "WARNING", args.log_format)
     if args.steps is None:
         args.steps = 1000 if args.ros2 else 420
     if args.ros2 and importlib.util.find_spec("rosbags") is None:
@@ -242,8 +263,8 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
             viz = has_viz()
             mcap = ["--mcap", str(out / "run.mcap")] if viz else []
             web_url = None
-            if args.web_port:
-                port = web_port(args.web_port)
+            if not args.no_web:
+                port = web_port(args.web_port) if args.web_port else free_port()
                 start("web", "-m", "pd_client.tools", "web", "--port", str(port), *zenoh_args)
                 web_url = f"http://127.0.0.1:{port}/"
                 print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
@@ -257,10 +278,11 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
             # input the daemon handles (pd-replay then reproduces each prediction exactly)
             wait_for("the recorder", lambda: any("recording" in line for line in recorder.lines),
                      30.0, procs)
-            if viz and args.viz_port >= 0:  # a live view; the demo goes on without it if it fails
+            if viz and not args.no_viz:  # a live view; the demo goes on without it if it fails
+                viz_port = args.viz_port or free_port()
                 start("viz", "-m", "pd_client.tools", "viz", *sessions,
-                      "--port", str(args.viz_port), *zenoh_args)
-                print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{args.viz_port}"
+                      "--port", str(viz_port), *zenoh_args)
+                print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{viz_port}"
                       + ("" if ros2 else " (open it in Foxglove: docs/visualize.md)"), flush=True)
             elif not viz and not ros2:
                 print(f"{TOOL}: no live view / MCAP: pip install 'pd-client[viz]'", flush=True)
@@ -304,8 +326,7 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
         print(f"{TOOL}: {exc}", file=sys.stderr, flush=True)
         interrupted = True
     finally:
-        for p in reversed(procs):
-            p.stop()
+        stop_all(procs)
     if interrupted:
         return 130
     return report_ros2(out, bridge) if ros2 else report(out)

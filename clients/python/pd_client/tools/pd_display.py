@@ -87,7 +87,7 @@ def render_frame(display: Display) -> str:
 
 
 def _add_flags(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--session", default="paper")
+    ap.add_argument("--session", default="paper", help="the session to show (default paper)")
     ap.add_argument("--no-truth", action="store_true", help="do not read the truth key")
     ap.add_argument("--once", action="store_true",
                     help="print one frame after the first prediction, then exit")
@@ -104,7 +104,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         ap.error("--count must be >= 1")
     plain = args.plain or args.once or not sys.stdout.isatty()
     return common.run_on_transport(
-        TOOL, args, lambda transport: _show(transport, args, plain, stop), error_code=2)
+        TOOL, args, lambda transport: _show(transport, args, plain, stop), error_code=2,
+        stop=stop)
 
 
 def _show(transport: Transport, args: argparse.Namespace, plain: bool,

@@ -204,7 +204,8 @@ class RobotSim:
 
 
 def _add_flags(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
+    ap.add_argument("--scenario", default="paper", choices=SCENARIOS,
+                    help="the simulated robot and its sensors (default paper)")
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help="noise setting of the paper scenario (default: journal)")
     ap.add_argument("--session", action="append", metavar="NAME[:SENSORS]",
@@ -215,7 +216,8 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
                          "until stopped)")
     ap.add_argument("--time-scale", type=float, default=1.0,
                     help="run this many times faster than real time (default 1)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="random seed of the simulation's noise (default 0)")
     ap.add_argument("--create-session", action="store_true",
                     help="put the SessionSpec(s) (epoch = now, once the service answers) and "
                          "serve them while running")
@@ -230,7 +232,9 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
                     help="seconds to wait for the service or for the spec (default 15)")
     ap.add_argument("--lead", type=int, help="override the scenario's lead (steps)")
     ap.add_argument("--max-delay", type=int, help="override the scenario's max_delay (steps)")
-    ap.add_argument("--publish-every", type=int, default=1)
+    ap.add_argument("--publish-every", type=int, default=1, metavar="N",
+                    help="with --create-session: the daemon publishes every N-th step's "
+                         "prediction (default 1: every step)")
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
@@ -252,7 +256,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     if steps < 0:
         ap.error("--steps must be >= 0")
     return common.run_on_transport(
-        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop, ros2))
+        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop, ros2),
+        stop=stop)
 
 
 def _run(args: argparse.Namespace, scenario: Scenario,

@@ -488,7 +488,7 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         import foxglove  # noqa: F401
     except ImportError:
         return common.fail(TOOL, "needs foxglove-sdk: pip install 'pd-client[viz]'", 2)
-    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop))
+    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop), stop=stop)
 
 
 def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event) -> int:

@@ -249,7 +249,7 @@ class WebServer:
 def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--host", default="127.0.0.1",
                     help="interface to serve on (default 127.0.0.1: this machine only)")
-    ap.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any free)")
+    ap.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any free port)")
     ap.add_argument("--stale", type=float, default=1.0,
                     help="seconds without predictions / samples before the page warns (default 1)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
@@ -268,7 +268,7 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         ap.error("--port must be 0..65535")
     if args.max_clients < 1:
         ap.error("--max-clients must be >= 1")
-    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop))
+    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop), stop=stop)
 
 
 def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event) -> int:
