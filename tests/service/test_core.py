@@ -944,6 +944,31 @@ def test_steps_that_got_no_prediction_are_counted(world, tmp_path, publish_every
     assert col.predictions["s1"][-1].counters["steps_missed"] == missed
 
 
+def test_steps_an_idle_session_skips_are_not_missed(world, tmp_path):
+    """A session without traffic skips steps on purpose (one prediction per idle_publish_s):
+    after 22 s idle and a message that wakes it, no step counts as missed; a stall after
+    the wake still does."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    for k in range(0, 440, 5):  # 22 s of 50 ms steps, the worker awake every 5 steps
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert len(col.predictions["s1"]) >= 3  # the start, then one per idle_publish_s
+    clock.t = at(440.2)
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 450, [0.0]))  # wakes it
+    core.run_once()
+    for k in (440, 441, 442):
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert "steps_missed" not in core.session_status("s1").counters
+    assert "steps_missed" not in core.service_status().counters
+    clock.t = at(446.6)  # the worker stalls for steps 443..445
+    core.run_once()
+    assert core.session_status("s1").counters["steps_missed"] == 3
+
+
 def _lock_free(lock) -> bool:
     """True if another thread could take ``lock`` now (the caller may hold it reentrantly)."""
     import threading
