@@ -36,7 +36,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--shard", metavar="I/N",
                    help="static sharding instead of rendezvous over live instances")
     s.add_argument("--expire-s", dest="expire_s", type=float,
-                   help="idle time before a session expires (default 120)")
+                   help="time without traffic before a session expires, s (default 120; "
+                        "0: never; a spec's own expire_s wins)")
     s.add_argument("--peer", dest="peers", action="append", metavar="INSTANCE",
                    help="an instance to share sessions with (repeatable; default: none, "
                         "standalone)")

@@ -259,6 +259,18 @@ class ZenohTransport(HandleOwner):
             sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
         return _Publisher(adv, self._keep(adv))
 
+    def subscribed(self, key: str, timeout: float = 1.0) -> bool:
+        pub = self.session.declare_publisher(key)
+        try:
+            deadline = time.monotonic() + timeout
+            while not pub.matching_status.matching:
+                if time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.05)
+            return True
+        finally:
+            pub.undeclare()
+
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         def on_sample(s: zenoh.Sample) -> None:
             try:

@@ -17,6 +17,7 @@ from .codec import MAX_MESSAGE_BYTES, decode, encode
 from .errors import WireError
 from .messages import (
     MESSAGE_TYPES,
+    CONFIG_RATE_LIMITED,
     SCHEMA_VERSION,
     Command,
     ErrorReport,
@@ -35,6 +36,7 @@ from .messages import (
 from .session_state import SessionState, spec_fingerprint
 
 __all__ = [
+    "CONFIG_RATE_LIMITED",
     "MAX_DIM",
     "MAX_MESSAGE_BYTES",
     "MESSAGE_TYPES",

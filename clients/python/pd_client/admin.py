@@ -17,6 +17,7 @@ import time
 
 from pd_service.transport import Handle, Query, Sample, Transport
 from pd_service.wire import (
+    CONFIG_RATE_LIMITED,
     ErrorReport,
     ServiceStatus,
     SessionSpec,
@@ -29,9 +30,11 @@ from pd_service.wire import (
 
 from ._base import ClientBase, session_name, try_decode
 from .errors import (
+    AccessDenied,
     InvalidMessage,
     PdClientError,
     ServiceUnavailable,
+    SessionExists,
     SessionNotFound,
     SessionRefused,
     Timeout,
@@ -40,6 +43,8 @@ from .errors import (
 log = logging.getLogger("pd_client.admin")
 
 _POLL_S = 0.25
+#: First and longest pause before a change the service's rate limits refused is sent again (s).
+_RETRY_FIRST_S, _RETRY_MAX_S = 0.05, 1.0
 
 
 def _instance_of(token_key: str) -> str:
@@ -83,6 +88,14 @@ class _Ack:
             self.refused = rep.reason
             self.event.set()
 
+    def rate_limited(self) -> bool:
+        """The service refused the change by its rate limits (not judged: send it again)."""
+        return self.refused is not None and self.refused.startswith(CONFIG_RATE_LIMITED)
+
+    def rearm(self) -> None:
+        self.refused, self.status = None, None
+        self.event.clear()
+
     def close(self) -> None:
         for h in self._handles:
             h.close()
@@ -111,7 +124,7 @@ class Admin(ClientBase):
                      exist_ok: bool = False, serve_spec: bool = True) -> SessionStatus | None:
         """Create the session ``spec.session``.
 
-        Raises PdClientError if the service already runs it (unless ``exist_ok``: then it is
+        Raises SessionExists if the service already runs it (unless ``exist_ok``: then it is
         replaced), SessionRefused if the service refuses the spec, Timeout if no
         acknowledgement arrives within ``timeout`` seconds (``wait=True``). Returns the
         acknowledging SessionStatus (None when not waiting).
@@ -124,7 +137,7 @@ class Admin(ClientBase):
             except (SessionNotFound, ServiceUnavailable):
                 st = None
             if st is not None and st.state in ("active", "restored"):
-                raise PdClientError(f"session {spec.session!r} already exists "
+                raise SessionExists(f"session {spec.session!r} already exists "
                                     f"(instance {st.instance}); use replace_session")
         return self._put(spec, wait, timeout, serve_spec, poll=not exist_ok)
 
@@ -150,14 +163,23 @@ class Admin(ClientBase):
             if ack is None:
                 return None
             deadline = time.monotonic() + timeout
-            while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
-                if poll:  # a new session: its status appearing is an acknowledgement too
-                    st = self._get_status(spec.session, timeout=_POLL_S)
-                    if st is not None and st.state in ("active", "restored"):
-                        return st
-                if time.monotonic() >= deadline:
-                    raise Timeout(f"no acknowledgement for session {spec.session!r} within "
-                                  f"{timeout} s: is pd-service running and connected?")
+            pause = _RETRY_FIRST_S
+            while True:
+                while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
+                    if poll:  # a new session: its status appearing is an acknowledgement too
+                        st = self._get_status(spec.session, timeout=_POLL_S)
+                        if st is not None and st.state in ("active", "restored"):
+                            return st
+                    if time.monotonic() >= deadline:
+                        raise self._silent(spec.session, f"no acknowledgement for session "
+                                           f"{spec.session!r} within {timeout} s")
+                if not (ack.rate_limited() and time.monotonic() + pause < deadline):
+                    break
+                # refused unread by the service's config rate: send it again, a bit later
+                time.sleep(pause)
+                pause = min(2 * pause, _RETRY_MAX_S)
+                ack.rearm()
+                self.transport.put(keys.config_key(spec.session), payload)
             if ack.refused is not None:
                 self._unserve(spec.session)
                 raise SessionRefused(spec.session, ack.refused)
@@ -177,13 +199,38 @@ class Admin(ClientBase):
             self.transport.delete(keys.config_key(session))
             if ack is None:
                 return None
-            if not ack.event.wait(timeout):
-                raise Timeout(f"no acknowledgement of the removal of session {session!r} "
-                              f"within {timeout} s")
+            deadline = time.monotonic() + timeout
+            pause = _RETRY_FIRST_S
+            while True:
+                if not ack.event.wait(max(0.0, deadline - time.monotonic())):
+                    raise self._silent(session, f"no acknowledgement of the removal of "
+                                       f"session {session!r} within {timeout} s")
+                if not (ack.rate_limited() and time.monotonic() + pause < deadline):
+                    break
+                time.sleep(pause)
+                pause = min(2 * pause, _RETRY_MAX_S)
+                ack.rearm()
+                self.transport.delete(keys.config_key(session))
+            if ack.refused is not None:
+                raise SessionRefused(session, ack.refused)
             return ack.status
         finally:
             if ack is not None:
                 ack.close()
+
+    def _silent(self, session: str, what: str) -> PdClientError:
+        """The error for a config change nobody answered: AccessDenied when a service
+        subscribes to the session's config key (so the router dropped this client's change,
+        or the answer to it: its access control), else Timeout."""
+        config = keys.config_key(session)
+        if self.transport.subscribed(config, timeout=1.0):
+            return AccessDenied(f"{what}: a pd-service instance subscribes to {config} but "
+                                "nothing came back: the router's access control refuses "
+                                "this user's change of that session (only admins, or a "
+                                "robot_creates robot, may: deploy/README.md), or hides the "
+                                "service's answer from it")
+        return Timeout(f"{what}: no pd-service instance listens on {config}: is pd-service "
+                       "running and connected?")
 
     # --- status --------------------------------------------------------------------------
 
@@ -248,6 +295,14 @@ class Admin(ClientBase):
         h = self.transport.subscribe_liveliness(keys.ALL_SERVICES, on_token, history=True)
         try:
             if not event.wait(timeout):
+                probe = keys.config_key("probe")
+                if self.transport.subscribed(probe, timeout=1.0):
+                    raise AccessDenied(
+                        f"no pd-service instance is visible to this user within {timeout} s, "
+                        f"but one subscribes to session configs ({probe}): the router's "
+                        "access control hides the instances' liveliness tokens "
+                        "(pd/@service/*) from this user (only admins, operators and "
+                        "robot_creates robots may watch them: deploy/README.md)")
                 raise ServiceUnavailable(f"no pd-service instance became alive within {timeout} s")
             return sorted(alive)
         finally:
