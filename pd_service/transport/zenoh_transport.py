@@ -263,7 +263,7 @@ class ZenohTransport(HandleOwner):
         pub = self.session.declare_publisher(key)
         try:
             deadline = time.monotonic() + timeout
-            while not pub.matching_status.matching:
+            while not pub.matching_status.matching:  # type: ignore[attr-defined]  # stub says bool; 1.10 returns MatchingStatus
                 if time.monotonic() >= deadline:
                     return False
                 time.sleep(0.05)

@@ -16,8 +16,8 @@ from .arrays import MAX_DIM, PSD_RTOL, Matrix, Vector, psd_problem
 from .codec import MAX_MESSAGE_BYTES, decode, encode
 from .errors import WireError
 from .messages import (
-    MESSAGE_TYPES,
     CONFIG_RATE_LIMITED,
+    MESSAGE_TYPES,
     SCHEMA_VERSION,
     Command,
     ErrorReport,
