@@ -13,7 +13,8 @@ A spec file is JSON (.json), TOML (.toml) or YAML (.yaml, .yml) and holds one Se
 as its fields (docs/protocol.md, "SessionSpec"; arrays in the wire form
 {"shape": [rows, cols], "data": [...]}: what `pd-admin export` writes), or several under
 `sessions` (a list of them: a fleet). `expire_s` in a spec sets its lifetime without traffic
-(0: never expires). A field that breaks a rule is named: `paper.toml: session 1: SessionSpec.x0:
+(0: never expires). A spec without `epoch_ns` starts its step 0 when the file is read (a
+fixed epoch long past would make the service propagate the prior over every step since). A field that breaks a rule is named: `paper.toml: session 1: SessionSpec.x0:
 ...`. Creating many sessions goes at the service's config rate (40 at once, then 20 a second
 by default): refused changes are sent again after a pause, up to --timeout per session.
 
@@ -37,6 +38,7 @@ import argparse
 import json
 import sys
 import threading
+import time
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
@@ -77,9 +79,11 @@ class SpecFileError(ValueError):
     """A spec file that cannot be read or breaks a rule; the message names the field."""
 
 
-def load_specs(path: Path) -> list[SessionSpec]:
+def load_specs(path: Path, now_ns: int | None = None) -> list[SessionSpec]:
     """The SessionSpecs of a JSON, TOML or YAML file (one spec, or a list under
-    ``sessions``). Raises SpecFileError naming the file, the spec and the field."""
+    ``sessions``); a spec without ``epoch_ns`` gets ``now_ns`` (default: the current time).
+    Raises SpecFileError naming the file, the spec and the field."""
+    now_ns = time.time_ns() if now_ns is None else now_ns
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -108,7 +112,7 @@ def load_specs(path: Path) -> list[SessionSpec]:
         if not isinstance(item, dict):
             raise SpecFileError(f"{where}: expected a table of SessionSpec fields")
         try:
-            specs.append(SessionSpec.model_validate(item))
+            specs.append(SessionSpec.model_validate({"epoch_ns": now_ns, **item}))
         except ValidationError as exc:
             raise SpecFileError(f"{where}: {validation_reason('SessionSpec', exc)}") from None
     names = [s.session for s in specs]
