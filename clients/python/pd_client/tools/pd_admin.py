@@ -14,8 +14,9 @@ as its fields (docs/protocol.md, "SessionSpec"; arrays in the wire form
 {"shape": [rows, cols], "data": [...]}: what `pd-admin export` writes), or several under
 `sessions` (a list of them: a fleet). `expire_s` in a spec sets its lifetime without traffic
 (0: never expires). A spec without `epoch_ns` starts its step 0 when the file is read (a
-fixed epoch long past would make the service propagate the prior over every step since). A field that breaks a rule is named: `paper.toml: session 1: SessionSpec.x0:
-...`. Creating many sessions goes at the service's config rate (40 at once, then 20 a second
+fixed epoch long past would make the service propagate the prior over every step since).
+A field that breaks a rule is named: `paper.toml: session 1: SessionSpec.x0: ...`. Creating
+many sessions goes at the service's config rate (40 at once, then 20 a second
 by default): refused changes are sent again after a pause, up to --timeout per session.
 
 Exit codes (a script can rely on them):
