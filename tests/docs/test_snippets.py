@@ -34,7 +34,7 @@ from pathlib import Path
 
 import pytest
 
-from ..service.procs import Daemon, Presence, client, endpoint, free_port
+from ..service.procs import Daemon, watched_daemon
 
 ROOT = Path(__file__).resolve().parents[2]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), ROOT / "deploy" / "README.md"]
@@ -100,15 +100,8 @@ def test_outlines_compile(block: Block):
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
     """One daemon for the module's blocks, seen alive by this process' own peer."""
-    tmp = tmp_path_factory.mktemp("snippets")
-    port = free_port()
-    with client(port) as peer:
-        d = Daemon("snippets", tmp / "state", [endpoint(port)]).start()
-        try:
-            assert Presence(peer).wait("snippets", timeout=60.0), d.log()
-            yield d
-        finally:
-            d.stop()
+    with watched_daemon("snippets", tmp_path_factory.mktemp("snippets") / "state") as d:
+        yield d
 
 
 def _run(argv: list[str], code: str, daemon: Daemon, cwd: Path) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from pd_service.transport import Handle, Query, Sample, Transport
 from pd_service.wire import (
@@ -158,32 +159,23 @@ class Admin(ClientBase):
         if serve_spec:
             self._serve(spec)
         ack = _Ack(self, spec.session, {"active", "restored"}) if wait else None
+        key = keys.config_key(spec.session)
         try:
-            self.transport.put(keys.config_key(spec.session), payload)
+            self.transport.put(key, payload)
             if ack is None:
                 return None
-            deadline = time.monotonic() + timeout
-            pause = _RETRY_FIRST_S
-            while True:
-                while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
-                    if poll:  # a new session: its status appearing is an acknowledgement too
-                        st = self._get_status(spec.session, timeout=_POLL_S)
-                        if st is not None and st.state in ("active", "restored"):
-                            return st
-                    if time.monotonic() >= deadline:
-                        raise self._silent(spec.session, f"no acknowledgement for session "
-                                           f"{spec.session!r} within {timeout} s")
-                if not (ack.rate_limited() and time.monotonic() + pause < deadline):
-                    break
-                # refused unread by the service's config rate: send it again, a bit later
-                time.sleep(pause)
-                pause = min(2 * pause, _RETRY_MAX_S)
-                ack.rearm()
-                self.transport.put(keys.config_key(spec.session), payload)
+
+            def appeared() -> SessionStatus | None:  # a new session's status is an answer too
+                st = self._get_status(spec.session, timeout=_POLL_S)
+                return st if st is not None and st.state in ("active", "restored") else None
+
+            st = self._answer(ack, lambda: self.transport.put(key, payload), timeout,
+                              f"no acknowledgement for session {spec.session!r}",
+                              appeared if poll else None)
             if ack.refused is not None:
                 self._unserve(spec.session)
                 raise SessionRefused(spec.session, ack.refused)
-            return ack.status
+            return st
         finally:
             if ack is not None:
                 ack.close()
@@ -195,28 +187,43 @@ class Admin(ClientBase):
         session = self._check(session)
         self._unserve(session)
         ack = _Ack(self, session, {"removed"}) if wait else None
+        key = keys.config_key(session)
         try:
-            self.transport.delete(keys.config_key(session))
+            self.transport.delete(key)
             if ack is None:
                 return None
-            deadline = time.monotonic() + timeout
-            pause = _RETRY_FIRST_S
-            while True:
-                if not ack.event.wait(max(0.0, deadline - time.monotonic())):
-                    raise self._silent(session, f"no acknowledgement of the removal of "
-                                       f"session {session!r} within {timeout} s")
-                if not (ack.rate_limited() and time.monotonic() + pause < deadline):
-                    break
-                time.sleep(pause)
-                pause = min(2 * pause, _RETRY_MAX_S)
-                ack.rearm()
-                self.transport.delete(keys.config_key(session))
+            st = self._answer(ack, lambda: self.transport.delete(key), timeout,
+                              f"no acknowledgement of the removal of session {session!r}")
             if ack.refused is not None:
                 raise SessionRefused(session, ack.refused)
-            return ack.status
+            return st
         finally:
             if ack is not None:
                 ack.close()
+
+    def _answer(self, ack: _Ack, send: Callable[[], None], timeout: float, what: str,
+                poll: Callable[[], SessionStatus | None] | None = None
+                ) -> SessionStatus | None:
+        """Wait up to ``timeout`` s for the service's answer to the config change ``send``
+        made (``ack``; ``poll``, if given, may find it too): the acknowledging status, or
+        None when refused (``ack.refused``). A change the config rate limits refused is
+        sent again after a growing pause. Raises AccessDenied or Timeout without answer."""
+        deadline = time.monotonic() + timeout
+        pause = _RETRY_FIRST_S
+        while True:
+            while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
+                st = poll() if poll is not None else None
+                if st is not None:
+                    return st
+                if time.monotonic() >= deadline:
+                    raise self._silent(ack.session, f"{what} within {timeout} s")
+            if not (ack.rate_limited() and time.monotonic() + pause < deadline):
+                return ack.status
+            # refused unread by the service's config rate: send it again, a bit later
+            time.sleep(pause)
+            pause = min(2 * pause, _RETRY_MAX_S)
+            ack.rearm()
+            send()
 
     def _silent(self, session: str, what: str) -> PdClientError:
         """The error for a config change nobody answered: AccessDenied when a service

@@ -21,7 +21,7 @@ from pd_service.scenarios.paper import paper_scenario
 from pd_service.wire import SessionSpec
 
 from ...deploy._support import ZENOH_DIR, free_port, open_client, open_router, wait_for
-from ...service.procs import Daemon, Presence, client, endpoint
+from ...service.procs import Daemon, watched_daemon
 
 ROOT = Path(__file__).resolve().parents[3]
 
@@ -83,14 +83,8 @@ def run_admin(*argv: str, timeout: float = 60.0) -> subprocess.CompletedProcess[
 @pytest.fixture
 def daemon(tmp_path) -> Iterator[Daemon]:
     """The daemon, once its liveliness token is seen (by this process' own peer)."""
-    port = free_port()
-    with client(port) as peer:
-        d = Daemon("admin-test", tmp_path / "state", [endpoint(port)]).start()
-        try:
-            assert Presence(peer).wait("admin-test", timeout=60.0), d.log()
-            yield d
-        finally:
-            d.stop()
+    with watched_daemon("admin-test", tmp_path / "state") as d:
+        yield d
 
 
 @pytest.mark.integration
