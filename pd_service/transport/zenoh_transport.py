@@ -263,7 +263,9 @@ class ZenohTransport(HandleOwner):
         pub = self.session.declare_publisher(key)
         try:
             deadline = time.monotonic() + timeout
-            while not pub.matching_status.matching:  # type: ignore[attr-defined]  # stub says bool; 1.10 returns MatchingStatus
+            # getattr: the stub says bool (compiled code would check it), 1.10 gives a
+            # MatchingStatus
+            while not getattr(pub, "matching_status").matching:  # noqa: B009
                 if time.monotonic() >= deadline:
                     return False
                 time.sleep(0.05)
