@@ -587,6 +587,28 @@ def test_idle_session_expires(world, tmp_path):
     assert [s.state for s in col.statuses["s1"]].count("expired") == 1  # echo not re-answered
 
 
+@pytest.mark.parametrize("setting, spec_expire, expires", [
+    (5.0, None, {"s1"}),        # the setting's lifetime
+    (5.0, 0.0, set()),          # the spec's 0: never, whatever the setting
+    (0.0, None, set()),         # the setting's 0: never
+    (0.0, 3.0, {"s1"}),         # the spec's own lifetime wins over "never"
+    (1000.0, 3.0, {"s1"}),      # ... and over a longer setting
+])
+def test_a_sessions_lifetime_is_the_specs_else_the_settings(world, tmp_path, setting,
+                                                           spec_expire, expires):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, expire_s=setting)
+    spec = paper_spec("s1").model_copy(update={"expire_s": spec_expire})
+    cli.put(keys.config_key("s1"), encode(spec))
+    core.run_once()
+    for t in range(1, 400, 7):  # 400 s without traffic
+        clock.t = t * 1_000_000_000
+        core.run_once()
+    assert set(core.served_sessions()) == {"s1"} - expires
+    gone = [st.state for st in col.statuses["s1"]].count("expired")
+    assert gone == (1 if expires else 0)
+
+
 def test_restart_restores_sessions_and_resumes_publishing(tmp_path):
     bus = InMemoryBus()
     clock = Clock(0)
