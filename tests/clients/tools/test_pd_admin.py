@@ -134,6 +134,10 @@ def test_every_command_and_its_exit_code(daemon, tmp_path):
 
     r = run_admin(*ep, "delete", "fleet-a")
     assert r.returncode == 0 and r.stdout.strip() == "fleet-a: removed", r.stderr
+    r = subprocess.run([sys.executable, "-m", "pd_client.tools", "display", "--connect",
+                        daemon.endpoint, "--session", "fleet-a", "--once", "--timeout", "1"],
+                       capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert r.returncode == 1 and "no instance runs session 'fleet-a'" in r.stderr, r.stderr
     for cmd in ("show", "delete", "export"):
         r = run_admin(*ep, cmd, "fleet-a")
         assert r.returncode == pd_admin.EXIT_NOT_FOUND, (cmd, r.stderr)
