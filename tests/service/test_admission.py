@@ -51,3 +51,25 @@ def test_a_fleet_created_at_once_is_admitted_at_the_config_rate():
     assert len(st.sessions) == FLEET
     assert "admission_refused" not in st.counters
     assert st.counters["config_rate_limited"] > 0  # the rate did limit the burst
+
+
+def test_a_change_the_service_wide_rate_refused_keeps_the_sessions_share():
+    """The service's bucket refuses s2's put: s2's own bucket (burst 1, nearly no refill)
+    is not spent, so its put once the service's bucket refilled is admitted."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col = Collector().attach(bus.transport())
+    core = ServiceCore(bus.transport(), Settings(
+        instance="a", config_rate=0.001, config_burst=1, config_rate_total=1.0,
+        config_burst_total=1), store=None, now_ns=clock, run_clock_ns=lambda: 0,
+        spawn=lambda fn: fn())
+    core.start()
+    cli = bus.transport()
+    for name in ("s1", "s2"):
+        cli.put(keys.config_key(name), encode(paper_spec(name)))
+    core.run_once()
+    assert core.service_status().sessions == ["s1"]
+    assert col.errors["s2"][-1].reason.startswith(CONFIG_RATE_LIMITED)
+    clock.t += 1_000_000_000  # the service's bucket has a token again, s2's would not
+    cli.put(keys.config_key("s2"), encode(paper_spec("s2")))
+    core.run_once()
+    assert core.service_status().sessions == ["s1", "s2"]
