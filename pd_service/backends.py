@@ -42,14 +42,22 @@ prediction rolls the newest posterior forward to now + lead::
 
     samples/step   lam = sum_s 1 / interval_s
     updates        U = 1 + lam D
-    linear         cpu = STEP_US + lam SAMPLE_US + (U + 1) LIN_OP_US(n)      (the prediction
-                                             is one multi-step product from the tables)
+    linear         cpu = STEP_US + lam SAMPLE_US + (lam + 1) LIN_OP_US(n) + lam D REPLAY_US(n)
+                   (each packet one covariance update, the prediction one multi-step
+                   product from the tables; a replayed step keeps its covariance and gains
+                   and re-runs only its mean)
     unscented      cpu = STEP_US + lam SAMPLE_US + (D + lead) UKF_STEP_US(n) + U UKF_UPD_US(n)
     IMM (r modes)  the unscented figure with both per-op costs times r
 
-The constants are calibrated with ``bench/admission_calibrate.py`` and rounded up
-(docs/performance.md, "Admission's cost model"). They are a model, not a measurement of the
-spec: a spec's real cost depends on its traffic. The budgets it is checked against are
+The constants price the worker thread's time (the one thread every session shares, which
+``cpu_budget`` bounds) as measured on the current hot path and rounded up: the paper's
+session (n = 4, camera every 2nd step delayed 10, ranger every step delayed 12) comes to
+~32 µs per step, where the worker alone was measured at 26-29 µs per session-step at
+1,000-2,000 sessions (docs/performance.md, "Admission's cost model", with the command);
+``bench/admission_calibrate.py`` times the estimator's part. Fixed constants, not a
+measurement at start-up: a budget must admit the same specs on every restart and on every
+peer, whatever the machine's load at that moment. They are a model, not a measurement of
+the spec: a spec's real cost depends on its traffic. The budgets it is checked against are
 :class:`pd_service.service.admission.Ledger`'s.
 """
 
@@ -83,13 +91,18 @@ __all__ = ["Built", "Cost", "build", "command_dim", "estimator_refusal", "imm_se
 SESSION_FIXED_BYTES = 32 * 1024
 PACKET_OVERHEAD_BYTES = 200
 
-STEP_US = 40.0  # pack and publish one prediction, tick bookkeeping
-SAMPLE_US = 15.0  # decode, check and store one measurement
+STEP_US = 15.0  # tick, health check, snapshot, pack and put one prediction
+SAMPLE_US = 6.0  # decode, check and store one measurement
 
 
 def lin_op_us(n: int) -> float:
-    """One linear propagate or update (µs)."""
-    return 5.0 + 1e-4 * n**3
+    """One linear propagate or covariance update (µs)."""
+    return 2.0 + 1e-4 * n**3
+
+
+def replay_us(n: int) -> float:
+    """One replayed linear step whose covariance and gains are reused: its mean only (µs)."""
+    return 0.15 + 1e-3 * n**2
 
 
 def ukf_step_us(n: int) -> float:
@@ -152,7 +165,7 @@ def spec_cost(spec: SessionSpec, nu: int) -> Cost:
             h.update(a.tobytes())
         h.update(str(C).encode())
         table_key = h.hexdigest()
-        cpu += (updates + 1.0) * lin_op_us(n)
+        cpu += (lam + 1.0) * lin_op_us(n) + lam * D * replay_us(n)
     else:
         r = 1 if isinstance(model, UnscentedModelSpec) else len(model.modes)
         cpu += r * ((D + spec.lead) * ukf_step_us(n) + updates * ukf_upd_us(n))

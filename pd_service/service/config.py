@@ -103,7 +103,9 @@ class Settings(BaseSettings):
                              "standalone. Liveliness tokens of any other instance are ignored.")
 
     # sessions
-    expire_s: float = Field(120.0, gt=0, description="Idle time after which a session expires.")
+    expire_s: float = Field(120.0, ge=0, description="Time without a measurement or command "
+                            "after which a session expires (a spec's own expire_s wins); 0: "
+                            "never.")
     idle_after_s: float = Field(5.0, gt=0, description="A session is idle (published only "
                                 "every idle_publish_s instead of every step) until its first "
                                 "measurement or command that decodes, and again after this "

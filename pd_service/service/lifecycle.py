@@ -25,7 +25,7 @@ from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
 from pd_service.transport import Handle, Sample, Transport
-from pd_service.wire import SessionSpec, WireError, decode, keys
+from pd_service.wire import CONFIG_RATE_LIMITED, SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
 from .admission import Ledger, OverBudget
@@ -252,10 +252,13 @@ class Lifecycle:
             if len(self._config_buckets) >= _MAX_CONFIG_BUCKETS:  # forget the oldest
                 self._config_buckets.pop(next(iter(self._config_buckets)))
             b = self._config_buckets[session] = TokenBucket(s.config_rate, s.config_burst, now)
-        if b.allow(now) and self._config_total.allow(now):
-            return True
+        if b.allow(now):
+            if self._config_total.allow(now):
+                return True
+            b.refund()  # the service-wide limit refused it: the session's share is not used
         self.pub.refuse(None, sample.key, Refusal(
-            "config_rate_limited", f"config change refused: more than {s.config_rate:g} per "
+            "config_rate_limited", f"{CONFIG_RATE_LIMITED}: config change refused: more than "
+            f"{s.config_rate:g} per "
             f"second for this session or {s.config_rate_total:g} per second for this service "
             "(config_rate, config_rate_total)"), now, session=session,
             counted=("config_rate_limited", "config_refused"),
@@ -524,12 +527,16 @@ class Lifecycle:
             log.debug("declaring the keys of %s failed: %s", session, exc)
 
     def expire_idle(self, now: int) -> None:
-        """Remove the sessions idle for more than ``expire_s``; forget old removals."""
-        limit = int(self.settings.expire_s * 1e9)
+        """Remove the sessions idle for more than their lifetime (the spec's ``expire_s``,
+        else the setting's; 0: never); forget old removals."""
+        default = self.settings.expire_s
         for name, route in list(self.dispatch.routes.items()):
             sess = route.sess
-            if sess is not None and now - sess.last_activity_ns > limit:
-                self.remove(name, "expired", f"idle for more than {self.settings.expire_s:g} s",
+            if sess is None:
+                continue
+            expire_s = sess.spec.expire_s if sess.spec.expire_s is not None else default
+            if expire_s and now - sess.last_activity_ns > expire_s * 1e9:
+                self.remove(name, "expired", f"idle for more than {expire_s:g} s",
                             now, answer=True)
                 # Tell the other instances (they keep every spec) that it is gone.
                 self.pub.delete(keys.config_key(name))

@@ -24,9 +24,10 @@ invalid                    refused by the estimator's own checks (ValueError)
 flood                      dropped unread because the session's inbox was full
 published                  predictions published
 tick_overruns              ticks that fired after their step had ended (late ticks)
-steps_missed               due steps (multiples of publish_every) that got no prediction at
-                           all, e.g. while the worker was stalled: counted when the next
-                           prediction is published
+steps_missed               due steps (multiples of publish_every while the session is not
+                           idle) that got no prediction at all, e.g. while the worker was
+                           stalled: counted when the next prediction is published (an idle
+                           session skips steps on purpose: none of those is due)
 errors_suppressed          ErrorReports not sent because of the rate limit
 out_of_range               a value of z (``commands_out_of_range``: u) above the
                            service's ``max_abs_input`` in magnitude
@@ -136,6 +137,9 @@ class Session:
         #: entry (older entries are skipped) and whether the session is ticking as idle.
         self.tick_gen = 0
         self.idle = False
+        #: The step from which every publish_every-th step is due again (set when an idle
+        #: session wakes); the steps an idle session skipped before it are not missed.
+        self.due_from = 0
         self.pred_key = keys.prediction_key(self.name)
         self.encoder = PredictionEncoder(spec, self.name)
         self.error_key = keys.error_key(self.name)
@@ -232,10 +236,14 @@ class Session:
 
     def steps_missed_before(self, k: int) -> int:
         """Due steps (multiples of ``publish_every``) after the last published step and
-        before step ``k`` that got no prediction: ``floor((k-1)/pe) - floor(last/pe)``
-        (0 before the first publication)."""
+        before step ``k`` that got no prediction: ``floor((k-1)/pe) - floor(last/pe)`` with
+        ``last`` at least ``due_from - 1`` (0 before the first publication, and while the
+        session is idle: its skipped steps were not due)."""
         last = self.last_pub_step
-        if last is None or k <= last + 1:
+        if last is None or self.idle:
+            return 0
+        last = max(last, self.due_from - 1)
+        if k <= last + 1:
             return 0
         pe = self.publish_every
         return (k - 1) // pe - last // pe

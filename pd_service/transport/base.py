@@ -152,6 +152,14 @@ class Transport(Protocol):
     def get(self, selector: str, payload: bytes | None = None,
             timeout: float = 2.0) -> list[Reply]: ...
 
+    def subscribed(self, key: str, timeout: float = 1.0) -> bool:
+        """Whether another party subscribes to ``key`` (waits up to ``timeout`` seconds for
+        the subscription to become known). On Zenoh a publisher's matching status: a
+        router's access control lets every user learn of subscriptions (it reveals key
+        expressions, never data), so a client can tell "the service listens, but my put
+        is refused" from "no service"."""
+        ...
+
     def declare_token(self, key: str) -> Handle: ...
 
     def subscribe_liveliness(self, keyexpr: str, callback: Callable[[str, bool], None],

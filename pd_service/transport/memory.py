@@ -157,6 +157,10 @@ class InMemoryTransport(HandleOwner):
             cb(s)
         return s
 
+    def subscribed(self, key: str, timeout: float = 1.0) -> bool:
+        with self.bus.lock:
+            return any(intersects(ke, key) for ke, _ in self.bus.subs)
+
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         return self._register(self.bus.subs, (keyexpr, callback))
 

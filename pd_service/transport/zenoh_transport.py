@@ -286,6 +286,20 @@ class ZenohTransport(HandleOwner):
             sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
         return _Publisher(adv, self._keep(adv))
 
+    def subscribed(self, key: str, timeout: float = 1.0) -> bool:
+        pub = self.session.declare_publisher(key)
+        try:
+            deadline = time.monotonic() + timeout
+            # getattr: the stub says bool (compiled code would check it), 1.10 gives a
+            # MatchingStatus
+            while not getattr(pub, "matching_status").matching:  # noqa: B009
+                if time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.05)
+            return True
+        finally:
+            pub.undeclare()
+
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         def on_sample(s: zenoh.Sample) -> None:
             try:

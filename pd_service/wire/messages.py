@@ -471,6 +471,10 @@ class SessionSpec(Message):
         "hold", description="A step without a command: hold the last u, or use u = 0.")
     ros2: Ros2Binding | None = Field(
         None, description="ROS 2 topics of the session (served by the pd-ros2 bridge).")
+    expire_s: Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)] | None = Field(
+        None, description="Seconds without a measurement or command after which the service "
+                          "removes the session (state expired); 0: never; absent: the "
+                          "service's expire_s setting (120 s by default).")
 
     # name -> SensorSpec, rebuilt whenever `sensors` is not the list it was built from
     # (model_copy(update=...) copies private attributes but not their meaning).
@@ -563,6 +567,8 @@ class SessionSpec(Message):
         out = handler(self)
         if self.ros2 is None:  # a session without ROS 2 topics: the bytes stay as before
             out.pop("ros2", None)
+        if self.expire_s is None:  # the service's lifetime: the bytes stay as before
+            out.pop("expire_s", None)
         return out
 
     def _check_ros2(self, ros2: Ros2Binding, n: int) -> None:
@@ -670,6 +676,12 @@ class Prediction(Message):
         if problem:
             raise invalid("P", problem)
         return self
+
+
+#: How the reason of an ErrorReport that refuses a config change by the service's rate
+#: limits begins (``config_rate_limited: config change refused: ...``): the change was not
+#: judged, so a client may send it again a little later (the SDK's Admin does).
+CONFIG_RATE_LIMITED = "config_rate_limited"
 
 
 class ErrorReport(Message):
