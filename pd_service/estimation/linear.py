@@ -36,7 +36,7 @@ from pd_service.native import kernel, kernel_function
 
 from .estimator_state import check_names, take
 from .model import LinearModel, Sensor
-from .replay import Packet
+from .replay import Cut, Packet
 
 #: The C form of :meth:`LinearBackend.advance`'s step (pd_service/estimation/_kalman.c), None
 #: where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
@@ -323,7 +323,7 @@ class LinearBackend:
         return self.advance(state, 0, U=np.empty((0, self._nu)), packets=packets, old=None)
 
     def advance(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
-                old: Gaussian | None) -> Gaussian:
+                old: Gaussian | None, cuts: list[Cut] | None = None) -> Gaussian:
         """x(a) -> x(a + m) with inputs U (m, nu), then one Kalman update per packet in
         ``packets`` (sorted by sensor, possibly none; sequential updates equal the stacked one
         of eq. (24), R* being block diagonal). ``old`` (this step's previous result, or None)
@@ -347,7 +347,12 @@ class LinearBackend:
         With the kernel (:attr:`use_kernel`) the step is one C call (``_kalman.advance``);
         a step it does not take (a jump longer than the tables, a nearly singular S) is
         made by the numpy form, :meth:`numpy_step`.
+
+        A step with events inside it (packets off the grid, commands taking effect inside a
+        step: ``cuts``) is :meth:`split_step`.
         """
+        if cuts is not None or (packets and packets[-1][3] > 0.0):
+            return self.split_step(state, m, U, packets, cuts)
         adv = _ADVANCE if self.use_kernel and m <= self._M else None
         if adv is not None:
             got = adv(Gaussian, self._jumps, self._G, self._single, state, m, U, packets, old)
@@ -391,9 +396,17 @@ class LinearBackend:
         if not npk:
             return _new(Gaussian, (xp, Pp, P, m, (), b""))
         sensors = (packets[0].sensor,) if npk == 1 else tuple([p.sensor for p in packets])
+        xp, Pp, records = self._apply(xp, Pp, packets, len(done))
+        return _new(Gaussian, (xp, Pp, P, m, sensors,
+                               stages + np.concatenate(records).tobytes()))
+
+    def _apply(self, xp: np.ndarray, Pp: np.ndarray, packets: list[Packet],
+               start: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        """The Kalman updates of ``packets[start:]`` on (x-, P-), in turn: (x+, P+, the
+        stages' records) (formulas: :meth:`advance`)."""
         single = self._single
         records: list[np.ndarray] = []
-        for i in range(len(done), npk):
+        for i in range(start, len(packets)):
             p = packets[i]
             kind, H, HT, R, r, j = single[p.sensor]
             z = p.z
@@ -437,8 +450,73 @@ class LinearBackend:
             xp = xp + K.dot(z - H.dot(xp))
             Pp = Pn
             records.append(_record(p.sensor, 3, -1, 0.0, z, K, H))
-        return _new(Gaussian, (xp, Pp, P, m, sensors,
-                               stages + np.concatenate(records).tobytes()))
+        return xp, Pp, records
+
+    def split_step(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+                   cuts: list[Cut] | None) -> Gaussian:
+        """:meth:`advance` for a step with events inside steps (numpy; a continuous-time
+        model): from x(a), the packets at their own times ``a + m + offset`` and the
+        commands taking effect at theirs (``cuts``, :data:`.replay.Cut`), in time order;
+        the result is at a + m + 1 if a packet lies off the grid (U then has m + 1 rows),
+        else at a + m. Between events the exact discretisation over each interval tau
+        (:meth:`.model.LinearModel.over`), whole steps by the tables::
+
+            x(t + tau) = A(tau) x(t) + B(tau) u,   P(t + tau) = A(tau) P(t) A(tau)^T + Q(tau)
+
+        with u the input in effect (u_before of a cut until its offset, then its row of
+        U). A state made here is never reused as ``old`` (it records no parent)."""
+        model = self.model
+        T = model.period
+        if T is None:
+            raise ValueError("a discrete model (A, B, Q only) takes samples and commands on "
+                             "the grid only")
+        end = m + 1 if packets and packets[-1][3] > 0.0 else m
+        if U.shape[0] < end:
+            raise ValueError(f"U: {U.shape[0]} rows for a step ending {end} steps on")
+        cut_at = {i: (d, ub) for i, d, ub in cuts or ()}
+        # events in time order: (row, offset, 0: a command's cut / 1: packet, its index)
+        events = sorted([(i, d, 0, 0) for i, d, _ in cuts or ()]
+                        + [(m, p[3], 1, k) for k, p in enumerate(packets)])
+        events.append((end, 0.0, 2, 0))
+        x, P = state[0], state[1]
+        r, f = 0, 0.0  # the cursor: row r, f seconds into it
+        for row, off, what, k in events:
+            if row > r:
+                if f > 0.0:  # the rest of row r
+                    x, P = self._segment(x, P, T - f, self._u_in(U, cut_at, r, f))
+                    r, f = r + 1, 0.0
+                if row > r:
+                    x, Pj = self._jump(x, P, row - r, U[r:row])
+                    assert Pj is not None
+                    P = Pj
+                    r = row
+            if off > f:
+                x, P = self._segment(x, P, off - f, self._u_in(U, cut_at, r, f))
+                f = off
+            if what == 1:
+                x, P, _ = self._apply(x, P, [packets[k]], 0)
+        return _new(Gaussian, (x, P, None, 0, (), b""))
+
+    def _u_in(self, U: np.ndarray, cut_at: dict[int, tuple[float, np.ndarray]], row: int,
+              f: float) -> np.ndarray:
+        """The input in effect f seconds into row ``row`` of U (before a cut: its u_before)."""
+        c = cut_at.get(row)
+        if c is not None and f < c[0]:
+            return c[1]
+        return U[row] if self._nu else np.zeros(0)
+
+    def _segment(self, x: np.ndarray, P: np.ndarray, tau: float,
+                 u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(x, P) propagated over tau seconds with u held: A x + B u, A P A^T + Q, the
+        covariance made exactly symmetric as in :meth:`_jump`."""
+        A, B, Q = self.model.over(tau)
+        xp = A.dot(x)
+        if self._nu:
+            xp += B.dot(u)
+        Mh = A.dot(P).dot(A.T) * 0.5
+        Pp = Mh + Mh.T.copy()
+        Pp += Q
+        return xp, Pp
 
     def _jump(self, x: np.ndarray, P: np.ndarray | None, m: int,
               U: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

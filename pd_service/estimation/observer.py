@@ -58,6 +58,8 @@ class ObserverPredictor(ReplayEstimator[Gaussian]):
         self.model = model
         self.sensors = sensors
         self._backend = LinearBackend(model, sensors, self._inputs.capacity)
+        # samples and commands inside a step need a continuous-time model
+        self.period_s = model.period if model.period is not None else 0.0
 
     @property
     def n(self) -> int:
