@@ -445,6 +445,19 @@ class ReplayEstimator(Generic[S]):
         target = t + self.lead
         step, state, newest = self._newest(target)
         advance = getattr(self._backend, "advance", None)
+        if self._steps and self._steps[-1] == target and target in self._offgrid:
+            # lead 0, and samples inside the target step: those at its very start count
+            head = [p for p in self._packets[target] if p[3] == 0.0]
+            if head:
+                m = target - step
+                if advance is not None:
+                    state = advance(state, m, self._inputs.slice(step, m), head, None,
+                                    self._inputs.cuts(step, target - 1))
+                else:
+                    if m:
+                        state = self._propagate(state, step, m)
+                    state = self._backend.update(state, target, head)
+                step, newest = target, target
         if advance is not None:
             m = target - step
             state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred,
@@ -596,7 +609,14 @@ class ReplayEstimator(Generic[S]):
             self._pred = None
 
     def _propagate(self, state: S, step: int, m: int) -> S:
-        return self._backend.propagate(state, step, m, self._inputs.slice(step, m))
+        inputs = self._inputs
+        U = inputs.slice(step, m)
+        if inputs.cut_offsets:  # commands inside these steps: a fused backend takes them
+            advance = getattr(self._backend, "advance", None)
+            cuts = inputs.cuts(step, step + m - 1)
+            if advance is not None and cuts is not None:
+                return advance(state, m, U, [], None, cuts)  # type: ignore[no-any-return]
+        return self._backend.propagate(state, step, m, U)
 
     def _end(self, s: int) -> int:
         """The step at which measured step s's posterior is: s, or s + 1 off the grid."""
