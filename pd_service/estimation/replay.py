@@ -451,8 +451,10 @@ class ReplayEstimator(Generic[S]):
             if head:
                 m = target - step
                 if advance is not None:
-                    state = advance(state, m, self._inputs.slice(step, m), head, None,
-                                    self._inputs.cuts(step, target - 1))
+                    cuts = self._inputs.cuts(step, target - 1)
+                    U = self._inputs.slice(step, m)
+                    state = (advance(state, m, U, head, None) if cuts is None
+                             else advance(state, m, U, head, None, cuts))
                 else:
                     if m:
                         state = self._propagate(state, step, m)
@@ -460,8 +462,10 @@ class ReplayEstimator(Generic[S]):
                 step, newest = target, target
         if advance is not None:
             m = target - step
-            state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred,
-                                         self._inputs.cuts(step, target - 1))
+            cuts = self._inputs.cuts(step, target - 1)
+            U = self._inputs.slice(step, m)
+            state = self._pred = (advance(state, m, U, [], self._pred) if cuts is None
+                                  else advance(state, m, U, [], self._pred, cuts))
             x, P = self._backend.moments(state)
             # shared with the engine (a reused covariance, a checkpoint): read-only
             _read_only(x)
@@ -675,7 +679,10 @@ class ReplayEstimator(Generic[S]):
                     old = chk.get(s) if noreuse is None or s < noreuse else None
                     e = s + 1 if s in offgrid else s
                     cuts = inputs.cuts(a, e - 1) if cut else None
-                    state = advance(state, s - a, buf[a - off : e - off], packets[s], old, cuts)
+                    U = buf[a - off : e - off]
+                    # cuts passed only when there are some: a backend without them still fits
+                    state = (advance(state, s - a, U, packets[s], old) if cuts is None
+                             else advance(state, s - a, U, packets[s], old, cuts))
                     chk[s] = state
                     a = e
         else:
