@@ -298,8 +298,8 @@ static double *records_add(Records *b, Py_ssize_t k) {
    stage's record to ``rec``. 0, 1 (hand back: a Cholesky pivot not clearly positive, or a
    packet beyond this kernel's sizes), or -1 with an exception. */
 static int apply_packets(double *xv, double *pv, npy_intp n, PyObject *packets,
-                         PyObject *rows, Py_ssize_t start, Records *rec) {
-    Py_ssize_t np_ = PyList_GET_SIZE(packets);
+                         PyObject *rows, Py_ssize_t start, Py_ssize_t stop, Records *rec) {
+    Py_ssize_t np_ = stop;
     for (Py_ssize_t i = start; i < np_; i++) {
         PyObject *pk = PyList_GET_ITEM(packets, i);
         if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 3) {
@@ -407,7 +407,7 @@ static PyObject *finish_update(PyObject *xo, PyObject *Po, npy_intp n, PyObject 
     Records rec;
     records_init(&rec);
     int got = apply_packets(PyArray_DATA((PyArrayObject *)xo), PyArray_DATA((PyArrayObject *)Po),
-                            n, packets, rows, start, &rec);
+                            n, packets, rows, start, PyList_GET_SIZE(packets), &rec);
     if (got < 0) goto done;
     if (got > 0) { res = Py_NewRef(Py_None); goto done; }
     Py_ssize_t old = PyBytes_GET_SIZE(stages);
@@ -809,6 +809,269 @@ error:
     return NULL;
 }
 
+/* ---- steps with events inside them (LinearBackend.split_step's C form) ------------------
+
+   split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period) -> Gaussian, or
+   None (not taken: the numpy form then runs)
+
+   The walk of LinearBackend.split_step: from x(a), whole steps by the tables (as the jump
+   above), the intervals between events by the model's Taylor polynomials (coef (K+1,
+   2 n^2 + n nu): row j multiplies tau^(j+1); A = I + its first n^2 columns, B the next
+   n nu, Q the last n^2, made exactly symmetric), each packet's Kalman update at its own
+   time (apply_packets), the input before a cut's offset its u_before:
+
+       x(t + tau) = A(tau) x + B(tau) u,   P(t + tau) = A(tau) P A(tau)^T + Q(tau)
+
+   U (rows, nu) the span's inputs; packets sorted by offset (field 3, s); cuts a list of
+   (row, offset, u_before (nu,)) rising. The result is at row m + 1 if a packet lies after
+   its step's start, else at row m; it records no parent (src None, m 0, no stages): never
+   reused. None for a packet the update does not take (as advance). */
+
+#define MAXCUT 64
+
+static void taylor_at(const double *coef, npy_intp K1, npy_intp n, npy_intp nu, double tau,
+                      double *A, double *B, double *Q) {
+    npy_intp nn = n * n, nb = n * nu, w = 2 * nn + nb;
+    for (npy_intp c = 0; c < nn; c++) A[c] = Q[c] = 0.0;
+    for (npy_intp c = 0; c < nb; c++) B[c] = 0.0;
+    double p = 1.0;
+    for (npy_intp j = 0; j < K1; j++) {  /* sum_j tau^(j+1) coef[j] */
+        p *= tau;
+        const double *row = coef + j * w;
+        for (npy_intp c = 0; c < nn; c++) A[c] += p * row[c];
+        for (npy_intp c = 0; c < nb; c++) B[c] += p * row[nn + c];
+        for (npy_intp c = 0; c < nn; c++) Q[c] += p * row[nn + nb + c];
+    }
+    for (npy_intp i = 0; i < n; i++) A[i * n + i] += 1.0;
+    for (npy_intp i = 0; i < n; i++)  /* exactly symmetric: (Q + Q^T) / 2 */
+        for (npy_intp j = i + 1; j < n; j++)
+            Q[i * n + j] = Q[j * n + i] = 0.5 * (Q[i * n + j] + Q[j * n + i]);
+}
+
+/* x <- A x + (Bu: NULL, or added), P <- A P A^T + Q (upper triangle, mirrored) in place. */
+static void propagate_raw(double *x, double *P, npy_intp n, const double *A, const double *Q,
+                          const double *Bu) {
+    double t[MAXN * MAXN], xn[MAXN];
+    for (npy_intp i = 0; i < n; i++) {
+        double acc = 0.0;
+        for (npy_intp k = 0; k < n; k++) acc += A[i * n + k] * x[k];
+        xn[i] = acc + (Bu ? Bu[i] : 0.0);
+    }
+    memcpy(x, xn, sizeof(double) * (size_t)n);
+    for (npy_intp i = 0; i < n; i++)
+        for (npy_intp j = 0; j < n; j++) {
+            double acc = 0.0;
+            for (npy_intp k = 0; k < n; k++) acc += A[i * n + k] * P[k * n + j];
+            t[i * n + j] = acc;
+        }
+    for (npy_intp i = 0; i < n; i++)
+        for (npy_intp j = i; j < n; j++) {
+            double acc = 0.0;
+            for (npy_intp k = 0; k < n; k++) acc += t[i * n + k] * A[j * n + k];
+            P[i * n + j] = P[j * n + i] = acc + Q[i * n + j];
+        }
+}
+
+static PyObject *split(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("split", nargs, 11)) return NULL;
+    PyObject *gt = args[0], *jumps = args[1], *oG = args[2], *rows = args[3];
+    PyObject *state = args[4], *packets = args[7], *cuts = args[8];
+    Py_ssize_t m = PyLong_AsSsize_t(args[5]);
+    double period = PyFloat_AsDouble(args[10]);
+    if ((m == -1 || period == -1.0) && PyErr_Occurred()) return NULL;
+    if (!PyType_Check(gt) || !PyTuple_Check(jumps) || !PyList_Check(packets)
+        || !PyList_Check(cuts) || !PyTuple_Check(state) || PyTuple_GET_SIZE(state) < 2
+        || m < 0 || m + 1 >= PyTuple_GET_SIZE(jumps)) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.split: arguments of the wrong types");
+        return NULL;
+    }
+    PyArrayObject *X = as_f64(PyTuple_GET_ITEM(state, 0)), *PP = as_f64(PyTuple_GET_ITEM(state, 1));
+    PyArrayObject *U = as_f64(args[6]), *C = as_f64(args[9]), *G = NULL;
+    PyObject *res = NULL, *empty = NULL;
+    Records rec;
+    records_init(&rec);
+    if (!X || !PP || !U || !C) goto done;
+    npy_intp n = PyArray_SIZE(X);
+    npy_intp nu = PyArray_NDIM(U) == 2 ? PyArray_DIM(U, 1) : 0;
+    npy_intp urows = PyArray_NDIM(U) == 2 ? PyArray_DIM(U, 0) : 0;
+    if (n > MAXN || nu > MAXR || check_size(PP, n * n, "P") || PyArray_NDIM(C) != 2
+        || PyArray_DIM(C, 1) != 2 * n * n + n * nu) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "_kalman.split: sizes that do not fit");
+        goto done;
+    }
+    if (oG != Py_None) {
+        G = as_f64(oG);
+        if (!G) goto done;
+    }
+    const double *u = PyArray_DATA(U), *coef = PyArray_DATA(C);
+    npy_intp K1 = PyArray_DIM(C, 0);
+    double x[MAXN], P[MAXN * MAXN];
+    memcpy(x, PyArray_DATA(X), sizeof(double) * (size_t)n);
+    memcpy(P, PyArray_DATA(PP), sizeof(double) * (size_t)(n * n));
+    /* the cuts */
+    Py_ssize_t ncut = PyList_GET_SIZE(cuts);
+    if (ncut > MAXCUT) { res = Py_NewRef(Py_None); goto done; }
+    Py_ssize_t cut_row[MAXCUT];
+    double cut_d[MAXCUT];
+    const double *cut_u[MAXCUT];
+    PyArrayObject *cut_arr[MAXCUT];
+    Py_ssize_t held = 0;
+    for (Py_ssize_t c = 0; c < ncut; c++) {
+        PyObject *ct = PyList_GET_ITEM(cuts, c);
+        if (!PyTuple_Check(ct) || PyTuple_GET_SIZE(ct) != 3) {
+            PyErr_SetString(PyExc_TypeError, "_kalman.split: a cut is not (row, offset, u)");
+            goto cuts_done;
+        }
+        cut_row[c] = PyLong_AsSsize_t(PyTuple_GET_ITEM(ct, 0));
+        cut_d[c] = PyFloat_AsDouble(PyTuple_GET_ITEM(ct, 1));
+        if (PyErr_Occurred()) goto cuts_done;
+        cut_arr[c] = as_f64(PyTuple_GET_ITEM(ct, 2));
+        if (!cut_arr[c]) goto cuts_done;
+        held = c + 1;
+        if (check_size(cut_arr[c], nu, "u_before") || cut_row[c] < 0 || cut_row[c] >= urows)
+            goto cuts_done;
+        cut_u[c] = PyArray_DATA(cut_arr[c]);
+    }
+    {
+        Py_ssize_t npk = PyList_GET_SIZE(packets);
+        double last = 0.0;
+        if (npk) {
+            PyObject *pk = PyList_GET_ITEM(packets, npk - 1);
+            if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 4) {
+                PyErr_SetString(PyExc_TypeError, "_kalman.split: a packet has no offset");
+                goto cuts_done;
+            }
+            last = PyFloat_AsDouble(PyTuple_GET_ITEM(pk, 3));
+            if (last == -1.0 && PyErr_Occurred()) goto cuts_done;
+        }
+        Py_ssize_t end = last > 0.0 ? m + 1 : m;
+        if (urows < end) {
+            PyErr_SetString(PyExc_ValueError, "_kalman.split: U has too few rows");
+            goto cuts_done;
+        }
+        Py_ssize_t r = 0, ci = 0, pi = 0;
+        double f = 0.0;
+        double A[MAXN * MAXN], B[MAXN * MAXR], Q[MAXN * MAXN], Bu[MAXN];
+        for (;;) {
+            /* the next event: a cut (first at a tie), a packet, or the end */
+            Py_ssize_t row;
+            double off;
+            int what;
+            double poff = 0.0;
+            if (pi < npk) {
+                PyObject *pk = PyList_GET_ITEM(packets, pi);
+                if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 4) {
+                    PyErr_SetString(PyExc_TypeError, "_kalman.split: a packet has no offset");
+                    goto cuts_done;
+                }
+                poff = PyFloat_AsDouble(PyTuple_GET_ITEM(pk, 3));
+                if (poff == -1.0 && PyErr_Occurred()) goto cuts_done;
+            }
+            if (ci < ncut && (pi >= npk || cut_row[ci] < m
+                              || (cut_row[ci] == m && cut_d[ci] <= poff))) {
+                row = cut_row[ci]; off = cut_d[ci]; what = 0;
+            } else if (pi < npk) {
+                row = m; off = poff; what = 1;
+            } else {
+                row = end; off = 0.0; what = 2;
+            }
+            if (row > r) {
+                if (f > 0.0) {  /* the rest of row r */
+                    const double *uu = u + r * nu;
+                    for (Py_ssize_t c = 0; c < ncut; c++)
+                        if (cut_row[c] == r && f < cut_d[c]) uu = cut_u[c];
+                    taylor_at(coef, K1, n, nu, period - f, A, B, Q);
+                    for (npy_intp i = 0; i < n; i++) {
+                        double acc = 0.0;
+                        for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
+                        Bu[i] = acc;
+                    }
+                    propagate_raw(x, P, n, A, Q, nu ? Bu : NULL);
+                    r += 1;
+                    f = 0.0;
+                }
+                if (row > r) {  /* whole steps: the tables' jump of row - r */
+                    Py_ssize_t k = row - r;
+                    PyObject *jt = PyTuple_GET_ITEM(jumps, k);
+                    if (!PyTuple_Check(jt) || PyTuple_GET_SIZE(jt) < 3) {
+                        PyErr_SetString(PyExc_TypeError, "_kalman.split: a jump is not (A, ., Qs, ...)");
+                        goto cuts_done;
+                    }
+                    PyArrayObject *Aj = as_f64(PyTuple_GET_ITEM(jt, 0));
+                    PyArrayObject *Qj = as_f64(PyTuple_GET_ITEM(jt, 2));
+                    int bad = !Aj || !Qj || check_size(Aj, n * n, "A") || check_size(Qj, n * n, "Qs");
+                    if (!bad) {
+                        npy_intp kk = k * nu;
+                        if (G && nu) {
+                            npy_intp cols = PyArray_NDIM(G) == 2 ? PyArray_DIM(G, 1) : -1;
+                            if (PyArray_NDIM(G) != 2 || PyArray_DIM(G, 0) != n || cols < kk) {
+                                PyErr_SetString(PyExc_ValueError, "_kalman: G is not (n, >= U.size)");
+                                bad = 1;
+                            } else {
+                                const double *g = (const double *)PyArray_DATA(G) + (cols - kk);
+                                const double *uu = u + r * nu;
+                                for (npy_intp i = 0; i < n; i++) {
+                                    double acc = 0.0;
+                                    for (npy_intp l = 0; l < kk; l++) acc += g[i * cols + l] * uu[l];
+                                    Bu[i] = acc;
+                                }
+                            }
+                        }
+                        if (!bad)
+                            propagate_raw(x, P, n, PyArray_DATA(Aj), PyArray_DATA(Qj),
+                                          G && nu ? Bu : NULL);
+                    }
+                    Py_XDECREF(Aj); Py_XDECREF(Qj);
+                    if (bad) goto cuts_done;
+                    r = row;
+                }
+            }
+            if (off > f) {
+                const double *uu = u + r * nu;
+                for (Py_ssize_t c = 0; c < ncut; c++)
+                    if (cut_row[c] == r && f < cut_d[c]) uu = cut_u[c];
+                taylor_at(coef, K1, n, nu, off - f, A, B, Q);
+                for (npy_intp i = 0; i < n; i++) {
+                    double acc = 0.0;
+                    for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
+                    Bu[i] = acc;
+                }
+                propagate_raw(x, P, n, A, Q, nu ? Bu : NULL);
+                f = off;
+            }
+            if (what == 0) {
+                ci++;
+            } else if (what == 1) {
+                rec.len = 0;
+                int got = apply_packets(x, P, n, packets, rows, pi, pi + 1, &rec);
+                if (got < 0) goto cuts_done;
+                if (got > 0) { res = Py_NewRef(Py_None); goto cuts_done; }
+                pi++;
+            } else {
+                break;
+            }
+        }
+    }
+    {
+        double *xd, *pd;
+        PyObject *xo = new_vec(n, &xd), *Po = xo ? new_mat(n, n, &pd) : NULL;
+        empty = PyTuple_New(0);
+        if (!xo || !Po || !empty) { Py_XDECREF(xo); Py_XDECREF(Po); goto cuts_done; }
+        memcpy(xd, x, sizeof(double) * (size_t)n);
+        memcpy(pd, P, sizeof(double) * (size_t)(n * n));
+        res = new_gaussian((PyTypeObject *)gt, xo, Po, Py_None, 0, empty, no_stages);
+    }
+cuts_done:
+    for (Py_ssize_t c = 0; c < held; c++) Py_XDECREF(cut_arr[c]);
+done:
+    records_free(&rec);
+    Py_XDECREF(X); Py_XDECREF(PP); Py_XDECREF(U); Py_XDECREF(C); Py_XDECREF(G);
+    Py_XDECREF(empty);
+    return res;
+}
+
 /* freeze(a, ...) -> None: each numpy array made read-only, as a.setflags(write=False) does
    without parsing keyword arguments. TypeError, with nothing changed, if an argument is not
    a numpy array. */
@@ -896,6 +1159,9 @@ static PyMethodDef methods[] = {
     {"replay", (PyCFunction)(void (*)(void))replay, METH_FASTCALL,
      "replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse) -> "
      "(state, a, done): ReplayEstimator._replay's loop of advance calls, in one call."},
+    {"split", (PyCFunction)(void (*)(void))split, METH_FASTCALL,
+     "split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period) -> Gaussian, "
+     "or None (not taken): LinearBackend.split_step's walk of a step with events inside it."},
     {"freeze", (PyCFunction)(void (*)(void))freeze, METH_FASTCALL,
      "freeze(a, ...) -> None: a.setflags(write=False) for each array, in one call."},
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,

@@ -45,6 +45,8 @@ from .replay import Cut, Packet
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
 _ADVANCE: Final = kernel_function("pd_service.estimation._kalman", "advance")
 _REPLAY: Final = kernel_function("pd_service.estimation._kalman", "replay")
+#: The C form of :meth:`LinearBackend.split_step` (a model with Taylor polynomials).
+_SPLIT: Final = kernel_function("pd_service.estimation._kalman", "split")
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
@@ -291,6 +293,10 @@ class LinearBackend:
         self.use_kernel = k is not None and model.n <= k.MAX_N and all(
             s.m <= k.MAX_R for s in sensors)
         self._G = self.tables.Gfull if self._nu else None  # the kernel reads its last m*nu columns
+        taylor = model.taylor
+        #: The Taylor coefficients and period the kernel's split step reads (None: numpy).
+        self._coef = None if taylor is None else taylor.coef
+        self._period = model.period if model.period is not None else 0.0
 
     def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:
         return self.advance(state, m, U, [], None)
@@ -352,6 +358,12 @@ class LinearBackend:
         step: ``cuts``) is :meth:`split_step`.
         """
         if cuts is not None or (packets and packets[-1][3] > 0.0):
+            spl = _SPLIT if self.use_kernel and self._coef is not None and m < self._M else None
+            if spl is not None:
+                got = spl(Gaussian, self._jumps, self._G, self._single, state, m, U, packets,
+                          [] if cuts is None else cuts, self._coef, self._period)
+                if got is not None:  # else a packet the kernel does not take: numpy
+                    return cast(Gaussian, got)
             return self.split_step(state, m, U, packets, cuts)
         adv = _ADVANCE if self.use_kernel and m <= self._M else None
         if adv is not None:

@@ -65,6 +65,12 @@ class LinearModel:
         return cls(A=A, B=B, Q=Q, F=Fm, G=Gm, Qc=Qm, period=T)
 
     @property
+    def taylor(self) -> Taylor | None:
+        """The Taylor polynomials :meth:`over` evaluates (None: Van Loan's exponentials, or a
+        discrete model)."""
+        return self._taylor
+
+    @property
     def continuous_time(self) -> bool:
         """Whether the model can be evaluated over any interval (:meth:`over`)."""
         return self.F is not None
