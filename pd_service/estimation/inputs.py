@@ -26,8 +26,9 @@ from .tally import Tally
 
 #: The C form of ``buf[start:end] = u`` (``_kalman.fill``; None: numpy, the reference).
 _FILL: Final = kernel_function("pd_service.estimation._kalman", "fill")
-#: Read per call from a C static (Final), not looked up as ``bisect.bisect_left``.
+#: Read per call from C statics (Final), not looked up as ``bisect.<name>``.
 _bisect_left: Final = bisect.bisect_left
+_insort: Final = bisect.insort
 
 
 # copy.deepcopy of an estimator, compiled (setup.py), needs serializable; with mypy 2.4.1,
@@ -50,6 +51,7 @@ class InputBuffer:
         self._off = 0
         self._cmd_steps: list[int] = []  # explicit command steps >= origin, sorted
         self.cut_offsets: dict[int, float] = {}  # command step -> offset (s), offsets > 0
+        self._cut_steps: list[int] = []  # its keys, sorted
         self.u_before = np.zeros(nu)  # u(origin - 1): a cut at the origin starts from it
 
     def has_command(self, step: int) -> bool:
@@ -95,22 +97,35 @@ class InputBuffer:
             self._buf[start:end] = u
         if offset > 0.0 and self.hold:
             self.cut_offsets[step] = offset
+            _insort(self._cut_steps, step)
 
     def cuts(self, first: int, last: int) -> list[tuple[int, float, np.ndarray]] | None:
         """The commands taking effect inside steps first..last (inclusive) as
-        ``(step - first, offset, u(step - 1))`` (:data:`.replay.Cut`), None if there are none."""
-        cut = self.cut_offsets
-        if not cut:
+        ``(step - first, offset, u(step - 1))`` (:data:`.replay.Cut`; u a read-only view of
+        the buffer: for the step being computed now), None if there are none."""
+        steps = self._cut_steps
+        if not steps:
             return None
-        out = [(j - first, d, self.u_of(j - 1)) for j, d in sorted(cut.items())
-               if first <= j <= last]
-        return out or None
+        i = _bisect_left(steps, first)
+        if i == len(steps) or steps[i] > last:
+            return None
+        cut = self.cut_offsets
+        out: list[tuple[int, float, np.ndarray]] = []
+        while i < len(steps) and steps[i] <= last:
+            j = steps[i]
+            out.append((j - first, cut[j], self.u_of(j - 1)))
+            i += 1
+        return out
 
     def u_of(self, step: int) -> np.ndarray:
-        """u(step) (a copy) for origin - 1 <= step < origin + capacity."""
+        """u(step), read-only (a view of the buffer), for origin - 1 <= step < origin +
+        capacity."""
         if step == self.origin - 1:
-            return self.u_before.copy()
-        return self.slice(step, 1)[0].copy()
+            return self.u_before
+        i = step - self.origin
+        if not 0 <= i < self.capacity:
+            raise IndexError(f"step {step} outside the input window")
+        return self._buf[self._off + i]
     def slice(self, step: int, m: int) -> np.ndarray:
         """Inputs u(step), ..., u(step + m - 1) as a read-only (m, nu) view."""
         i = self._off + step - self.origin
@@ -152,6 +167,7 @@ class InputBuffer:
         self._off = 0
         self._cmd_steps = []
         self.cut_offsets = {}
+        self._cut_steps = []
         self.u_before = np.zeros(self.nu) if u_before is None else u_before.copy()
         self._buf[:] = u_origin if self.hold else 0.0
         offs = offsets or {}
@@ -169,10 +185,12 @@ class InputBuffer:
         buf = self._buf
         if self.hold:  # u(origin - 1), held past the window's end
             self.u_before = buf[self._off + min(d - 1, cap - 1)].copy()
-        cut = self.cut_offsets
-        if cut:
-            for j in [j for j in cut if j < origin]:
-                del cut[j]
+        steps = self._cut_steps
+        if steps and steps[0] < origin:
+            k = _bisect_left(steps, origin)
+            for j in steps[:k]:
+                del self.cut_offsets[j]
+            del steps[:k]
         if d >= cap:  # every step new: u of the old last step ("hold") or zeros
             buf[:] = buf[self._off + cap - 1].copy() if self.hold else 0.0
             self._off = 0

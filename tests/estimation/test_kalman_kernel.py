@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pd_service.estimation import LinearModel, Sensor
-from pd_service.estimation.linear import _KALMAN, Gaussian, LinearBackend, read_stages
+from pd_service.estimation.linear import _KALMAN, _SPLIT, Gaussian, LinearBackend, read_stages
 from pd_service.estimation.replay import Packet
 
 pytestmark = pytest.mark.skipif(
@@ -155,6 +155,10 @@ def test_the_kernels_split_step_gives_the_numpy_form_to_rounding(seed: int, n: i
         b.use_kernel = True
         got = b.advance(state, m, U, packets, None, cuts)
         want = b.split_step(state, m, U, packets, cuts)
+        taken = _SPLIT(Gaussian, b._jumps, b._G, b._single, state, m, U, packets,
+                       cuts or [], b._coef, b._period)
+        assert taken is not None  # the kernel took it (no singular S here)
+        assert np.array_equal(taken.x, got.x) and np.array_equal(taken.P, got.P)
         assert close(got.x, want.x) and close(got.P, want.P)
         assert np.array_equal(got.P, got.P.T)
         assert got.src is None and want.src is None
