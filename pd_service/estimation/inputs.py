@@ -117,6 +117,12 @@ class InputBuffer:
             i += 1
         return out
 
+    def cut_view(self) -> tuple[list[int], dict[int, float], np.ndarray, int]:
+        """(the command steps with an offset, sorted; step -> offset; u(origin - 1);
+        origin): what the replay's C loop reads to find a span's cuts itself (shared, not
+        copied: read at once)."""
+        return self._cut_steps, self.cut_offsets, self.u_before, self.origin
+
     def u_of(self, step: int) -> np.ndarray:
         """u(step), read-only (a view of the buffer), for origin - 1 <= step < origin +
         capacity."""

@@ -303,15 +303,20 @@ class LinearBackend:
 
     def advance_run(self, state: Gaussian, a: int, steps: list[int], buf: np.ndarray, off: int,
                     packets: dict[int, list[Packet]], chk: dict[int, Gaussian],
-                    noreuse: int | None) -> tuple[Gaussian, int, int]:
+                    noreuse: int | None,
+                    cut_view: tuple[list[int], dict[int, float], np.ndarray, int]
+                    ) -> tuple[Gaussian, int, int]:
         """The replay's loop of :meth:`advance` calls over the measured ``steps`` (rising,
         after ``a``) in one C call (``_kalman.replay``), the inputs u(t) = buf[t - off] read
-        in place::
+        in place, the commands inside steps from ``cut_view``
+        (:meth:`.inputs.InputBuffer.cut_view`)::
 
             for s in steps:
+                e = s + 1 if off_grid(packets[s]) else s
                 old = chk.get(s) if noreuse is None or s < noreuse else None
-                chk[s] = state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
-                a = s
+                chk[s] = state = advance(state, s - a, buf[a - off : e - off], packets[s], old,
+                                         <the cuts inside steps a .. e - 1>)
+                a = e
 
         Returns (state, a, done): the first ``done`` steps were made and stored (the same
         calls, the same bits as the loop); the caller makes the rest with :meth:`advance`
@@ -321,9 +326,11 @@ class LinearBackend:
         run = _REPLAY if self.use_kernel else None
         if run is None:
             return state, a, 0
+        cut_steps, cut_offsets, u_before, origin = cut_view
         return cast(tuple[Gaussian, int, int],
                     run(Gaussian, self._jumps, self._G, self._single, state, a, steps, buf, off,
-                        packets, chk, noreuse))
+                        packets, chk, noreuse, cut_steps, cut_offsets, u_before, origin,
+                        self._coef, self._period))
 
     def update(self, state: Gaussian, step: int, packets: list[Packet]) -> Gaussian:
         return self.advance(state, 0, U=np.empty((0, self._nu)), packets=packets, old=None)

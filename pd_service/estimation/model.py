@@ -13,8 +13,8 @@ own time inside a step (:mod:`.discretise`).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -112,9 +112,9 @@ class LinearModel:
         parts = (self.F, self.G, self.Qc, self.period)
         if any(p is not None for p in parts) and any(p is None for p in parts):
             raise ValueError("F, G, Qc, period: give all four (LinearModel.continuous) or none")
-        for arr in (self.F, self.G, self.Qc):
-            if arr is not None:
-                arr.setflags(write=False)
+        for given in (self.F, self.G, self.Qc):
+            if given is not None:
+                given.setflags(write=False)
         if (self.F is not None and self.G is not None and self.Qc is not None
                 and self.period is not None
                 and float(np.abs(self.F).sum(axis=0).max()) * self.period <= TAYLOR_NORM):

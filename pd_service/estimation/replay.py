@@ -196,8 +196,9 @@ class FusedBackend(Backend[S], Protocol):
 
     :class:`ReplayEstimator` calls :meth:`advance` instead of ``propagate`` + ``update`` when
     the backend has it. A backend may also offer ``advance_run(state, a, steps, buf, off,
-    packets, chk, noreuse) -> (state, a, done)``: the replay's loop of :meth:`advance` calls
-    over several steps in one call, the inputs read in place from the input buffer
+    packets, chk, noreuse, cut_view) -> (state, a, done)``: the replay's loop of
+    :meth:`advance` calls over several steps in one call, the inputs read in place from the
+    input buffer, its commands inside steps from ``cut_view``
     (``LinearBackend.advance_run``, its C kernel); the replay makes the steps after the
     first ``done`` with :meth:`advance`.
     """
@@ -619,7 +620,7 @@ class ReplayEstimator(Generic[S]):
             advance = getattr(self._backend, "advance", None)
             cuts = inputs.cuts(step, step + m - 1)
             if advance is not None and cuts is not None:
-                return advance(state, m, U, [], None, cuts)  # type: ignore[no-any-return]
+                return advance(state, m, U, [], None, cuts)
         return self._backend.propagate(state, step, m, U)
 
     def _end(self, s: int) -> int:
@@ -670,9 +671,9 @@ class ReplayEstimator(Generic[S]):
                 buf, off = inputs.window(a, todo[-1] + 1)
                 cut = inputs.cut_offsets
                 run = getattr(backend, "advance_run", None)
-                if run is not None and not offgrid and not cut:
-                    # the loop below in one C call, as far as it goes (grid steps only)
-                    state, a, done = run(state, a, todo, buf, off, packets, chk, noreuse)
+                if run is not None:  # the loop below in one C call, as far as it goes
+                    state, a, done = run(state, a, todo, buf, off, packets, chk, noreuse,
+                                         inputs.cut_view())
                     if done:
                         todo = todo[done:]
                 for s in todo:
