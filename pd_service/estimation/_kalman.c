@@ -714,8 +714,9 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
 
 /* ---- steps with events inside them (LinearBackend.split_step's C form) ------------------
 
-   split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period) -> Gaussian, or
-   None (not taken: the numpy form then runs)
+   split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period, mean_only) ->
+   Gaussian, or None (not taken: the numpy form then runs); mean_only (no packets): the
+   mean walked alone, P the state's
 
    The walk of LinearBackend.split_step: from x(a), whole steps by the tables (as the jump
    above), the intervals between events by the model's Taylor polynomials (coef (K+1,
@@ -754,7 +755,8 @@ static void taylor_at(const double *coef, npy_intp K1, npy_intp n, npy_intp nu, 
             Q[i * n + j] = Q[j * n + i] = 0.5 * (Q[i * n + j] + Q[j * n + i]);
 }
 
-/* x <- A x + (Bu: NULL, or added), P <- A P A^T + Q (upper triangle, mirrored) in place. */
+/* x <- A x + (Bu: NULL, or added), P <- A P A^T + Q (upper triangle, mirrored) in place
+   (P NULL: the mean alone). */
 static void propagate_raw(double *x, double *P, npy_intp n, const double *A, const double *Q,
                           const double *Bu) {
     double t[MAXN * MAXN], xn[MAXN];
@@ -764,6 +766,7 @@ static void propagate_raw(double *x, double *P, npy_intp n, const double *A, con
         xn[i] = acc + (Bu ? Bu[i] : 0.0);
     }
     memcpy(x, xn, sizeof(double) * (size_t)n);
+    if (!P) return;
     for (npy_intp i = 0; i < n; i++)
         for (npy_intp j = 0; j < n; j++) {
             double acc = 0.0;
@@ -784,7 +787,8 @@ static void propagate_raw(double *x, double *P, npy_intp n, const double *A, con
 static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyObject *rows,
                             PyObject *state, Py_ssize_t m, const double *u, npy_intp urows,
                             npy_intp nu, PyObject *packets, const CutAt *cuts, Py_ssize_t ncut,
-                            const double *coef, npy_intp K1, npy_intp coef_w, double period) {
+                            const double *coef, npy_intp K1, npy_intp coef_w, double period,
+                            int mean_only) {
     if (!PyType_Check(gt) || !PyTuple_Check(jumps) || !PyList_Check(packets)
         || !PyTuple_Check(state) || PyTuple_GET_SIZE(state) < 2 || m < 0
         || m + 1 >= PyTuple_GET_SIZE(jumps)) {
@@ -797,6 +801,10 @@ static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyO
     records_init(&rec);
     if (!X || !PP) goto done;
     npy_intp n = PyArray_SIZE(X);
+    if (mean_only && PyList_GET_SIZE(packets)) {
+        PyErr_SetString(PyExc_ValueError, "_kalman.split: the mean alone only without packets");
+        goto done;
+    }
     if (n > MAXN || nu > MAXR || check_size(PP, n * n, "P") || coef_w != 2 * n * n + n * nu) {
         if (!PyErr_Occurred())
             PyErr_SetString(PyExc_ValueError, "_kalman.split: sizes that do not fit");
@@ -864,7 +872,7 @@ static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyO
                         for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
                         Bu[i] = acc;
                     }
-                    propagate_raw(x, P, n, A, Q, nu ? Bu : NULL);
+                    propagate_raw(x, mean_only ? NULL : P, n, A, Q, nu ? Bu : NULL);
                     r += 1;
                     f = 0.0;
                 }
@@ -895,8 +903,8 @@ static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyO
                         }
                     }
                     if (!bad)
-                        propagate_raw(x, P, n, PyArray_DATA(Aj), PyArray_DATA(Qj),
-                                      G && nu ? Bu : NULL);
+                        propagate_raw(x, mean_only ? NULL : P, n, PyArray_DATA(Aj),
+                                      PyArray_DATA(Qj), G && nu ? Bu : NULL);
                     Py_XDECREF(Aj); Py_XDECREF(Qj);
                     if (bad) goto done;
                     r = row;
@@ -912,7 +920,7 @@ static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyO
                     for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
                     Bu[i] = acc;
                 }
-                propagate_raw(x, P, n, A, Q, nu ? Bu : NULL);
+                propagate_raw(x, mean_only ? NULL : P, n, A, Q, nu ? Bu : NULL);
                 f = off;
             }
             if (what == 0) {
@@ -1087,7 +1095,7 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
             if (!coef || m + 1 >= ntab) break;
             g = split_impl(gt, jumps, Ga, rows, state, m, bd + (a - off) * nu, e - a, nu, pk,
                            cuts, ncut, PyArray_DATA(coef), PyArray_DIM(coef, 0),
-                           PyArray_DIM(coef, 1), period);
+                           PyArray_DIM(coef, 1), period, 0);
         }
         if (!g) goto error;
         if (g == Py_None) {  /* not taken: the numpy form makes this step */
@@ -1116,7 +1124,9 @@ error:
 
 static PyObject *split(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
-    if (check_nargs("split", nargs, 11)) return NULL;
+    if (check_nargs("split", nargs, 12)) return NULL;
+    int mean_only = PyObject_IsTrue(args[11]);
+    if (mean_only < 0) return NULL;
     PyObject *cutl = args[8];
     Py_ssize_t m = PyLong_AsSsize_t(args[5]);
     double period = PyFloat_AsDouble(args[10]);
@@ -1156,7 +1166,7 @@ static PyObject *split(PyObject *self, PyObject *const *args, Py_ssize_t nargs) 
     }
     res = split_impl(args[0], args[1], G, args[3], args[4], m, PyArray_DATA(U), urows, nu,
                      args[7], cuts, ncut, PyArray_DATA(C), PyArray_DIM(C, 0), PyArray_DIM(C, 1),
-                     period);
+                     period, mean_only);
 done:
     for (Py_ssize_t c = 0; c < nheld; c++) Py_DECREF(held[c]);
     Py_XDECREF(U); Py_XDECREF(C); Py_XDECREF(G);
@@ -1252,8 +1262,9 @@ static PyMethodDef methods[] = {
      "cut_steps, cut_offsets, u_before, origin, coef, period) -> (state, a, done): "
      "ReplayEstimator._replay's loop of advance calls, in one call."},
     {"split", (PyCFunction)(void (*)(void))split, METH_FASTCALL,
-     "split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period) -> Gaussian, "
-     "or None (not taken): LinearBackend.split_step's walk of a step with events inside it."},
+     "split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period, mean_only) -> "
+     "Gaussian, or None (not taken): LinearBackend.split_step's walk of a step with events "
+     "inside it (mean_only, no packets: x walked, P the state's)."},
     {"freeze", (PyCFunction)(void (*)(void))freeze, METH_FASTCALL,
      "freeze(a, ...) -> None: a.setflags(write=False) for each array, in one call."},
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,

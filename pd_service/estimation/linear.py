@@ -362,16 +362,33 @@ class LinearBackend:
         made by the numpy form, :meth:`numpy_step`.
 
         A step with events inside it (packets off the grid, commands taking effect inside a
-        step: ``cuts``) is :meth:`split_step`.
+        step: ``cuts``) is :meth:`split_step`; a span with commands inside steps but no
+        packets (the prediction, a base rolled forward) keeps the grid step's covariance
+        (inputs do not move it; reused as above) and walks the mean alone
+        (:meth:`split_step`, ``mean_only``).
         """
         if cuts is not None or (packets and packets[-1][3] > 0.0):
-            spl = _SPLIT if self.use_kernel and self._coef is not None and m < self._M else None
-            if spl is not None:
-                got = spl(Gaussian, self._jumps, self._G, self._single, state, m, U, packets,
-                          [] if cuts is None else cuts, self._coef, self._period)
-                if got is not None:  # else a packet the kernel does not take: numpy
-                    return cast(Gaussian, got)
-            return self.split_step(state, m, U, packets, cuts)
+            if packets:
+                return self._split(state, m, U, packets, cuts, False)
+            g = self._grid(state, m, U, packets, old)
+            x = self._split(state, m, U, packets, cuts, True)[0]
+            return _new(Gaussian, (x, g[1], g[2], g[3], g[4], g[5]))
+        return self._grid(state, m, U, packets, old)
+
+    def _split(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+               cuts: list[Cut] | None, mean_only: bool) -> Gaussian:
+        """:meth:`split_step` by the kernel where it takes it (``_kalman.split``)."""
+        spl = _SPLIT if self.use_kernel and self._coef is not None and m < self._M else None
+        if spl is not None:
+            got = spl(Gaussian, self._jumps, self._G, self._single, state, m, U, packets,
+                      [] if cuts is None else cuts, self._coef, self._period, mean_only)
+            if got is not None:  # else a packet the kernel does not take: numpy
+                return cast(Gaussian, got)
+        return self.split_step(state, m, U, packets, cuts, mean_only)
+
+    def _grid(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+              old: Gaussian | None) -> Gaussian:
+        """A step on the grid: the kernel's where it takes it, else :meth:`numpy_step`."""
         adv = _ADVANCE if self.use_kernel and m <= self._M else None
         if adv is not None:
             got = adv(Gaussian, self._jumps, self._G, self._single, state, m, U, packets, old)
@@ -472,7 +489,7 @@ class LinearBackend:
         return xp, Pp, records
 
     def split_step(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
-                   cuts: list[Cut] | None) -> Gaussian:
+                   cuts: list[Cut] | None, mean_only: bool = False) -> Gaussian:
         """:meth:`advance` for a step with events inside steps (numpy; a continuous-time
         model): from x(a), the packets at their own times ``a + m + offset`` and the
         commands taking effect at theirs (``cuts``, :data:`.replay.Cut`), in time order;
@@ -483,7 +500,8 @@ class LinearBackend:
             x(t + tau) = A(tau) x(t) + B(tau) u,   P(t + tau) = A(tau) P(t) A(tau)^T + Q(tau)
 
         with u the input in effect (u_before of a cut until its offset, then its row of
-        U). A state made here is never reused as ``old`` (it records no parent)."""
+        U). A state made here is never reused as ``old`` (it records no parent).
+        ``mean_only`` (no packets): x walked alone, P the state's."""
         model = self.model
         T = model.period
         if T is None:
@@ -497,7 +515,10 @@ class LinearBackend:
         events = sorted([(i, d, 0, 0) for i, d, _ in cuts or ()]
                         + [(m, p[3], 1, k) for k, p in enumerate(packets)])
         events.append((end, 0.0, 2, 0))
-        x, P = state[0], state[1]
+        if mean_only and packets:
+            raise ValueError("split_step: the mean alone only without packets")
+        x = state[0]
+        P: np.ndarray | None = None if mean_only else state[1]
         r, f = 0, 0.0  # the cursor: row r, f seconds into it
         for row, off, what, k in events:
             if row > r:
@@ -505,16 +526,15 @@ class LinearBackend:
                     x, P = self._segment(x, P, T - f, self._u_in(U, cut_at, r, f))
                     r, f = r + 1, 0.0
                 if row > r:
-                    x, Pj = self._jump(x, P, row - r, U[r:row])
-                    assert Pj is not None
-                    P = Pj
+                    x, P = self._jump(x, P, row - r, U[r:row])
                     r = row
             if off > f:
                 x, P = self._segment(x, P, off - f, self._u_in(U, cut_at, r, f))
                 f = off
             if what == 1:
+                assert P is not None
                 x, P, _ = self._apply(x, P, [packets[k]], 0)
-        return _new(Gaussian, (x, P, None, 0, (), b""))
+        return _new(Gaussian, (x, state[1] if P is None else P, None, 0, (), b""))
 
     def _u_in(self, U: np.ndarray, cut_at: dict[int, tuple[float, np.ndarray]], row: int,
               f: float) -> np.ndarray:
@@ -524,14 +544,16 @@ class LinearBackend:
             return c[1]
         return U[row] if self._nu else np.zeros(0)
 
-    def _segment(self, x: np.ndarray, P: np.ndarray, tau: float,
-                 u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _segment(self, x: np.ndarray, P: np.ndarray | None, tau: float,
+                 u: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """(x, P) propagated over tau seconds with u held: A x + B u, A P A^T + Q, the
-        covariance made exactly symmetric as in :meth:`_jump`."""
+        covariance made exactly symmetric as in :meth:`_jump` (P None: the mean alone)."""
         A, B, Q = self.model.over(tau)
         xp = A.dot(x)
         if self._nu:
             xp += B.dot(u)
+        if P is None:
+            return xp, None
         Mh = A.dot(P).dot(A.T) * 0.5
         Pp = Mh + Mh.T.copy()
         Pp += Q

@@ -156,12 +156,21 @@ def test_the_kernels_split_step_gives_the_numpy_form_to_rounding(seed: int, n: i
         got = b.advance(state, m, U, packets, None, cuts)
         want = b.split_step(state, m, U, packets, cuts)
         taken = _SPLIT(Gaussian, b._jumps, b._G, b._single, state, m, U, packets,
-                       cuts or [], b._coef, b._period)
+                       cuts or [], b._coef, b._period, not packets)
         assert taken is not None  # the kernel took it (no singular S here)
-        assert np.array_equal(taken.x, got.x) and np.array_equal(taken.P, got.P)
+        assert np.array_equal(taken.x, got.x)
         assert close(got.x, want.x) and close(got.P, want.P)
         assert np.array_equal(got.P, got.P.T)
-        assert got.src is None and want.src is None
+        if packets:
+            assert np.array_equal(taken.P, got.P)
+            assert got.src is None and want.src is None
+        else:  # commands inside steps alone: the grid step's covariance, the mean walked
+            assert got.src is state.P and np.array_equal(taken.P, state.P)
+            b.use_kernel = False
+            alone = b.advance(state, m, U, packets, None, cuts)
+            assert close(alone.x, got.x) and close(alone.P, got.P)
+            assert np.array_equal(alone.x, b.split_step(state, m, U, [], cuts, True).x)
+            b.use_kernel = True
         state = want
 
 
