@@ -81,8 +81,8 @@ class Taylor:
 
     (the derivatives at 0 of dA/dt = F A, dB/dt = F B (B' (0) = G), dQ/dt = F Q + Q F^T + Qc).
     For a nilpotent F (constant velocity, double integrators) the sums are finite: exact.
-    Shapes: ``coef`` (K+1, n*n + n*nu + n*n), row j multiplying tau^(j+1), A's identity
-    added apart."""
+    Shapes: ``coef`` (k, n*n + n*nu + n*n), k <= K+1 (its trailing rows of zeros dropped),
+    row j multiplying tau^(j+1), A's identity added apart."""
 
     def __init__(self, F: np.ndarray, G: np.ndarray, Qc: np.ndarray) -> None:
         n, nu = F.shape[0], G.shape[1]
@@ -100,7 +100,9 @@ class Taylor:
             coef[k, n * n + n * nu :] = (C / fact).ravel()
             C = F @ C + C @ F.T
             Fk = Fk1
-        self.coef = coef
+        # rows that are all zero add nothing (a nilpotent F: a few rows): dropped
+        nz = np.flatnonzero(np.any(coef != 0.0, axis=1))
+        self.coef = np.ascontiguousarray(coef[: int(nz[-1]) + 1 if nz.size else 1])
         self._eye = np.eye(n)
 
     def at(self, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
