@@ -781,6 +781,24 @@ static void propagate_raw(double *x, double *P, npy_intp n, const double *A, con
         }
 }
 
+/* x, P (NULL: the mean alone) over tau s from f s into row r by the Taylor polynomials, the
+   input u_r held (a cut's u_before in row r before its offset). */
+static void segment_raw(double *x, double *P, npy_intp n, npy_intp nu, const double *coef,
+                        npy_intp K1, double tau, const double *u_r, const CutAt *cuts,
+                        Py_ssize_t ncut, Py_ssize_t r, double f) {
+    double A[MAXN * MAXN], B[MAXN * MAXR], Q[MAXN * MAXN], Bu[MAXN];
+    const double *uu = u_r;
+    for (Py_ssize_t c = 0; c < ncut; c++)
+        if (cuts[c].row == r && f < cuts[c].d) uu = cuts[c].u;
+    taylor_at(coef, K1, n, nu, tau, A, B, Q);
+    for (npy_intp i = 0; i < n; i++) {
+        double acc = 0.0;
+        for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
+        Bu[i] = acc;
+    }
+    propagate_raw(x, P, n, A, Q, nu ? Bu : NULL);
+}
+
 /* The walk itself on a state (x, P): a new Gaussian, None (not taken), or NULL with an
    exception. u: the span's inputs, urows rows of nu; cuts[ncut] rising; G the tables'
    stacked input matrix (NULL without inputs); coef (K1, 2 n^2 + n nu). */
@@ -837,7 +855,7 @@ static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyO
             }
         Py_ssize_t r = 0, ci = 0, pi = 0;
         double f = 0.0;
-        double A[MAXN * MAXN], B[MAXN * MAXR], Q[MAXN * MAXN], Bu[MAXN];
+        double Bu[MAXN];
         for (;;) {
             /* the next event: a cut (first at a tie), a packet, or the end */
             Py_ssize_t row;
@@ -863,16 +881,8 @@ static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyO
             }
             if (row > r) {
                 if (f > 0.0) {  /* the rest of row r */
-                    const double *uu = u + r * nu;
-                    for (Py_ssize_t c = 0; c < ncut; c++)
-                        if (cuts[c].row == r && f < cuts[c].d) uu = cuts[c].u;
-                    taylor_at(coef, K1, n, nu, period - f, A, B, Q);
-                    for (npy_intp i = 0; i < n; i++) {
-                        double acc = 0.0;
-                        for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
-                        Bu[i] = acc;
-                    }
-                    propagate_raw(x, mean_only ? NULL : P, n, A, Q, nu ? Bu : NULL);
+                    segment_raw(x, mean_only ? NULL : P, n, nu, coef, K1, period - f, u + r * nu,
+                                cuts, ncut, r, f);
                     r += 1;
                     f = 0.0;
                 }
@@ -911,16 +921,8 @@ static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyO
                 }
             }
             if (off > f) {
-                const double *uu = u + r * nu;
-                for (Py_ssize_t c = 0; c < ncut; c++)
-                    if (cuts[c].row == r && f < cuts[c].d) uu = cuts[c].u;
-                taylor_at(coef, K1, n, nu, off - f, A, B, Q);
-                for (npy_intp i = 0; i < n; i++) {
-                    double acc = 0.0;
-                    for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
-                    Bu[i] = acc;
-                }
-                propagate_raw(x, mean_only ? NULL : P, n, A, Q, nu ? Bu : NULL);
+                segment_raw(x, mean_only ? NULL : P, n, nu, coef, K1, off - f, u + r * nu, cuts,
+                            ncut, r, f);
                 f = off;
             }
             if (what == 0) {
