@@ -594,10 +594,10 @@ class SessionSpec(Message):
             n = model.n
             if n > MAX_DIM:  # unreachable while MAX_DIM bounds every array axis; kept explicit
                 raise invalid("model.linear.A", f"state dimension n={n} exceeds {MAX_DIM}")
-            if self.x0.shape != (n,):
-                raise invalid("x0", f"must have n={n} values (the model is {n}x{n}), "
-                               f"got {self.x0.shape[0]}")
             source = f"model.{'F' if model.continuous else 'A'} is {n}x{n}"
+            if self.x0.shape != (n,):
+                raise invalid("x0", f"must have n={n} values ({source}), "
+                               f"got {self.x0.shape[0]}")
         else:
             n = self.x0.shape[0]
             source = f"x0 has {n} values"

@@ -83,8 +83,8 @@ def test_every_array_is_checked_for_finite_values(where):
         j, u = st.commands[-1]
         st.commands[-1] = (j, np.full_like(u, np.nan))
     elif where == "packet":
-        s, name, z, R = st.packets[-1]
-        st.packets[-1] = (s, name, np.full_like(z, np.nan), R)
+        s, name, z, R, off = st.packets[-1]
+        st.packets[-1] = (s, name, np.full_like(z, np.nan), R, off)
     else:
         st.base["x"] = np.full_like(st.base["x"], np.nan)
     with pytest.raises(WireError):
@@ -96,8 +96,8 @@ def test_finite_values_whose_sum_overflows_are_encoded():
     j, u = st.commands[0]
     st.commands[0] = (j, np.full_like(u, 1.7e308))
     st.commands[1] = (st.commands[1][0], np.full_like(u, 1.7e308))
-    s, name, z, R = st.packets[-1]
-    st.packets[-1] = (s, name, np.full(z.shape, 1.7e308), R)
+    s, name, z, R, off = st.packets[-1]
+    st.packets[-1] = (s, name, np.full(z.shape, 1.7e308), R, off)
     assert encode_state(st, **KW) == encode(to_message(st, **KW))  # type: ignore[arg-type]
 
 
