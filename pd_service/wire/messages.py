@@ -680,8 +680,10 @@ class Measurement(Message):
     seq: NonNegInt = Field(description="Sender's sequence number (per sensor), for reports.")
     step: NonNegInt | None = Field(None, description="Sample step s. Exactly one of step / t_ns.")
     t_ns: Int64 | None = Field(
-        None, description="Sample time, ns on the shared clock; s = floor((t_ns - epoch_ns) / "
-                          "period_ns). Exactly one of step / t_ns.")
+        None, description="Sample time, ns on the shared clock (full resolution); s = "
+                          "floor((t_ns - epoch_ns) / period_ns), applied at exactly t_ns for a "
+                          "continuous-time model, at a step start for a discrete one "
+                          "(SessionSpec.stamp_rounding). Exactly one of step / t_ns.")
     z: Vector = Field(description="Measured values, m.")
     R: Matrix | None = Field(
         None, description="Noise covariance of this sample only, m x m, symmetric PSD; "
@@ -715,8 +717,9 @@ class Command(Message):
         None, description="Apply step: u acts from this step on. Exactly one of step / issued_ns.")
     issued_ns: Int64 | None = Field(
         None, description="Time the operator issued it, ns; apply step = "
-                          "floor((issued_ns - epoch_ns) / period_ns) + lead. Exactly one of "
-                          "step / issued_ns.")
+                          "floor((issued_ns - epoch_ns) / period_ns) + lead, acting from "
+                          "exactly issued_ns + lead * period_ns for a continuous-time model. "
+                          "Exactly one of step / issued_ns.")
     u: Vector = Field(description="Command, r values.")
 
     @model_validator(mode="after")
