@@ -30,7 +30,11 @@ class ObserverPredictor(ReplayEstimator[Gaussian]):
 
     Guarantee: ``predict(now=k)`` equals (to rounding) a Kalman filter run from x0, P0 at step
     0 over every accepted packet in sample-stamp order, then predicted to k + lead with the
-    known commands. Cost per call is bounded by the window, not by elapsed steps.
+    known commands. With a continuous-time model (:meth:`LinearModel.continuous`) packets
+    and commands may carry offsets into their steps (``add_measurement(..., offset=s)``,
+    ``add_command(..., offset=s)``): then it equals the continuous-discrete Kalman filter
+    over every event at its own time. Cost per call is bounded by the window, not by
+    elapsed steps.
     """
 
     def __init__(

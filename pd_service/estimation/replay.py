@@ -23,6 +23,14 @@ This is the paper's re-organized innovation recursion generalised to time stamps
 The result equals a Kalman filter run from step 0 over every accepted packet in stamp order,
 then predicted forward: the engine only chooses *which* steps to recompute.
 
+Inside a step, time goes on: a packet carries its ``offset`` (seconds after its step's start)
+and a command may take effect at an offset too (:class:`~.inputs.InputBuffer`). The step
+stays the window's unit (what is final, what is late, what a packet invalidates); a step's
+packets are applied in (offset, sensor) order, and a step with a packet after its start hands
+its posterior on at the *next* step's start (``_end``), so checkpoints, the base and the
+prediction stay on the grid. For a continuous-time model the result equals the
+continuous-discrete Kalman filter over every event in time order.
+
 Work and memory per call are bounded by the window (max_delay + lead steps), never by the
 number of elapsed steps. A backend supplies two pure functions over its own state type:
 ``propagate(state, step, m, U)`` (x(step) -> x(step + m) with inputs U (m, nu)) and
