@@ -160,10 +160,12 @@ def spec_cost(spec: SessionSpec, nu: int) -> Cost:
     if isinstance(model, LinearModelSpec):
         table_bytes = 8 * ((C + 1) * 2 * n * n + C * n * nu)
         h = hashlib.blake2b(digest_size=16)
-        for a in (model.A, model.B, model.Q):
+        for a in model.matrices():
             h.update(repr(a.shape).encode())
             h.update(a.tobytes())
         h.update(str(C).encode())
+        if model.continuous:  # its tables are those of one period
+            h.update(str(spec.period_ns).encode())
         table_key = h.hexdigest()
         cpu += (lam + 1.0) * lin_op_us(n) + lam * D * replay_us(n)
     else:
@@ -231,6 +233,15 @@ def _nu_model(spec: SessionSpec) -> tuple[int, NonlinearModel | None]:
         raise estimator_refusal(exc) from None
 
 
+def linear_model(model: LinearModelSpec, period_ns: int) -> LinearModel:
+    """The estimation model of a linear spec: (A, B, Q) as given, or (F, G, Qc) discretised
+    exactly for any interval, one step being ``period_ns``."""
+    a, b, c = (np.array(m) for m in model.matrices())
+    if model.continuous:
+        return LinearModel.continuous(a, b, c, period_ns / 1e9)
+    return LinearModel(A=a, B=b, Q=c)
+
+
 def build(spec: SessionSpec, admit: Callable[[Cost], None] | None = None) -> Built:
     """The spec's estimator, nu and cost, by ``spec.model.kind`` (see the module docstring).
 
@@ -249,7 +260,7 @@ def build(spec: SessionSpec, admit: Callable[[Cost], None] | None = None) -> Bui
     try:
         if isinstance(model, LinearModelSpec):
             est: Estimator = ObserverPredictor(
-                LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
+                linear_model(model, spec.period_ns),
                 [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R))
                  for s in spec.sensors],
                 np.array(spec.x0), np.array(spec.P0), spec.lead, spec.max_delay,

@@ -33,8 +33,8 @@ from pd_service.wire import MAX_MESSAGE_BYTES, Command, Measurement, SessionSpec
 from pd_service.wire.convert import (
     check_command,
     check_measurement,
-    command_step,
-    measurement_step,
+    command_time,
+    measurement_time,
 )
 
 #: What the fast path reads: (seq, step or None, t_ns / issued_ns or None, z / u float64 (m,)).
@@ -124,11 +124,12 @@ class Intake:
         read = _READ_MEASUREMENT
         fast: _Fields | None = None if read is None or m is None else read(
             payload, self.name, sensor, m, self.max_abs, _MAX_BYTES)
+        off = 0.0
         if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
-            seq, s, t_ns, z = fast  # |z_i| <= max_abs checked on the way
+            seq, s, t_in, z = fast  # |z_i| <= max_abs checked on the way
             stamp = "step" if s is not None else "t_ns"
             if s is None:
-                s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
+                s, off = self.spec.sample_at(t_in)  # type: ignore[arg-type]
             R = None
             checked = True  # z: a fresh finite (m,) array
         else:  # full decode and checks: exact refusal reasons
@@ -146,7 +147,8 @@ class Intake:
                 check_measurement(msg, self.spec)
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "invalid")
-            seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
+            (s, off), seq, z, R = measurement_time(msg, self.spec), msg.seq, msg.z, msg.R
+            t_in = msg.t_ns
             checked = False
             stamp = "step" if msg.step is not None else "t_ns"
             if z.size and _max_abs(z) > self.max_abs:
@@ -157,15 +159,17 @@ class Intake:
         if now_step < 0:
             return Refusal("future", f"Measurement.{stamp}: sample step {s} is in the future; "
                            f"the session starts at its epoch (now step {now_step})", seq)
+        if s > now_step and t_in is not None and self.spec.step_of(t_in) <= now_step:
+            s = now_step  # rounded to the nearest step, past the current one: this one
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
                 # a variable of the class's own type: mypyc calls the method natively (on
                 # the narrowed protocol-typed ``est`` it made a Python-level method call)
                 rep: ReplayEstimator = est
-                ok = rep.add_checked_measurement(sensor, s, z, now_step)
+                ok = rep.add_checked_measurement(sensor, s, z, now_step, off)
             else:  # positional: a keyword call costs a compiled method an argument parse
-                ok = est.add_measurement(sensor, s, z, now_step, R)
+                ok = est.add_measurement(sensor, s, z, now_step, R, off)
         except ValueError as exc:
             return Refusal("invalid", f"Measurement.z: {exc}", seq)
         if ok:
@@ -179,7 +183,7 @@ class Intake:
                            f"window [{max(lo, est.committed_step)}, {now_step}] "
                            f"(max_delay {est.max_delay})", seq)
         return Refusal("duplicate", f"Measurement.{stamp}: sensor {sensor!r} already has a "
-                       f"sample for step {s}", seq)
+                       f"sample for step {s} at that instant (offset {off:g} s)", seq)
 
     def command(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Command; None if accepted."""
@@ -192,8 +196,9 @@ class Intake:
                                  or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
             seq, j, issued, u = fast
             stamp = "step" if j is not None else "issued_ns"
+            off = 0.0
             if j is None:
-                j = spec.step_of(issued) + spec.lead  # type: ignore[arg-type]
+                j, off = spec.command_at(issued)  # type: ignore[arg-type]
             checked = True  # u: a fresh finite (nu,) array
         else:
             try:
@@ -205,7 +210,7 @@ class Intake:
                 check_command(msg, spec, self.r)
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "commands_invalid")
-            seq, j, u = msg.seq, command_step(msg, spec), msg.u
+            (j, off), seq, u = command_time(msg, spec), msg.seq, msg.u
             stamp = "step" if msg.step is not None else "issued_ns"
             checked = False
             if u.size and _max_abs(u) > self.max_abs:
@@ -217,9 +222,9 @@ class Intake:
         try:
             if checked and isinstance(est, ReplayEstimator):
                 rep: ReplayEstimator = est  # (a native call, as in measurement)
-                ok = rep.add_checked_command(j, u, now_step if now_step >= 0 else None)
+                ok = rep.add_checked_command(j, u, now_step if now_step >= 0 else None, off)
             else:
-                ok = est.add_command(j, u, now_step if now_step >= 0 else None)
+                ok = est.add_command(j, u, now_step if now_step >= 0 else None, off)
         except (ValueError, IndexError) as exc:
             return Refusal("commands_invalid", f"Command.u: {exc}", seq)
         if ok:

@@ -11,7 +11,9 @@ start, which the daemon answers with every spec it knows):
   sequence number, else the bridge's own counter per sensor) put on ``pd/p<k>/<s>/sensor/<name>``;
 - **commands**: Twist -> ``Command(issued_ns = arrival on the bridge's clock)``, TwistStamped ->
   ``Command(issued_ns = header.stamp)``, u = (linear.x, angular.z), put on ``pd/p<k>/<s>/cmd``; the
-  daemon applies it at step ``floor((issued_ns - epoch_ns) / period_ns) + lead``;
+  daemon applies it at step ``floor((issued_ns - epoch_ns) / period_ns) + lead`` (for a
+  continuous-time model from exactly ``issued_ns + lead * period_ns``; stamps pass at full
+  resolution, docs/protocol.md "When a sample and a command apply");
 - **outputs**: each ``Prediction`` on ``pd/p<k>/<s>/prediction`` -> Odometry / PoseWithCovariance-
   Stamped / TFMessage (header.stamp = ``Prediction.t_ns``), CDR, with the rmw_zenoh attachment
   (sequence number per publisher from 1, source timestamp, publisher GID);

@@ -75,8 +75,9 @@ def test_ints_in_data_are_floats():
 def test_field_order_and_all_fields_on_the_wire():
     for msg_type, make in EXAMPLES.items():
         raw = msgpack.unpackb(encode(make()))
-        # SessionSpec.ros2 and .expire_s are left off the wire when None (unset)
-        optional = {"ros2", "expire_s"} if msg_type is SessionSpec else set()
+        # SessionSpec.ros2 and .expire_s are left off the wire when None (unset), and
+        # stamp_rounding when it is the default
+        optional = {"ros2", "expire_s", "stamp_rounding"} if msg_type is SessionSpec else set()
         assert list(raw) == [f for f in msg_type.model_fields if f not in optional]
         assert raw["v"] == 1
 

@@ -119,7 +119,8 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
         return self.filter.variant
 
     def add_measurement(
-        self, sensor: object, step: object, z: object, now: object, R: object | None = None
+        self, sensor: object, step: object, z: object, now: object, R: object | None = None,
+        offset: object = 0.0,
     ) -> bool:
         """As :meth:`ReplayEstimator.add_measurement`; a per-sample R must also be positive
         definite (the information form uses R^{-1})."""
@@ -132,12 +133,12 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
                 ok = False
             if not ok:
                 raise ValueError("R: must be a finite, positive definite matrix")
-        return super().add_measurement(sensor, step, z, now, R)
+        return super().add_measurement(sensor, step, z, now, R, offset)
 
     def predict_modes(self, now: int) -> ImmPrediction:
         """Mode probabilities and per-mode moments of x(now + lead) (reported node)."""
         pred = self.predict(now)  # validates now, advances, replays
-        step, state = self._newest()
+        step, state, _ = self._newest(pred.step)
         if pred.step > step:
             state = self._propagate(state, step, pred.step - step)
         k = self.filter._node_index(None)

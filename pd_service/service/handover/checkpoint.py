@@ -58,9 +58,12 @@ def to_message(st: EstimatorState, *, session: str, instance: str, fingerprint: 
         state_version=st.version, kind=st.kind, made_ns=made_ns, now_step=st.now,
         committed_step=st.committed_step, base_step=st.base_step,
         newest_committed=st.newest_committed, x=x, P=0.5 * (P + P.T), base=base,
-        packets=[StatePacket(step=s, sensor=name, z=z, R=R) for s, name, z, R in st.packets],
+        packets=[StatePacket(step=s, sensor=name, z=z, R=R, offset=off)
+                 for s, name, z, R, off in st.packets],
         u_origin=st.u_origin,
-        commands=[StateCommand(step=j, u=u) for j, u in st.commands],
+        commands=[StateCommand(step=j, u=u, offset=st.command_offsets.get(j, 0.0))
+                  for j, u in st.commands],
+        u_before=st.u_before,
         counters=dict(st.counters), extras=dict(st.extras),
         session_counters=dict(session_counters or {}), published=published, seq=seq)
 
@@ -100,11 +103,13 @@ def _fields(st: EstimatorState, tensor: Callable[[Any], Any],
         "P": tensor(0.5 * (P + P.T)),
         "base": {k: tensor(v) for k, v in base.items()},
         "packets": [{"step": int(s), "sensor": name, "z": tensor(z),
-                     "R": None if R is None else tensor(R)}
-                    for s, name, z, R in st.packets],
+                     "R": None if R is None else tensor(R), "offset": float(off)}
+                    for s, name, z, R, off in st.packets],
         "u_origin": tensor(st.u_origin),
-        "commands": [{"step": int(j), "u": u} for (j, _), u in
+        "commands": [{"step": int(j), "u": u, "offset": float(st.command_offsets.get(j, 0.0))}
+                     for (j, _), u in
                      zip(st.commands, rows([u for _, u in st.commands]), strict=True)],
+        "u_before": None if st.u_before is None else tensor(st.u_before),
         "counters": {str(k): int(v) for k, v in st.counters.items()},
         "extras": {k: tensor(v) for k, v in st.extras.items()},
         "session_counters": {str(k): int(v) for k, v in (session_counters or {}).items()},
@@ -154,10 +159,12 @@ def from_message(msg: SessionState, n: int) -> EstimatorState:
     return EstimatorState(
         kind=msg.kind, n=n, now=msg.now_step, committed_step=msg.committed_step,
         base_step=msg.base_step, newest_committed=msg.newest_committed, base=base,
-        packets=[(p.step, p.sensor, np.array(p.z), None if p.R is None else np.array(p.R))
-                 for p in msg.packets],
+        packets=[(p.step, p.sensor, np.array(p.z), None if p.R is None else np.array(p.R),
+                  p.offset) for p in msg.packets],
         inputs_origin=msg.base_step, u_origin=np.array(msg.u_origin).reshape(-1),
         commands=[(c.step, np.array(c.u).reshape(-1)) for c in msg.commands],
+        command_offsets={c.step: c.offset for c in msg.commands if c.offset > 0.0},
+        u_before=None if msg.u_before is None else np.array(msg.u_before).reshape(-1),
         counters=dict(msg.counters), extras={k: np.array(v) for k, v in msg.extras.items()},
         version=msg.state_version)
 

@@ -1,0 +1,57 @@
+"""The intake's stamps (pd_service.intake): the instant each message is applied at, on both
+read paths (the C fast read where compiled, the full decode for a message with its own R)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pd_service.backends import build
+from pd_service.estimation import ObserverPredictor
+from pd_service.intake import Intake
+from pd_service.wire import encode
+from tests.wire.factories import PERIOD_NS, command, measurement, paper_continuous_spec, paper_spec
+
+EPOCH = 1_700_000_000_000_000_000
+
+
+def intake_of(spec) -> tuple[Intake, ObserverPredictor]:  # type: ignore[no-untyped-def]
+    built = build(spec)
+    assert isinstance(built.est, ObserverPredictor)
+    return Intake(spec, built.est, built.nu), built.est
+
+
+def test_a_continuous_spec_applies_each_sample_at_its_own_time() -> None:
+    intake, est = intake_of(paper_continuous_spec(epoch_ns=EPOCH))
+    k = 20
+    key = "pd/p0/s1/sensor/camera"
+    for i, (extra, R) in enumerate([(12_345_678, None), (40_000_001, np.eye(2))]):
+        msg = measurement(step=None, t_ns=EPOCH + k * PERIOD_NS + extra, seq=i, R=R)
+        assert intake.measurement(key, encode(msg), k) is None
+    offsets = [p.offset for p in est._packets[k]]
+    assert offsets == [0.012345678, 0.040000001]  # full resolution, fast and full paths
+    # the same instant twice: a duplicate; a step stamp: the step's start
+    again = measurement(step=None, t_ns=EPOCH + k * PERIOD_NS + 12_345_678, seq=5)
+    refusal = intake.measurement(key, encode(again), k)
+    assert refusal is not None and refusal.reason == "duplicate"
+    assert intake.measurement(key, encode(measurement(step=k, seq=6)), k) is None
+    assert [p.offset for p in est._packets[k]] == [0.0, 0.012345678, 0.040000001]
+    # a command acts from exactly issued_ns + lead * period
+    issued = EPOCH + k * PERIOD_NS + 7_000_000
+    assert intake.command("pd/p0/s1/cmd", encode(command(step=None, issued_ns=issued)), k) is None
+    assert est._inputs.cut_offsets == {k + est.lead: 0.007}
+
+
+def test_a_discrete_spec_rounds_to_the_nearest_step_but_never_past_the_current_one() -> None:
+    intake, est = intake_of(paper_spec(epoch_ns=EPOCH))
+    k = 20
+    key = "pd/p0/s1/sensor/camera"
+    late_half = EPOCH + (k - 3) * PERIOD_NS + PERIOD_NS // 2 + 1  # nearest: step k - 2
+    now_half = EPOCH + k * PERIOD_NS + PERIOD_NS // 2 + 1  # nearest: k + 1, after now
+    for i, t in enumerate((late_half, now_half)):
+        assert intake.measurement(key, encode(measurement(step=None, t_ns=t, seq=i)), k) is None
+    assert sorted(est._packets) == [k - 2, k]
+    assert all(p.offset == 0.0 for b in est._packets.values() for p in b)
+    # a stamp after the current step is still refused as future
+    future = EPOCH + (k + 1) * PERIOD_NS + 1
+    refusal = intake.measurement(key, encode(measurement(step=None, t_ns=future, seq=9)), k)
+    assert refusal is not None and refusal.reason == "future"
