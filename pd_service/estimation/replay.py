@@ -90,12 +90,14 @@ _KIND_ALIASES = {"StackedObserverPredictor": "ObserverPredictor"}
 
 class Packet(NamedTuple):
     """One accepted measurement. ``sensor`` indexes the estimator's sensor list;
-    ``z`` has shape (m,) (read-only); ``R`` is a per-sample (m, m) override or None.
+    ``z`` has shape (m,) (read-only); ``R`` is a per-sample (m, m) override or None;
+    ``offset`` (s) the time the sample was taken after its step's start, 0 <= offset < period.
     (A NamedTuple: immutable, and built with ``tuple.__new__`` on the hot path.)"""
 
     sensor: int
     z: np.ndarray
     R: np.ndarray | None
+    offset: float = 0.0
 
 
 #: Read per call from C statics (Final), not looked up as ``bisect.<name>`` each time.
@@ -323,7 +325,7 @@ class ReplayEstimator(Generic[S]):
                     self._counters["duplicate"] += 1
                     return False
         _read_only(zv)
-        pkt = _new_tuple(Packet, (idx, zv, Rm))
+        pkt = _new_tuple(Packet, (idx, zv, Rm, 0.0))
         if bucket is None:
             self._packets[k] = [pkt]
             steps = self._steps
