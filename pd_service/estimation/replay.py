@@ -118,6 +118,17 @@ def _read_only(a: np.ndarray) -> None:
         a.setflags(write=False)
 
 
+def _as_offset(offset: object) -> float:
+    """A sample's offset inside its step (s): a finite float >= 0; ValueError otherwise."""
+    try:
+        off = float(offset)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"offset: expected seconds >= 0, got {offset!r}") from None
+    if not off >= 0.0 or off == float("inf"):
+        raise ValueError(f"offset: expected seconds >= 0, got {offset!r}")
+    return off
+
+
 def _by_sensor(p: Packet) -> int:
     return p.sensor
 
@@ -281,14 +292,16 @@ class ReplayEstimator(Generic[S]):
         return self._c
 
     def add_measurement(
-        self, sensor: object, step: object, z: object, now: object, R: object | None = None
+        self, sensor: object, step: object, z: object, now: object, R: object | None = None,
+        offset: object = 0.0,
     ) -> bool:
-        """Offer the sample of ``sensor`` taken at ``step``; True iff accepted.
+        """Offer the sample of ``sensor`` taken ``offset`` seconds (>= 0, below the period)
+        after the start of ``step``; True iff accepted.
 
         Accepted iff ``now - max_delay <= step <= now``, step >= 0 and no packet of this
-        sensor is already stored for ``step``. A refusal is counted ("late", "future",
-        "duplicate") and changes nothing. Malformed input raises ValueError naming the field
-        and changes nothing.
+        sensor is already stored for ``step`` at the same offset. A refusal is counted
+        ("late", "future", "duplicate") and changes nothing. Malformed input raises
+        ValueError naming the field and changes nothing.
         """
         idx = self._index.get(sensor) if isinstance(sensor, str) else None
         if idx is None:
@@ -298,17 +311,20 @@ class ReplayEstimator(Generic[S]):
         t = self._check_now(now)
         zv = as_vector(z, "z", m)
         Rm = None if R is None else as_covariance(R, "R", m)
-        return self._accept(idx, k, zv, Rm, t)
+        off = _as_offset(offset)
+        return self._accept(idx, k, zv, Rm, t, off)
 
-    def add_checked_measurement(self, sensor: str, step: int, z: np.ndarray, now: int) -> bool:
+    def add_checked_measurement(self, sensor: str, step: int, z: np.ndarray, now: int,
+                                offset: float = 0.0) -> bool:
         """:meth:`add_measurement` of a sample without its own R, for a caller that has
         made its checks (the daemon's intake fast path): ``sensor`` one of
         :attr:`sensor_names`, ``step`` an int, ``z`` a fresh finite float64 array of the
         sensor's dimension that the estimator keeps (made read-only, not copied). Skips
-        the conversion and checks of z."""
-        return self._accept(self._index[sensor], step, z, None, self._check_now(now))
+        the conversion and checks of z (``offset`` a float >= 0, seconds)."""
+        return self._accept(self._index[sensor], step, z, None, self._check_now(now), offset)
 
-    def _accept(self, idx: int, k: int, zv: np.ndarray, Rm: np.ndarray | None, t: int) -> bool:
+    def _accept(self, idx: int, k: int, zv: np.ndarray, Rm: np.ndarray | None, t: int,
+                offset: float = 0.0) -> bool:
         """The window's verdict on a checked sample, and its storage (see add_measurement)."""
         if t != self._now:
             self._advance(t)
@@ -321,11 +337,11 @@ class ReplayEstimator(Generic[S]):
         bucket = self._packets.get(k)
         if bucket is not None:
             for p in bucket:
-                if p.sensor == idx:
+                if p.sensor == idx and p.offset == offset:
                     self._counters["duplicate"] += 1
                     return False
         _read_only(zv)
-        pkt = _new_tuple(Packet, (idx, zv, Rm, 0.0))
+        pkt = _new_tuple(Packet, (idx, zv, Rm, offset))
         if bucket is None:
             self._packets[k] = [pkt]
             steps = self._steps
