@@ -24,42 +24,73 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..estimator_state import StateError, check_names, take
+from ..nonlinear.events import export_pending, import_pending, segments, split_packets, splits
 from ..replay import Packet, ReplayEstimator
 from .filter import ImmFilter, ImmState
 
 
 class ImmBackend:
-    """:class:`~pd_service.estimation.replay.Backend` over :class:`ImmState` (no batch axes)."""
+    """:class:`~pd_service.estimation.replay.Backend` over :class:`ImmState` (no batch axes).
+
+    Packets with an offset inside their step are applied at their own time when every mode
+    has a ``flow`` (:mod:`pd_service.estimation.nonlinear.events`): the modes interact at
+    the step's start, then each part of the step is a prediction without interaction, each
+    instant with samples an update; otherwise at the step's start, as before."""
 
     def __init__(self, filt: ImmFilter) -> None:
         self.filter = filt
+        self._splits = all(splits(md) for md in filt.modes)
 
     def propagate(self, state: ImmState, step: int, m: int, U: np.ndarray) -> ImmState:
         """m IMM cycles without measurement (interaction + prediction; mu = cbar)."""
         f = self.filter
         for j in range(m):
-            state = f.predict(state, step + j, U[j])
+            if state.pending:
+                state = self._through_step(state, step + j, U[j])
+            else:
+                state = f.predict(state, step + j, U[j])
+        return state
+
+    def _through_step(self, state: ImmState, k: int, u: np.ndarray) -> ImmState:
+        """x(k) -> x(k+1) through the packets sampled inside step k (``state.pending``)."""
+        f = self.filter
+        first = True
+        inside = state.pending
+        state = ImmState(state.mu, state.x, state.P)
+        for tau, group in segments(inside, f.modes[0].period_s):
+            state = f.predict(state, k, u, tau=tau, interact=first)
+            first = False
+            if group:
+                state = f.update(state, [(p.sensor, p.z, p.R) for p in group])
         return state
 
     def update(self, state: ImmState, step: int, packets: list[Packet]) -> ImmState:
-        """Every packet stamped ``step``, fused on the step's one prior."""
-        return self.filter.update(state, [(p.sensor, p.z, p.R) for p in packets])
+        """Every packet stamped ``step`` at its start, fused on the step's one prior; those
+        inside the step are kept pending."""
+        start, inside = split_packets(packets, self._splits)
+        if start:
+            state = self.filter.update(state, [(p.sensor, p.z, p.R) for p in start])
+        return ImmState(state.mu, state.x, state.P, inside) if inside else state
 
     def moments(self, state: ImmState) -> tuple[np.ndarray, np.ndarray]:
         return self.filter.output(state)
 
     def export_state(self, state: ImmState) -> dict[str, np.ndarray]:
-        """Mode probabilities "mu" (N, r), per-mode "x" (N, r, n) and "P" (N, r, n, n)."""
-        return {"mu": state.mu.copy(), "x": state.x.copy(), "P": state.P.copy()}
+        """Mode probabilities "mu" (N, r), per-mode "x" (N, r, n) and "P" (N, r, n, n),
+        and the pending packets (:func:`~pd_service.estimation.nonlinear.events.export_pending`)."""
+        return {"mu": state.mu.copy(), "x": state.x.copy(), "P": state.P.copy(),
+                **export_pending(state.pending)}
 
     def import_state(self, arrays: dict[str, np.ndarray]) -> ImmState:
         f = self.filter
         N, r, n = f.n_nodes, f.r, f.n
+        arrays, pending = import_pending(arrays, [s.m for s in f.sensors])
         check_names(arrays, {"mu", "x", "P"})
         mu = take(arrays, "mu", (N, r))
         if np.any(mu < 0) or not np.allclose(mu.sum(axis=1), 1.0, atol=1e-9):
             raise StateError("base.mu: not a probability vector per node")
-        return ImmState(mu, take(arrays, "x", (N, r, n)), take(arrays, "P", (N, r, n, n)))
+        return ImmState(mu, take(arrays, "x", (N, r, n)), take(arrays, "P", (N, r, n, n)),
+                        pending)
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,7 +150,8 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
         return self.filter.variant
 
     def add_measurement(
-        self, sensor: object, step: object, z: object, now: object, R: object | None = None
+        self, sensor: object, step: object, z: object, now: object, R: object | None = None,
+        offset: object = 0.0,
     ) -> bool:
         """As :meth:`ReplayEstimator.add_measurement`; a per-sample R must also be positive
         definite (the information form uses R^{-1})."""
@@ -132,7 +164,7 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
                 ok = False
             if not ok:
                 raise ValueError("R: must be a finite, positive definite matrix")
-        return super().add_measurement(sensor, step, z, now, R)
+        return super().add_measurement(sensor, step, z, now, R, offset)
 
     def predict_modes(self, now: int) -> ImmPrediction:
         """Mode probabilities and per-mode moments of x(now + lead) (reported node)."""

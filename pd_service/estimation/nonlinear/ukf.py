@@ -18,6 +18,9 @@ is replayed with the new, frozen Q. Hence ``predict(now)`` equals, to rounding, 
 run over the accepted packets in stamp order: the adaptive UKF over every packet stamped before
 ``now - max_delay``, then the plain UKF with the last q over the rest, then the prediction.
 Late packets are refused by the window, so they never enter the innovation statistics.
+Samples taken inside a step (a packet's ``offset``) are applied at their own time
+(:mod:`.events`); the adapter learns from the innovations of the samples at the steps'
+starts only. Commands stay on the grid.
 """
 
 from __future__ import annotations
@@ -205,11 +208,13 @@ class UnscentedObserverPredictor(ReplayEstimator[UKFState]):
             if s > a:
                 state = backend.propagate(state, a, s - a, self._inputs.slice(a, s - a))
             state, rec = backend.update_tracked(state, s, packets, s - self._last_update)
+            a = s
+            if rec is None:  # only samples taken inside the step: nothing for the adapter
+                continue
             self._last_update = s
             Qn = self.adapter.observe(rec, backend.Q)
             if Qn is not None:
                 backend.Q = Qn  # used from the step after s on
-            a = s
         frozen = committed[-1][1]  # what the window computed with Q frozen
         self._base = state
         if (backend.Q is not Q_before or not np.array_equal(state.x, frozen.x)

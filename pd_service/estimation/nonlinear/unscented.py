@@ -37,6 +37,7 @@ import numpy as np
 from ..estimator_state import check_names, take
 from ..linear import block_diag
 from ..replay import Packet
+from .events import export_pending, import_pending, segments, split_packets, splits
 from .registry import MeasurementModel, NonlinearModel, wrap_angle
 from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
 
@@ -44,12 +45,15 @@ from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
 @dataclass(frozen=True, slots=True)
 class UKFState:
     """Gaussian estimate: mean ``x`` (n,), covariance ``P`` (n, n); with sensitivities to the
-    adapted q_m: ``dx`` (p, n) and ``dP`` (p, n, n), or None when not tracked."""
+    adapted q_m: ``dx`` (p, n) and ``dP`` (p, n, n), or None when not tracked. ``pending``:
+    packets sampled inside this state's step, applied by the next propagation
+    (:mod:`.events`); x and P do not contain them yet."""
 
     x: np.ndarray
     P: np.ndarray
     dx: np.ndarray | None = None
     dP: np.ndarray | None = None
+    pending: tuple[Packet, ...] = ()
 
     @property
     def tracked(self) -> bool:
@@ -102,9 +106,21 @@ class ModelOps:
             raise ValueError(f"model {m.name!r}: f returned shape {Y.shape}, expected {X.shape}")
         return Y
 
-    def f_jvp(self, X: np.ndarray, dX: np.ndarray, u: np.ndarray, k: int) -> np.ndarray:
-        """dY (p, N, n) = F(X_i) dX[j, i] for each direction j."""
+    def f_over(self, X: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
+        """Y (N, n) = the model's flow over tau seconds (part of a step) of X (N, n)."""
         m = self.model
+        assert m.flow is not None
+        fn = m.flow(tau)
+        Y = fn(X, u) if m.vectorized else np.array([fn(x, u) for x in X])
+        return np.asarray(Y, dtype=float).reshape(X.shape)
+
+    def f_jvp(self, X: np.ndarray, dX: np.ndarray, u: np.ndarray, k: int,
+              tau: float | None = None) -> np.ndarray:
+        """dY (p, N, n) = F(X_i) dX[j, i] for each direction j (of the flow over ``tau``
+        seconds if given: central differences)."""
+        m = self.model
+        if tau is not None:
+            return self._fd_jvp(lambda Z: self.f_over(Z, u, tau), X, dX)
         if m.jac is not None:
             F = m.jac(X, u, k) if m.vectorized else np.array([m.jac(x, u, k) for x in X])
             return np.einsum("iab,pib->pia", F, dX)
@@ -174,13 +190,15 @@ def _sym(P: np.ndarray) -> np.ndarray:
 
 
 def time_step(ops: ModelOps, w: SigmaWeights, Q: np.ndarray, state: UKFState, u: np.ndarray,
-              k: int, dQ: np.ndarray | None = None) -> UKFState:
-    """One step x(k) -> x(k+1). Sensitivities are propagated iff ``state.tracked``;
-    ``dQ`` (p, n, n) = dQ/dq_m is then required."""
+              k: int, dQ: np.ndarray | None = None, tau: float | None = None) -> UKFState:
+    """One step x(k) -> x(k+1), or with ``tau`` (s) the part x(t) -> x(t + tau) of step k
+    through the model's flow (``Q``, ``dQ`` then the noise over tau). Sensitivities are
+    propagated iff ``state.tracked``; ``dQ`` (p, n, n) = dQ/dq_m is then required."""
     x, P = state.x, state.P
     L = sqrt_cov(P)
     X = w.points(x, L)                      # chi_i
-    Y = ops.f(X, u, k)                      # Y_i = f(chi_i, u, k)
+    # Y_i = f(chi_i, u, k)
+    Y = ops.f(X, u, k) if tau is None else ops.f_over(X, u, tau)
     xm = _mean(w.Wm, Y, ops.x_angles)       # x- = sum Wm_i Y_i
     D = _resid(Y, xm, ops.x_angles)         # Y_i - x-
     Pm = _sym(_wsum_outer(D, w.Wc, D) + Q)  # P- = sum Wc_i D_i D_i^T + Q
@@ -188,7 +206,7 @@ def time_step(ops: ModelOps, w: SigmaWeights, Q: np.ndarray, state: UKFState, u:
         return UKFState(xm, Pm)
     dL = cholesky_derivative(L, state.dP)
     dX = w.point_offsets(state.dx, dL)      # d chi_i
-    dY = ops.f_jvp(X, dX, u, k)             # dY_i = F(chi_i) d chi_i
+    dY = ops.f_jvp(X, dX, u, k, tau)        # dY_i = F(chi_i) d chi_i
     dxm = np.einsum("pia,i->pa", dY, w.Wm)  # dx- = sum Wm_i dY_i
     dD = dY - dxm[:, None, :]
     T = _dwsum_outer(dD, w.Wc, D)
@@ -266,6 +284,9 @@ class UnscentedBackend:
     known Q for each step k -> k+1. A tracked state (with sensitivities) stays tracked through
     :meth:`propagate`; :meth:`update` drops sensitivities (speculative posteriors never need
     them), :meth:`update_tracked` keeps them and returns the innovation record.
+
+    Packets with an offset inside their step are applied at their own time (:mod:`.events`)
+    when the model has a ``flow``; otherwise at the step's start, as every packet was before.
     """
 
     def __init__(self, ops: ModelOps, weights: SigmaWeights, Q: np.ndarray,
@@ -283,35 +304,70 @@ class UnscentedBackend:
         for j in range(m):
             if sched is not None:
                 Q = sched(step + j)  # known Q of the step k -> k+1
-            state = time_step(ops, w, Q, state, U[j], step + j, dQ)
+            if state.pending:
+                state = self._through_step(state, step + j, U[j], Q)
+            else:
+                state = time_step(ops, w, Q, state, U[j], step + j, dQ)
+        return state
+
+    def _through_step(self, state: UKFState, k: int, u: np.ndarray, Q: np.ndarray) -> UKFState:
+        """x(k) -> x(k+1) through the packets sampled inside step k (``state.pending``)."""
+        ops, w, dQ = self.ops, self.weights, self.dQ
+        T = ops.model.period_s
+        inside, state = state.pending, UKFState(state.x, state.P, state.dx, state.dP)
+        for tau, group in segments(inside, T):
+            r = tau / T  # noise over tau: Q tau / T
+            state = time_step(ops, w, Q * r, state, u, k, None if dQ is None else dQ * r, tau)
+            if group:
+                state = measurement_update(ops, w, state, k, group)[0]
         return state
 
     def update(self, state: UKFState, step: int, packets: list[Packet]) -> UKFState:
-        if state.tracked:
+        start, inside = split_packets(packets, self._splits)
+        if state.tracked or state.pending:
             state = UKFState(state.x, state.P)
-        return measurement_update(self.ops, self.weights, state, step, packets)[0]
+        if start:
+            state = measurement_update(self.ops, self.weights, state, step, start)[0]
+        return UKFState(state.x, state.P, pending=inside) if inside else state
 
     def update_tracked(self, state: UKFState, step: int, packets: list[Packet],
-                       gap: int) -> tuple[UKFState, InnovationRecord]:
-        return measurement_update(self.ops, self.weights, state, step, packets, gap, self.Q)
+                       gap: int) -> tuple[UKFState, InnovationRecord | None]:
+        """:meth:`update` keeping sensitivities; the record is that of the packets at the
+        step's start (None if there are none): the adapter learns from those only."""
+        start, inside = split_packets(packets, self._splits)
+        rec = None
+        if start:
+            state, rec = measurement_update(self.ops, self.weights, state, step, start, gap,
+                                            self.Q)
+        if inside:
+            state = UKFState(state.x, state.P, state.dx, state.dP, inside)
+        return state, rec
+
+    @property
+    def _splits(self) -> bool:
+        return splits(self.ops.model)
 
     def moments(self, state: UKFState) -> tuple[np.ndarray, np.ndarray]:
         return state.x, state.P
 
     def export_state(self, state: UKFState) -> dict[str, np.ndarray]:
-        """{"x", "P"} plus {"dx", "dP"} for a tracked state."""
+        """{"x", "P"} plus {"dx", "dP"} for a tracked state, plus the pending packets
+        (:func:`export_pending`)."""
         out = {"x": state.x.copy(), "P": state.P.copy()}
         if state.dx is not None and state.dP is not None:
             out["dx"], out["dP"] = state.dx.copy(), state.dP.copy()
+        out.update(export_pending(state.pending))
         return out
 
     def import_state(self, arrays: dict[str, np.ndarray]) -> UKFState:
         """A tracked state iff this backend tracks sensitivities (``dQ`` set)."""
         n = self.ops.n
+        arrays, pending = import_pending(arrays, [s.m for s in self.ops.sensors])
         if self.dQ is None:
             check_names(arrays, {"x", "P"})
-            return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)))
+            return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)),
+                            pending=pending)
         p = self.dQ.shape[0]
         check_names(arrays, {"x", "P", "dx", "dP"})
         return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)),
-                        take(arrays, "dx", (p, n)), take(arrays, "dP", (p, n, n)))
+                        take(arrays, "dx", (p, n)), take(arrays, "dP", (p, n, n)), pending)
