@@ -10,13 +10,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from pd_service.estimation.nonlinear import NonlinearModel, wrap_angle
 from pd_service.wire import LinearModelSpec, SensorSpec, SessionSpec, UnscentedModelSpec
 from pd_service.wire.ros2 import Ros2Binding
+
+if TYPE_CHECKING:
+    from .asynchronous import AsyncTiming
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,6 +94,9 @@ class Scenario:
     ``paper`` scenario's reference stream has it; see :class:`ScenarioSim`).
     ``ros2``: the session's ROS 2 topic bindings, if the robot speaks ROS 2 (the spec keeps
     the bindings of the sensors it selects).
+    ``timing``: for a robot whose sensors sample off the step grid, their rates, phases,
+    jitters and delays (:class:`~.asynchronous.AsyncTiming`; simulated by
+    :class:`~.asynchronous.AsyncSim`); ``sensors`` then give the nominal interval and delay.
     """
 
     name: str
@@ -115,6 +121,7 @@ class Scenario:
     angles: tuple[int, ...] = ()
     loss_draw: bool = True
     ros2: Ros2Binding | None = None
+    timing: AsyncTiming | None = None
 
     def __post_init__(self) -> None:
         linear = self.A is not None and self.B is not None
