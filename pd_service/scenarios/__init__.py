@@ -13,7 +13,7 @@ runs. This package sits above :mod:`pd_service.wire` and :mod:`pd_service.estima
 
 from __future__ import annotations
 
-from .asynchronous import AsyncSim, TimedSample, async_scenario
+from .asynchronous import AsyncSim, TimedSample, async_scenario, simulate_async
 from .diffdrive import diffdrive_scenario
 from .maneuver import maneuver_scenario
 from .omni import omni_scenario
@@ -54,4 +54,5 @@ __all__ = [
     "maneuver_scenario",
     "omni_scenario",
     "paper_scenario",
+    "simulate_async",
 ]

@@ -169,6 +169,19 @@ class AsyncSim:
         self.t = 0.0
         self.x = np.array(scenario.x0_true, dtype=np.float64)
 
+    def start_at(self, k: int) -> None:
+        """Start at step k >= 0 (joining a running session): the clock at k T, each sensor
+        at its first sample due from then on; the state stays the initial one."""
+        if k < 0:
+            raise ValueError(f"k: must be >= 0, got {k}")
+        if k == self.k:
+            return
+        T = self.scenario.period_s
+        self.k, self.t = k, k * T
+        for i, t in enumerate(self.timing.sensors):
+            self._j[i] = max(0, math.ceil((k * T - t.phase_s) * t.rate_hz))
+            self._next[i] = max(self._draw_time(i), self.t)
+
     def _draw_time(self, i: int) -> float:
         """Time (s) of sensor i's next sample (index self._j[i])."""
         t = self.timing.sensors[i]

@@ -119,3 +119,15 @@ def test_exact_stamps_track_the_fine_grid_and_floor_does_not():
     assert tr_fl.counters["duplicate"] > 0
     assert abs(exact / fine - 1.0) < 0.02
     assert floor > 1.1 * fine
+
+
+def test_start_at_a_later_step_resumes_each_sensor_at_its_next_sample():
+    sim = AsyncSim(async_scenario(), seed=2)
+    sim.start_at(100)
+    out = sim.step(np.zeros(2))
+    assert sim.k == 101 and sim.t == pytest.approx(5.05)
+    assert {s.sensor for s in out} >= {"odom_twist", "imu"}
+    assert all(5.0 <= s.t_s < 5.05 for s in out)
+    assert sum(s.sensor == "imu" for s in out) == 5
+    with pytest.raises(ValueError):
+        sim.start_at(-1)
