@@ -39,8 +39,8 @@ import sys
 import time
 
 import numpy as np
-
 from gauge import gauge_ms
+
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
 from pd_service.scenarios.asynchronous import async_model, async_scenario, simulate_async
 from pd_service.scenarios.filter_runs import STAMP_MODES, drive_async

@@ -29,6 +29,7 @@ interval and delay of each sensor in steps) with the :class:`AsyncTiming` of the
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,7 +58,8 @@ CYCLE_S = 20.0  # the drive_turn_stop profile's cycle
 class SensorTiming:
     """When one sensor samples and how late its samples arrive: ``rate_hz``, ``phase_s``
     (time of sample 0), ``jitter_s`` (std of a sample time around its nominal one, clipped to
-    +-min(0.4 / rate, 3 jitter_s)), ``delay_s`` (sample time -> arrival), ``std`` (noise std per component)."""
+    +-min(0.4 / rate, 3 jitter_s)), ``delay_s`` (sample time -> arrival), ``std`` (noise
+    std per component)."""
 
     name: str
     rate_hz: float
@@ -164,7 +166,7 @@ class AsyncSim:
         self._j = [0] * len(self.timing.sensors)
         self._next = [self._draw_time(i) for i in range(len(self.timing.sensors))]
         self._qstd = np.sqrt(np.diag(self.timing.Qc))
-        self._flows: dict[float, object] = {}
+        self._flows: dict[float, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {}
         self.k = 0
         self.t = 0.0
         self.x = np.array(scenario.x0_true, dtype=np.float64)
@@ -201,7 +203,7 @@ class AsyncSim:
             if len(self._flows) < 64:
                 self._flows[key] = fn
         self.x = fn(self.x, u) + self._qstd * math.sqrt(dt) * self._rng_w.standard_normal(
-            self.x.shape[0])  # type: ignore[operator]
+            self.x.shape[0])
         self.t += dt
 
     def step(self, u: np.ndarray) -> list[TimedSample]:

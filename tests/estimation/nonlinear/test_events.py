@@ -178,7 +178,8 @@ def test_ukf_pending_survives_export_and_restore():
     assert np.array_equal(op._base.x, twin._base.x) and np.array_equal(op._base.P, twin._base.P)
     assert [(p.sensor, p.offset) for p in op._base.pending] == [
         (p.sensor, p.offset) for p in twin._base.pending]
-    assert all(np.array_equal(p.z, q.z) for p, q in zip(op._base.pending, twin._base.pending))
+    assert all(np.array_equal(p.z, q.z) for p, q in zip(op._base.pending, twin._base.pending,
+                                                        strict=True))
 
 
 def test_model_without_flow_applies_at_step_start():
