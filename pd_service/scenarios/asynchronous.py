@@ -38,7 +38,7 @@ from pd_service.estimation.nonlinear import NonlinearModel, make_model, wrap_ang
 from pd_service.wire import UnscentedModelSpec
 
 from .diffdrive import ROS2_BINDING, drive_turn_stop
-from .simulator import Scenario, SensorDef
+from .simulator import AsyncTiming, Scenario, SensorDef, SensorTiming
 
 PERIOD_S = 0.05
 TAU_V = 0.25  # s, first-order lag of the forward speed
@@ -49,34 +49,8 @@ ASYNC_PARAMS: dict[str, float] = {"period_s": PERIOD_S, "tau_v": TAU_V, "tau_w":
 #: Process noise density Qc (per second) of x, y, yaw, v, yaw_rate: the diffdrive scenario's
 #: per-step Q (20 ms) spread over its step; the 50 ms filter's Q is Qc * 0.05.
 QC_DIAG = (5e-5, 5e-5, 5e-5, 5e-3, 2e-2)
-TRUTH_STEP_S = 0.001
 P0 = np.diag([0.05**2, 0.05**2, 0.05**2, 0.05**2, 0.05**2])
 CYCLE_S = 20.0  # the drive_turn_stop profile's cycle
-
-
-@dataclass(frozen=True)
-class SensorTiming:
-    """When one sensor samples and how late its samples arrive: ``rate_hz``, ``phase_s``
-    (time of sample 0), ``jitter_s`` (std of a sample time around its nominal one, clipped to
-    +-min(0.4 / rate, 3 jitter_s)), ``delay_s`` (sample time -> arrival), ``std`` (noise
-    std per component)."""
-
-    name: str
-    rate_hz: float
-    phase_s: float
-    jitter_s: float
-    delay_s: float
-    std: tuple[float, ...]
-
-
-@dataclass(frozen=True)
-class AsyncTiming:
-    """The sensors' timings, the noise density ``Qc`` (n, n) per second and the truth's
-    integration step ``truth_step_s`` (s) of an asynchronous scenario."""
-
-    sensors: tuple[SensorTiming, ...]
-    Qc: np.ndarray
-    truth_step_s: float = TRUTH_STEP_S
 
 
 ASYNC_SENSORS = (
