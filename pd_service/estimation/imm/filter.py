@@ -41,7 +41,6 @@ import numpy as np
 
 from ..checks import as_covariance, as_vector
 from ..nonlinear.registry import MeasurementModel, NonlinearModel, TransitionFn
-from ..replay import Packet
 from . import uif
 from .mixing import check_transition, combine, mix, posterior_probabilities
 from .unscented import Array, apply_rows, sigma_points, unscented_propagate, weights
@@ -54,15 +53,12 @@ class ImmState:
     """IMM posterior (or prior, after :meth:`ImmFilter.predict`).
 
     mu (..., N, r) mode probabilities; x (..., N, r, n) per-mode means;
-    P (..., N, r, n, n) per-mode covariances. N = number of nodes. ``pending``: packets
-    sampled inside this state's step, applied by the next propagation
-    (:mod:`pd_service.estimation.nonlinear.events`; the observer's backend).
+    P (..., N, r, n, n) per-mode covariances. N = number of nodes.
     """
 
     mu: np.ndarray
     x: np.ndarray
     P: np.ndarray
-    pending: tuple[Packet, ...] = ()
 
 
 #: One measurement: (sensor index, z (..., m), R (m, m) or None for the sensor's own R).

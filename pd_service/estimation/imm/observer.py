@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..estimator_state import StateError, check_names, take
-from ..nonlinear.events import export_pending, import_pending, segments, split_packets, splits
+from ..nonlinear.events import segments, split_packets, splits, step_inputs
+from ..nonlinear.unscented import InputsAt
 from ..replay import Packet, ReplayEstimator
 from .filter import ImmFilter, ImmState
 
@@ -35,62 +36,59 @@ class ImmBackend:
     Packets with an offset inside their step are applied at their own time when every mode
     has a ``flow`` (:mod:`pd_service.estimation.nonlinear.events`): the modes interact at
     the step's start, then each part of the step is a prediction without interaction, each
-    instant with samples an update; otherwise at the step's start, as before."""
+    instant with samples an update, and :meth:`update` hands on x(step + 1)."""
 
     def __init__(self, filt: ImmFilter) -> None:
         self.filter = filt
-        self._splits = all(splits(md) for md in filt.modes)
+        self.splits = all(splits(md) for md in filt.modes)
+        self.inputs_at: InputsAt | None = None  # set by the estimator (see UnscentedBackend)
 
     def propagate(self, state: ImmState, step: int, m: int, U: np.ndarray) -> ImmState:
         """m IMM cycles without measurement (interaction + prediction; mu = cbar)."""
         f = self.filter
         for j in range(m):
-            if state.pending:
-                state = self._through_step(state, step + j, U[j])
-            else:
-                state = f.predict(state, step + j, U[j])
+            state = f.predict(state, step + j, U[j])
         return state
 
-    def _through_step(self, state: ImmState, k: int, u: np.ndarray) -> ImmState:
-        """x(k) -> x(k+1) through the packets sampled inside step k (``state.pending``)."""
+    def _through_step(self, state: ImmState, k: int, inside: list[Packet]) -> ImmState:
+        """x(k) -> x(k+1) through the packets sampled inside step k (sorted by offset)."""
         f = self.filter
+        if self.inputs_at is None:
+            raise ValueError("samples inside a step need the estimator's inputs (inputs_at)")
+        u, cut = self.inputs_at(k)
         first = True
-        inside = state.pending
-        state = ImmState(state.mu, state.x, state.P)
-        for tau, group in segments(inside, f.modes[0].period_s):
-            state = f.predict(state, k, u, tau=tau, interact=first)
+        for t, tau, group in segments(inside, f.modes[0].period_s,
+                                      None if cut is None else cut[0]):
+            uk = u if cut is None or t >= cut[0] else cut[1]  # the command held at t
+            state = f.predict(state, k, uk, tau=tau, interact=first)
             first = False
             if group:
                 state = f.update(state, [(p.sensor, p.z, p.R) for p in group])
         return state
 
     def update(self, state: ImmState, step: int, packets: list[Packet]) -> ImmState:
-        """Every packet stamped ``step`` at its start, fused on the step's one prior; those
-        inside the step are kept pending."""
-        start, inside = split_packets(packets, self._splits)
+        """Every packet stamped ``step`` at its start, fused on the step's one prior; with
+        packets inside the step, then through it to x(step + 1)."""
+        start, inside = split_packets(packets, self.splits)
         if start:
             state = self.filter.update(state, [(p.sensor, p.z, p.R) for p in start])
-        return ImmState(state.mu, state.x, state.P, inside) if inside else state
+        return self._through_step(state, step, inside) if inside else state
 
     def moments(self, state: ImmState) -> tuple[np.ndarray, np.ndarray]:
         return self.filter.output(state)
 
     def export_state(self, state: ImmState) -> dict[str, np.ndarray]:
-        """Mode probabilities "mu" (N, r), per-mode "x" (N, r, n) and "P" (N, r, n, n),
-        and the pending packets (:func:`~pd_service.estimation.nonlinear.events.export_pending`)."""
-        return {"mu": state.mu.copy(), "x": state.x.copy(), "P": state.P.copy(),
-                **export_pending(state.pending)}
+        """Mode probabilities "mu" (N, r), per-mode "x" (N, r, n) and "P" (N, r, n, n)."""
+        return {"mu": state.mu.copy(), "x": state.x.copy(), "P": state.P.copy()}
 
     def import_state(self, arrays: dict[str, np.ndarray]) -> ImmState:
         f = self.filter
         N, r, n = f.n_nodes, f.r, f.n
-        arrays, pending = import_pending(arrays, [s.m for s in f.sensors])
         check_names(arrays, {"mu", "x", "P"})
         mu = take(arrays, "mu", (N, r))
         if np.any(mu < 0) or not np.allclose(mu.sum(axis=1), 1.0, atol=1e-9):
             raise StateError("base.mu: not a probability vector per node")
-        return ImmState(mu, take(arrays, "x", (N, r, n)), take(arrays, "P", (N, r, n, n)),
-                        pending)
+        return ImmState(mu, take(arrays, "x", (N, r, n)), take(arrays, "P", (N, r, n, n)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -140,6 +138,14 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
             command_hold=command_hold,
         )
         self.filter = filt
+        backend = self._backend
+        assert isinstance(backend, ImmBackend)
+        backend.inputs_at = self._inputs_at
+        # seconds a sample may lie inside a step; 0.0: modes without flow take none
+        self.period_s = filt.modes[0].period_s if backend.splits else 0.0
+
+    def _inputs_at(self, k: int) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        return step_inputs(self._inputs, k)
 
     @property
     def n(self) -> int:
@@ -169,7 +175,7 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
     def predict_modes(self, now: int) -> ImmPrediction:
         """Mode probabilities and per-mode moments of x(now + lead) (reported node)."""
         pred = self.predict(now)  # validates now, advances, replays
-        step, state = self._newest()
+        step, state, _ = self._newest(pred.step)
         if pred.step > step:
             state = self._propagate(state, step, pred.step - step)
         k = self.filter._node_index(None)

@@ -37,23 +37,23 @@ import numpy as np
 from ..estimator_state import check_names, take
 from ..linear import block_diag
 from ..replay import Packet
-from .events import export_pending, import_pending, segments, split_packets, splits
+from .events import segments, split_packets, splits
 from .registry import MeasurementModel, NonlinearModel, wrap_angle
 from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
+
+#: k -> (u(k) (nu,), (offset s, input before) of a command taking effect inside step k or None)
+InputsAt = Callable[[int], tuple[np.ndarray, tuple[float, np.ndarray] | None]]
 
 
 @dataclass(frozen=True, slots=True)
 class UKFState:
     """Gaussian estimate: mean ``x`` (n,), covariance ``P`` (n, n); with sensitivities to the
-    adapted q_m: ``dx`` (p, n) and ``dP`` (p, n, n), or None when not tracked. ``pending``:
-    packets sampled inside this state's step, applied by the next propagation
-    (:mod:`.events`); x and P do not contain them yet."""
+    adapted q_m: ``dx`` (p, n) and ``dP`` (p, n, n), or None when not tracked."""
 
     x: np.ndarray
     P: np.ndarray
     dx: np.ndarray | None = None
     dP: np.ndarray | None = None
-    pending: tuple[Packet, ...] = ()
 
     @property
     def tracked(self) -> bool:
@@ -285,8 +285,10 @@ class UnscentedBackend:
     :meth:`propagate`; :meth:`update` drops sensitivities (speculative posteriors never need
     them), :meth:`update_tracked` keeps them and returns the innovation record.
 
-    Packets with an offset inside their step are applied at their own time (:mod:`.events`)
-    when the model has a ``flow``; otherwise at the step's start, as every packet was before.
+    Packets with an offset inside their step are applied at their own time (:mod:`.events`):
+    :meth:`update` then hands on x(step + 1), reading u(step) through ``inputs_at`` (set by
+    the estimator: k -> (u(k), the (offset, input before) of a command taking effect inside
+    step k, or None)). A model without ``flow`` takes no offsets (the estimator refuses them).
     """
 
     def __init__(self, ops: ModelOps, weights: SigmaWeights, Q: np.ndarray,
@@ -297,6 +299,7 @@ class UnscentedBackend:
         self.Q = Q
         self.dQ = dQ
         self.Q_schedule = Q_schedule
+        self.inputs_at: InputsAt | None = None
 
     def propagate(self, state: UKFState, step: int, m: int, U: np.ndarray) -> UKFState:
         ops, w, Q, dQ = self.ops, self.weights, self.Q, self.dQ
@@ -304,31 +307,33 @@ class UnscentedBackend:
         for j in range(m):
             if sched is not None:
                 Q = sched(step + j)  # known Q of the step k -> k+1
-            if state.pending:
-                state = self._through_step(state, step + j, U[j], Q)
-            else:
-                state = time_step(ops, w, Q, state, U[j], step + j, dQ)
+            state = time_step(ops, w, Q, state, U[j], step + j, dQ)
         return state
 
-    def _through_step(self, state: UKFState, k: int, u: np.ndarray, Q: np.ndarray) -> UKFState:
-        """x(k) -> x(k+1) through the packets sampled inside step k (``state.pending``)."""
+    def _through_step(self, state: UKFState, k: int, inside: list[Packet]) -> UKFState:
+        """x(k) -> x(k+1) through the packets sampled inside step k (sorted by offset)."""
         ops, w, dQ = self.ops, self.weights, self.dQ
         T = ops.model.period_s
-        inside, state = state.pending, UKFState(state.x, state.P, state.dx, state.dP)
-        for tau, group in segments(inside, T):
+        if self.inputs_at is None:
+            raise ValueError("samples inside a step need the estimator's inputs (inputs_at)")
+        u, cut = self.inputs_at(k)
+        Q = self.Q if self.Q_schedule is None else self.Q_schedule(k)
+        for t, tau, group in segments(inside, T, None if cut is None else cut[0]):
+            uk = u if cut is None or t >= cut[0] else cut[1]  # the command held at t
             r = tau / T  # noise over tau: Q tau / T
-            state = time_step(ops, w, Q * r, state, u, k, None if dQ is None else dQ * r, tau)
+            state = time_step(ops, w, Q * r, state, uk, k, None if dQ is None else dQ * r, tau)
             if group:
                 state = measurement_update(ops, w, state, k, group)[0]
         return state
 
     def update(self, state: UKFState, step: int, packets: list[Packet]) -> UKFState:
+        """x(step) conditioned on ``packets``; with packets inside the step, x(step + 1)."""
         start, inside = split_packets(packets, self._splits)
-        if state.tracked or state.pending:
+        if state.tracked:
             state = UKFState(state.x, state.P)
         if start:
             state = measurement_update(self.ops, self.weights, state, step, start)[0]
-        return UKFState(state.x, state.P, pending=inside) if inside else state
+        return self._through_step(state, step, inside) if inside else state
 
     def update_tracked(self, state: UKFState, step: int, packets: list[Packet],
                        gap: int) -> tuple[UKFState, InnovationRecord | None]:
@@ -340,7 +345,7 @@ class UnscentedBackend:
             state, rec = measurement_update(self.ops, self.weights, state, step, start, gap,
                                             self.Q)
         if inside:
-            state = UKFState(state.x, state.P, state.dx, state.dP, inside)
+            state = self._through_step(state, step, inside)
         return state, rec
 
     @property
@@ -351,23 +356,19 @@ class UnscentedBackend:
         return state.x, state.P
 
     def export_state(self, state: UKFState) -> dict[str, np.ndarray]:
-        """{"x", "P"} plus {"dx", "dP"} for a tracked state, plus the pending packets
-        (:func:`export_pending`)."""
+        """{"x", "P"} plus {"dx", "dP"} for a tracked state."""
         out = {"x": state.x.copy(), "P": state.P.copy()}
         if state.dx is not None and state.dP is not None:
             out["dx"], out["dP"] = state.dx.copy(), state.dP.copy()
-        out.update(export_pending(state.pending))
         return out
 
     def import_state(self, arrays: dict[str, np.ndarray]) -> UKFState:
         """A tracked state iff this backend tracks sensitivities (``dQ`` set)."""
         n = self.ops.n
-        arrays, pending = import_pending(arrays, [s.m for s in self.ops.sensors])
         if self.dQ is None:
             check_names(arrays, {"x", "P"})
-            return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)),
-                            pending=pending)
+            return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)))
         p = self.dQ.shape[0]
         check_names(arrays, {"x", "P", "dx", "dP"})
         return UKFState(take(arrays, "x", (n,)), take(arrays, "P", (n, n)),
-                        take(arrays, "dx", (p, n)), take(arrays, "dP", (p, n, n)), pending)
+                        take(arrays, "dx", (p, n)), take(arrays, "dP", (p, n, n)))
