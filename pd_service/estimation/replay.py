@@ -55,6 +55,7 @@ operands; tested).
 from __future__ import annotations
 
 import bisect
+import math
 from typing import Final, Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
@@ -100,6 +101,13 @@ class Packet(NamedTuple):
     offset: float = 0.0
 
 
+def off_grid(packets: list[Packet]) -> bool:
+    """Whether a step's packets (sorted by offset) include one sampled after the step's
+    start: then the step's posterior is handed on at the next step's start (see
+    :class:`Backend`)."""
+    return bool(packets) and packets[-1][3] > 0.0
+
+
 #: Read per call from C statics (Final), not looked up as ``bisect.<name>`` each time.
 _bisect_left: Final = bisect.bisect_left
 _insort: Final = bisect.insort
@@ -118,19 +126,8 @@ def _read_only(a: np.ndarray) -> None:
         a.setflags(write=False)
 
 
-def _as_offset(offset: object) -> float:
-    """A sample's offset inside its step (s): a finite float >= 0; ValueError otherwise."""
-    try:
-        off = float(offset)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"offset: expected seconds >= 0, got {offset!r}") from None
-    if not off >= 0.0 or off == float("inf"):
-        raise ValueError(f"offset: expected seconds >= 0, got {offset!r}")
-    return off
-
-
-def _by_sensor(p: Packet) -> int:
-    return p.sensor
+def _by_time(p: Packet) -> tuple[float, int]:
+    return p[3], p[0]
 
 
 # a plain class with Final attributes, not a frozen dataclass (whose __init__ sets each field
@@ -167,7 +164,13 @@ class Backend(Protocol[S]):
         ...
 
     def update(self, state: S, step: int, packets: list[Packet]) -> S:
-        """Condition x(step) on ``packets`` (sorted by sensor index, at least one)."""
+        """Condition x(step) on ``packets`` (at least one), sorted by (offset, sensor).
+
+        All offsets 0.0: the posterior of x(step). Otherwise (:func:`off_grid`) each packet
+        at its own time: propagate from the step's start to the first offset, update,
+        propagate to the next offset, ..., then the remainder to the next step's start: the
+        posterior of x(step + 1) given the packets stamped <= step (the replay hands the
+        next propagation on from step + 1)."""
         ...
 
     def moments(self, state: S) -> tuple[np.ndarray, np.ndarray]:
@@ -260,6 +263,11 @@ class ReplayEstimator(Generic[S]):
         self._now: int | None = None
         self._packets: dict[int, list[Packet]] = {}
         self._steps: list[int] = []  # measured steps >= c, sorted
+        # measured steps with a packet off the grid: their posterior is at the next step
+        self._offgrid: set[int] = set()
+        #: Step period in seconds where samples may lie inside a step (an offset must be
+        #: below it); 0.0 or None: on the grid only.
+        self.period_s: float | None = None
         self._chk: dict[int, S] = {}  # posterior at measured steps < dirty
         self._dirty: int | None = None  # earliest step whose posterior (mean) is stale
         self._noreuse: int | None = None  # from here on, stale posteriors are not reusable
@@ -311,8 +319,7 @@ class ReplayEstimator(Generic[S]):
         t = self._check_now(now)
         zv = as_vector(z, "z", m)
         Rm = None if R is None else as_covariance(R, "R", m)
-        off = _as_offset(offset)
-        return self._accept(idx, k, zv, Rm, t, off)
+        return self._accept(idx, k, zv, Rm, t, self._check_offset(offset))
 
     def add_checked_measurement(self, sensor: str, step: int, z: np.ndarray, now: int,
                                 offset: float = 0.0) -> bool:
@@ -320,11 +327,27 @@ class ReplayEstimator(Generic[S]):
         made its checks (the daemon's intake fast path): ``sensor`` one of
         :attr:`sensor_names`, ``step`` an int, ``z`` a fresh finite float64 array of the
         sensor's dimension that the estimator keeps (made read-only, not copied). Skips
-        the conversion and checks of z (``offset`` a float >= 0, seconds)."""
-        return self._accept(self._index[sensor], step, z, None, self._check_now(now), offset)
+        the conversion and checks of z (not those of the offset)."""
+        off = offset if offset == 0.0 else self._check_offset(offset)
+        return self._accept(self._index[sensor], step, z, None, self._check_now(now), off)
+
+    def _check_offset(self, offset: object) -> float:
+        """A sample's offset in seconds, checked (see :meth:`add_measurement`)."""
+        if isinstance(offset, bool) or not isinstance(offset, (int, float, np.floating)):
+            raise ValueError(f"offset: expected seconds (a number), got {offset!r}")
+        off = float(offset)
+        T = self.period_s
+        if not (math.isfinite(off) and off >= 0.0):
+            raise ValueError(f"offset: must be finite and >= 0 s, got {off!r}")
+        if off > 0.0 and not (T and off < T):
+            if not T:
+                raise ValueError(f"offset: {off!r} s, but this model has no value inside a "
+                                 "step (samples on the grid only)")
+            raise ValueError(f"offset: must be below the step period {T} s, got {off!r}")
+        return off
 
     def _accept(self, idx: int, k: int, zv: np.ndarray, Rm: np.ndarray | None, t: int,
-                offset: float = 0.0) -> bool:
+                offset: float) -> bool:
         """The window's verdict on a checked sample, and its storage (see add_measurement)."""
         if t != self._now:
             self._advance(t)
@@ -351,7 +374,9 @@ class ReplayEstimator(Generic[S]):
                 _insort(steps, k)
         else:
             bucket.append(pkt)
-            bucket.sort(key=_by_sensor)
+            bucket.sort(key=_by_time)
+        if offset > 0.0:
+            self._offgrid.add(k)
         # _invalidate(k), inlined: posteriors from k on are stale
         if self._dirty is None or k < self._dirty:
             self._dirty = k
@@ -381,7 +406,8 @@ class ReplayEstimator(Generic[S]):
         ref = self._now if self._now is not None else 0
         if not self._inputs.admit(step, u, self._c, ref + self._cmd_ahead, self._counters):
             return False
-        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        # u(step) first moves x(step + 1), or the step's own posterior if it is off the grid
+        self._invalidate(step if step in self._offgrid else step + 1)
         return True
 
     def predict(self, now: object) -> PredictedState:
@@ -395,9 +421,21 @@ class ReplayEstimator(Generic[S]):
         if self._cache is not None and self._cache[0] == t:
             return self._cache[1]
         self._replay(None)
-        step, state = self._newest()
         target = t + self.lead
+        step, state, newest = self._newest(target)
         advance = getattr(self._backend, "advance", None)
+        if self._steps and self._steps[-1] == target and target in self._offgrid:
+            # lead 0, and samples inside the target step: those at its very start count
+            head = [p for p in self._packets[target] if p[3] == 0.0]
+            if head:
+                m = target - step
+                if advance is not None:
+                    state = advance(state, m, self._inputs.slice(step, m), head, None)
+                else:
+                    if m:
+                        state = self._propagate(state, step, m)
+                    state = self._backend.update(state, target, head)
+                step, newest = target, target
         if advance is not None:
             m = target - step
             state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred)
@@ -409,7 +447,7 @@ class ReplayEstimator(Generic[S]):
             if target > step:
                 state = self._propagate(state, step, target - step)
             x, P = self._backend.moments(state)
-        pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
+        pred = PredictedState(target, x, P, newest)
         self._cache = (t, pred)
         return pred
 
@@ -471,7 +509,7 @@ class ReplayEstimator(Generic[S]):
             zv.setflags(write=False)
             bucket.append(Packet(idx, zv, Rm))
         for bucket in packets.values():
-            bucket.sort(key=lambda p: p.sensor)
+            bucket.sort(key=_by_time)
         inputs = InputBuffer(self._nu, self._inputs.capacity, self._inputs.hold)
         try:
             u0 = as_vector(st.u_origin, "u_origin", self._nu)
@@ -486,6 +524,7 @@ class ReplayEstimator(Generic[S]):
         self._base, self._base_step, self._c, self._now = base, b, c, st.now
         self._packets = packets
         self._steps = sorted(packets)
+        self._offgrid = {s for s, bucket in packets.items() if off_grid(bucket)}
         self._chk = {}
         self._dirty = self._noreuse = c if self._steps else None
         self._pred = None
@@ -539,12 +578,23 @@ class ReplayEstimator(Generic[S]):
     def _propagate(self, state: S, step: int, m: int) -> S:
         return self._backend.propagate(state, step, m, self._inputs.slice(step, m))
 
-    def _newest(self) -> tuple[int, S]:
-        """Newest clean posterior (step, state), or the base."""
-        if self._steps:
-            s = self._steps[-1]
-            return s, self._chk[s]
-        return self._base_step, self._base
+    def _end(self, s: int) -> int:
+        """The step at which measured step s's posterior is: s, or s + 1 off the grid."""
+        return s + 1 if s in self._offgrid else s
+
+    def _newest(self, target: int) -> tuple[int, S, int | None]:
+        """Newest clean posterior at a step <= ``target`` (step, state, its newest sample
+        step), or the base. (Only the newest measured step's can lie past the target: a
+        sample inside the target step itself, with lead 0: it acts once the output passes
+        it.)"""
+        steps = self._steps
+        for i in (len(steps) - 1, len(steps) - 2):
+            if i >= 0:
+                s = steps[i]
+                e = s + 1 if s in self._offgrid else s
+                if e <= target:
+                    return e, self._chk[s], s
+        return self._base_step, self._base, self._newest_committed
 
     def _replay(self, limit: int | None) -> None:
         """Recompute the posteriors of measured steps in [dirty, limit).
@@ -557,9 +607,12 @@ class ReplayEstimator(Generic[S]):
         i = _bisect_left(steps, dirty)
         j = len(steps) if limit is None else _bisect_left(steps, limit)
         chk = self._chk
+        offgrid = self._offgrid
         if i > 0:
             a = steps[i - 1]
             state = chk[a]
+            if a in offgrid:
+                a += 1
         else:
             a, state = self._base_step, self._base
         backend = self._backend
@@ -569,24 +622,25 @@ class ReplayEstimator(Generic[S]):
             noreuse = self._noreuse
             todo = steps[i:j]
             if todo:
-                buf, off = self._inputs.window(a, todo[-1])
+                buf, off = self._inputs.window(a, todo[-1] + 1)
                 run = getattr(backend, "advance_run", None)
-                if run is not None:  # the loop below in one C call, as far as it goes
+                if run is not None and not offgrid:  # the loop below in one C call
                     state, a, done = run(state, a, todo, buf, off, packets, chk, noreuse)
                     if done:
                         todo = todo[done:]
                 for s in todo:
                     old = chk.get(s) if noreuse is None or s < noreuse else None
-                    state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
+                    e = s + 1 if s in offgrid else s
+                    state = advance(state, s - a, buf[a - off : e - off], packets[s], old)
                     chk[s] = state
-                    a = s
+                    a = e
         else:
             for s in steps[i:j]:
                 if s > a:
                     state = self._propagate(state, a, s - a)
                 state = backend.update(state, s, packets[s])
                 chk[s] = state
-                a = s
+                a = s + 1 if s in offgrid else s
         if limit is None or j == len(steps):
             self._dirty = self._noreuse = None
         else:
@@ -609,10 +663,13 @@ class ReplayEstimator(Generic[S]):
             final = steps[:k]
             chk, packets = self._chk, self._packets
             committed = ([(s, chk[s], packets[s]) for s in final] if self._hooked else None)
-            self._base_step, self._base = final[-1], chk[final[-1]]
-            self._newest_committed = final[-1]
+            last = final[-1]
+            self._base_step, self._base = self._end(last), chk[last]
+            self._newest_committed = last
+            offgrid = self._offgrid
             for s in final:
                 del chk[s], packets[s]
+                offgrid.discard(s)
             del steps[:k]
             if committed is not None:
                 self._on_commit(committed)
