@@ -223,3 +223,26 @@ def test_segments_split_a_step_in_time_order():
     start, inside = split_packets([Packet(1, np.zeros(1), None, 0.02),
                                    Packet(0, np.zeros(1), None, 0.0)], True)
     assert [p.sensor for p in start] == [0] and [p.sensor for p in inside] == [1]
+
+
+def test_a_command_taking_effect_inside_a_step_switches_the_input_there():
+    """Where the core reports a command's cut inside a step with inner samples (inputs_at),
+    the step runs on the input before it until the cut, then on u(k)."""
+    model = make_model("unicycle", period_s=T)
+    op = UnscentedObserverPredictor(model, np.zeros(5), 0.01 * np.eye(5), lead=1, max_delay=3,
+                                    sensors=["imu", "pose"])
+    backend = op._backend
+    u_new, u_old = np.array([1.0, 0.3]), np.array([0.2, -0.1])
+    backend.inputs_at = lambda k: (u_new, (0.02, u_old))
+    st = UKFState(np.zeros(5), 0.01 * np.eye(5))
+    pk = [Packet(0, np.array([0.1]), None, 0.01), Packet(1, np.array([0.0, 0.0, 0.0]), None, 0.035)]
+    got = backend.update(st, 4, pk)
+    ops, w = ModelOps(model, ["imu", "pose"]), SigmaWeights.make(5)
+    ref = time_step(ops, w, model.Q * 0.2, st, u_old, 4, tau=0.01)
+    ref = measurement_update(ops, w, ref, 4, pk[:1])[0]
+    ref = time_step(ops, w, model.Q * 0.2, ref, u_old, 4, tau=0.01)   # up to the cut at 20 ms
+    ref = time_step(ops, w, model.Q * 0.3, ref, u_new, 4, tau=0.015)  # the new command
+    ref = measurement_update(ops, w, ref, 4, pk[1:])[0]
+    ref = time_step(ops, w, model.Q * 0.3, ref, u_new, 4, tau=0.015)
+    np.testing.assert_allclose(got.x, ref.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.P, ref.P, rtol=0, atol=1e-12)
