@@ -5,6 +5,7 @@
     pd-robot-sim --scenario maneuver --session rover --time-scale 2 --steps 600
     pd-robot-sim --scenario omni --session omni --create-session   # adaptive UKF session
     pd-robot-sim --scenario diffdrive --session bot --create-session --ros2   # a ROS 2 robot
+    pd-robot-sim --scenario async --session bot --create-session   # sensors off the grid
 
 Every step k (wall time ``epoch_ns + k * period_ns``; the period is the scenario's divided by
 ``--time-scale``) it moves the true state with the command in force for step k - 1, then
@@ -16,6 +17,13 @@ protocol.md §3; the link emulator carries them to the service; ``--direct`` pub
 apply step, holding the last one; a command that arrives after its apply step applies on
 arrival. The transition k-1 -> k is computed at the start of step k, so a command has up to
 one period of slack after its apply step begins.
+
+``--scenario async``: the sensors sample off the step grid, each at its own rate, phase and
+jitter, and the truth moves in continuous time (:class:`pd_service.scenarios.AsyncSim`). At
+step k the robot moves x(k-1) -> x(k) with u(k-1) through the samples taken in between, and
+publishes each sample stamped with the time it was taken (``t_ns`` at full resolution,
+``epoch_ns`` + its model time scaled by ``--time-scale``) at the first step at or after that
+time plus the sensor's own delay (the pose fix's 300 ms); the truth x(k) as above.
 
 ``--ros2`` (one session, whose spec has ROS 2 bindings, e.g. ``--scenario diffdrive``): the
 robot is a ROS 2 node ``robot_sim`` in rmw_zenoh's format instead. Each bound sensor's sample
@@ -48,7 +56,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pd_service.backends import command_dim
-from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
+from pd_service.scenarios import (
+    NOISE_SETTINGS,
+    SCENARIOS,
+    AsyncSim,
+    Scenario,
+    ScenarioSim,
+    TimedSample,
+    get_scenario,
+)
 from pd_service.transport import Transport
 from pd_service.wire import Command, SessionSpec, WireError
 
@@ -121,6 +137,9 @@ class RobotSim:
                                  f"in scenario {scenario.name!r}")
         self.scenario = scenario
         self.sim = ScenarioSim(scenario, seed)
+        # sensors off the grid: the continuous-time simulation, samples held until they arrive
+        self.async_sim = AsyncSim(scenario, seed) if scenario.timing is not None else None
+        self._held: list[TimedSample] = []
         self.schedule = CommandSchedule(scenario.nu)
         self.sessions: list[SimSession] = []
         try:
@@ -171,6 +190,8 @@ class RobotSim:
         """Run step k: move x(k-1) -> x(k) with u(k-1), then publish truth and samples of
         x(k). Returns x(k) (the simulated state; the published truth has the scenario's
         angles wrapped to [-pi, pi)). Steps must increase by one after the first call."""
+        if self.async_sim is not None:
+            return self._tick_async(k)
         if not self._started:
             self._started = True
             self.sim.k = k  # the first step (0, or later when joining a running session)
@@ -194,6 +215,36 @@ class RobotSim:
                     s.robot.publish(d.sensor, d.z, step=k)
                 self.samples_published += 1
         return x
+
+    def _tick_async(self, k: int) -> np.ndarray:
+        """:meth:`tick` of a scenario with sensors off the grid (see the module docstring)."""
+        sim = self.async_sim
+        assert sim is not None
+        if not self._started:
+            self._started = True
+            sim.start_at(k)
+        else:
+            if k != sim.k + 1:
+                raise ValueError(f"tick: expected step {sim.k + 1}, got {k}")
+            self.last_u = self.schedule.u_at(k - 1)
+            self._held.extend(sim.step(self.last_u))
+        T = self.scenario.period_s
+        due = [d for d in self._held if d.arrival_s <= k * T + 1e-12]
+        self._held = [d for d in self._held if d.arrival_s > k * T + 1e-12]
+        truth = self.scenario.truth_view(sim.x)
+        for s in self.sessions:
+            s.robot.publish_truth(k, truth, names=self.scenario.state_names,
+                                  angles=self.scenario.angles)
+            for d in due:
+                if d.sensor not in s.sensors:
+                    continue
+                t_ns = s.spec.epoch_ns + round(d.t_s / T * s.spec.period_ns)
+                if self.ros is not None and self.ros.binds(d.sensor):
+                    self.ros.publish(d.sensor, d.z, stamp_ns=t_ns)
+                else:
+                    s.robot.publish(d.sensor, d.z, t_ns=t_ns)
+                self.samples_published += 1
+        return sim.x
 
     def close(self) -> None:
         ros = getattr(self, "ros", None)
