@@ -115,6 +115,23 @@ class Intake:
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
         self.r = nu
         self.decoded = False
+        #: The estimator's seconds per session second for an offset inside a step: 1.0 where
+        #: its period is the session's (a continuous linear model); the model's own step
+        #: over the session's where a nonlinear model runs on its own period (a fraction of
+        #: the step is what carries over); 0.0: no value inside a step (a model without
+        #: flow: every offset dropped, the stamp floored).
+        T = getattr(est, "period_s", None)
+        spec_s = spec.period_ns / 1e9
+        self.off_scale = (1.0 if T is None or T == spec_s
+                          else 0.0 if T == 0.0 or not spec.continuous_time
+                          else T / spec_s)
+
+    def _scaled(self, off: float) -> float:
+        """An offset in session seconds as the estimator's seconds (``off_scale``), kept
+        below its period where rounding would reach it."""
+        T = getattr(self.est, "period_s", None)
+        out = off * self.off_scale
+        return math.nextafter(T, 0.0) if T and out >= T else out
 
     def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Measurement received on ``key``; None if accepted."""
@@ -161,6 +178,8 @@ class Intake:
                            f"the session starts at its epoch (now step {now_step})", seq)
         if s > now_step and t_in is not None and self.spec.step_of(t_in) <= now_step:
             s = now_step  # rounded to the nearest step, past the current one: this one
+        if off != 0.0 and self.off_scale != 1.0:
+            off = self._scaled(off)
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
@@ -218,6 +237,8 @@ class Intake:
                 return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
                                f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         self.decoded = True
+        if off != 0.0 and self.off_scale != 1.0:
+            off = self._scaled(off)
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):

@@ -55,3 +55,29 @@ def test_a_discrete_spec_rounds_to_the_nearest_step_but_never_past_the_current_o
     future = EPOCH + (k + 1) * PERIOD_NS + 1
     refusal = intake.measurement(key, encode(measurement(step=None, t_ns=future, seq=9)), k)
     assert refusal is not None and refusal.reason == "future"
+
+
+def test_a_nonlinear_model_on_its_own_period_gets_the_same_fraction_of_its_step() -> None:
+    """A session run at another pace than its model (pd-robot-sim --time-scale): an offset
+    is the same fraction of the model's step, not the same number of seconds."""
+    from pd_service.scenarios import get_scenario
+
+    scen = get_scenario("async")
+    spec = scen.spec("s1", EPOCH, time_scale=2.0)  # steps of 25 ms, the model's of 50 ms
+    built = build(spec)
+    intake = Intake(spec, built.est, built.nu)
+    model_s = built.est.period_s  # type: ignore[attr-defined]
+    assert model_s == 2 * spec.period_ns / 1e9
+    sensor = spec.sensors[0].name
+    k = 20
+    z = np.zeros(spec.sensors[0].m)
+    from pd_service.wire import Measurement
+
+    for i, frac in enumerate((0.25, 0.999999)):
+        t = EPOCH + k * spec.period_ns + round(frac * spec.period_ns)
+        msg = Measurement(session="s1", sensor=sensor, seq=i, t_ns=t, z=z)
+        key = f"pd/p0/s1/sensor/{sensor}"
+        assert intake.measurement(key, encode(msg), k) is None
+    offsets = [p.offset for p in built.est._packets[k]]  # type: ignore[attr-defined]
+    assert offsets[0] == 0.25 * model_s
+    assert 0.999 * model_s < offsets[1] < model_s
