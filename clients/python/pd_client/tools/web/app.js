@@ -29,10 +29,12 @@ function onEvent(ev) {
   stats.lastI = ev.i;
   stats.lags.push(lag); if (stats.lags.length > 4000) stats.lags.splice(0, 2000);
   if (lag > stats.maxLag) stats.maxLag = lag;
+  const fresh = !S.has(ev.s);
   const s = session(ev.s);
   s.ev.push(ev); if (s.ev.length > KEEP) s.ev.shift();
   s.last = ev; s.recv++; s.lastRecv = now;
   if (selected === null) { selected = ev.s; }
+  if (fresh) { syncPicker([]); dirty = true; }  // listed at once, not at the next tick
   if (ev.s === selected) dirty = true;
 }
 
