@@ -27,13 +27,35 @@ class _Handle:
             pass
 
 
-class _Drain:
-    """A drained subscription on the bus: delivery is synchronous, nothing ever waits."""
+class _DrainMember:
+    """One subscription of a :class:`_DrainGroup`; ``callback`` may be replaced."""
 
-    pending = False
+    def __init__(self, callback: Callable[[Sample], None]) -> None:
+        self.callback = callback
+        self.handle: _Handle | None = None
 
-    def __init__(self, handle: _Handle) -> None:
-        self._handle = handle
+    def deliver(self, s: Sample) -> None:  # encoding and attachment dropped, as on Zenoh
+        self.callback(s if s.encoding is None and s.attachment is None
+                      else s._replace(encoding=None, attachment=None))
+
+    def close(self) -> None:
+        if self.handle is not None:
+            self.handle.close()
+
+
+class _DrainGroup:
+    """Drained subscriptions on the bus: delivery is synchronous, nothing ever waits."""
+
+    def __init__(self, transport: InMemoryTransport) -> None:
+        self._t = transport
+        self._members: list[_DrainMember] = []
+
+    def add(self, keyexpr: str, callback: Callable[[Sample], None]) -> _DrainMember:
+        """Samples reach ``callback`` at once (as with :meth:`InMemoryTransport.subscribe`)."""
+        m = _DrainMember(callback)
+        m.handle = self._t.subscribe(keyexpr, m.deliver)
+        self._members.append(m)
+        return m
 
     def drain(self, limit: int) -> int:
         return 0
@@ -42,7 +64,9 @@ class _Drain:
         pass
 
     def close(self) -> None:
-        self._handle.close()
+        for m in self._members:
+            m.close()
+        self._members.clear()
 
 
 @dataclass
@@ -160,15 +184,8 @@ class InMemoryTransport(HandleOwner):
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         return self._register(self.bus.subs, (keyexpr, callback))
 
-    def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
-                          wake: Callable[[], None]) -> _Drain:
-        """In memory, samples reach ``callback`` at once (as with :meth:`subscribe`): the
-        drain never holds anything. Encoding and attachment are dropped, as on Zenoh."""
-        def bare(s: Sample) -> None:
-            callback(s if s.encoding is None and s.attachment is None
-                     else s._replace(encoding=None, attachment=None))
-
-        return _Drain(self.subscribe(keyexpr, bare))
+    def drain_group(self, wake: Callable[[], None]) -> _DrainGroup:
+        return _DrainGroup(self)
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
                   max_samples: int, timeout: float = 2.0) -> _Handle:

@@ -119,63 +119,72 @@ def test_zenoh_transport_loopback() -> None:
 
 
 @pytest.mark.integration
-def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> None:
-    """Samples reach the callback in order, whether the watcher hands one over (owner idle,
+def test_zenoh_drain_group_keeps_order_and_closes_while_waiting() -> None:
+    """Samples reach their callback in order, whether the watcher hands one over (owner idle,
     armed) or the owner drains them in batches; nothing is lost; an owner that does not arm
-    gets no hand-over; close() returns while the watcher is blocked in recv."""
+    gets no hand-over; a member closed hands what it holds over first; close() returns
+    while the watcher polls; one watcher thread however many members."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     with ZenohTransport(zenoh_config(listen=[ep])) as t1, \
             ZenohTransport(zenoh_config(mode="client", connect=[ep])) as t2:
         got: list[bytes] = []
         woke = threading.Event()
-        d = t1.subscribe_drained("pd/*/*/sensor/*", lambda s: got.append(s.payload), woke.set)
-        assert d.pending and d.drain(10) == 0  # parked at first: the owner looks once
-        assert d.pending  # not armed: the owner keeps taking the samples itself
+        before = sum(th.name == "drain watcher" for th in threading.enumerate())
+        g = t1.drain_group(woke.set)
+        m = g.add("pd/*/*/sensor/*", lambda s: got.append(s.payload))
+        others = [g.add(f"pd/p{k}/*/sensor/*", lambda s: None) for k in range(16)]
+        assert sum(th.name == "drain watcher" for th in threading.enumerate()) == before + 1
+        assert g.drain(10) == 0  # parked at first: the owner looks once
         t1.declare_token("pd/@service/a")
         for _ in range(100):  # t2 sees t1's declarations (an event, not a sleep)
             if t2.get_liveliness("pd/@service/*", timeout=0.2):
                 break
         t2.put("pd/p2/s/sensor/-1", b"-1")
         for _ in range(500):  # not armed: nobody hands it over, it waits for the owner
-            if d.drain(10):
+            if got:
                 break
+            g.drain(10)
             assert not woke.wait(0.01)
         assert got == [b"-1"]
         got.clear()
         # the drain builds its Sample as a plain tuple: every field, defaults included
         whole: list[Sample] = []
-        d2 = t1.subscribe_drained("pd/*/*/cmd", whole.append, lambda: None)
+        m2 = g.add("pd/*/*/cmd", whole.append)
         t2.put("pd/p2/s/cmd", b"c")
         for _ in range(500):
-            if d2.drain(10):
+            if g.drain(10) and whole:
                 break
             time.sleep(0.01)
         (s,) = whole
         assert type(s) is Sample and len(s) == len(Sample._fields)
         assert s._replace(recv_ns=0, recv_mono_ns=0) == Sample("pd/p2/s/cmd", b"c", "put", 0, 0)
-        d2.close()
-        d.arm()
-        assert not d.pending  # armed: the watcher waits in recv from now on
+        seen = threading.Event()  # a plain subscriber: once it has the sample, so has m2
+        t1.subscribe("pd/*/*/cmd", lambda s: seen.set() if s.payload == b"held" else None)
+        t2.put("pd/p2/s/cmd", b"held")
+        assert seen.wait(5.0)
+        m2.close()  # closing a member hands over what its queue holds
+        assert whole[1].payload == b"held"
+        for o in others[8:]:
+            o.close()
+        g.arm()
         t2.put("pd/p2/s/sensor/x", b"0")
         assert woke.wait(5.0)  # the watcher handed the first one over
-        assert got == [b"0"] and d.pending
+        assert got == [b"0"]
         for i in range(1, 2001):
             t2.put("pd/p2/s/sensor/x", str(i).encode())
         for _ in range(10_000):  # bounded: a broken drain fails instead of hanging
             if len(got) == 2001:
                 break
-            if d.pending:
-                if not d.drain(64):  # small batches; empty: the watcher takes a turn
-                    d.arm()
-            else:
-                woke.wait(0.05)
+            if not g.drain(64):  # small batches; empty: the watcher takes a turn
                 woke.clear()
+                g.arm()
+                woke.wait(0.05)
         assert got == [str(i).encode() for i in range(2001)]
-        assert d.pending and d.drain(64) == 0
-        d.arm()
-        assert not d.pending  # armed, the queue empty: the watcher waits in recv
-        d.close()  # undeclares while the watcher waits: it must return, not hang
-        assert not d.pending or d.drain(10) == 0
+        assert g.drain(64) == 0
+        g.arm()
+        g.close()  # while the watcher polls: it must return, not hang
+        assert g.drain(10) == 0
+        assert m is not None
 
 
 # ---------------------------------------------------------------- sender caches ----------
