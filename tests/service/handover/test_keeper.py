@@ -1,7 +1,8 @@
 """Restart from a checkpoint and takeover from a replica, on the in-memory bus: the resumed
 session's predictions equal an offline estimator that saw what the checkpoint / replica held
-plus what the new instance accepted; stale, corrupt, other-spec and other-version states are
-refused (counted, reported) and the session starts from its prior."""
+plus what the new instance accepted (a stale one propagated forward); future, corrupt,
+other-spec and other-version states are refused (counted, reported) and the session starts
+from its prior."""
 
 from __future__ import annotations
 
@@ -83,7 +84,10 @@ def two_instances(bus, clock, tmp_path, cli, sessions: int = 12, peers=PAIR, **k
     settle(a, b)
     return a, b, names
 
-def test_restart_resumes_from_the_checkpoint_exactly(tmp_path):
+@pytest.mark.parametrize("gap", [3, 40])
+def test_restart_resumes_from_the_checkpoint_exactly(tmp_path, gap):
+    """Restarted ``gap`` steps after the crash: within the window (3) or long after it (40
+    steps, more than 3 windows): the stale checkpoint is propagated forward, not dropped."""
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
     a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
@@ -95,17 +99,21 @@ def test_restart_resumes_from_the_checkpoint_exactly(tmp_path):
     assert a.counters["checkpoints"] >= 5 and d.snap is not None
     a.t.close()  # a crash: nothing flushed, nothing said
     ref = d.snap  # what the newest checkpoint held; the steps after it are lost
+    clock.t = int((40 + gap) * PERIOD_NS)  # the restart
     b = make_core(bus, clock, tmp_path)
     d.off = ref
-    for k in range(43, 70):  # restarted 3 steps later, within one window (max_delay 12)
+    for k in range(40 + gap, 70 + gap):  # max_delay is 12 steps
         d.step([b], k)
         d.check(k, ref)
     st = status(cli, "s1")
     assert st.origin == "checkpoint" and st.origin_step is not None and 30 <= st.origin_step < 40
     assert b.counters["resumed_from_checkpoint"] == 1
+    assert b.counters["resumed_stale"] == (gap > d.spec.max_delay)
+    assert b.counters["restore_refused"] == 0
     # the run from the prior would be far off: P(p2) back near the prior's 100
     fresh = build(d.spec).est
-    assert float(col.predictions["s1"][-1].P[1, 1]) < 0.1 * float(fresh.predict(43).P[1, 1])
+    assert float(col.predictions["s1"][-1].P[1, 1]) < 0.1 * float(
+        fresh.predict(40 + gap).P[1, 1])
 
 
 def _checkpointed(tmp_path, steps=20):
@@ -127,7 +135,7 @@ def _tamper(store, **update):
 
 
 @pytest.mark.parametrize("how, reason", [
-    ("stale", "stale"),
+    ("future", "future"),
     ("corrupt", "corrupt"),
     ("spec", "spec"),
     ("version", "version"),
@@ -140,8 +148,8 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     data = store.load_state("s1")
     assert data is not None
     restart_step = 19
-    if how == "stale":
-        restart_step = 19 + d.spec.max_delay + 2
+    if how == "future":
+        _tamper(store, now_step=restart_step + 5)
     elif how == "corrupt":
         store.save_state("s1", data[:-7])
     elif how == "spec":
@@ -166,7 +174,10 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     np.testing.assert_allclose(col.predictions["s1"][-1].P, prior.P, rtol=1e-9)
 
 
-def test_takeover_resumes_from_the_replica_exactly(tmp_path):
+@pytest.mark.parametrize("gap", [1, 30])
+def test_takeover_resumes_from_the_replica_exactly(tmp_path, gap):
+    """Taken over ``gap`` steps after the owner died: a replica older than the window (30
+    steps, max_delay 12) is propagated forward, exact to its reference as well."""
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
     a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
@@ -180,16 +191,18 @@ def test_takeover_resumes_from_the_replica_exactly(tmp_path):
     held = decode(b.keeper.replicas[s][1], SessionState)
     assert held.session == s and held.instance == "inst-a"
     a.t.close()  # a dies; b learns it through liveliness (the bus drops a's token)
+    clock.t = int((40 + gap) * PERIOD_NS)
     b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
     b.run_once()  # takes the session over (inputs sent before that reach nobody)
     ref = d.snap
     d.off = ref
-    for k in range(41, 60):
+    for k in range(40 + gap, 60 + gap):
         d.step([b], k)
         d.check(k, ref)
     st = status(cli, s)
     assert st.instance == "inst-b" and st.origin == "replica"
     assert b.counters["resumed_from_replica"] >= 1
+    assert b.counters["resumed_stale"] == (gap > d.spec.max_delay)
 
 
 def test_a_replica_for_another_spec_is_refused(tmp_path):
