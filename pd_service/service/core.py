@@ -144,6 +144,8 @@ class ServiceCore:
         peers = [p for p in peers if p != self.instance]
         peers = self.lifecycle.trusted_peers(peers)
         specs, origin = self.lifecycle.load_specs(peers)
+        if self.store is not None and self.store.states_damaged() is not None:
+            self.counters["checkpoint_log_damaged"] += 1
         now = self.now_ns()
         with self.lock:
             self.lifecycle.install_loaded(specs, origin, now)

@@ -73,6 +73,13 @@ MAX_REPLICAS = 100_000
 _HANDOVER_RETRY_S = 0.02
 
 
+def checkpoint_key(instance: str, session: str) -> str:
+    """``pd/@service/<instance>/checkpoint/<session>``: names ``instance``'s checkpoint of
+    ``session`` in an ErrorReport's ``key`` (a key expression; nothing is put on it)."""
+    return f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/{check_name(instance, 'instance')}" \
+           f"/checkpoint/{check_name(session, 'session')}"
+
+
 def replica_key(instance: str, session: str) -> str:
     """``pd/@service/<instance>/replica/<session>``: state of ``session`` for ``instance``."""
     return f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/{check_name(instance, 'instance')}" \
@@ -402,6 +409,12 @@ class HandoverKeeper:
         the session stays at its prior."""
         if source == "checkpoint":
             data = self.store.load_state(sess.name) if self.store is not None else None
+            if data is None and self.store is not None:
+                damaged = self.store.states_damaged()
+                if damaged is not None:  # its checkpoint may have been in the part dropped
+                    self._refused(sess, source, Refused(
+                        "damaged", f"no checkpoint in the log, which was damaged ({damaged})"),
+                        now)
         else:
             with self._lock:
                 held = self.replicas.pop(sess.name, None)
@@ -432,6 +445,9 @@ class HandoverKeeper:
         text = f"{source} not resumed ({why.reason}): {why.text}; started from the prior"
         event(log, "restore_refused", logging.WARNING, session=sess.name, source=source,
               reason=why.reason, detail=why.text)
-        self.pub.refuse(sess, f"{source}/{sess.name}", Refusal("restore_refused", text), now,
+        own = self.settings.instance
+        key = (checkpoint_key(own, sess.name) if source == "checkpoint"
+               else replica_key(own, sess.name))
+        self.pub.refuse(sess, key, Refusal("restore_refused", text), now,
                         counted=("restore_refused",))
 

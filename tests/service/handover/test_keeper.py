@@ -15,9 +15,11 @@ import pytest
 
 from pd_service.backends import build
 from pd_service.service import ServiceCore, Settings, SpecStore
-from pd_service.service.handover.keeper import replica_key
+from pd_service.service.handover.checkpoint_log import LOG_NAME, MAGIC
+from pd_service.service.handover.keeper import checkpoint_key, replica_key
 from pd_service.service.session import READ_BACK_COPIES
 from pd_service.transport import InMemoryBus, Sample
+from pd_service.transport.keyexpr import check_keyexpr
 from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
 
 from ..helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
@@ -166,12 +168,30 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     assert st.origin == "prior" and st.origin_step is None
     assert st.counters.get("restore_refused") == 1
     b.run_once()  # the ErrorReport leaves with the first flush
-    assert any(f"({reason})" in e.reason for e in col.errors["s1"])
+    (rep,) = [e for e in col.errors["s1"] if f"({reason})" in e.reason]
+    assert rep.key == checkpoint_key(b.instance, "s1") == f"pd/@service/{b.instance}/checkpoint/s1"
+    check_keyexpr(rep.key)
     clock.t = int((restart_step + 0.6) * PERIOD_NS)
     b.run_once()  # the tick: a prediction from the prior
     prior = build(d.spec).est.predict(restart_step)
     assert col.predictions["s1"][-1].step == prior.step
     np.testing.assert_allclose(col.predictions["s1"][-1].P, prior.P, rtol=1e-9)
+
+
+def test_a_damaged_checkpoint_log_is_counted_and_reported(tmp_path):
+    bus, clock, col, cli, d = _checkpointed(tmp_path)
+    path = tmp_path / "a" / LOG_NAME
+    buf = bytearray(path.read_bytes())
+    buf[len(MAGIC) + 12] ^= 0xFF  # inside the first record: its CRC fails, nothing read
+    path.write_bytes(bytes(buf))
+    clock.t = int(19.1 * PERIOD_NS)
+    b = make_core(bus, clock, tmp_path)
+    assert b.counters["checkpoint_log_damaged"] == 1
+    assert b.counters["restore_refused_damaged"] == 1 and b.counters["restore_refused"] == 1
+    b.run_once()
+    (rep,) = [e for e in col.errors["s1"] if "(damaged)" in e.reason]
+    assert "fails its CRC" in rep.reason and rep.key == checkpoint_key(b.instance, "s1")
+    assert status(cli, "s1").origin == "prior"
 
 
 @pytest.mark.parametrize("gap", [1, 30])
