@@ -164,7 +164,8 @@ class ServiceCore:
                 for ke, cb in ((sensors, d.on_read_back_sensor),
                                (commands, d.on_read_back_command)):
                     self._handles.append(t.read_back(ke, cb, max_samples=s.recover_samples,
-                                                     timeout=s.recover_timeout_s))
+                                                     timeout=s.recover_timeout_s,
+                                                     answered=d.on_cache_answered))
         while self._drain():  # the live messages that arrived meanwhile, first
             pass
         with self.lock:
@@ -305,6 +306,8 @@ class ServiceCore:
                     handled += d.process_released(now, touched)
                 if d.read_back:
                     handled += d.process_read_back(now, touched)
+                if self.lifecycle.holding:
+                    self.lifecycle.release_holds(now, touched)
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
                     served += touched

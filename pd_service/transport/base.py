@@ -134,7 +134,8 @@ class Transport(Protocol):
         ...
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                  max_samples: int, timeout: float = 2.0) -> Handle:
+                  max_samples: int, timeout: float = 2.0,
+                  answered: Callable[[str], None] | None = None) -> Handle:
         """Read back what cached publishers (``publisher(key, cache=N)``) on keys matching
         ``keyexpr`` hold: at most ``max_samples`` of each, oldest first, as samples with
         ``recovered`` True. The caches present now are read before this returns (each
@@ -143,7 +144,9 @@ class Transport(Protocol):
         too, its samples given to ``callback`` on a transport thread. Each cache is read
         once each time it appears, also when it appears while this call runs. A recovered sample
         may repeat one received live: the receiver must tell (the daemon refuses it as a
-        duplicate, counted apart from live refusals)."""
+        duplicate, counted apart from live refusals). ``answered``, if given, is called with
+        a cache's publisher key (``keyexpr``'s match, e.g. ``pd/p3/s/sensor/cam``) once the
+        read of that cache has ended, after its samples were given to ``callback``."""
         ...
 
     def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...

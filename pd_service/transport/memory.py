@@ -131,7 +131,8 @@ class InMemoryBus:
         self.live_subs: list[tuple[str, Callable[[str, bool], None]]] = []
         #: open publishers with a cache, and who reads the caches of new ones (read_back)
         self.cached: list[_Publisher] = []
-        self.recoverers: list[tuple[str, Callable[[Sample], None], int]] = []
+        self.recoverers: list[tuple[str, Callable[[Sample], None], int,
+                                    Callable[[str], None] | None]] = []
         self.transports = 0  # how many transports were made on this bus (their session ids)
 
     def transport(self) -> InMemoryTransport:
@@ -165,11 +166,14 @@ class InMemoryTransport(HandleOwner):
         pub = _Publisher(self, key, deque(maxlen=cache))
         with self.bus.lock:
             self.bus.cached.append(pub)
-            watchers = [(cb, n) for ke, cb, n in self.bus.recoverers if intersects(ke, key)]
+            watchers = [(cb, n, done) for ke, cb, n, done in self.bus.recoverers
+                        if intersects(ke, key)]
         self._handles.append(pub)
-        for cb, n in watchers:  # a new cached publisher: its (empty) cache is read
+        for cb, n, done in watchers:  # a new cached publisher: its (empty) cache is read
             for s in _recovered(pub, n):
                 cb(s)
+            if done is not None:
+                done(key)
         return pub
 
     def _deliver(self, key: str, payload: bytes, kind: Literal["put", "delete"],
@@ -188,15 +192,19 @@ class InMemoryTransport(HandleOwner):
         return _DrainGroup(self)
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                  max_samples: int, timeout: float = 2.0) -> _Handle:
+                  max_samples: int, timeout: float = 2.0,
+                  answered: Callable[[str], None] | None = None) -> _Handle:
         """The caches of the open cached publishers matching ``keyexpr`` (last
         ``max_samples`` of each, oldest first), at once; later ones when declared."""
         with self.bus.lock:
-            h = self._register(self.bus.recoverers, (keyexpr, callback, max_samples))
+            h = self._register(self.bus.recoverers, (keyexpr, callback, max_samples, answered))
             pubs = [p for p in self.bus.cached if intersects(keyexpr, p.key)]
-            held = [s for p in pubs for s in _recovered(p, max_samples)]
-        for s in held:
-            callback(s)
+            held = [(p.key, _recovered(p, max_samples)) for p in pubs]
+        for key, samples in held:
+            for s in samples:
+                callback(s)
+            if answered is not None:
+                answered(key)
         return h
 
     # queries

@@ -357,7 +357,8 @@ class ZenohTransport(HandleOwner):
         return g
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                  max_samples: int, timeout: float = 2.0) -> _Handle:
+                  max_samples: int, timeout: float = 2.0,
+                  answered: Callable[[str], None] | None = None) -> _Handle:
         # zenoh-ext 1.10's layout: a cached publisher on K answers queries and holds its
         # liveliness token on K/@adv/pub/<zid>/<eid>/<meta> (the queryable's key too); "_max=N"
         # asks for its last N samples (tests/transport pins this against a real advanced
@@ -379,7 +380,14 @@ class ZenohTransport(HandleOwner):
             except Exception:
                 log.exception("recovery callback failed for %s", keyexpr)
 
-        def query(selector: str, handler: Callable[[zenoh.Reply], None]) -> None:
+        def ended(token_key: str) -> None:  # a cache's query ended: its publisher's key
+            if answered is not None:
+                try:
+                    answered(token_key.split("/@adv/", 1)[0])
+                except Exception:
+                    log.exception("recovery callback failed for %s", keyexpr)
+
+        def query(selector: str, handler: zenoh.handlers.Callback) -> None:
             self.session.get(
                 f"{selector}?_max={max_samples}", handler, target=zenoh.QueryTarget.ALL,
                 consolidation=zenoh.ConsolidationMode.NONE,
@@ -404,8 +412,8 @@ class ZenohTransport(HandleOwner):
                 return
             if not first_read(key):
                 return
-            try:
-                query(key, on_reply)  # callback form: returns at once
+            try:  # callback form: returns at once
+                query(key, zenoh.handlers.Callback(on_reply, lambda: ended(key)))
             except Exception:
                 log.exception("recovery query failed for %s", key)
 
@@ -422,17 +430,21 @@ class ZenohTransport(HandleOwner):
         left = [len(present)]
         done = threading.Condition()
 
-        def finished() -> None:  # a query's replies are all in, or its timeout passed
+        def finished(key: str) -> None:  # a query's replies are all in, or its timeout passed
+            ended(key)
             with done:
                 left[0] -= 1
                 done.notify_all()
 
+        def finisher(key: str) -> Callable[[], None]:
+            return lambda: finished(key)
+
         for key in present:  # all in flight at once: the wait is the slowest cache's
             try:
-                query(key, zenoh.handlers.Callback(on_reply, finished))
+                query(key, zenoh.handlers.Callback(on_reply, finisher(key)))
             except Exception:
                 log.exception("recovery query failed for %s", key)
-                finished()
+                finished(key)
         with done:  # each query ends by its own timeout; the margin only guards a lost drop
             if not done.wait_for(lambda: left[0] <= 0, timeout + 5.0):
                 log.warning("recovery of %s: %d cache queries did not end", keyexpr, left[0])

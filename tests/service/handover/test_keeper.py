@@ -101,8 +101,8 @@ def test_restart_resumes_from_the_checkpoint_exactly(tmp_path, gap):
     assert a.counters["checkpoints"] >= 5 and d.snap is not None
     a.t.close()  # a crash: nothing flushed, nothing said
     ref = d.snap  # what the newest checkpoint held; the steps after it are lost
-    clock.t = int((40 + gap) * PERIOD_NS)  # the restart
-    b = make_core(bus, clock, tmp_path)
+    clock.t = int((40 + gap) * PERIOD_NS)  # the restart (no sender cache to wait for)
+    b = make_core(bus, clock, tmp_path, recover_samples=0)
     d.off = ref
     for k in range(40 + gap, 70 + gap):  # max_delay is 12 steps
         d.step([b], k)
@@ -161,7 +161,7 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     elif how == "misfit":
         _tamper(store, kind="ImmObserverPredictor")
     clock.t = int((restart_step + 0.1) * PERIOD_NS)
-    b = make_core(bus, clock, tmp_path)
+    b = make_core(bus, clock, tmp_path, recover_samples=0)
     assert b.counters["restore_refused"] == 1
     assert b.counters[f"restore_refused_{reason}"] == 1
     st = status(cli, "s1")
@@ -185,7 +185,7 @@ def test_a_damaged_checkpoint_log_is_counted_and_reported(tmp_path):
     buf[len(MAGIC) + 12] ^= 0xFF  # inside the first record: its CRC fails, nothing read
     path.write_bytes(bytes(buf))
     clock.t = int(19.1 * PERIOD_NS)
-    b = make_core(bus, clock, tmp_path)
+    b = make_core(bus, clock, tmp_path, recover_samples=0)
     assert b.counters["checkpoint_log_damaged"] == 1
     assert b.counters["restore_refused_damaged"] == 1 and b.counters["restore_refused"] == 1
     b.run_once()
@@ -200,7 +200,8 @@ def test_takeover_resumes_from_the_replica_exactly(tmp_path, gap):
     steps, max_delay 12) is propagated forward, exact to its reference as well."""
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
-    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3,
+                                recover_samples=0)  # no sender cache to wait for
     owner_of = {s: ("inst-a" if s in a.served_sessions() else "inst-b") for s in names}
     s = next(n for n in names if owner_of[n] == "inst-a")  # a serves it, b is its successor
     assert a.ownership.successor(s) == "inst-b"
@@ -297,7 +298,8 @@ def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
     # replicas every 100 s: only the handover can carry the newest state
-    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=100.0)
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=100.0,
+                                recover_samples=0)  # no sender cache to wait for
     s = next(n for n in names if n in a.served_sessions())
     d = Driver(cli, clock, col, s)
     for k in range(40):
@@ -638,7 +640,7 @@ def test_takeover_reads_back_what_the_senders_kept(tmp_path):
         d.step([b], k)
         d.check(k, d.off)  # as if it never stopped
     c = b.counters
-    assert status(cli, s).origin == "replica"
+    assert status(cli, s).origin == "replica" and status(cli, s).readback == "answered"
     assert c["recovered_accepted"] > 0 and c["recovered_duplicate"] > 0
     assert c["refused"] == 0 and len(col.errors[s]) == errors_before
 
@@ -796,3 +798,35 @@ def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
     assert not sess.take_read_back_copy(b"m0", now_step)  # the oldest went first
     assert len(sess.read_back_copies) < READ_BACK_COPIES  # expired ones purged
     assert sess.take_read_back_copy(b"m%d" % (READ_BACK_COPIES + 99), now_step)
+
+
+def test_a_restored_session_waits_for_its_senders_caches_or_the_bound(tmp_path):
+    """After a restart a restored session publishes nothing until the cache of every one of
+    its data keys (each sensor's, the command's) was read back, as a sender that reconnects
+    later is; one whose senders never come publishes once 2 x recover_timeout_s passed.
+    Its status says which."""
+    bus, clock, col, cli, d = _checkpointed(tmp_path)
+    SpecStore(tmp_path / "a").save(paper_spec("s2"))  # a second session, never sent to
+    clock.t = int(30.1 * PERIOD_NS)
+    b = make_core(bus, clock, tmp_path)  # default settings: recover_timeout_s 2
+    assert sorted(b.served_sessions()) == ["s1", "s2"]
+    assert status(cli, "s1").readback == "waiting" and status(cli, "s1").origin == "checkpoint"
+    published = len(col.predictions["s1"])
+    sender = bus.transport()
+    want = [keys.sensor_key("s1", "ranger"), keys.sensor_key("s1", "camera"),
+            keys.command_key("s1")]
+    for i, key in enumerate(want):
+        clock.t = int((31 + i + 0.6) * PERIOD_NS)
+        b.run_once()  # its ticks: nothing published yet
+        assert len(col.predictions["s1"]) == published
+        sender.publisher(key, cache=16)  # a sender that (re)connects: its cache is read
+    b.run_once()
+    assert len(col.predictions["s1"]) == published + 1  # at once, the last cache read
+    st = status(cli, "s1")
+    assert st.readback == "answered" and st.origin == "checkpoint"
+    assert b.counters["readback_answered"] == 1
+    assert not col.predictions.get("s2") and status(cli, "s2").readback == "waiting"
+    clock.t = int(30.1 * PERIOD_NS) + 4_000_000_000  # 2 x recover_timeout_s after the start
+    b.run_once()
+    assert col.predictions["s2"] and status(cli, "s2").readback == "timeout"
+    assert b.counters["readback_timeout"] == 1
