@@ -111,8 +111,8 @@ class DataSubscriptions:
         :class:`SwitchOverlap` drops the second copies. The other way (the instance is
         left alone) the per-partition pairs close before the wildcards are declared: with
         Zenoh 1.10 a wildcard declared beside narrower subscriptions that then close
-        stopped receiving in 4 of 14 tries (tests/service/test_subscriptions.py), so this
-        switch loses what is sent in between (microseconds; docs/service.md)."""
+        sometimes stopped receiving altogether (docs/service.md, "Scale-out"), so this
+        switch loses what is sent in between (microseconds)."""
         want = data_keyexprs(owned, self.partitions)
         have = self.by_partition
         gone = [k for k in have if k not in want]
