@@ -32,6 +32,8 @@ _POLL_FIRST_S = 5e-5
 _POLL_MAX_S = 1e-3
 _POLL_QUIET_S = 0.5
 _POLL_QUIET_MAX_S = 0.01
+#: What the drain watcher's look found (_DrainGroup._look).
+_EMPTY, _HANDED, _TAKEN_BACK, _CLOSED = 0, 1, 2, 3
 
 
 class _Handle:
@@ -191,28 +193,37 @@ class _DrainGroup:
         self._go.set()
 
     def _watch(self) -> None:
-        go, lock = self._go, self._lock
+        go = self._go
         while True:
             go.wait()
             delay, cap = _POLL_FIRST_S, _POLL_MAX_S
             quiet_at = time.monotonic() + _POLL_QUIET_S
             while True:
-                with lock:
-                    if self._closed:
-                        return
-                    if not go.is_set():  # the owner took the queues back
-                        break
-                    got = self._poll()
-                    if got:
-                        go.clear()  # only now may the owner take the next ones
-                if got:
+                look = self._look()
+                if look == _CLOSED:
+                    return
+                if look == _HANDED:
                     self._wake()
+                if look != _EMPTY:
                     break
                 time.sleep(delay)
                 if delay < cap:
                     delay = min(delay * 2, cap)
                 elif cap < _POLL_QUIET_MAX_S and time.monotonic() >= quiet_at:
                     cap = _POLL_QUIET_MAX_S
+
+    def _look(self) -> int:
+        """The watcher's look at the channels, under the lock: _CLOSED, _TAKEN_BACK (the
+        owner drains again), _HANDED (a sample handed over: wake the owner) or _EMPTY."""
+        with self._lock:
+            if self._closed:
+                return _CLOSED
+            if not self._go.is_set():
+                return _TAKEN_BACK
+            if not self._poll():
+                return _EMPTY
+            self._go.clear()  # only now may the owner take the next ones
+            return _HANDED
 
     def _poll(self) -> bool:
         """Under the lock: hand the first waiting sample of any channel over."""

@@ -9,9 +9,9 @@ import time
 import pytest
 
 from pd_service.service.subscriptions import ALL, DataSubscriptions, SwitchOverlap
-from pd_service.transport import InMemoryBus, Sample, ZenohTransport, zenoh_config
+from pd_service.transport import InMemoryBus, Sample
 from pd_service.wire import keys
-from tests.service.procs import free_port
+from tests.transport.test_transport import drain_watchers, listener_and_client
 
 P = 8
 
@@ -61,20 +61,14 @@ def test_switching_over_zenoh_loses_nothing_and_delivers_nothing_twice() -> None
     per-partition pairs, then between partition sets again and again; every sample reaches
     the callback once, in order; one watcher thread however many partitions. (The way back
     to the wildcards loses what is sent in between: SwitchOverlap's docstring.)"""
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    with ZenohTransport(zenoh_config(listen=[ep])) as t1, \
-            ZenohTransport(zenoh_config(mode="client", connect=[ep])) as t2:
+    with listener_and_client() as (t1, t2):
         got: list[int] = []
         woke = threading.Event()
-        threads = sum(th.name == "drain watcher" for th in threading.enumerate())
+        threads = drain_watchers()
         subs = DataSubscriptions(t1, lambda s: got.append(int(s.payload)),
                                  lambda s: got.append(-int(s.payload)), woke.set, P)
         name = next(f"s{i}" for i in range(100) if keys.partition_of(f"s{i}") == 3)
         subs.follow(range(P))
-        t1.declare_token("pd/@service/a")
-        for _ in range(100):  # t2 sees t1's declarations (an event, not a sleep)
-            if t2.get_liveliness("pd/@service/*", timeout=0.2):
-                break
         n = 10_000
         stop = threading.Event()
 
@@ -96,8 +90,7 @@ def test_switching_over_zenoh_loses_nothing_and_delivers_nothing_twice() -> None
             while th.is_alive():
                 subs.follow(sets[i % len(sets)])
                 i += 1
-                assert sum(x.name == "drain watcher" for x in threading.enumerate()) \
-                    == threads + 1
+                assert drain_watchers() == threads + 1
                 subs.group.drain(64)
                 time.sleep(0.0005)
         finally:

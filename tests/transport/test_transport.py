@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import socket
 import threading
 import time
+from collections.abc import Iterator
 
 import pytest
 
@@ -118,27 +120,40 @@ def test_zenoh_transport_loopback() -> None:
         assert t1._declared == {} and t2._declared == {}  # withdrawn: put() no longer uses them
 
 
+@contextlib.contextmanager
+def listener_and_client() -> Iterator[tuple[ZenohTransport, ZenohTransport]]:
+    """A listening transport and a client connected to it, once the client sees the
+    listener's declarations (an event, not a sleep)."""
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    with ZenohTransport(zenoh_config(listen=[ep])) as t1, \
+            ZenohTransport(zenoh_config(mode="client", connect=[ep])) as t2:
+        t1.declare_token("pd/@service/a")
+        for _ in range(100):
+            if t2.get_liveliness("pd/@service/*", timeout=0.2):
+                break
+        yield t1, t2
+
+
+def drain_watchers() -> int:
+    """Drain watcher threads alive in this process."""
+    return sum(th.name == "drain watcher" for th in threading.enumerate())
+
+
 @pytest.mark.integration
 def test_zenoh_drain_group_keeps_order_and_closes_while_waiting() -> None:
     """Samples reach their callback in order, whether the watcher hands one over (owner idle,
     armed) or the owner drains them in batches; nothing is lost; an owner that does not arm
     gets no hand-over; a member closed hands what it holds over first; close() returns
     while the watcher polls; one watcher thread however many members."""
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    with ZenohTransport(zenoh_config(listen=[ep])) as t1, \
-            ZenohTransport(zenoh_config(mode="client", connect=[ep])) as t2:
+    with listener_and_client() as (t1, t2):
         got: list[bytes] = []
         woke = threading.Event()
-        before = sum(th.name == "drain watcher" for th in threading.enumerate())
+        before = drain_watchers()
         g = t1.drain_group(woke.set)
         m = g.add("pd/*/*/sensor/*", lambda s: got.append(s.payload))
         others = [g.add(f"pd/p{k}/*/sensor/*", lambda s: None) for k in range(16)]
-        assert sum(th.name == "drain watcher" for th in threading.enumerate()) == before + 1
+        assert drain_watchers() == before + 1
         assert g.drain(10) == 0  # parked at first: the owner looks once
-        t1.declare_token("pd/@service/a")
-        for _ in range(100):  # t2 sees t1's declarations (an event, not a sleep)
-            if t2.get_liveliness("pd/@service/*", timeout=0.2):
-                break
         t2.put("pd/p2/s/sensor/-1", b"-1")
         for _ in range(500):  # not armed: nobody hands it over, it waits for the owner
             if got:
