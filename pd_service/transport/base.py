@@ -145,8 +145,9 @@ class Transport(Protocol):
         once each time it appears, also when it appears while this call runs. A recovered sample
         may repeat one received live: the receiver must tell (the daemon refuses it as a
         duplicate, counted apart from live refusals). ``answered``, if given, is called with
-        a cache's publisher key (``keyexpr``'s match, e.g. ``pd/p3/s/sensor/cam``) once the
-        read of that cache has ended, after its samples were given to ``callback``."""
+        a cache's publisher key (``keyexpr``'s match, e.g. ``pd/p3/s/sensor/cam``) once that
+        cache has answered, after its samples were given to ``callback`` (not for one whose
+        query got no reply until ``timeout``: a stalled sender)."""
         ...
 
     def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...

@@ -32,6 +32,8 @@ _POLL_FIRST_S = 5e-5
 _POLL_MAX_S = 1e-3
 _POLL_QUIET_S = 0.5
 _POLL_QUIET_MAX_S = 0.01
+#: A read-back query that ended after this share of its timeout without a reply timed out.
+_TIMED_OUT = 0.9
 #: What the drain watcher's look found (_DrainGroup._look).
 _EMPTY, _HANDED, _TAKEN_BACK, _CLOSED = 0, 1, 2, 3
 
@@ -391,17 +393,31 @@ class ZenohTransport(HandleOwner):
             except Exception:
                 log.exception("recovery callback failed for %s", keyexpr)
 
-        def ended(token_key: str) -> None:  # a cache's query ended: its publisher's key
-            if answered is not None:
-                try:
-                    answered(token_key.split("/@adv/", 1)[0])
-                except Exception:
-                    log.exception("recovery callback failed for %s", keyexpr)
+        def query(key: str, then: Callable[[], None] | None) -> None:
+            """Query the cache whose token is ``key`` (callback form: returns at once); once
+            its replies are in, ``answered`` (the cache's publisher key), then ``then``. A
+            query that got nothing until its timeout is not an answer (a stalled sender: an
+            empty cache answers at once)."""
+            t0 = time.monotonic()
+            replied = [False]
 
-        def query(selector: str, handler: zenoh.handlers.Callback) -> None:
+            def on_one(r: zenoh.Reply) -> None:
+                replied[0] = replied[0] or r.ok is not None
+                on_reply(r)
+
+            def on_end() -> None:
+                if answered is not None and (
+                        replied[0] or time.monotonic() - t0 < _TIMED_OUT * timeout):
+                    try:
+                        answered(key.split("/@adv/", 1)[0])
+                    except Exception:
+                        log.exception("recovery callback failed for %s", keyexpr)
+                if then is not None:
+                    then()
+
             self.session.get(
-                f"{selector}?_max={max_samples}", handler, target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
+                f"{key}?_max={max_samples}", zenoh.handlers.Callback(on_one, on_end),
+                target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
                 accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout)
 
         # each cache is read once per appearance of its token: a token seen both by the
@@ -423,8 +439,8 @@ class ZenohTransport(HandleOwner):
                 return
             if not first_read(key):
                 return
-            try:  # callback form: returns at once
-                query(key, zenoh.handlers.Callback(on_reply, lambda: ended(key)))
+            try:
+                query(key, None)
             except Exception:
                 log.exception("recovery query failed for %s", key)
 
@@ -441,21 +457,17 @@ class ZenohTransport(HandleOwner):
         left = [len(present)]
         done = threading.Condition()
 
-        def finished(key: str) -> None:  # a query's replies are all in, or its timeout passed
-            ended(key)
+        def finished() -> None:  # a query's replies are all in, or its timeout passed
             with done:
                 left[0] -= 1
                 done.notify_all()
 
-        def finisher(key: str) -> Callable[[], None]:
-            return lambda: finished(key)
-
         for key in present:  # all in flight at once: the wait is the slowest cache's
             try:
-                query(key, zenoh.handlers.Callback(on_reply, finisher(key)))
+                query(key, finished)
             except Exception:
                 log.exception("recovery query failed for %s", key)
-                finished(key)
+                finished()
         with done:  # each query ends by its own timeout; the margin only guards a lost drop
             if not done.wait_for(lambda: left[0] <= 0, timeout + 5.0):
                 log.warning("recovery of %s: %d cache queries did not end", keyexpr, left[0])

@@ -232,7 +232,9 @@ def test_in_memory_cached_publisher_is_recovered() -> None:
 @pytest.mark.integration
 def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() -> None:
     """Pins zenoh-ext 1.10's cache layout (<key>/@adv/pub/..., '_max'): read at once from a
-    connected sender, and from one that connects only after ``read_back`` was declared."""
+    connected sender, and from one that connects only after ``read_back`` was declared; each
+    cache read is reported by ``answered``, a cache that never replies (a stalled sender) is
+    not."""
     p1, p2 = free_port(), free_port()
     a = b = c = None
     try:
@@ -241,6 +243,11 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
         pub = a.publisher("pd/p2/s/sensor/cam", cache=4)
         for i in range(6):
             pub.put(f"m{i}".encode())
+        # a stalled sender's cache: its token and queryable are there, no reply ever comes
+        stalled = f"pd/p3/q/sensor/x/@adv/pub/{a.session.info.zid()}/99/_"
+        held_queries: list = []  # kept: a query dropped would end at once
+        silent = [a.session.declare_queryable(stalled, held_queries.append),
+                  a.session.liveliness().declare_token(stalled)]
         # c: a sender whose peer (b, on p2) is not there yet; it keeps retrying
         c = ZenohTransport(zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{p2}"],
                                         multicast=False, listen=[]))
@@ -262,8 +269,16 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
         for _ in range(100):  # the routes to a's cache: wait on its token (an event)
             if b.get_liveliness("pd/p2/s/sensor/*/@adv/pub/**", timeout=0.5):
                 break
-        h = b.read_back("pd/*/*/sensor/*", on, max_samples=3)
+        answered: list[str] = []
+
+        def on_answered(key: str) -> None:
+            with cond:
+                answered.append(key)
+                cond.notify_all()
+
+        h = b.read_back("pd/*/*/sensor/*", on, max_samples=3, timeout=1.0, answered=on_answered)
         at_once = list(got)
+        assert "pd/p2/s/sensor/cam" in answered  # before read_back returned
         # a's cache was read before read_back returned: its last 3, oldest first (c's may come
         # before or after them, depending on when c reached b)
         assert [x for x in at_once if x[0] == "pd/p2/s/sensor/cam"] == \
@@ -272,6 +287,11 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
             assert cond.wait_for(lambda: len(got) >= 5, timeout=30), got
         rest = sorted(x for x in got if x[0] != "pd/p2/s/sensor/cam")
         assert rest == [("pd/p16/u/sensor/ranger", b"r0", True), ("pd/p16/u/sensor/ranger", b"r1", True)]
+        with cond:
+            assert cond.wait_for(lambda: "pd/p16/u/sensor/ranger" in answered, timeout=30)
+        assert sorted(answered) == ["pd/p16/u/sensor/ranger", "pd/p2/s/sensor/cam"]
+        assert held_queries  # the stalled cache was asked, and its query timed out
+        del silent
         print(f"\nlate sender read {'after' if len(at_once) == 3 else 'before'} read_back returned")
         h.close()
     finally:
