@@ -163,6 +163,8 @@ class Outbox:
         """Publish a Prediction of now + lead for each session. ``data``: the publications
         answer accepted measurements (the session is data-driven)."""
         for sess in sessions:
+            if sess.hold_until_ns:  # waits for its senders' caches (Lifecycle.hold_for_read_back)
+                continue
             k = sess.step_now(now)
             if k < 0:  # before the session's epoch: nothing to predict yet
                 sess.pending_recv.clear()

@@ -71,9 +71,14 @@ SENSOR: Final = 0
 COMMAND: Final = 1
 #: Added to SENSOR / COMMAND for a message read back from a sender's cache (recovered).
 READ_BACK: Final = 2
+#: Not a message: the read of the cache of a sender of the sample's key ended (no payload).
+ANSWERED: Final = 8
 
 #: Where a session's estimate started from (``SessionStatus.origin``).
 Origin = Literal["prior", "checkpoint", "replica"]
+#: How a restarted or taken-over session's wait for its senders' caches went
+#: (``SessionStatus.readback``).
+ReadBack = Literal["", "waiting", "answered", "timeout"]
 
 #: Per-session latency samples kept (µs, packet receipt -> prediction published).
 SESSION_LATENCY_WINDOW = 512
@@ -148,6 +153,12 @@ class Session:
         # that state; checkpoint / replica bookkeeping (pd_service.service.handover.keeper)
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
+        #: A restarted or taken-over session publishes nothing until its senders' caches
+        #: were read back (``Lifecycle.hold_for_read_back``): the wait's end (ns; 0: none),
+        #: the data keys whose caches have not answered yet, how the wait ended.
+        self.hold_until_ns = 0
+        self.unanswered: set[str] = set()
+        self.readback: ReadBack = ""
         self.fingerprint = spec_fingerprint(spec)
         #: The session's phase of its periodic work (:func:`next_slot`), from its name.
         self.spread = zlib.crc32(self.name.encode())

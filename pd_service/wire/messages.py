@@ -803,6 +803,12 @@ class SessionStatus(Message):
                              "(restart) or a replica (takeover) of step origin_step.")
     origin_step: NonNegInt | None = Field(
         None, description="now_step of the checkpoint or replica resumed from; nil for prior.")
+    readback: Literal["", "waiting", "answered", "timeout"] = Field(
+        "", description="A restarted or taken-over session publishes its first prediction "
+                        "only once its senders' caches were read back: waiting (not yet), "
+                        "answered (every sensor's and the command's cache answered), timeout "
+                        "(2 x recover_timeout_s passed first); empty: the session did not "
+                        "wait (started afresh).")
 
 
 class ServiceStatus(Message):

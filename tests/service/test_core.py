@@ -500,9 +500,8 @@ def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
     calls: list[int] = []  # sessions that had accepted a packet at each look
 
     class HeldQueue:
-        """A drained subscription whose second look finds two samples (the first look is
-        the pass's own, before its first round)."""
-        pending = False
+        """A drain group whose second look finds two samples (the first look is the pass's
+        own, before its first round)."""
 
         def drain(self, limit: int) -> int:
             calls.append(sum(core.session_status(s).counters["accepted"] > 0 for s in names))
@@ -516,7 +515,7 @@ def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
         def arm(self) -> None:
             pass
 
-    core._drains = [HeldQueue()]
+    core.subs.group = HeldQueue()  # type: ignore[assignment]
     clock.t = at(20.1)
     for s in names:
         cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 19, [1.0]))
@@ -620,9 +619,9 @@ def test_restart_restores_sessions_and_resumes_publishing(tmp_path):
     core.run_once()
     core.close()
     core.t.close()
-    # a new process with the same state dir
+    # a new process with the same state dir (no sender with a cache to wait for)
     clock.t = at(100.6)
-    core2 = make_core(bus, clock, tmp_path)
+    core2 = make_core(bus, clock, tmp_path, recover_samples=0)
     assert core2.served_sessions() == ["s1", "s2"]
     core2.run_once()
     assert col.predictions["s1"][-1].step == 110

@@ -1,16 +1,21 @@
 """EstimatorState <-> SessionState (the wire message), and whether a state may be resumed.
 
 A state is resumed only if it is the same version, was taken from an estimator built from
-the very same spec (fingerprint of the encoded spec), is not stale and restores cleanly;
-otherwise :func:`refusal` names the reason and the session starts from its prior:
+the very same spec (fingerprint of the encoded spec), is not from the future and restores
+cleanly; otherwise :func:`refusal` names the reason and the session starts from its prior:
 
 ============  =======================================================================
 version       ``state_version`` is not this build's
 spec          ``spec_fingerprint`` differs (the spec changed) or another session
-stale         older than the window: ``now_step - state.now_step > max_delay`` (every
-              packet it still waited for is final by now), or from the future
+future        taken at a step after the current one (+1): another clock, or a bad one
 corrupt       undecodable, or the estimator's restore_state refused it (reason given)
 ============  =======================================================================
+
+A state older than the window (``now_step - state.now_step > max_delay``: a restart or a
+takeover that took longer than the window) is resumed all the same (:func:`is_stale`): the
+estimator commits its window at the next step and propagates the committed estimate forward
+with the commands it knows (the held command past them), its covariance growing by Q per
+step, which is far nearer the truth than the prior.
 """
 
 from __future__ import annotations
@@ -34,12 +39,13 @@ from pd_service.wire.session_state import (
     pack_state_fields,
 )
 
-__all__ = ["Refused", "encode_state", "from_message", "refusal", "restore", "to_message"]
+__all__ = ["Refused", "encode_state", "from_message", "is_stale", "refusal", "restore",
+           "to_message"]
 
 
 @dataclass(frozen=True, slots=True)
 class Refused:
-    """Why a state was not resumed: ``reason`` one of version / spec / stale / corrupt."""
+    """Why a state was not resumed: ``reason`` one of version / spec / future / corrupt."""
 
     reason: str
     text: str
@@ -179,12 +185,16 @@ def refusal(msg: SessionState, spec: SessionSpec, fingerprint: str,
         return Refused("spec", "taken from another spec (fingerprint "
                        f"{msg.spec_fingerprint[:12]}, the spec's is {fingerprint[:12]})")
     taken = msg.now_step if msg.now_step is not None else 0
-    if now_step - taken > spec.max_delay:
-        return Refused("stale", f"taken at step {taken}, {now_step - taken} steps ago: more "
-                       f"than the window (max_delay {spec.max_delay})")
     if taken > now_step + 1:
-        return Refused("stale", f"taken at step {taken}, after the current step {now_step}")
+        return Refused("future", f"taken at step {taken}, after the current step {now_step}")
     return None
+
+
+def is_stale(msg: SessionState, spec: SessionSpec, now_step: int) -> bool:
+    """``msg`` was taken more than the window (``max_delay`` steps) before ``now_step``:
+    resumed, it is propagated forward (module docstring)."""
+    taken = msg.now_step if msg.now_step is not None else 0
+    return now_step - taken > spec.max_delay
 
 
 def restore(est: Estimator, data: bytes | SessionState, spec: SessionSpec, fingerprint: str,
