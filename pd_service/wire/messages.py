@@ -755,6 +755,10 @@ class Prediction(Message):
     made_ns: Int64 = Field(description="When the prediction was computed, ns on the shared clock.")
     counters: Counters = Field(default_factory=dict,
                                description="Session counters (accepted, refused by reason, ...).")
+    term: NonNegInt = Field(
+        0, description="Ownership term of the publisher: grows with each takeover and "
+        "hand-over of the session; a reader drops a prediction of an older term than the "
+        "newest it saw for the session (absent: 0, a publisher older than terms).")
 
     @model_validator(mode="after")
     def _check(self) -> Prediction:
@@ -803,6 +807,8 @@ class SessionStatus(Message):
                              "(restart) or a replica (takeover) of step origin_step.")
     origin_step: NonNegInt | None = Field(
         None, description="now_step of the checkpoint or replica resumed from; nil for prior.")
+    term: NonNegInt = Field(
+        0, description="Ownership term the session is published with (Prediction.term).")
 
 
 class ServiceStatus(Message):
