@@ -244,8 +244,10 @@ class ServiceCore:
                   declared=declared, closed=closed)
 
     def _on_state_arrived(self, session: str) -> None:
-        """Transport thread: wake the worker if ``session`` waits for its hand-over state."""
-        if session in self.lifecycle.awaiting:
+        """Transport thread: wake the worker if ``session`` waits for its hand-over state, or
+        is served here (a state of a newer term: :meth:`Lifecycle.yield_to_newer`)."""
+        route = self.dispatch.routes.get(session)
+        if session in self.lifecycle.awaiting or (route is not None and route.sess is not None):
             self._handed_in = True
             self.wake.set()
 
@@ -284,6 +286,9 @@ class ServiceCore:
                 if self.lifecycle.awaiting:  # sessions moved here by a join
                     self._handed_in = False
                     self.lifecycle.adopt_handed(now)
+                if self.keeper.terms_in:  # states of other owners (a healed partition)
+                    self._handed_in = False
+                    self.lifecycle.yield_to_newer(now)
                 touched: list[Session] = []
                 if d.unknown:
                     handled += d.process_unknown(now, touched)

@@ -33,7 +33,7 @@ from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
 from .handover.keeper import HandoverKeeper
 from .outbox import Outbox
-from .ownership import Ownership
+from .ownership import Ownership, next_term
 from .session import COMMAND, READ_BACK, SENSOR, Origin, Refusal, Session
 from .spec_store import SpecStore
 from .status import SessionPhase, phase_of
@@ -455,6 +455,9 @@ class Lifecycle:
             if sess.origin != "prior":
                 detail = sess.detail = (f"{detail}; estimate resumed from the {sess.origin} of "
                                         f"step {sess.origin_step}")
+        # newer than every term this instance knows for the session (ownership.next_term)
+        sess.term = next_term(max(sess.resumed_term, old.term if old is not None else 0),
+                              self.ownership.instance, now)
         if route.inbox is None:
             route.inbox = deque(maxlen=self.settings.inbox_size)
         route.sess = sess
@@ -665,6 +668,51 @@ class Lifecycle:
                 self.install(name, "active", "", now, answer=False)
             elif not owns:
                 self.awaiting.pop(name, None)
+        if taken:
+            self._spawn(lambda: self.read_back_taken(taken))
+
+    def yield_to_newer(self, now: int) -> None:
+        """Two owners (a partition healed): a state arrived for a session served here whose
+        term is newer than the one it is published with. This instance's estimate yields:
+        the session restarts from that state (with a term newer still, every reader drops
+        the older one's output) and its senders' caches are read back, as at a hand-over;
+        counted ``term_yielded``, logged ``term_yielded``, said in its status detail. The
+        other owner stops serving it when it sees the membership (:meth:`reassign`).
+
+        A hand-over of a session the other owner held at its prior alone (a delete: no state,
+        no term) leaves the estimate here as it is (the other side accepted nothing) but
+        starts a new term (``term_renewed``): one past the other owner's if the hosts'
+        clocks agree to better than the partition lasted (:func:`.ownership.next_term`)."""
+        if self.keeper is None:
+            return
+        routes = self.dispatch.routes
+        taken: list[str] = []
+        for name, (term, writer) in self.keeper.take_terms().items():
+            route = routes.get(name)
+            sess = route.sess if route is not None else None
+            if sess is None or not self.ownership.owns(name):
+                continue
+            if term == 0:
+                self.keeper.drop_prior_mark(name)
+                old_term, sess.term = sess.term, next_term(sess.term, self.ownership.instance,
+                                                           now)
+                self.counters["term_renewed"] += 1
+                event(log, "term_renewed", session=name, term=old_term, new_term=sess.term,
+                      detail="a second owner handed over its prior alone")
+                continue
+            if term <= sess.term:
+                continue
+            self.counters["term_yielded"] += 1
+            event(log, "term_yielded", logging.WARNING, session=name, term=sess.term,
+                  newer_term=term, newer_owner=writer)
+            self.install(name, "active", f"yielded to {writer}'s newer term {term} (this "
+                         f"instance published term {sess.term}: two owners, e.g. a healed "
+                         "partition)", now, answer=True, resume="replica")
+            route = routes.get(name)
+            if self.settings.recover_samples > 0 and not self.closed and route is not None \
+                    and route.sess is not None:
+                taken.append(name)
+                self.dispatch.park(route)
         if taken:
             self._spawn(lambda: self.read_back_taken(taken))
 

@@ -148,6 +148,10 @@ class Session:
         # that state; checkpoint / replica bookkeeping (pd_service.service.handover.keeper)
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
+        #: Ownership term its predictions are published with (ownership.next_term; set at
+        #: install), and the term of the state it resumed from (0: none).
+        self.term = 0
+        self.resumed_term = 0
         self.fingerprint = spec_fingerprint(spec)
         #: The session's phase of its periodic work (:func:`next_slot`), from its name.
         self.spread = zlib.crc32(self.name.encode())
@@ -258,7 +262,7 @@ class Session:
         ``x_data``, ``P_data`` (:func:`pd_service.service.health.inspect_packed`); bumps
         seq and the published count."""
         data = self.encoder.encode_packed(pred, x_data, P_data, self.seq, made_ns,
-                                          self.counters_snapshot())
+                                          self.counters_snapshot(), self.term)
         self.seq += 1
         self.published += 1
         self.last_pub_step = now_step

@@ -52,6 +52,7 @@ class StatusSnapshot:
     latency_us: np.ndarray  # a copy of the session's LatencyWindow
     origin: Literal["prior", "checkpoint", "replica"]
     origin_step: int | None
+    term: int
 
     def status(self, instance: str, now: int) -> SessionStatus:
         """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
@@ -60,14 +61,15 @@ class StatusSnapshot:
                              now_step=self.spec.step_of(now), counters=self.counters,
                              published=self.published, latency_p50_us=p50,
                              latency_p99_us=p99, detail=self.detail[:1024],
-                             origin=self.origin, origin_step=self.origin_step)
+                             origin=self.origin, origin_step=self.origin_step,
+                             term=self.term)
 
 
 def snapshot_of(sess: Session, state: SessionPhase, detail: str) -> StatusSnapshot:
     """Copy of what ``sess``'s status needs (hold the lock while calling this)."""
     return StatusSnapshot(sess.name, sess.status_key, state, detail, sess.spec,
                        sess.counters_snapshot(), sess.published, sess.latency.values(),
-                       sess.origin, sess.origin_step)
+                       sess.origin, sess.origin_step, sess.term)
 
 
 def session_status(sess: Session, instance: str, state: SessionPhase, detail: str,

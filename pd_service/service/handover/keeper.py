@@ -116,6 +116,11 @@ class HandoverKeeper:
         #: Sessions whose previous owner handed over only their prior (a delete on the
         #: replica key, :meth:`hand_to`), until :meth:`handed` reads it.
         self.at_prior: set[str] = set()
+        #: Terms of the states received since the worker last looked (:meth:`take_terms`):
+        #: session -> (term, writer); (0, "") for a hand-over of a session at its prior alone.
+        #: One newer than a session served here is a second owner (a healed partition): the
+        #: worker yields to it (``Lifecycle.yield_to_newer``).
+        self.terms_in: dict[str, tuple[int, str]] = {}
 
     # ================================================================== outgoing ======
 
@@ -199,6 +204,19 @@ class HandoverKeeper:
         self.counters["replica_bytes"] += len(data)
         return True
 
+    def take_terms(self) -> dict[str, tuple[int, str]]:
+        """The terms of the states received since the last call (session -> (term,
+        writer)); any thread."""
+        with self._lock:
+            got, self.terms_in = self.terms_in, {}
+        return got
+
+    def drop_prior_mark(self, session: str) -> None:
+        """Forget a prior-alone hand-over of ``session`` (it was served here: nothing to
+        await). Any thread."""
+        with self._lock:
+            self.at_prior.discard(session)
+
     def handed(self, session: str) -> str:
         """What came for ``session`` from its previous owner: "replica" (a state is held),
         "prior" (its owner said it had only the prior), or "" (nothing yet). Any thread."""
@@ -207,6 +225,7 @@ class HandoverKeeper:
                 return "replica"
             if session in self.at_prior:
                 self.at_prior.discard(session)
+                self.terms_in.pop(session, None)  # awaited: not a second owner's
                 return "prior"
         return ""
 
@@ -275,7 +294,7 @@ class HandoverKeeper:
             data = encode_state(export(), session=sess.name, instance=self.settings.instance,
                                 fingerprint=sess.fingerprint, made_ns=now,
                                 session_counters=dict(sess.counters),
-                                published=sess.published, seq=sess.seq)
+                                published=sess.published, seq=sess.seq, term=sess.term)
         except WireError as exc:
             self.counters["checkpoint_too_large"] += 1
             event(log, "checkpoint_too_large", logging.WARNING, session=sess.name,
@@ -355,6 +374,8 @@ class HandoverKeeper:
                 self.replicas.pop(session, None)
                 if len(self.at_prior) < MAX_REPLICAS:
                     self.at_prior.add(session)
+                if len(self.terms_in) < MAX_REPLICAS:  # term unknown: 0
+                    self.terms_in[session] = (0, "")
             if self.arrived is not None:
                 self.arrived(session)
             return
@@ -368,7 +389,11 @@ class HandoverKeeper:
             self.counters["replica_malformed"] += 1
             return
         step = step or 0
+        term, writer = obj.get("term", 0), obj.get("instance", "")
         with self._lock:
+            if type(term) is int and term > 0 and type(writer) is str \
+                    and len(self.terms_in) < MAX_REPLICAS:
+                self.terms_in[session] = (term, writer)
             old = self.replicas.get(session)
             if old is None or step >= old[0]:
                 if old is None and len(self.replicas) >= MAX_REPLICAS:
@@ -408,6 +433,8 @@ class HandoverKeeper:
             return
         now_step = sess.step_now(now)
         msg, why = restore(sess.est, data, sess.spec, sess.fingerprint, now_step)
+        if msg is not None:  # a refused state's term still fences: the next term is newer
+            sess.resumed_term = msg.term
         if why is not None:
             self._refused(sess, source, why, now)
             return

@@ -145,3 +145,60 @@ def test_a_previous_owner_that_goes_away_during_the_wait_ends_it(tmp_path):
     c.run_once()
     assert s not in c.lifecycle.awaiting and s in c.served_sessions()
     assert "taken over" in status(cli, s).detail
+
+
+def partition(a, b, apart: bool) -> None:
+    """Two instances stop (``apart``) or start again hearing each other's liveliness: a
+    partition between them, or its heal (each side sees the other leave, then join)."""
+    a.dispatch.on_liveliness(keys.service_token_key(b.instance), not apart)
+    b.dispatch.on_liveliness(keys.service_token_key(a.instance), not apart)
+
+
+def test_a_partition_fences_the_older_owner_and_the_heal_keeps_the_newer_estimate(tmp_path):
+    """inst-a serves s, inst-b is its successor. The link between them goes down: b takes s
+    over from its replica with a newer term while a goes on serving it; both publish, a
+    Display shows b's predictions only (a's counted as of an older term). At the heal b hands
+    s back: a yields to b's newer state (a term newer still), and the estimate goes on
+    exactly as the one that never stopped (the inputs reached both sides). A session b held at
+    its prior alone is handed back as a delete: a keeps its estimate under a renewed term."""
+    from pd_client import Display
+
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
+    s = next(n for n in names if n in a.served_sessions() and a.ownership.successor(n) == b.instance)
+    idle = next(n for n in names if n in a.served_sessions() and n != s)
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    disp = Display(bus.transport(), s)
+    for k in range(30):
+        d.step([a, b], k)
+    t0 = status(cli, s).term
+    assert t0 > 0 and all(p.term == t0 for p in col.predictions[s])
+    assert s in b.keeper.replicas
+    partition(a, b, apart=True)
+    for k in range(30, 45):
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)  # either owner's: b read back what came after its replica
+    assert s in a.served_sessions() and s in b.served_sessions()  # two owners
+    during = [p.term for p in col.predictions[s][-20:]]
+    t1 = max(during)
+    assert t1 > t0 and sorted(set(during)) == [t0, t1]  # interleaved on the key ...
+    assert disp.stats().stale_term > 0 and disp.stats().term == t1  # ... not on the display
+    assert disp.latest().term == t1
+    partition(a, b, apart=False)
+    settle(a, b)
+    for k in range(45, 60):
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)  # continuous and exact: nothing regressed
+    assert s in a.served_sessions() and s not in b.served_sessions()
+    st = status(cli, s)
+    assert st.instance == a.instance and st.term > t1 and "yielded to inst-b" in st.detail
+    assert a.counters["term_yielded"] >= 1
+    after = [p.term for p in col.predictions[s][-10:]]
+    assert after == [st.term] * 10 and disp.stats().term == st.term
+    # the idle session: b took it from the prior, a kept it; after the heal a's term is newest
+    assert idle in a.served_sessions() and idle not in b.served_sessions()
+    assert a.counters["term_renewed"] >= 1 and status(cli, idle).term > t1
+    disp.close()
