@@ -245,7 +245,7 @@ class ServiceCore:
 
     def _on_state_arrived(self, session: str) -> None:
         """Transport thread: wake the worker if ``session`` waits for its hand-over state, or
-        is served here (a state of a newer term: :meth:`Lifecycle.yield_to_newer`)."""
+        is served here (a state of a newer term: :meth:`Lifecycle.settle_second_owner`)."""
         route = self.dispatch.routes.get(session)
         if session in self.lifecycle.awaiting or (route is not None and route.sess is not None):
             self._handed_in = True
@@ -288,7 +288,7 @@ class ServiceCore:
                     self.lifecycle.adopt_handed(now)
                 if self.keeper.terms_in:  # states of other owners (a healed partition)
                     self._handed_in = False
-                    self.lifecycle.yield_to_newer(now)
+                    self.lifecycle.settle_second_owner(now)
                 touched: list[Session] = []
                 if d.unknown:
                     handled += d.process_unknown(now, touched)

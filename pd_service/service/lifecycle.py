@@ -31,7 +31,7 @@ from pd_service.wire.keys import KeyError_, check_name
 from .admission import Ledger, OverBudget
 from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
-from .handover.keeper import HandoverKeeper
+from .handover.keeper import HandoverKeeper, inputs_accepted
 from .outbox import Outbox
 from .ownership import Ownership, next_term
 from .session import COMMAND, READ_BACK, SENSOR, Origin, Refusal, Session
@@ -671,43 +671,55 @@ class Lifecycle:
         if taken:
             self._spawn(lambda: self.read_back_taken(taken))
 
-    def yield_to_newer(self, now: int) -> None:
-        """Two owners (a partition healed): a state arrived for a session served here whose
-        term is newer than the one it is published with. This instance's estimate yields:
-        the session restarts from that state (with a term newer still, every reader drops
-        the older one's output) and its senders' caches are read back, as at a hand-over;
-        counted ``term_yielded``, logged ``term_yielded``, said in its status detail. The
-        other owner stops serving it when it sees the membership (:meth:`reassign`).
+    def settle_second_owner(self, now: int) -> None:
+        """Two owners (a partition healed): a state arrived from another instance for a
+        session served here. The output of the older term ends: the session goes on here
+        with a term newer than both (every reader drops the older ones). The estimate kept is
+        the one that took in more inputs (:func:`.handover.keeper.inputs_accepted`; a tie:
+        the newer term's), so that a side that did not receive the session's data during the
+        partition does not replace one that did:
 
-        A hand-over of a session the other owner held at its prior alone (a delete: no state,
-        no term) leaves the estimate here as it is (the other side accepted nothing) but
-        starts a new term (``term_renewed``): one past the other owner's if the hosts'
-        clocks agree to better than the partition lasted (:func:`.ownership.next_term`)."""
+        - the other's (``term_yielded``, logged WARNING ``term_yielded``, said in the status
+          detail): the session restarts from that state, as at a hand-over;
+        - this instance's own (``term_renewed``): the estimate stays, the term is renewed;
+          so for a session the other held at its prior alone (a delete: no state, no term):
+          its new term is newer than the other's if the hosts' clocks agree to better than
+          the partition lasted (:func:`.ownership.next_term`).
+
+        Either way the senders' caches are read back: what reached only the other side
+        inside the window comes back. The other owner stops serving the session when it
+        sees the membership (:meth:`reassign`)."""
         if self.keeper is None:
             return
         routes = self.dispatch.routes
+        me = self.ownership.instance
         taken: list[str] = []
-        for name, (term, writer) in self.keeper.take_terms().items():
+        for name, (term, writer, inputs) in self.keeper.take_terms().items():
             route = routes.get(name)
             sess = route.sess if route is not None else None
-            if sess is None or not self.ownership.owns(name):
+            if sess is None or not self.ownership.owns(name) or writer == me:
                 continue
-            if term == 0:
-                self.keeper.drop_prior_mark(name)
-                old_term, sess.term = sess.term, next_term(sess.term, self.ownership.instance,
-                                                           now)
+            own = inputs_accepted(sess.counters)
+            if term > 0 and (inputs, term) > (own, sess.term) and self.keeper.holds(name):
+                self.counters["term_yielded"] += 1
+                event(log, "term_yielded", logging.WARNING, session=name, term=sess.term,
+                      newer_term=term, other=writer, inputs=inputs, own_inputs=own)
+                self.install(name, "active", f"yielded to {writer}'s estimate (term {term}, "
+                             f"{inputs} inputs accepted; this instance's term {sess.term}, "
+                             f"{own}: two owners, e.g. a healed partition)", now,
+                             answer=True, resume="replica")
+            elif term > 0 and term < sess.term:
+                continue  # an older owner's state, with less: nothing to settle here
+            else:
+                if term == 0:
+                    self.keeper.drop_prior_mark(name)
+                old, sess.term = sess.term, next_term(max(term, sess.term), me, now)
                 self.counters["term_renewed"] += 1
-                event(log, "term_renewed", session=name, term=old_term, new_term=sess.term,
-                      detail="a second owner handed over its prior alone")
-                continue
-            if term <= sess.term:
-                continue
-            self.counters["term_yielded"] += 1
-            event(log, "term_yielded", logging.WARNING, session=name, term=sess.term,
-                  newer_term=term, newer_owner=writer)
-            self.install(name, "active", f"yielded to {writer}'s newer term {term} (this "
-                         f"instance published term {sess.term}: two owners, e.g. a healed "
-                         "partition)", now, answer=True, resume="replica")
+                event(log, "term_renewed", logging.WARNING, session=name, term=old,
+                      new_term=sess.term, other=writer or "?", inputs=inputs, own_inputs=own)
+                sess.detail = (f"{sess.detail}; kept its estimate over a second owner's "
+                               f"({writer or 'at its prior alone'}, term {term}, {inputs} "
+                               f"inputs accepted; this instance {own})")[-1024:]
             route = routes.get(name)
             if self.settings.recover_samples > 0 and not self.closed and route is not None \
                     and route.sess is not None:

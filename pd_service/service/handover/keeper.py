@@ -83,6 +83,14 @@ def replicas_for(instance: str) -> str:
            "/replica/*"
 
 
+def inputs_accepted(counters: dict[str, object]) -> int:
+    """Measurements and commands a session accepted over its life (its ``accepted`` and
+    ``commands_accepted`` counters; a value that is not an int counts 0): of two owners'
+    estimates after a partition, the one that took in more data."""
+    return sum(v for v in (counters.get("accepted"), counters.get("commands_accepted"))
+               if type(v) is int and v > 0)
+
+
 def state_mark(sess: Session) -> tuple[int, int, int]:
     """What changes the exported state (committed step, packets and commands accepted):
     a session whose mark did not move since its last state is not written again. Not the
@@ -116,11 +124,11 @@ class HandoverKeeper:
         #: Sessions whose previous owner handed over only their prior (a delete on the
         #: replica key, :meth:`hand_to`), until :meth:`handed` reads it.
         self.at_prior: set[str] = set()
-        #: Terms of the states received since the worker last looked (:meth:`take_terms`):
-        #: session -> (term, writer); (0, "") for a hand-over of a session at its prior alone.
-        #: One newer than a session served here is a second owner (a healed partition): the
-        #: worker yields to it (``Lifecycle.yield_to_newer``).
-        self.terms_in: dict[str, tuple[int, str]] = {}
+        #: The states received since the worker last looked (:meth:`take_terms`): session ->
+        #: (term, writer, inputs accepted: :func:`inputs_accepted`); (0, "", 0) for a
+        #: hand-over of a session at its prior alone. One for a session served here is a
+        #: second owner's (a healed partition): ``Lifecycle.settle_second_owner``.
+        self.terms_in: dict[str, tuple[int, str, int]] = {}
 
     # ================================================================== outgoing ======
 
@@ -204,12 +212,17 @@ class HandoverKeeper:
         self.counters["replica_bytes"] += len(data)
         return True
 
-    def take_terms(self) -> dict[str, tuple[int, str]]:
-        """The terms of the states received since the last call (session -> (term,
-        writer)); any thread."""
+    def take_terms(self) -> dict[str, tuple[int, str, int]]:
+        """The states received since the last call (session -> (term, writer, inputs
+        accepted)); any thread."""
         with self._lock:
             got, self.terms_in = self.terms_in, {}
         return got
+
+    def holds(self, session: str) -> bool:
+        """Whether a replica of ``session`` is held (to resume from). Any thread."""
+        with self._lock:
+            return session in self.replicas
 
     def drop_prior_mark(self, session: str) -> None:
         """Forget a prior-alone hand-over of ``session`` (it was served here: nothing to
@@ -375,7 +388,7 @@ class HandoverKeeper:
                 if len(self.at_prior) < MAX_REPLICAS:
                     self.at_prior.add(session)
                 if len(self.terms_in) < MAX_REPLICAS:  # term unknown: 0
-                    self.terms_in[session] = (0, "")
+                    self.terms_in[session] = (0, "", 0)
             if self.arrived is not None:
                 self.arrived(session)
             return
@@ -390,10 +403,11 @@ class HandoverKeeper:
             return
         step = step or 0
         term, writer = obj.get("term", 0), obj.get("instance", "")
+        counted = obj.get("session_counters")
         with self._lock:
             if type(term) is int and term > 0 and type(writer) is str \
-                    and len(self.terms_in) < MAX_REPLICAS:
-                self.terms_in[session] = (term, writer)
+                    and type(counted) is dict and len(self.terms_in) < MAX_REPLICAS:
+                self.terms_in[session] = (term, writer, inputs_accepted(counted))
             old = self.replicas.get(session)
             if old is None or step >= old[0]:
                 if old is None and len(self.replicas) >= MAX_REPLICAS:
