@@ -333,11 +333,10 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
             "diagP_during": round(max(ratios_during), 4) if ratios_during else None,
             "exact_after": exact,
             "yielded": sum(lg.count("event=term_yielded") for lg in logs.values()),
-            "renewed": sum(lg.count("event=term_renewed") for lg in logs.values()),
+            "kept": sum(lg.count("event=term_kept") for lg in logs.values()),
             "taken_over": sum(lg.count("taken over") for lg in logs.values()),
         }
     finally:
-        relay.cut()
         for p in procs:
             p.terminate()
         for p in procs:
@@ -345,6 +344,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
                 p.wait(20)
             except subprocess.TimeoutExpired:
                 p.kill()
+        relay.cut()
         for c in closing:
             c.close()
 
@@ -364,7 +364,7 @@ def main() -> None:
     runs = [one_run(args) for _ in range(args.repeat)]
     cols = ["two_owner_keys", "display_interleaved", "stale_dropped", "one_owner_s",
             "members_back_s", "diagP_during", "diagP_after", "exact_after", "yielded",
-            "renewed"]
+            "kept"]
     print(f"partition of {args.partition:g} s, 2 instances x {args.sessions} sessions, "
           f"{args.repeat} run(s); gauge {g:.1f} ms")
     for c in cols:

@@ -326,6 +326,8 @@ class ServiceCore:
                     self.keeper.after_round([r.sess for r in self._routes.values()
                                              if r.sess is not None], now)
                     self._next_sweep_ns = now + _SWEEP_NS
+                if self.keeper.resends:
+                    self.keeper.resend_due(now)
                 if now >= self._next_expiry_ns:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS

@@ -202,7 +202,7 @@ class Lifecycle:
             self.counters["control_flood"] += d.control_drops
             d.control_drops = 0
         q = d.control
-        membership_changed = False
+        membership_changed = joined = False
         before: list[str | None] | None = None  # the partition table before the changes
         # Config changes: rate-limited per session and service-wide, at most config_slice
         # per round, so that replacing specs in a loop costs its sender, not the others.
@@ -232,6 +232,7 @@ class Lifecycle:
                 changed = self.ownership.join(inst) if alive else self.ownership.leave(inst)
                 if changed:
                     membership_changed = True
+                    joined = joined or alive
                     event(log, "member_joined" if alive else "member_left", instance=inst,
                           members=len(self.ownership.members))
                     if alive and not self.closed:
@@ -240,6 +241,24 @@ class Lifecycle:
                         self._spawn(self._sync_in_background)
         if membership_changed and self.ownership.shard is None:
             self.reassign(now, before)
+            if joined:
+                self.renew_terms(now)
+
+    def renew_terms(self, now: int) -> None:
+        """An instance joined (or came back: a partition's heal): every session still served
+        here starts a new term. The joiner may have served some of them meanwhile under a
+        newer term than ours; readers then drop our output until we publish a newer one,
+        which, if its hand-over state never comes, would be never. Newer than the joiner's
+        if the hosts' clocks agree to better than the partition lasted; the state, when it
+        comes, is settled by :meth:`settle_second_owner`."""
+        me, n = self.ownership.instance, 0
+        for name, route in self.dispatch.routes.items():
+            sess = route.sess
+            if sess is not None and self.ownership.owns(name):
+                sess.term = next_term(sess.term, me, now)
+                n += 1
+        if n:
+            event(log, "terms_renewed", sessions=n, detail="an instance joined")
 
     def _config_allowed(self, sample: Sample, now: int) -> bool:
         """Take a token from the sender session's bucket and the service's; refuse
@@ -681,10 +700,9 @@ class Lifecycle:
 
         - the other's (``term_yielded``, logged WARNING ``term_yielded``, said in the status
           detail): the session restarts from that state, as at a hand-over;
-        - this instance's own (``term_renewed``): the estimate stays, the term is renewed;
-          so for a session the other held at its prior alone (a delete: no state, no term):
-          its new term is newer than the other's if the hosts' clocks agree to better than
-          the partition lasted (:func:`.ownership.next_term`).
+        - this instance's own (``term_kept``): the estimate stays, the term is renewed if
+          the other's is not older (at a heal :meth:`renew_terms` did so already); so for a
+          session the other held at its prior alone (a delete: no state, no term).
 
         Either way the senders' caches are read back: what reached only the other side
         inside the window comes back. The other owner stops serving the session when it
@@ -699,24 +717,27 @@ class Lifecycle:
             sess = route.sess if route is not None else None
             if sess is None or not self.ownership.owns(name) or writer == me:
                 continue
+            if term and writer == sess.resumed_writer and term <= sess.resumed_term:
+                continue  # (a copy of) the state this session was resumed from
             own = inputs_accepted(sess.counters)
             if term > 0 and (inputs, term) > (own, sess.term) and self.keeper.holds(name):
                 self.counters["term_yielded"] += 1
                 event(log, "term_yielded", logging.WARNING, session=name, term=sess.term,
-                      newer_term=term, other=writer, inputs=inputs, own_inputs=own)
+                      other_term=term, other=writer, inputs=inputs, own_inputs=own)
                 self.install(name, "active", f"yielded to {writer}'s estimate (term {term}, "
                              f"{inputs} inputs accepted; this instance's term {sess.term}, "
                              f"{own}: two owners, e.g. a healed partition)", now,
                              answer=True, resume="replica")
-            elif term > 0 and term < sess.term:
-                continue  # an older owner's state, with less: nothing to settle here
             else:
                 if term == 0:
                     self.keeper.drop_prior_mark(name)
-                old, sess.term = sess.term, next_term(max(term, sess.term), me, now)
-                self.counters["term_renewed"] += 1
-                event(log, "term_renewed", logging.WARNING, session=name, term=old,
-                      new_term=sess.term, other=writer or "?", inputs=inputs, own_inputs=own)
+                old = sess.term
+                if term >= sess.term:
+                    sess.term = next_term(term, me, now)
+                self.counters["term_kept"] += 1
+                event(log, "term_kept", logging.WARNING, session=name, term=old,
+                      new_term=sess.term, other_term=term, other=writer or "?", inputs=inputs,
+                      own_inputs=own)
                 sess.detail = (f"{sess.detail}; kept its estimate over a second owner's "
                                f"({writer or 'at its prior alone'}, term {term}, {inputs} "
                                f"inputs accepted; this instance {own})")[-1024:]

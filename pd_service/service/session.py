@@ -149,9 +149,10 @@ class Session:
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
         #: Ownership term its predictions are published with (ownership.next_term; set at
-        #: install), and the term of the state it resumed from (0: none).
+        #: install), and the term and writer of the state it resumed from (0, "": none).
         self.term = 0
         self.resumed_term = 0
+        self.resumed_writer = ""
         self.fingerprint = spec_fingerprint(spec)
         #: The session's phase of its periodic work (:func:`next_slot`), from its name.
         self.spread = zlib.crc32(self.name.encode())

@@ -70,6 +70,11 @@ MAX_REPLICAS = 100_000
 #: Pause (s) between two rounds of a hand-over's confirmation (put again, ask again).
 _HANDOVER_RETRY_S = 0.02
 
+#: When (s after the first) a join's hand-over state is put again: at a partition's heal
+#: the liveliness token may reach the old owner before the new owner's subscription does,
+#: and the first put goes nowhere (seen on loopback with a 10 s partition).
+HANDOVER_RESEND_S = (0.5, 2.0)
+
 
 def replica_key(instance: str, session: str) -> str:
     """``pd/@service/<instance>/replica/<session>``: state of ``session`` for ``instance``."""
@@ -129,6 +134,8 @@ class HandoverKeeper:
         #: hand-over of a session at its prior alone. One for a session served here is a
         #: second owner's (a healed partition): ``Lifecycle.settle_second_owner``.
         self.terms_in: dict[str, tuple[int, str, int]] = {}
+        #: Join hand-over states to put again: (due ns, key, state) (:data:`HANDOVER_RESEND_S`).
+        self.resends: list[tuple[int, str, bytes]] = []
 
     # ================================================================== outgoing ======
 
@@ -210,7 +217,21 @@ class HandoverKeeper:
             return False
         self.pub.pending.append(Out(key, data))
         self.counters["replica_bytes"] += len(data)
+        if len(self.resends) < MAX_REPLICAS:
+            self.resends += [(now + int(d * 1e9), key, data) for d in HANDOVER_RESEND_S]
         return True
+
+    def resend_due(self, now: int) -> None:
+        """Put again the join hand-over states due by ``now`` (a second copy is harmless:
+        the new owner already runs the session from a state as new, see
+        ``Lifecycle.settle_second_owner``)."""
+        due = [r for r in self.resends if r[0] <= now]
+        if not due:
+            return
+        self.resends = [r for r in self.resends if r[0] > now]
+        for _, key, data in due:
+            self.pub.pending.append(Out(key, data))
+            self.counters["replicas_handover_join_resent"] += 1
 
     def take_terms(self) -> dict[str, tuple[int, str, int]]:
         """The states received since the last call (session -> (term, writer, inputs
@@ -448,7 +469,7 @@ class HandoverKeeper:
         now_step = sess.step_now(now)
         msg, why = restore(sess.est, data, sess.spec, sess.fingerprint, now_step)
         if msg is not None:  # a refused state's term still fences: the next term is newer
-            sess.resumed_term = msg.term
+            sess.resumed_term, sess.resumed_writer = msg.term, msg.instance
         if why is not None:
             self._refused(sess, source, why, now)
             return
