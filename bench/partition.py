@@ -302,7 +302,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
             with feeds["a"].lock:
                 got = list(feeds["a"].preds[s])
             last = None
-            for term, step, x, P, at in got:
+            for _term, step, x, P, at in got:
                 if step not in ref:
                     continue
                 r = float(np.max(np.diag(P) / ref[step][1]))

