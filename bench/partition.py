@@ -369,7 +369,7 @@ def main() -> None:
           f"{args.repeat} run(s); gauge {g:.1f} ms")
     for c in cols:
         vals = [r[c] for r in runs if r[c] is not None]
-        med = statistics.median(vals) if vals else None
+        med = round(statistics.median(vals), 4) if vals else None
         spread = f"[{min(vals)} .. {max(vals)}]" if len(vals) > 1 else ""
         print(f"  {c:20s} {med!s:>10s} {spread}")
     print(json.dumps({"bench": "partition", "gauge_ms": g, "runs": runs}))
