@@ -97,6 +97,7 @@ from pd_service.wire import (
 from pd_service.wire import decode as wire_decode
 from pd_service.wire import encode as wire_encode
 from pd_service.wire.codec import validation_reason
+from pd_service.wire.fence import TermFence
 from pd_service.wire.ros2 import CommandBinding, OutputBinding, Ros2Binding, TopicBinding
 
 log = logging.getLogger("pd_service.ros2")
@@ -244,6 +245,8 @@ class _Session:
     outputs: list[_Output] = field(default_factory=list)
     prediction_handle: Handle | None = None
     closed: bool = False
+    #: Newest ownership term seen (predictions of an older one: a second owner, dropped).
+    fence: TermFence = field(default_factory=TermFence)
 
 
 _Item = tuple[Literal["config", "input", "prediction"], object, Sample]
@@ -663,6 +666,9 @@ class Ros2Bridge:
             return
         if pred.session != sess.name:
             c["predictions_invalid"] += 1
+            return
+        if not sess.fence.admit(pred.session, pred.term):  # an older owner's (a partition)
+            c["predictions_stale_term"] += 1
             return
         ob = sess.binding.outputs
         assert ob is not None

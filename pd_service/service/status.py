@@ -53,6 +53,7 @@ class StatusSnapshot:
     origin: Literal["prior", "checkpoint", "replica"]
     origin_step: int | None
     readback: Literal["", "waiting", "answered", "timeout"]
+    term: int
 
     def status(self, instance: str, now: int) -> SessionStatus:
         """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
@@ -62,14 +63,14 @@ class StatusSnapshot:
                              published=self.published, latency_p50_us=p50,
                              latency_p99_us=p99, detail=self.detail[:1024],
                              origin=self.origin, origin_step=self.origin_step,
-                             readback=self.readback)
+                             readback=self.readback, term=self.term)
 
 
 def snapshot_of(sess: Session, state: SessionPhase, detail: str) -> StatusSnapshot:
     """Copy of what ``sess``'s status needs (hold the lock while calling this)."""
     return StatusSnapshot(sess.name, sess.status_key, state, detail, sess.spec,
                        sess.counters_snapshot(), sess.published, sess.latency.values(),
-                       sess.origin, sess.origin_step, sess.readback)
+                       sess.origin, sess.origin_step, sess.readback, sess.term)
 
 
 def session_status(sess: Session, instance: str, state: SessionPhase, detail: str,
