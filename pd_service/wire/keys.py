@@ -12,6 +12,7 @@ Operator side (what the daemon reads and writes)::
     pd/p<k>/<session>/sensor/<name>   Measurement, after the downlink
     pd/p<k>/<session>/cmd             Command, published by the operator
     pd/p<k>/<session>/prediction      Prediction, published by the daemon
+    pd/p<k>/<session>/path            PredictedPath, by the daemon if the spec asks (path)
     pd/p<k>/<session>/error           ErrorReport, published by the daemon
     pd/p<k>/<session>/status          queryable: SessionStatus
     pd/@service/<instance>            liveliness token of one daemon instance
@@ -70,7 +71,8 @@ DEFAULT_PARTITIONS = 64
 MAX_PARTITIONS = 4096
 _PART_RE = re.compile(r"p(0|[1-9][0-9]{0,3})")
 
-StreamKind = Literal["config", "sensor", "cmd", "prediction", "error", "status", "truth"]
+StreamKind = Literal["config", "sensor", "cmd", "prediction", "path", "error", "status",
+                     "truth"]
 
 
 class KeyError_(ValueError):
@@ -176,6 +178,10 @@ def prediction_key(session: str) -> str:
     return f"{session_prefix(session)}/prediction"
 
 
+def path_key(session: str) -> str:
+    return f"{session_prefix(session)}/path"
+
+
 def error_key(session: str) -> str:
     return f"{session_prefix(session)}/error"
 
@@ -197,6 +203,8 @@ ALL_CONFIGS = f"{OPERATOR_ROOT}/*/*/config"
 ALL_SENSORS = f"{OPERATOR_ROOT}/*/*/sensor/*"
 ALL_COMMANDS = f"{OPERATOR_ROOT}/*/*/cmd"
 ALL_PREDICTIONS = f"{OPERATOR_ROOT}/*/*/prediction"
+#: Every session's predicted path (sessions whose spec asks for it).
+ALL_PATHS = f"{OPERATOR_ROOT}/*/*/path"
 ALL_ERRORS = f"{OPERATOR_ROOT}/*/*/error"
 ALL_STATUS = f"{OPERATOR_ROOT}/*/*/status"
 ALL_SERVICES = f"{OPERATOR_ROOT}/{SERVICE_CHUNK}/*"
@@ -293,7 +301,7 @@ class ParsedKey:
     partition: int = 0
 
 
-_KINDS_OPERATOR = {"config", "cmd", "prediction", "error", "status"}
+_KINDS_OPERATOR = {"config", "cmd", "prediction", "path", "error", "status"}
 _KINDS_ROBOT = {"cmd", "truth"}
 
 
