@@ -19,7 +19,17 @@ each prediction into one event for the page (:meth:`FeedSession.event`)::
      "c": {"accepted": .., "late": .., "future": .., "refused": ..},
      "cmd": {"k": 131, "u": [0.5]} | null}
 
-and, twice a second, a ``tick`` event with the sessions the daemons report and the warnings
+for a session whose spec asks for the predicted path (``pd/*/*/path``, a PredictedPath), one
+``path`` event after its prediction, the page's position components only::
+
+    {"type": "path", "i": 18, "s": "paper", "ts": 1.7e12, "seq": 41,   # seq of its prediction
+     "k": [120, 121, ..., 130],                               # steps, the target last
+     "p": [[..positions..], ...],                             # means, one row per step
+     "sd": [[..sigma..], ...],                                # axis: 1-sigma per position
+     "ell": [[cx, cy, a, b, angle], ...] | null}              # plane: 2-sigma ellipse per step
+
+(a path that lacks one of the page's position components is counted, ``paths_unshown``, not
+drawn); and, twice a second, a ``tick`` event with the sessions the daemons report and the warnings
 (predictions stopped, sensors silent: ``[what, seconds since]`` pairs). The 2-sigma ellipse
 of the planar position (x, y) with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's
 eigenvectors.
@@ -40,6 +50,7 @@ import numpy as np
 
 from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import Command, Measurement, Prediction, SessionSpec, keys
+from pd_service.wire.path import PredictedPath
 
 from .._base import try_decode
 from ..admin import Admin
@@ -109,6 +120,9 @@ class FeedSession:
         self.last_pred: float | None = None  # monotonic s
         self.predictions = 0
         self.history: deque[tuple[int, bytes]] = deque(maxlen=HISTORY)  # (event id, JSON)
+        #: The newest prediction's (layout, position indices): what a path event draws.
+        self.layout: tuple[str, list[int]] | None = None
+        self.paths_unshown = 0
 
     # --- clock of the session ----------------------------------------------------------
 
@@ -194,6 +208,7 @@ class FeedSession:
         n = p.x.shape[0]
         names = self.state_names(n)
         layout, pos = position_layout(names, n)
+        self.layout = (layout, pos)
         ell = None
         if layout == "plane":
             a, b, ang = ellipse_2sigma(p.P[np.ix_(pos, pos)])
@@ -219,6 +234,30 @@ class FeedSession:
             "c": {k: int(p.counters.get(k, 0)) for k in COUNTERS},
             "cmd": self.cmd,
         }
+
+    def path_event(self, path: PredictedPath) -> Json | None:
+        """The page's event for ``path`` (module docstring), or None (counted) if it lacks
+        one of the page's position components or no prediction set the layout yet."""
+        if self.layout is None:
+            self.paths_unshown += 1
+            return None
+        layout, pos = self.layout
+        cols = [path.indices.index(i) if i in path.indices else -1 for i in pos]
+        if -1 in cols:
+            self.paths_unshown += 1
+            return None
+        k = len(path.steps)
+        covs = [path.covariance(i)[np.ix_(cols, cols)] for i in range(k)]
+        ell = None
+        if layout == "plane":
+            ell = []
+            for i in range(k):
+                a, b, ang = ellipse_2sigma(covs[i])
+                ell.append([_num(path.X[i, cols[0]]), _num(path.X[i, cols[1]]), _num(a), _num(b),
+                            _num(ang)])
+        return {"type": "path", "s": self.name, "seq": path.seq, "k": list(path.steps),
+                "p": [_vec(path.X[i, cols]) for i in range(k)],
+                "sd": [_vec(np.sqrt(np.maximum(np.diag(c), 0.0))) for c in covs], "ell": ell}
 
     def warnings(self, mono: float, stale_s: float
                  ) -> tuple[float | None, dict[str, float], list[tuple[str, float]]]:
@@ -281,6 +320,7 @@ class LiveFeed:
             (keys.ALL_SENSORS, self._on_measurement),
             (keys.ALL_COMMANDS, self._on_command),
             (keys.ALL_TRUTHS, self._on_truth),
+            (keys.ALL_PATHS, self._on_path),
         ]
         self._handles: list[Handle] = [transport.subscribe(k, cb) for k, cb in subs]
 
@@ -307,13 +347,30 @@ class LiveFeed:
             if p is None or p.session != session:
                 self.invalid += 1
                 return
-            self.events += 1
-            ev = self._view(session).event(p, sample.recv_ns, self._now_ns(), self._mono())
-            ev["i"] = self.events
-            ev["ts"] = self._now_ns() / 1e6
-            data = json.dumps(ev, separators=(",", ":")).encode()
-            self.views[session].history.append((self.events, data))
-            self.sink(data)
+            self._emit(session, self._view(session).event(p, sample.recv_ns, self._now_ns(),
+                                                          self._mono()))
+
+    def _emit(self, session: str, ev: Json) -> None:
+        """Number, stamp, keep and send one page event (``lock`` held)."""
+        self.events += 1
+        ev["i"] = self.events
+        ev["ts"] = self._now_ns() / 1e6
+        data = json.dumps(ev, separators=(",", ":")).encode()
+        self.views[session].history.append((self.events, data))
+        self.sink(data)
+
+    def _on_path(self, sample: Sample) -> None:
+        session = self._session_of(sample)
+        if session is None:
+            return
+        path = try_decode(sample, PredictedPath)
+        with self.lock:
+            if path is None or path.session != session:
+                self.invalid += 1
+                return
+            ev = self._view(session).path_event(path)
+            if ev is not None:
+                self._emit(session, ev)
 
     def _on_config(self, sample: Sample) -> None:
         session = self._session_of(sample)  # a delete (session removed) keeps the last spec
@@ -395,7 +452,8 @@ class LiveFeed:
             out: Json = {}
             for name, v in sorted(self.views.items()):
                 pa, ages, warn = v.warnings(mono, self.stale_s)
-                out[name] = {"pa": pa, "sa": ages, "warn": warn, "n": v.predictions}
+                out[name] = {"pa": pa, "sa": ages, "warn": warn, "n": v.predictions,
+                             "paths_unshown": v.paths_unshown}
             names = sorted(set(self.reported) | set(self.views))
             ev = {"type": "tick", "ts": self._now_ns() / 1e6, "list": names,
                   "reported": self.reported, "sessions": out, "events": self.events}

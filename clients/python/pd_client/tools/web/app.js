@@ -21,6 +21,7 @@ function session(name) {
 function onEvent(ev) {
   if (ev.type === "hello") { S.clear(); stats.lastI = 0; dirty = true; return; }
   if (ev.type === "tick") { onTick(ev); return; }
+  if (ev.type === "path") { session(ev.s).path = ev; if (ev.s === selected) dirty = true; return; }
   if (ev.type !== "pred") return;
   const now = Date.now();
   const lag = now - ev.ts;
@@ -91,6 +92,19 @@ function truthPoints(evs) {
   return Array.from(seen.values());
 }
 
+// the session's newest path, if it ends at or past the newest prediction's target (an older one
+// would draw a stale future)
+function pathOf(last) {
+  const p = S.get(last.s)?.path;
+  return p && (p.ell || last.layout === "axis") && p.k[p.k.length - 1] >= last.k ? p : null;
+}
+// what the plan view drew of the path, for the browser test: data-* of the canvas
+function showPath(c, path) {
+  const d = c.dataset;
+  if (!path) { delete d.pathSeq; delete d.pathK; delete d.pathP; delete d.pathSd; return; }
+  d.pathSeq = path.seq; d.pathK = JSON.stringify(path.k); d.pathP = JSON.stringify(path.p); d.pathSd = JSON.stringify(path.sd);
+}
+
 // 1-D positions (p1, p2, ...) on one horizontal axis; vertical: steps, newest at the top.
 function drawAxis(c, evs, last) {
   const g = ctx2d(c), W = c.width, H = c.height, L = 50, R = 12, T = 18, B = 28;
@@ -102,6 +116,8 @@ function drawAxis(c, evs, last) {
   for (const e of recent) pos.forEach((i) => { vals.push(e.x[i] - 2 * Math.sqrt(e.var[i]), e.x[i] + 2 * Math.sqrt(e.var[i])); });
   for (const m of meas) for (const n in m.p) vals.push(m.p[n]);
   for (const t of truth) vals.push(...t.p);
+  const path = pathOf(last);
+  if (path) path.p.forEach((p, n) => p.forEach((v, j) => vals.push(v - 2 * path.sd[n][j], v + 2 * path.sd[n][j])));
   const [lo, hi] = range(vals);
   const X = (v) => L + (v - lo) / (hi - lo) * (W - L - R);
   const Y = (k) => T + (top - k) / (top - bot) * (H - T - B);
@@ -120,6 +136,17 @@ function drawAxis(c, evs, last) {
     g.strokeStyle = "#e8e8e8"; g.lineWidth = 1; g.beginPath();
     truth.forEach((t, n) => { const x = X(t.p[j]), y = Y(t.k); n ? g.lineTo(x, y) : g.moveTo(x, y); }); g.stroke();
   });
+  // predicted path (newest measured step -> target) with its 2-sigma band
+  if (path) pos.forEach((i, j) => {
+    const col = COLORS[j % COLORS.length];
+    g.fillStyle = col + "30"; g.beginPath();
+    path.k.forEach((k, n) => { const x = X(path.p[n][j] - 2 * path.sd[n][j]); n ? g.lineTo(x, Y(k)) : g.moveTo(x, Y(k)); });
+    for (let n = path.k.length - 1; n >= 0; n--) g.lineTo(X(path.p[n][j] + 2 * path.sd[n][j]), Y(path.k[n]));
+    g.closePath(); g.fill();
+    g.strokeStyle = col; g.lineWidth = 1.5; g.setLineDash([6, 3]); g.beginPath();
+    path.k.forEach((k, n) => { n ? g.lineTo(X(path.p[n][j]), Y(k)) : g.moveTo(X(path.p[n][j]), Y(k)); }); g.stroke(); g.setLineDash([]);
+  });
+  showPath(c, path);
   // predicted trail + 2-sigma ellipse of the newest
   pos.forEach((i, j) => {
     const col = COLORS[j % COLORS.length];
@@ -152,6 +179,8 @@ function drawPlane(c, evs, last) {
   const nx = last.names[ix], ny = last.names[iy];
   for (const m of meas) { if (Object.hasOwn(m.p, nx)) xs.push(m.p[nx]); if (Object.hasOwn(m.p, ny)) ys.push(m.p[ny]); }
   if (last.ell) { xs.push(last.ell[0] - last.ell[2], last.ell[0] + last.ell[2]); ys.push(last.ell[1] - last.ell[2], last.ell[1] + last.ell[2]); }
+  const path = pathOf(last);
+  if (path) for (const [ex, ey, a] of path.ell) { xs.push(ex - a, ex + a); ys.push(ey - a, ey + a); }
   let [x0, x1] = range(xs), [y0, y1] = range(ys);
   const s = Math.min((W - 2 * M) / (x1 - x0), (H - 2 * M) / (y1 - y0));
   const cxm = (x0 + x1) / 2, cym = (y0 + y1) / 2;
@@ -160,6 +189,13 @@ function drawPlane(c, evs, last) {
   const line = (pts, col, w) => { g.strokeStyle = col; g.lineWidth = w; g.beginPath(); pts.forEach((p, n) => n ? g.lineTo(X(p[0]), Y(p[1])) : g.moveTo(X(p[0]), Y(p[1]))); g.stroke(); };
   line(truth.map((t) => t.p), "#e8e8e8", 1);
   line(recent.map((e) => [e.x[ix], e.x[iy]]), "#4aa3ff", 2);
+  // predicted path with its 2-sigma band: the union of each step's 2-sigma ellipse
+  if (path) {
+    g.fillStyle = "#c59bff22";
+    for (const [ex, ey, a, b, ang] of path.ell) { g.beginPath(); g.ellipse(X(ex), Y(ey), Math.max(1, a * s), Math.max(1, b * s), -ang, 0, 2 * Math.PI); g.fill(); }
+    g.setLineDash([6, 3]); line(path.p, "#c59bff", 1.5); g.setLineDash([]);
+  }
+  showPath(c, path);
   g.fillStyle = "#ffb020";
   for (const m of meas) if (Object.hasOwn(m.p, nx) && Object.hasOwn(m.p, ny)) { g.beginPath(); g.arc(X(m.p[nx]), Y(m.p[ny]), 3, 0, 2 * Math.PI); g.fill(); }
   if (last.ell) {
