@@ -33,7 +33,8 @@ import pytest
 from pd_client import Admin, Display
 from pd_client.tools import pd_web
 from pd_service.transport import InMemoryBus
-from pd_service.wire import Prediction, encode, keys
+from pd_service.wire import Prediction, decode, encode, keys
+from pd_service.wire.path import PredictedPath
 from pd_service.wire.truth import Truth
 
 from .test_integration import ROOT, Procs, _open_when_listening, free_port
@@ -122,11 +123,14 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
         by_seq: dict[int, Prediction] = {}
         display = Display(transport, "paper", truth=True)
         display.on_prediction(lambda p: by_seq.__setitem__(p.seq, p))
+        paths: dict[int, PredictedPath] = {}
+        transport.subscribe(keys.path_key("paper"), lambda s: (lambda p: paths.__setitem__(
+            p.seq, p))(decode(bytes(s.payload), PredictedPath)))
         procs.start("operator", "-m", "pd_client.tools", "operator", *zenoh, "--session", "paper",
                     "--steps", "1200")
         sim = procs.start("sim", "-m", "pd_client.tools", "sim", *zenoh, "--direct",
                           "--create-session", "--session", "paper", "--steps", "1200",
-                          "--progress", "0")
+                          "--progress", "0", "--path", "1")
         display.wait(1, timeout=30)
 
         def page_up() -> bool:
@@ -160,6 +164,22 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
             checked += 1
             time.sleep(0.3)
         assert checked == 8 and len(steps) >= 4, steps  # compared 8 frames over >= 4 steps
+
+        # The predicted path the plan view drew is the daemon's, point for point, and ends at
+        # the prediction of the same seq.
+        for _ in range(5):
+            d = browser.execute_script("return Object.assign({}, document.getElementById('plan').dataset)")
+            assert "pathSeq" in d, d
+            seq = int(d["pathSeq"])
+            path = wait_until(f"path seq {seq} here", lambda s=seq: paths.get(s), timeout=5)
+            pred = wait_until(f"prediction seq {seq} here", lambda s=seq: by_seq.get(s), timeout=5)
+            assert json.loads(d["pathK"]) == path.steps and path.steps[-1] == pred.step
+            assert path.indices == [0, 2] and len(path.steps) >= 2
+            assert json.loads(d["pathP"]) == path.X.tolist()
+            sd = np.sqrt([np.diag(path.covariance(i)) for i in range(len(path.steps))])
+            np.testing.assert_allclose(json.loads(d["pathSd"]), sd, rtol=1e-12)
+            assert path.X[-1].tolist() == [pred.x[0], pred.x[2]]
+            time.sleep(0.2)
 
         # Truth and a measured (delayed) position reach the page too.
         def with_truth() -> dict | None:

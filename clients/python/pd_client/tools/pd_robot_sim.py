@@ -67,11 +67,13 @@ from pd_service.scenarios import (
 )
 from pd_service.transport import Transport
 from pd_service.wire import Command, SessionSpec, WireError
+from pd_service.wire.messages import PathSpec
 
 from ..admin import Admin
 from ..errors import PdClientError
 from ..robot import CommandSchedule, Robot
 from . import common
+from .web_feed import position_layout
 
 if TYPE_CHECKING:
     from .ros2_robot import Ros2Options, Ros2RobotNode
@@ -286,6 +288,9 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--publish-every", type=int, default=1, metavar="N",
                     help="with --create-session: the daemon publishes every N-th step's "
                          "prediction (default 1: every step)")
+    ap.add_argument("--path", type=int, default=0, metavar="N",
+                    help="with --create-session: the daemon publishes the predicted path (the "
+                         "position components) with every N-th prediction (default 0: never)")
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
@@ -368,9 +373,14 @@ def _run(args: argparse.Namespace, scenario: Scenario,
 def _new_specs(args: argparse.Namespace, scenario: Scenario,
                sessions: list[tuple[str, list[str] | None]], epoch: int) -> list[SessionSpec]:
     """The sessions' SessionSpecs with step 0 at ``epoch`` (ns); ValueError for bad settings."""
+    path = None
+    if args.path:
+        n = len(scenario.state_names)
+        path = PathSpec(indices=position_layout(list(scenario.state_names), n)[1],
+                        every=args.path)
     return [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
                           lead=args.lead, max_delay=args.max_delay,
-                          publish_every=args.publish_every)
+                          publish_every=args.publish_every, path=path)
             for name, sensors in sessions]
 
 
