@@ -17,6 +17,9 @@ pytest.importorskip("google.protobuf")
 
 from pd_client.tools.pd_viz import VizServer, ellipse_points, position_indices  # noqa: E402
 from pd_service.transport import InMemoryBus  # noqa: E402
+from pd_service.wire import decode, keys  # noqa: E402
+from pd_service.wire.messages import PathSpec  # noqa: E402
+from pd_service.wire.path import PredictedPath  # noqa: E402
 from tests.service.helpers import Clock, Collector  # noqa: E402
 from tests.service.test_core import PaperFeed, make_core  # noqa: E402
 
@@ -27,14 +30,19 @@ TOPICS = ["/s1/pose", "/s1/ellipse", "/s1/prediction", "/s1/measurement", "/s1/c
 
 
 @contextmanager
-def viz_on_paper(tmp_path):
+def viz_on_paper(tmp_path, path: PathSpec | None = None, paths: list | None = None):
     """The daemon core running the paper scenario (session s1, 60 steps) on the in-memory
-    bus, pd-viz serving it, and a Foxglove client connected: (feed, collector, client)."""
+    bus, pd-viz serving it, and a Foxglove client connected: (feed, collector, client).
+    ``path``: the session's path setting; the daemon's paths are appended to ``paths``."""
     bus = InMemoryBus()
     clock = Clock(0)
     col = Collector().attach(bus.transport())
+    if paths is not None:
+        bus.transport().subscribe(keys.ALL_PATHS, lambda s: paths.append(
+            decode(bytes(s.payload), PredictedPath)))
     core = make_core(bus, clock, tmp_path)
     feed = PaperFeed(core, bus.transport(), clock, col, "s1", steps=60, check=False)
+    feed.spec = feed.spec.model_copy(update={"path": path})
     feed.configure()
     server = VizServer(bus.transport(), ["s1"], port=0, xy=(0, 2), status_every=0)
     client = FoxgloveClient(server.url)
@@ -83,6 +91,46 @@ def test_pose_equals_the_daemons_prediction(tmp_path):
     assert len(scene.entities[0].lines[0].points) == 48
     # the refused duplicates / over-late copies show up as Log messages
     assert client.messages.get("/s1/log")
+
+
+def test_path_channels_equal_the_daemons_path(tmp_path):
+    """A session whose spec asks for the path: ``/s1/path`` (JSON) carries the daemon's path
+    of the (x, y) components point for point, ``/s1/path_band`` (SceneUpdate) its means as a
+    line and a 2-sigma ellipse per point."""
+    paths: list[PredictedPath] = []
+    topics = ["/s1/path", "/s1/path_band", "/s1/pose"]
+    with viz_on_paper(tmp_path, PathSpec(indices=[0, 2], stride=2), paths) as (feed, col, client):
+        client.wait_channels(topics)
+        client.subscribe(topics)
+        client.pump(0.5)
+        for k in range(40):
+            feed.step(k)
+        client.pump(1.0)
+    by_seq = {p.seq: p for p in paths}
+    preds = {p.seq: p for p in col.predictions["s1"]}
+    js = [json.loads(d) for _, d in client.messages["/s1/path"]]
+    assert len(js) >= 30 and len(paths) >= len(js)
+    for m in js:
+        path = by_seq[m["seq"]]
+        assert m["steps"] == path.steps and m["x"] == path.X[:, 0].tolist()
+        assert m["y"] == path.X[:, 1].tolist()
+        assert m["t_ns"][-1] == preds[m["seq"]].t_ns and m["x"][-1] == preds[m["seq"]].x[0]
+        sd = np.sqrt([np.diag(path.covariance(i)) for i in range(len(path.steps))])
+        np.testing.assert_allclose(np.array([m["sd_x"], m["sd_y"]]).T, sd, rtol=1e-12)
+    Scene = client.protobuf_class("/s1/path_band")
+    scenes = [Scene.FromString(d) for _, d in client.messages["/s1/path_band"]]
+    assert len(scenes) == len(js)
+    for scene, m in zip(scenes, js, strict=True):
+        [ent] = scene.entities
+        assert ent.frame_id == "world"
+        assert ent.timestamp.seconds * 10**9 + ent.timestamp.nanos == m["t_ns"][-1]
+        mean, *loops = ent.lines
+        assert [(p.x, p.y) for p in mean.points] == list(zip(m["x"], m["y"], strict=True))
+        assert len(loops) == len(m["steps"])
+        for loop, x, y, sx, sy in zip(loops, m["x"], m["y"], m["sd_x"], m["sd_y"], strict=True):
+            pts = np.array([(p.x, p.y) for p in loop.points])
+            assert len(pts) == 24  # every point of a 2-sigma ellipse lies within its box
+            assert np.all(np.abs(pts - [x, y]) <= 2 * np.array([sx, sy]) * (1 + 1e-9) + 1e-12)
 
 
 def test_position_and_ellipse_helpers():

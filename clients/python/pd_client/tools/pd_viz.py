@@ -14,6 +14,9 @@ topic                      schema                content
 /<s>/pose                  foxglove.PoseInFrame  predicted position (x, y) at the target step
 /<s>/ellipse               foxglove.SceneUpdate  its 2-sigma ellipse, from P's (x, y) block
 /<s>/truth_pose            foxglove.PoseInFrame  the simulator's truth (when published)
+/<s>/path_band             foxglove.SceneUpdate  predicted path (spec's ``path``): its (x, y)
+                                                 means as a line, a 2-sigma ellipse per point
+/<s>/path                  JSON                  the same path: steps, t_ns, x, y, sd_x, sd_y
 /<s>/prediction            JSON                  step, x / var / sd per state name, latency
 /<s>/error                 JSON                  prediction - truth per state, and / sigma
 /<s>/measurement           JSON                  each sensor packet as it arrives, its age
@@ -68,6 +71,7 @@ from pd_service.wire import (
     keys,
 )
 from pd_service.wire.convert import command_step, measurement_step
+from pd_service.wire.path import PredictedPath
 
 from ..admin import Admin
 from ..display import Display
@@ -105,6 +109,9 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                            age_ms=_NUM),
     "command": _object("pd_viz.Command", seq=_INT, u={"type": "array", "items": _NUM}, step=_INT),
     "truth": _object("pd_viz.Truth", step=_INT, x=_NUMBERS),
+    "path": _object("pd_viz.Path", seq=_INT, steps={"type": "array", "items": _INT},
+                    t_ns={"type": "array", "items": _INT},
+                    **{k: {"type": "array", "items": _NUM} for k in ("x", "y", "sd_x", "sd_y")}),
     "status": _object(
         "pd_viz.Status", session={"type": "string"}, state={"type": "string"}, now_step=_INT,
         counters={"type": "object", "additionalProperties": _INT}, late=_INT, future=_INT,
@@ -171,12 +178,13 @@ class SessionView:
         self.names: list[str] | None = None
         self._lock = threading.Lock()
         self.counts = {"predictions": 0, "measurements": 0, "commands": 0, "truth": 0,
-                       "errors": 0, "invalid": 0}
+                       "errors": 0, "invalid": 0, "paths": 0, "paths_unshown": 0}
         p = f"/{session}/"
         ctx = {"context": context}
         self.pose = PoseInFrameChannel(p + "pose", **ctx)
         self.ellipse = SceneUpdateChannel(p + "ellipse", **ctx)
         self.truth_pose = PoseInFrameChannel(p + "truth_pose", **ctx)
+        self.path_band = SceneUpdateChannel(p + "path_band", **ctx)
         self.log = LogChannel(p + "log", **ctx)
         self.json = {name: foxglove.Channel(p + name, schema=foxglove.Schema(
             name=f"pd_viz.{name.capitalize()}", encoding="jsonschema",
@@ -191,6 +199,7 @@ class SessionView:
             transport.subscribe(keys.sensors_of(session), self._on_sensor),
             transport.subscribe(keys.command_key(session), self._on_command),
             transport.subscribe(keys.error_key(session), self._on_error),
+            transport.subscribe(keys.path_key(session), self._on_path),
         ]
 
     # --- helpers -----------------------------------------------------------------------
@@ -361,6 +370,58 @@ class SessionView:
         if self.spec is not None:
             msg["step"] = command_step(c, self.spec)
         self._emit("command", msg, sample.recv_ns)
+
+    def _on_path(self, sample: Sample) -> None:
+        """A PredictedPath: its (x, y) means as a line and a 2-sigma ellipse per point on
+        ``path_band``, and the numbers on ``path``; a path without the (x, y) components is
+        counted (``paths_unshown``)."""
+        from foxglove.messages import (
+            Color,
+            LinePrimitive,
+            LinePrimitiveLineType,
+            Point3,
+            SceneEntity,
+            SceneUpdate,
+        )
+
+        if sample.kind != "put":
+            return
+        try:
+            path = decode(sample.payload, PredictedPath)
+        except WireError:
+            self.counts["invalid"] += 1
+            return
+        names = self.names
+        n = len(names) if names else max(path.indices) + 1
+        i, j = position_indices(n, names, self.xy)
+        if i not in path.indices or j is None or j not in path.indices:
+            self.counts["paths_unshown"] += 1
+            return
+        self.counts["paths"] += 1
+        now = time.time_ns()
+        a, b = path.indices.index(i), path.indices.index(j)
+        xs, ys = path.X[:, a], path.X[:, b]
+        covs = [path.covariance(r)[np.ix_([a, b], [a, b])] for r in range(len(path.steps))]
+        band = Color(r=0.77, g=0.61, b=1.0, a=0.5)
+        lines = [LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=2.0,
+                               scale_invariant=True, color=Color(r=0.77, g=0.61, b=1.0, a=1.0),
+                               points=[Point3(x=float(x), y=float(y), z=0.0)
+                                       for x, y in zip(xs, ys, strict=True)])]
+        lines += [LinePrimitive(type=LinePrimitiveLineType.LineLoop, thickness=1.0,
+                                scale_invariant=True, color=band,
+                                points=[Point3(x=u, y=v, z=0.0) for u, v in ellipse_points(
+                                    (float(x), float(y)), c, segments=24)])
+                  for x, y, c in zip(xs, ys, covs, strict=True)]
+        t_end = path.t_ns(len(path.steps) - 1)
+        self.path_band.log(SceneUpdate(entities=[SceneEntity(
+            timestamp=_ts(t_end), frame_id=FRAME, id=f"{self.session}-path", lines=lines)]),
+            log_time=now)
+        self._emit("path", {
+            "seq": path.seq, "steps": list(path.steps),
+            "t_ns": [path.t_ns(r) for r in range(len(path.steps))],
+            "x": xs.tolist(), "y": ys.tolist(),
+            "sd_x": [math.sqrt(max(float(c[0, 0]), 0.0)) for c in covs],
+            "sd_y": [math.sqrt(max(float(c[1, 1]), 0.0)) for c in covs]}, now)
 
     def _on_error(self, sample: Sample) -> None:
         from foxglove.messages import Log, LogLevel
