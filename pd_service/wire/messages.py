@@ -687,6 +687,8 @@ class SessionSpec(Message):
             out.pop("expire_s", None)
         if self.stamp_rounding == "nearest":  # the default: the bytes stay as before
             out.pop("stamp_rounding", None)
+        if self.path is None:  # no path (the default): the bytes stay as before
+            out.pop("path", None)
         return out
 
     def _check_ros2(self, ros2: Ros2Binding, n: int) -> None:
@@ -702,6 +704,13 @@ class SessionSpec(Message):
             for quantity, i in ros2.outputs.layout.indices().items():
                 if i >= n:
                     raise invalid(f"ros2.outputs.layout.{quantity}", f"{i} must be < n={n}")
+            lay = ros2.outputs.layout
+            if self.path is not None and ros2.outputs.path_topic is not None and (
+                    lay.x is None or lay.y is None
+                    or not {lay.x, lay.y} <= set(self.path.indices)):
+                raise invalid("path.indices", f"{self.path.indices} must hold the ROS 2 "
+                               f"layout's x ({lay.x}) and y ({lay.y}): its nav_msgs/Path "
+                               "carries them (or set ros2.outputs.path_topic to null)")
 
 
 # --- streams into the daemon ------------------------------------------------------------
