@@ -7,6 +7,7 @@ the predicted step, published beside a Prediction when the session's spec asks f
 
 from __future__ import annotations
 
+from itertools import pairwise
 from typing import Annotated
 
 import numpy as np
@@ -46,7 +47,7 @@ class PredictedPath(Message):
     @model_validator(mode="after")
     def _check(self) -> PredictedPath:
         k, d = len(self.steps), len(self.indices)
-        if any(b <= a for a, b in zip(self.steps, self.steps[1:])):
+        if any(b <= a for a, b in pairwise(self.steps)):
             raise invalid("steps", "must be strictly increasing")
         if self.X.shape != (k, d):
             raise invalid("X", f"must be {k}x{d}, got shape {list(self.X.shape)}")

@@ -7,6 +7,8 @@ path's first point, with the commands the estimator accepted.
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
@@ -43,7 +45,7 @@ def test_path_ends_at_the_prediction_and_equals_a_stepwise_roll(seed: int, strid
         assert last.newest_step == pred.newest_step
         steps = [p.step for p in path]
         assert steps == sorted(set(steps))
-        assert all(b - a <= stride for a, b in zip(steps, steps[1:]))
+        assert all(b - a <= stride for a, b in pairwise(steps))
         assert len(path) == -(-(steps[-1] - steps[0]) // stride) + 1
         # the naive roll from the first point, one step at a time
         us = applied_inputs(commands, model.nu, steps[-1], hold)

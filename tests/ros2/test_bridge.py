@@ -500,7 +500,6 @@ def test_the_daemons_path_becomes_a_nav_msgs_path(tmp_path) -> None:
     the path; the bridge publishes each PredictedPath as nav_msgs/Path on predicted/path:
     one pose per point, at its step's time, x, y, yaw as the daemon's (decoded with the
     rosbags typestore)."""
-    from pd_service.wire.messages import PathSpec
     from pd_service.wire.path import PredictedPath
     from tests.service.helpers import Clock as CoreClock
     from tests.service.test_core import make_core

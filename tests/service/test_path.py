@@ -22,9 +22,9 @@ def _paths(cli) -> list[tuple[str, bytes]]:
 
 
 @pytest.mark.parametrize("every,stride", [(1, 1), (3, 4)])
-def test_paths_end_at_their_predictions_and_match_the_offline_path(world, tmp_path, every,
+def test_paths_end_at_their_predictions_and_match_the_offline_path(request, tmp_path, every,
                                                                    stride):
-    bus, clock, col, cli = world
+    bus, clock, col, cli = request.getfixturevalue("world")
     got = _paths(cli)
     core = make_core(bus, clock, tmp_path)
     feed = PaperFeed(core, cli, clock, col, "s1", steps=60)
@@ -55,8 +55,8 @@ def test_paths_end_at_their_predictions_and_match_the_offline_path(world, tmp_pa
     assert seen == len(col.predictions["s1"][::every]) > 10
 
 
-def test_no_path_unless_the_spec_asks(world, tmp_path):
-    bus, clock, col, cli = world
+def test_no_path_unless_the_spec_asks(request, tmp_path):
+    bus, clock, col, cli = request.getfixturevalue("world")
     got = _paths(cli)
     core = make_core(bus, clock, tmp_path)
     feed = PaperFeed(core, cli, clock, col, "s1", steps=20)

@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from pd_service.wire import MESSAGE_TYPES, SessionState
-from pd_service.wire.schemas import export, schemas, stale
 from pd_service.wire.path import PredictedPath
+from pd_service.wire.schemas import export, schemas, stale
 from pd_service.wire.truth import Truth
 
 REPO = Path(__file__).resolve().parents[2]

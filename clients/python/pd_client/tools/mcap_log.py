@@ -59,8 +59,8 @@ from .flat_schema import Inexpressible, flat_schema
 
 #: Stream kind of a key -> message type name (its JSON Schema's title).
 TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Prediction",
-                "path": "PredictedPath", "error": "ErrorReport", "status": "SessionStatus", "config": "SessionSpec",
-                "truth": "Truth"}
+                "path": "PredictedPath", "error": "ErrorReport", "status": "SessionStatus",
+                "config": "SessionSpec", "truth": "Truth"}
 RAW_SCHEMA: dict[str, Any] = {
     "title": "RawSample", "type": "object",
     "description": "A sample that is not a JSON-representable msgpack map (kept for replay).",
