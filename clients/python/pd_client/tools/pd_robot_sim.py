@@ -290,7 +290,8 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
                          "prediction (default 1: every step)")
     ap.add_argument("--path", type=int, default=0, metavar="N",
                     help="with --create-session: the daemon publishes the predicted path (the "
-                         "position components) with every N-th prediction (default 0: never)")
+                         "position and heading components) with every N-th prediction "
+                         "(default 0: never)")
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
@@ -374,9 +375,10 @@ def _new_specs(args: argparse.Namespace, scenario: Scenario,
                sessions: list[tuple[str, list[str] | None]], epoch: int) -> list[SessionSpec]:
     """The sessions' SessionSpecs with step 0 at ``epoch`` (ns); ValueError for bad settings."""
     path = None
-    if args.path:
-        n = len(scenario.state_names)
-        path = PathSpec(indices=position_layout(list(scenario.state_names), n)[1],
+    if args.path:  # the positions, and the heading if there is one (a nav_msgs/Path's yaw)
+        names = list(scenario.state_names)
+        heading = [names.index(h) for h in ("theta", "yaw") if h in names][:1]
+        path = PathSpec(indices=position_layout(names, len(names))[1] + heading,
                         every=args.path)
     return [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
                           lead=args.lead, max_delay=args.max_delay,
