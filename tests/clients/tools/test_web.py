@@ -162,6 +162,39 @@ def test_planar_path_event_has_an_ellipse_per_step(feed) -> None:
     assert ev["ell"][1][:4] == pytest.approx([0.5, 1.5, 2.0, 2.0])
 
 
+def test_frame_event_registers_the_ghost_in_the_frames_own_view(feed) -> None:
+    """The ghost is the newest prediction's pose, projected with the frame's capture-time
+    view (its centre and scale): u = w/2 + s (x - cx), v = h/2 - s (y - cy)."""
+    from pd_client.tools.camera_view import outline, render
+
+    f, t, out, clock = feed
+    f._view("omni").spec = get_scenario("omni").spec("omni", EPOCH).model_copy(
+        update={"period_ns": PERIOD})
+    names = ["x", "y", "theta", "vx", "vy", "omega"]
+    t.put(keys.truth_key("omni"), encode(Truth(session="omni", step=3, t_ns=EPOCH, x=np.zeros(6),
+                                               names=names)))
+    # a frame before any prediction: no ghost
+    t.put(keys.camera_key("omni"), encode(render("omni", 0, EPOCH, 1.0, 2.0, 0.0)))
+    assert out[-1]["type"] == "frame" and out[-1]["ghost"] is None and "i" not in out[-1]
+    x = np.array([1.5, 1.75, 0.3, 0.0, 0.0, 0.0])
+    P = np.eye(6) * 0.01
+    P[0, 0] = 0.04
+    t.put(keys.prediction_key("omni"), encode(pred("omni", 130, x, P, seq=9)))
+    t.put(keys.path_key("omni"), _path("omni", [120, 130], [0, 1], np.array([[1.0, 2.0], [1.5, 1.75]]),
+                                       np.array([[0.01, 0, 0, 0.01], [0.04, 0, 0, 0.01]])))
+    frame = render("omni", 1, EPOCH + 110 * PERIOD, 1.0, 2.0, 0.0)  # captured at step 110
+    clock.ns = EPOCH + 125 * PERIOD
+    t.put(keys.camera_key("omni"), encode(frame))
+    ev = out[-1]
+    assert ev["type"] == "frame" and ev["seq"] == 1 and ev["k"] == 110.0 and ev["img"] == frame.data
+    g = ev["ghost"]
+    assert g["seq"] == 9 and g["k"] == 130 and g["pose"] == [1.5, 1.75, 0.3]
+    want = [[160 + 40 * (u - 1.0), 120 - 40 * (v - 2.0)] for u, v in outline(1.5, 1.75, 0.3)]
+    np.testing.assert_allclose(g["px"], want, rtol=0, atol=1e-9)
+    assert g["ell"][:4] == pytest.approx([180.0, 130.0, 16.0, 8.0])
+    assert ev["path_px"] == [[160.0, 120.0], [180.0, 130.0]]
+
+
 def test_bad_payloads_are_counted_not_fatal(feed) -> None:
     f, t, out, _ = feed
     t.put(keys.prediction_key("paper"), b"\x00garbage")

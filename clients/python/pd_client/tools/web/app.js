@@ -21,13 +21,16 @@ function session(name) {
 function onEvent(ev) {
   if (ev.type === "hello") { S.clear(); stats.lastI = 0; dirty = true; return; }
   if (ev.type === "tick") { onTick(ev); return; }
+  if (ev.i !== undefined) {  // numbered events (not the live-only frames): count the gaps
+    if (stats.lastI && ev.i !== stats.lastI + 1) stats.gaps++;
+    stats.lastI = ev.i;
+  }
   if (ev.type === "path") { session(ev.s).path = ev; if (ev.s === selected) dirty = true; return; }
+  if (ev.type === "frame") { onFrame(ev); return; }
   if (ev.type !== "pred") return;
   const now = Date.now();
   const lag = now - ev.ts;
   stats.received++;
-  if (stats.lastI && ev.i !== stats.lastI + 1) stats.gaps++;
-  stats.lastI = ev.i;
   stats.lags.push(lag); if (stats.lags.length > 4000) stats.lags.splice(0, 2000);
   if (lag > stats.maxLag) stats.maxLag = lag;
   const s = session(ev.s);
@@ -35,6 +38,40 @@ function onEvent(ev) {
   s.last = ev; s.recv++; s.lastRecv = now;
   if (selected === null) { selected = ev.s; }
   if (ev.s === selected) dirty = true;
+}
+
+// a camera frame: decoded off the event loop, then drawn with its ghost by render()
+function onFrame(ev) {
+  const s = session(ev.s), img = new Image();
+  img.onload = () => { s.frame = ev; s.frameImg = img; if (ev.s === selected) dirty = true; };
+  img.src = "data:image/jpeg;base64," + ev.img;
+}
+
+// the newest frame of the session, its ghost (outline at the predicted pose for the moment
+// the command now sent lands, in the frame's own view), the 2-sigma ellipse and the path
+function drawVideo(c, s) {
+  const box = $("video-box");
+  if (!s.frame) { box.hidden = true; return; }
+  box.hidden = false;
+  const f = s.frame, g = c.getContext("2d");
+  if (c.width !== f.w || c.height !== f.h) { c.width = f.w; c.height = f.h; }
+  g.drawImage(s.frameImg, 0, 0);
+  const d = c.dataset;
+  d.frameSeq = f.seq; d.frameTns = f.t_ns; d.frameK = f.k ?? ""; d.ageMs = f.age_ms;
+  $("video-title").textContent = "camera · frame captured at step " + fmt(f.k, 1) + " · " + fmt(f.age_ms / 1000, 2) + " s old" +
+    (f.ghost ? " · ghost: prediction of step " + f.ghost.k : "");
+  if (f.path_px) {
+    g.strokeStyle = "#c59bff"; g.lineWidth = 1.5; g.setLineDash([5, 3]); g.beginPath();
+    f.path_px.forEach(([u, v], n) => (n ? g.lineTo(u, v) : g.moveTo(u, v))); g.stroke(); g.setLineDash([]);
+  }
+  d.pathPx = f.path_px ? JSON.stringify(f.path_px) : "";
+  if (!f.ghost) { d.ghostSeq = ""; d.ghostPx = ""; return; }
+  const [eu, ev, a, b, ang] = f.ghost.ell;
+  g.fillStyle = "#4aa3ff33"; g.strokeStyle = "#4aa3ff"; g.lineWidth = 1; g.beginPath();
+  g.ellipse(eu, ev, Math.max(1, a), Math.max(1, b), ang, 0, 2 * Math.PI); g.fill(); g.stroke();
+  g.strokeStyle = "#4aa3ff"; g.lineWidth = 2; g.setLineDash([4, 2]); g.beginPath();
+  f.ghost.px.forEach(([u, v], n) => (n ? g.lineTo(u, v) : g.moveTo(u, v))); g.closePath(); g.stroke(); g.setLineDash([]);
+  d.ghostSeq = f.ghost.seq; d.ghostK = f.ghost.k; d.ghostPx = JSON.stringify(f.ghost.px); d.ghostPose = JSON.stringify(f.ghost.pose);
 }
 
 function onTick(ev) {
@@ -279,6 +316,7 @@ function render() {
   const last = s.last, evs = s.ev;
   $("plan-title").textContent = "plan view · " + selected + (last.layout === "axis" ? " (positions on one axis)" : "");
   (last.layout === "plane" ? drawPlane : drawAxis)($("plan"), evs, last);
+  drawVideo($("video"), s);
   drawSeries(evs, last);
   // numeric readout (also read by the browser test through its data-* attributes)
   const tb = $("values"); const rows = [];
