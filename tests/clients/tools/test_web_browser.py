@@ -33,7 +33,7 @@ import pytest
 from pd_client import Admin, Display
 from pd_client.tools import pd_web
 from pd_service.transport import InMemoryBus
-from pd_service.wire import Prediction, decode, encode, keys
+from pd_service.wire import Command, Measurement, Prediction, decode, encode, keys
 from pd_service.wire.path import PredictedPath
 from pd_service.wire.truth import Truth
 
@@ -383,3 +383,79 @@ def test_a_page_over_the_cap_says_why(browser) -> None:
     finally:
         holder.close()
         server.close()
+
+
+def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path) -> None:
+    """The daemon core (in-process, in-memory bus) serves an omni session whose spec asks for
+    the path; camera frames captured 12 steps ago (rendered by pd-robot-sim's camera) reach
+    pd-web. On the page's video canvas the ghost is the outline at the daemon's newest
+    prediction (the step where the command sent now lands) projected with the frame's own
+    capture-time view, and the path is the daemon's path of the same seq, pixel for pixel.
+    Screenshot: ``out/web/ghost.png``."""
+    from pd_client.tools.camera_view import outline, render
+    from pd_service.scenarios import get_scenario
+    from pd_service.wire.path import PredictedPath
+    from tests.service.helpers import Clock
+    from tests.service.test_core import make_core
+
+    bus = InMemoryBus()
+    t = bus.transport()
+    scn = get_scenario("omni")
+    spec = scn.spec("omni", 0).model_copy(update={"period_ns": 50_000_000})
+    spec = type(spec).model_validate({**spec.model_dump(), "path": {"indices": [0, 1, 2]}})
+    preds: dict[int, Prediction] = {}
+    paths: dict[int, PredictedPath] = {}
+    t.subscribe(keys.prediction_key("omni"), lambda s: (lambda p: preds.__setitem__(p.seq, p))(
+        decode(bytes(s.payload), Prediction)))
+    t.subscribe(keys.path_key("omni"), lambda s: (lambda p: paths.__setitem__(p.seq, p))(
+        decode(bytes(s.payload), PredictedPath)))
+    clock = Clock(-1)
+    core = make_core(bus, clock, tmp_path)
+    server = pd_web.WebServer(t, "127.0.0.1", 0).start()
+    try:
+        browser.get(server.url)
+        wait_until("the page to listen", lambda: server.fanout.listeners >= 1, timeout=15)
+        t.put(keys.config_key("omni"), encode(spec))
+        core.run_once()
+
+        def pose(k: int) -> tuple[float, float, float]:
+            return 0.05 * k, 0.02 * k, 0.1
+
+        for k in range(40):
+            clock.t = spec.time_of(k) + spec.period_ns // 2
+            t.put(keys.command_key("omni"), encode(Command(  # traffic: the session is live
+                session="omni", seq=k, step=k + spec.lead, u=np.full(scn.nu, 0.01))))
+            t.put(keys.truth_key("omni"), encode(Truth(
+                session="omni", step=k, t_ns=spec.time_of(k), names=list(scn.state_names),
+                x=np.array([*pose(k), 0.0, 0.0, 0.0]))))
+            if k >= 3:  # the pose sensor, 3 steps late
+                t.put(keys.sensor_key("omni", "pose"), encode(Measurement(
+                    session="omni", sensor="pose", seq=k, step=k - 3, z=np.array(pose(k - 3)))))
+            core.run_once()
+            if k >= 12 and k % 4 == 0:  # the video is 12 steps late
+                t.put(keys.camera_key("omni"), encode(render("omni", k, spec.time_of(k - 12),
+                                                             *pose(k - 12))))
+        wait_until("the newest frame on the page", lambda: browser.execute_script(
+            "return document.getElementById('video').dataset.frameSeq") == "36", timeout=15)
+        d = browser.execute_script("return Object.assign({}, document.getElementById('video').dataset)")
+        frame = render("omni", 36, spec.time_of(24), *pose(24))
+        assert int(d["frameTns"]) == frame.t_ns and float(d["frameK"]) == 24.0
+        p = preds[int(d["ghostSeq"])]
+        # the newest prediction when the frame arrived (at step 36): of step 36 + lead
+        assert int(d["ghostK"]) == p.step == 36 + spec.lead
+        assert json.loads(d["ghostPose"]) == [p.x[0], p.x[1], p.x[2]]
+        want = [list(frame.pixel(u, v)) for u, v in outline(p.x[0], p.x[1], p.x[2])]
+        np.testing.assert_allclose(json.loads(d["ghostPx"]), want, rtol=0, atol=1e-9)
+        path = paths[p.seq]
+        assert path.steps[-1] == p.step
+        np.testing.assert_allclose(json.loads(d["pathPx"]),
+                                   [frame.pixel(r[0], r[1]) for r in path.X], rtol=0, atol=1e-9)
+        assert browser.find_element("id", "video").is_displayed()
+        OUT.mkdir(parents=True, exist_ok=True)
+        browser.execute_script("document.getElementById('video-box').scrollIntoView()")
+        browser.save_screenshot(str(OUT / "ghost.png"))
+        print(f"\nghost: frame captured at step 24 shown with the prediction of step {p.step} "
+              f"(seq {p.seq}); path of {len(path.steps)} points; screenshot {OUT / 'ghost.png'}")
+    finally:
+        server.close()
+        core.close()
