@@ -194,3 +194,82 @@ def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
     st = [ts.deserialize_cdr(d, client.channels[series[1]]["schemaName"])
           for _, d in client.messages[series[1]]]
     assert st[-1].accepted == col.predictions["s1"][-1].counters["accepted"]
+
+
+def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path):
+    """An omni session (the daemon core in-process, path on) and camera frames 12 steps late:
+    ``/omni/camera`` carries each frame's JPEG at its capture stamp, ``/omni/camera_info`` its
+    view as a pinhole, ``/omni/ghost`` the outline at the daemon's newest prediction (and the
+    path of the same seq) in that frame's pixels."""
+    from pd_client.tools.camera_view import outline_px, render
+    from pd_service.scenarios import get_scenario
+    from pd_service.wire import Command, Measurement, Prediction, encode
+    from pd_service.wire.camera import CameraFrame
+    from pd_service.wire.truth import Truth
+
+    bus = InMemoryBus()
+    t = bus.transport()
+    scn = get_scenario("omni")
+    spec = scn.spec("omni", 0).model_copy(update={"period_ns": 50_000_000})
+    spec = type(spec).model_validate({**spec.model_dump(), "path": {"indices": [0, 1, 2]}})
+    preds: list[Prediction] = []
+    paths: dict[int, PredictedPath] = {}
+    frames: list[tuple[CameraFrame, int]] = []  # (frame, seq of the newest prediction then)
+    t.subscribe(keys.prediction_key("omni"), lambda s: preds.append(decode(bytes(s.payload), Prediction)))
+    t.subscribe(keys.path_key("omni"), lambda s: (lambda p: paths.__setitem__(p.seq, p))(
+        decode(bytes(s.payload), PredictedPath)))
+    clock = Clock(-1)
+    core = make_core(bus, clock, tmp_path)
+    server = VizServer(bus.transport(), ["omni"], port=0, status_every=0)
+    client = FoxgloveClient(server.url)
+    topics = ["/omni/camera", "/omni/camera_info", "/omni/ghost"]
+    try:
+        t.put(keys.config_key("omni"), encode(spec))
+        core.run_once()
+        client.wait_channels(topics)
+        client.subscribe(topics)
+        client.pump(0.5)
+
+        def pose(k: int) -> tuple[float, float, float]:
+            return 0.05 * k, 0.02 * k, 0.1
+
+        for k in range(30):
+            clock.t = spec.time_of(k) + spec.period_ns // 2
+            t.put(keys.command_key("omni"), encode(Command(
+                session="omni", seq=k, step=k + spec.lead, u=np.full(scn.nu, 0.01))))
+            t.put(keys.truth_key("omni"), encode(Truth(
+                session="omni", step=k, t_ns=spec.time_of(k), names=list(scn.state_names),
+                x=np.array([*pose(k), 0.0, 0.0, 0.0]))))
+            if k >= 3:
+                t.put(keys.sensor_key("omni", "pose"), encode(Measurement(
+                    session="omni", sensor="pose", seq=k, step=k - 3, z=np.array(pose(k - 3)))))
+            core.run_once()
+            if k >= 12 and k % 3 == 0:
+                f = render("omni", k, spec.time_of(k - 12), *pose(k - 12))
+                t.put(keys.camera_key("omni"), encode(f))
+                frames.append((f, preds[-1].seq))
+        client.pump(1.0)
+    finally:
+        client.close()
+        server.close()
+        core.close()
+    by_seq = {p.seq: p for p in preds}
+    Image = client.protobuf_class("/omni/camera")
+    Calib = client.protobuf_class("/omni/camera_info")
+    Ann = client.protobuf_class("/omni/ghost")
+    images = [Image.FromString(d) for _, d in client.messages["/omni/camera"]]
+    calibs = [Calib.FromString(d) for _, d in client.messages["/omni/camera_info"]]
+    anns = [Ann.FromString(d) for _, d in client.messages["/omni/ghost"]]
+    assert len(images) == len(calibs) == len(anns) == len(frames) == 6
+    for (f, seq), img, cal, ann in zip(frames, images, calibs, anns, strict=True):
+        stamp = img.timestamp.seconds * 10**9 + img.timestamp.nanos
+        assert stamp == f.t_ns and img.format == "jpeg" and img.data == f.image()
+        assert (cal.width, cal.height) == (320, 240) and list(cal.K)[2::3][:2] == [160.0, 120.0]
+        assert cal.K[0] == cal.K[4] == f.scale * 10.0
+        p = by_seq[seq]
+        ghost, ellipse, path_line = ann.points
+        np.testing.assert_allclose([(q.x, q.y) for q in ghost.points],
+                                   outline_px(f, p.x[0], p.x[1], p.x[2]), rtol=0, atol=1e-9)
+        assert len(ellipse.points) == 48
+        np.testing.assert_allclose([(q.x, q.y) for q in path_line.points],
+                                   [f.pixel(r[0], r[1]) for r in paths[seq].X], rtol=0, atol=1e-9)

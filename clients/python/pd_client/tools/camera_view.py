@@ -30,6 +30,11 @@ def outline(x: float, y: float, yaw: float) -> np.ndarray:
     return FOOTPRINT @ np.array([[c, s], [-s, c]]) + [x, y]
 
 
+def outline_px(frame: CameraFrame, x: float, y: float, yaw: float) -> list[list[float]]:
+    """The footprint at (x, y, yaw) in ``frame``'s pixels (its capture-time view): the ghost."""
+    return [list(frame.pixel(float(u), float(v))) for u, v in outline(x, y, yaw)]
+
+
 def render(session: str, seq: int, t_ns: int, x: float, y: float, yaw: float, *,
            width: int = WIDTH, height: int = HEIGHT, scale: float = SCALE,
            quality: int = 70) -> CameraFrame:

@@ -17,6 +17,12 @@ topic                      schema                content
 /<s>/path_band             foxglove.SceneUpdate  predicted path (spec's ``path``): its (x, y)
                                                  means as a line, a 2-sigma ellipse per point
 /<s>/path                  JSON                  the same path: steps, t_ns, x, y, sd_x, sd_y
+/<s>/camera                foxglove.CompressedImage  the robot's camera (a CameraFrame, after the
+                                                 link's delay), stamped with its capture time
+/<s>/camera_info           foxglove.CameraCalibration  its view as a pinhole camera looking down
+/<s>/ghost                 foxglove.ImageAnnotations  on that frame: the robot's outline at the
+                                                 newest prediction's pose, its 2-sigma ellipse,
+                                                 the newest path (pixels of the frame's view)
 /<s>/prediction            JSON                  step, x / var / sd per state name, latency
 /<s>/error                 JSON                  prediction - truth per state, and / sigma
 /<s>/measurement           JSON                  each sensor packet as it arrives, its age
@@ -70,6 +76,7 @@ from pd_service.wire import (
     decode,
     keys,
 )
+from pd_service.wire.camera import CameraFrame
 from pd_service.wire.convert import command_step, measurement_step
 from pd_service.wire.path import PredictedPath
 
@@ -83,6 +90,9 @@ from .viz_series import SeriesType, field_name, type_name, unique
 
 TOOL = "pd-viz"
 FRAME = "world"
+#: The camera's frame id, and the height (m) of the pinhole its calibration describes.
+CAMERA_FRAME = "camera"
+CAMERA_HEIGHT_M = 10.0
 DEFAULT_PORT = 8765
 _HEADINGS = ("theta", "yaw", "psi", "heading")
 _XY_NAMES = (("x", "y"), ("p1", "p2"), ("px", "py"))
@@ -170,7 +180,14 @@ class SessionView:
     def __init__(self, transport: Transport, session: str, context: Any,
                  xy: tuple[int, int] | None = None, spec: SessionSpec | None = None) -> None:
         import foxglove
-        from foxglove.channels import LogChannel, PoseInFrameChannel, SceneUpdateChannel
+        from foxglove.channels import (
+            CameraCalibrationChannel,
+            CompressedImageChannel,
+            ImageAnnotationsChannel,
+            LogChannel,
+            PoseInFrameChannel,
+            SceneUpdateChannel,
+        )
 
         self.session = session
         self.spec = spec
@@ -178,13 +195,18 @@ class SessionView:
         self.names: list[str] | None = None
         self._lock = threading.Lock()
         self.counts = {"predictions": 0, "measurements": 0, "commands": 0, "truth": 0,
-                       "errors": 0, "invalid": 0, "paths": 0, "paths_unshown": 0}
+                       "errors": 0, "invalid": 0, "paths": 0, "paths_unshown": 0, "frames": 0}
         p = f"/{session}/"
         ctx = {"context": context}
         self.pose = PoseInFrameChannel(p + "pose", **ctx)
         self.ellipse = SceneUpdateChannel(p + "ellipse", **ctx)
         self.truth_pose = PoseInFrameChannel(p + "truth_pose", **ctx)
         self.path_band = SceneUpdateChannel(p + "path_band", **ctx)
+        self.camera = CompressedImageChannel(p + "camera", **ctx)
+        self.camera_info = CameraCalibrationChannel(p + "camera_info", **ctx)
+        self.ghost = ImageAnnotationsChannel(p + "ghost", **ctx)
+        self._last_pred: Prediction | None = None
+        self._last_path: PredictedPath | None = None
         self.log = LogChannel(p + "log", **ctx)
         self.json = {name: foxglove.Channel(p + name, schema=foxglove.Schema(
             name=f"pd_viz.{name.capitalize()}", encoding="jsonschema",
@@ -200,6 +222,7 @@ class SessionView:
             transport.subscribe(keys.command_key(session), self._on_command),
             transport.subscribe(keys.error_key(session), self._on_error),
             transport.subscribe(keys.path_key(session), self._on_path),
+            transport.subscribe(keys.camera_key(session), self._on_frame),
         ]
 
     # --- helpers -----------------------------------------------------------------------
@@ -269,6 +292,7 @@ class SessionView:
         now = time.time_ns()
         with self._lock:
             self.counts["predictions"] += 1
+            self._last_pred = p
         truth = self.display.truth_at(p.step)  # kept by the display before it calls back
         n = p.x.shape[0]
         names = self._state_names(n)
@@ -391,6 +415,8 @@ class SessionView:
         except WireError:
             self.counts["invalid"] += 1
             return
+        with self._lock:
+            self._last_path = path
         names = self.names
         n = len(names) if names else max(path.indices) + 1
         i, j = position_indices(n, names, self.xy)
@@ -422,6 +448,69 @@ class SessionView:
             "x": xs.tolist(), "y": ys.tolist(),
             "sd_x": [math.sqrt(max(float(c[0, 0]), 0.0)) for c in covs],
             "sd_y": [math.sqrt(max(float(c[1, 1]), 0.0)) for c in covs]}, now)
+
+    def _on_frame(self, sample: Sample) -> None:
+        """A camera frame: the image, its calibration, and the ghost on it (module docstring):
+        the outline at the newest prediction's (x, y, heading), in the frame's own view."""
+        from foxglove.messages import (
+            CameraCalibration,
+            Color,
+            CompressedImage,
+            ImageAnnotations,
+            Point2,
+            PointsAnnotation,
+            PointsAnnotationType,
+        )
+
+        from .camera_view import outline_px
+
+        if sample.kind != "put":
+            return
+        try:
+            f = decode(sample.payload, CameraFrame)
+        except WireError:
+            self.counts["invalid"] += 1
+            return
+        with self._lock:
+            self.counts["frames"] += 1
+            p, path = self._last_pred, self._last_path
+        now, stamp = time.time_ns(), _ts(f.t_ns)
+        self.camera.log(CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=f.image(),
+                                        format="jpeg"), log_time=now)
+        # a pinhole at CAMERA_HEIGHT_M looking down: f / height = the frame's px per metre
+        fl, cx, cy = f.scale * CAMERA_HEIGHT_M, f.width / 2, f.height / 2
+        self.camera_info.log(CameraCalibration(
+            timestamp=stamp, frame_id=CAMERA_FRAME, width=f.width, height=f.height,
+            distortion_model="plumb_bob", D=[0.0] * 5,
+            K=[fl, 0.0, cx, 0.0, fl, cy, 0.0, 0.0, 1.0], R=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
+            P=[fl, 0.0, cx, 0.0, 0.0, fl, cy, 0.0, 0.0, 0.0, 1.0, 0.0]), log_time=now)
+        if p is None:
+            return
+        n = p.x.shape[0]
+        i, j = position_indices(n, self.names, self.xy)
+        if j is None:
+            return
+        h = heading_index(self.names)
+        x, y = float(p.x[i]), float(p.x[j])
+        yaw = float(p.x[h]) if h is not None and h < n else 0.0
+
+        def line(kind: Any, pts: Sequence[Sequence[float]], rgba: tuple[float, ...],
+                 width: float) -> Any:
+            return PointsAnnotation(timestamp=stamp, type=kind, thickness=width,
+                                    outline_color=Color(r=rgba[0], g=rgba[1], b=rgba[2],
+                                                        a=rgba[3]),
+                                    points=[Point2(x=float(u), y=float(v)) for u, v in pts])
+
+        ell = [f.pixel(u, v) for u, v in ellipse_points((x, y), p.P[np.ix_([i, j], [i, j])])]
+        marks = [line(PointsAnnotationType.LineLoop, outline_px(f, x, y, yaw),
+                      (0.29, 0.64, 1.0, 1.0), 2.0),
+                 line(PointsAnnotationType.LineLoop, ell, (0.29, 0.64, 1.0, 0.6), 1.0)]
+        if path is not None and i in path.indices and j in path.indices:
+            a, b = path.indices.index(i), path.indices.index(j)
+            marks.append(line(PointsAnnotationType.LineStrip,
+                              [f.pixel(float(r[a]), float(r[b])) for r in path.X],
+                              (0.77, 0.61, 1.0, 1.0), 1.5))
+        self.ghost.log(ImageAnnotations(timestamp=stamp, points=marks), log_time=now)
 
     def _on_error(self, sample: Sample) -> None:
         from foxglove.messages import Log, LogLevel

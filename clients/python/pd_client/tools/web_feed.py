@@ -280,7 +280,7 @@ class FeedSession:
         """The page's event for camera frame ``f`` (module docstring): the ghost at the newest
         prediction's pose in the frame's own view, u = w/2 + scale (x - cx),
         v = h/2 - scale (y - cy); the 2-sigma ellipse scaled alike (v down: angle negated)."""
-        from .camera_view import outline
+        from .camera_view import outline_px
 
         k = self.step_at(f.t_ns)
         ev: Json = {"type": "frame", "s": self.name, "seq": f.seq, "t_ns": f.t_ns, "k": k,
@@ -296,7 +296,7 @@ class FeedSession:
         yaw = float(p.x[ih]) if ih is not None else 0.0
         a, b, ang = ellipse_2sigma(p.P[np.ix_([ix, iy], [ix, iy])])
         ev["ghost"] = {"seq": p.seq, "k": p.step, "pose": [x, y, yaw],
-                       "px": [list(f.pixel(u, v)) for u, v in outline(x, y, yaw)],
+                       "px": outline_px(f, x, y, yaw),
                        "ell": [*f.pixel(x, y), a * f.scale, b * f.scale, -ang]}
         path = self.last_path
         if path is not None and ix in path.indices and iy in path.indices:
