@@ -117,6 +117,11 @@ class RobotSim:
                              "film (use omni or diffdrive)")
         if camera_every < 0:
             raise ValueError(f"--camera: must be >= 0, got {camera_every}")
+        if camera_every:
+            try:
+                import PIL  # noqa: F401
+            except ImportError:
+                raise ValueError("--camera needs Pillow: pip install 'pd-client[viz]'") from None
         #: A camera frame every this many steps (0: no camera), and its pose's state indices.
         self.camera_every = camera_every
         self._pose_idx = (names.index("x") if "x" in names else 0,
