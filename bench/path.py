@@ -13,9 +13,9 @@ samples that arrive at k are given to its estimator, then
 
 CPU time (process_time over a whole run) per session-step: a run without the path, then
 the same run with it (the difference is the path's cost); median and spread (min..max) of
-``--repeats`` such pairs of ``--steps`` steps each; the path's points and bytes. On a shared machine the figures
-move with its load: the machine gauge (bench/gauge.py) is printed beside them. The last line
-is one JSON object.
+``--repeats`` such pairs of ``--steps`` steps each; the path's points and bytes. On a shared
+machine the figures move with its load: the machine gauge (bench/gauge.py) is printed beside
+them. The last line is one JSON object.
 
 Usage: python bench/path.py [--steps 400] [--repeats 5] [--stride 1]
 """

@@ -18,8 +18,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from .messages import MESSAGE_TYPES, Message
 from .camera import CameraFrame
+from .messages import MESSAGE_TYPES, Message
 from .path import PredictedPath
 from .session_state import SessionState
 from .truth import Truth
