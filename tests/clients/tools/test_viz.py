@@ -201,17 +201,15 @@ def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path
     ``/omni/camera`` carries each frame's JPEG at its capture stamp, ``/omni/camera_info`` its
     view as a pinhole, ``/omni/ghost`` the outline at the daemon's newest prediction (and the
     path of the same seq) in that frame's pixels."""
-    from pd_client.tools.camera_view import outline_px, render
-    from pd_service.scenarios import get_scenario
-    from pd_service.wire import Command, Measurement, Prediction, encode
+    from pd_client.tools.camera_view import outline_px
+    from pd_service.wire import Prediction, encode
     from pd_service.wire.camera import CameraFrame
-    from pd_service.wire.truth import Truth
+
+    from .omni_drive import drive, omni_spec
 
     bus = InMemoryBus()
     t = bus.transport()
-    scn = get_scenario("omni")
-    spec = scn.spec("omni", 0).model_copy(update={"period_ns": 50_000_000})
-    spec = type(spec).model_validate({**spec.model_dump(), "path": {"indices": [0, 1, 2]}})
+    spec = omni_spec()
     preds: list[Prediction] = []
     paths: dict[int, PredictedPath] = {}
     frames: list[tuple[CameraFrame, int]] = []  # (frame, seq of the newest prediction then)
@@ -230,24 +228,11 @@ def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path
         client.subscribe(topics)
         client.pump(0.5)
 
-        def pose(k: int) -> tuple[float, float, float]:
-            return 0.05 * k, 0.02 * k, 0.1
-
-        for k in range(30):
+        def run(k: int) -> None:
             clock.t = spec.time_of(k) + spec.period_ns // 2
-            t.put(keys.command_key("omni"), encode(Command(
-                session="omni", seq=k, step=k + spec.lead, u=np.full(scn.nu, 0.01))))
-            t.put(keys.truth_key("omni"), encode(Truth(
-                session="omni", step=k, t_ns=spec.time_of(k), names=list(scn.state_names),
-                x=np.array([*pose(k), 0.0, 0.0, 0.0]))))
-            if k >= 3:
-                t.put(keys.sensor_key("omni", "pose"), encode(Measurement(
-                    session="omni", sensor="pose", seq=k, step=k - 3, z=np.array(pose(k - 3)))))
             core.run_once()
-            if k >= 12 and k % 3 == 0:
-                f = render("omni", k, spec.time_of(k - 12), *pose(k - 12))
-                t.put(keys.camera_key("omni"), encode(f))
-                frames.append((f, preds[-1].seq))
+
+        drive(t, spec, run, 30, 3, lambda f: frames.append((f, preds[-1].seq)))
         client.pump(1.0)
     finally:
         client.close()

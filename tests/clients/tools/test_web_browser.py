@@ -33,7 +33,7 @@ import pytest
 from pd_client import Admin, Display
 from pd_client.tools import pd_web
 from pd_service.transport import InMemoryBus
-from pd_service.wire import Command, Measurement, Prediction, decode, encode, keys
+from pd_service.wire import Prediction, decode, encode, keys
 from pd_service.wire.path import PredictedPath
 from pd_service.wire.truth import Truth
 
@@ -393,16 +393,15 @@ def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path) -> None:
     capture-time view, and the path is the daemon's path of the same seq, pixel for pixel.
     Screenshot: ``out/web/ghost.png``."""
     from pd_client.tools.camera_view import outline, render
-    from pd_service.scenarios import get_scenario
     from pd_service.wire.path import PredictedPath
     from tests.service.helpers import Clock
     from tests.service.test_core import make_core
 
+    from .omni_drive import drive, omni_spec, pose
+
     bus = InMemoryBus()
     t = bus.transport()
-    scn = get_scenario("omni")
-    spec = scn.spec("omni", 0).model_copy(update={"period_ns": 50_000_000})
-    spec = type(spec).model_validate({**spec.model_dump(), "path": {"indices": [0, 1, 2]}})
+    spec = omni_spec()
     preds: dict[int, Prediction] = {}
     paths: dict[int, PredictedPath] = {}
     t.subscribe(keys.prediction_key("omni"), lambda s: (lambda p: preds.__setitem__(p.seq, p))(
@@ -418,23 +417,11 @@ def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path) -> None:
         t.put(keys.config_key("omni"), encode(spec))
         core.run_once()
 
-        def pose(k: int) -> tuple[float, float, float]:
-            return 0.05 * k, 0.02 * k, 0.1
-
-        for k in range(40):
+        def run(k: int) -> None:
             clock.t = spec.time_of(k) + spec.period_ns // 2
-            t.put(keys.command_key("omni"), encode(Command(  # traffic: the session is live
-                session="omni", seq=k, step=k + spec.lead, u=np.full(scn.nu, 0.01))))
-            t.put(keys.truth_key("omni"), encode(Truth(
-                session="omni", step=k, t_ns=spec.time_of(k), names=list(scn.state_names),
-                x=np.array([*pose(k), 0.0, 0.0, 0.0]))))
-            if k >= 3:  # the pose sensor, 3 steps late
-                t.put(keys.sensor_key("omni", "pose"), encode(Measurement(
-                    session="omni", sensor="pose", seq=k, step=k - 3, z=np.array(pose(k - 3)))))
             core.run_once()
-            if k >= 12 and k % 4 == 0:  # the video is 12 steps late
-                t.put(keys.camera_key("omni"), encode(render("omni", k, spec.time_of(k - 12),
-                                                             *pose(k - 12))))
+
+        drive(t, spec, run, 40, 4)
         wait_until("the newest frame on the page", lambda: browser.execute_script(
             "return document.getElementById('video').dataset.frameSeq") == "36", timeout=15)
         d = browser.execute_script("return Object.assign({}, document.getElementById('video').dataset)")
