@@ -33,7 +33,8 @@ function onEvent(ev) {
   stats.received++;
   stats.lags.push(lag); if (stats.lags.length > 4000) stats.lags.splice(0, 2000);
   if (lag > stats.maxLag) stats.maxLag = lag;
-  const s = session(ev.s);
+  const known = S.has(ev.s), s = session(ev.s);
+  if (!known) syncPicker([]);  // a new session is pickable at once, not at the next tick
   s.ev.push(ev); if (s.ev.length > KEEP) s.ev.shift();
   s.last = ev; s.recv++; s.lastRecv = now;
   if (selected === null) { selected = ev.s; }
