@@ -281,9 +281,11 @@ class Session:
         assert path is not None
         points = self.est.predict_path(now_step, path.stride, MAX_PATH_POINTS)
         idx = np.asarray(path.indices)
-        d = len(idx)
-        X = np.array([np.asarray(p.x)[idx] for p in points])
-        P = np.array([np.asarray(p.P)[np.ix_(idx, idx)].reshape(d * d) for p in points])
+        n = points[0].x.shape[0]
+        # the d x d blocks of every point in one gather: flat index i * n + j, i, j in idx
+        X = np.stack([p.x for p in points])[:, idx]
+        P = np.stack([p.P for p in points]).reshape(len(points), n * n)[
+            :, (idx[:, None] * n + idx).reshape(-1)]
         msg = PredictedPath(
             session=self.name, seq=self.seq - 1, steps=[p.step for p in points],
             period_ns=self.period_ns, t0_ns=self.epoch_ns + points[0].step * self.period_ns,
