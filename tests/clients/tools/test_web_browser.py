@@ -167,11 +167,14 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
 
         # The predicted path the plan view drew is the daemon's, point for point, and ends at
         # the prediction of the same seq.
+        def drawn_path() -> dict | None:
+            got = browser.execute_script(
+                "return Object.assign({}, document.getElementById('plan').dataset)")
+            return got if "pathSeq" in got else None
+
         for _ in range(5):
             # (between a prediction and its path the view has no path: a stale one is not drawn)
-            d = wait_until("a path on the plan view", lambda: (lambda d: d if "pathSeq" in d else None)(
-                browser.execute_script("return Object.assign({}, document.getElementById('plan').dataset)")),
-                timeout=5, every=0.02)
+            d = wait_until("a path on the plan view", drawn_path, timeout=5, every=0.02)
             seq = int(d["pathSeq"])
             path = wait_until(f"path seq {seq} here", lambda s=seq: paths.get(s), timeout=5)
             pred = wait_until(f"prediction seq {seq} here", lambda s=seq: by_seq.get(s), timeout=5)
