@@ -46,7 +46,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Literal, get_args
+from typing import Any, Literal, TypeVar, get_args
 
 from pydantic import ValidationError
 
@@ -250,6 +250,9 @@ class _Session:
     path_handle: Handle | None = None
     closed: bool = False
 
+
+#: A message type of the daemon's outputs (Prediction, PredictedPath).
+M = TypeVar("M", Prediction, PredictedPath)
 
 _Item = tuple[Literal["config", "input", "prediction", "path"], object, Sample]
 
@@ -666,20 +669,29 @@ class Ros2Bridge:
 
     # ======================================================================= outputs ======
 
-    def _on_prediction(self, sess: _Session, sample: Sample) -> None:
+    def _received(self, sess: _Session, sample: Sample, cls: type[M], what: str) -> M | None:
+        """The daemon's ``cls`` message of ``sess`` in ``sample``, or None (counted
+        ``<what>_invalid``; every put counted ``<what>_received``)."""
         if sess.closed or sample.kind != "put":
+            return None
+        c = sess.counters
+        c[f"{what}_received"] += 1
+        try:
+            msg = wire_decode(sample.payload, cls)
+        except WireError as exc:
+            c[f"{what}_invalid"] += 1
+            log.debug("invalid %s on %s: %s", cls.__name__, sample.key, exc.reason)
+            return None
+        if msg.session != sess.name:
+            c[f"{what}_invalid"] += 1
+            return None
+        return msg
+
+    def _on_prediction(self, sess: _Session, sample: Sample) -> None:
+        pred = self._received(sess, sample, Prediction, "predictions")
+        if pred is None:
             return
         c = sess.counters
-        c["predictions_received"] += 1
-        try:
-            pred = wire_decode(sample.payload, Prediction)
-        except WireError as exc:
-            c["predictions_invalid"] += 1
-            log.debug("invalid Prediction on %s: %s", sample.key, exc.reason)
-            return
-        if pred.session != sess.name:
-            c["predictions_invalid"] += 1
-            return
         ob = sess.binding.outputs
         assert ob is not None
         try:
@@ -694,19 +706,10 @@ class Ros2Bridge:
 
     def _on_path(self, sess: _Session, sample: Sample) -> None:
         """A PredictedPath -> nav_msgs/Path on the session's path output."""
-        if sess.closed or sample.kind != "put":
+        path = self._received(sess, sample, PredictedPath, "paths")
+        if path is None:
             return
         c = sess.counters
-        c["paths_received"] += 1
-        try:
-            path = wire_decode(sample.payload, PredictedPath)
-        except WireError as exc:
-            c["paths_invalid"] += 1
-            log.debug("invalid PredictedPath on %s: %s", sample.key, exc.reason)
-            return
-        if path.session != sess.name:
-            c["paths_invalid"] += 1
-            return
         ob = sess.binding.outputs
         assert ob is not None
         try:

@@ -60,7 +60,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -87,6 +87,9 @@ from ..pairing import prediction_error
 from ..truth import Truth
 from . import common
 from .viz_series import SeriesType, field_name, type_name, unique
+
+#: A wire message type a channel decodes.
+W = TypeVar("W", Measurement, Command, PredictedPath, CameraFrame)
 
 TOOL = "pd-viz"
 FRAME = "world"
@@ -277,6 +280,17 @@ class SessionView:
         self.json[name].log(json.dumps(msg, allow_nan=False, default=float).encode(),
                             log_time=log_ns or time.time_ns())
 
+    def _decoded(self, sample: Sample, cls: type[W]) -> W | None:
+        """The ``cls`` message a put carries, or None (a delete; bad bytes: counted
+        ``invalid``)."""
+        if sample.kind != "put":
+            return None
+        try:
+            return decode(sample.payload, cls)
+        except WireError:
+            self.counts["invalid"] += 1
+            return None
+
     # --- callbacks -----------------------------------------------------------------------
 
     def _on_prediction(self, p: Prediction) -> None:
@@ -363,12 +377,8 @@ class SessionView:
             self._emit_error(p, t, now)
 
     def _on_sensor(self, sample: Sample) -> None:
-        if sample.kind != "put":
-            return
-        try:
-            m = decode(sample.payload, Measurement)
-        except WireError:
-            self.counts["invalid"] += 1
+        m = self._decoded(sample, Measurement)
+        if m is None:
             return
         self.counts["measurements"] += 1
         msg: dict[str, Any] = {"sensor": m.sensor, "seq": m.seq, "z": [float(v) for v in m.z]}
@@ -382,12 +392,8 @@ class SessionView:
         self._emit("measurement", msg, sample.recv_ns)
 
     def _on_command(self, sample: Sample) -> None:
-        if sample.kind != "put":
-            return
-        try:
-            c = decode(sample.payload, Command)
-        except WireError:
-            self.counts["invalid"] += 1
+        c = self._decoded(sample, Command)
+        if c is None:
             return
         self.counts["commands"] += 1
         msg: dict[str, Any] = {"seq": c.seq, "u": [float(v) for v in c.u]}
@@ -408,12 +414,8 @@ class SessionView:
             SceneUpdate,
         )
 
-        if sample.kind != "put":
-            return
-        try:
-            path = decode(sample.payload, PredictedPath)
-        except WireError:
-            self.counts["invalid"] += 1
+        path = self._decoded(sample, PredictedPath)
+        if path is None:
             return
         with self._lock:
             self._last_path = path
@@ -464,12 +466,8 @@ class SessionView:
 
         from .camera_view import outline_px
 
-        if sample.kind != "put":
-            return
-        try:
-            f = decode(sample.payload, CameraFrame)
-        except WireError:
-            self.counts["invalid"] += 1
+        f = self._decoded(sample, CameraFrame)
+        if f is None:
             return
         with self._lock:
             self.counts["frames"] += 1
