@@ -12,6 +12,7 @@ Operator side (what the daemon reads and writes)::
     pd/p<k>/<session>/sensor/<name>   Measurement, after the downlink
     pd/p<k>/<session>/cmd             Command, published by the operator
     pd/p<k>/<session>/prediction      Prediction, published by the daemon
+    pd/p<k>/<session>/path            PredictedPath, by the daemon if the spec asks (path)
     pd/p<k>/<session>/error           ErrorReport, published by the daemon
     pd/p<k>/<session>/status          queryable: SessionStatus
     pd/@service/<instance>            liveliness token of one daemon instance
@@ -22,6 +23,8 @@ Robot side (what the link emulator bridges)::
     robot/p<k>/<session>/sensor/<name>  Measurement, as the robot publishes it
     robot/p<k>/<session>/cmd            Command, after the uplink
     robot/p<k>/<session>/truth          ground truth (simulators only, for evaluation)
+    robot/p<k>/<session>/camera         CameraFrame (a robot's video; pd-link bridges it to
+                                        pd/p<k>/<session>/camera, with its own delay rule)
 
 Link emulator::
 
@@ -70,7 +73,8 @@ DEFAULT_PARTITIONS = 64
 MAX_PARTITIONS = 4096
 _PART_RE = re.compile(r"p(0|[1-9][0-9]{0,3})")
 
-StreamKind = Literal["config", "sensor", "cmd", "prediction", "error", "status", "truth"]
+StreamKind = Literal["config", "sensor", "cmd", "prediction", "path", "error", "status",
+                     "truth", "camera"]
 
 
 class KeyError_(ValueError):
@@ -176,6 +180,10 @@ def prediction_key(session: str) -> str:
     return f"{session_prefix(session)}/prediction"
 
 
+def path_key(session: str) -> str:
+    return f"{session_prefix(session)}/path"
+
+
 def error_key(session: str) -> str:
     return f"{session_prefix(session)}/error"
 
@@ -197,6 +205,8 @@ ALL_CONFIGS = f"{OPERATOR_ROOT}/*/*/config"
 ALL_SENSORS = f"{OPERATOR_ROOT}/*/*/sensor/*"
 ALL_COMMANDS = f"{OPERATOR_ROOT}/*/*/cmd"
 ALL_PREDICTIONS = f"{OPERATOR_ROOT}/*/*/prediction"
+#: Every session's predicted path (sessions whose spec asks for it).
+ALL_PATHS = f"{OPERATOR_ROOT}/*/*/path"
 ALL_ERRORS = f"{OPERATOR_ROOT}/*/*/error"
 ALL_STATUS = f"{OPERATOR_ROOT}/*/*/status"
 ALL_SERVICES = f"{OPERATOR_ROOT}/{SERVICE_CHUNK}/*"
@@ -258,9 +268,20 @@ def truth_key(session: str) -> str:
     return f"{_prefix(ROBOT_ROOT, session)}/truth"
 
 
+def robot_camera_key(session: str) -> str:
+    return f"{_prefix(ROBOT_ROOT, session)}/camera"
+
+
+def camera_key(session: str) -> str:
+    """The camera frames after the downlink (pd-link bridges robot/.../camera here)."""
+    return f"{session_prefix(session)}/camera"
+
+
 ROBOT_ALL_SENSORS = f"{ROBOT_ROOT}/*/*/sensor/*"
 ROBOT_ALL_COMMANDS = f"{ROBOT_ROOT}/*/*/cmd"
 ALL_TRUTHS = f"{ROBOT_ROOT}/*/*/truth"
+ROBOT_ALL_CAMERAS = f"{ROBOT_ROOT}/*/*/camera"
+ALL_CAMERAS = f"{OPERATOR_ROOT}/*/*/camera"
 
 
 # --- link emulator ---------------------------------------------------------------------
@@ -293,8 +314,8 @@ class ParsedKey:
     partition: int = 0
 
 
-_KINDS_OPERATOR = {"config", "cmd", "prediction", "error", "status"}
-_KINDS_ROBOT = {"cmd", "truth"}
+_KINDS_OPERATOR = {"config", "cmd", "prediction", "path", "error", "status", "camera"}
+_KINDS_ROBOT = {"cmd", "truth", "camera"}
 
 
 def parse_key(key: str) -> ParsedKey:
@@ -343,6 +364,8 @@ def to_operator_side(key: str) -> str:
         return sensor_key(p.session, p.sensor or "")
     if p.kind == "cmd":
         return command_key(p.session)
+    if p.kind == "camera":
+        return camera_key(p.session)
     raise KeyError_(f"key {key!r} has no operator-side twin")
 
 

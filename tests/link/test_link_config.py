@@ -123,9 +123,11 @@ def test_keyexpr_matching(pattern, key, expected):
 
 
 def test_default_mapping_uses_keys_module():
-    down, up = DEFAULT_MAPPINGS
-    assert (down.subscribe, up.subscribe) == ("robot/*/*/sensor/*", "pd/*/*/cmd")
+    down, video, up = DEFAULT_MAPPINGS
+    assert (down.subscribe, video.subscribe, up.subscribe) == (
+        "robot/*/*/sensor/*", "robot/*/*/camera", "pd/*/*/cmd")
     assert down.map_key(keys.robot_sensor_key("s1", "camera")) == keys.sensor_key("s1", "camera")
+    assert video.map_key(keys.robot_camera_key("s1")) == keys.camera_key("s1")
     assert up.map_key(keys.command_key("s1")) == keys.robot_command_key("s1")
     with pytest.raises(ValueError):
         down.map_key("robot/p9/BAD KEY/sensor/camera")
