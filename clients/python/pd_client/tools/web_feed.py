@@ -68,8 +68,8 @@ import numpy as np
 
 from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import Command, Measurement, Prediction, SessionSpec, keys
-from pd_service.wire.fence import TermFence
 from pd_service.wire.camera import CameraFrame
+from pd_service.wire.fence import TermFence
 from pd_service.wire.path import PredictedPath
 
 from .._base import try_decode
