@@ -1,0 +1,40 @@
+"""The router restart of bench/faults.py, short: one daemon and the SDK's cached senders,
+clients of a Python router on loopback that is killed (SIGKILL) and started again on the
+same port. Zenoh 1.10's clients reconnect by themselves and declare again what they had
+declared (subscribers, queryables, liveliness tokens, the senders' caches); this checks that
+the daemon and the SDK come back whole: every session predicting again, no reset to the
+prior, no prediction twice, every declaration back."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+from pd_service.scenarios.paper import paper_prior
+
+_PATH = Path(__file__).resolve().parents[2] / "bench" / "faults.py"
+
+
+def _faults():
+    spec = importlib.util.spec_from_file_location("bench_faults", _PATH)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_everything_comes_back_after_a_router_restart(tmp_path):
+    out = _faults().router_restart(sessions=3, down_s=1.0, before_s=1.5, after_s=1.5,
+                                   root=tmp_path)
+    prior = float(np.trace(paper_prior()[1]))
+    for row in out["rows"]:
+        assert row["gap_s"] is not None, row  # predicting again
+        assert row["data_back_s"] is not None, row  # and accepting measurements
+        assert not row["reset_to_prior"] and row["first_trace_P"] < prior, row
+        assert row["duplicates"] == 0, row
+    assert out["declarations_before"]["subscriber"] > 0
+    assert out["declarations_before"]["token"] >= 1 + 2 * 3  # the daemon's, two caches each
+    assert out["declarations_missing"] == {"subscriber": [], "queryable": [], "token": []}
+    assert out["send_errors"] == 0
