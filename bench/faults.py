@@ -394,7 +394,8 @@ def soak(sessions: int, rate_hz: float, minutes: float, every_s: float,
                        "p99_us": None if st is None else round(st.latency_p99_us, 1),
                        "sessions_served": None if st is None else len(st.sessions),
                        "subscribers": len(dec["subscriber"]), "queryables": len(dec["queryable"]),
-                       "tokens": len(dec["token"]), "predictions": received}
+                       "tokens": len(dec["token"]), "predictions": received,
+                       "send_errors": traffic.send_errors}
                 samples.append(row)
                 print("  ".join(f"{k}={v}" for k, v in row.items()), flush=True)
     finally:

@@ -44,8 +44,8 @@ from .outbox import Outbox
 from .ownership import Ownership
 from .session import Session
 from .spec_store import SpecStore
-from .step_clock import StepClock
 from .status import Queries
+from .step_clock import StepClock
 from .subscriptions import DataSubscriptions, data_keyexprs
 
 log = logging.getLogger(LOGGER_NAME)
