@@ -34,16 +34,19 @@ The last line is one JSON object. Quote ``bench/gauge.py`` beside any figure.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
 from collections import defaultdict
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -256,19 +259,34 @@ def _client(endpoint: str, daemon: Daemon):
     return t
 
 
-def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0,
-                   after_s: float = 4.0, root: Path | None = None) -> dict:
-    """The ``router`` mode (module docstring); returns its figures."""
+@contextlib.contextmanager
+def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None
+        ) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
+    """A router, the daemon behind it, this process's client and the traffic of
+    ``sessions`` (fed at ``rate_hz`` on a thread); all stopped at the end."""
     tmp = Path(tempfile.mkdtemp(prefix="pd-faults-", dir=root))
     router = Router(free_port())
     router.start()
     daemon = Daemon(router.endpoint, tmp / "state")
     t = _client(router.endpoint, daemon)
-    names = [f"f{i}" for i in range(sessions)]
-    traffic = Traffic(t, names, time.time_ns() - 10**9)
-    feeder = threading.Thread(target=traffic.run, daemon=True)
+    traffic = Traffic(t, sessions, time.time_ns() - 10**9)
+    feeder = threading.Thread(target=traffic.run, args=(rate_hz,), daemon=True)
     try:
         feeder.start()
+        yield router, daemon, t, traffic
+    finally:
+        traffic.stop.set()
+        feeder.join(5)
+        daemon.stop()
+        t.close()  # type: ignore[attr-defined]
+        router.kill()
+
+
+def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0,
+                   after_s: float = 4.0, root: Path | None = None) -> dict:
+    """The ``router`` mode (module docstring); returns its figures."""
+    names = [f"f{i}" for i in range(sessions)]
+    with rig(names, root=root) as (router, daemon, t, traffic):
         _wait(lambda: all(traffic.preds[s] for s in names), 60.0)
         time.sleep(before_s)
         before = declarations(t)
@@ -283,12 +301,6 @@ def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0
         time.sleep(after_s)
         after = declarations(t)
         status = service_status(t, daemon.instance)
-    finally:
-        traffic.stop.set()
-        feeder.join(5)
-        daemon.stop()
-        t.close()
-        router.kill()
     prior = float(np.trace(paper_prior()[1]))  # for scale: the prior's trace
     rows = []
     for s in names:
@@ -364,18 +376,9 @@ def clock_steps(steps_ns=(1_000_000_000, -1_000_000_000, 3_600_000_000_000)) -> 
 def soak(sessions: int, rate_hz: float, minutes: float, every_s: float,
          root: Path | None = None) -> dict:
     """The ``soak`` mode (module docstring); returns its samples."""
-    tmp = Path(tempfile.mkdtemp(prefix="pd-soak-", dir=root))
-    router = Router(free_port())
-    router.start()
-    daemon = Daemon(router.endpoint, tmp / "state")
-    t = _client(router.endpoint, daemon)
-    names = [f"s{i}" for i in range(sessions)]
-    traffic = Traffic(t, names, time.time_ns() - 10**9)
-    feeder = threading.Thread(target=traffic.run, args=(rate_hz,), daemon=True)
     samples = []
     next_id = sessions
-    try:
-        feeder.start()
+    with rig([f"s{i}" for i in range(sessions)], rate_hz, root) as (_, daemon, t, traffic):
         t0 = time.monotonic()
         next_print = t0 + every_s
         while time.monotonic() - t0 < minutes * 60:
@@ -398,14 +401,26 @@ def soak(sessions: int, rate_hz: float, minutes: float, every_s: float,
                        "send_errors": traffic.send_errors}
                 samples.append(row)
                 print("  ".join(f"{k}={v}" for k, v in row.items()), flush=True)
-    finally:
-        traffic.stop.set()
-        feeder.join(5)
-        daemon.stop()
-        t.close()
-        router.kill()
     return {"mode": "soak", "sessions": sessions, "rate_hz": rate_hz, "minutes": minutes,
-            "samples": samples}
+            "summary": soak_summary(samples), "samples": samples}
+
+
+def soak_summary(samples: list[dict]) -> dict:
+    """The issue's soak figures: RSS growth after the first 5 min (MB), median p99 of the
+    last 10 min over the first 10 min's (with less than 20 min: of the last half over the
+    first half), and the ranges of the fds and declarations."""
+    if not samples:
+        return {}
+    end = samples[-1]["t_s"]
+    settled = [r["rss_mb"] for r in samples if r["t_s"] >= min(300.0, end / 2)]
+    span = min(600.0, end / 2)
+    first = [r["p99_us"] for r in samples if r["t_s"] <= span and r["p99_us"] is not None]
+    last = [r["p99_us"] for r in samples if r["t_s"] >= end - span and r["p99_us"] is not None]
+    ratio = (statistics.median(last) / statistics.median(first)) if first and last else None
+    return {"rss_growth_mb": round(max(settled) - settled[0], 1) if settled else None,
+            "p99_last_over_first": None if ratio is None else round(ratio, 2),
+            **{f"{k}_range": [min(r[k] for r in samples), max(r[k] for r in samples)]
+               for k in ("fds", "subscribers", "queryables", "tokens")}}
 
 
 def main() -> None:
@@ -446,6 +461,7 @@ def main() -> None:
             print("  ".join(f"{k}={v}" for k, v in row.items()))
     else:
         out = soak(a.sessions, a.rate, a.minutes, a.every)
+        print("summary", out["summary"])
     print(json.dumps(out))
 
 
