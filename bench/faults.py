@@ -285,8 +285,10 @@ def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None
 def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0,
                    after_s: float = 4.0, root: Path | None = None) -> dict:
     """The ``router`` mode (module docstring); returns its figures."""
+    from pd_client import Display
     names = [f"f{i}" for i in range(sessions)]
     with rig(names, root=root) as (router, daemon, t, traffic):
+        displays = {s: Display(t, s) for s in names}  # the SDK's display, beside the recorder
         _wait(lambda: all(traffic.preds[s] for s in names), 60.0)
         time.sleep(before_s)
         before = declarations(t)
@@ -297,10 +299,15 @@ def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0
         time.sleep(down_s)
         router.start()
         t_back = time.monotonic_ns()
+        shown = {s: d.stats().received for s, d in displays.items()}
         _wait(lambda: all(traffic.after(s, t_back) for s in names), 30.0 + after_s)
         time.sleep(after_s)
         after = declarations(t)
         status = service_status(t, daemon.instance)
+        # predictions a Display received after the return, and those it counts as missed
+        # (the gap's: the daemon published them into the void)
+        display_rows = {s: (d.stats().received - shown[s], d.stats().missed)
+                        for s, d in displays.items()}
     prior = float(np.trace(paper_prior()[1]))  # for scale: the prior's trace
     rows = []
     for s in names:
@@ -324,6 +331,8 @@ def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0
             "settled_s": next(((p[0] - t_back) / 1e9 for p in new
                                if p[3] <= 1.5 * steady[s] and p[0] > t_back), None),
             "duplicates": sum(1 for a, b in zip(seqs, seqs[1:], strict=False) if b <= a),
+            "display_received_after": display_rows[s][0],
+            "display_missed": display_rows[s][1],
         })
     return {"mode": "router", "sessions": sessions, "down_s": down_s, "prior_trace_P": prior,
             "rows": rows,

@@ -34,6 +34,7 @@ def test_everything_comes_back_after_a_router_restart(tmp_path):
         assert row["data_back_s"] is not None, row  # and accepting measurements
         assert not row["reset_to_prior"] and row["first_trace_P"] < prior, row
         assert row["duplicates"] == 0, row
+        assert row["display_received_after"] > 0, row  # the SDK's Display shows them again
     assert out["declarations_before"]["subscriber"] > 0
     assert out["declarations_before"]["token"] >= 1 + 2 * 3  # the daemon's, two caches each
     assert out["declarations_missing"] == {"subscriber": [], "queryable": [], "token": []}
