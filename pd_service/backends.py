@@ -245,7 +245,7 @@ def linear_model(model: LinearModelSpec, period_ns: int) -> LinearModel:
 #: Most steps between a spec's epoch and now that a model without a closed-form long jump
 #: (unscented, IMM) takes: its first prediction propagates the prior step by step from the
 #: epoch (a linear model jumps a span without commands in O(log m) products).
-MAX_PRIOR_STEPS = 6000
+MAX_PRIOR_STEPS = 1000
 
 
 def prior_span(spec: SessionSpec, now_ns: int) -> str | None:
