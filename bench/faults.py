@@ -108,7 +108,8 @@ class Router:
 #: Liveliness tokens, by name (``**`` never matches a verbatim chunk: the daemons'
 #: ``@service`` tokens, the senders' caches' ``@adv`` ones; the router's admin space does not
 #: list keys with such chunks either).
-TOKEN_SELECTORS = ("pd/@service/*", "pd/*/*/sensor/*/@adv/pub/**", "pd/*/*/cmd/@adv/pub/**")
+TOKEN_SELECTORS = ("pd/@service/*", "pd/@link/*", "pd/*/*/sensor/*/@adv/pub/**",
+                   "pd/*/*/cmd/@adv/pub/**", "robot/*/*/sensor/*/@adv/pub/**")
 
 
 def declarations(t) -> dict[str, set[str]]:
@@ -160,11 +161,47 @@ class Daemon:
         return len(os.listdir(f"/proc/{self.proc.pid}/fd"))
 
 
+#: pd-link's rules in ``--link`` runs: every sensor stream carried at once, nothing lost (the
+#: link is there to be restarted around, not to delay).
+LINK_RULES = """step_ms = 50
+[[downlink]]
+name = "sensors"
+match = "robot/*/*/sensor/*"
+delay = "0 steps"
+"""
+
+
+class Link:
+    """``pd-link`` as a client of the router, its publishers cached (the daemon reads them
+    back, as the robot's own caches without it)."""
+
+    def __init__(self, endpoint: str, tmp: Path) -> None:
+        rules = tmp / "link.toml"
+        rules.write_text(LINK_RULES)
+        self.log_path = tmp / "link.log"
+        self._log = open(self.log_path, "ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "pd_service.link", "--config", str(rules), "--mode",
+             "client", "--connect", endpoint, "--cache", "256"],
+            stdout=self._log, stderr=self._log, cwd=ROOT)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+
+
 class Traffic:
     """The SDK's side: per session a cached Robot and an Operator feeding the paper run,
     and every Prediction recorded as (receipt monotonic ns, step, seq, trace P)."""
 
-    def __init__(self, t, sessions: list[str], epoch_ns: int, steps: int = 2_000) -> None:
+    def __init__(self, t, sessions: list[str], epoch_ns: int, steps: int = 2_000,
+                 direct: bool = True) -> None:
         from pd_client import Operator, Robot
         from pd_service.scenarios.paper import paper_command, paper_scenario
         from pd_service.wire import Prediction, decode, encode, keys
@@ -179,6 +216,7 @@ class Traffic:
         self.robots: dict[str, object] = {}
         self.ops: dict[str, object] = {}
         self.steps = steps
+        self.direct = direct
         self.send_errors = 0
         self.last_error = ""
         from pd_service.scenarios.paper import simulate_paper
@@ -198,7 +236,7 @@ class Traffic:
             from pd_client import Operator, Robot
         spec = self.scenario.spec(s, self.epoch)
         self.t.put(self._keys.config_key(s), self._encode(spec))
-        self.robots[s] = Robot(self.t, s, spec=spec, direct=True)
+        self.robots[s] = Robot(self.t, s, spec=spec, direct=self.direct)
         self.ops[s] = Operator(self.t, s, spec=spec)
 
     def remove(self, s: str) -> None:
@@ -260,16 +298,18 @@ def _client(endpoint: str, daemon: Daemon):
 
 
 @contextlib.contextmanager
-def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None
-        ) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
+def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None,
+        link: bool = False) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
     """A router, the daemon behind it, this process's client and the traffic of
-    ``sessions`` (fed at ``rate_hz`` on a thread); all stopped at the end."""
+    ``sessions`` (fed at ``rate_hz`` on a thread; ``link``: the robots' samples through a
+    pd-link process); all stopped at the end."""
     tmp = Path(tempfile.mkdtemp(prefix="pd-faults-", dir=root))
     router = Router(free_port())
     router.start()
     daemon = Daemon(router.endpoint, tmp / "state")
+    relay = Link(router.endpoint, tmp) if link else None
     t = _client(router.endpoint, daemon)
-    traffic = Traffic(t, sessions, time.time_ns() - 10**9)
+    traffic = Traffic(t, sessions, time.time_ns() - 10**9, direct=not link)
     feeder = threading.Thread(target=traffic.run, args=(rate_hz,), daemon=True)
     try:
         feeder.start()
@@ -277,17 +317,19 @@ def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None
     finally:
         traffic.stop.set()
         feeder.join(5)
+        if relay is not None:
+            relay.stop()
         daemon.stop()
         t.close()  # type: ignore[attr-defined]
         router.kill()
 
 
 def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0,
-                   after_s: float = 4.0, root: Path | None = None) -> dict:
+                   after_s: float = 4.0, root: Path | None = None, link: bool = False) -> dict:
     """The ``router`` mode (module docstring); returns its figures."""
     from pd_client import Display
     names = [f"f{i}" for i in range(sessions)]
-    with rig(names, root=root) as (router, daemon, t, traffic):
+    with rig(names, root=root, link=link) as (router, daemon, t, traffic):
         displays = {s: Display(t, s) for s in names}  # the SDK's display, beside the recorder
         _wait(lambda: all(traffic.preds[s] for s in names), 60.0)
         time.sleep(before_s)
@@ -334,7 +376,8 @@ def router_restart(sessions: int = 4, down_s: float = 5.0, before_s: float = 3.0
             "display_received_after": display_rows[s][0],
             "display_missed": display_rows[s][1],
         })
-    return {"mode": "router", "sessions": sessions, "down_s": down_s, "prior_trace_P": prior,
+    return {"mode": "router", "sessions": sessions, "down_s": down_s, "link": link,
+            "prior_trace_P": prior,
             "rows": rows,
             "declarations_before": {k: len(v) for k, v in before.items()},
             "declarations_after": {k: len(v) for k, v in after.items()},
@@ -440,6 +483,8 @@ def main() -> None:
     r.add_argument("--down", type=float, default=5.0)
     r.add_argument("--before", type=float, default=3.0)
     r.add_argument("--after", type=float, default=4.0)
+    r.add_argument("--link", action="store_true",
+                   help="the robots' samples through a pd-link process")
     sub.add_parser("clock")
     s = sub.add_parser("soak")
     s.add_argument("--sessions", type=int, default=500)
@@ -453,7 +498,7 @@ def main() -> None:
         serve_router(a.port)
         return
     if a.mode == "router":
-        out = router_restart(a.sessions, a.down, a.before, a.after)
+        out = router_restart(a.sessions, a.down, a.before, a.after, link=a.link)
         print(f"{'session':>8} {'gap s':>7} {'silent s':>9} {'data s':>7} {'tr P first':>10} "
               f"{'max':>8} {'steady':>8} {'settle s':>8} {'reset':>6} {'dup':>4}")
         for row in out["rows"]:

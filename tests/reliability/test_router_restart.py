@@ -11,6 +11,7 @@ import importlib.util
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pd_service.scenarios.paper import paper_prior
 
@@ -25,9 +26,12 @@ def _faults():
     return mod
 
 
-def test_everything_comes_back_after_a_router_restart(tmp_path):
+@pytest.mark.parametrize("link", [False, True], ids=["direct", "through-pd-link"])
+def test_everything_comes_back_after_a_router_restart(tmp_path, link):
+    """``link``: the robots' samples go through a pd-link process (itself a client of the
+    router, its publishers cached)."""
     out = _faults().router_restart(sessions=3, down_s=1.0, before_s=1.5, after_s=1.5,
-                                   root=tmp_path)
+                                   root=tmp_path, link=link)
     prior = float(np.trace(paper_prior()[1]))
     for row in out["rows"]:
         assert row["gap_s"] is not None, row  # predicting again
@@ -36,6 +40,7 @@ def test_everything_comes_back_after_a_router_restart(tmp_path):
         assert row["duplicates"] == 0, row
         assert row["display_received_after"] > 0, row  # the SDK's Display shows them again
     assert out["declarations_before"]["subscriber"] > 0
-    assert out["declarations_before"]["token"] >= 1 + 2 * 3  # the daemon's, two caches each
+    # the daemon's token, and per session at least the ranger's cache and the command's
+    assert out["declarations_before"]["token"] >= 1 + 2 * 3
     assert out["declarations_missing"] == {"subscriber": [], "queryable": [], "token": []}
     assert out["send_errors"] == 0
