@@ -241,9 +241,8 @@ class ServiceCore:
     # ================================================================== worker ========
 
     def _on_clock_step(self, step_ns: int, now_ns: int) -> None:
-        """Any thread: the host's wall clock stepped by ``step_ns``; the step clock was
-        re-anchored to it (sessions' steps follow it from now on: forward, they jump;
-        backward, each holds its step until the clock is back at it)."""
+        """Any thread: the host's wall clock stepped by ``step_ns``; the step clock follows
+        it (:mod:`.step_clock`: re-anchored, or a small step back caught up at half speed)."""
         self.counters["clock_steps"] += 1
         event(log, "clock_step", logging.WARNING, instance=self.instance,
               step_ms=round(step_ns / 1e6, 3), now_ns=now_ns)

@@ -3,7 +3,14 @@ slew (never a leap, never backwards), a step beyond the bound re-anchored once a
 
 from __future__ import annotations
 
-from pd_service.service.step_clock import MAX_SLEW, STEP_BOUND_NS, STEP_SETTLE_NS, StepClock
+from pd_service.service.step_clock import (
+    BACK_SLEW,
+    BACK_SLEW_MAX_NS,
+    MAX_SLEW,
+    STEP_BOUND_NS,
+    STEP_SETTLE_NS,
+    StepClock,
+)
 
 
 class _Host:
@@ -57,3 +64,35 @@ def test_a_step_beyond_the_bound_is_re_anchored_once_and_reported():
     assert not c.stepped_near(now - 1)
     h.tick(1_000_000)
     assert c() == h.wall and c.steps == 1  # exact again, once
+
+
+def test_a_small_step_back_is_caught_up_at_half_speed():
+    """1 s back: counted once; the clock runs at half speed (never back, never stopped)
+    until it meets the wall clock (2 s), then follows it exactly."""
+    h = _Host()
+    c = StepClock(lambda: h.wall, lambda: h.mono)
+    c()
+    h.wall -= 1_000_000_000
+    start = c()
+    assert c.steps == 1 and c.stepped_ns == -1_000_000_000
+    last = start
+    for _ in range(19):
+        h.tick(100_000_000)
+        now = c()
+        assert now - last == int(100_000_000 * (1 - BACK_SLEW))  # half speed
+        last = now
+    assert c.steps == 1 and c() > h.wall
+    h.tick(100_000_000)
+    assert c() == h.wall  # caught up after 2 s
+    h.tick(100_000_000)
+    assert c() == h.wall and c.steps == 1
+    assert c.stepped_near(start + 2_000_000_000 + STEP_SETTLE_NS)
+
+
+def test_a_large_step_back_is_re_anchored():
+    h = _Host()
+    c = StepClock(lambda: h.wall, lambda: h.mono)
+    before = c()
+    h.wall -= BACK_SLEW_MAX_NS + 1
+    assert c() == h.wall < before  # steps hold in the sessions (Session.step_now)
+    assert c.steps == 1
