@@ -127,19 +127,16 @@ def declarations(t) -> dict[str, set[str]]:
     return out
 
 
-class Daemon:
-    """``python -m pd_service`` as a client of the router, default settings."""
+class Process:
+    """One of the project's executables, its output in ``log_path``; stopped with SIGTERM."""
 
-    def __init__(self, endpoint: str, state_dir: Path, instance: str = "inst-f") -> None:
-        self.instance = instance
-        self.log_path = state_dir.parent / f"{instance}.log"
-        args = [sys.executable, "-m", "pd_service", "--instance", instance,
-                "--state-dir", str(state_dir), "--mode", "client", "--connect", endpoint]
+    def __init__(self, args: list[str], log_path: Path) -> None:
+        self.log_path = log_path
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env.pop("PD_SERVICE_CONFIG", None)
-        self._log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen(args, stdout=self._log, stderr=self._log, env=env,
-                                     cwd=ROOT)
+        self._log = open(log_path, "ab")
+        self.proc = subprocess.Popen([sys.executable, *args], stdout=self._log,
+                                     stderr=self._log, env=env, cwd=ROOT)
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -150,6 +147,16 @@ class Daemon:
                 self.proc.kill()
                 self.proc.wait()
         self._log.close()
+
+
+class Daemon(Process):
+    """``python -m pd_service`` as a client of the router, default settings."""
+
+    def __init__(self, endpoint: str, state_dir: Path, instance: str = "inst-f") -> None:
+        self.instance = instance
+        super().__init__(["-m", "pd_service", "--instance", instance, "--state-dir",
+                          str(state_dir), "--mode", "client", "--connect", endpoint],
+                         state_dir.parent / f"{instance}.log")
 
     def rss_mb(self) -> float:
         for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
@@ -171,29 +178,15 @@ delay = "0 steps"
 """
 
 
-class Link:
+class Link(Process):
     """``pd-link`` as a client of the router, its publishers cached (the daemon reads them
     back, as the robot's own caches without it)."""
 
     def __init__(self, endpoint: str, tmp: Path) -> None:
         rules = tmp / "link.toml"
         rules.write_text(LINK_RULES)
-        self.log_path = tmp / "link.log"
-        self._log = open(self.log_path, "ab")
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "pd_service.link", "--config", str(rules), "--mode",
-             "client", "--connect", endpoint, "--cache", "256"],
-            stdout=self._log, stderr=self._log, cwd=ROOT)
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(15)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-        self._log.close()
+        super().__init__(["-m", "pd_service.link", "--config", str(rules), "--mode", "client",
+                          "--connect", endpoint, "--cache", "256"], tmp / "link.log")
 
 
 class Traffic:
