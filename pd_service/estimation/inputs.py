@@ -150,3 +150,12 @@ class InputBuffer:
         cmds = self._cmd_steps
         if cmds and cmds[0] < origin:
             del cmds[: _bisect_left(cmds, origin)]
+
+    def replace(self, step: int, u: np.ndarray) -> None:
+        """Replace the command stored for ``step`` by ``u`` (a newer command for the same step,
+        :meth:`.replay.ReplayEstimator.supersede_command`): u(t) is refilled up to the next
+        command exactly as :meth:`set` fills it. KeyError if no command is stored for it."""
+        if not self.has_command(step):
+            raise KeyError(f"no command stored for step {step}")
+        self._cmd_steps.remove(step)
+        self.set(step, u)

@@ -79,6 +79,7 @@ COUNTER_NAMES = (
     "commands_late",
     "commands_future",
     "commands_duplicate",
+    "commands_superseded",
 )
 
 
@@ -492,6 +493,23 @@ class ReplayEstimator(Generic[S]):
     def _on_commit(self, committed: list[tuple[int, S, list[Packet]]]) -> None:
         """Called with (step, posterior, packets) for each measured step that became final,
         in step order. Default: nothing. Adaptive backends override it."""
+
+    def supersede_command(self, step: int, u: np.ndarray, now: object | None = None) -> bool:
+        """Replace the command stored for ``step`` by ``u`` (a finite float64 (nu,) array);
+        True iff replaced and counted ("commands_superseded"). False, counting nothing, when
+        no command is stored for ``step`` or ``step`` is already final (< committed_step).
+        The caller decides that ``u`` is the newer of the two (pd_service.intake: a later
+        ``issued_ns``, then a higher ``seq``); the estimator only refuses a final step."""
+        if now is not None:
+            t = self._check_now(now)
+            if t != self._now:
+                self._advance(t)
+        if step < self._c or not self._inputs.has_command(step):
+            return False
+        self._inputs.replace(step, u)
+        self._counters["commands_superseded"] += 1
+        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        return True
 
     def invalidate_from(self, step: int) -> None:
         """Mark every open-window posterior from ``step`` on as stale (e.g. after adaptation:

@@ -16,6 +16,14 @@ offline replay of a recording (``pd-replay``), so both accept and refuse exactly
 No clock reads: the caller passes the session's current step ``now_step``. Nothing raises for
 bad input: every refusal is a :class:`Refusal` (counter name, one readable line, the
 sender's seq when it could be read).
+
+The supersede rule: when two commands land on one apply step, the newer replaces the older
+if that step is not final yet (teleoperation: the freshest command is the one that counts;
+refusing it was issue 43's "the freshest command is the one dropped"). Newer means a later
+``issued_ns``, then (same stamp, or commands with an explicit ``step``) a higher ``seq``. A
+repeat (same stamp and seq) or an older command stays ``commands_duplicate``; a replacement
+is counted ``commands_superseded``. A command whose stored rival is not known here (accepted
+before a restart or hand-over, or forgotten past ``_ORDERS_KEPT`` steps) is a duplicate.
 """
 
 from __future__ import annotations
@@ -95,6 +103,11 @@ def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
     return Refusal(_CHECK_REASONS.get(head, default), exc.reason, seq)
 
 
+#: Apply steps whose command order :class:`Intake` remembers at most (beyond the open window
+#: the oldest are forgotten; a command for a forgotten step is then a duplicate).
+_ORDERS_KEPT: Final = 4096
+
+
 class Intake:
     """A session's estimator behind the per-message rules. ``decoded`` tells whether the last
     message offered could be read as a message of this session (activity, for idle
@@ -115,6 +128,12 @@ class Intake:
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
         self.r = nu
         self.decoded = False
+        #: Whether the last command accepted replaced an older one for its step
+        #: (:meth:`command`: counted as ``commands_superseded``, not ``commands_accepted``).
+        self.superseded = False
+        #: apply step -> (issued_ns or -1, seq) of the command stored for it: which of two
+        #: commands for one step is the newer (the supersede rule, module docstring).
+        self.command_order: dict[int, tuple[int, int]] = {}
 
     def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Measurement received on ``key``; None if accepted."""
@@ -205,7 +224,7 @@ class Intake:
                 check_command(msg, spec, self.r)
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "commands_invalid")
-            seq, j, u = msg.seq, command_step(msg, spec), msg.u
+            seq, j, u, issued = msg.seq, command_step(msg, spec), msg.u, msg.issued_ns
             stamp = "step" if msg.step is not None else "issued_ns"
             checked = False
             if u.size and _max_abs(u) > self.max_abs:
@@ -213,6 +232,10 @@ class Intake:
                 return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
                                f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         self.decoded = True
+        self.superseded = False
+        order = (-1 if issued is None else issued, seq) if stamp == "issued_ns" else (-1, seq)
+        if self._supersede(j, u, order, now_step):
+            return None
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
@@ -223,6 +246,7 @@ class Intake:
         except (ValueError, IndexError) as exc:
             return Refusal("commands_invalid", f"Command.u: {exc}", seq)
         if ok:
+            self._remember_order(j, order)
             return None
         ref = est.now if est.now is not None else 0
         if j < est.committed_step:
@@ -233,3 +257,31 @@ class Intake:
                            f"max_delay + 1 steps past the predicted step {ref + est.lead}", seq)
         return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
                        "already stored", seq)
+
+    def _remember_order(self, step: int, order: tuple[int, int]) -> None:
+        """Keep ``order`` for the command stored at ``step``; forget final steps once the
+        map outgrows the estimator's open window (bounded memory)."""
+        orders = self.command_order
+        orders[step] = order
+        if len(orders) > _ORDERS_KEPT:
+            first = self.est.committed_step
+            for k in [k for k in orders if k < first]:
+                del orders[k]
+            while len(orders) > _ORDERS_KEPT:  # a window wider than the bound: oldest go
+                del orders[min(orders)]
+
+    def _supersede(self, step: int, u: np.ndarray, order: tuple[int, int],
+                   now_step: int) -> bool:
+        """The supersede rule (module docstring): replace the command stored for ``step`` by
+        this newer one; True iff replaced (``superseded`` set). Tried before the estimator's
+        own admission, so a replacement is not also counted as a duplicate."""
+        stored = self.command_order.get(step)
+        est = self.est
+        if stored is None or order <= stored or not isinstance(est, ReplayEstimator):
+            return False
+        uv = np.array(u, dtype=np.float64)  # a copy: the slow path's u belongs to its message
+        if not est.supersede_command(step, uv, now_step if now_step >= 0 else None):
+            return False
+        self.command_order[step] = order
+        self.superseded = True
+        return True

@@ -9,7 +9,9 @@ start, which the daemon answers with every spec it knows):
 - **sensors**: each bound topic's key -> CDR decode of the bound type -> (z, R, header.stamp)
   -> a native ``Measurement`` (``t_ns`` = header.stamp, ``seq`` = the rmw_zenoh attachment's
   sequence number, else the bridge's own counter per sensor) put on ``pd/p<k>/<s>/sensor/<name>``;
-- **commands**: Twist -> ``Command(issued_ns = arrival on the bridge's clock)``, TwistStamped ->
+- **commands**: Twist -> ``Command(issued_ns = receipt on the bridge's clock)`` (read in the
+  transport's callback, not when the worker gets to it: the worker's lag would move the command
+  to a later apply step), TwistStamped ->
   ``Command(issued_ns = header.stamp)``, u = (linear.x, angular.z), put on ``pd/p<k>/<s>/cmd``; the
   daemon applies it at step ``floor((issued_ns - epoch_ns) / period_ns) + lead``;
 - **outputs**: each ``Prediction`` on ``pd/p<k>/<s>/prediction`` -> Odometry / PoseWithCovariance-
@@ -241,7 +243,8 @@ _Item = tuple[Literal["config", "input", "prediction"], object, Sample]
 class Ros2Bridge:
     """ROS 2 <-> pd-service bridge over ``transport`` (see the module docstring).
 
-    ``now_ns``: the shared wall clock (ns since the epoch) for a Twist's arrival, the
+    ``now_ns``: the shared wall clock (ns since the epoch) for a Twist's receipt (read in the
+    transport callback), the
     attachment's source timestamp and ErrorReport times. Thread model: transport callbacks
     from any thread (append only); the worker (or :meth:`drain`) processes under ``lock``;
     the status queryable takes ``lock`` to read the counters.
@@ -372,7 +375,8 @@ class Ros2Bridge:
         self._enqueue(("config", None, sample))
 
     def _on_input_sample(self, inp: _Input, sample: Sample) -> None:
-        self._enqueue(("input", inp, sample))
+        # recv_ns re-read on the bridge's clock, here: a Twist's issued_ns is its receipt
+        self._enqueue(("input", inp, sample._replace(recv_ns=self.now_ns())))
 
     def _on_prediction_sample(self, sess: _Session, sample: Sample) -> None:
         self._enqueue(("prediction", sess, sample))
@@ -568,7 +572,7 @@ class Ros2Bridge:
             seq = self._attachment_seq(inp, sample.attachment)
             msg = self._decode(inp, sample.payload)
             payload = (self._measurement(inp, msg, seq) if inp.sensor is not None
-                       else self._command(inp, msg, seq))
+                       else self._command(inp, msg, seq, sample.recv_ns))
         except _Refusal as r:
             self._refuse(sess, sample.key, r, seq)
             return
@@ -597,12 +601,14 @@ class Ros2Bridge:
                 from None
         return wire_encode(m)
 
-    def _command(self, inp: _Input, msg: RosMessage, seq: int) -> bytes:
+    def _command(self, inp: _Input, msg: RosMessage, seq: int, recv_ns: int) -> bytes:
+        """A native Command of ``msg``: a TwistStamped's header.stamp, else ``recv_ns`` (its
+        receipt on the bridge's clock) as ``issued_ns``."""
         try:
             cmd = extract_command(msg)
         except Ros2DecodeError as exc:
             raise _Refusal(classify(exc), f"{inp.topic}: {exc.reason}") from None
-        issued = cmd.stamp_ns if cmd.stamp_ns is not None else self.now_ns()
+        issued = cmd.stamp_ns if cmd.stamp_ns is not None else recv_ns
         try:
             out = Command(session=inp.session.name, seq=seq, issued_ns=issued, u=cmd.u)
         except ValidationError as exc:

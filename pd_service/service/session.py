@@ -13,6 +13,8 @@ commands_accepted          command accepted
 late / future / duplicate  measurement outside ``[now - max_delay, now]`` / already stored
 commands_late / _future /  command for a final step / too far ahead / already stored
 commands_duplicate
+commands_superseded        command that replaced an older one for the same apply step (a
+                           later issued_ns, then a higher seq: pd_service.intake)
 malformed                  bytes that are not a valid Measurement / Command (``commands_``
                            prefix for commands)
 non_finite                 NaN or infinity in the payload

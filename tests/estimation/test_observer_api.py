@@ -77,6 +77,23 @@ def test_commands_for_final_steps_are_refused() -> None:
             c["commands_future"]) == (1, 1, 1, 1)
 
 
+def test_a_command_superseded_on_an_open_step_moves_the_prediction_like_the_newer_alone() -> None:
+    op, ref = make(), make()
+    op.predict(now=40)  # steps < 28 are final
+    ref.predict(now=40)
+    assert op.add_command(step=30, u=[1.0]) and op.add_command(step=33, u=[-1.0])
+    assert op.supersede_command(30, np.array([2.0]), now=41)
+    assert ref.add_command(step=30, u=[2.0]) and ref.add_command(step=33, u=[-1.0])
+    a, b = op.predict(now=41), ref.predict(now=41)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.P, b.P)
+    assert not op.supersede_command(31, np.array([5.0]))  # nothing stored for step 31
+    op.predict(now=60)  # step 30 is final now
+    assert not op.supersede_command(30, np.array([5.0]))
+    c = op.counters
+    assert (c["commands_accepted"], c["commands_superseded"]) == (2, 1)
+
+
 @pytest.mark.parametrize(
     ("call", "field"),
     [

@@ -190,6 +190,18 @@ def test_twist_applies_at_arrival_and_twist_stamped_at_its_stamp() -> None:
     assert r.counters("s1")["commands_forwarded"] == 1 == r.counters("s2")["commands_forwarded"]
 
 
+def test_twist_is_stamped_at_receipt_not_when_the_worker_gets_to_it() -> None:
+    r = make_rig(specs=(unicycle_spec("s1"),))
+    key, tw = rmw_key("/cmd_vel", "geometry_msgs/msg/Twist"), "geometry_msgs/msg/Twist"
+    for i, lag in enumerate((2_000_000, 140_000_000)):  # the worker lags 2 ms, then 140 ms
+        r.clock.t = NOW + i * 100_000_000
+        r.t.publisher(key).put(encode(twist(0.1 * i, 0.0), tw))  # the callback: receipt
+        r.clock.t += lag
+        r.pump()
+    issued = [wire_decode(s.payload, Command).issued_ns for s in r.on(keys.command_key("s1"))]
+    assert issued == [NOW, NOW + 100_000_000]
+
+
 # -------------------------------------------------------------------------------- outputs ---
 
 
