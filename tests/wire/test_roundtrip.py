@@ -75,8 +75,9 @@ def test_ints_in_data_are_floats():
 def test_field_order_and_all_fields_on_the_wire():
     for msg_type, make in EXAMPLES.items():
         raw = msgpack.unpackb(encode(make()))
-        # SessionSpec.ros2 is left off the wire when None (a spec without ROS 2 topics)
-        optional = {"ros2"} if msg_type is SessionSpec else set()
+        # SessionSpec.ros2 is left off the wire when None (a spec without ROS 2 topics), and
+        # robot_clock / command_timing at their defaults (the bytes of older specs)
+        optional = {"ros2", "robot_clock", "command_timing"} if msg_type is SessionSpec else set()
         assert list(raw) == [f for f in msg_type.model_fields if f not in optional]
         assert raw["v"] == 1
 
@@ -93,6 +94,15 @@ def test_spec_with_ros2_topics_round_trips():
     assert raw["ros2"]["sensors"]["camera"]["fields"] == ["x", "y"]
     back = decode(encode(with_ros2), SessionSpec)
     assert back == with_ros2 and back.ros2 == binding
+
+
+def test_spec_with_an_estimated_robot_clock_and_echoed_commands_round_trips():
+    spec = paper_spec().model_copy(update={"robot_clock": "estimated",
+                                           "command_timing": "echoed"})
+    raw = msgpack.unpackb(encode(spec))
+    assert (raw["robot_clock"], raw["command_timing"]) == ("estimated", "echoed")
+    assert decode(encode(spec), SessionSpec) == spec
+    assert "robot_clock" not in msgpack.unpackb(encode(paper_spec()))
 
 
 def test_encode_refuses_non_messages():
