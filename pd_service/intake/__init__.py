@@ -29,6 +29,7 @@ before a restart or hand-over, or forgotten past ``_ORDERS_KEPT`` steps) is a du
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -131,6 +132,13 @@ class Intake:
         #: Whether the last command accepted replaced an older one for its step
         #: (:meth:`command`: counted as ``commands_superseded``, not ``commands_accepted``).
         self.superseded = False
+        #: (seq, issued_ns or None, u) of the last command read (None: it did not decode).
+        self.last_command: tuple[int, int | None, np.ndarray] | None = None
+        #: Robot stamps -> the daemon's timeline (pd_service.service.robot_time), applied to
+        #: a Measurement's t_ns before anything else; None: stamps are used as they are.
+        self.stamp_map: Callable[[int], int] | None = None
+        #: The (mapped) t_ns of the last measurement read, None if it had a step (or none).
+        self.last_t_ns: int | None = None
         #: apply step -> (issued_ns or -1, seq) of the command stored for it: which of two
         #: commands for one step is the newer (the supersede rule, module docstring).
         self.command_order: dict[int, tuple[int, int]] = {}
@@ -143,11 +151,16 @@ class Intake:
         read = _READ_MEASUREMENT
         fast: _Fields | None = None if read is None or m is None else read(
             payload, self.name, sensor, m, self.max_abs, _MAX_BYTES)
+        stamp_map = self.stamp_map
+        if fast is not None and stamp_map is not None and fast[2] is not None:
+            fast = (fast[0], fast[1], stamp_map(fast[2]), fast[3])
+        self.last_t_ns = None
         if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
             seq, s, t_ns, z = fast  # |z_i| <= max_abs checked on the way
             stamp = "step" if s is not None else "t_ns"
             if s is None:
                 s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
+                self.last_t_ns = t_ns
             R = None
             checked = True  # z: a fresh finite (m,) array
         else:  # full decode and checks: exact refusal reasons
@@ -161,6 +174,10 @@ class Intake:
                 return Refusal("key_mismatch", f"Measurement.{field}: session/sensor "
                                f"{msg.session!r}/{msg.sensor!r} does not match the key {key!r}",
                                msg.seq)
+            if msg.t_ns is not None and stamp_map is not None:  # once per message
+                t = fast[2] if fast is not None and fast[2] is not None else stamp_map(msg.t_ns)
+                msg = msg.model_copy(update={"t_ns": t})
+            self.last_t_ns = msg.t_ns
             try:
                 check_measurement(msg, self.spec)
             except WireError as exc:
@@ -203,6 +220,7 @@ class Intake:
     def command(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Command; None if accepted."""
         self.decoded = False
+        self.last_command = None
         spec = self.spec
         read = _READ_COMMAND
         fast: _Fields | None = None if read is None else read(
@@ -233,6 +251,7 @@ class Intake:
                                f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         self.decoded = True
         self.superseded = False
+        self.last_command = (seq, issued if stamp == "issued_ns" else None, u)
         order = (-1 if issued is None else issued, seq) if stamp == "issued_ns" else (-1, seq)
         if self._supersede(j, u, order, now_step):
             return None
@@ -257,6 +276,29 @@ class Intake:
                            f"max_delay + 1 steps past the predicted step {ref + est.lead}", seq)
         return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
                        "already stored", seq)
+
+    def command_kept(self, key: str, payload: bytes) -> Refusal | None:
+        """Read one Command and its checks, without offering it to the estimator (a session
+        whose commands enter when the robot echoes them: pd_service.service.robot_time);
+        None if valid (then :attr:`last_command` holds it)."""
+        self.decoded = False
+        self.superseded = False
+        self.last_command = None
+        try:
+            msg = decode(payload, Command)
+        except WireError as exc:
+            return _decode_reason(exc, "commands_")
+        self.decoded = True
+        try:
+            check_command(msg, self.spec, self.r)
+        except WireError as exc:
+            return _check_reason(exc, msg.seq, "commands_invalid")
+        u = msg.u
+        if u.size and _max_abs(u) > self.max_abs:
+            return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
+                           f"{self.max_abs:g} in magnitude (max_abs_input)", msg.seq)
+        self.last_command = (msg.seq, msg.issued_ns, np.array(u, dtype=np.float64))
+        return None
 
     def _remember_order(self, step: int, order: tuple[int, int]) -> None:
         """Keep ``order`` for the command stored at ``step``; forget final steps once the

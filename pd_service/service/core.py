@@ -11,7 +11,8 @@ time budget, ``mono_ns`` by default), so tests drive it deterministically.
   persisted and synced with the peers;
 - :mod:`.publish`: predictions (after each round, at each tick), error reports, status
   answers, the outbox;
-- :mod:`.status`: SessionStatus / ServiceStatus and the status and spec queryables.
+- :mod:`.status`: SessionStatus / ServiceStatus and the status and spec queryables;
+- :mod:`.clock_probes`: the robots' command echoes and the clock probes (their own thread).
 
 One worker thread calls :meth:`ServiceCore.run_once`; it holds ``lock`` while processing one
 round. The queries (transport threads) take it only to copy what a reply needs, so replies
@@ -34,6 +35,7 @@ from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Drain, Handle, Transport
 from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
 
+from .clock_probes import RobotTimeIO
 from .config import Settings
 from .dispatch import ROUND_SESSIONS, Dispatch, Route
 from .handover.keeper import HandoverKeeper, replicas_for
@@ -108,6 +110,8 @@ class ServiceCore:
                                       self.dispatch.on_command_sample, self.wake.set,
                                       self.ownership.partitions)
         self.lifecycle.follow = self._follow_ownership
+        #: The robots' echoes and the clock probes (pd_service.service.clock_probes).
+        self.robot_io = RobotTimeIO(transport, settings, now_ns, self.wake, self.counters)
         #: A state some awaited session waits for arrived (set on a transport thread).
         self._handed_in = False
         self.keeper.arrived = self._on_state_arrived
@@ -181,6 +185,8 @@ class ServiceCore:
                                          q.on_service_query))
         self._handles.append(t.subscribe_liveliness(keys.ALL_SERVICES, d.on_liveliness,
                                                     history=True))
+        self.robot_io.subscribe()
+        self.robot_io.start(self.clocked_sessions)
         self._token = t.declare_token(keys.service_token_key(self.instance))
         with self.lock:
             served = sum(1 for r in self._routes.values() if r.sess is not None)
@@ -211,6 +217,7 @@ class ServiceCore:
                   seconds=round(time.monotonic() - t0, 3),
                   resent=self.counters["replicas_handover_resent"] - resent, **more)
         self.keeper.close()
+        self.robot_io.close()
         if self.store is not None:
             self.store.close()
         if self._token is not None:
@@ -252,7 +259,7 @@ class ServiceCore:
     def has_work(self) -> bool:
         """Messages, control changes or hand-over states wait (not counting samples still in
         the drains' queues: :meth:`run_once` takes those first)."""
-        return self.dispatch.has_work() or self._handed_in
+        return self.dispatch.has_work() or self._handed_in or self.robot_io.pending()
 
     def arm(self) -> None:
         """Before the worker waits idle: the drains hand the next sample over themselves
@@ -306,6 +313,8 @@ class ServiceCore:
                             touched = []
                             pub.flush()
                         got += self._drain()
+                if self.robot_io.pending():  # after the commands their echoes may name
+                    handled += self.robot_io.process(self._routes, now, touched)
                 if d.released:
                     handled += d.process_released(now, touched)
                 if d.read_back:
@@ -327,6 +336,12 @@ class ServiceCore:
                 pub.flush()
             if not (got or self.has_work()) or self.run_clock_ns() >= t_end:
                 return handled
+
+    def clocked_sessions(self) -> list[str]:
+        """The served sessions whose robot clock is estimated (the probing thread's list)."""
+        with self.lock:
+            return [name for name, r in self._routes.items()
+                    if r.sess is not None and r.sess.robot.estimated]
 
     def next_deadline_ns(self) -> int:
         """Wall-clock time (ns) at which run_once has timed work (next tick or expiry check)."""

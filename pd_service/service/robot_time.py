@@ -1,0 +1,213 @@
+"""One session's view of its robot's time (issue 43): the robot clock's offset, the delays
+learned online, the commands waiting for their echo.
+
+Per session (:class:`RobotTime`, owned by :class:`.session.Session`; the core's worker is its
+only caller, no locks, no clock reads: every time is passed in):
+
+- **robot stamps -> the daemon's timeline** (spec ``robot_clock: estimated``): every robot
+  stamp is a one-way bound on the offset (:class:`ClockOffsetEstimator`), then mapped with the
+  estimate, never later than its receipt (a sample is never taken after it arrived), before
+  the window check; probes (:mod:`.clock_probes`) and echoes bound it from the other side.
+  With ``robot_clock: shared`` stamps are used as they are (and no bound is fed).
+- **delays learned online** (every spec): per sensor and over all samples the gap sample
+  stamp -> receipt (:class:`DelayStats`), the recommended ``max_delay`` (the smallest window
+  that would have refused at most :data:`LATE_SHARE` of the samples as late, + 10 %); per
+  echoed command the gap issue -> applied and the recommended ``lead`` (the median).
+- **echoes** (spec ``command_timing: echoed``): a command is kept (seq -> issued, u) until the
+  robot's :class:`CommandEcho` says when it took effect; it then enters the estimator at that
+  time (:func:`feed_applied_command`, the one seam to the issue-42 estimator API). A command
+  never echoed never enters: the robot never applied it.
+
+Bad input is counted (``echoes_unknown``: an echo of no kept command; ``echoes_implausible``:
+applied before the command was issued or after the echo arrived, beyond the offset's
+uncertainty, or a bound the offset estimator refused; ``echoes_invalid``: not a CommandEcho of
+this session; ``commands_kept_dropped``: kept commands pushed out unechoed), never raised.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import Final
+
+import numpy as np
+
+from pd_service.estimation import Estimator
+from pd_service.estimation.clock_offset import ClockOffsetEstimator, OffsetEstimate
+from pd_service.estimation.delay_learning import LATE_SHARE, DelayStats
+from pd_service.estimation.tally import Tally
+from pd_service.wire import ClockStatus, CommandEcho, DelayStatus, SessionSpec, WireError, decode
+
+#: Commands kept for their echo per session (oldest pushed out, counted).
+COMMANDS_KEPT: Final = 4096
+#: An offset estimate that moved by more than this since the last status, or whose bound is
+#: wider, gets a status warning (ns).
+CLOCK_WARN_NS: Final = 50_000_000
+#: A clock estimate with no new bound for this long is stale (s).
+CLOCK_STALE_S: Final = 10.0
+
+
+def feed_applied_command(est: Estimator, spec: SessionSpec, applied_ns: int, u: np.ndarray,
+                         now_step: int) -> bool:
+    """The seam to the estimator for a command that took effect at ``applied_ns`` (the
+    daemon's timeline): True iff accepted.
+
+    Issue 42's API takes the instant inside the step: ``est.add_command(step, u, now,
+    offset=(applied_ns - spec.time_of(step)) / 1e9)``. Until that lands the command enters at
+    the start of its step (floored); the merge changes only this call."""
+    step = spec.step_of(applied_ns)
+    if step < 0:
+        return False
+    return est.add_command(step, u, now_step)
+
+
+class RobotTime:
+    """One session's robot clock, learned delays and commands waiting for their echo."""
+
+    def __init__(self, spec: SessionSpec) -> None:
+        self.spec = spec
+        self.estimated = spec.robot_clock == "estimated"
+        self.echoed = spec.command_timing == "echoed"
+        self.clock = ClockOffsetEstimator()
+        self.counters = Tally()
+        self.samples = DelayStats(spec.period_ns, spec.epoch_ns)
+        self.by_sensor: dict[str, DelayStats] = {}
+        self.applied = DelayStats(spec.period_ns, spec.epoch_ns)
+        #: seq -> (issued_ns on the daemon's timeline or None, u (nu,) or None: applied)
+        self.kept: OrderedDict[int, tuple[int | None, np.ndarray | None]] = OrderedDict()
+        #: Receipt (daemon clock, ns) of the message being read: the bound of its stamp.
+        self.recv_ns = 0
+        self.seen = 0
+        self.late = 0
+        self._last: OffsetEstimate | None = None
+
+    # --- stamps ---------------------------------------------------------------------------
+
+    def to_daemon(self, t_ns: int) -> int:
+        """A robot stamp received at :attr:`recv_ns` on the daemon's timeline (the identity
+        for a shared clock): the stamp bounds the offset first, then is mapped with it, and
+        a mapped stamp after its receipt is held at the receipt (counted ``stamps_clamped``)."""
+        if not self.estimated:
+            return t_ns
+        recv = self.recv_ns
+        self.clock.add_one_way(t_ns, recv)
+        est = self.clock.estimate(recv)
+        mapped = est.to_daemon_ns(t_ns) if est.known else t_ns
+        if mapped > recv:
+            self.counters["stamps_clamped"] += 1
+            return recv
+        return mapped
+
+    def sample(self, sensor: str, stamp_ns: int, recv_ns: int, late: bool) -> None:
+        """A decoded sample of ``sensor`` stamped ``stamp_ns`` (daemon timeline) received at
+        ``recv_ns``; ``late``: refused as late."""
+        self.seen += 1
+        self.late += late
+        self.samples.add(stamp_ns, recv_ns)
+        stats = self.by_sensor.get(sensor)
+        if stats is None:
+            stats = self.by_sensor[sensor] = DelayStats(self.spec.period_ns, self.spec.epoch_ns,
+                                                        capacity=1024)
+        stats.add(stamp_ns, recv_ns)
+
+    # --- commands and echoes ----------------------------------------------------------------
+
+    def keep_command(self, seq: int, issued_ns: int | None, u: np.ndarray | None) -> None:
+        """A command of ``seq`` issued at ``issued_ns`` (daemon timeline; None: a command
+        with an explicit step, whose issue time is unknown) kept for its echo (``u`` None:
+        the estimator has it already; the echo only teaches clock and lead)."""
+        kept = self.kept
+        kept[seq] = (issued_ns, u)
+        kept.move_to_end(seq)
+        if len(kept) > COMMANDS_KEPT:
+            _, (_, old_u) = kept.popitem(last=False)
+            if old_u is not None:
+                self.counters["commands_kept_dropped"] += 1
+
+    def echo(self, payload: bytes, recv_ns: int) -> tuple[int, np.ndarray] | None:
+        """An echo received at ``recv_ns``: teaches the clock and the lead; returns
+        (applied_ns on the daemon's timeline, u) for a kept command to enter the estimator
+        (:func:`feed_applied_command`), else None (counted)."""
+        c = self.counters
+        try:
+            msg = decode(payload, CommandEcho)
+        except WireError:
+            c["echoes_invalid"] += 1
+            return None
+        if msg.session != self.spec.session:
+            c["echoes_invalid"] += 1
+            return None
+        entry = self.kept.get(msg.seq)
+        if entry is None:
+            c["echoes_unknown"] += 1
+            return None
+        issued, u = entry
+        if self.estimated:
+            if msg.sent_ns is not None:
+                self.clock.add_one_way(msg.sent_ns, recv_ns)
+            if issued is not None and self.clock.add_echo(issued, msg.applied_ns) is not None:
+                c["echoes_implausible"] += 1
+                return None
+            est = self.clock.estimate(recv_ns)
+            applied = est.to_daemon_ns(msg.applied_ns) if est.known else msg.applied_ns
+            slack = int(min(est.half_width_s, 3600.0) * 1e9) if est.known else 0
+        else:
+            applied, slack = msg.applied_ns, 0
+        first = issued if issued is not None else self.spec.epoch_ns
+        if not first - slack <= applied <= recv_ns + slack:
+            c["echoes_implausible"] += 1
+            return None
+        applied = min(max(applied, first), recv_ns)
+        del self.kept[msg.seq]
+        c["echoes"] += 1
+        if issued is not None:
+            self.applied.add(issued, applied)
+        return None if u is None else (applied, u)
+
+    def probe(self, t1_ns: int, t2_ns: int, t3_ns: int, t4_ns: int) -> None:
+        """A probe's four timestamps (t1, t4 daemon clock; t2, t3 robot clock)."""
+        self.counters["probe_replies"] += 1
+        why = self.clock.add_probe(t1_ns, t2_ns, t3_ns, t4_ns)
+        if why is not None:
+            self.counters[f"probe_{why}"] += 1
+
+    # --- status -------------------------------------------------------------------------
+
+    def recommended_max_delay(self) -> int | None:
+        """The window the samples seen recommend (steps), None before any."""
+        return self.samples.recommended_window(LATE_SHARE)
+
+    def clock_status(self, now_ns: int) -> ClockStatus | None:
+        """The offset estimate now (None for a shared clock), with a warning when it is
+        unknown, unbounded, stale or just jumped."""
+        if not self.estimated:
+            return None
+        est = self.clock.estimate(now_ns)
+        last, self._last = self._last, est
+        warning = ""
+        if not est.known:
+            warning = "robot clock offset unknown (no stamp yet)"
+        elif not np.isfinite(est.half_width_s):
+            warning = "robot clock offset bounded on one side only (no probe or echo yet)"
+        elif est.age_s > CLOCK_STALE_S:
+            warning = f"robot clock estimate stale ({est.age_s:.0f} s without a stamp)"
+        elif last is not None and last.known and (
+                est.steps > last.steps
+                or abs(est.offset_s - last.offset_s - last.drift * (now_ns - last.t_ns) * 1e-9)
+                > CLOCK_WARN_NS * 1e-9):
+            warning = "robot clock offset jumped"
+        unc = None if not np.isfinite(est.half_width_s) else int(min(est.half_width_s, 9e9) * 1e9)
+        return ClockStatus(known=est.known, offset_ns=round(est.offset_s * 1e9),
+                           uncertainty_ns=unc, drift_ppm=est.drift * 1e6, age_s=min(est.age_s, 1e12),
+                           steps=est.steps, warning=warning)
+
+    def delay_status(self) -> dict[str, DelayStatus]:
+        """Per sensor, and ``cmd`` for issue -> applied, the delays kept (ms)."""
+        out: dict[str, DelayStatus] = {}
+        streams = [*sorted(self.by_sensor.items()), ("cmd", self.applied)]
+        for name, stats in streams:
+            s = stats.summary()
+            if s.count and s.p50_ns is not None and s.p99_ns is not None \
+                    and s.max_ns is not None:
+                out[name] = DelayStatus(count=s.count, p50_ms=s.p50_ns / 1e6,
+                                        p99_ms=s.p99_ns / 1e6, max_ms=s.max_ns / 1e6)
+        return out
