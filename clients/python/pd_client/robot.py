@@ -66,13 +66,16 @@ class Robot(ClientBase):
 
     ``clock``: the robot's clock (ns), for echoes and probe answers; ``apply_on_arrival``:
     echo every command when it arrives (a robot that applies commands on arrival, as ROS
-    base controllers do); ``answer_probes``: declare the probe queryable.
+    base controllers do); ``answer_probes``: declare the probe queryable; ``stamp_clock``
+    (emulation of an unsynchronised robot, with ``spec``): a sample published by ``step`` is
+    sent with ``t_ns = stamp_clock(spec.time_of(step))``, the robot clock's reading then.
     """
 
     def __init__(self, transport: Transport, session: str, *, spec: SessionSpec | None = None,
                  direct: bool = False, queue_size: int = 1024,
                  cache: int = DEFAULT_SENDER_CACHE, clock: Callable[[], int] = time.time_ns,
-                 apply_on_arrival: bool = False, answer_probes: bool = True) -> None:
+                 apply_on_arrival: bool = False, answer_probes: bool = True,
+                 stamp_clock: Callable[[int], int] | None = None) -> None:
         super().__init__(transport)
         self.cache = cache
         self.session = session_name(session, spec)
@@ -86,6 +89,9 @@ class Robot(ClientBase):
         self.published = 0
         self.clock = clock
         self.apply_on_arrival = apply_on_arrival
+        if stamp_clock is not None and spec is None:
+            raise InvalidMessage("stamp_clock needs the session spec (the steps' times)")
+        self.stamp_clock = stamp_clock
         self.echoes = 0
         self.probes_answered = 0
         self.probes_invalid = 0
@@ -114,6 +120,9 @@ class Robot(ClientBase):
             key = self.sensor_key(sensor)
         except keys.KeyError_ as exc:
             raise InvalidMessage(str(exc)) from None
+        if self.stamp_clock is not None and step is not None and t_ns is None:
+            assert self.spec is not None
+            step, t_ns = None, self.stamp_clock(self.spec.time_of(step))
         fields: dict[str, object] = {"session": self.session, "sensor": sensor,
                         "seq": self._seq.get(sensor, 0), "step": step, "t_ns": t_ns,
                         "z": as_array(z, "z", 1)}
