@@ -283,10 +283,14 @@ class ClockOffsetEstimator:
             b = next((x for x in reversed(bs) if x.index == index), None)  # type: ignore[assignment]
             if b is None:
                 if index < bs[0].index:
-                    return False  # older than everything kept
-                b = _Bucket(index)
-                pos = next(i for i, x in enumerate(bs) if x.index > index)
-                bs.insert(pos, b)
+                    if len(bs) == bs.maxlen:
+                        return False  # older than everything kept, and no room
+                    b = _Bucket(index)
+                    bs.appendleft(b)
+                else:
+                    b = _Bucket(index)
+                    pos = next(i for i, x in enumerate(bs) if x.index > index)
+                    bs.insert(pos, b)
         if lower and v > b.lo:
             b.lo, b.t_lo = v, t
             return True

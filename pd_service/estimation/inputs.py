@@ -159,3 +159,23 @@ class InputBuffer:
             raise KeyError(f"no command stored for step {step}")
         self._cmd_steps.remove(step)
         self.set(step, u)
+
+    def remove(self, step: int) -> None:
+        """Forget the command stored for ``step`` (origin < step < origin + capacity): u(t)
+        from ``step`` up to the next command becomes what it was before it (the previous
+        step's u, "hold"; zero, "zero"). KeyError if none is stored for it, IndexError for
+        the origin (whose previous u the buffer no longer holds)."""
+        if not self.has_command(step):
+            raise KeyError(f"no command stored for step {step}")
+        i = step - self.origin
+        if not 0 < i < self.capacity:
+            raise IndexError(f"step {step}: a command at the window's origin cannot be removed")
+        k = _bisect_left(self._cmd_steps, step)
+        del self._cmd_steps[k]
+        start = self._off + i
+        if self.hold:
+            nxt = self._cmd_steps[k] if k < len(self._cmd_steps) else None
+            end = self._off + nxt - self.origin if nxt is not None else self._buf.shape[0]
+            self._buf[start:end] = self._buf[start - 1]
+        else:
+            self._buf[start] = 0.0

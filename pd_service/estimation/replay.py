@@ -80,6 +80,7 @@ COUNTER_NAMES = (
     "commands_future",
     "commands_duplicate",
     "commands_superseded",
+    "commands_withdrawn",
 )
 
 
@@ -509,6 +510,23 @@ class ReplayEstimator(Generic[S]):
         self._inputs.replace(step, u)
         self._counters["commands_superseded"] += 1
         self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        return True
+
+    def withdraw_command(self, step: int, now: object | None = None) -> bool:
+        """Forget the command stored for ``step`` (it did not take effect there: the robot
+        echoed another time, pd_service.service.robot_time); True iff withdrawn. False,
+        changing nothing, when none is stored for ``step`` or ``step`` is final or the input
+        window's origin (whose previous input is no longer kept)."""
+        if now is not None:
+            t = self._check_now(now)
+            if t != self._now:
+                self._advance(t)
+        inputs = self._inputs
+        if step < self._c or step <= inputs.origin or not inputs.has_command(step):
+            return False
+        inputs.remove(step)
+        self._counters["commands_withdrawn"] += 1
+        self._invalidate(step + 1)
         return True
 
     def invalidate_from(self, step: int) -> None:

@@ -132,8 +132,9 @@ class Intake:
         #: Whether the last command accepted replaced an older one for its step
         #: (:meth:`command`: counted as ``commands_superseded``, not ``commands_accepted``).
         self.superseded = False
-        #: (seq, issued_ns or None, u) of the last command read (None: it did not decode).
-        self.last_command: tuple[int, int | None, np.ndarray] | None = None
+        #: (seq, issued_ns or None, u, apply step, order) of the last command read (None:
+        #: it did not decode): what an echo later moves (pd_service.service.robot_time).
+        self.last_command: tuple[int, int | None, np.ndarray, int, tuple[int, int]] | None = None
         #: Robot stamps -> the daemon's timeline (pd_service.service.robot_time), applied to
         #: a Measurement's t_ns before anything else; None: stamps are used as they are.
         self.stamp_map: Callable[[int], int] | None = None
@@ -251,8 +252,8 @@ class Intake:
                                f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         self.decoded = True
         self.superseded = False
-        self.last_command = (seq, issued if stamp == "issued_ns" else None, u)
         order = (-1 if issued is None else issued, seq) if stamp == "issued_ns" else (-1, seq)
+        self.last_command = (seq, issued if stamp == "issued_ns" else None, u, j, order)
         if self._supersede(j, u, order, now_step):
             return None
         est = self.est
@@ -277,28 +278,29 @@ class Intake:
         return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
                        "already stored", seq)
 
-    def command_kept(self, key: str, payload: bytes) -> Refusal | None:
-        """Read one Command and its checks, without offering it to the estimator (a session
-        whose commands enter when the robot echoes them: pd_service.service.robot_time);
-        None if valid (then :attr:`last_command` holds it)."""
-        self.decoded = False
-        self.superseded = False
-        self.last_command = None
-        try:
-            msg = decode(payload, Command)
-        except WireError as exc:
-            return _decode_reason(exc, "commands_")
-        self.decoded = True
-        try:
-            check_command(msg, self.spec, self.r)
-        except WireError as exc:
-            return _check_reason(exc, msg.seq, "commands_invalid")
-        u = msg.u
-        if u.size and _max_abs(u) > self.max_abs:
-            return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
-                           f"{self.max_abs:g} in magnitude (max_abs_input)", msg.seq)
-        self.last_command = (msg.seq, msg.issued_ns, np.array(u, dtype=np.float64))
-        return None
+    def place(self, step: int, u: np.ndarray, order: tuple[int, int], now_step: int) -> bool:
+        """Store a command for ``step`` outside the message path (an echoed command moved to
+        the step it took effect in: pd_service.service.robot_time), with the supersede rule
+        against a command already there; True iff stored."""
+        if step < 0:
+            return False
+        if self._supersede(step, u, order, now_step):
+            return True
+        if self.est.add_command(step, u, now_step if now_step >= 0 else None):
+            self._remember_order(step, order)
+            return True
+        return False
+
+    def withdraw(self, step: int, order: tuple[int, int], now_step: int) -> bool:
+        """Take back the command of ``order`` stored for ``step`` (not one that superseded
+        it); True iff withdrawn."""
+        est = self.est
+        if self.command_order.get(step) != order or not isinstance(est, ReplayEstimator):
+            return False
+        if not est.withdraw_command(step, now_step if now_step >= 0 else None):
+            return False
+        del self.command_order[step]
+        return True
 
     def _remember_order(self, step: int, order: tuple[int, int]) -> None:
         """Keep ``order`` for the command stored at ``step``; forget final steps once the

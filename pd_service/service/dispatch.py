@@ -397,8 +397,7 @@ class Dispatch:
                     sess.pending_recv.append(recv_mono)
             else:
                 refusal = sess.on_command(key, payload, now_step, now)
-                name = ("commands_superseded" if sess.intake.superseded
-                        else "commands_kept" if sess.robot.echoed else "commands_accepted")
+                name = "commands_superseded" if sess.intake.superseded else "commands_accepted"
         except Exception as exc:  # isolation: nothing one session sends escapes the worker
             log.debug("internal error in session %s", sess.name, exc_info=True)
             return Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")

@@ -13,10 +13,12 @@ only caller, no locks, no clock reads: every time is passed in):
   stamp -> receipt (:class:`DelayStats`), the recommended ``max_delay`` (the smallest window
   that would have refused at most :data:`LATE_SHARE` of the samples as late, + 10 %); per
   echoed command the gap issue -> applied and the recommended ``lead`` (the median).
-- **echoes** (spec ``command_timing: echoed``): a command is kept (seq -> issued, u) until the
-  robot's :class:`CommandEcho` says when it took effect; it then enters the estimator at that
-  time (:func:`feed_applied_command`, the one seam to the issue-42 estimator API). A command
-  never echoed never enters: the robot never applied it.
+- **echoes**: every accepted command is remembered (seq -> issued, u, the step it entered at)
+  until the robot's :class:`CommandEcho` says when it took effect: the echo bounds the offset
+  and teaches the lead (issue -> applied); with spec ``command_timing: echoed`` the command
+  then moves to that time (:func:`feed_applied_command`, the one seam to the issue-42
+  estimator API). Until its echo a command acts at its stamped apply step (the prediction
+  of a command still in flight); one never echoed stays there.
 
 Bad input is counted (``echoes_unknown``: an echo of no kept command; ``echoes_implausible``:
 applied before the command was issued or after the echo arrived, beyond the offset's
@@ -31,10 +33,10 @@ from typing import Final
 
 import numpy as np
 
-from pd_service.estimation import Estimator
 from pd_service.estimation.clock_offset import ClockOffsetEstimator, OffsetEstimate
 from pd_service.estimation.delay_learning import LATE_SHARE, DelayStats
 from pd_service.estimation.tally import Tally
+from pd_service.intake import Intake
 from pd_service.wire import ClockStatus, CommandEcho, DelayStatus, SessionSpec, WireError, decode
 
 #: Commands kept for their echo per session (oldest pushed out, counted).
@@ -46,18 +48,35 @@ CLOCK_WARN_NS: Final = 50_000_000
 CLOCK_STALE_S: Final = 10.0
 
 
-def feed_applied_command(est: Estimator, spec: SessionSpec, applied_ns: int, u: np.ndarray,
-                         now_step: int) -> bool:
-    """The seam to the estimator for a command that took effect at ``applied_ns`` (the
-    daemon's timeline): True iff accepted.
+#: What an echo hands on for its command: (applied_ns on the daemon's timeline, u (nu,),
+#: the step it entered at, its order (issued_ns or -1, seq): pd_service.intake).
+Applied = tuple[int, np.ndarray, int, tuple[int, int]]
 
-    Issue 42's API takes the instant inside the step: ``est.add_command(step, u, now,
-    offset=(applied_ns - spec.time_of(step)) / 1e9)``. Until that lands the command enters at
-    the start of its step (floored); the merge changes only this call."""
-    step = spec.step_of(applied_ns)
-    if step < 0:
+
+def feed_applied_command(intake: Intake, counters: Tally, applied: Applied,
+                         now_step: int) -> bool:
+    """The seam to the estimator: move an echoed command from the step it entered at to the
+    one it took effect in; True iff the estimator's inputs changed. Counted in ``counters``:
+    ``commands_in_place`` (already there), ``commands_moved``, ``commands_echo_refused`` (its
+    old step final, superseded, or the new one refused: then it stays where it was).
+
+    Issue 42's API takes the instant inside the step: the merge replaces the floor below by
+    ``intake.place(step, u, order, now_step, offset=(applied_ns - spec.time_of(step)) / 1e9)``
+    and moves a command whose step is unchanged too (its offset changes)."""
+    applied_ns, u, entered, order = applied
+    step = intake.spec.step_of(applied_ns)
+    if step == entered:
+        counters["commands_in_place"] += 1
         return False
-    return est.add_command(step, u, now_step)
+    if not intake.withdraw(entered, order, now_step):
+        counters["commands_echo_refused"] += 1
+        return False
+    if intake.place(step, u, order, now_step):
+        counters["commands_moved"] += 1
+        return True
+    intake.place(entered, u, order, now_step)  # back where it was: still our best guess
+    counters["commands_echo_refused"] += 1
+    return True
 
 
 class RobotTime:
@@ -72,8 +91,9 @@ class RobotTime:
         self.samples = DelayStats(spec.period_ns, spec.epoch_ns)
         self.by_sensor: dict[str, DelayStats] = {}
         self.applied = DelayStats(spec.period_ns, spec.epoch_ns)
-        #: seq -> (issued_ns on the daemon's timeline or None, u (nu,) or None: applied)
-        self.kept: OrderedDict[int, tuple[int | None, np.ndarray | None]] = OrderedDict()
+        #: seq -> (issued_ns on the daemon's timeline or None, u (nu,), step, order)
+        self.kept: OrderedDict[int, tuple[int | None, np.ndarray, int, tuple[int, int]]] = \
+            OrderedDict()
         #: Receipt (daemon clock, ns) of the message being read: the bound of its stamp.
         self.recv_ns = 0
         self.seen = 0
@@ -111,22 +131,23 @@ class RobotTime:
 
     # --- commands and echoes ----------------------------------------------------------------
 
-    def keep_command(self, seq: int, issued_ns: int | None, u: np.ndarray | None) -> None:
-        """A command of ``seq`` issued at ``issued_ns`` (daemon timeline; None: a command
-        with an explicit step, whose issue time is unknown) kept for its echo (``u`` None:
-        the estimator has it already; the echo only teaches clock and lead)."""
+    def keep_command(self, seq: int, issued_ns: int | None, u: np.ndarray, step: int,
+                     order: tuple[int, int]) -> None:
+        """A command accepted at ``step``: ``seq``, issued at ``issued_ns`` (daemon timeline;
+        None: a command with an explicit step, whose issue time is unknown), ``u``, its
+        ``order`` (pd_service.intake), kept for its echo (the oldest beyond
+        :data:`COMMANDS_KEPT` go, counted ``commands_kept_dropped``)."""
         kept = self.kept
-        kept[seq] = (issued_ns, u)
+        kept[seq] = (issued_ns, u, step, order)
         kept.move_to_end(seq)
         if len(kept) > COMMANDS_KEPT:
-            _, (_, old_u) = kept.popitem(last=False)
-            if old_u is not None:
-                self.counters["commands_kept_dropped"] += 1
+            kept.popitem(last=False)
+            self.counters["commands_kept_dropped"] += 1
 
-    def echo(self, payload: bytes, recv_ns: int) -> tuple[int, np.ndarray] | None:
-        """An echo received at ``recv_ns``: teaches the clock and the lead; returns
-        (applied_ns on the daemon's timeline, u) for a kept command to enter the estimator
-        (:func:`feed_applied_command`), else None (counted)."""
+    def echo(self, payload: bytes, recv_ns: int) -> Applied | None:
+        """An echo received at ``recv_ns``: teaches the clock and the lead; returns what
+        :func:`feed_applied_command` needs to move its command (``command_timing: echoed``),
+        else None (counted when bad)."""
         c = self.counters
         try:
             msg = decode(payload, CommandEcho)
@@ -140,7 +161,7 @@ class RobotTime:
         if entry is None:
             c["echoes_unknown"] += 1
             return None
-        issued, u = entry
+        issued, u, entered, order = entry
         if self.estimated:
             if msg.sent_ns is not None:
                 self.clock.add_one_way(msg.sent_ns, recv_ns)
@@ -161,7 +182,7 @@ class RobotTime:
         c["echoes"] += 1
         if issued is not None:
             self.applied.add(issued, applied)
-        return None if u is None else (applied, u)
+        return (applied, u, entered, order) if self.echoed else None
 
     def probe(self, t1_ns: int, t2_ns: int, t3_ns: int, t4_ns: int) -> None:
         """A probe's four timestamps (t1, t4 daemon clock; t2, t3 robot clock)."""

@@ -15,12 +15,12 @@ commands_late / _future /  command for a final step / too far ahead / already st
 commands_duplicate
 commands_superseded        command that replaced an older one for the same apply step (a
                            later issued_ns, then a higher seq: pd_service.intake)
-commands_kept              command kept for its echo (spec command_timing "echoed"); it
-                           counts as commands_accepted when the echo lets it in
-echoes / echoes_unknown /  CommandEchoes used / of no kept command / applied outside
-echoes_implausible /       [issued, received] beyond the clock's uncertainty (or refused
-echoes_invalid             by its estimator) / not a CommandEcho of this session
-commands_echo_refused      an echoed command the estimator refused (its step final)
+echoes / echoes_unknown /  CommandEchoes used / of no command kept for one / applied
+echoes_implausible /       outside [issued, received] beyond the clock's uncertainty (or
+echoes_invalid             refused by its estimator) / not a CommandEcho of this session
+commands_moved /           (command_timing "echoed") commands moved to the step their echo
+commands_in_place /        names / already there / not moved (their step final, or a newer
+commands_echo_refused      command superseded them, or the new step refused them)
 stamps_clamped             robot stamps mapped after their receipt, held at it
 probe_replies              clock probes answered (probe_<reason>: refused by the estimator)
 malformed                  bytes that are not a valid Measurement / Command (``commands_``
@@ -211,35 +211,29 @@ class Session:
         return refusal
 
     def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
-        """Offer one Command; None if accepted (``command_timing: echoed``: kept until its
-        echo, :meth:`on_echo`)."""
-        intake, robot = self.intake, self.robot
-        if robot.echoed:
-            refusal = intake.command_kept(key, payload)
-        else:
-            refusal = intake.command(key, payload, now_step)
+        """Offer one Command; None if accepted (at its stamped apply step; with
+        ``command_timing: echoed`` it moves when its echo comes, :meth:`on_echo`)."""
+        intake = self.intake
+        refusal = intake.command(key, payload, now_step)
         if intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
             if refusal is None and intake.last_command is not None:
-                seq, issued, u = intake.last_command
-                robot.keep_command(seq, issued, u if robot.echoed else None)
+                self.robot.keep_command(*intake.last_command)
         return refusal
 
     def on_echo(self, payload: bytes, recv_ns: int, now_step: int) -> bool:
         """A CommandEcho received at ``recv_ns``: teaches the clock and the lead; with
-        ``command_timing: echoed`` its command enters the estimator at the time it took
-        effect. True iff a command entered."""
+        ``command_timing: echoed`` its command moves to the step it took effect in. True
+        iff the estimator's inputs changed."""
         got = self.robot.echo(payload, recv_ns)
         if got is None:
             return False
-        applied, u = got
         try:
-            ok = feed_applied_command(self.est, self.spec, applied, u, now_step)
-        except (ValueError, IndexError):
-            ok = False
-        self.counters["commands_accepted" if ok else "commands_echo_refused"] += 1
-        return ok
+            return feed_applied_command(self.intake, self.robot.counters, got, now_step)
+        except (ValueError, IndexError, KeyError):  # counted; the estimator is left as it was
+            self.robot.counters["commands_echo_refused"] += 1
+            return False
 
     # --- read-back copies ----------------------------------------------------------------
 

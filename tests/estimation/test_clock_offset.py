@@ -212,3 +212,11 @@ def test_hull_slope_solves_the_linear_programme(seed: int) -> None:
     # below: the mirror image
     below = hull_slope(t, -v, above=False)
     assert below == pytest.approx(-ours, abs=1e-12)
+
+
+def test_one_probe_bounds_the_offset_on_both_sides() -> None:
+    est = ClockOffsetEstimator()
+    # 1 µs each way, answered in 1 µs: the robot 10 s ahead
+    assert est.add_probe(T0, T0 + 10 * S + 1000, T0 + 10 * S + 2000, T0 + 3000) is None
+    e = est.estimate(T0 + 3000)
+    assert e.half_width_s < 2e-6 and abs(e.offset_s - 10.0) < 2e-6

@@ -94,6 +94,27 @@ def test_a_command_superseded_on_an_open_step_moves_the_prediction_like_the_newe
     assert (c["commands_accepted"], c["commands_superseded"]) == (2, 1)
 
 
+@pytest.mark.parametrize("hold", ["hold", "zero"])
+@pytest.mark.parametrize("withdrawn", [30, 33])
+def test_a_withdrawn_command_leaves_the_estimate_of_the_others_alone(hold: str,
+                                                                     withdrawn: int) -> None:
+    op, ref = make(hold=hold), make(hold=hold)
+    op.predict(now=40)
+    ref.predict(now=40)
+    for k, u in ((30, 1.0), (33, -1.0), (36, 0.5)):
+        assert op.add_command(step=k, u=[u])
+        if k != withdrawn:
+            assert ref.add_command(step=k, u=[u])
+    assert op.withdraw_command(withdrawn, now=41)
+    a, b = op.predict(now=41), ref.predict(now=41)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.P, b.P)
+    assert not op.withdraw_command(withdrawn)  # gone
+    op.predict(now=60)  # 36 is final now
+    assert not op.withdraw_command(36)
+    assert op.counters["commands_withdrawn"] == 1
+
+
 @pytest.mark.parametrize(
     ("call", "field"),
     [

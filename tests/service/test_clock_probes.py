@@ -123,13 +123,14 @@ def test_today_an_offset_clock_makes_every_sample_future(tmp_path) -> None:
     core.close()
 
 
-def test_echoed_commands_enter_at_the_time_they_took_effect(tmp_path) -> None:
+def test_echoed_commands_move_to_the_time_they_took_effect(tmp_path) -> None:
     core, _, theirs, ours = run_paper(tmp_path, 10 * SECOND, "estimated", "echoed")
     st = core.session_status("s1")
     assert st is not None
     c = st.counters
     assert c["echoes"] == 120 and c.get("echoes_unknown", 0) == 0
-    assert (c["commands_kept"], c["commands_accepted"]) == (120, 120)  # kept, then entered
+    # each entered at its stamped step k + lead, then moved to k, where it took effect
+    assert (c["commands_accepted"], c["commands_moved"]) == (120, 120)
     assert st.recommended_lead == 0  # on arrival, in the same step
     compared = 0
     for k, pred in ours.items():
