@@ -51,7 +51,7 @@ from .tally import Tally
 
 _NS: Final = 1e-9
 #: Buckets left out between the old and the recent set of the in-band step test.
-_GUARD: Final = 4
+_GUARD: Final = 2
 #: What :meth:`ClockOffsetEstimator.counters` may hold, by outcome.
 CLOCK_COUNTERS: Final = ("bounds", "probes", "probes_invalid", "implausible", "inconsistent",
                          "steps")
@@ -147,7 +147,7 @@ class ClockOffsetEstimator:
 
     def __init__(self, *, bucket_s: float = 0.25, buckets: int = 1200, max_drift: float = 5e-4,
                  asymmetry_s: float = 0.0, tolerance_s: float = 1e-3, confirm: int = 4,
-                 recent: int = 8, step_k: float = 3.0, min_step_s: float = 1e-3,
+                 recent: int = 6, step_k: float = 3.0, min_step_s: float = 1e-3,
                  max_offset_s: float = 1e8, max_rtt_s: float = 30.0,
                  drift_span_s: float = 2.0) -> None:
         if not (bucket_s > 0 and buckets >= 2 * recent and recent >= 2 and confirm >= 1
