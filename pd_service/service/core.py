@@ -33,7 +33,7 @@ from pd_service.estimation.linear import set_tables_max_bytes
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Drain, Handle, Transport
-from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
+from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, encode, keys
 
 from .clock_probes import RobotTimeIO
 from .config import Settings
@@ -43,6 +43,7 @@ from .latency import LatencyWindow
 from .lifecycle import Lifecycle, spawn_thread
 from .outbox import Outbox
 from .ownership import Ownership
+from .robot_time import learned_spec
 from .session import Session
 from .spec_store import SpecStore
 from .status import Queries
@@ -119,6 +120,7 @@ class ServiceCore:
         self._routes: dict[str, Route] = self.dispatch.routes
         self._next_expiry_ns = 0
         self._next_sweep_ns = 0
+        self._next_learn_ns = 0
         self._handles: list[Handle] = []
         self._drains: list[Drain] = []
         self._token: Handle | None = None
@@ -333,9 +335,27 @@ class ServiceCore:
                 if now >= self._next_expiry_ns:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS
+                if self.settings.learned_window and now >= self._next_learn_ns:
+                    self._learn_windows()
+                    self._next_learn_ns = now + int(self.settings.learn_interval_s * 1e9)
                 pub.flush()
             if not (got or self.has_work()) or self.run_clock_ns() >= t_end:
                 return handled
+
+    def _learn_windows(self) -> None:
+        """Worker: put the learned spec (max_delay, lead) of each served session whose
+        learned values moved (:func:`.robot_time.learned_spec`) on its config key, as an
+        operator would: the change takes the normal path (admission, replacement)."""
+        for name, r in list(self._routes.items()):
+            sess = r.sess
+            if sess is None:
+                continue
+            new = learned_spec(sess.spec, sess.robot)
+            if new is not None:
+                self.t.put(keys.config_key(name), encode(new))
+                self.counters["learned_windows_put"] += 1
+                event(log, "learned_window", session=name, max_delay=new.max_delay,
+                      lead=new.lead, was_max_delay=sess.spec.max_delay, was_lead=sess.spec.lead)
 
     def clocked_sessions(self) -> list[str]:
         """The served sessions whose robot clock is estimated (the probing thread's list)."""

@@ -37,6 +37,8 @@ from pd_service.estimation.clock_offset import ClockOffsetEstimator, OffsetEstim
 from pd_service.estimation.delay_learning import LATE_SHARE, DelayStats
 from pd_service.estimation.tally import Tally
 from pd_service.intake import Intake
+from pydantic import ValidationError
+
 from pd_service.wire import ClockStatus, CommandEcho, DelayStatus, SessionSpec, WireError, decode
 
 #: Commands kept for their echo per session (oldest pushed out, counted).
@@ -46,6 +48,10 @@ COMMANDS_KEPT: Final = 4096
 CLOCK_WARN_NS: Final = 50_000_000
 #: A clock estimate with no new bound for this long is stale (s).
 CLOCK_STALE_S: Final = 10.0
+#: Samples (and echoes, for the lead) seen before a learned window (lead) is applied: at a
+#: late share of 0.1 % fewer would not tell the window from noise.
+LEARN_MIN_SAMPLES: Final = 1000
+LEARN_MIN_ECHOES: Final = 100
 
 
 #: What an echo hands on for its command: (applied_ns on the daemon's timeline, u (nu,),
@@ -232,3 +238,27 @@ class RobotTime:
                 out[name] = DelayStatus(count=s.count, p50_ms=s.p50_ns / 1e6,
                                         p99_ms=s.p99_ns / 1e6, max_ms=s.max_ns / 1e6)
         return out
+
+
+def learned_spec(spec: SessionSpec, robot: RobotTime) -> SessionSpec | None:
+    """The spec with the learned ``max_delay`` (and ``lead``, once echoes taught it) when
+    either differs from the spec's by more than a step and 10 %; None otherwise, before
+    :data:`LEARN_MIN_SAMPLES` samples, or when the result is not a valid spec (a window
+    shorter than a sensor's delay, say). The daemon's ``learned_window`` setting puts it on
+    the session's config key: it then goes through the normal admission path."""
+    if robot.samples.seen < LEARN_MIN_SAMPLES:
+        return None
+    window = robot.recommended_max_delay()
+    lead = robot.applied.quantile_gap() if robot.applied.seen >= LEARN_MIN_ECHOES else None
+    update: dict[str, int] = {}
+    if window is not None and abs(window - spec.max_delay) > max(1, spec.max_delay // 10):
+        update["max_delay"] = max(window, 0)
+    if lead is not None and abs(lead - spec.lead) > max(1, spec.lead // 10):
+        update["lead"] = max(lead, 0)
+    if not update:
+        return None
+    try:
+        return SessionSpec.model_validate({**spec.model_dump(), **update})
+    except ValidationError:
+        robot.counters["learned_window_invalid"] += 1
+        return None

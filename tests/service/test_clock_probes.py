@@ -201,3 +201,32 @@ def test_bad_echoes_silent_robots_and_flooding_probe_answers_are_counted(tmp_pat
     assert s3.clock.uncertainty_ns > before and "stale" in s3.clock.warning
     assert abs(s3.clock.offset_ns - 10 * SECOND) <= 1
     core.close()
+
+
+def test_the_learned_window_goes_through_the_normal_config_path(tmp_path) -> None:
+    from pd_service.wire import Measurement, SessionSpec
+    from pd_service.wire import decode as wire_decode
+
+    bus, clock = InMemoryBus(), Clock(at(0) - 1)
+    core = make_core(bus, clock, tmp_path, learned_window=True, learn_interval_s=1.0)
+    op = bus.transport()
+    configs: list[SessionSpec] = []
+    op.subscribe(keys.config_key("s1"), lambda s: configs.append(wire_decode(s.payload,
+                                                                             SessionSpec)))
+    op.put(keys.config_key("s1"), encode(paper_spec("s1", max_delay=20)))
+    core.run_once()
+    rng = np.random.default_rng(2)
+    for i in range(1100):  # ranger samples 13 to 14 steps (650-700 ms) late
+        k = 20 + i // 2
+        clock.t = at(k + 0.2)
+        d = 13 + int(rng.random() < 0.3)
+        op.put(keys.sensor_key("s1", "ranger"),
+               encode(Measurement(session="s1", sensor="ranger", seq=i, t_ns=at(k - d + 0.1),
+                                  z=np.array([1.0]))))
+        core.run_once()
+    st = core.session_status("s1")
+    assert st is not None and st.recommended_max_delay == 15  # W* 14, + floor(10 %) = 1
+    assert len(configs) == 2 and configs[-1].max_delay == 15
+    assert core.known_specs()["s1"].max_delay == 15  # installed, as any spec put
+    assert core.service_status().counters["learned_windows_put"] == 1
+    core.close()
