@@ -21,6 +21,16 @@ start, which the daemon answers with every spec it knows):
   per output) so that ``ros2 node list`` / ``ros2 topic list`` see pd-service;
 - **status**: queryable ``pd/@ros2/<instance>/status``, a JSON object of counters.
 
+**Robot role** (``BridgeSettings.role = "robot"``, ``pd-ros2 --role robot``): run beside the
+robot, on its clock, for sessions whose spec estimates the robot clock (issue 43). Per session
+with a command binding it subscribes to the command topic as it reaches the robot and echoes
+each Twist as applied on arrival (a ROS base controller acts on arrival): a ``CommandEcho``
+(``seq`` = the rmw_zenoh attachment's sequence number, the one the operator-side bridge gave
+its Command; ``applied_ns`` = receipt on this clock) on ``pd/p<k>/<s>/echo``
+(``robot/p<k>/<s>/echo`` with ``echo_via_link``, for pd-link to carry down); and it answers
+clock probes on ``robot/p<k>/<s>/clock``. It bridges no sensor, command or output: the
+operator-side bridge does.
+
 Bad input (not CDR of the bound type, a wrong type or type hash in the key, a bad attachment,
 stamp 0, NaN, a covariance that is not PSD, a wrong frame_id) is refused: counted per session
 (``refused`` and ``refused_<reason>``, reasons in :data:`REFUSAL_REASONS`) and reported as an
@@ -85,7 +95,10 @@ from pd_service.transport.base import (
     Transport,
 )
 from pd_service.wire import (
+    ClockProbe,
+    ClockProbeReply,
     Command,
+    CommandEcho,
     ErrorReport,
     Measurement,
     Prediction,
@@ -140,6 +153,10 @@ class BridgeSettings:
     #: Samples each native publisher (``pd/p<k>/<s>/sensor/<name>``, ``pd/p<k>/<s>/cmd``) keeps for a
     #: restarted service to read back (``Transport.publisher(key, cache=...)``); 0: none.
     cache: int = DEFAULT_SENDER_CACHE
+    #: "operator": the bridge (the default); "robot": echoes and clock probes (module docstring).
+    role: Literal["operator", "robot"] = "operator"
+    #: Robot role: echo on the robot-side key (``robot/p<k>/<s>/echo``) for pd-link to carry.
+    echo_via_link: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.domain_id <= 232:
@@ -161,6 +178,8 @@ class BridgeSettings:
                 keys.check_name(s, "session")
         except keys.KeyError_ as exc:
             raise ConfigError(str(exc)) from None
+        if self.role not in ("operator", "robot"):
+            raise ConfigError(f"role {self.role!r} is not 'operator' or 'robot'")
         if not (self.error_rate > 0 and self.error_burst >= 1 and self.inbox_size >= 1):
             raise ConfigError("error_rate must be > 0, error_burst and inbox_size >= 1")
 
@@ -234,6 +253,7 @@ class _Session:
     inputs: list[_Input] = field(default_factory=list)
     outputs: list[_Output] = field(default_factory=list)
     prediction_handle: Handle | None = None
+    probe_handle: Handle | None = None
     closed: bool = False
 
 
@@ -461,6 +481,9 @@ class Ros2Bridge:
 
     def _declare(self, sess: _Session) -> None:
         b = sess.binding
+        if self.settings.role == "robot":
+            self._declare_robot_side(sess)
+            return
         for sensor, tb in b.sensors.items():
             self._declare_input(sess, sensor, tb, keys.sensor_key(sess.name, sensor))
         if b.commands is not None:
@@ -490,6 +513,39 @@ class Ros2Bridge:
         if inp.endpoint is not None:
             inp.token = self.t.declare_token(inp.endpoint.token())
 
+    def _declare_robot_side(self, sess: _Session) -> None:
+        """Robot role: the command topic, echoed; the clock probe queryable."""
+        b = sess.binding
+        if b.commands is not None:
+            key = (keys.robot_echo_key if self.settings.echo_via_link else keys.echo_key)(
+                sess.name)
+            self._declare_input(sess, None, b.commands, key)
+        sess.probe_handle = self.t.queryable(keys.robot_clock_key(sess.name),
+                                             partial(self._on_probe, sess))
+
+    def _on_probe(self, sess: _Session, query: Query) -> None:
+        """Robot role, transport thread: answer a ClockProbe with this clock's t2 / t3
+        (bad probes refused with an error reply, counted)."""
+        t2 = self.now_ns()
+        try:
+            probe = wire_decode(query.payload or b"", ClockProbe)
+            if probe.session != sess.name:
+                raise WireError(f"probe for session {probe.session!r}")
+        except WireError as exc:
+            sess.counters["probes_invalid"] += 1  # racy by a few: a counter
+            try:
+                query.reply_err(f"not a ClockProbe of {sess.name}: {exc.reason}"[:512].encode())
+            except Exception:  # the query may be gone
+                pass
+            return
+        reply = ClockProbeReply(session=sess.name, probe=probe.probe, t1_ns=probe.t1_ns,
+                                t2_ns=t2, t3_ns=max(t2, self.now_ns()))
+        try:
+            query.reply(keys.robot_clock_key(sess.name), wire_encode(reply))
+            sess.counters["probes_answered"] += 1
+        except Exception as exc:  # the query may be gone
+            log.debug("probe reply failed: %s", exc)
+
     def _declare_outputs(self, sess: _Session, ob: OutputBinding) -> None:
         wanted: list[tuple[Literal["odom", "pose", "tf"], str, str]] = []
         if ob.odom_topic is not None:
@@ -513,7 +569,7 @@ class Ros2Bridge:
 
     def _undeclare(self, sess: _Session) -> None:
         sess.closed = True
-        handles: list[Handle | None] = [sess.prediction_handle]
+        handles: list[Handle | None] = [sess.prediction_handle, sess.probe_handle]
         for inp in sess.inputs:
             handles += [inp.handle, inp.token, inp.publisher]
         for out in sess.outputs:
@@ -526,7 +582,7 @@ class Ros2Bridge:
                     pass
         sess.inputs.clear()
         sess.outputs.clear()
-        sess.prediction_handle = None
+        sess.prediction_handle = sess.probe_handle = None
 
     # ======================================================================== inputs ======
 
@@ -571,8 +627,12 @@ class Ros2Bridge:
             self._check_key(inp, sample.key)
             seq = self._attachment_seq(inp, sample.attachment)
             msg = self._decode(inp, sample.payload)
-            payload = (self._measurement(inp, msg, seq) if inp.sensor is not None
-                       else self._command(inp, msg, seq, sample.recv_ns))
+            if inp.sensor is not None:
+                payload = self._measurement(inp, msg, seq)
+            elif self.settings.role == "robot":
+                payload = self._echo(inp, msg, seq, sample.recv_ns)
+            else:
+                payload = self._command(inp, msg, seq, sample.recv_ns)
         except _Refusal as r:
             self._refuse(sess, sample.key, r, seq)
             return
@@ -615,6 +675,17 @@ class Ros2Bridge:
             raise _Refusal("invalid", f"{inp.topic}: {validation_reason('Command', exc)}") \
                 from None
         return wire_encode(out)
+
+    def _echo(self, inp: _Input, msg: RosMessage, seq: int, recv_ns: int) -> bytes:
+        """Robot role: the CommandEcho of a Twist applied on arrival (``recv_ns``, this
+        clock); a Twist that would not become a Command is refused as the bridge does."""
+        try:
+            extract_command(msg)
+        except Ros2DecodeError as exc:
+            raise _Refusal(classify(exc), f"{inp.topic}: {exc.reason}") from None
+        inp.session.counters["echoes_sent"] += 1
+        return wire_encode(CommandEcho(session=inp.session.name, seq=seq, applied_ns=recv_ns,
+                                       sent_ns=self.now_ns()))
 
     def _refuse(self, sess: _Session, key: str, r: _Refusal, seq: int | None) -> None:
         c = sess.counters
