@@ -20,13 +20,14 @@ Runs (each the same truth, noise and delays; ``--scenario`` paper by default):
 - ``ref-loop``, ``loopback``: ``reference`` and ``issue43`` over a link of 100 +- 30 µs each
   way (the offset error figure).
 
-Printed per run: samples refused as future / late after the first 5 s, the offset error after
-10 s (max and median |estimate - truth| at the once-a-second probes, leaving out the 5 s after
-the step change) with the reported uncertainty, when the step was detected (s after it; the
-probe cadence, 1 s, bounds this reading), the prediction RMS
-(position, against the truth at each predicted step, after 10 s; also leaving out the 5 s
-after the step change) and its ratio to the reference on the same link, the learned max_delay (and the smallest window W* that refuses at most 0.1 % of
-the run's samples as late; their ratio, and the share it refuses). A final JSON line.
+Printed per run: samples refused as future / late after the first 5 s; the offset error
+after 10 s (max and median |estimate - truth| at the once-a-second probes, leaving out the 5 s
+after the step change) with the reported uncertainty; when the step was detected (s after it;
+the probe cadence, 1 s, bounds this reading); the prediction RMS (position, against the truth
+at each predicted step, after 10 s; also leaving out the 5 s after the step change) and its
+ratio to the reference on the same link; the learned max_delay, the smallest window W* that
+refuses at most 0.1 % of the run's samples as late, their ratio, and the share the learned
+one refuses. A final JSON line.
 
 Usage: python bench/robot_clock.py [--scenario paper] [--seconds 60] [--offset-s 10]
        [--seed 1]
@@ -277,10 +278,11 @@ def main() -> int:
             "loopback": runs[3]}
     print(f"scenario {args.scenario}, {args.seconds:g} s, robot clock {args.offset_s:+g} s, "
           f"100 ppm, +200 ms step at {args.seconds / 2:g} s; commands on arrival (reference: "
-          f"held to their step, shared clock); PD_SERVICE_PURE={os.environ.get('PD_SERVICE_PURE', '')}")
+          f"held to their step, shared clock); "
+          f"PD_SERVICE_PURE={os.environ.get('PD_SERVICE_PURE', '')}")
     head = (f"{'run':<10} {'future':>7} {'late':>5} {'off.err max/med ms':>19} {'unc. ms':>8} "
-            f"{'RMS':>8} {'/ref':>6} {'w/o step':>8} {'/ref':>6} {'learned W':>9} {'W*':>4} {'W/W*':>5} {'late %':>7} "
-            f"{'steps':>5} {'seen s':>6}")
+            f"{'RMS':>8} {'/ref':>6} {'w/o step':>8} {'/ref':>6} {'learned W':>9} {'W*':>4} "
+            f"{'W/W*':>5} {'late %':>7} {'steps':>5} {'seen s':>6}")
     print(head)
     for r in runs:
         off = (f"{r.offset_err_max_ms:8.3f}/{r.offset_err_median_ms:<8.3f}"
@@ -294,7 +296,8 @@ def main() -> int:
         ref = refs[r.name]
         print(f"{r.name:<10} {r.future:>7} {r.late:>5} {off:>19} {unc} {r.rms:8.4f} "
               f"{r.rms / ref.rms:6.3f} {r.rms_outside_step:8.4f} "
-              f"{r.rms_outside_step / ref.rms_outside_step:6.3f} {r.learned_max_delay!s:>9} {r.smallest_window!s:>4} "
+              f"{r.rms_outside_step / ref.rms_outside_step:6.3f} {r.learned_max_delay!s:>9} "
+              f"{r.smallest_window!s:>4} "
               f"{ratio} {share} {r.steps_detected:>5} "
               f"{'-' if r.step_seen_after_s is None else round(r.step_seen_after_s, 2)!s:>6}")
     print(json.dumps({"scenario": args.scenario, "seconds": args.seconds,

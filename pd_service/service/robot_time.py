@@ -32,13 +32,12 @@ from collections import OrderedDict
 from typing import Final
 
 import numpy as np
+from pydantic import ValidationError
 
 from pd_service.estimation.clock_offset import ClockOffsetEstimator, OffsetEstimate
 from pd_service.estimation.delay_learning import LATE_SHARE, DelayStats
 from pd_service.estimation.tally import Tally
 from pd_service.intake import Intake
-from pydantic import ValidationError
-
 from pd_service.wire import ClockStatus, CommandEcho, DelayStatus, SessionSpec, WireError, decode
 
 #: Commands kept for their echo per session (oldest pushed out, counted).

@@ -122,7 +122,8 @@ class Robot(ClientBase):
             raise InvalidMessage(str(exc)) from None
         if self.stamp_clock is not None and step is not None and t_ns is None:
             assert self.spec is not None
-            step, t_ns = None, self.stamp_clock(self.spec.time_of(step))
+            t_ns = self.stamp_clock(self.spec.time_of(step))
+            step = None
         fields: dict[str, object] = {"session": self.session, "sensor": sensor,
                         "seq": self._seq.get(sensor, 0), "step": step, "t_ns": t_ns,
                         "z": as_array(z, "z", 1)}
