@@ -105,6 +105,9 @@ class FeedSession:
         self.sensor_seen: dict[str, float] = {}  # monotonic s of the newest sample
         self.cmd: Json | None = None
         self.last_pred: float | None = None  # monotonic s
+        #: The daemon's robot clock warning (SessionStatus.clock; robot_clock "estimated"
+        #: sessions only, polled with the status): "" none.
+        self.clock_warning = ""
         self.predictions = 0
         self.history: deque[tuple[int, str]] = deque(maxlen=HISTORY)  # (event id, text)
 
@@ -239,6 +242,8 @@ class FeedSession:
             ages[s] = mono - seen
             if ages[s] > max(stale_s, 3 * interval * period):
                 warn.append(f"sensor {s} silent for {ages[s]:.1f} s")
+        if self.clock_warning:
+            warn.append(self.clock_warning)
         return pred_age, ages, warn
 
 
@@ -358,7 +363,9 @@ class LiveFeed:
     def poll_status(self, timeout: float = 0.5) -> None:
         """Sessions the daemons report (ServiceStatus), and the specs of the sessions seen
         that were not put while this feed listened (queried on ``pd/p<k>/<s>/config``: the daemon
-        answers them; at most every 10 s per session)."""
+        answers them; at most every 10 s per session); for sessions whose robot clock is
+        estimated, their SessionStatus: its clock warning (unknown, one-sided, stale, jumped)
+        joins the session's warnings."""
         try:
             reported = sorted({s for st in self.admin.service_status(timeout=timeout)
                                for s in st.sessions})
@@ -381,6 +388,19 @@ class LiveFeed:
             if spec is not None:
                 with self.lock:
                     self._view(s).spec = spec
+        with self.lock:
+            clocked = [n for n, v in self.views.items()
+                       if v.spec is not None and v.spec.robot_clock == "estimated"]
+        for s in clocked:  # the daemon's view of the robot's clock: a warning when unsure
+            try:
+                st = self.admin.status(s, timeout=timeout)
+            except PdClientError:
+                continue
+            text = ""
+            if st.clock is not None and st.clock.warning:
+                text = f"clock: {st.clock.warning}"
+            with self.lock:
+                self._view(s).clock_warning = text
 
     def tick(self) -> str:
         """The ``tick`` event's text: sessions (reported and seen) and their warnings."""
