@@ -95,8 +95,6 @@ from pd_service.transport.base import (
     Transport,
 )
 from pd_service.wire import (
-    ClockProbe,
-    ClockProbeReply,
     Command,
     CommandEcho,
     ErrorReport,
@@ -108,6 +106,7 @@ from pd_service.wire import (
 )
 from pd_service.wire import decode as wire_decode
 from pd_service.wire import encode as wire_encode
+from pd_service.wire.clock_probe import answer_probe
 from pd_service.wire.codec import validation_reason
 from pd_service.wire.ros2 import CommandBinding, OutputBinding, Ros2Binding, TopicBinding
 
@@ -528,9 +527,7 @@ class Ros2Bridge:
         (bad probes refused with an error reply, counted)."""
         t2 = self.now_ns()
         try:
-            probe = wire_decode(query.payload or b"", ClockProbe)
-            if probe.session != sess.name:
-                raise WireError(f"probe for session {probe.session!r}")
+            reply = answer_probe(query.payload, sess.name, t2, self.now_ns())
         except WireError as exc:
             sess.counters["probes_invalid"] += 1  # racy by a few: a counter
             try:
@@ -538,8 +535,6 @@ class Ros2Bridge:
             except Exception:  # the query may be gone
                 pass
             return
-        reply = ClockProbeReply(session=sess.name, probe=probe.probe, t1_ns=probe.t1_ns,
-                                t2_ns=t2, t3_ns=max(t2, self.now_ns()))
         try:
             query.reply(keys.robot_clock_key(sess.name), wire_encode(reply))
             sess.counters["probes_answered"] += 1

@@ -25,17 +25,15 @@ import numpy as np
 
 from pd_service.transport import DEFAULT_SENDER_CACHE, Query, Sample, Transport
 from pd_service.wire import (
-    ClockProbe,
-    ClockProbeReply,
     Command,
     CommandEcho,
     Measurement,
     SessionSpec,
     WireError,
-    decode,
     encode,
     keys,
 )
+from pd_service.wire.clock_probe import answer_probe
 from pd_service.wire.convert import check_measurement, command_step
 
 from ._base import ClientBase, as_array, build, session_name, try_decode
@@ -220,17 +218,11 @@ class Robot(ClientBase):
     def _on_probe(self, query: Query) -> None:
         t2 = self.clock()  # first: the probe's receipt
         try:
-            probe = decode(query.payload or b"", ClockProbe)
+            reply = answer_probe(query.payload, self.session, t2, self.clock())
         except WireError as exc:
             self.probes_invalid += 1
-            query.reply_err(f"not a ClockProbe: {exc.reason}".encode())
+            query.reply_err(f"not a ClockProbe of {self.session}: {exc.reason}"[:512].encode())
             return
-        if probe.session != self.session:
-            self.probes_invalid += 1
-            query.reply_err(f"probe for session {probe.session!r}, not {self.session!r}".encode())
-            return
-        reply = ClockProbeReply(session=self.session, probe=probe.probe, t1_ns=probe.t1_ns,
-                                t2_ns=t2, t3_ns=max(t2, self.clock()))
         try:
             query.reply(keys.robot_clock_key(self.session), encode(reply))
             self.probes_answered += 1
