@@ -35,12 +35,14 @@ Step changes (an NTP correction on the robot): a bound outside the current band 
 the tolerance is held aside (``inconsistent``); ``confirm`` of them in a row re-anchor the
 estimate on them (``steps``). A step inside the band is seen when the newest ``recent``
 buckets' envelopes both moved the same way, by more than ``step_k`` times their own spread,
-against the older ones: the older buckets are dropped. Pure numpy, no clock reads: every time
+against the (at most 16) buckets before them: the older buckets are dropped. Pure numpy, no clock reads: every time
 is passed in (ns, int).
 """
 
 from __future__ import annotations
 
+import itertools
+import math
 from collections import deque
 from dataclasses import dataclass
 from typing import Final
@@ -50,8 +52,10 @@ import numpy as np
 from .tally import Tally
 
 _NS: Final = 1e-9
-#: Buckets left out between the old and the recent set of the in-band step test.
+#: Buckets left out between the old and the recent set of the in-band step test, and the
+#: most buckets of the old set it looks at.
 _GUARD: Final = 2
+_OLD: Final = 16
 #: What :meth:`ClockOffsetEstimator.counters` may hold, by outcome.
 CLOCK_COUNTERS: Final = ("bounds", "probes", "probes_invalid", "implausible", "inconsistent",
                          "steps")
@@ -142,14 +146,16 @@ class ClockOffsetEstimator:
     ``max_offset_s`` an offset beyond which a bound is refused as implausible; ``max_rtt_s``
     a probe's longest round trip accepted; ``drift_span_s`` the shortest span of bounds the
     drift is fitted on (shorter, e.g. just after a step: the previous drift is kept, as a
-    slope over a short span would be mostly jitter, unless the band it gives is inverted).
+    slope over a short span would be mostly jitter, unless the band it gives is inverted);
+    ``refit_s`` the least time (s of bounds) between two fits of the drift and in-band step
+    tests (each O(``buckets``); between them each bound moves the band in O(1)).
     """
 
     def __init__(self, *, bucket_s: float = 0.25, buckets: int = 1200, max_drift: float = 5e-4,
                  asymmetry_s: float = 0.0, tolerance_s: float = 1e-3, confirm: int = 4,
                  recent: int = 6, step_k: float = 3.0, min_step_s: float = 1e-3,
                  max_offset_s: float = 1e8, max_rtt_s: float = 30.0,
-                 drift_span_s: float = 2.0) -> None:
+                 drift_span_s: float = 2.0, refit_s: float = 1.0) -> None:
         if not (bucket_s > 0 and buckets >= 2 * recent and recent >= 2 and confirm >= 1
                 and max_drift >= 0 and tolerance_s >= 0 and step_k > 0 and max_rtt_s > 0):
             raise ValueError("clock offset estimator: bucket_s > 0, buckets >= 2 recent, "
@@ -166,6 +172,8 @@ class ClockOffsetEstimator:
         self.max_offset_s = max_offset_s
         self.max_rtt_ns = int(max_rtt_s * 1e9)
         self.drift_span_s = drift_span_s
+        self.refit_s = refit_s
+        self._refitted = -np.inf  # s since the anchor of the last full refit
         self._buckets: deque[_Bucket] = deque(maxlen=buckets)
         self._anchor_ns: int | None = None
         self._drift = 0.0
@@ -246,8 +254,22 @@ class ClockOffsetEstimator:
         if not lower and d < lo - tol:
             return self._hold(self._pending_hi, t, v)
         (self._pending_lo if lower else self._pending_hi).clear()
-        if self._store(t, v, lower):  # most bounds are not their bucket's tightest: no refit
+        opened = self._buckets[-1].index if self._buckets else None
+        if not self._store(t, v, lower):  # most bounds are not their bucket's tightest
+            return None
+        # the band follows each bound at once (O(1)); the hulls (the drift), O(buckets), are
+        # fitted when a bucket is opened and refit_s has passed, or when the band inverts
+        # (the drift is off); the step test, O(recent), at every bucket opened
+        if lower:
+            lo = max(lo, d)
+        else:
+            hi = min(hi, d)
+        self._band = (lo, hi)
+        if lo > hi + tol or (self._buckets[-1].index != opened
+                             and t - self._refitted >= self.refit_s):
+            self._refitted = t
             self._refit()
+        if self._buckets[-1].index != opened:
             self._step_inside_band()
         return None
 
@@ -274,7 +296,7 @@ class ClockOffsetEstimator:
         """Keep the bound if it is its bucket's tightest; True iff it changed a bucket."""
         self.counters["bounds"] += 1
         self._newest = max(self._newest, t)
-        index = int(np.floor(t / self.bucket_s))
+        index = math.floor(t / self.bucket_s)
         bs = self._buckets
         if not bs or bs[-1].index < index:
             bs.append(_Bucket(index))
@@ -336,8 +358,11 @@ class ClockOffsetEstimator:
 
     def _step_inside_band(self) -> None:
         """The in-band step test (module docstring): the newest ``recent`` buckets holding
-        both kinds against the older ones."""
-        bs = list(self._buckets)
+        both kinds against the :data:`_OLD` before them (a bounded look back: the test runs
+        at every bucket opened; the step's drop of the older buckets is what a refit sees)."""
+        kept = self._buckets
+        bs = list(itertools.islice(kept, max(0, len(kept) - 2 * self.recent - _GUARD - _OLD),
+                                   None))
         both = [i for i, b in enumerate(bs) if b.lo > -np.inf and b.hi < np.inf]
         n = self.recent
         if len(both) < 2 * n + _GUARD:
@@ -348,19 +373,18 @@ class ClockOffsetEstimator:
         old, new = bs[:max(0, split - _GUARD)], bs[split:]
         b = self._drift
         tl, vl, th, vh = self._arrays(new)
-        ol, _, oh, _ = self._arrays(old)
-        rl, rh = vl - b * tl, vh - b * th
-        old_l = max(x.lo - b * x.t_lo for x in old if x.lo > -np.inf)
-        old_h = min(x.hi - b * x.t_hi for x in old if x.hi < np.inf)
+        ol, vol, oh, voh = self._arrays(old)
         if ol.size < n or oh.size < n:
             return
+        rl, rh = vl - b * tl, vh - b * th
+        old_l, old_h = float(np.max(vol - b * ol)), float(np.min(voh - b * oh))
         d_lo, d_hi = float(rl.max()) - old_l, float(rh.min()) - old_h
         spread = float(np.median(np.concatenate([rl.max() - rl, rh - rh.min()])))
         thr = max(self.min_step_s, self.step_k * spread)
         if d_lo * d_hi > 0 and min(abs(d_lo), abs(d_hi)) > thr:
             before = self.estimate_at(bs[split].t_lo if bs[split].lo > -np.inf else 0.0)
-            for _ in range(split):
-                self._buckets.popleft()
+            for _ in range(len(kept) - (len(bs) - split)):
+                kept.popleft()
             self._refit()
             self._note_step(before)
 

@@ -55,8 +55,11 @@ class DelayStats:
             raise ValueError("delay stats: period_ns and capacity must be positive")
         self.period_ns = period_ns
         self.epoch_ns = epoch_ns
-        self._ns = np.zeros(capacity, dtype=np.int64)
-        self._gap = np.zeros(capacity, dtype=np.int64)
+        self.capacity = capacity
+        # plain lists: a sample costs two list writes (the daemon adds one per measurement);
+        # numpy arrays are made only when the stats are read
+        self._ns: list[int] = [0] * capacity
+        self._gap: list[int] = [0] * capacity
         self._n = 0  # kept
         self._next = 0  # ring position
         self.seen = 0
@@ -69,41 +72,46 @@ class DelayStats:
         i = self._next
         self._ns[i] = later_ns - earlier_ns
         self._gap[i] = (later_ns - e) // p - (earlier_ns - e) // p
-        self._next = (i + 1) % self._ns.size
-        self._n = min(self._n + 1, self._ns.size)
+        i += 1
+        self._next = 0 if i == self.capacity else i
+        if self._n < self.capacity:
+            self._n += 1
         self.seen += 1
 
     def __len__(self) -> int:
         return self._n
 
+    @staticmethod
+    def _oldest_first(ring: list[int], n: int, nxt: int, capacity: int) -> np.ndarray:
+        if n < capacity:
+            return np.array(ring[:n], dtype=np.int64)
+        return np.array(ring[nxt:] + ring[:nxt], dtype=np.int64)
+
     def gaps(self) -> np.ndarray:
         """The kept step gaps (n,), oldest first."""
-        if self._n < self._ns.size:
-            return self._gap[: self._n].copy()
-        return np.roll(self._gap, -self._next)
+        return self._oldest_first(self._gap, self._n, self._next, self.capacity)
 
     def delays_ns(self) -> np.ndarray:
         """The kept delays (n,), ns, oldest first."""
-        if self._n < self._ns.size:
-            return self._ns[: self._n].copy()
-        return np.roll(self._ns, -self._next)
+        return self._oldest_first(self._ns, self._n, self._next, self.capacity)
 
     def summary(self) -> DelaySummary:
         """p50 / p90 / p99 / max of the kept delays (the higher order statistic: an
         observed value)."""
         if not self._n:
             return DelaySummary(self.seen, 0, None, None, None, None, None)
-        d = self._ns[: self._n]
+        d = np.array(self._ns[: self._n], dtype=np.int64)
         q = np.quantile(d, [0.5, 0.9, 0.99], method="higher")
         return DelaySummary(self.seen, self._n, int(q[0]), int(q[1]), int(q[2]), int(d.max()),
-                            int(self._gap[: self._n].max()))
+                            max(self._gap[: self._n]))
 
     def share_above(self, window: int) -> float:
         """The share of kept gaps above ``window`` steps (those a window of that size would
         have refused as late); 0.0 when none is kept."""
         if not self._n:
             return 0.0
-        return float(np.count_nonzero(self._gap[: self._n] > window)) / self._n
+        g = np.array(self._gap[: self._n], dtype=np.int64)
+        return float(np.count_nonzero(g > window)) / self._n
 
     def smallest_window(self, share: float = LATE_SHARE) -> int | None:
         """``W* = min { W >= 0 : #{g_i > W} <= share n }`` (steps); None when none is kept."""
@@ -113,7 +121,7 @@ class DelayStats:
         if not 0.0 <= share < 1.0:
             raise ValueError(f"share: must be in [0, 1), got {share!r}")
         allowed = math.floor(share * n + 1e-9)  # gaps that may stay above the window
-        g = np.sort(self._gap[:n])
+        g = np.sort(np.array(self._gap[:n], dtype=np.int64))
         return max(0, int(g[n - 1 - allowed]))
 
     def recommended_window(self, share: float = LATE_SHARE, margin: float = 0.1) -> int | None:
@@ -130,4 +138,5 @@ class DelayStats:
             return None
         if not 0.0 <= q <= 1.0:
             raise ValueError(f"q: must be in [0, 1], got {q!r}")
-        return int(np.quantile(self._gap[: self._n], q, method="higher"))
+        return int(np.quantile(np.array(self._gap[: self._n], dtype=np.int64), q,
+                               method="higher"))

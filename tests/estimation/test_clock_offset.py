@@ -57,7 +57,7 @@ FIELD = Link(0.5, 0.6, 0.05)
 
 def run(est: ClockOffsetEstimator, clock: RobotClock, link: Link, seconds: float,
         probe_hz: float = 5.0, sample_hz: float = 50.0, seed: int = 1,
-        start_s: float = 0.0) -> list[tuple[float, float, float]]:
+        start_s: float = 0.0, echo_hz: float = 0.0) -> list[tuple[float, float, float]]:
     """Feed probes and one-way samples in daemon-time order; (t s, error s, half-width s)
     at each probe."""
     rng = np.random.default_rng(seed)
@@ -74,9 +74,19 @@ def run(est: ClockOffsetEstimator, clock: RobotClock, link: Link, seconds: float
         ts = T0 + round(t * S)
         events.append((ts + link.down(rng), 1, (clock(ts),)))
         t += 1.0 / sample_hz
+    t = start_s
+    while echo_hz and t < start_s + seconds:  # commands applied on arrival, echoed back
+        ti = T0 + round(t * S)
+        ta = ti + link.up(rng)
+        events.append((ta + link.down(rng), 2, (ti, clock(ta))))
+        t += 1.0 / echo_hz
     out = []
     for recv, kind, data in sorted(events):
-        if kind == 0:
+        if kind == 2:
+            est.add_echo(*data)
+            e = est.estimate(recv)
+            out.append(((recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s))
+        elif kind == 0:
             est.add_probe(*data)
             e = est.estimate(recv)
             out.append(((recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s))
@@ -131,6 +141,15 @@ def test_a_step_change_mid_run_is_detected_and_reanchored(link: Link, step_s: fl
           f"after 40 s {settle * 1e3:.3f} ms")
     limit = 1e-3 if link is LOOPBACK else 0.02
     assert settle <= limit and before <= limit
+
+
+@pytest.mark.parametrize("step_s", [0.2, -0.2])
+def test_echoes_and_stamps_alone_find_a_step_on_the_field_link(step_s: float) -> None:
+    clock = RobotClock(10.0, step_s=step_s, step_at_s=30.0)
+    est = ClockOffsetEstimator(asymmetry_s=-0.1)
+    trace = run(est, clock, FIELD, 60.0, probe_hz=1e-9, echo_hz=50.0)
+    assert est.counters["steps"] >= 1 and est.counters["probes"] == 1
+    assert error_after(trace, 40.0) < 0.02
 
 
 def test_when_probes_stop_the_last_offset_holds_with_a_growing_bound() -> None:
