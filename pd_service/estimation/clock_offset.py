@@ -35,8 +35,8 @@ Step changes (an NTP correction on the robot): a bound outside the current band 
 the tolerance is held aside (``inconsistent``); ``confirm`` of them in a row re-anchor the
 estimate on them (``steps``). A step inside the band is seen when the newest ``recent``
 buckets' envelopes both moved the same way, by more than ``step_k`` times their own spread,
-against the (at most 16) buckets before them: the older buckets are dropped. Pure numpy, no clock reads: every time
-is passed in (ns, int).
+against the (at most 16) buckets before them: the older buckets are dropped. Pure numpy, no
+clock reads: every time is passed in (ns, int).
 """
 
 from __future__ import annotations
