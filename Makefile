@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test demo demo-ros2 bench lint schemas clean browser native compiler
+.PHONY: venv test demo demo-ros2 demo-async bench lint schemas clean browser native compiler
 
 $(STAMP): pyproject.toml clients/python/pyproject.toml setup.py mypyc.ini | compiler
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,10 @@ demo: $(STAMP) native
 # The ROS 2 variant (rosbags, in the dev extra): docs/ros2.md.
 demo-ros2: $(STAMP)
 	$(VENV)/bin/pd-demo --ros2
+
+# Sensors off the step grid, stamped with their own time (issue 42): docs/clients.md.
+demo-async: $(STAMP) native
+	$(VENV)/bin/pd-demo --async
 
 # The whole suite on the installed build (compiled where it could be), then the hot modules'
 # own tests again on their .py files (PD_SERVICE_PURE=1: the pure-Python reference; the C

@@ -5,8 +5,10 @@ operations on this machine and print the per-operation costs (µs).
 
 Linear: one propagate (multi-step, from the tables) + one Kalman update, n = 4, 16, 64,
 fitted as a + b n^3 (µs). Unscented (omni3, n = 6): one propagated step of the sigma points
-and one update. IMM (imm_cv / imm_ct, r = 2): one predicted step. The constants in
-admission.py are these numbers rounded up.
+and one update. IMM (imm_cv / imm_ct, r = 2): one predicted step. Then the model's price of the paper's
+session and how many the default cpu_budget admits; the linear constants in
+pd_service/backends.py follow the worker's measured cost per session-step
+(docs/performance.md, "Admission's cost model"). A final JSON line holds every figure.
 """
 
 from __future__ import annotations
@@ -55,8 +57,31 @@ def unscented(lead: int) -> float:
     return per_call(step, 200)
 
 
+def model_paper() -> tuple[float, int]:
+    """The cost model's price of the paper's session (µs per step) and how many of them
+    the default ``cpu_budget`` admits (no timing: the model's figures)."""
+    from pd_service.backends import command_dim, spec_cost
+    from pd_service.scenarios.paper import paper_scenario
+    from pd_service.service import Settings
+
+    spec = paper_scenario().spec("paper", 0, lead=10, max_delay=12)
+    cost = spec_cost(spec, command_dim(spec))
+    return cost.cpu_us, int(Settings(instance="bench").cpu_budget / cost.cpu_share)
+
+
 if __name__ == "__main__":
+    import json
+
+    out: dict[str, float] = {}
     for n in (4, 16, 64):
-        print(f"linear n={n:3d}: {linear(n):8.1f} µs/step (1 update + 1 predict)")
+        out[f"linear_n{n}_us"] = us = linear(n)
+        print(f"linear n={n:3d}: {us:8.1f} µs/step (1 update + 1 predict)")
     for lead in (0, 50, 200):
-        print(f"unscented omni3 lead={lead:4d}: {unscented(lead):8.1f} µs/step")
+        out[f"unscented_omni3_lead{lead}_us"] = us = unscented(lead)
+        print(f"unscented omni3 lead={lead:4d}: {us:8.1f} µs/step")
+    price, admitted = model_paper()
+    out["model_paper_us"], out["model_paper_admitted"] = price, admitted
+    print(f"model: the paper's session {price:.1f} µs per step; the default cpu_budget "
+          f"admits {admitted} (compare with the worker's measured µs per session-step: "
+          "bench/worker.py)")
+    print(json.dumps(out))

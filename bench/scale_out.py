@@ -19,15 +19,30 @@ second step) and a probe. Per repetition:
    ``--settle`` s. Per event: the share of the partitions (of the sessions) whose owner
    changed (from the instances' ServiceStatus.sessions before and after), for the sessions
    that did not move the longest gap between two predictions the probe received (the probe
-   watches every 10th session; goal: none > 250 ms), and for the moved sessions their
-   SessionStatus.origin (goal: "replica", never "prior").
+   watches every 10th session; goal: none > 250 ms) and their predictions received against
+   those due over the settle (20 per second each: the gap accounting), and for the moved
+   sessions their SessionStatus.origin (goal: "replica", never "prior").
+   **Exact afterwards**: the load generator sends every session the same values at the
+   same steps (one simulated paper run shared by all), so a session that never moved is a
+   reference for a moved one: two steps before the newest step the watched sessions all
+   predicted, at least one window (lead + max_delay steps) after the event, each moved session's
+   prediction (x and P) is compared with the one most of the sessions that stayed agree on
+   (goal: within 1e-9). Printed beside it: how many of the stayed sessions agree with that
+   one themselves (a session whose samples were refused as late under load, or lost,
+   differs from the others without any move: the check's own noise on a saturated machine).
 
 The machine has 2 cores for everything (router, instances, generator, probe): capacity
-cannot grow here; the figures are the work each instance does and what it receives.
+cannot grow here; the figures are the work each instance does and what it receives, and
+the router's CPU per data sample it forwarded to the instances (everything else it carried
+counted in: an upper bound of its cost per message, which docs/performance.md's sizing uses).
 Printed: a table per phase, then one JSON line with every figure (medians over --repeat).
 
+With the default senders (plain puts, no caches) what a kill -9 loses (the samples after
+the newest replica) stays lost, and a taken-over session waits ``2 x recover_timeout_s``
+for caches that never answer: ``--clients sdk`` runs the SDK's set-up (cached senders).
+
 Usage: python bench/scale_out.py [--sessions 1000] [--instances 4] [--duration 6]
-       [--warmup 4] [--repeat 1] [--churn] [--settle 6]
+       [--warmup 4] [--repeat 1] [--churn] [--settle 6] [--clients declared|sdk]
 """
 
 from __future__ import annotations
@@ -71,6 +86,7 @@ class Cluster:
         self.ep = f"tcp/127.0.0.1:{self.port}"
         self.state = state
         self.trusted = trusted
+        self.epoch = 0  # the sessions' epoch (ns), set by the load's start
         self.env = dict(os.environ, PD_SERVICE_LOG_LEVEL="WARNING")
         self.env.pop("PD_SERVICE_CONFIG", None)
         for k, v in BENCH_ENV.items():
@@ -135,10 +151,11 @@ def received(st) -> int:
     return int(st.counters.get("samples_received", 0))
 
 
-def loadgen(c: Cluster, n: int, epoch: int, measure_start: int, end: int) -> subprocess.Popen:
+def loadgen(c: Cluster, n: int, epoch: int, measure_start: int, end: int,
+            clients: str) -> subprocess.Popen:
     gen = subprocess.Popen(
         [sys.executable, str(ROOT / "bench" / "service.py"), "--loadgen", "--n", str(n),
-         "--connect", c.ep, "--clients", "declared", "--epoch", str(epoch),
+         "--connect", c.ep, "--clients", clients, "--epoch", str(epoch),
          "--measure-start", str(measure_start), "--end", str(end), "--mode", "client"],
         stdout=subprocess.PIPE, text=True, cwd=ROOT)
     line = gen.stdout.readline() if gen.stdout else ""
@@ -154,18 +171,27 @@ def measure(c: Cluster, n: int, args: argparse.Namespace, churn: bool) -> dict:
     measure_start = now + int((setup_s + args.warmup) * 1e9)
     steady_end = measure_start + int(args.duration * 1e9)
     end = steady_end + (int(3 * args.settle * 1e9) + 2_000_000_000 if churn else 0)
-    gen = loadgen(c, n, now, measure_start, end)
+    c.epoch = now
+    gen = loadgen(c, n, now, measure_start, end, args.clients)
     while time.time_ns() < measure_start:
         time.sleep(0.05)
     s0, c0, w0 = c.statuses(), c.cpu(), time.monotonic()
+    r0 = cpu_seconds(c.router.pid)
     while time.time_ns() < steady_end:
         time.sleep(0.05)
     s1, c1, wall = c.statuses(), c.cpu(), time.monotonic() - w0
+    r1 = cpu_seconds(c.router.pid)
     steps = n * wall / (PERIOD_NS / 1e9)
     per = {name: received(s1[name]) - received(s0[name]) for name in s1}
     total = sum(per.values())
+    published = sum(int(s1[k].counters.get("published", 0))
+                    - int(s0[k].counters.get("published", 0)) for k in s1)
     res = {"n": n, "instances": len(s1), "wall_s": wall,
-           "received": per, "received_total": total,
+           "received": per, "received_total": total, "published": published,
+           # the router's CPU per data sample it forwarded to an instance: an upper bound of
+           # its cost per message (whatever else it carried is counted in, the predictions
+           # the instances put included)
+           "router_us_per_message": 1e6 * (r1 - r0) / max(1, total),
            "max_share": max(per.values()) / (total / len(per)) if total else float("nan"),
            "us_per_session_step": 1e6 * sum(c1[k] - c0[k] for k in c1) / steps,
            "late": sum(s1[k].counters.get("late_total", 0) - s0[k].counters.get("late_total", 0)
@@ -181,22 +207,88 @@ def owners(c: Cluster) -> dict[str, str]:
     return {s: name for name, st in c.statuses().items() for s in st.sessions}
 
 
+#: Steps after an event before the moved sessions are compared (the paper spec's lead 10 +
+#: max_delay 12: one window), and the most recent predictions kept per watched session.
+WINDOW_STEPS = 22
+KEEP_PREDICTIONS = 200
+
+
+def agreement(preds: dict[str, dict[int, bytes]], moved: list[str], stayed: list[str],
+              after_step: int) -> dict:
+    """Moved sessions against the sessions that stayed, at the newest step >= ``after_step``
+    every compared session predicted: the (x, P) most stayed sessions agree on (to 1e-9) is
+    the reference. Returns the step, how many moved / stayed sessions are within 1e-9 of it,
+    and the largest difference of a moved one."""
+    import numpy as np
+
+    from pd_service.wire import Prediction, decode
+
+    both = [s for s in moved + stayed if preds.get(s)]
+    steps = set.intersection(*(set(preds[s]) for s in both)) if both else set()
+    # two steps before the newest: the sessions get their step's samples at phases spread
+    # over the step, so at the newest some have predicted from them and some not yet
+    newest = max(steps, default=0)
+    steps = {k for k in steps if after_step <= k <= newest - 2}
+    if not steps or not any(s in both for s in moved) or not any(s in both for s in stayed):
+        return {"step": None}
+    k = max(steps)
+    got = {s: decode(preds[s][k], Prediction) for s in both}
+
+    def same(a, b) -> bool:
+        return bool(np.allclose(a.x, b.x, rtol=0, atol=1e-9)
+                    and np.allclose(a.P, b.P, rtol=0, atol=1e-9))
+
+    groups: list[list[str]] = []
+    for s in (x for x in stayed if x in got):
+        for g in groups:
+            if same(got[g[0]], got[s]):
+                g.append(s)
+                break
+        else:
+            groups.append([s])
+    ref = got[max(groups, key=len)[0]]
+    m = [s for s in moved if s in got]
+    dx = max(float(np.abs(got[s].x - ref.x).max()) for s in m)
+    dP = max(float(np.abs(got[s].P - ref.P).max()) for s in m)
+    return {"step": k, "moved_compared": len(m),
+            "moved_exact_1e9": sum(1 for s in m if same(got[s], ref)),
+            # P differs only if the packets used differ (one lost, refused or extra); x
+            # differs also with the same packets if the state resumed from was not the same
+            "moved_max_diff": max(dx, dP), "moved_max_diff_x": dx, "moved_max_diff_P": dP,
+            "stayed_compared": sum(len(g) for g in groups),
+            "stayed_agreeing": max(len(g) for g in groups)}
+
+
 def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
+    import msgpack
+
     from pd_service.wire import SessionStatus, decode, keys
 
     watched = [session_name(i) for i in range(0, args.sessions, 10)]
     last: dict[str, int] = {}
     gaps: dict[str, int] = {}
+    count: dict[str, int] = {}
+    preds: dict[str, dict[int, bytes]] = {s: {} for s in watched}
     lock = threading.Lock()
 
     def on_pred(smp) -> None:
         t = time.monotonic_ns()
         s = keys.parse_key(smp.key).session
+        try:  # the step only (msgpack, no validation): decoded when compared
+            step = int(msgpack.unpackb(smp.payload, raw=False)["step"])
+        except Exception:
+            step = None
         with lock:
             p = last.get(s)
             if p is not None and t - p > gaps.get(s, 0):
                 gaps[s] = t - p
             last[s] = t
+            count[s] = count.get(s, 0) + 1
+            if step is not None:
+                kept = preds[s]
+                kept[step] = smp.payload
+                if len(kept) > KEEP_PREDICTIONS:
+                    del kept[min(kept)]
 
     handles = [c.probe.subscribe(keys.prediction_key(s), on_pred) for s in watched]
     events = []
@@ -208,6 +300,9 @@ def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
         before = owners(c)
         with lock:
             gaps.clear()
+            count.clear()
+        t_event = time.time_ns()
+        event_step = (t_event - c.epoch) // PERIOD_NS
         if sig is None:
             assert name is not None
             c.start(name)
@@ -215,9 +310,12 @@ def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
             name = sorted(c.daemons)[0]
             c.stop(name, sig)
         time.sleep(args.settle)
+        settled_s = (time.time_ns() - t_event) / 1e9
         after = owners(c)
         with lock:
             g = dict(gaps)
+            n_got = dict(count)
+            kept = {s: dict(v) for s, v in preds.items()}
         moved = [s for s in before if after.get(s) != before[s]]
         parts_before = {keys.partition_of(s): o for s, o in before.items()}
         parts_after = {keys.partition_of(s): o for s, o in after.items()}
@@ -230,12 +328,20 @@ def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
                     o = decode(r.payload, SessionStatus).origin
                     origins[o] = origins.get(o, 0) + 1
         worst = max((g.get(s, 0) for s in stayed), default=0) / 1e6
+        due = settled_s / (PERIOD_NS / 1e9)  # predictions due per session over the settle
+        got = sorted(n_got.get(s, 0) / due for s in stayed)
+        moved_watched = [s for s in watched if s in moved]
+        exact = agreement(kept, moved_watched, stayed, event_step + WINDOW_STEPS + 1
+                          + int(args.settle * 1e9 // PERIOD_NS) // 2)
         events.append({"event": what, "instance": name, "members_after": len(c.daemons),
                        "partitions_moved": len(moved_parts), "partitions": len(parts_before),
                        "sessions_moved": len(moved), "unserved_after": args.sessions - len(after),
                        "stayed_watched": len(stayed), "stayed_gap_max_ms": round(worst, 1),
                        "stayed_gaps_over_250ms": sum(1 for s in stayed if g.get(s, 0) > 250e6),
-                       "moved_origins": origins})
+                       "stayed_received_of_due_min": round(got[0], 3) if got else None,
+                       "stayed_received_of_due_median": round(statistics.median(got), 3)
+                       if got else None,
+                       "moved_origins": origins, "moved_exact": exact})
     for h in handles:
         h.close()
     return events
@@ -272,6 +378,10 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--churn", action="store_true", help="join, leave and kill after phase 2")
     ap.add_argument("--settle", type=float, default=6.0, help="seconds after each churn event")
+    ap.add_argument("--clients", choices=("declared", "sdk"), default="declared",
+                    help="the load's senders: plain puts of declared keys, or what the SDK "
+                         "declares (a cached publisher per key, a display per session): "
+                         "the set-up in which a takeover reads back what a kill lost")
     ap.add_argument("--router", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.router:
@@ -281,7 +391,8 @@ def main() -> None:
 
     print(f"scale-out: {args.sessions} paper sessions at 20 Hz through one Python Zenoh router, "
           f"1 then {args.instances} instances, P = {keys.partitions()} partitions, "
-          f"{os.cpu_count()} CPUs, {args.duration:g} s measured after {args.warmup:g} s warm-up")
+          f"{os.cpu_count()} CPUs, {args.duration:g} s measured after {args.warmup:g} s warm-up, "
+          f"senders: {args.clients}")
     reps = []
     for r in range(args.repeat):
         res = one_repetition(args)
@@ -289,13 +400,15 @@ def main() -> None:
         one, many = res["one"], res["many"]
         print(f"run {r + 1}: gauge {res['gauge_ms']:.1f} ms")
         print(f"  1 instance: {one['received_total']} samples received, "
-              f"{one['us_per_session_step']:.1f} µs CPU per session-step, late {one['late']}")
+              f"{one['us_per_session_step']:.1f} µs CPU per session-step, late {one['late']}; "
+              f"router {one['router_us_per_message']:.2f} µs CPU per message")
         shares = ", ".join(f"{name} {v / (many['received_total'] / len(many['received'])):.3f}"
                            for name, v in sorted(many["received"].items()))
         print(f"  {many['instances']} instances: {many['received_total']} samples received; "
               f"share of total/{many['instances']}: {shares} (max {many['max_share']:.3f}); "
               f"{many['us_per_session_step']:.1f} µs CPU per session-step summed "
-              f"({res['cpu_ratio']:.2f}x one), late {many['late']}")
+              f"({res['cpu_ratio']:.2f}x one), late {many['late']}; router "
+              f"{many['router_us_per_message']:.2f} µs CPU per message")
         for ev in many.get("churn", []):
             print(f"  {ev['event']:<16} {ev['instance']}: partitions moved "
                   f"{ev['partitions_moved']}/{ev['partitions']}, sessions moved "
@@ -303,12 +416,23 @@ def main() -> None:
                   f"stayed (watched {ev['stayed_watched']}): longest gap "
                   f"{ev['stayed_gap_max_ms']} ms, {ev['stayed_gaps_over_250ms']} over 250 ms; "
                   f"moved sessions' origin {ev['moved_origins']}", flush=True)
+            ex = ev["moved_exact"]
+            if ex.get("step") is not None:
+                print(f"  {'':<16} predictions of sessions that stayed: "
+                      f"{ev['stayed_received_of_due_median']} of those due (median; min "
+                      f"{ev['stayed_received_of_due_min']}); at step {ex['step']} moved "
+                      f"sessions within 1e-9 of the stayed ones: {ex['moved_exact_1e9']}/"
+                      f"{ex['moved_compared']} (largest difference: x {ex['moved_max_diff_x']:.2e}, P "
+                      f"{ex['moved_max_diff_P']:.2e});"
+                      f" stayed agreeing among themselves {ex['stayed_agreeing']}/"
+                      f"{ex['stayed_compared']}", flush=True)
 
     def med(get) -> float:
         return round(statistics.median(get(r) for r in reps), 3)
 
     print(json.dumps({
         "sessions": args.sessions, "instances": args.instances, "partitions": keys.partitions(),
+        "clients": args.clients,
         "runs": len(reps), "gauge_ms": med(lambda r: r["gauge_ms"]),
         "one_us_per_session_step": med(lambda r: r["one"]["us_per_session_step"]),
         "many_us_per_session_step": med(lambda r: r["many"]["us_per_session_step"]),
@@ -316,6 +440,7 @@ def main() -> None:
         "cpu_ratio_runs": [round(r["cpu_ratio"], 3) for r in reps],
         "max_share": med(lambda r: r["many"]["max_share"]),
         "max_share_runs": [round(r["many"]["max_share"], 3) for r in reps],
+        "router_us_per_message": med(lambda r: r["many"]["router_us_per_message"]),
         "churn": [r["many"].get("churn", []) for r in reps]}))
 
 

@@ -3,7 +3,7 @@
 
 Two daemon instances (inst-x, inst-y; explicit peers) share N paper sessions. A sender
 process keeps, for every session, one cached publisher (``cache=64``: the SDK's Robot and
-Operator keep such caches) on its ranger key and one on its command key, and has put
+Operator keep such caches) on each of its data keys (ranger, camera, command), and has put
 ``--steps`` steps of data on each. Then inst-y is killed (SIGKILL: no handover). inst-x takes
 its sessions over, parks them, and reads their senders' caches back
 (``Lifecycle.read_back_taken``): until a session's own read-back ends, its live messages wait.
@@ -24,7 +24,10 @@ Three sender modes:
 
 Printed per N and mode (medians of --repeat runs, spread in brackets): the sessions taken
 over, the samples read back, the read-back's wall time from inst-x's ``event=read_back`` log
-line, and the time from the kill to that line; then one JSON object.
+line, the time from the kill to that line, the time from the kill to the first prediction
+of each session taken over (the median session's and the last one's: a taken-over session
+publishes only once its senders' caches were read, or ``2 x recover_timeout_s`` passed) and
+how their wait ended (``SessionStatus.readback``: answered / timeout); then one JSON object.
 
     .venv/bin/python bench/takeover.py --sessions 50,200 --repeat 3
     .venv/bin/python bench/takeover.py --sessions 50 --modes slow --root ../baseline
@@ -77,12 +80,16 @@ def run_senders(args: argparse.Namespace) -> None:
         data = {keys.sensor_key(s, "ranger"): [
                     encode(Measurement(session=s, sensor="ranger", seq=k, step=k - 2,
                                        z=np.array([5.0]))) for k in range(now - args.steps, now)],
+                keys.sensor_key(s, "camera"): [
+                    encode(Measurement(session=s, sensor="camera", seq=k, step=k - 2,
+                                       z=np.array([5.0, 0.0])))
+                    for k in range(now - args.steps, now)],
                 keys.command_key(s): [
                     encode(Command(session=s, seq=k, step=k + 10, u=np.array([0.1])))
                     for k in range(now - args.steps, now)]}
         for j, (key, payloads) in enumerate(data.items()):
             if args.answer_ms > 0:
-                held += emulated_cache(t, key, payloads, args.answer_ms / 1e3, 2 * i + j)
+                held += emulated_cache(t, key, payloads, args.answer_ms / 1e3, 3 * i + j)
                 continue
             pub = t.publisher(key, cache=64)
             for payload in payloads:
@@ -138,7 +145,19 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
             statuses[st.session] = st.instance
             cond.notify_all()
 
+    first: dict[str, float] = {}  # session -> its first prediction after the kill (wall s)
+    t_kill = float("inf")
+
+    def on_prediction(smp) -> None:
+        t = time.time()
+        s = keys.session_of(smp.key)
+        with cond:
+            if t >= t_kill and s is not None and s not in first:
+                first[s] = t
+                cond.notify_all()
+
     h = hub.subscribe(keys.ALL_STATUS, on_status)
+    hp = hub.subscribe(keys.ALL_PREDICTIONS, on_prediction)
     try:
         for inst, other in (("inst-x", "inst-y"), ("inst-y", "inst-x")):
             eps[inst] = f"tcp/127.0.0.1:{free_port()}"
@@ -158,7 +177,8 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
         with cond:
             if not cond.wait_for(lambda: len(statuses) >= n, timeout=120):
                 raise RuntimeError(f"only {len(statuses)} of {n} sessions answered")
-            taken = sum(1 for v in statuses.values() if v == "inst-y")
+            moved = [s for s, v in statuses.items() if v == "inst-y"]
+            taken = len(moved)
         time.sleep(0.5 + args.steps * STEP_NS / 1e9)  # steps of history behind the senders
         snd = subprocess.Popen([sys.executable, __file__, "--senders", "--n", str(n),
                                 "--connect", hub_ep, "--epoch", str(epoch),
@@ -171,7 +191,8 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
         time.sleep(1.0)  # the caches' tokens reach both instances
         if mode == "stalled":
             snd.send_signal(signal.SIGSTOP)
-        t_kill = time.time()
+        with cond:
+            t_kill = time.time()
         stop: dict = {}
         if args.signal == "term":
             procs["inst-y"].send_signal(signal.SIGTERM)
@@ -198,11 +219,25 @@ def one_run(n: int, mode: str, args: argparse.Namespace, root: Path) -> dict:
         if int(m.group(2)) != taken:  # a read-back of part of them would measure too little
             raise RuntimeError(f"the read-back covered {m.group(2)} sessions, inst-y served "
                                f"{taken}")
+        with cond:  # every session taken over predicts: answered, or at the bound (4 s)
+            cond.wait_for(lambda: all(s in first for s in moved), timeout=30)
+            firsts = sorted(first[s] - t_kill for s in moved if s in first)
+        how: dict[str, int] = {}
+        for s in moved:
+            for r in hub.get(keys.status_key(s), timeout=5.0):
+                if r.ok:
+                    from pd_service.wire import SessionStatus, decode
+                    rb = decode(r.payload, SessionStatus).readback or "-"
+                    how[rb] = how.get(rb, 0) + 1
         return {"sessions": n, "mode": mode, "taken": taken,
                 "samples": int(m.group(3)), "read_back_s": float(m.group(4)),
-                "kill_to_done_s": round(done - t_kill, 3), **stop}
+                "kill_to_done_s": round(done - t_kill, 3),
+                "first_prediction_s": round(statistics.median(firsts), 3) if firsts else None,
+                "last_first_prediction_s": round(firsts[-1], 3) if firsts else None,
+                "never_predicted": len(moved) - len(firsts), "readback": how, **stop}
     finally:
         h.close()
+        hp.close()
         if "senders" in procs:
             procs["senders"].send_signal(signal.SIGCONT)
         for p in procs.values():
@@ -236,7 +271,8 @@ def main() -> None:
     out = []
     term = args.signal == "term"
     print(f"{'sessions':>8} {'mode':>8} {'taken':>6} {'samples':>8} {'read-back s':>22} "
-          f"{'kill->done s':>22}" + (f" {'handover s':>22} {'resent':>9} {'unconfirmed':>11} "
+          f"{'kill->done s':>22} {'kill->1st pred s (median, last)':>32} {'readback':>24}"
+          + (f" {'handover s':>22} {'resent':>9} {'unconfirmed':>11} "
                                      f"{'stop s':>22}" if term else ""), flush=True)
     for n in [int(x) for x in args.sessions.split(",")]:
         for mode in args.modes.split(","):
@@ -250,7 +286,10 @@ def main() -> None:
                    "samples": statistics.median(x["samples"] for x in runs),
                    "read_back_s": statistics.median(rb), "read_back_runs": rb,
                    "kill_to_done_s": statistics.median(kd), "kill_to_done_runs": kd,
-                   "root": str(root)}
+                   "first_prediction_runs": [x["first_prediction_s"] for x in runs],
+                   "last_first_prediction_runs": [x["last_first_prediction_s"] for x in runs],
+                   "never_predicted": max(x["never_predicted"] for x in runs),
+                   "readback_runs": [x["readback"] for x in runs], "root": str(root)}
             more = ""
             if term:
                 ho, st = [x["handover_s"] for x in runs], [x["stop_s"] for x in runs]
@@ -264,7 +303,11 @@ def main() -> None:
             out.append(row)
             print(f"{n:>8} {mode:>8} {row['taken']:>6} {row['samples']:>8.0f} "
                   f"{row['read_back_s']:>8.3f} ({min(rb):.3f}-{max(rb):.3f}) "
-                  f"{row['kill_to_done_s']:>8.3f} ({min(kd):.3f}-{max(kd):.3f})" + more,
+                  f"{row['kill_to_done_s']:>8.3f} ({min(kd):.3f}-{max(kd):.3f}) "
+                  f"{','.join(str(x) for x in row['first_prediction_runs']):>16} "
+                  f"{','.join(str(x) for x in row['last_first_prediction_runs']):>15} "
+                  f"{' '.join(f'{k}:{v}' for r_ in row['readback_runs'] for k, v in r_.items()):>24}"
+                  + more,
                   flush=True)
     print(json.dumps(out))
 

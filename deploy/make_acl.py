@@ -20,12 +20,21 @@ The input (TOML; every list of users may name several users, a user may have sev
     links = ["link"]          # the link emulator (bridges robot/p<k>/<s>/... <-> pd/p<k>/<s>/...)
     displays = ["display"]    # read-only: predictions, errors, statuses, specs, truth, stats
     users_file = "/etc/zenoh/users.txt"   # optional (router's path of the user:password list)
-    listen = ["tcp/[::]:7447"]            # optional
+    listen = ["tcp/[::]:7447"]            # optional (default tls/[::]:7447 with [tls])
+
+    [tls]                     # optional: TLS with mutual authentication instead of passwords
+    ca = "/etc/zenoh/certs/ca.pem"                 # paths on the router's host
+    certificate = "/etc/zenoh/certs/router.pem"    # (deploy/make_certs.py makes them)
+    private_key = "/etc/zenoh/certs/router-key.pem"
+    # a client is then known by its certificate's common name (cert_common_names), which is
+    # its role's user name below; only tls/ listeners (no plaintext port); no users_file
 
     [mesh]                    # optional: several routers meshed, each with this configuration
     zids = ["a1a1", "b2b2"]   # every router's Zenoh id (zenohd -i <zid>): they trust each other
     user = "router"           # the user a router logs in with to the router it connects to
     password = "..."          # (must be in users.txt)
+    # with [tls] instead: common_names = ["router-a", "router-b"] (their certificates' CNs:
+    # mutual TLS between the routers; a Zenoh id is only claimed, a certificate is proven)
 
     [[session]]
     name = "paper"
@@ -68,13 +77,18 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-_NAME = re.compile(r"[a-z0-9][a-z0-9_-]{0,63}")  # keys.NAME_PATTERN: a session name
+try:  # one session-name rule: the daemon's, where pd-service is installed (venv, image)
+    from pd_service.wire.keys import NAME_PATTERN
+except ImportError:  # standalone: the same pattern (tests/deploy/test_make_acl.py: equal)
+    NAME_PATTERN = r"[a-z0-9][a-z0-9_-]{0,63}"
+_NAME = re.compile(NAME_PATTERN)
 _USER = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 _ZID = re.compile(r"[1-9a-f][0-9a-f]{0,31}")  # Zenoh: lowercase hex, no leading zero
 _ROLE_LISTS = ("admins", "link_admins", "services", "links", "displays")
-_TOP = {*_ROLE_LISTS, "users_file", "listen", "mesh", "session"}
+_TOP = {*_ROLE_LISTS, "users_file", "listen", "mesh", "session", "tls"}
 _SESSION = {"name", "robot", "operator", "direct", "robot_creates"}
 _MESH = {"zids", "user", "password"}
+_TLS = {"ca", "certificate", "private_key"}
 RESULTS = ("prediction", "error", "status")
 #: every session of every partition (key layout 2): pd/p<k>/<s>, robot/p<k>/<s>
 PD = "pd/*/*"
@@ -149,10 +163,20 @@ def read_sessions(doc: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {f: _users(doc, f) for f in _ROLE_LISTS}
     if not out["services"]:
         raise InputError("services: at least one user (the pd-service daemon)")
+    out["tls"] = _read_tls(doc.get("tls"))
+    if out["tls"] is not None and "users_file" in doc:
+        raise InputError("users_file: not with [tls] (the client certificate is the identity)")
     out["users_file"] = doc.get("users_file", "/etc/zenoh/users.txt")
-    listen = doc.get("listen", ["tcp/[::]:7447"])
+    listen = doc.get("listen", ["tls/[::]:7447"] if out["tls"] else ["tcp/[::]:7447"])
     out["listen"] = [listen] if isinstance(listen, str) else listen
-    out["mesh"] = _read_mesh(doc.get("mesh"))
+    if not isinstance(out["listen"], list) or not all(isinstance(e, str) for e in out["listen"]):
+        raise InputError("listen: a list of Zenoh endpoints")
+    tls_eps = [e for e in out["listen"] if e.startswith("tls/")]
+    if tls_eps and out["tls"] is None:
+        raise InputError(f"listen: {tls_eps[0]!r} needs a [tls] table ({sorted(_TLS)})")
+    if out["tls"] is not None and len(tls_eps) != len(out["listen"]):
+        raise InputError("listen: with [tls], tls/ endpoints only (no plaintext port)")
+    out["mesh"] = _read_mesh(doc.get("mesh"), tls=out["tls"] is not None)
     sessions = doc.get("session", [])
     if not isinstance(sessions, list) or not sessions:
         raise InputError("session: at least one [[session]] table")
@@ -180,9 +204,27 @@ def read_sessions(doc: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _read_mesh(mesh: object) -> dict[str, Any] | None:
+def _read_tls(tls: object) -> dict[str, str] | None:
+    """``[tls]``: the router's CA, certificate and key (paths on the router's host)."""
+    if tls is None:
+        return None
+    if not isinstance(tls, dict) or set(tls) != _TLS or not all(
+            isinstance(v, str) and v for v in tls.values()):
+        raise InputError(f"tls: a table with exactly {sorted(_TLS)} (paths on the router)")
+    return dict(tls)
+
+
+def _read_mesh(mesh: object, tls: bool = False) -> dict[str, Any] | None:
     if mesh is None:
         return None
+    if tls:  # routers authenticate each other by their certificates' common names
+        names = mesh.get("common_names") if isinstance(mesh, dict) else None
+        if not isinstance(mesh, dict) or set(mesh) != {"common_names"} or not isinstance(
+                names, list) or len(names) < 2 or not all(
+                isinstance(n, str) and _USER.fullmatch(n) for n in names):
+            raise InputError("mesh: with [tls], a table with exactly common_names = [the "
+                             "routers' certificate common names, two or more]")
+        return {"common_names": list(names)}
     if not isinstance(mesh, dict) or set(mesh) != _MESH:
         raise InputError(f"mesh: a table with exactly {sorted(_MESH)}")
     zids = mesh["zids"]
@@ -398,10 +440,18 @@ def build(sessions: dict[str, Any], partitions: int | None = None) -> dict[str, 
         wanted = ["learn-subscribers", *per_user_fixed.get(u, []), *fixed]
         ids = list(dict.fromkeys([*wanted, *(r["id"] for r in rules)]))
         policies.append({"id": f"user-{u}", "subjects": [f"user-{u}"], "rules": ids})
-    subjects: list[dict[str, Any]] = [{"id": f"user-{u}", "usernames": [u]} for u in users]
+    tls = sessions.get("tls")
+    # who a client is: its certificate's common name with [tls], else its user name
+    who = "cert_common_names" if tls else "usernames"
+    subjects: list[dict[str, Any]] = [{"id": f"user-{u}", who: [u]} for u in users]
     usrpwd: dict[str, str] = {"dictionary_file": sessions["users_file"]}
     mesh = sessions.get("mesh")
-    if mesh:
+    if mesh and tls:
+        # mutual TLS between the routers: a router proves its name with its certificate (a
+        # Zenoh id is only claimed, so anybody may claim another router's)
+        subjects.append({"id": "routers", "cert_common_names": list(mesh["common_names"])})
+        policies.append({"id": "routers", "subjects": ["routers"], "rules": ["mesh"]})
+    elif mesh:
         # a router that connected out sees its peer without a user name (user/password
         # authenticates one way only): the routers are matched by their Zenoh ids
         subjects.append({"id": "routers", "zids": list(mesh["zids"])})
@@ -409,12 +459,20 @@ def build(sessions: dict[str, Any], partitions: int | None = None) -> dict[str, 
         usrpwd.update(user=mesh["user"], password=mesh["password"])
     used = {rid for p in policies for rid in p["rules"]}
     all_rules = [_rule(rid, *spec) for rid, spec in _FIXED.items() if rid in used] + scoped
+    transport: dict[str, Any] = {"auth": {"usrpwd": usrpwd}}
+    if tls:
+        transport = {"link": {"protocols": ["tls"], "tls": {
+            "root_ca_certificate": tls["ca"], "enable_mtls": True,
+            "listen_certificate": tls["certificate"], "listen_private_key": tls["private_key"],
+            # the same pair when this router connects to another one of the mesh
+            "connect_certificate": tls["certificate"], "connect_private_key": tls["private_key"],
+            "verify_name_on_connect": True}}}
     return {
         "mode": "router",
         "listen": {"endpoints": sessions["listen"]},
         "connect": {"endpoints": []},
         "scouting": {"multicast": {"enabled": False}},
-        "transport": {"auth": {"usrpwd": usrpwd}},
+        "transport": transport,
         "adminspace": {"enabled": False, "permissions": {"read": False, "write": False}},
         "access_control": {
             "enabled": True,
@@ -427,9 +485,9 @@ def build(sessions: dict[str, Any], partitions: int | None = None) -> dict[str, 
 
 
 HEADER = """\
-// Zenoh router (zenohd) of a pd-service deployment: user/password authentication and access
-// control scoped by session.  GENERATED by deploy/make_acl.py from {source}; do not edit:
-// change the sessions file and run
+// Zenoh router (zenohd) of a pd-service deployment: authentication (user/password, or TLS
+// client certificates with a [tls] table) and access control scoped by session.
+// GENERATED by deploy/make_acl.py from {source}; do not edit: change the sessions file and run
 //     python deploy/make_acl.py {source} --partitions {partitions} > router.json5
 // Key layout 2 with P = {partitions} partitions: a session's keys are pd/p<k>/<s>/... and
 // robot/p<k>/<s>/..., k = FNV-1a-32(s) mod {partitions}; every party of the deployment must

@@ -42,14 +42,22 @@ prediction rolls the newest posterior forward to now + lead::
 
     samples/step   lam = sum_s 1 / interval_s
     updates        U = 1 + lam D
-    linear         cpu = STEP_US + lam SAMPLE_US + (U + 1) LIN_OP_US(n)      (the prediction
-                                             is one multi-step product from the tables)
+    linear         cpu = STEP_US + lam SAMPLE_US + (lam + 1) LIN_OP_US(n) + lam D REPLAY_US(n)
+                   (each packet one covariance update, the prediction one multi-step
+                   product from the tables; a replayed step keeps its covariance and gains
+                   and re-runs only its mean)
     unscented      cpu = STEP_US + lam SAMPLE_US + (D + lead) UKF_STEP_US(n) + U UKF_UPD_US(n)
     IMM (r modes)  the unscented figure with both per-op costs times r
 
-The constants are calibrated with ``bench/admission_calibrate.py`` and rounded up
-(docs/performance.md, "Admission's cost model"). They are a model, not a measurement of the
-spec: a spec's real cost depends on its traffic. The budgets it is checked against are
+The constants price the worker thread's time (the one thread every session shares, which
+``cpu_budget`` bounds) as measured on the current hot path and rounded up: the paper's
+session (n = 4, camera every 2nd step delayed 10, ranger every step delayed 12) comes to
+~32 µs per step, where the worker alone was measured at 26-29 µs per session-step at
+1,000-2,000 sessions (docs/performance.md, "Admission's cost model", with the command);
+``bench/admission_calibrate.py`` times the estimator's part. Fixed constants, not a
+measurement at start-up: a budget must admit the same specs on every restart and on every
+peer, whatever the machine's load at that moment. They are a model, not a measurement of
+the spec: a spec's real cost depends on its traffic. The budgets it is checked against are
 :class:`pd_service.service.admission.Ledger`'s.
 """
 
@@ -83,13 +91,18 @@ __all__ = ["Built", "Cost", "build", "command_dim", "estimator_refusal", "imm_se
 SESSION_FIXED_BYTES = 32 * 1024
 PACKET_OVERHEAD_BYTES = 200
 
-STEP_US = 40.0  # pack and publish one prediction, tick bookkeeping
-SAMPLE_US = 15.0  # decode, check and store one measurement
+STEP_US = 15.0  # tick, health check, snapshot, pack and put one prediction
+SAMPLE_US = 6.0  # decode, check and store one measurement
 
 
 def lin_op_us(n: int) -> float:
-    """One linear propagate or update (µs)."""
-    return 5.0 + 1e-4 * n**3
+    """One linear propagate or covariance update (µs)."""
+    return 2.0 + 1e-4 * n**3
+
+
+def replay_us(n: int) -> float:
+    """One replayed linear step whose covariance and gains are reused: its mean only (µs)."""
+    return 0.15 + 1e-3 * n**2
 
 
 def ukf_step_us(n: int) -> float:
@@ -147,12 +160,14 @@ def spec_cost(spec: SessionSpec, nu: int) -> Cost:
     if isinstance(model, LinearModelSpec):
         table_bytes = 8 * ((C + 1) * 2 * n * n + C * n * nu)
         h = hashlib.blake2b(digest_size=16)
-        for a in (model.A, model.B, model.Q):
+        for a in model.matrices():
             h.update(repr(a.shape).encode())
             h.update(a.tobytes())
         h.update(str(C).encode())
+        if model.continuous:  # its tables are those of one period
+            h.update(str(spec.period_ns).encode())
         table_key = h.hexdigest()
-        cpu += (updates + 1.0) * lin_op_us(n)
+        cpu += (lam + 1.0) * lin_op_us(n) + lam * D * replay_us(n)
     else:
         r = 1 if isinstance(model, UnscentedModelSpec) else len(model.modes)
         cpu += r * ((D + spec.lead) * ukf_step_us(n) + updates * ukf_upd_us(n))
@@ -218,6 +233,15 @@ def _nu_model(spec: SessionSpec) -> tuple[int, NonlinearModel | None]:
         raise estimator_refusal(exc) from None
 
 
+def linear_model(model: LinearModelSpec, period_ns: int) -> LinearModel:
+    """The estimation model of a linear spec: (A, B, Q) as given, or (F, G, Qc) discretised
+    exactly for any interval, one step being ``period_ns``."""
+    a, b, c = (np.array(m) for m in model.matrices())
+    if model.continuous:
+        return LinearModel.continuous(a, b, c, period_ns / 1e9)
+    return LinearModel(A=a, B=b, Q=c)
+
+
 def build(spec: SessionSpec, admit: Callable[[Cost], None] | None = None) -> Built:
     """The spec's estimator, nu and cost, by ``spec.model.kind`` (see the module docstring).
 
@@ -236,7 +260,7 @@ def build(spec: SessionSpec, admit: Callable[[Cost], None] | None = None) -> Bui
     try:
         if isinstance(model, LinearModelSpec):
             est: Estimator = ObserverPredictor(
-                LinearModel(A=np.array(model.A), B=np.array(model.B), Q=np.array(model.Q)),
+                linear_model(model, spec.period_ns),
                 [Sensor(name=s.name, H=np.array(s.H), R=np.array(s.R))
                  for s in spec.sensors],
                 np.array(spec.x0), np.array(spec.P0), spec.lead, spec.max_delay,

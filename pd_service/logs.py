@@ -82,15 +82,37 @@ def setup_logging(level: str = "INFO", fmt: str = "kv") -> None:
     root.setLevel(level.upper())
 
 
-def add_logging_args(ap: argparse.ArgumentParser, default_level: str | None = "INFO") -> None:
-    """``--log-level`` and ``--log-format``, the same for every executable. A default of
-    None leaves the value None when the flag is not given (the daemon layers settings)."""
+def add_logging_args(ap: argparse.ArgumentParser, default_level: str | None = "INFO",
+                     default_shown: str | None = None) -> None:
+    """``--log-level``, ``--log-format``, ``-v/--verbose`` and ``--version``, the same for
+    every executable (read the level with :func:`level_of`). A default of None leaves the
+    value None when the flag is not given (the daemon layers settings); ``default_shown`` is
+    then what the help names as the default."""
+    shown = default_shown or default_level
     g = ap.add_argument_group("logs")
     g.add_argument("--log-level", dest="log_level", type=str.upper, choices=LEVELS,
-                   default=default_level, help=f"least severe level logged (default {default_level})")
+                   default=default_level, help=f"least severe level logged (default {shown})")
     g.add_argument("--log-format", dest="log_format", choices=("kv", "json"),
                    default="kv" if default_level is not None else None,
                    help="kv: key=value lines (default); json: one JSON object per line")
+    g.add_argument("--verbose", "-v", action="store_true", help="same as --log-level DEBUG")
+    ap.add_argument("--version", action="version", version=f"%(prog)s {package_version()}",
+                    help="print the version and exit")
+
+
+def level_of(args: argparse.Namespace) -> str | None:
+    """The log level a command line asks for: DEBUG with ``-v``, else ``--log-level``."""
+    return "DEBUG" if args.verbose else args.log_level
+
+
+def package_version() -> str:
+    """pd-service's installed version ("unknown" when run from a source tree not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("pd-service")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 def event(log: logging.Logger, name: str, level: int = logging.INFO, **fields: Any) -> None:

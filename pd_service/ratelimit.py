@@ -26,3 +26,7 @@ class TokenBucket:
             self.tokens -= 1.0
             return True
         return False
+
+    def refund(self) -> None:
+        """Give back the token :meth:`allow` just took (another limit refused the event)."""
+        self.tokens = min(self.burst, self.tokens + 1.0)

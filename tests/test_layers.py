@@ -28,28 +28,33 @@ ALLOWED: dict[str, set[str]] = {
     "pd_service.errors": set(),
     "pd_service.logs": set(),
     "pd_service.ratelimit": set(),
+    # the Prometheus endpoint every long-running executable shares (prometheus-client)
+    "pd_service.metrics": set(),
     # which hot modules run compiled (mypyc, setup.py): stdlib only, read by setup.py alone
     "pd_service.native": set(),
     "pd_service.wire": {"pd_service.estimation", "pd_service.errors", "pd_service.native"},
     "pd_service.transport": set(),
-    "pd_service.cli": {"pd_service.errors", "pd_service.logs", "pd_service.transport"},
+    "pd_service.cli": {"pd_service.errors", "pd_service.logs", "pd_service.transport",
+                       "pd_service.metrics"},
     "pd_service.scenarios": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.intake": {"pd_service.estimation", "pd_service.native", "pd_service.wire"},
     "pd_service.backends": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     "pd_service.ros2": {"pd_service.estimation", "pd_service.wire", "pd_service.errors"},
     # the pd-ros2 bridge on top of the pure building blocks: they never import it
     "pd_service.ros2.bridge": {"pd_service.ros2", "pd_service.wire", "pd_service.errors",
-                               "pd_service.logs", "pd_service.transport", "pd_service.ratelimit"},
+                               "pd_service.logs", "pd_service.transport", "pd_service.ratelimit",
+                               "pd_service.metrics"},
     "pd_service.ros2.__main__": {"pd_service.ros2.bridge", "pd_service.errors", "pd_service.logs",
-                                 "pd_service.transport", "pd_service.cli", "pd_service.ros2"},
+                                 "pd_service.transport", "pd_service.cli", "pd_service.ros2",
+                                 "pd_service.metrics"},
     "pd_service.service": {"pd_service.estimation", "pd_service.wire", "pd_service.errors",
                            "pd_service.logs", "pd_service.transport", "pd_service.backends",
                            "pd_service.service.handover.checkpoint", "pd_service.intake",
-                           "pd_service.ratelimit", "pd_service.native"},
+                           "pd_service.ratelimit", "pd_service.native", "pd_service.metrics"},
     # the daemon's checkpoint codec (EstimatorState <-> SessionState): estimation and wire only
     "pd_service.service.handover.checkpoint": {"pd_service.estimation", "pd_service.wire"},
     "pd_service.link": {"pd_service.errors", "pd_service.logs", "pd_service.transport",
-                        "pd_service.wire", "pd_service.cli"},
+                        "pd_service.wire", "pd_service.cli", "pd_service.metrics"},
     "pd_service.__main__": {"pd_service.service"},
     "pd_service": {"pd_service.native"},
     "pd_client.tools": {"pd_client", "pd_service.estimation", "pd_service.wire",
@@ -75,6 +80,7 @@ THIRD_PARTY: dict[str, set[str] | None] = {
     "pd_service.logs": set(),
     "pd_service.ratelimit": set(),
     "pd_service.native": set(),
+    "pd_service.metrics": {"prometheus_client"},
 }
 
 STDLIB = set(sys.stdlib_module_names) | {"__future__"}

@@ -298,8 +298,8 @@ static double *records_add(Records *b, Py_ssize_t k) {
    stage's record to ``rec``. 0, 1 (hand back: a Cholesky pivot not clearly positive, or a
    packet beyond this kernel's sizes), or -1 with an exception. */
 static int apply_packets(double *xv, double *pv, npy_intp n, PyObject *packets,
-                         PyObject *rows, Py_ssize_t start, Records *rec) {
-    Py_ssize_t np_ = PyList_GET_SIZE(packets);
+                         PyObject *rows, Py_ssize_t start, Py_ssize_t stop, Records *rec) {
+    Py_ssize_t np_ = stop;
     for (Py_ssize_t i = start; i < np_; i++) {
         PyObject *pk = PyList_GET_ITEM(packets, i);
         if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 3) {
@@ -407,7 +407,7 @@ static PyObject *finish_update(PyObject *xo, PyObject *Po, npy_intp n, PyObject 
     Records rec;
     records_init(&rec);
     int got = apply_packets(PyArray_DATA((PyArrayObject *)xo), PyArray_DATA((PyArrayObject *)Po),
-                            n, packets, rows, start, &rec);
+                            n, packets, rows, start, PyList_GET_SIZE(packets), &rec);
     if (got < 0) goto done;
     if (got > 0) { res = Py_NewRef(Py_None); goto done; }
     Py_ssize_t old = PyBytes_GET_SIZE(stages);
@@ -712,38 +712,291 @@ static PyObject *advance(PyObject *self, PyObject *const *args, Py_ssize_t nargs
     return g;
 }
 
-/* replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse)
-   -> (state, a, done)
+/* ---- steps with events inside them (LinearBackend.split_step's C form) ------------------
+
+   split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period, mean_only) ->
+   Gaussian, or None (not taken: the numpy form then runs); mean_only (no packets): the
+   mean walked alone, P the state's
+
+   The walk of LinearBackend.split_step: from x(a), whole steps by the tables (as the jump
+   above), the intervals between events by the model's Taylor polynomials (coef (K+1,
+   2 n^2 + n nu): row j multiplies tau^(j+1); A = I + its first n^2 columns, B the next
+   n nu, Q the last n^2, made exactly symmetric), each packet's Kalman update at its own
+   time (apply_packets), the input before a cut's offset its u_before:
+
+       x(t + tau) = A(tau) x + B(tau) u,   P(t + tau) = A(tau) P A(tau)^T + Q(tau)
+
+   U (rows, nu) the span's inputs; packets sorted by offset (field 3, s); cuts a list of
+   (row, offset, u_before (nu,)) rising. The result is at row m + 1 if a packet lies after
+   its step's start, else at row m; it records no parent (src None, m 0, no stages): never
+   reused. None for a packet the update does not take (as advance). */
+
+#define MAXCUT 64
+
+/* A command taking effect inside row ``row`` of a span at ``d`` s; before it: ``u``. */
+typedef struct { Py_ssize_t row; double d; const double *u; } CutAt;
+
+static void taylor_at(const double *coef, npy_intp K1, npy_intp n, npy_intp nu, double tau,
+                      double *A, double *B, double *Q) {
+    npy_intp nn = n * n, nb = n * nu, w = 2 * nn + nb;
+    for (npy_intp c = 0; c < nn; c++) A[c] = Q[c] = 0.0;
+    for (npy_intp c = 0; c < nb; c++) B[c] = 0.0;
+    double p = 1.0;
+    for (npy_intp j = 0; j < K1; j++) {  /* sum_j tau^(j+1) coef[j] */
+        p *= tau;
+        const double *row = coef + j * w;
+        for (npy_intp c = 0; c < nn; c++) A[c] += p * row[c];
+        for (npy_intp c = 0; c < nb; c++) B[c] += p * row[nn + c];
+        for (npy_intp c = 0; c < nn; c++) Q[c] += p * row[nn + nb + c];
+    }
+    for (npy_intp i = 0; i < n; i++) A[i * n + i] += 1.0;
+    for (npy_intp i = 0; i < n; i++)  /* exactly symmetric: (Q + Q^T) / 2 */
+        for (npy_intp j = i + 1; j < n; j++)
+            Q[i * n + j] = Q[j * n + i] = 0.5 * (Q[i * n + j] + Q[j * n + i]);
+}
+
+/* x <- A x + (Bu: NULL, or added), P <- A P A^T + Q (upper triangle, mirrored) in place
+   (P NULL: the mean alone). */
+static void propagate_raw(double *x, double *P, npy_intp n, const double *A, const double *Q,
+                          const double *Bu) {
+    double t[MAXN * MAXN], xn[MAXN];
+    for (npy_intp i = 0; i < n; i++) {
+        double acc = 0.0;
+        for (npy_intp k = 0; k < n; k++) acc += A[i * n + k] * x[k];
+        xn[i] = acc + (Bu ? Bu[i] : 0.0);
+    }
+    memcpy(x, xn, sizeof(double) * (size_t)n);
+    if (!P) return;
+    for (npy_intp i = 0; i < n; i++)
+        for (npy_intp j = 0; j < n; j++) {
+            double acc = 0.0;
+            for (npy_intp k = 0; k < n; k++) acc += A[i * n + k] * P[k * n + j];
+            t[i * n + j] = acc;
+        }
+    for (npy_intp i = 0; i < n; i++)
+        for (npy_intp j = i; j < n; j++) {
+            double acc = 0.0;
+            for (npy_intp k = 0; k < n; k++) acc += t[i * n + k] * A[j * n + k];
+            P[i * n + j] = P[j * n + i] = acc + Q[i * n + j];
+        }
+}
+
+/* x, P (NULL: the mean alone) over tau s from f s into row r by the Taylor polynomials, the
+   input u_r held (a cut's u_before in row r before its offset). */
+static void segment_raw(double *x, double *P, npy_intp n, npy_intp nu, const double *coef,
+                        npy_intp K1, double tau, const double *u_r, const CutAt *cuts,
+                        Py_ssize_t ncut, Py_ssize_t r, double f) {
+    double A[MAXN * MAXN], B[MAXN * MAXR], Q[MAXN * MAXN], Bu[MAXN];
+    const double *uu = u_r;
+    for (Py_ssize_t c = 0; c < ncut; c++)
+        if (cuts[c].row == r && f < cuts[c].d) uu = cuts[c].u;
+    taylor_at(coef, K1, n, nu, tau, A, B, Q);
+    for (npy_intp i = 0; i < n; i++) {
+        double acc = 0.0;
+        for (npy_intp l = 0; l < nu; l++) acc += B[i * nu + l] * uu[l];
+        Bu[i] = acc;
+    }
+    propagate_raw(x, P, n, A, Q, nu ? Bu : NULL);
+}
+
+/* The walk itself on a state (x, P): a new Gaussian, None (not taken), or NULL with an
+   exception. u: the span's inputs, urows rows of nu; cuts[ncut] rising; G the tables'
+   stacked input matrix (NULL without inputs); coef (K1, 2 n^2 + n nu). */
+static PyObject *split_impl(PyObject *gt, PyObject *jumps, PyArrayObject *G, PyObject *rows,
+                            PyObject *state, Py_ssize_t m, const double *u, npy_intp urows,
+                            npy_intp nu, PyObject *packets, const CutAt *cuts, Py_ssize_t ncut,
+                            const double *coef, npy_intp K1, npy_intp coef_w, double period,
+                            int mean_only) {
+    if (!PyType_Check(gt) || !PyTuple_Check(jumps) || !PyList_Check(packets)
+        || !PyTuple_Check(state) || PyTuple_GET_SIZE(state) < 2 || m < 0
+        || m + 1 >= PyTuple_GET_SIZE(jumps)) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.split: arguments of the wrong types");
+        return NULL;
+    }
+    PyArrayObject *X = as_f64(PyTuple_GET_ITEM(state, 0)), *PP = as_f64(PyTuple_GET_ITEM(state, 1));
+    PyObject *res = NULL, *empty = NULL;
+    Records rec;
+    records_init(&rec);
+    if (!X || !PP) goto done;
+    npy_intp n = PyArray_SIZE(X);
+    if (mean_only && PyList_GET_SIZE(packets)) {
+        PyErr_SetString(PyExc_ValueError, "_kalman.split: the mean alone only without packets");
+        goto done;
+    }
+    if (n > MAXN || nu > MAXR || check_size(PP, n * n, "P") || coef_w != 2 * n * n + n * nu) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "_kalman.split: sizes that do not fit");
+        goto done;
+    }
+    double x[MAXN], P[MAXN * MAXN];
+    memcpy(x, PyArray_DATA(X), sizeof(double) * (size_t)n);
+    memcpy(P, PyArray_DATA(PP), sizeof(double) * (size_t)(n * n));
+    {
+        Py_ssize_t npk = PyList_GET_SIZE(packets);
+        double last = 0.0;
+        if (npk) {
+            PyObject *pk = PyList_GET_ITEM(packets, npk - 1);
+            if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 4) {
+                PyErr_SetString(PyExc_TypeError, "_kalman.split: a packet has no offset");
+                goto done;
+            }
+            last = PyFloat_AsDouble(PyTuple_GET_ITEM(pk, 3));
+            if (last == -1.0 && PyErr_Occurred()) goto done;
+        }
+        Py_ssize_t end = last > 0.0 ? m + 1 : m;
+        if (urows < end) {
+            PyErr_SetString(PyExc_ValueError, "_kalman.split: U has too few rows");
+            goto done;
+        }
+        for (Py_ssize_t c = 0; c < ncut; c++)
+            if (cuts[c].row < 0 || cuts[c].row >= end) {
+                PyErr_SetString(PyExc_ValueError, "_kalman.split: a cut outside the span");
+                goto done;
+            }
+        Py_ssize_t r = 0, ci = 0, pi = 0;
+        double f = 0.0;
+        double Bu[MAXN];
+        for (;;) {
+            /* the next event: a cut (first at a tie), a packet, or the end */
+            Py_ssize_t row;
+            double off;
+            int what;
+            double poff = 0.0;
+            if (pi < npk) {
+                PyObject *pk = PyList_GET_ITEM(packets, pi);
+                if (!PyTuple_Check(pk) || PyTuple_GET_SIZE(pk) < 4) {
+                    PyErr_SetString(PyExc_TypeError, "_kalman.split: a packet has no offset");
+                    goto done;
+                }
+                poff = PyFloat_AsDouble(PyTuple_GET_ITEM(pk, 3));
+                if (poff == -1.0 && PyErr_Occurred()) goto done;
+            }
+            if (ci < ncut && (pi >= npk || cuts[ci].row < m
+                              || (cuts[ci].row == m && cuts[ci].d <= poff))) {
+                row = cuts[ci].row; off = cuts[ci].d; what = 0;
+            } else if (pi < npk) {
+                row = m; off = poff; what = 1;
+            } else {
+                row = end; off = 0.0; what = 2;
+            }
+            if (row > r) {
+                if (f > 0.0) {  /* the rest of row r */
+                    segment_raw(x, mean_only ? NULL : P, n, nu, coef, K1, period - f, u + r * nu,
+                                cuts, ncut, r, f);
+                    r += 1;
+                    f = 0.0;
+                }
+                if (row > r) {  /* whole steps: the tables' jump of row - r */
+                    Py_ssize_t k = row - r;
+                    PyObject *jt = PyTuple_GET_ITEM(jumps, k);
+                    if (!PyTuple_Check(jt) || PyTuple_GET_SIZE(jt) < 3) {
+                        PyErr_SetString(PyExc_TypeError, "_kalman.split: a jump is not (A, ., Qs, ...)");
+                        goto done;
+                    }
+                    PyArrayObject *Aj = as_f64(PyTuple_GET_ITEM(jt, 0));
+                    PyArrayObject *Qj = as_f64(PyTuple_GET_ITEM(jt, 2));
+                    int bad = !Aj || !Qj || check_size(Aj, n * n, "A") || check_size(Qj, n * n, "Qs");
+                    if (!bad && G && nu) {
+                        npy_intp kk = k * nu;
+                        npy_intp cols = PyArray_NDIM(G) == 2 ? PyArray_DIM(G, 1) : -1;
+                        if (PyArray_NDIM(G) != 2 || PyArray_DIM(G, 0) != n || cols < kk) {
+                            PyErr_SetString(PyExc_ValueError, "_kalman: G is not (n, >= U.size)");
+                            bad = 1;
+                        } else {
+                            const double *g = (const double *)PyArray_DATA(G) + (cols - kk);
+                            const double *uu = u + r * nu;
+                            for (npy_intp i = 0; i < n; i++) {
+                                double acc = 0.0;
+                                for (npy_intp l = 0; l < kk; l++) acc += g[i * cols + l] * uu[l];
+                                Bu[i] = acc;
+                            }
+                        }
+                    }
+                    if (!bad)
+                        propagate_raw(x, mean_only ? NULL : P, n, PyArray_DATA(Aj),
+                                      PyArray_DATA(Qj), G && nu ? Bu : NULL);
+                    Py_XDECREF(Aj); Py_XDECREF(Qj);
+                    if (bad) goto done;
+                    r = row;
+                }
+            }
+            if (off > f) {
+                segment_raw(x, mean_only ? NULL : P, n, nu, coef, K1, off - f, u + r * nu, cuts,
+                            ncut, r, f);
+                f = off;
+            }
+            if (what == 0) {
+                ci++;
+            } else if (what == 1) {
+                rec.len = 0;
+                int got = apply_packets(x, P, n, packets, rows, pi, pi + 1, &rec);
+                if (got < 0) goto done;
+                if (got > 0) { res = Py_NewRef(Py_None); goto done; }
+                pi++;
+            } else {
+                break;
+            }
+        }
+    }
+    {
+        double *xd, *pd;
+        PyObject *xo = new_vec(n, &xd), *Po = xo ? new_mat(n, n, &pd) : NULL;
+        empty = PyTuple_New(0);
+        if (!xo || !Po || !empty) { Py_XDECREF(xo); Py_XDECREF(Po); goto done; }
+        memcpy(xd, x, sizeof(double) * (size_t)n);
+        memcpy(pd, P, sizeof(double) * (size_t)(n * n));
+        res = new_gaussian((PyTypeObject *)gt, xo, Po, Py_None, 0, empty, no_stages);
+    }
+done:
+    records_free(&rec);
+    Py_XDECREF(X); Py_XDECREF(PP); Py_XDECREF(empty);
+    return res;
+}
+
+/* replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse,
+          cut_steps, cut_offsets, u_before, origin, coef, period) -> (state, a, done)
 
    ReplayEstimator._replay's loop over the measured steps ``steps`` (a list of ints, rising,
-   after ``a``) for a LinearBackend with the kernel, one advance per step as that loop makes
-   it, without a Python call, a slice of the input buffer and two dict operations per step:
+   after ``a``) for a LinearBackend with the kernel, one step each as that loop makes it,
+   without a Python call, a slice of the input buffer and two dict operations per step:
 
        for s in steps:
+           e = s + 1 if packets[s] end off the grid else s
+           cuts = the commands taking effect inside steps a .. e - 1
            old = chk.get(s) if noreuse is None or s < noreuse else None
-           state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
-           chk[s] = state;  a = s
+           state = advance(state, s - a, buf[a - off : e - off], packets[s], old, cuts)
+           chk[s] = state;  a = e
 
-   buf (rows, nu) float64 C-contiguous (InputBuffer's; u(t) = buf[t - off]); packets and
-   chk dicts from step to a list of packets / a Gaussian. Stops before a step it does not
-   take (a jump longer than the tables, or advance() handing a packet back): ``done`` steps
-   were made and stored, ``state`` is the last, ``a`` its step; the caller goes on from
-   there with LinearBackend.advance. Same calls in the same order: the same bits. */
+   (a grid step without cuts: advance_impl, with the reuse of ``old``; otherwise the split
+   walk, split_impl). buf (rows, nu) float64 C-contiguous (InputBuffer's; u(t) = buf[t -
+   off]); packets and chk dicts from step to a list of packets / a Gaussian; cut_steps the
+   input buffer's sorted command steps with an offset, cut_offsets step -> offset (s),
+   u_before u(origin - 1); coef the model's Taylor coefficients (None: split steps are not
+   taken here), period the step (s). Stops before a step it does not take (a jump longer
+   than the tables, a step advance() or split hands back, a split step without coef):
+   ``done`` steps were made and stored, ``state`` is the last, ``a`` its end step; the
+   caller goes on from there with LinearBackend.advance. Same calls in the same order: the
+   same bits. */
 static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
-    if (check_nargs("replay", nargs, 12)) return NULL;
+    if (check_nargs("replay", nargs, 18)) return NULL;
     PyObject *gt = args[0], *jumps = args[1], *G = args[2], *rows = args[3];
     PyObject *steps = args[6], *ob = args[7], *packets = args[9], *chk = args[10];
-    PyObject *nr = args[11];
+    PyObject *nr = args[11], *cut_steps = args[12], *cut_offsets = args[13];
+    PyObject *ocoef = args[16];
     Py_ssize_t a = PyLong_AsSsize_t(args[5]), off = PyLong_AsSsize_t(args[8]);
-    if ((a == -1 || off == -1) && PyErr_Occurred()) return NULL;
+    Py_ssize_t origin = PyLong_AsSsize_t(args[15]);
+    double period = PyFloat_AsDouble(args[17]);
+    if ((a == -1 || off == -1 || origin == -1 || period == -1.0) && PyErr_Occurred())
+        return NULL;
     Py_ssize_t noreuse = 0;
     if (nr != Py_None) {
         noreuse = PyLong_AsSsize_t(nr);
         if (noreuse == -1 && PyErr_Occurred()) return NULL;
     }
     if (!PyTuple_Check(jumps) || !PyList_Check(steps) || !PyDict_Check(packets)
-        || !PyDict_Check(chk) || !PyArray_CheckExact(ob)) {
+        || !PyDict_Check(chk) || !PyArray_CheckExact(ob) || !PyList_Check(cut_steps)
+        || !PyDict_Check(cut_offsets)) {
         PyErr_SetString(PyExc_TypeError, "_kalman.replay: arguments of the wrong types");
         return NULL;
     }
@@ -757,6 +1010,17 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     npy_intp nbuf = PyArray_DIM(buf, 0), nu = PyArray_DIM(buf, 1);
     const double *bd = (const double *)PyArray_DATA(buf);
     Py_ssize_t ntab = PyTuple_GET_SIZE(jumps);
+    PyArrayObject *ub = as_f64(args[14]), *coef = NULL, *Ga = NULL;
+    if (!ub) return NULL;
+    if (check_size(ub, nu, "u_before")) { Py_DECREF(ub); return NULL; }
+    if (ocoef != Py_None && !(coef = as_f64(ocoef))) { Py_DECREF(ub); return NULL; }
+    if (coef && PyArray_NDIM(coef) != 2) {
+        PyErr_SetString(PyExc_ValueError, "_kalman.replay: coef is not a matrix");
+        Py_DECREF(ub); Py_DECREF(coef);
+        return NULL;
+    }
+    if (G != Py_None && !(Ga = as_f64(G))) { Py_DECREF(ub); Py_XDECREF(coef); return NULL; }
+    Py_ssize_t ncs = PyList_GET_SIZE(cut_steps);
     PyObject *state = Py_NewRef(args[4]);
     Py_ssize_t done = 0, nsteps = PyList_GET_SIZE(steps);
     for (; done < nsteps; done++) {
@@ -764,28 +1028,77 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         if (s == -1 && PyErr_Occurred()) goto error;
         Py_ssize_t m = s - a;
         if (m < 0 || m >= ntab) break;  /* the numpy form: its error, or table-sized jumps */
-        if (a - off < 0 || s - off > nbuf) {
-            PyErr_SetString(PyExc_IndexError, "_kalman.replay: steps outside the input buffer");
-            goto error;
-        }
         PyObject *key = PyList_GET_ITEM(steps, done);
         PyObject *pk = PyDict_GetItemWithError(packets, key);  /* borrowed */
         if (!pk) {
             if (!PyErr_Occurred()) PyErr_SetObject(PyExc_KeyError, key);
             goto error;
         }
-        PyObject *old = Py_None;
-        if (nr == Py_None || s < noreuse) {
-            old = PyDict_GetItemWithError(chk, key);  /* borrowed; chk[s] replaced below */
-            if (!old) {
-                if (PyErr_Occurred()) goto error;
-                old = Py_None;
+        if (!PyList_Check(pk)) {
+            PyErr_SetString(PyExc_TypeError, "_kalman.replay: packets of a step are not a list");
+            goto error;
+        }
+        Py_ssize_t npk = PyList_GET_SIZE(pk), e = s;
+        if (npk) {
+            PyObject *lp = PyList_GET_ITEM(pk, npk - 1);
+            if (PyTuple_Check(lp) && PyTuple_GET_SIZE(lp) >= 4) {
+                double lo = PyFloat_AsDouble(PyTuple_GET_ITEM(lp, 3));
+                if (lo == -1.0 && PyErr_Occurred()) goto error;
+                if (lo > 0.0) e = s + 1;
             }
         }
-        Py_INCREF(old);  /* held across chk[s] = g, which drops the dict's reference */
-        PyObject *g = advance_impl(gt, jumps, G, rows, state, m, bd + (a - off) * nu, m * nu,
-                                   pk, old);
-        Py_DECREF(old);
+        if (a - off < 0 || e - off > nbuf || (e - off) * nu > PyArray_SIZE(buf)) {
+            PyErr_SetString(PyExc_IndexError, "_kalman.replay: steps outside the input buffer");
+            goto error;
+        }
+        /* the cuts inside steps a .. e - 1 */
+        CutAt cuts[MAXCUT];
+        Py_ssize_t ncut = 0;
+        int too_many = 0;
+        for (Py_ssize_t c = 0; c < ncs; c++) {
+            Py_ssize_t j = PyLong_AsSsize_t(PyList_GET_ITEM(cut_steps, c));
+            if (j == -1 && PyErr_Occurred()) goto error;
+            if (j < a) continue;
+            if (j >= e) break;
+            if (ncut == MAXCUT) { too_many = 1; break; }
+            PyObject *dv = PyDict_GetItemWithError(cut_offsets, PyList_GET_ITEM(cut_steps, c));
+            if (!dv) {
+                if (!PyErr_Occurred()) PyErr_SetString(PyExc_KeyError, "_kalman.replay: a cut step without its offset");
+                goto error;
+            }
+            double d = PyFloat_AsDouble(dv);
+            if (d == -1.0 && PyErr_Occurred()) goto error;
+            if (j - 1 >= origin && j - 1 - off < 0) {
+                PyErr_SetString(PyExc_IndexError, "_kalman.replay: a cut outside the input buffer");
+                goto error;
+            }
+            cuts[ncut].row = j - a;
+            cuts[ncut].d = d;
+            cuts[ncut].u = j - 1 >= origin ? bd + (j - 1 - off) * nu
+                                           : (const double *)PyArray_DATA(ub);
+            ncut++;
+        }
+        if (too_many) break;
+        PyObject *old = Py_None;
+        PyObject *g;
+        if (e == s && ncut == 0) {
+            if (nr == Py_None || s < noreuse) {
+                old = PyDict_GetItemWithError(chk, key);  /* borrowed; chk[s] replaced below */
+                if (!old) {
+                    if (PyErr_Occurred()) goto error;
+                    old = Py_None;
+                }
+            }
+            Py_INCREF(old);  /* held across chk[s] = g, which drops the dict's reference */
+            g = advance_impl(gt, jumps, G, rows, state, m, bd + (a - off) * nu, m * nu, pk, old);
+            Py_DECREF(old);
+        } else {
+            /* no Taylor polynomials (Van Loan: the numpy form's), or a jump past the tables */
+            if (!coef || m + 1 >= ntab) break;
+            g = split_impl(gt, jumps, Ga, rows, state, m, bd + (a - off) * nu, e - a, nu, pk,
+                           cuts, ncut, PyArray_DATA(coef), PyArray_DIM(coef, 0),
+                           PyArray_DIM(coef, 1), period, 0);
+        }
         if (!g) goto error;
         if (g == Py_None) {  /* not taken: the numpy form makes this step */
             Py_DECREF(g);
@@ -793,20 +1106,73 @@ static PyObject *replay(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         }
         if (PyDict_SetItem(chk, key, g) < 0) { Py_DECREF(g); goto error; }
         Py_SETREF(state, g);
-        a = s;
+        a = e;
     }
+    Py_DECREF(ub); Py_XDECREF(coef); Py_XDECREF(Ga);
     {
         PyObject *ao = PyLong_FromSsize_t(a), *dn = PyLong_FromSsize_t(done);
         PyObject *res = ao && dn ? PyTuple_New(3) : NULL;
-        if (!res) { Py_XDECREF(ao); Py_XDECREF(dn); goto error; }
+        if (!res) { Py_XDECREF(ao); Py_XDECREF(dn); Py_DECREF(state); return NULL; }
         PyTuple_SET_ITEM(res, 0, state);
         PyTuple_SET_ITEM(res, 1, ao);
         PyTuple_SET_ITEM(res, 2, dn);
         return res;
     }
 error:
+    Py_DECREF(ub); Py_XDECREF(coef); Py_XDECREF(Ga);
     Py_DECREF(state);
     return NULL;
+}
+
+static PyObject *split(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
+    (void)self;
+    if (check_nargs("split", nargs, 12)) return NULL;
+    int mean_only = PyObject_IsTrue(args[11]);
+    if (mean_only < 0) return NULL;
+    PyObject *cutl = args[8];
+    Py_ssize_t m = PyLong_AsSsize_t(args[5]);
+    double period = PyFloat_AsDouble(args[10]);
+    if ((m == -1 || period == -1.0) && PyErr_Occurred()) return NULL;
+    if (!PyList_Check(cutl)) {
+        PyErr_SetString(PyExc_TypeError, "_kalman.split: cuts is not a list");
+        return NULL;
+    }
+    Py_ssize_t ncut = PyList_GET_SIZE(cutl);
+    if (ncut > MAXCUT) Py_RETURN_NONE;
+    PyArrayObject *U = as_f64(args[6]), *C = as_f64(args[9]), *G = NULL;
+    PyArrayObject *held[MAXCUT];
+    CutAt cuts[MAXCUT];
+    Py_ssize_t nheld = 0;
+    PyObject *res = NULL;
+    if (!U || !C) goto done;
+    if (args[2] != Py_None && !(G = as_f64(args[2]))) goto done;
+    npy_intp nu = PyArray_NDIM(U) == 2 ? PyArray_DIM(U, 1) : 0;
+    npy_intp urows = PyArray_NDIM(U) == 2 ? PyArray_DIM(U, 0) : 0;
+    if (PyArray_NDIM(C) != 2) {
+        PyErr_SetString(PyExc_ValueError, "_kalman.split: coef is not a matrix");
+        goto done;
+    }
+    for (Py_ssize_t c = 0; c < ncut; c++) {
+        PyObject *ct = PyList_GET_ITEM(cutl, c);
+        if (!PyTuple_Check(ct) || PyTuple_GET_SIZE(ct) != 3) {
+            PyErr_SetString(PyExc_TypeError, "_kalman.split: a cut is not (row, offset, u)");
+            goto done;
+        }
+        cuts[c].row = PyLong_AsSsize_t(PyTuple_GET_ITEM(ct, 0));
+        cuts[c].d = PyFloat_AsDouble(PyTuple_GET_ITEM(ct, 1));
+        if (PyErr_Occurred()) goto done;
+        if (!(held[nheld] = as_f64(PyTuple_GET_ITEM(ct, 2)))) goto done;
+        nheld++;
+        if (check_size(held[nheld - 1], nu, "u_before")) goto done;
+        cuts[c].u = PyArray_DATA(held[nheld - 1]);
+    }
+    res = split_impl(args[0], args[1], G, args[3], args[4], m, PyArray_DATA(U), urows, nu,
+                     args[7], cuts, ncut, PyArray_DATA(C), PyArray_DIM(C, 0), PyArray_DIM(C, 1),
+                     period, mean_only);
+done:
+    for (Py_ssize_t c = 0; c < nheld; c++) Py_DECREF(held[c]);
+    Py_XDECREF(U); Py_XDECREF(C); Py_XDECREF(G);
+    return res;
 }
 
 /* freeze(a, ...) -> None: each numpy array made read-only, as a.setflags(write=False) does
@@ -894,8 +1260,13 @@ static PyMethodDef methods[] = {
      "advance(Gaussian, jumps, G, rows, state, m, U, packets, old) -> Gaussian, or None (not "
      "taken: the numpy form then runs): LinearBackend.advance's step for m <= M."},
     {"replay", (PyCFunction)(void (*)(void))replay, METH_FASTCALL,
-     "replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse) -> "
-     "(state, a, done): ReplayEstimator._replay's loop of advance calls, in one call."},
+     "replay(Gaussian, jumps, G, rows, state, a, steps, buf, off, packets, chk, noreuse, "
+     "cut_steps, cut_offsets, u_before, origin, coef, period) -> (state, a, done): "
+     "ReplayEstimator._replay's loop of advance calls, in one call."},
+    {"split", (PyCFunction)(void (*)(void))split, METH_FASTCALL,
+     "split(Gaussian, jumps, G, rows, state, m, U, packets, cuts, coef, period, mean_only) -> "
+     "Gaussian, or None (not taken): LinearBackend.split_step's walk of a step with events "
+     "inside it (mean_only, no packets: x walked, P the state's)."},
     {"freeze", (PyCFunction)(void (*)(void))freeze, METH_FASTCALL,
      "freeze(a, ...) -> None: a.setflags(write=False) for each array, in one call."},
     {"fill", (PyCFunction)(void (*)(void))fill, METH_FASTCALL,

@@ -10,7 +10,8 @@ from .replay import PredictedState
 
 
 class Estimator(Protocol):
-    """Accept window, commands and prediction of x(now + lead); time is an integer step."""
+    """Accept window, commands and prediction of x(now + lead); time is an integer step
+    (plus, for samples and commands, an offset in seconds into it)."""
 
     @property
     def n(self) -> int:
@@ -46,13 +47,16 @@ class Estimator(Protocol):
         ...
 
     def add_measurement(self, sensor: str, step: int, z: object, now: int,
-                        R: object | None = None) -> bool:
-        """Offer the sample z (m,) of ``sensor`` taken at ``step`` (R: optional (m, m)
-        override); True iff accepted. ValueError for malformed input."""
+                        R: object | None = None, offset: float = 0.0) -> bool:
+        """Offer the sample z (m,) of ``sensor`` taken ``offset`` seconds after the start of
+        ``step`` (R: optional (m, m) override); True iff accepted. ValueError for malformed
+        input."""
         ...
 
-    def add_command(self, step: int, u: object, now: int | None = None) -> bool:
-        """Offer the command u (nu,) that applies from ``step`` on; True iff accepted."""
+    def add_command(self, step: int, u: object, now: int | None = None,
+                    offset: float = 0.0) -> bool:
+        """Offer the command u (nu,) that applies from ``offset`` seconds after the start of
+        ``step`` on; True iff accepted."""
         ...
 
     def predict(self, now: int) -> PredictedState:

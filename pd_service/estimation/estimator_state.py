@@ -36,8 +36,9 @@ _T = TypeVar("_T")
 #: Version of the exported layout; a state of another version is refused on restore.
 STATE_VERSION = 1
 
-#: One stored packet: (sample step, sensor name, z (m,), R (m, m) override or None).
-PacketRecord = tuple[int, str, np.ndarray, np.ndarray | None]
+#: One stored packet: (sample step, sensor name, z (m,), R (m, m) override or None, offset:
+#: seconds after the step's start at which it was sampled).
+PacketRecord = tuple[int, str, np.ndarray, np.ndarray | None, float]
 
 
 @dataclass
@@ -65,6 +66,11 @@ class EstimatorState:
     counters: dict[str, int]
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     version: int = STATE_VERSION
+    #: command step -> seconds after its start at which it takes effect (offsets > 0 only)
+    command_offsets: dict[int, float] = field(default_factory=dict)
+    #: u(inputs_origin - 1) (nu,): the input before a command taking effect inside the
+    #: origin step; None: zeros
+    u_before: np.ndarray | None = None
 
     @property
     def mean(self) -> np.ndarray:

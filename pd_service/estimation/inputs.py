@@ -5,6 +5,11 @@ with step <= t (zero-order hold, zeros before the first command); in ``zero`` mo
 the command for exactly step t, else zero. The buffer keeps u(t) materialised for
 ``t in [origin, origin + capacity)`` so that a multi-step propagation reads its inputs as one
 contiguous (m, nu) slice, with no per-step Python work.
+
+A command may take effect inside its step (``offset`` seconds after the step's start, "hold"
+mode): the buffer's row still holds it (what the step ends with), and a *cut* records the
+offset; the step's input is the previous step's u before it (:meth:`InputBuffer.cuts`). In
+"zero" mode offsets are ignored: a command acts over its whole step.
 """
 
 from __future__ import annotations
@@ -21,8 +26,9 @@ from .tally import Tally
 
 #: The C form of ``buf[start:end] = u`` (``_kalman.fill``; None: numpy, the reference).
 _FILL: Final = kernel_function("pd_service.estimation._kalman", "fill")
-#: Read per call from a C static (Final), not looked up as ``bisect.bisect_left``.
+#: Read per call from C statics (Final), not looked up as ``bisect.<name>``.
 _bisect_left: Final = bisect.bisect_left
+_insort: Final = bisect.insort
 
 
 # copy.deepcopy of an estimator, compiled (setup.py), needs serializable; with mypy 2.4.1,
@@ -44,13 +50,16 @@ class InputBuffer:
         self._buf = np.zeros((2 * capacity, nu))
         self._off = 0
         self._cmd_steps: list[int] = []  # explicit command steps >= origin, sorted
+        self.cut_offsets: dict[int, float] = {}  # command step -> offset (s), offsets > 0
+        self._cut_steps: list[int] = []  # its keys, sorted
+        self.u_before = np.zeros(nu)  # u(origin - 1): a cut at the origin starts from it
 
     def has_command(self, step: int) -> bool:
         i = _bisect_left(self._cmd_steps, step)
         return i < len(self._cmd_steps) and self._cmd_steps[i] == step
 
     def admit(self, step: int, u: np.ndarray, first: int, last: int,
-              counters: Tally) -> bool:
+              counters: Tally, offset: float = 0.0) -> bool:
         """Store the command for ``step`` if ``first <= step <= last`` and none is stored for
         it yet; count the outcome in ``counters``: "commands_late" (step < first),
         "commands_future" (step > last), "commands_duplicate", or "commands_accepted"."""
@@ -63,12 +72,13 @@ class InputBuffer:
         if self.has_command(step):
             counters["commands_duplicate"] += 1
             return False
-        self.set(step, u)
+        self.set(step, u, offset)
         counters["commands_accepted"] += 1
         return True
 
-    def set(self, step: int, u: np.ndarray) -> None:
-        """Record a command for ``step`` (origin <= step < origin + capacity)."""
+    def set(self, step: int, u: np.ndarray, offset: float = 0.0) -> None:
+        """Record a command for ``step`` (origin <= step < origin + capacity), taking effect
+        ``offset`` seconds after the step's start ("hold" mode; 0.0: at its start)."""
         i = step - self.origin
         if not 0 <= i < self.capacity:
             raise IndexError(f"step {step} outside the input window")
@@ -85,7 +95,43 @@ class InputBuffer:
         fill = _FILL
         if fill is None or not fill(self._buf, start, end, u):
             self._buf[start:end] = u
+        if offset > 0.0 and self.hold:
+            self.cut_offsets[step] = offset
+            _insort(self._cut_steps, step)
 
+    def cuts(self, first: int, last: int) -> list[tuple[int, float, np.ndarray]] | None:
+        """The commands taking effect inside steps first..last (inclusive) as
+        ``(step - first, offset, u(step - 1))`` (:data:`.replay.Cut`; u a read-only view of
+        the buffer: for the step being computed now), None if there are none."""
+        steps = self._cut_steps
+        if not steps:
+            return None
+        i = _bisect_left(steps, first)
+        if i == len(steps) or steps[i] > last:
+            return None
+        cut = self.cut_offsets
+        out: list[tuple[int, float, np.ndarray]] = []
+        while i < len(steps) and steps[i] <= last:
+            j = steps[i]
+            out.append((j - first, cut[j], self.u_of(j - 1)))
+            i += 1
+        return out
+
+    def cut_view(self) -> tuple[list[int], dict[int, float], np.ndarray, int]:
+        """(the command steps with an offset, sorted; step -> offset; u(origin - 1);
+        origin): what the replay's C loop reads to find a span's cuts itself (shared, not
+        copied: read at once)."""
+        return self._cut_steps, self.cut_offsets, self.u_before, self.origin
+
+    def u_of(self, step: int) -> np.ndarray:
+        """u(step), read-only (a view of the buffer), for origin - 1 <= step < origin +
+        capacity."""
+        if step == self.origin - 1:
+            return self.u_before
+        i = step - self.origin
+        if not 0 <= i < self.capacity:
+            raise IndexError(f"step {step} outside the input window")
+        return self._buf[self._off + i]
     def slice(self, step: int, m: int) -> np.ndarray:
         """Inputs u(step), ..., u(step + m - 1) as a read-only (m, nu) view."""
         i = self._off + step - self.origin
@@ -104,7 +150,8 @@ class InputBuffer:
 
     def export(self) -> tuple[int, np.ndarray, list[tuple[int, np.ndarray]]]:
         """(origin, u(origin) (nu,), [(step, u (nu,)) of every explicit command >= origin]):
-        enough for :meth:`restore` to rebuild u(t) over the whole buffer."""
+        with :attr:`cut_offsets` and :attr:`u_before`, enough for :meth:`restore` to
+        rebuild u(t) over the whole buffer."""
         steps = self._cmd_steps
         # the commands' rows in one copy (fancy indexing), handed out as views of it: they
         # share nothing with the buffer (one copy, not one ``.copy()`` per row)
@@ -115,18 +162,25 @@ class InputBuffer:
         return self.origin, self._buf[self._off].copy(), cmds
 
     def restore(self, origin: int, u_origin: np.ndarray,
-                commands: list[tuple[int, np.ndarray]]) -> None:
+                commands: list[tuple[int, np.ndarray]],
+                offsets: dict[int, float] | None = None,
+                u_before: np.ndarray | None = None) -> None:
         """Replace the contents by what :meth:`export` returned: u(origin) held ("hold") or
-        zeros ("zero") until the first command, then the commands as :meth:`set` stores them.
+        zeros ("zero") until the first command, then the commands as :meth:`set` stores them
+        (with their ``offsets``, step -> s; ``u_before``: u(origin - 1), default zeros).
         IndexError for a command outside [origin, origin + capacity)."""
         self.origin = origin
         self._off = 0
         self._cmd_steps = []
+        self.cut_offsets = {}
+        self._cut_steps = []
+        self.u_before = np.zeros(self.nu) if u_before is None else u_before.copy()
         self._buf[:] = u_origin if self.hold else 0.0
+        offs = offsets or {}
         for step, u in sorted(commands, key=lambda c: c[0]):
             if self.has_command(step):
                 raise IndexError(f"two commands for step {step}")
-            self.set(step, u)
+            self.set(step, u, offs.get(step, 0.0))
 
     def advance(self, origin: int) -> None:
         """Forget steps before ``origin``; new steps at the end continue the hold."""
@@ -135,6 +189,14 @@ class InputBuffer:
             return
         cap = self.capacity
         buf = self._buf
+        if self.hold:  # u(origin - 1), held past the window's end
+            self.u_before = buf[self._off + min(d - 1, cap - 1)].copy()
+        steps = self._cut_steps
+        if steps and steps[0] < origin:
+            k = _bisect_left(steps, origin)
+            for j in steps[:k]:
+                del self.cut_offsets[j]
+            del steps[:k]
         if d >= cap:  # every step new: u of the old last step ("hold") or zeros
             buf[:] = buf[self._off + cap - 1].copy() if self.hold else 0.0
             self._off = 0
@@ -151,31 +213,38 @@ class InputBuffer:
         if cmds and cmds[0] < origin:
             del cmds[: _bisect_left(cmds, origin)]
 
-    def replace(self, step: int, u: np.ndarray) -> None:
-        """Replace the command stored for ``step`` by ``u`` (a newer command for the same step,
-        :meth:`.replay.ReplayEstimator.supersede_command`): u(t) is refilled up to the next
-        command exactly as :meth:`set` fills it. KeyError if no command is stored for it."""
+    def replace(self, step: int, u: np.ndarray, offset: float = 0.0) -> None:
+        """Replace the command stored for ``step`` by ``u`` taking effect ``offset`` seconds
+        after the step's start (a newer command for the same step, or the same one moved to
+        the instant the robot echoed: :meth:`.replay.ReplayEstimator.supersede_command`):
+        u(t) is refilled up to the next command exactly as :meth:`set` fills it. KeyError if
+        no command is stored for it."""
         if not self.has_command(step):
             raise KeyError(f"no command stored for step {step}")
         self._cmd_steps.remove(step)
-        self.set(step, u)
+        self._forget_cut(step)
+        self.set(step, u, offset)
 
     def remove(self, step: int) -> None:
-        """Forget the command stored for ``step`` (origin < step < origin + capacity): u(t)
+        """Forget the command stored for ``step`` (origin <= step < origin + capacity): u(t)
         from ``step`` up to the next command becomes what it was before it (the previous
-        step's u, "hold"; zero, "zero"). KeyError if none is stored for it, IndexError for
-        the origin (whose previous u the buffer no longer holds)."""
+        step's u, :attr:`u_before` at the origin, "hold"; zero, "zero"). KeyError if none is
+        stored for it."""
         if not self.has_command(step):
             raise KeyError(f"no command stored for step {step}")
         i = step - self.origin
-        if not 0 < i < self.capacity:
-            raise IndexError(f"step {step}: a command at the window's origin cannot be removed")
         k = _bisect_left(self._cmd_steps, step)
         del self._cmd_steps[k]
+        self._forget_cut(step)
         start = self._off + i
         if self.hold:
             nxt = self._cmd_steps[k] if k < len(self._cmd_steps) else None
             end = self._off + nxt - self.origin if nxt is not None else self._buf.shape[0]
-            self._buf[start:end] = self._buf[start - 1]
+            self._buf[start:end] = self._buf[start - 1] if i > 0 else self.u_before
         else:
             self._buf[start] = 0.0
+
+    def _forget_cut(self, step: int) -> None:
+        """Drop ``step``'s offset (its command is replaced or removed)."""
+        if self.cut_offsets.pop(step, None) is not None:
+            del self._cut_steps[_bisect_left(self._cut_steps, step)]

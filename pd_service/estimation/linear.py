@@ -36,7 +36,7 @@ from pd_service.native import kernel, kernel_function
 
 from .estimator_state import check_names, take
 from .model import LinearModel, Sensor
-from .replay import Packet
+from .replay import Cut, Packet
 
 #: The C form of :meth:`LinearBackend.advance`'s step (pd_service/estimation/_kalman.c), None
 #: where the hot path runs as pure Python (``PD_SERVICE_PURE=1``, no compiler, a stale
@@ -45,6 +45,8 @@ from .replay import Packet
 _KALMAN: Final = kernel("pd_service.estimation._kalman")
 _ADVANCE: Final = kernel_function("pd_service.estimation._kalman", "advance")
 _REPLAY: Final = kernel_function("pd_service.estimation._kalman", "replay")
+#: The C form of :meth:`LinearBackend.split_step` (a model with Taylor polynomials).
+_SPLIT: Final = kernel_function("pd_service.estimation._kalman", "split")
 
 LinearState = tuple[np.ndarray, np.ndarray]  # (x (n,), P (n, n))
 
@@ -291,21 +293,30 @@ class LinearBackend:
         self.use_kernel = k is not None and model.n <= k.MAX_N and all(
             s.m <= k.MAX_R for s in sensors)
         self._G = self.tables.Gfull if self._nu else None  # the kernel reads its last m*nu columns
+        taylor = model.taylor
+        #: The Taylor coefficients and period the kernel's split step reads (None: numpy).
+        self._coef = None if taylor is None else taylor.coef
+        self._period = model.period if model.period is not None else 0.0
 
     def propagate(self, state: Gaussian, step: int, m: int, U: np.ndarray) -> Gaussian:
         return self.advance(state, m, U, [], None)
 
     def advance_run(self, state: Gaussian, a: int, steps: list[int], buf: np.ndarray, off: int,
                     packets: dict[int, list[Packet]], chk: dict[int, Gaussian],
-                    noreuse: int | None) -> tuple[Gaussian, int, int]:
+                    noreuse: int | None,
+                    cut_view: tuple[list[int], dict[int, float], np.ndarray, int]
+                    ) -> tuple[Gaussian, int, int]:
         """The replay's loop of :meth:`advance` calls over the measured ``steps`` (rising,
         after ``a``) in one C call (``_kalman.replay``), the inputs u(t) = buf[t - off] read
-        in place::
+        in place, the commands inside steps from ``cut_view``
+        (:meth:`.inputs.InputBuffer.cut_view`)::
 
             for s in steps:
+                e = s + 1 if off_grid(packets[s]) else s
                 old = chk.get(s) if noreuse is None or s < noreuse else None
-                chk[s] = state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
-                a = s
+                chk[s] = state = advance(state, s - a, buf[a - off : e - off], packets[s], old,
+                                         <the cuts inside steps a .. e - 1>)
+                a = e
 
         Returns (state, a, done): the first ``done`` steps were made and stored (the same
         calls, the same bits as the loop); the caller makes the rest with :meth:`advance`
@@ -315,15 +326,17 @@ class LinearBackend:
         run = _REPLAY if self.use_kernel else None
         if run is None:
             return state, a, 0
+        cut_steps, cut_offsets, u_before, origin = cut_view
         return cast(tuple[Gaussian, int, int],
                     run(Gaussian, self._jumps, self._G, self._single, state, a, steps, buf, off,
-                        packets, chk, noreuse))
+                        packets, chk, noreuse, cut_steps, cut_offsets, u_before, origin,
+                        self._coef, self._period))
 
     def update(self, state: Gaussian, step: int, packets: list[Packet]) -> Gaussian:
         return self.advance(state, 0, U=np.empty((0, self._nu)), packets=packets, old=None)
 
     def advance(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
-                old: Gaussian | None) -> Gaussian:
+                old: Gaussian | None, cuts: list[Cut] | None = None) -> Gaussian:
         """x(a) -> x(a + m) with inputs U (m, nu), then one Kalman update per packet in
         ``packets`` (sorted by sensor, possibly none; sequential updates equal the stacked one
         of eq. (24), R* being block diagonal). ``old`` (this step's previous result, or None)
@@ -347,7 +360,35 @@ class LinearBackend:
         With the kernel (:attr:`use_kernel`) the step is one C call (``_kalman.advance``);
         a step it does not take (a jump longer than the tables, a nearly singular S) is
         made by the numpy form, :meth:`numpy_step`.
+
+        A step with events inside it (packets off the grid, commands taking effect inside a
+        step: ``cuts``) is :meth:`split_step`; a span with commands inside steps but no
+        packets (the prediction, a base rolled forward) keeps the grid step's covariance
+        (inputs do not move it; reused as above) and walks the mean alone
+        (:meth:`split_step`, ``mean_only``).
         """
+        if cuts is not None or (packets and packets[-1][3] > 0.0):
+            if packets:
+                return self._split(state, m, U, packets, cuts, False)
+            g = self._grid(state, m, U, packets, old)
+            x = self._split(state, m, U, packets, cuts, True)[0]
+            return _new(Gaussian, (x, g[1], g[2], g[3], g[4], g[5]))
+        return self._grid(state, m, U, packets, old)
+
+    def _split(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+               cuts: list[Cut] | None, mean_only: bool) -> Gaussian:
+        """:meth:`split_step` by the kernel where it takes it (``_kalman.split``)."""
+        spl = _SPLIT if self.use_kernel and self._coef is not None and m < self._M else None
+        if spl is not None:
+            got = spl(Gaussian, self._jumps, self._G, self._single, state, m, U, packets,
+                      [] if cuts is None else cuts, self._coef, self._period, mean_only)
+            if got is not None:  # else a packet the kernel does not take: numpy
+                return cast(Gaussian, got)
+        return self.split_step(state, m, U, packets, cuts, mean_only)
+
+    def _grid(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+              old: Gaussian | None) -> Gaussian:
+        """A step on the grid: the kernel's where it takes it, else :meth:`numpy_step`."""
         adv = _ADVANCE if self.use_kernel and m <= self._M else None
         if adv is not None:
             got = adv(Gaussian, self._jumps, self._G, self._single, state, m, U, packets, old)
@@ -391,9 +432,17 @@ class LinearBackend:
         if not npk:
             return _new(Gaussian, (xp, Pp, P, m, (), b""))
         sensors = (packets[0].sensor,) if npk == 1 else tuple([p.sensor for p in packets])
+        xp, Pp, records = self._apply(xp, Pp, packets, len(done))
+        return _new(Gaussian, (xp, Pp, P, m, sensors,
+                               stages + np.concatenate(records).tobytes()))
+
+    def _apply(self, xp: np.ndarray, Pp: np.ndarray, packets: list[Packet],
+               start: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+        """The Kalman updates of ``packets[start:]`` on (x-, P-), in turn: (x+, P+, the
+        stages' records) (formulas: :meth:`advance`)."""
         single = self._single
         records: list[np.ndarray] = []
-        for i in range(len(done), npk):
+        for i in range(start, len(packets)):
             p = packets[i]
             kind, H, HT, R, r, j = single[p.sensor]
             z = p.z
@@ -437,8 +486,78 @@ class LinearBackend:
             xp = xp + K.dot(z - H.dot(xp))
             Pp = Pn
             records.append(_record(p.sensor, 3, -1, 0.0, z, K, H))
-        return _new(Gaussian, (xp, Pp, P, m, sensors,
-                               stages + np.concatenate(records).tobytes()))
+        return xp, Pp, records
+
+    def split_step(self, state: Gaussian, m: int, U: np.ndarray, packets: list[Packet],
+                   cuts: list[Cut] | None, mean_only: bool = False) -> Gaussian:
+        """:meth:`advance` for a step with events inside steps (numpy; a continuous-time
+        model): from x(a), the packets at their own times ``a + m + offset`` and the
+        commands taking effect at theirs (``cuts``, :data:`.replay.Cut`), in time order;
+        the result is at a + m + 1 if a packet lies off the grid (U then has m + 1 rows),
+        else at a + m. Between events the exact discretisation over each interval tau
+        (:meth:`.model.LinearModel.over`), whole steps by the tables::
+
+            x(t + tau) = A(tau) x(t) + B(tau) u,   P(t + tau) = A(tau) P(t) A(tau)^T + Q(tau)
+
+        with u the input in effect (u_before of a cut until its offset, then its row of
+        U). A state made here is never reused as ``old`` (it records no parent).
+        ``mean_only`` (no packets): x walked alone, P the state's."""
+        model = self.model
+        T = model.period
+        if T is None:
+            raise ValueError("a discrete model (A, B, Q only) takes samples and commands on "
+                             "the grid only")
+        end = m + 1 if packets and packets[-1][3] > 0.0 else m
+        if U.shape[0] < end:
+            raise ValueError(f"U: {U.shape[0]} rows for a step ending {end} steps on")
+        cut_at = {i: (d, ub) for i, d, ub in cuts or ()}
+        # events in time order: (row, offset, 0: a command's cut / 1: packet, its index)
+        events = sorted([(i, d, 0, 0) for i, d, _ in cuts or ()]
+                        + [(m, p[3], 1, k) for k, p in enumerate(packets)])
+        events.append((end, 0.0, 2, 0))
+        if mean_only and packets:
+            raise ValueError("split_step: the mean alone only without packets")
+        x = state[0]
+        P: np.ndarray | None = None if mean_only else state[1]
+        r, f = 0, 0.0  # the cursor: row r, f seconds into it
+        for row, off, what, k in events:
+            if row > r:
+                if f > 0.0:  # the rest of row r
+                    x, P = self._segment(x, P, T - f, self._u_in(U, cut_at, r, f))
+                    r, f = r + 1, 0.0
+                if row > r:
+                    x, P = self._jump(x, P, row - r, U[r:row])
+                    r = row
+            if off > f:
+                x, P = self._segment(x, P, off - f, self._u_in(U, cut_at, r, f))
+                f = off
+            if what == 1:
+                assert P is not None
+                x, P, _ = self._apply(x, P, [packets[k]], 0)
+        return _new(Gaussian, (x, state[1] if P is None else P, None, 0, (), b""))
+
+    def _u_in(self, U: np.ndarray, cut_at: dict[int, tuple[float, np.ndarray]], row: int,
+              f: float) -> np.ndarray:
+        """The input in effect f seconds into row ``row`` of U (before a cut: its u_before)."""
+        c = cut_at.get(row)
+        if c is not None and f < c[0]:
+            return c[1]
+        return U[row] if self._nu else np.zeros(0)
+
+    def _segment(self, x: np.ndarray, P: np.ndarray | None, tau: float,
+                 u: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(x, P) propagated over tau seconds with u held: A x + B u, A P A^T + Q, the
+        covariance made exactly symmetric as in :meth:`_jump` (P None: the mean alone)."""
+        A, B, Q = self.model.over(tau)
+        xp = A.dot(x)
+        if self._nu:
+            xp += B.dot(u)
+        if P is None:
+            return xp, None
+        Mh = A.dot(P).dot(A.T) * 0.5
+        Pp = Mh + Mh.T.copy()
+        Pp += Q
+        return xp, Pp
 
     def _jump(self, x: np.ndarray, P: np.ndarray | None, m: int,
               U: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

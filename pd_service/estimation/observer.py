@@ -30,7 +30,11 @@ class ObserverPredictor(ReplayEstimator[Gaussian]):
 
     Guarantee: ``predict(now=k)`` equals (to rounding) a Kalman filter run from x0, P0 at step
     0 over every accepted packet in sample-stamp order, then predicted to k + lead with the
-    known commands. Cost per call is bounded by the window, not by elapsed steps.
+    known commands. With a continuous-time model (:meth:`LinearModel.continuous`) packets
+    and commands may carry offsets into their steps (``add_measurement(..., offset=s)``,
+    ``add_command(..., offset=s)``): then it equals the continuous-discrete Kalman filter
+    over every event at its own time. Cost per call is bounded by the window, not by
+    elapsed steps.
     """
 
     def __init__(
@@ -58,6 +62,8 @@ class ObserverPredictor(ReplayEstimator[Gaussian]):
         self.model = model
         self.sensors = sensors
         self._backend = LinearBackend(model, sensors, self._inputs.capacity)
+        # samples and commands inside a step need a continuous-time model
+        self.period_s = model.period if model.period is not None else 0.0
 
     @property
     def n(self) -> int:

@@ -23,6 +23,14 @@ This is the paper's re-organized innovation recursion generalised to time stamps
 The result equals a Kalman filter run from step 0 over every accepted packet in stamp order,
 then predicted forward: the engine only chooses *which* steps to recompute.
 
+Inside a step, time goes on: a packet carries its ``offset`` (seconds after its step's start)
+and a command may take effect at an offset too (:class:`~.inputs.InputBuffer`). The step
+stays the window's unit (what is final, what is late, what a packet invalidates); a step's
+packets are applied in (offset, sensor) order, and a step with a packet after its start hands
+its posterior on at the *next* step's start (``_end``), so checkpoints, the base and the
+prediction stay on the grid. For a continuous-time model the result equals the
+continuous-discrete Kalman filter over every event in time order.
+
 Work and memory per call are bounded by the window (max_delay + lead steps), never by the
 number of elapsed steps. A backend supplies two pure functions over its own state type:
 ``propagate(state, step, m, U)`` (x(step) -> x(step + m) with inputs U (m, nu)) and
@@ -55,6 +63,7 @@ operands; tested).
 from __future__ import annotations
 
 import bisect
+import math
 from typing import Final, Generic, NamedTuple, Protocol, TypeVar
 
 import numpy as np
@@ -68,6 +77,10 @@ from .inputs import InputBuffer
 from .tally import Tally
 
 S = TypeVar("S")
+
+#: A command taking effect inside a step: (row i of the span's inputs U, offset d (s),
+#: u_before (nu,)): during row i's step the input is u_before on [0, d), U[i] from d on.
+Cut = tuple[int, float, np.ndarray]
 
 #: Counter names, by outcome. Measurements and commands are counted separately.
 COUNTER_NAMES = (
@@ -92,12 +105,22 @@ _KIND_ALIASES = {"StackedObserverPredictor": "ObserverPredictor"}
 
 class Packet(NamedTuple):
     """One accepted measurement. ``sensor`` indexes the estimator's sensor list;
-    ``z`` has shape (m,) (read-only); ``R`` is a per-sample (m, m) override or None.
-    (A NamedTuple: immutable, and built with ``tuple.__new__`` on the hot path.)"""
+    ``z`` has shape (m,) (read-only); ``R`` is a per-sample (m, m) override or None;
+    ``offset``: seconds after the start of the packet's step at which it was sampled,
+    0 <= offset < period (0.0: on the grid). (A NamedTuple: immutable, and built with
+    ``tuple.__new__`` on the hot path.)"""
 
     sensor: int
     z: np.ndarray
     R: np.ndarray | None
+    offset: float = 0.0
+
+
+def off_grid(packets: list[Packet]) -> bool:
+    """Whether a step's packets (sorted by offset) include one sampled after the step's
+    start: then the step's posterior is handed on at the next step's start (see
+    :class:`Backend`)."""
+    return bool(packets) and packets[-1][3] > 0.0
 
 
 #: Read per call from C statics (Final), not looked up as ``bisect.<name>`` each time.
@@ -118,8 +141,8 @@ def _read_only(a: np.ndarray) -> None:
         a.setflags(write=False)
 
 
-def _by_sensor(p: Packet) -> int:
-    return p.sensor
+def _by_time(p: Packet) -> tuple[float, int]:
+    return p[3], p[0]
 
 
 # a plain class with Final attributes, not a frozen dataclass (whose __init__ sets each field
@@ -156,7 +179,13 @@ class Backend(Protocol[S]):
         ...
 
     def update(self, state: S, step: int, packets: list[Packet]) -> S:
-        """Condition x(step) on ``packets`` (sorted by sensor index, at least one)."""
+        """Condition x(step) on ``packets`` (at least one), sorted by (offset, sensor).
+
+        All offsets 0.0: the posterior of x(step). Otherwise (:func:`off_grid`) each packet
+        at its own time: propagate from the step's start to the first offset, update,
+        propagate to the next offset, ..., then the remainder to the next step's start: the
+        posterior of x(step + 1) given the packets stamped <= step (the replay hands the
+        next propagation on from step + 1)."""
         ...
 
     def moments(self, state: S) -> tuple[np.ndarray, np.ndarray]:
@@ -177,19 +206,25 @@ class FusedBackend(Backend[S], Protocol):
 
     :class:`ReplayEstimator` calls :meth:`advance` instead of ``propagate`` + ``update`` when
     the backend has it. A backend may also offer ``advance_run(state, a, steps, buf, off,
-    packets, chk, noreuse) -> (state, a, done)``: the replay's loop of :meth:`advance` calls
-    over several steps in one call, the inputs read in place from the input buffer
+    packets, chk, noreuse, cut_view) -> (state, a, done)``: the replay's loop of
+    :meth:`advance` calls over several steps in one call, the inputs read in place from the
+    input buffer, its commands inside steps from ``cut_view``
     (``LinearBackend.advance_run``, its C kernel); the replay makes the steps after the
     first ``done`` with :meth:`advance`.
     """
 
     def advance(self, state: S, m: int, U: np.ndarray, packets: list[Packet],
-                old: S | None) -> S:
+                old: S | None, cuts: list[Cut] | None = None) -> S:
         """x(a) -> x(a + m) (m >= 0, inputs U (m, nu)), then conditioned on ``packets``
-        (sorted by sensor, possibly none). ``old`` is this step's previous, stale result
-        (None if there is none, or if the model changed since); the backend may reuse what
-        of it it can verify still holds (e.g. a covariance computed from the same parent
-        covariance object, jump and packets)."""
+        (sorted by (offset, sensor), possibly none). ``old`` is this step's previous, stale
+        result (None if there is none, or if the model changed since); the backend may reuse
+        what of it it can verify still holds (e.g. a covariance computed from the same
+        parent covariance object, jump and packets).
+
+        Off the grid (:func:`off_grid` (packets)): U has m + 1 rows, the packets apply at
+        their offsets inside step a + m and the result is x(a + m + 1) (as
+        :meth:`Backend.update`). ``cuts``: commands that take effect inside a step of the
+        span (:data:`Cut`; None: none)."""
         ...
 
 
@@ -249,6 +284,11 @@ class ReplayEstimator(Generic[S]):
         self._now: int | None = None
         self._packets: dict[int, list[Packet]] = {}
         self._steps: list[int] = []  # measured steps >= c, sorted
+        # measured steps with a packet off the grid: their posterior is at the next step
+        self._offgrid: set[int] = set()
+        #: Step period in seconds where samples may lie inside a step (an offset must be
+        #: below it); 0.0: on the grid only (a discrete model); None: not checked here.
+        self.period_s: float | None = None
         self._chk: dict[int, S] = {}  # posterior at measured steps < dirty
         self._dirty: int | None = None  # earliest step whose posterior (mean) is stale
         self._noreuse: int | None = None  # from here on, stale posteriors are not reusable
@@ -281,14 +321,18 @@ class ReplayEstimator(Generic[S]):
         return self._c
 
     def add_measurement(
-        self, sensor: object, step: object, z: object, now: object, R: object | None = None
+        self, sensor: object, step: object, z: object, now: object, R: object | None = None,
+        offset: object = 0.0,
     ) -> bool:
-        """Offer the sample of ``sensor`` taken at ``step``; True iff accepted.
+        """Offer the sample of ``sensor`` taken ``offset`` seconds after the start of
+        ``step``; True iff accepted.
 
         Accepted iff ``now - max_delay <= step <= now``, step >= 0 and no packet of this
-        sensor is already stored for ``step``. A refusal is counted ("late", "future",
-        "duplicate") and changes nothing. Malformed input raises ValueError naming the field
-        and changes nothing.
+        sensor is already stored for the same step and offset (the same instant). A refusal
+        is counted ("late", "future", "duplicate") and changes nothing. Malformed input
+        (also an offset that is negative, not below the step period, or not 0.0 where the
+        model has no value inside a step) raises ValueError naming the field and changes
+        nothing.
         """
         idx = self._index.get(sensor) if isinstance(sensor, str) else None
         if idx is None:
@@ -298,17 +342,35 @@ class ReplayEstimator(Generic[S]):
         t = self._check_now(now)
         zv = as_vector(z, "z", m)
         Rm = None if R is None else as_covariance(R, "R", m)
-        return self._accept(idx, k, zv, Rm, t)
+        return self._accept(idx, k, zv, Rm, t, self._check_offset(offset))
 
-    def add_checked_measurement(self, sensor: str, step: int, z: np.ndarray, now: int) -> bool:
+    def add_checked_measurement(self, sensor: str, step: int, z: np.ndarray, now: int,
+                                offset: float = 0.0) -> bool:
         """:meth:`add_measurement` of a sample without its own R, for a caller that has
         made its checks (the daemon's intake fast path): ``sensor`` one of
         :attr:`sensor_names`, ``step`` an int, ``z`` a fresh finite float64 array of the
         sensor's dimension that the estimator keeps (made read-only, not copied). Skips
-        the conversion and checks of z."""
-        return self._accept(self._index[sensor], step, z, None, self._check_now(now))
+        the conversion and checks of z (not those of the offset)."""
+        off = offset if offset == 0.0 else self._check_offset(offset)
+        return self._accept(self._index[sensor], step, z, None, self._check_now(now), off)
 
-    def _accept(self, idx: int, k: int, zv: np.ndarray, Rm: np.ndarray | None, t: int) -> bool:
+    def _check_offset(self, offset: object) -> float:
+        """A sample's offset in seconds, checked (see :meth:`add_measurement`)."""
+        if isinstance(offset, bool) or not isinstance(offset, (int, float, np.floating)):
+            raise ValueError(f"offset: expected seconds (a number), got {offset!r}")
+        off = float(offset)
+        T = self.period_s
+        if not (math.isfinite(off) and off >= 0.0):
+            raise ValueError(f"offset: must be finite and >= 0 s, got {off!r}")
+        if T is not None and off > 0.0 and not off < T:
+            if T == 0.0:
+                raise ValueError(f"offset: {off!r} s, but this model has no value inside a "
+                                 "step (a discrete model: samples on the grid only)")
+            raise ValueError(f"offset: must be below the step period {T} s, got {off!r}")
+        return off
+
+    def _accept(self, idx: int, k: int, zv: np.ndarray, Rm: np.ndarray | None, t: int,
+                off: float) -> bool:
         """The window's verdict on a checked sample, and its storage (see add_measurement)."""
         if t != self._now:
             self._advance(t)
@@ -321,11 +383,11 @@ class ReplayEstimator(Generic[S]):
         bucket = self._packets.get(k)
         if bucket is not None:
             for p in bucket:
-                if p.sensor == idx:
+                if p[0] == idx and p[3] == off:
                     self._counters["duplicate"] += 1
                     return False
         _read_only(zv)
-        pkt = _new_tuple(Packet, (idx, zv, Rm))
+        pkt = _new_tuple(Packet, (idx, zv, Rm, off))
         if bucket is None:
             self._packets[k] = [pkt]
             steps = self._steps
@@ -335,7 +397,9 @@ class ReplayEstimator(Generic[S]):
                 _insort(steps, k)
         else:
             bucket.append(pkt)
-            bucket.sort(key=_by_sensor)
+            bucket.sort(key=_by_time)
+        if off > 0.0:
+            self._offgrid.add(k)
         # _invalidate(k), inlined: posteriors from k on are stale
         if self._dirty is None or k < self._dirty:
             self._dirty = k
@@ -343,29 +407,39 @@ class ReplayEstimator(Generic[S]):
         self._counters["accepted"] += 1
         return True
 
-    def add_command(self, step: object, u: object, now: object | None = None) -> bool:
-        """Offer the command u that applies from ``step`` on; True iff accepted.
+    def add_command(self, step: object, u: object, now: object | None = None,
+                    offset: object = 0.0) -> bool:
+        """Offer the command u that applies from ``offset`` seconds after the start of
+        ``step`` on (zero-order hold from that instant; "zero" mode: over the whole step,
+        the offset ignored); True iff accepted.
 
         Refused ("commands_late") if ``step`` is already final (before
         :attr:`committed_step`), ("commands_future") if it lies more than ``max_delay + 1``
         steps past the predicted step ``now + lead``, ("commands_duplicate") if a command
-        for ``step`` is already stored. ``now`` defaults to the newest one seen.
+        for ``step`` is already stored. ``now`` defaults to the newest one seen. ValueError
+        for an offset as :meth:`add_measurement` refuses it.
         """
         k = step if type(step) is int else as_step(step, "step")
-        return self.add_checked_command(k, as_vector(u, "u", self._nu), now)
+        return self.add_checked_command(k, as_vector(u, "u", self._nu), now,
+                                        self._check_offset(offset))
 
-    def add_checked_command(self, step: int, u: np.ndarray, now: object | None = None) -> bool:
+    def add_checked_command(self, step: int, u: np.ndarray, now: object | None = None,
+                            offset: float = 0.0) -> bool:
         """:meth:`add_command` for a caller that has made its checks (the daemon's intake
         fast path): ``step`` an int, ``u`` a finite float64 (nu,) array (copied into the
-        input buffer). Skips the conversion and checks of u."""
+        input buffer). Skips the conversion and checks of u (not those of the offset)."""
+        if offset != 0.0:
+            offset = self._check_offset(offset)
         if now is not None:
             t = self._check_now(now)
             if t != self._now:
                 self._advance(t)
         ref = self._now if self._now is not None else 0
-        if not self._inputs.admit(step, u, self._c, ref + self._cmd_ahead, self._counters):
+        if not self._inputs.admit(step, u, self._c, ref + self._cmd_ahead, self._counters,
+                                  offset):
             return False
-        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        # u(step) first moves x(step + 1), or the step's own posterior if it is off the grid
+        self._invalidate(step if step in self._offgrid else step + 1)
         return True
 
     def predict(self, now: object) -> PredictedState:
@@ -379,12 +453,30 @@ class ReplayEstimator(Generic[S]):
         if self._cache is not None and self._cache[0] == t:
             return self._cache[1]
         self._replay(None)
-        step, state = self._newest()
         target = t + self.lead
+        step, state, newest = self._newest(target)
         advance = getattr(self._backend, "advance", None)
+        if self._steps and self._steps[-1] == target and target in self._offgrid:
+            # lead 0, and samples inside the target step: those at its very start count
+            head = [p for p in self._packets[target] if p[3] == 0.0]
+            if head:
+                m = target - step
+                if advance is not None:
+                    cuts = self._inputs.cuts(step, target - 1)
+                    U = self._inputs.slice(step, m)
+                    state = (advance(state, m, U, head, None) if cuts is None
+                             else advance(state, m, U, head, None, cuts))
+                else:
+                    if m:
+                        state = self._propagate(state, step, m)
+                    state = self._backend.update(state, target, head)
+                step, newest = target, target
         if advance is not None:
             m = target - step
-            state = self._pred = advance(state, m, self._inputs.slice(step, m), [], self._pred)
+            cuts = self._inputs.cuts(step, target - 1)
+            U = self._inputs.slice(step, m)
+            state = self._pred = (advance(state, m, U, [], self._pred) if cuts is None
+                                  else advance(state, m, U, [], self._pred, cuts))
             x, P = self._backend.moments(state)
             # shared with the engine (a reused covariance, a checkpoint): read-only
             _read_only(x)
@@ -393,7 +485,7 @@ class ReplayEstimator(Generic[S]):
             if target > step:
                 state = self._propagate(state, step, target - step)
             x, P = self._backend.moments(state)
-        pred = PredictedState(target, x, P, self._steps[-1] if self._steps else self._newest_committed)
+        pred = PredictedState(target, x, P, newest)
         self._cache = (t, pred)
         return pred
 
@@ -404,16 +496,19 @@ class ReplayEstimator(Generic[S]):
         counters and the backend's extras (copies; see :mod:`.state`)."""
         names = self.sensor_names
         packets: list[PacketRecord] = [
-            (s, names[p.sensor], p.z.copy(), None if p.R is None else p.R.copy())
+            (s, names[p.sensor], p.z.copy(), None if p.R is None else p.R.copy(), p.offset)
             for s in self._steps for p in self._packets[s]]
-        origin, u0, cmds = self._inputs.export()
+        inputs = self._inputs
+        origin, u0, cmds = inputs.export()
         return EstimatorState(
             kind=type(self).__name__, n=int(getattr(self, "n", 0)), now=self._now,
             committed_step=self._c, base_step=self._base_step,
             newest_committed=self._newest_committed,
             base=self._backend.export_state(self._base), packets=packets,
             inputs_origin=origin, u_origin=u0, commands=cmds,
-            counters=dict(self._counters), extras=self._export_extras())
+            counters=dict(self._counters), extras=self._export_extras(),
+            command_offsets=dict(inputs.cut_offsets),
+            u_before=inputs.u_before.copy() if inputs.cut_offsets else None)
 
     def restore_state(self, state: EstimatorState) -> None:
         """Continue from ``state`` (an :meth:`export_state` of an estimator built from the
@@ -436,7 +531,10 @@ class ReplayEstimator(Generic[S]):
                              f"(max_delay {self.max_delay})")
         base = self._backend.import_state(st.base)
         packets: dict[int, list[Packet]] = {}
-        for step, name, z, R in st.packets:
+        for rec in st.packets:
+            if not isinstance(rec, tuple) or len(rec) != 5:
+                raise StateError("packets: a record is not (step, sensor, z, R, offset)")
+            step, name, z, R, off = rec
             idx = self._index.get(name)
             if idx is None:
                 raise StateError(f"packets: unknown sensor {name!r}")
@@ -447,20 +545,24 @@ class ReplayEstimator(Generic[S]):
             try:
                 zv = as_vector(z, "z", m)
                 Rm = None if R is None else as_covariance(R, "R", m)
+                offset = self._check_offset(off)
             except ValueError as exc:
                 raise StateError(f"packets: {exc}") from None
             bucket = packets.setdefault(int(step), [])
-            if any(p.sensor == idx for p in bucket):
-                raise StateError(f"packets: two samples of {name!r} at step {step}")
+            if any(p.sensor == idx and p.offset == offset for p in bucket):
+                raise StateError(f"packets: two samples of {name!r} at step {step} "
+                                 f"offset {offset} s")
             zv.setflags(write=False)
-            bucket.append(Packet(idx, zv, Rm))
+            bucket.append(Packet(idx, zv, Rm, offset))
         for bucket in packets.values():
-            bucket.sort(key=lambda p: p.sensor)
+            bucket.sort(key=_by_time)
         inputs = InputBuffer(self._nu, self._inputs.capacity, self._inputs.hold)
         try:
             u0 = as_vector(st.u_origin, "u_origin", self._nu)
+            ub = None if st.u_before is None else as_vector(st.u_before, "u_before", self._nu)
+            offs = {int(j): self._check_offset(d) for j, d in st.command_offsets.items()}
             inputs.restore(b, u0, [(int(j), as_vector(u, "u", self._nu))
-                                   for j, u in st.commands])
+                                   for j, u in st.commands], offs, ub)
         except (ValueError, IndexError) as exc:
             raise StateError(f"commands: {exc}") from None
         unknown = set(st.counters) - set(COUNTER_NAMES)
@@ -470,6 +572,7 @@ class ReplayEstimator(Generic[S]):
         self._base, self._base_step, self._c, self._now = base, b, c, st.now
         self._packets = packets
         self._steps = sorted(packets)
+        self._offgrid = {s for s, bucket in packets.items() if off_grid(bucket)}
         self._chk = {}
         self._dirty = self._noreuse = c if self._steps else None
         self._pred = None
@@ -495,38 +598,42 @@ class ReplayEstimator(Generic[S]):
         """Called with (step, posterior, packets) for each measured step that became final,
         in step order. Default: nothing. Adaptive backends override it."""
 
-    def supersede_command(self, step: int, u: np.ndarray, now: object | None = None) -> bool:
-        """Replace the command stored for ``step`` by ``u`` (a finite float64 (nu,) array);
-        True iff replaced and counted ("commands_superseded"). False, counting nothing, when
-        no command is stored for ``step`` or ``step`` is already final (< committed_step).
-        The caller decides that ``u`` is the newer of the two (pd_service.intake: a later
-        ``issued_ns``, then a higher ``seq``); the estimator only refuses a final step."""
+    def supersede_command(self, step: int, u: np.ndarray, now: object | None = None,
+                          offset: float = 0.0) -> bool:
+        """Replace the command stored for ``step`` by ``u`` (a finite float64 (nu,) array)
+        taking effect ``offset`` seconds after the step's start; True iff replaced and
+        counted ("commands_superseded"). False, counting nothing, when no command is stored
+        for ``step`` or ``step`` is already final (< committed_step). The caller decides
+        that ``u`` is the newer of the two (pd_service.intake: a later ``issued_ns``, then a
+        higher ``seq``); the estimator only refuses a final step. ValueError for an offset
+        as :meth:`add_measurement` refuses it."""
+        if offset != 0.0:
+            offset = self._check_offset(offset)
         if now is not None:
             t = self._check_now(now)
             if t != self._now:
                 self._advance(t)
         if step < self._c or not self._inputs.has_command(step):
             return False
-        self._inputs.replace(step, u)
+        self._inputs.replace(step, u, offset)
         self._counters["commands_superseded"] += 1
-        self._invalidate(step + 1)  # u(step) first moves x(step + 1)
+        self._invalidate(step if step in self._offgrid else step + 1)
         return True
 
     def withdraw_command(self, step: int, now: object | None = None) -> bool:
         """Forget the command stored for ``step`` (it did not take effect there: the robot
         echoed another time, pd_service.service.robot_time); True iff withdrawn. False,
-        changing nothing, when none is stored for ``step`` or ``step`` is final or the input
-        window's origin (whose previous input is no longer kept)."""
+        changing nothing, when none is stored for ``step`` or ``step`` is final."""
         if now is not None:
             t = self._check_now(now)
             if t != self._now:
                 self._advance(t)
         inputs = self._inputs
-        if step < self._c or step <= inputs.origin or not inputs.has_command(step):
+        if step < self._c or not inputs.has_command(step):
             return False
         inputs.remove(step)
         self._counters["commands_withdrawn"] += 1
-        self._invalidate(step + 1)
+        self._invalidate(step if step in self._offgrid else step + 1)
         return True
 
     def invalidate_from(self, step: int) -> None:
@@ -555,14 +662,32 @@ class ReplayEstimator(Generic[S]):
             self._pred = None
 
     def _propagate(self, state: S, step: int, m: int) -> S:
-        return self._backend.propagate(state, step, m, self._inputs.slice(step, m))
+        inputs = self._inputs
+        U = inputs.slice(step, m)
+        if inputs.cut_offsets:  # commands inside these steps: a fused backend takes them
+            advance = getattr(self._backend, "advance", None)
+            cuts = inputs.cuts(step, step + m - 1)
+            if advance is not None and cuts is not None:
+                return advance(state, m, U, [], None, cuts)
+        return self._backend.propagate(state, step, m, U)
 
-    def _newest(self) -> tuple[int, S]:
-        """Newest clean posterior (step, state), or the base."""
-        if self._steps:
-            s = self._steps[-1]
-            return s, self._chk[s]
-        return self._base_step, self._base
+    def _end(self, s: int) -> int:
+        """The step at which measured step s's posterior is: s, or s + 1 off the grid."""
+        return s + 1 if s in self._offgrid else s
+
+    def _newest(self, target: int) -> tuple[int, S, int | None]:
+        """Newest clean posterior at a step <= ``target`` (step, state, its newest sample
+        step), or the base. (Only the newest measured step's can lie past the target: a
+        sample inside the target step itself, with lead 0: it acts once the output passes
+        it.)"""
+        steps = self._steps
+        for i in (len(steps) - 1, len(steps) - 2):
+            if i >= 0:
+                s = steps[i]
+                e = s + 1 if s in self._offgrid else s
+                if e <= target:
+                    return e, self._chk[s], s
+        return self._base_step, self._base, self._newest_committed
 
     def _replay(self, limit: int | None) -> None:
         """Recompute the posteriors of measured steps in [dirty, limit).
@@ -575,9 +700,12 @@ class ReplayEstimator(Generic[S]):
         i = _bisect_left(steps, dirty)
         j = len(steps) if limit is None else _bisect_left(steps, limit)
         chk = self._chk
+        offgrid = self._offgrid
         if i > 0:
             a = steps[i - 1]
             state = chk[a]
+            if a in offgrid:
+                a += 1
         else:
             a, state = self._base_step, self._base
         backend = self._backend
@@ -587,24 +715,32 @@ class ReplayEstimator(Generic[S]):
             noreuse = self._noreuse
             todo = steps[i:j]
             if todo:
-                buf, off = self._inputs.window(a, todo[-1])
+                inputs = self._inputs
+                buf, off = inputs.window(a, todo[-1] + 1)
+                cut = inputs.cut_offsets
                 run = getattr(backend, "advance_run", None)
                 if run is not None:  # the loop below in one C call, as far as it goes
-                    state, a, done = run(state, a, todo, buf, off, packets, chk, noreuse)
+                    state, a, done = run(state, a, todo, buf, off, packets, chk, noreuse,
+                                         inputs.cut_view())
                     if done:
                         todo = todo[done:]
                 for s in todo:
                     old = chk.get(s) if noreuse is None or s < noreuse else None
-                    state = advance(state, s - a, buf[a - off : s - off], packets[s], old)
+                    e = s + 1 if s in offgrid else s
+                    cuts = inputs.cuts(a, e - 1) if cut else None
+                    U = buf[a - off : e - off]
+                    # cuts passed only when there are some: a backend without them still fits
+                    state = (advance(state, s - a, U, packets[s], old) if cuts is None
+                             else advance(state, s - a, U, packets[s], old, cuts))
                     chk[s] = state
-                    a = s
+                    a = e
         else:
             for s in steps[i:j]:
                 if s > a:
                     state = self._propagate(state, a, s - a)
                 state = backend.update(state, s, packets[s])
                 chk[s] = state
-                a = s
+                a = s + 1 if s in offgrid else s
         if limit is None or j == len(steps):
             self._dirty = self._noreuse = None
         else:
@@ -627,10 +763,13 @@ class ReplayEstimator(Generic[S]):
             final = steps[:k]
             chk, packets = self._chk, self._packets
             committed = ([(s, chk[s], packets[s]) for s in final] if self._hooked else None)
-            self._base_step, self._base = final[-1], chk[final[-1]]
-            self._newest_committed = final[-1]
+            last = final[-1]
+            self._base_step, self._base = self._end(last), chk[last]
+            self._newest_committed = last
+            offgrid = self._offgrid
             for s in final:
                 del chk[s], packets[s]
+                offgrid.discard(s)
             del steps[:k]
             if committed is not None:
                 self._on_commit(committed)

@@ -42,8 +42,8 @@ from pd_service.wire import MAX_MESSAGE_BYTES, Command, Measurement, SessionSpec
 from pd_service.wire.convert import (
     check_command,
     check_measurement,
-    command_step,
-    measurement_step,
+    command_time,
+    measurement_time,
 )
 
 #: What the fast path reads: (seq, step or None, t_ns / issued_ns or None, z / u float64 (m,)).
@@ -132,9 +132,11 @@ class Intake:
         #: Whether the last command accepted replaced an older one for its step
         #: (:meth:`command`: counted as ``commands_superseded``, not ``commands_accepted``).
         self.superseded = False
-        #: (seq, issued_ns or None, u, apply step, order) of the last command read (None:
-        #: it did not decode): what an echo later moves (pd_service.service.robot_time).
-        self.last_command: tuple[int, int | None, np.ndarray, int, tuple[int, int]] | None = None
+        #: (seq, issued_ns or None, u, apply step, order, offset (session seconds)) of
+        #: the last command read (None: it did not decode): what an echo later moves
+        #: (pd_service.service.robot_time).
+        self.last_command: tuple[int, int | None, np.ndarray, int, tuple[int, int],
+                                 float] | None = None
         #: Robot stamps -> the daemon's timeline (pd_service.service.robot_time), applied to
         #: a Measurement's t_ns before anything else; None: stamps are used as they are.
         self.stamp_map: Callable[[int], int] | None = None
@@ -143,6 +145,23 @@ class Intake:
         #: apply step -> (issued_ns or -1, seq) of the command stored for it: which of two
         #: commands for one step is the newer (the supersede rule, module docstring).
         self.command_order: dict[int, tuple[int, int]] = {}
+        #: The estimator's seconds per session second for an offset inside a step: 1.0 where
+        #: its period is the session's (a continuous linear model); the model's own step
+        #: over the session's where a nonlinear model runs on its own period (a fraction of
+        #: the step is what carries over); 0.0: no value inside a step (a model without
+        #: flow: every offset dropped, the stamp floored).
+        T = getattr(est, "period_s", None)
+        spec_s = spec.period_ns / 1e9
+        self.off_scale = (1.0 if T is None or T == spec_s
+                          else 0.0 if T == 0.0 or not spec.continuous_time
+                          else T / spec_s)
+
+    def _scaled(self, off: float) -> float:
+        """An offset in session seconds as the estimator's seconds (``off_scale``), kept
+        below its period where rounding would reach it."""
+        T = getattr(self.est, "period_s", None)
+        out = off * self.off_scale
+        return math.nextafter(T, 0.0) if T and out >= T else out
 
     def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Measurement received on ``key``; None if accepted."""
@@ -156,12 +175,13 @@ class Intake:
         if fast is not None and stamp_map is not None and fast[2] is not None:
             fast = (fast[0], fast[1], stamp_map(fast[2]), fast[3])
         self.last_t_ns = None
+        off = 0.0
         if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
-            seq, s, t_ns, z = fast  # |z_i| <= max_abs checked on the way
+            seq, s, t_in, z = fast  # |z_i| <= max_abs checked on the way
             stamp = "step" if s is not None else "t_ns"
             if s is None:
-                s = self.spec.step_of(t_ns)  # type: ignore[arg-type]
-                self.last_t_ns = t_ns
+                s, off = self.spec.sample_at(t_in)  # type: ignore[arg-type]
+                self.last_t_ns = t_in
             R = None
             checked = True  # z: a fresh finite (m,) array
         else:  # full decode and checks: exact refusal reasons
@@ -183,7 +203,8 @@ class Intake:
                 check_measurement(msg, self.spec)
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "invalid")
-            seq, s, z, R = msg.seq, measurement_step(msg, self.spec), msg.z, msg.R
+            (s, off), seq, z, R = measurement_time(msg, self.spec), msg.seq, msg.z, msg.R
+            t_in = msg.t_ns
             checked = False
             stamp = "step" if msg.step is not None else "t_ns"
             if z.size and _max_abs(z) > self.max_abs:
@@ -194,15 +215,19 @@ class Intake:
         if now_step < 0:
             return Refusal("future", f"Measurement.{stamp}: sample step {s} is in the future; "
                            f"the session starts at its epoch (now step {now_step})", seq)
+        if s > now_step and t_in is not None and self.spec.step_of(t_in) <= now_step:
+            s = now_step  # rounded to the nearest step, past the current one: this one
+        if off != 0.0 and self.off_scale != 1.0:
+            off = self._scaled(off)
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
                 # a variable of the class's own type: mypyc calls the method natively (on
                 # the narrowed protocol-typed ``est`` it made a Python-level method call)
                 rep: ReplayEstimator = est
-                ok = rep.add_checked_measurement(sensor, s, z, now_step)
+                ok = rep.add_checked_measurement(sensor, s, z, now_step, off)
             else:  # positional: a keyword call costs a compiled method an argument parse
-                ok = est.add_measurement(sensor, s, z, now_step, R)
+                ok = est.add_measurement(sensor, s, z, now_step, R, off)
         except ValueError as exc:
             return Refusal("invalid", f"Measurement.z: {exc}", seq)
         if ok:
@@ -216,7 +241,7 @@ class Intake:
                            f"window [{max(lo, est.committed_step)}, {now_step}] "
                            f"(max_delay {est.max_delay})", seq)
         return Refusal("duplicate", f"Measurement.{stamp}: sensor {sensor!r} already has a "
-                       f"sample for step {s}", seq)
+                       f"sample for step {s} at that instant (offset {off:g} s)", seq)
 
     def command(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Command; None if accepted."""
@@ -230,8 +255,9 @@ class Intake:
                                  or spec.step_of(fast[2]) + spec.lead >= 0):  # type: ignore[arg-type]
             seq, j, issued, u = fast
             stamp = "step" if j is not None else "issued_ns"
+            off = 0.0
             if j is None:
-                j = spec.step_of(issued) + spec.lead  # type: ignore[arg-type]
+                j, off = spec.command_at(issued)  # type: ignore[arg-type]
             checked = True  # u: a fresh finite (nu,) array
         else:
             try:
@@ -243,7 +269,8 @@ class Intake:
                 check_command(msg, spec, self.r)
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "commands_invalid")
-            seq, j, u, issued = msg.seq, command_step(msg, spec), msg.u, msg.issued_ns
+            (j, off), seq, u = command_time(msg, spec), msg.seq, msg.u
+            issued = msg.issued_ns
             stamp = "step" if msg.step is not None else "issued_ns"
             checked = False
             if u.size and _max_abs(u) > self.max_abs:
@@ -253,16 +280,18 @@ class Intake:
         self.decoded = True
         self.superseded = False
         order = (-1 if issued is None else issued, seq) if stamp == "issued_ns" else (-1, seq)
-        self.last_command = (seq, issued if stamp == "issued_ns" else None, u, j, order)
-        if self._supersede(j, u, order, now_step):
+        self.last_command = (seq, issued if stamp == "issued_ns" else None, u, j, order, off)
+        if off != 0.0 and self.off_scale != 1.0:
+            off = self._scaled(off)
+        if self._supersede(j, u, order, now_step, off):
             return None
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
                 rep: ReplayEstimator = est  # (a native call, as in measurement)
-                ok = rep.add_checked_command(j, u, now_step if now_step >= 0 else None)
+                ok = rep.add_checked_command(j, u, now_step if now_step >= 0 else None, off)
             else:
-                ok = est.add_command(j, u, now_step if now_step >= 0 else None)
+                ok = est.add_command(j, u, now_step if now_step >= 0 else None, off)
         except (ValueError, IndexError) as exc:
             return Refusal("commands_invalid", f"Command.u: {exc}", seq)
         if ok:
@@ -278,15 +307,19 @@ class Intake:
         return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
                        "already stored", seq)
 
-    def place(self, step: int, u: np.ndarray, order: tuple[int, int], now_step: int) -> bool:
-        """Store a command for ``step`` outside the message path (an echoed command moved to
-        the step it took effect in: pd_service.service.robot_time), with the supersede rule
-        against a command already there; True iff stored."""
+    def place(self, step: int, u: np.ndarray, order: tuple[int, int], now_step: int,
+              offset: float = 0.0) -> bool:
+        """Store a command for ``step`` from ``offset`` seconds after its start (session
+        seconds, scaled here as a message's offset is) outside the message path (an echoed
+        command moved to the instant it took effect: pd_service.service.robot_time), with
+        the supersede rule against a command already there; True iff stored."""
         if step < 0:
             return False
-        if self._supersede(step, u, order, now_step):
+        if offset != 0.0 and self.off_scale != 1.0:
+            offset = self._scaled(offset)
+        if self._supersede(step, u, order, now_step, offset):
             return True
-        if self.est.add_command(step, u, now_step if now_step >= 0 else None):
+        if self.est.add_command(step, u, now_step if now_step >= 0 else None, offset):
             self._remember_order(step, order)
             return True
         return False
@@ -315,7 +348,7 @@ class Intake:
                 del orders[min(orders)]
 
     def _supersede(self, step: int, u: np.ndarray, order: tuple[int, int],
-                   now_step: int) -> bool:
+                   now_step: int, offset: float = 0.0) -> bool:
         """The supersede rule (module docstring): replace the command stored for ``step`` by
         this newer one; True iff replaced (``superseded`` set). Tried before the estimator's
         own admission, so a replacement is not also counted as a duplicate."""
@@ -324,7 +357,7 @@ class Intake:
         if stored is None or order <= stored or not isinstance(est, ReplayEstimator):
             return False
         uv = np.array(u, dtype=np.float64)  # a copy: the slow path's u belongs to its message
-        if not est.supersede_command(step, uv, now_step if now_step >= 0 else None):
+        if not est.supersede_command(step, uv, now_step if now_step >= 0 else None, offset):
             return False
         self.command_order[step] = order
         self.superseded = True

@@ -20,9 +20,15 @@ import sys
 from collections.abc import Sequence
 from dataclasses import replace
 
-from pd_service.cli import EXIT_NO_ZENOH, open_zenoh, stop_on_signals, wait_for_stop
+from pd_service.cli import (
+    EXIT_NO_ZENOH,
+    add_metrics_arg,
+    open_zenoh,
+    stop_on_signals,
+    wait_serving_metrics,
+)
 from pd_service.errors import ConfigError
-from pd_service.logs import add_logging_args, setup_logging
+from pd_service.logs import add_logging_args, level_of, setup_logging
 from pd_service.transport.base import DEFAULT_SENDER_CACHE
 from pd_service.transport.options import LINK, add_zenoh_args, options_from_args
 from pd_service.wire import keys
@@ -57,7 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="publish with Zenoh's express flag (no batching; about twice the CPU "
                         "at high rates, no latency gain measured on loopback)")
     p.add_argument("--stats-interval", type=float, default=10.0, metavar="S",
-                   help="log per-rule statistics every S seconds")
+                   help="log per-rule statistics every S seconds (default 10)")
+    add_metrics_arg(p)
     add_zenoh_args(p, LINK)
     add_logging_args(p)
     return p  # fmt: skip
@@ -65,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    setup_logging(args.log_level, args.log_format)
+    setup_logging(level_of(args) or "INFO", args.log_format)
     try:
         keys.check_name(args.instance, "instance")
         config = load_config(args.config)
@@ -83,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.switch_interval_us > 0:
         sys.setswitchinterval(args.switch_interval_us / 1e6)
 
-    from .relay import LinkRelay
+    from .relay import LinkRelay, link_metrics
 
     stop = stop_on_signals(log)
     try:
@@ -100,11 +107,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                           express=args.express, cache=max(0, args.cache))  # fmt: skip
         relay.start()
         try:
-            wait_for_stop(stop)
+            code = wait_serving_metrics(stop, args.metrics, lambda: link_metrics(relay), log)
         finally:
             relay.close()
             log.info("pd-link stopped", extra={"fields": {"instance": args.instance}})
-    return 0
+    return code
 
 
 if __name__ == "__main__":

@@ -703,3 +703,35 @@ def _set_timer_slack_ns(ns: int) -> None:
             ctypes.CDLL(None, use_errno=True).prctl(29, ctypes.c_ulong(ns), 0, 0, 0)
     except Exception:
         pass
+
+
+#: Per-rule counters of :meth:`RuleStats.snapshot` exported as pd_link_rule_<name>_total.
+RULE_COUNTERS = ("received", "forwarded", "dropped_loss", "dropped_outage", "dropped_capacity",
+                 "duplicated", "reordered", "corrupted", "stalled")
+#: Relay-wide counters of :meth:`LinkRelay.stats`.
+RELAY_COUNTERS = ("overflow", "unmapped", "loops", "dropped_capacity", "keys_evicted",
+                  "publishers_evicted")
+
+
+def link_metrics(relay: LinkRelay) -> list[Any]:
+    """pd-link's metric families (``pd-link --metrics``), read from :meth:`LinkRelay.stats`:
+    relay counters and levels, and per rule (a bounded set: the rules file's) its counters
+    labelled by direction and rule."""
+    from pd_service.metrics import counter, counters, gauge
+
+    st = relay.stats()
+    out = counters("pd_link", {k: st[k] for k in RELAY_COUNTERS}, "Relay")
+    out += [gauge("pd_link_pending", "Messages waiting for their release.", st["pending"]),
+            gauge("pd_link_pending_bytes", "Bytes waiting for their release.", st["pending_bytes"]),
+            gauge("pd_link_inbox", "Messages received, not yet handled.", st["inbox"]),
+            gauge("pd_link_keys", "Input keys with a cached route.", st["keys"]),
+            gauge("pd_link_publishers", "Output publishers declared.", st["publishers"]),
+            gauge("pd_link_rules_generation", "Rules generation (1 + replacements).",
+                  st["generation"]),
+            gauge("pd_link_uptime_seconds", "Seconds since the relay started.", st["uptime_s"])]
+    for name in RULE_COUNTERS:
+        rows: dict[tuple[str, ...], float] = {(str(r["direction"]), str(r["name"])): r[name]
+                                              for r in st["rules"]}
+        out.append(counter(f"pd_link_rule_{name}", f"Messages {name}, per rule.", rows=rows,
+                           label_names=("direction", "rule")))
+    return out

@@ -19,10 +19,21 @@ import sys
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from pd_service.cli import EXIT_NO_ZENOH, open_zenoh, stop_on_signals, wait_for_stop
+from pd_service.cli import (
+    EXIT_NO_ZENOH,
+    add_metrics_arg,
+    open_zenoh,
+    stop_on_signals,
+    wait_serving_metrics,
+)
 from pd_service.errors import ConfigError
-from pd_service.logs import add_logging_args, setup_logging
-from pd_service.transport.options import TOOL, add_zenoh_args, options_from_args
+from pd_service.logs import add_logging_args, level_of, setup_logging
+from pd_service.transport.options import (
+    TOOL,
+    add_connect_wait_arg,
+    add_zenoh_args,
+    options_from_args,
+)
 
 if TYPE_CHECKING:
     from .bridge import BridgeSettings
@@ -61,7 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "clock probes, on the robot's clock (docs/ros2.md)")
     p.add_argument("--echo-via-link", dest="echo_via_link", action="store_true",
                    help="robot role: echo on robot/p<k>/<s>/echo for pd-link to carry down")
+    add_metrics_arg(p)
     add_zenoh_args(p, TOOL)
+    add_connect_wait_arg(p)
     add_logging_args(p)
     return p
 
@@ -80,9 +93,9 @@ def settings_from_args(args: argparse.Namespace) -> BridgeSettings:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    setup_logging(args.log_level, args.log_format)
+    setup_logging(level_of(args) or "INFO", args.log_format)
     try:
-        from .bridge import Ros2Bridge
+        from .bridge import Ros2Bridge, bridge_metrics
     except ImportError as exc:  # rosbags / xxhash: the ros2 extra
         log.error("pd-ros2 needs the ros2 extra: pip install 'pd-service[ros2]'",
                   extra={"fields": {"error": str(exc)}})
@@ -90,23 +103,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         settings = settings_from_args(args)
         conf = options_from_args(args).config(TOOL)
-    except (ConfigError, ValueError) as exc:
+    except (ConfigError, ValueError, OSError) as exc:
         log.error("bad configuration", extra={"fields": {"error": str(exc)}})
         return 2
 
     stop = stop_on_signals(log)
-    transport = open_zenoh(conf, log)
+    transport = open_zenoh(conf, log, args.connect_wait, stop)
     if transport is None:
         return EXIT_NO_ZENOH
     with transport:
         bridge = Ros2Bridge(transport, settings)
         bridge.start()
         try:
-            wait_for_stop(stop)
+            code = wait_serving_metrics(stop, args.metrics, lambda: bridge_metrics(bridge), log)
         finally:
             bridge.close()
             log.info("pd-ros2 stopped", extra={"fields": {"instance": settings.instance}})
-    return 0
+    return code
 
 
 if __name__ == "__main__":

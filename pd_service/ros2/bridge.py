@@ -13,7 +13,9 @@ start, which the daemon answers with every spec it knows):
   transport's callback, not when the worker gets to it: the worker's lag would move the command
   to a later apply step), TwistStamped ->
   ``Command(issued_ns = header.stamp)``, u = (linear.x, angular.z), put on ``pd/p<k>/<s>/cmd``; the
-  daemon applies it at step ``floor((issued_ns - epoch_ns) / period_ns) + lead``;
+  daemon applies it at step ``floor((issued_ns - epoch_ns) / period_ns) + lead`` (for a
+  continuous-time model from exactly ``issued_ns + lead * period_ns``; stamps pass at full
+  resolution, docs/protocol.md "When a sample and a command apply");
 - **outputs**: each ``Prediction`` on ``pd/p<k>/<s>/prediction`` -> Odometry / PoseWithCovariance-
   Stamped / TFMessage (header.stamp = ``Prediction.t_ns``), CDR, with the rmw_zenoh attachment
   (sequence number per publisher from 1, source timestamp, publisher GID);
@@ -101,6 +103,7 @@ from pd_service.wire import (
     Measurement,
     Prediction,
     SessionSpec,
+    SessionStatus,
     WireError,
     keys,
 )
@@ -136,7 +139,8 @@ class BridgeSettings:
     ``attachment_layout`` is the rmw_zenoh attachment written on outputs (``positional`` for
     Jazzy >= 0.2.4, ``keyed`` for 0.2.0..0.2.3; both are read); ``error_rate`` / ``error_burst``
     bound the ErrorReports per session (per second / burst); ``inbox_size`` bounds the queue
-    between the transport callbacks and the worker (messages)."""
+    between the transport callbacks and the worker (messages); ``diagnostics_interval_s``:
+    the period of /diagnostics (s; 0: none)."""
 
     domain_id: int = 0
     namespace: str = "/"
@@ -156,6 +160,10 @@ class BridgeSettings:
     role: Literal["operator", "robot"] = "operator"
     #: Robot role: echo on the robot-side key (``robot/p<k>/<s>/echo``) for pd-link to carry.
     echo_via_link: bool = False
+    #: Seconds between two DiagnosticArrays on /diagnostics (0: none); a bound sensor topic
+    #: silent for ``silent_s`` is reported (pd_service.ros2.diagnostics).
+    diagnostics_interval_s: float = 1.0
+    silent_s: float = 2.0
 
     def __post_init__(self) -> None:
         if not 0 <= self.domain_id <= 232:
@@ -179,6 +187,8 @@ class BridgeSettings:
             raise ConfigError(str(exc)) from None
         if self.role not in ("operator", "robot"):
             raise ConfigError(f"role {self.role!r} is not 'operator' or 'robot'")
+        if not (self.diagnostics_interval_s >= 0 and self.silent_s > 0):
+            raise ConfigError("diagnostics_interval_s must be >= 0, silent_s > 0")
         if not (self.error_rate > 0 and self.error_burst >= 1 and self.inbox_size >= 1):
             raise ConfigError("error_rate must be > 0, error_burst and inbox_size >= 1")
 
@@ -225,6 +235,7 @@ class _Input:
     endpoint: TopicEndpoint | None = None
     seq: int = 0
     publisher: Publisher | None = None  # on native_key, with the bridge's cache
+    last_ns: int | None = None  # the last message's arrival (bridge's clock), for diagnostics
 
 
 @dataclass(eq=False)
@@ -282,6 +293,9 @@ class Ros2Bridge:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._diag_thread: threading.Thread | None = None
+        self._diag_publisher: Publisher | None = None
+        self._diag_prev: dict[str, SessionStatus] = {}
         self._handles: list[Handle] = []
         self._node_token: Handle | None = None
         self._next_entity = 1  # node id 0; entity ids never reused
@@ -317,10 +331,15 @@ class Ros2Bridge:
               sessions=",".join(sorted(self.sessions)))
 
     def start(self) -> None:
-        """:meth:`attach`, then start the worker thread."""
+        """:meth:`attach`, then start the worker thread and (``diagnostics_interval_s`` > 0)
+        the diagnostics thread."""
         self.attach()
         self._thread = threading.Thread(target=self._run, name="pd-ros2-worker", daemon=True)
         self._thread.start()
+        if self.settings.diagnostics_interval_s > 0:
+            self._diag_thread = threading.Thread(target=self._diagnostics_loop,
+                                                 name="pd-ros2-diagnostics", daemon=True)
+            self._diag_thread.start()
 
     def close(self) -> None:
         """Stop the worker, undeclare every session, the node token and the subscriptions."""
@@ -331,6 +350,8 @@ class Ros2Bridge:
         self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        if self._diag_thread is not None:
+            self._diag_thread.join(timeout=5.0)
         for h in reversed(self._handles):
             h.close()
         with self.lock:
@@ -617,6 +638,7 @@ class Ros2Bridge:
         c = sess.counters
         c["received"] += 1
         c["commands_received" if inp.sensor is None else "sensor_received"] += 1
+        inp.last_ns = self.now_ns()
         seq: int | None = None
         try:
             self._check_key(inp, sample.key)
@@ -793,6 +815,59 @@ class Ros2Bridge:
                 },
             }
 
+    # =================================================================== diagnostics ======
+
+    def _diagnostics_loop(self) -> None:
+        period = self.settings.diagnostics_interval_s
+        while not self._stop.wait(period):
+            try:
+                self.publish_diagnostics()
+            except Exception:  # diagnostics must never take the bridge down
+                log.exception("diagnostics failed")
+
+    def publish_diagnostics(self) -> bytes:
+        """Query the bridged sessions' statuses, publish one DiagnosticArray on
+        ``/diagnostics`` (pd_service.ros2.diagnostics) and return its CDR bytes."""
+        from pd_service.ros2.diagnostics import (
+            DIAGNOSTICS_TOPIC,
+            DIAGNOSTICS_TYPE,
+            diagnostic_array,
+            session_checks,
+        )
+
+        with self.lock:
+            bridged = [(name, sess.spec, {i.sensor: i.last_ns for i in sess.inputs
+                                          if i.sensor is not None})
+                       for name, sess in sorted(self.sessions.items())]
+        timeout = min(0.5, self.settings.diagnostics_interval_s)
+        now = self.now_ns()
+        rows = []
+        for name, spec, arrivals in bridged:
+            cur = None
+            for r in self.t.get(keys.status_key(name), timeout=timeout):
+                if r.ok:
+                    try:
+                        cur = wire_decode(r.payload, SessionStatus)
+                    except WireError:
+                        continue
+                    break
+            rows.append((name, session_checks(spec, self._diag_prev.get(name), cur, arrivals,
+                                              now, self.settings.silent_s)))
+            if cur is not None:
+                self._diag_prev[name] = cur
+        payload = diagnostic_array(now, self.settings.node_name, rows)
+        if self._diag_publisher is None:
+            fq = DIAGNOSTICS_TOPIC
+            key = self._data_key(fq, DIAGNOSTICS_TYPE)
+            self._diag_publisher = self.t.publisher(key)
+            self._handles.append(self._diag_publisher)
+            if self.node is not None:
+                endpoint = TopicEndpoint(self.node, self._entity(), "MP", fq, DIAGNOSTICS_TYPE,
+                                         type_hash(DIAGNOSTICS_TYPE), PUBLISHER_QOS)
+                self._handles.append(self.t.declare_token(endpoint.token()))
+        self._diag_publisher.put(payload)
+        return payload
+
     def _on_status_query(self, q: Query) -> None:
         try:
             q.reply(keys.ros2_status_key(self.settings.instance),
@@ -800,3 +875,21 @@ class Ros2Bridge:
         except Exception as exc:  # e.g. the query was dropped meanwhile
             log.debug("status reply failed: %s", exc)
 
+
+
+def bridge_metrics(bridge: Ros2Bridge) -> list[Any]:
+    """pd-ros2's metric families (``pd-ros2 --metrics``): the bridge's counters, its sessions'
+    counters summed over the sessions (per-session detail: the status queryable), the sessions
+    bridged and the inbox level."""
+    from pd_service.metrics import counters, gauge
+
+    with bridge.lock:
+        own = dict(bridge.counters)
+        summed: Counter[str] = Counter()
+        for sess in bridge.sessions.values():
+            summed.update(sess.counters)
+        n, inbox = len(bridge.sessions), len(bridge._inbox)
+    return [*counters("pd_ros2", own, "Bridge"),
+            *counters("pd_ros2_sessions", dict(summed), "Summed over the sessions, session"),
+            gauge("pd_ros2_sessions", "Sessions bridged.", n),
+            gauge("pd_ros2_inbox", "Items received, not yet handled.", inbox)]

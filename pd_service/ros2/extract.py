@@ -311,17 +311,25 @@ def _moments(
             if name in idx:
                 o[row], J[row, idx[name]], observed[row] = x[idx[name]], 1.0, True
     elif "vx" in idx or "vy" in idx:
-        if not ("vx" in idx and "vy" in idx and "yaw" in idx):
-            raise ValueError("world-frame velocities need vx, vy and yaw in the layout")
-        # v_body = R(yaw)^T v_world: vx_b = c vx + s vy, vy_b = -s vx + c vy;
+        # v_body = R(yaw)^T v_world with the yaw the pose carries: the state's, or 0 when it
+        # holds none (the orientation is written as identity, so body = world axes); an absent
+        # velocity component is 0. vx_b = c vx + s vy, vy_b = -s vx + c vy;
         # d/dyaw: vx_b' = vy_b, vy_b' = -vx_b.
-        c, s = math.cos(x[idx["yaw"]]), math.sin(x[idx["yaw"]])
-        vxw, vyw = x[idx["vx"]], x[idx["vy"]]
+        yaw = x[idx["yaw"]] if "yaw" in idx else 0.0
+        c, s = math.cos(yaw), math.sin(yaw)
+        vxw = x[idx["vx"]] if "vx" in idx else 0.0
+        vyw = x[idx["vy"]] if "vy" in idx else 0.0
         vxb, vyb = c * vxw + s * vyw, -s * vxw + c * vyw
         o[6], o[7] = vxb, vyb
-        J[6, idx["vx"]], J[6, idx["vy"]], J[6, idx["yaw"]] = c, s, vyb
-        J[7, idx["vx"]], J[7, idx["vy"]], J[7, idx["yaw"]] = -s, c, -vxb
-        observed[6] = observed[7] = True
+        if "vx" in idx:
+            J[6, idx["vx"]], J[7, idx["vx"]] = c, -s
+        if "vy" in idx:
+            J[6, idx["vy"]], J[7, idx["vy"]] = s, c
+        if "yaw" in idx:
+            J[6, idx["yaw"]], J[7, idx["yaw"]] = vyb, -vxb
+        turned = "yaw" in idx or ("vx" in idx and "vy" in idx)
+        observed[6] = turned or "vx" in idx
+        observed[7] = turned or "vy" in idx
     C = J @ P @ J.T
     C = 0.5 * (C + C.T)
     C[~observed, :] = 0.0

@@ -18,6 +18,9 @@ from rosbags.typesys.stores.ros2_jazzy import (
     builtin_interfaces__msg__Time as Time,
 )
 from rosbags.typesys.stores.ros2_jazzy import (
+    diagnostic_msgs__msg__DiagnosticArray as DiagnosticArray,
+)
+from rosbags.typesys.stores.ros2_jazzy import (
     geometry_msgs__msg__PointStamped as PointStamped,
 )
 from rosbags.typesys.stores.ros2_jazzy import (
@@ -84,6 +87,8 @@ _CLASSES: dict[str, type] = {
     "geometry_msgs/msg/Twist": Twist,
     "geometry_msgs/msg/TwistStamped": TwistStamped,
     "tf2_msgs/msg/TFMessage": TFMessage,
+    # published by pd-ros2 itself on /diagnostics (pd_service.ros2.diagnostics)
+    "diagnostic_msgs/msg/DiagnosticArray": DiagnosticArray,
 }
 
 _ROS_MESSAGE_CLASSES = (

@@ -1,10 +1,12 @@
 """Estimators driven through simulated runs, scored against the truth: the adaptive-UKF
-runs of the omni robot (:func:`run_filter`) and the IMM Monte Carlo of the tracking
-scenario (:func:`monte_carlo`). The simulators are :mod:`.omni` and :mod:`.tracking`; the
-estimators are :mod:`pd_service.estimation`'s."""
+runs of the omni robot (:func:`run_filter`), the IMM Monte Carlo of the tracking
+scenario (:func:`monte_carlo`) and the asynchronous robot's predictions under each way of
+stamping its samples (:func:`drive_async`). The simulators are :mod:`.omni`,
+:mod:`.tracking` and :mod:`.asynchronous`; the estimators are :mod:`pd_service.estimation`'s."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -14,6 +16,7 @@ from pd_service.estimation.imm.filter import ImmFilter, ImmState
 from pd_service.estimation.imm.models import heading
 from pd_service.estimation.nonlinear import UnscentedObserverPredictor, wrap_angle
 
+from .asynchronous import AsyncRun
 from .omni import OmniRun
 from .tracking import TrackingScenario, Variant, simulate
 
@@ -136,3 +139,70 @@ def monte_carlo(scn: TrackingScenario, runs: int, seed: int,
         if progress is not None and (k + 1) % 500 == 0:
             progress(k + 1, K)
     return MonteCarlo(pos2, head2, wrong, p_ct, nodes, track)
+
+
+# --- the asynchronous robot: where each sample is applied ------------------------------
+
+#: How a sample taken at t (s after the epoch) is stamped: "exact" step floor(t / T) and
+#: the offset t - step T inside it; "floor" the step floor(t / T) (offset 0: how stamps were
+#: applied before issue 42); "nearest" the step round(t / T); "fine" the filter's step is
+#: T / sub and the sample its nearest fine step (the continuous limit as sub grows).
+STAMP_MODES = ("exact", "floor", "nearest", "fine")
+
+
+def stamp(t_s: float, period_s: float, mode: str) -> tuple[int, float]:
+    """(step, offset s) of a sample taken at ``t_s`` for a filter of step ``period_s``."""
+    if mode == "exact":
+        k = math.floor(t_s / period_s)
+        return k, max(0.0, t_s - k * period_s)
+    if mode in ("floor",):
+        return math.floor(t_s / period_s), 0.0
+    if mode in ("nearest", "fine"):
+        return math.floor(t_s / period_s + 0.5), 0.0
+    raise ValueError(f"mode: expected one of {STAMP_MODES}, got {mode!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class AsyncTrack:
+    """Per-tick results of :func:`drive_async` (ticks k = 0..K-1): ``pred`` (K, n) the
+    prediction of x((k + lead) T) made at k T, ``truth`` (K, n) that true state, ``target``
+    (K,) the steps k + lead, ``counters`` the estimator's counters at the end, ``offered``
+    the number of samples offered to it (those that arrived by the last tick)."""
+
+    pred: np.ndarray
+    truth: np.ndarray
+    target: np.ndarray
+    counters: dict[str, int]
+    offered: int
+
+
+def drive_async(op: UnscentedObserverPredictor, run: AsyncRun, mode: str, period_s: float,
+                lead: int, sub: int = 1) -> AsyncTrack:
+    """Drive ``op`` (step ``period_s`` / ``sub``, lead ``lead`` * ``sub``) through ``run``:
+    at each tick k (time k T, T = ``period_s``): the command u(k + lead) (the one sent now,
+    acting at the predicted step; u(0..lead-1) before the first tick), the samples that
+    arrived in ((k-1) T, k T], stamped by ``mode``, then the prediction of x((k + lead) T).
+    Ticks run while k + lead <= the run's steps."""
+    K = run.steps - lead + 1
+    samples = run.samples
+    i = 0
+    fine_T = period_s / sub
+    preds, truths = [], []
+    for j in range(lead):
+        op.add_command(j * sub, run.u[j], now=0)
+    for k in range(K):
+        now = k * sub
+        if k + lead < run.steps:
+            op.add_command((k + lead) * sub, run.u[k + lead], now=now)
+        while i < len(samples) and samples[i].arrival_s <= k * period_s + 1e-12:
+            smp = samples[i]
+            i += 1
+            step, off = stamp(smp.t_s, fine_T, mode)
+            if off:
+                op.add_measurement(smp.sensor, step, smp.z, now=now, offset=off)
+            else:
+                op.add_measurement(smp.sensor, step, smp.z, now=now)
+        p = op.predict(now)
+        preds.append(np.array(p.x))
+        truths.append(run.truth[k + lead])
+    return AsyncTrack(np.array(preds), np.array(truths), np.arange(K) + lead, op.counters, i)

@@ -70,6 +70,31 @@ class SensorDef:
                           interval=self.interval)
 
 
+@dataclass(frozen=True)
+class SensorTiming:
+    """When one sensor samples and how late its samples arrive: ``rate_hz``, ``phase_s``
+    (time of sample 0), ``jitter_s`` (std of a sample time around its nominal one, clipped to
+    +-min(0.4 / rate, 3 jitter_s)), ``delay_s`` (sample time -> arrival), ``std`` (noise
+    std per component)."""
+
+    name: str
+    rate_hz: float
+    phase_s: float
+    jitter_s: float
+    delay_s: float
+    std: tuple[float, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class AsyncTiming:
+    """The sensors' timings, the noise density ``Qc`` (n, n) per second and the truth's
+    integration step ``truth_step_s`` (s) of an asynchronous scenario."""
+
+    sensors: tuple[SensorTiming, ...]
+    Qc: np.ndarray
+    truth_step_s: float = 0.001
+
+
 @dataclass(frozen=True, eq=False, kw_only=True)
 class Scenario:
     """A simulated robot, linear or nonlinear.
@@ -91,6 +116,9 @@ class Scenario:
     ``paper`` scenario's reference stream has it; see :class:`ScenarioSim`).
     ``ros2``: the session's ROS 2 topic bindings, if the robot speaks ROS 2 (the spec keeps
     the bindings of the sensors it selects).
+    ``timing``: for a robot whose sensors sample off the step grid, their rates, phases,
+    jitters and delays (:class:`AsyncTiming`; simulated by :class:`~.asynchronous.AsyncSim`);
+    ``sensors`` then give the nominal interval and delay.
     """
 
     name: str
@@ -115,6 +143,7 @@ class Scenario:
     angles: tuple[int, ...] = ()
     loss_draw: bool = True
     ros2: Ros2Binding | None = None
+    timing: AsyncTiming | None = None
 
     def __post_init__(self) -> None:
         linear = self.A is not None and self.B is not None

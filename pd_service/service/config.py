@@ -43,7 +43,7 @@ from pydantic_settings import (
 )
 
 from pd_service.errors import ConfigError
-from pd_service.transport.options import DEFAULT_ENDPOINT, ZenohOptions
+from pd_service.transport.options import DEFAULT_ENDPOINT, PASSWORD_ENV, ZenohOptions
 from pd_service.wire.keys import NAME_PATTERN
 
 ENV_PREFIX = "PD_SERVICE_"
@@ -85,7 +85,14 @@ class Settings(BaseSettings):
     zenoh_config: Path | None = Field(None, description="Zenoh JSON5 config file, loaded first.")
     multicast: bool | None = Field(None, description="Multicast scouting; default off.")
     user: str | None = Field(None, description="Zenoh user (usrpwd authentication).")
-    password: str | None = Field(None, description="Zenoh password (prefer the environment).")
+    password: str | None = Field(None, description="Zenoh password (prefer the environment: "
+                                "PD_SERVICE_PASSWORD, else PD_ZENOH_PASSWORD).")
+
+    # operations
+    metrics: str | None = Field(None, description="Address HOST:PORT of the Prometheus / "
+                                "OpenMetrics endpoint (GET /metrics; port 0: any free port, "
+                                "logged); none: no endpoint. Bind it to loopback or a private "
+                                "network: it has no authentication")
 
     # scale-out
     shard: str | None = Field(None, description="Static sharding 'i/N': serve the sessions with "
@@ -96,7 +103,9 @@ class Settings(BaseSettings):
                              "standalone. Liveliness tokens of any other instance are ignored.")
 
     # sessions
-    expire_s: float = Field(120.0, gt=0, description="Idle time after which a session expires.")
+    expire_s: float = Field(120.0, ge=0, description="Time without a measurement or command "
+                            "after which a session expires (a spec's own expire_s wins); 0: "
+                            "never.")
     idle_after_s: float = Field(5.0, gt=0, description="A session is idle (published only "
                                 "every idle_publish_s instead of every step) until its first "
                                 "measurement or command that decodes, and again after this "
@@ -219,6 +228,16 @@ class Settings(BaseSettings):
             raise ValueError("must be 'i/N' with 0 <= i < N")
         return v
 
+    @field_validator("metrics")
+    @classmethod
+    def _check_metrics(cls, v: str | None) -> str | None:
+        if v is None or v == "":
+            return None
+        from pd_service.metrics import parse_address
+
+        parse_address(v)  # ValueError names what is wrong
+        return v
+
     @field_validator("log_level", mode="before")
     @classmethod
     def _upper(cls, v: Any) -> Any:
@@ -242,7 +261,9 @@ class Settings(BaseSettings):
         """The Zenoh fields as the option group's :class:`ZenohOptions`."""
         return ZenohOptions(mode=self.mode, listen=tuple(self.listen or ()),
                             connect=tuple(self.connect), config_file=self.zenoh_config,
-                            multicast=self.multicast, user=self.user, password=self.password)
+                            multicast=self.multicast, user=self.user,
+                            password=self.password if self.password is not None
+                            else os.environ.get(PASSWORD_ENV))
 
 
 

@@ -32,7 +32,7 @@ from pd_service import native
 from pd_service.estimation.linear import set_tables_max_bytes
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
-from pd_service.transport import Drain, Handle, Transport
+from pd_service.transport import Handle, Transport
 from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, encode, keys
 
 from .clock_probes import RobotTimeIO
@@ -122,7 +122,6 @@ class ServiceCore:
         self._next_sweep_ns = 0
         self._next_learn_ns = 0
         self._handles: list[Handle] = []
-        self._drains: list[Drain] = []
         self._token: Handle | None = None
         self._closed = False
 
@@ -151,6 +150,8 @@ class ServiceCore:
         peers = [p for p in peers if p != self.instance]
         peers = self.lifecycle.trusted_peers(peers)
         specs, origin = self.lifecycle.load_specs(peers)
+        if self.store is not None and self.store.states_damaged() is not None:
+            self.counters["checkpoint_log_damaged"] += 1
         now = self.now_ns()
         with self.lock:
             self.lifecycle.install_loaded(specs, origin, now)
@@ -169,10 +170,10 @@ class ServiceCore:
                 for ke, cb in ((sensors, d.on_read_back_sensor),
                                (commands, d.on_read_back_command)):
                     self._handles.append(t.read_back(ke, cb, max_samples=s.recover_samples,
-                                                     timeout=s.recover_timeout_s))
-        for dr in self._drains:  # the live messages that arrived meanwhile, first
-            while dr.pending and dr.drain(_DRAIN_LIMIT):
-                pass
+                                                     timeout=s.recover_timeout_s,
+                                                     answered=d.on_cache_answered))
+        while self._drain():  # the live messages that arrived meanwhile, first
+            pass
         with self.lock:
             now = self.now_ns()
             touched: list[Session] = []
@@ -231,7 +232,6 @@ class ServiceCore:
                 pass
         self._handles.clear()
         self.subs.close()
-        self._drains = []
         with self.lock:
             served = sum(1 for r in self._routes.values() if r.sess is not None)
         event(log, "stopped", instance=self.instance, sessions_served=served,
@@ -247,7 +247,6 @@ class ServiceCore:
         no other (:class:`DataSubscriptions`)."""
         owned = self.ownership.owned_partitions()
         declared, closed = self.subs.follow(owned)
-        self._drains = self.subs.drains
         if declared or closed:
             event(log, "subscriptions", instance=self.instance, partitions=len(owned),
                   declared=declared, closed=closed)
@@ -264,18 +263,15 @@ class ServiceCore:
         return self.dispatch.has_work() or self._handed_in or self.robot_io.pending()
 
     def arm(self) -> None:
-        """Before the worker waits idle: the drains hand the next sample over themselves
-        (and wake it). A busy worker does not arm them: it drains at its next round."""
-        for dr in self._drains:
-            dr.arm()
+        """Before the worker waits idle: the drain group's watcher hands the next sample
+        over itself (and wakes it). A busy worker does not arm it: it drains at its next
+        round."""
+        self.subs.group.arm()
 
     def _drain(self) -> int:
         """The samples waiting in the subscriptions' queues, into the inboxes (the
         callbacks' path; no lock needed). Returns how many."""
-        got = 0
-        for dr in self._drains:
-            got += dr.drain(_DRAIN_LIMIT)
-        return got
+        return self.subs.group.drain(_DRAIN_LIMIT)
 
     def run_once(self) -> int:
         """Process what is pending: control, unknown sessions, rounds of session inboxes
@@ -321,6 +317,8 @@ class ServiceCore:
                     handled += d.process_released(now, touched)
                 if d.read_back:
                     handled += d.process_read_back(now, touched)
+                if self.lifecycle.holding:
+                    self.lifecycle.release_holds(now, touched)
                 if touched:
                     pub.publish_many([s for s in touched if s.alive], now, data=True)
                     served += touched

@@ -22,11 +22,13 @@ import threading
 import time
 
 from pd_service.logs import LOGGER_NAME, event, name_os_thread
+from pd_service.metrics import MetricsServer, serve
 from pd_service.transport import Transport
 
 from .config import Settings
 from .core import ServiceCore
 from .handover.checkpoint_writer import CheckpointWriter
+from .scrape import collect
 from .spec_store import SpecStore
 
 log = logging.getLogger(LOGGER_NAME)
@@ -66,6 +68,7 @@ class Daemon:
         self._stop = threading.Event()
         self._worker: threading.Thread | None = None
         self._worker_error: BaseException | None = None
+        self.metrics: MetricsServer | None = None
 
     def start(self) -> ServiceCore:
         # Zenoh's threads need the GIL for every callback; with the default 5 ms switch
@@ -79,6 +82,9 @@ class Daemon:
         self.core.keeper.writer = CheckpointWriter(store)
         self.core.start()
         tune_gc()
+        if self.settings.metrics:
+            core = self.core
+            self.metrics = serve(self.settings.metrics, lambda: collect(core.queries), log)
         self._worker = threading.Thread(target=self._work, name="pd-service-worker", daemon=True)
         self._worker.start()
         return self.core
@@ -134,6 +140,8 @@ class Daemon:
     def stop(self) -> None:
         """Stop the worker, withdraw presence, undeclare everything, close the transport."""
         self._stop.set()
+        if self.metrics is not None:
+            self.metrics.close()
         if self.core is not None:
             self.core.wake.set()
         if self._worker is not None:

@@ -36,7 +36,7 @@ from pd_service.wire.keys import KeyError_, check_name
 from .config import Settings
 from .outbox import Outbox
 from .ownership import Ownership
-from .session import COMMAND, READ_BACK, SENSOR, Refusal, Session
+from .session import ANSWERED, COMMAND, READ_BACK, SENSOR, ReadBack, Refusal, Session
 
 log = logging.getLogger(LOGGER_NAME)
 
@@ -136,6 +136,8 @@ class Dispatch:
         self.read_back_drops = 0
         #: Read-backs finished off the worker for parked sessions: (sessions, messages).
         self.released: deque[tuple[list[str], list[tuple[int, Sample]]]] = deque()
+        #: sessions parked while their takeover read-back runs (:meth:`park`)
+        self.parked: set[str] = set()
         #: Data samples (sensors and commands) taken from the subscriptions: what this
         #: instance receives (``samples_received``). Written by the one thread that drains.
         self.received = 0
@@ -155,6 +157,11 @@ class Dispatch:
 
     def on_read_back_command(self, sample: Sample) -> None:
         self._read_back(COMMAND + READ_BACK, sample)
+
+    def on_cache_answered(self, key: str) -> None:
+        """The read of the cache of a sender on ``key`` ended (``Transport.read_back``'s
+        ``answered``): queued behind that cache's samples."""
+        self._read_back(ANSWERED, Sample(key, b"", "put", 0, 0))
 
     def _read_back(self, stream: int, sample: Sample) -> None:
         with self._held_lock:
@@ -186,6 +193,10 @@ class Dispatch:
         name = keys.session_of(sample.key)
         route = self.routes.get(name) if name is not None else None
         sess = route.sess if route is not None else None
+        if stream == ANSWERED:
+            if sess is not None:
+                self.cache_answered(sess, sample.key, touched)
+            return
         if sess is None or route is None or route.inbox is None:
             # unknown, or served by another instance: nothing to do with it here
             self.counters["recovered_ignored"] += 1
@@ -200,6 +211,24 @@ class Dispatch:
         """Worker: keep ``route``'s live messages in its inbox, out of the rounds, until
         :meth:`process_released` (its senders' caches are being read)."""
         route.ready = True  # set and not queued: the callbacks do not queue it either
+        self.parked.add(route.session)
+
+    def cache_answered(self, sess: Session, key: str, touched: list[Session]) -> None:
+        """Worker: the cache of ``sess``'s sender on ``key`` was read (its samples handled
+        before this); the last one awaited releases the session's hold."""
+        if sess.hold_until_ns and key in sess.unanswered:
+            sess.unanswered.discard(key)
+            if not sess.unanswered:
+                self.release_hold(sess, "answered", touched)
+
+    def release_hold(self, sess: Session, how: ReadBack, touched: list[Session]) -> None:
+        """Worker: ``sess`` publishes again (its first prediction in this pass), its status
+        saying how its wait for the senders' caches ended."""
+        sess.hold_until_ns = 0
+        sess.readback = how
+        self.counters[f"readback_{how}"] += 1
+        if sess not in touched:
+            touched.append(sess)
 
     def post_released(self, sessions: list[str], items: list[tuple[int, Sample]]) -> None:
         """Any thread: the read-back of parked ``sessions`` is done (``items``: what it
@@ -218,6 +247,7 @@ class Dispatch:
         while self.released:
             names, items = self.released.popleft()
             for name in names:
+                self.parked.discard(name)
                 route = self.routes.get(name)
                 if route is None:
                     continue
@@ -241,7 +271,7 @@ class Dispatch:
             held, self.held = self.held or [], None
         for stream, sample in held:
             self._offer_read_back(stream, sample, now, now, touched)
-        return len(held)
+        return sum(1 for stream, _ in held if stream != ANSWERED)
 
     def _enqueue(self, stream: int, sample: Sample) -> None:
         key = sample.key

@@ -25,7 +25,7 @@ from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
 from pd_service.transport import Handle, Sample, Transport
-from pd_service.wire import SessionSpec, WireError, decode, keys
+from pd_service.wire import CONFIG_RATE_LIMITED, SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
 from .admission import Ledger, OverBudget
@@ -34,7 +34,7 @@ from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
 from .handover.keeper import HandoverKeeper
 from .outbox import Outbox
 from .ownership import Ownership
-from .session import COMMAND, READ_BACK, SENSOR, Origin, Refusal, Session
+from .session import ANSWERED, COMMAND, READ_BACK, SENSOR, Origin, Refusal, Session
 from .spec_store import SpecStore
 from .status import SessionPhase, phase_of
 
@@ -115,6 +115,11 @@ class Lifecycle:
         #: it sees the new membership): name -> (deadline ns, resume source if no state
         #: came by then, the previous owner). Not served until then (:meth:`adopt_handed`).
         self.awaiting: dict[str, tuple[int, Origin, str]] = {}
+        #: session -> end of its wait for its senders' caches (:meth:`hold_for_read_back`)
+        self.holding: dict[str, int] = {}
+        #: session -> the takeover read-backs kept open while it waits (read_back_taken)
+        self._read_backs: dict[str, list[Handle]] = {}
+        self._read_backs_lock = threading.Lock()
 
     # ================================================================== start =========
 
@@ -252,10 +257,13 @@ class Lifecycle:
             if len(self._config_buckets) >= _MAX_CONFIG_BUCKETS:  # forget the oldest
                 self._config_buckets.pop(next(iter(self._config_buckets)))
             b = self._config_buckets[session] = TokenBucket(s.config_rate, s.config_burst, now)
-        if b.allow(now) and self._config_total.allow(now):
-            return True
+        if b.allow(now):
+            if self._config_total.allow(now):
+                return True
+            b.refund()  # the service-wide limit refused it: the session's share is not used
         self.pub.refuse(None, sample.key, Refusal(
-            "config_rate_limited", f"config change refused: more than {s.config_rate:g} per "
+            "config_rate_limited", f"{CONFIG_RATE_LIMITED}: config change refused: more than "
+            f"{s.config_rate:g} per "
             f"second for this session or {s.config_rate_total:g} per second for this service "
             "(config_rate, config_rate_total)"), now, session=session,
             counted=("config_rate_limited", "config_refused"),
@@ -452,6 +460,8 @@ class Lifecycle:
             if sess.origin != "prior":
                 detail = sess.detail = (f"{detail}; estimate resumed from the {sess.origin} of "
                                         f"step {sess.origin_step}")
+            if self.settings.recover_samples > 0:
+                self.hold_for_read_back(sess, now)
         if route.inbox is None:
             route.inbox = deque(maxlen=self.settings.inbox_size)
         route.sess = sess
@@ -524,12 +534,16 @@ class Lifecycle:
             log.debug("declaring the keys of %s failed: %s", session, exc)
 
     def expire_idle(self, now: int) -> None:
-        """Remove the sessions idle for more than ``expire_s``; forget old removals."""
-        limit = int(self.settings.expire_s * 1e9)
+        """Remove the sessions idle for more than their lifetime (the spec's ``expire_s``,
+        else the setting's; 0: never); forget old removals."""
+        default = self.settings.expire_s
         for name, route in list(self.dispatch.routes.items()):
             sess = route.sess
-            if sess is not None and now - sess.last_activity_ns > limit:
-                self.remove(name, "expired", f"idle for more than {self.settings.expire_s:g} s",
+            if sess is None:
+                continue
+            expire_s = sess.spec.expire_s if sess.spec.expire_s is not None else default
+            if expire_s and now - sess.last_activity_ns > expire_s * 1e9:
+                self.remove(name, "expired", f"idle for more than {expire_s:g} s",
                             now, answer=True)
                 # Tell the other instances (they keep every spec) that it is gone.
                 self.pub.delete(keys.config_key(name))
@@ -549,12 +563,14 @@ class Lifecycle:
         s = self.settings
         t0 = time.monotonic()
         failed: list[str] = []
-        lock = threading.Lock()
+        lock = self._read_backs_lock
         #: per session and stream (SENSOR, COMMAND): the samples read back
         got = {(name, stream): list[tuple[int, Sample]]() for name in names
                for stream in (SENSOR, COMMAND)}
         left = dict.fromkeys(names, 2)  # per session: its read-backs not ended
         total = [0]
+        posted: set[str] = set()  # sessions whose read-back went to the worker
+        d = self.dispatch
 
         def one(task: tuple[str, int]) -> None:
             name, stream = task
@@ -562,14 +578,33 @@ class Lifecycle:
 
             def on(sample: Sample) -> None:
                 with lock:
-                    items.append((stream + READ_BACK, sample))
+                    if name not in posted:
+                        items.append((stream + READ_BACK, sample))
+                        return
+                # a sender that appeared after the present caches were read (it reconnects)
+                (d.on_read_back_command if stream == COMMAND else d.on_read_back_sensor)(sample)
+
+            def on_answered(key: str) -> None:
+                with lock:
+                    if name not in posted:
+                        items.append((ANSWERED, Sample(key, b"", "put", 0, 0)))
+                        return
+                d.on_cache_answered(key)
 
             key = keys.command_key(name) if stream == COMMAND \
                 else keys.sensors_of(name)
             try:
                 if not self.closed:
-                    self.t.read_back(key, on, max_samples=s.recover_samples,
-                                     timeout=s.recover_timeout_s).close()
+                    # kept open while the session waits for its senders (release_holds
+                    # closes it): one that connects later is read when it appears
+                    h = self.t.read_back(key, on, max_samples=s.recover_samples,
+                                         timeout=s.recover_timeout_s, answered=on_answered)
+                    with lock:
+                        keep = name in self.holding
+                        if keep:
+                            self._read_backs.setdefault(name, []).append(h)
+                    if not keep:
+                        h.close()
             except Exception as exc:  # the transport is closing, say
                 failed.append(f"{key}: {exc}")
             with lock:
@@ -578,7 +613,8 @@ class Lifecycle:
                     return
                 done = got[name, SENSOR] + got[name, COMMAND]
                 total[0] += len(done)
-            self.dispatch.post_released([name], done)
+                posted.add(name)
+            d.post_released([name], done)
 
         tasks = deque(got)
 
@@ -677,8 +713,40 @@ class Lifecycle:
         event(log, "handover_awaited", session=name, previous_owner=prev)
 
     def next_await_ns(self) -> int | None:
-        """When the first wait for a hand-over state ends (None: none waits)."""
-        return min((w[0] for w in self.awaiting.values()), default=None)
+        """When the first wait for a hand-over state or for a read-back ends (None: none)."""
+        return min([*(w[0] for w in self.awaiting.values()), *self.holding.values()],
+                   default=None)
+
+    def hold_for_read_back(self, sess: Session, now: int) -> None:
+        """A restarted or taken-over ``sess`` publishes nothing until the cache of each of
+        its data keys (every sensor's, and the command's if it takes commands) has been read
+        back (:meth:`Dispatch.cache_answered`), or ``2 x recover_timeout_s`` passed
+        (:meth:`release_holds`): its first prediction then has what the senders kept."""
+        name = sess.name
+        want = {keys.sensor_key(name, x.name) for x in sess.spec.sensors}
+        if sess.intake.r:
+            want.add(keys.command_key(name))
+        sess.unanswered = want
+        sess.hold_until_ns = self.holding[name] = now + int(2e9 * self.settings.recover_timeout_s)
+        sess.readback = "waiting"
+
+    def release_holds(self, now: int, touched: list[Session]) -> None:
+        """Worker: the sessions whose wait for their senders' caches ended (answered, or
+        its bound passed: then they publish with what they have, ``readback_timeout``).
+        A session whose takeover read-back still runs is released when it ends."""
+        routes = self.dispatch.routes
+        for name, until in list(self.holding.items()):
+            route = routes.get(name)
+            sess = route.sess if route is not None else None
+            if sess is not None and sess.hold_until_ns:
+                if now < until or name in self.dispatch.parked:
+                    continue
+                self.dispatch.release_hold(sess, "timeout", touched)
+            del self.holding[name]
+            with self._read_backs_lock:
+                handles = self._read_backs.pop(name, [])
+            for h in handles:
+                h.close()
 
     def adopt_handed(self, now: int) -> None:
         """Start the awaited sessions whose hand-over state arrived (resumed from it), or

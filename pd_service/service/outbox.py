@@ -163,6 +163,8 @@ class Outbox:
         """Publish a Prediction of now + lead for each session. ``data``: the publications
         answer accepted measurements (the session is data-driven)."""
         for sess in sessions:
+            if sess.hold_until_ns:  # waits for its senders' caches (Lifecycle.hold_for_read_back)
+                continue
             k = sess.step_now(now)
             if k < 0:  # before the session's epoch: nothing to predict yet
                 sess.pending_recv.clear()
@@ -292,9 +294,12 @@ class Outbox:
         return int(self._tick_phase * sess.period_ns)
 
     def wake(self, sess: Session, now: int) -> None:
-        """An idle session got a message: tick it every step again from now on."""
+        """An idle session got a message: tick it every step again from now on (its steps
+        are due from now on: those it skipped while idle are not missed)."""
         sess.idle = False
-        self.schedule(sess, sess.step_now(now) - 1)
+        cur = sess.step_now(now)
+        sess.due_from = cur
+        self.schedule(sess, cur - 1)
 
     def next_tick_ns(self) -> int | None:
         return self._tick_times[0] if self._tick_times else None

@@ -16,8 +16,8 @@ only caller, no locks, no clock reads: every time is passed in):
 - **echoes**: every accepted command is remembered (seq -> issued, u, the step it entered at)
   until the robot's :class:`CommandEcho` says when it took effect: the echo bounds the offset
   and teaches the lead (issue -> applied); with spec ``command_timing: echoed`` the command
-  then moves to that time (:func:`feed_applied_command`, the one seam to the issue-42
-  estimator API). Until its echo a command acts at its stamped apply step (the prediction
+  then moves to that instant, inside its step (:func:`feed_applied_command`, the one seam
+  to the issue-42 estimator API). Until its echo a command acts at its stamped apply step (the prediction
   of a command still in flight); one never echoed stays there.
 
 Bad input is counted (``echoes_unknown``: an echo of no kept command; ``echoes_implausible``:
@@ -54,32 +54,34 @@ LEARN_MIN_ECHOES: Final = 100
 
 
 #: What an echo hands on for its command: (applied_ns on the daemon's timeline, u (nu,),
-#: the step it entered at, its order (issued_ns or -1, seq): pd_service.intake).
-Applied = tuple[int, np.ndarray, int, tuple[int, int]]
+#: the step it entered at, its order (issued_ns or -1, seq): pd_service.intake, the offset
+#: (session seconds) it entered at inside that step).
+Applied = tuple[int, np.ndarray, int, tuple[int, int], float]
 
 
 def feed_applied_command(intake: Intake, counters: Tally, applied: Applied,
                          now_step: int) -> bool:
-    """The seam to the estimator: move an echoed command from the step it entered at to the
-    one it took effect in; True iff the estimator's inputs changed. Counted in ``counters``:
-    ``commands_in_place`` (already there), ``commands_moved``, ``commands_echo_refused`` (its
-    old step final, superseded, or the new one refused: then it stays where it was).
-
-    Issue 42's API takes the instant inside the step: the merge replaces the floor below by
-    ``intake.place(step, u, order, now_step, offset=(applied_ns - spec.time_of(step)) / 1e9)``
-    and moves a command whose step is unchanged too (its offset changes)."""
-    applied_ns, u, entered, order = applied
-    step = intake.spec.step_of(applied_ns)
-    if step == entered:
+    """The seam to the estimator: move an echoed command from the instant it entered at to
+    the one it took effect at, ``applied_ns``: its step k = floor((applied_ns - epoch_ns) /
+    period_ns) and, for a continuous-time spec, the offset (applied_ns - epoch_ns - k
+    period_ns) / 1e9 s into it (a discrete model: the step's start, the floor); True iff
+    the estimator's inputs changed. Counted in ``counters``: ``commands_in_place`` (already
+    at that instant), ``commands_moved``, ``commands_echo_refused`` (its old step final,
+    superseded, or the new one refused: then it stays where it was)."""
+    applied_ns, u, entered, order, entered_off = applied
+    spec = intake.spec
+    step = spec.step_of(applied_ns)
+    off = (applied_ns - spec.time_of(step)) / 1e9 if spec.continuous_time else 0.0
+    if step == entered and off == entered_off:
         counters["commands_in_place"] += 1
         return False
     if not intake.withdraw(entered, order, now_step):
         counters["commands_echo_refused"] += 1
         return False
-    if intake.place(step, u, order, now_step):
+    if intake.place(step, u, order, now_step, off):
         counters["commands_moved"] += 1
         return True
-    intake.place(entered, u, order, now_step)  # back where it was: still our best guess
+    intake.place(entered, u, order, now_step, entered_off)  # back: still our best guess
     counters["commands_echo_refused"] += 1
     return True
 
@@ -96,8 +98,8 @@ class RobotTime:
         self.samples = DelayStats(spec.period_ns, spec.epoch_ns)
         self.by_sensor: dict[str, DelayStats] = {}
         self.applied = DelayStats(spec.period_ns, spec.epoch_ns)
-        #: seq -> (issued_ns on the daemon's timeline or None, u (nu,), step, order)
-        self.kept: OrderedDict[int, tuple[int | None, np.ndarray, int, tuple[int, int]]] = \
+        #: seq -> (issued_ns on the daemon's timeline or None, u (nu,), step, order, offset s)
+        self.kept: OrderedDict[int, tuple[int | None, np.ndarray, int, tuple[int, int], float]] = \
             OrderedDict()
         #: Receipt (daemon clock, ns) of the message being read: the bound of its stamp.
         self.recv_ns = 0
@@ -137,13 +139,14 @@ class RobotTime:
     # --- commands and echoes ----------------------------------------------------------------
 
     def keep_command(self, seq: int, issued_ns: int | None, u: np.ndarray, step: int,
-                     order: tuple[int, int]) -> None:
-        """A command accepted at ``step``: ``seq``, issued at ``issued_ns`` (daemon timeline;
-        None: a command with an explicit step, whose issue time is unknown), ``u``, its
-        ``order`` (pd_service.intake), kept for its echo (the oldest beyond
+                     order: tuple[int, int], offset: float = 0.0) -> None:
+        """A command accepted at ``step`` (``offset`` session seconds into it): ``seq``,
+        issued at ``issued_ns`` (daemon timeline; None: a command with an explicit step,
+        whose issue time is unknown), ``u``, its ``order`` (pd_service.intake), kept for its
+        echo (the oldest beyond
         :data:`COMMANDS_KEPT` go, counted ``commands_kept_dropped``)."""
         kept = self.kept
-        kept[seq] = (issued_ns, u, step, order)
+        kept[seq] = (issued_ns, u, step, order, offset)
         kept.move_to_end(seq)
         if len(kept) > COMMANDS_KEPT:
             kept.popitem(last=False)
@@ -166,7 +169,7 @@ class RobotTime:
         if entry is None:
             c["echoes_unknown"] += 1
             return None
-        issued, u, entered, order = entry
+        issued, u, entered, order, entered_off = entry
         if self.estimated:
             if msg.sent_ns is not None:
                 self.clock.add_one_way(msg.sent_ns, recv_ns)
@@ -187,7 +190,7 @@ class RobotTime:
         c["echoes"] += 1
         if issued is not None:
             self.applied.add(issued, applied)
-        return (applied, u, entered, order) if self.echoed else None
+        return (applied, u, entered, order, entered_off) if self.echoed else None
 
     def probe(self, t1_ns: int, t2_ns: int, t3_ns: int, t4_ns: int) -> None:
         """A probe's four timestamps (t1, t4 daemon clock; t2, t3 robot clock)."""

@@ -34,9 +34,10 @@ invalid                    refused by the estimator's own checks (ValueError)
 flood                      dropped unread because the session's inbox was full
 published                  predictions published
 tick_overruns              ticks that fired after their step had ended (late ticks)
-steps_missed               due steps (multiples of publish_every) that got no prediction at
-                           all, e.g. while the worker was stalled: counted when the next
-                           prediction is published
+steps_missed               due steps (multiples of publish_every while the session is not
+                           idle) that got no prediction at all, e.g. while the worker was
+                           stalled: counted when the next prediction is published (an idle
+                           session skips steps on purpose: none of those is due)
 errors_suppressed          ErrorReports not sent because of the rate limit
 out_of_range               a value of z (``commands_out_of_range``: u) above the
                            service's ``max_abs_input`` in magnitude
@@ -81,9 +82,14 @@ SENSOR: Final = 0
 COMMAND: Final = 1
 #: Added to SENSOR / COMMAND for a message read back from a sender's cache (recovered).
 READ_BACK: Final = 2
+#: Not a message: the read of the cache of a sender of the sample's key ended (no payload).
+ANSWERED: Final = 8
 
 #: Where a session's estimate started from (``SessionStatus.origin``).
 Origin = Literal["prior", "checkpoint", "replica"]
+#: How a restarted or taken-over session's wait for its senders' caches went
+#: (``SessionStatus.readback``).
+ReadBack = Literal["", "waiting", "answered", "timeout"]
 
 #: Per-session latency samples kept (µs, packet receipt -> prediction published).
 SESSION_LATENCY_WINDOW = 512
@@ -151,6 +157,9 @@ class Session:
         #: entry (older entries are skipped) and whether the session is ticking as idle.
         self.tick_gen = 0
         self.idle = False
+        #: The step from which every publish_every-th step is due again (set when an idle
+        #: session wakes); the steps an idle session skipped before it are not missed.
+        self.due_from = 0
         self.pred_key = keys.prediction_key(self.name)
         self.encoder = PredictionEncoder(spec, self.name)
         self.error_key = keys.error_key(self.name)
@@ -159,6 +168,12 @@ class Session:
         # that state; checkpoint / replica bookkeeping (pd_service.service.handover.keeper)
         self.origin: Origin = "prior"
         self.origin_step: int | None = None
+        #: A restarted or taken-over session publishes nothing until its senders' caches
+        #: were read back (``Lifecycle.hold_for_read_back``): the wait's end (ns; 0: none),
+        #: the data keys whose caches have not answered yet, how the wait ended.
+        self.hold_until_ns = 0
+        self.unanswered: set[str] = set()
+        self.readback: ReadBack = ""
         self.fingerprint = spec_fingerprint(spec)
         #: The session's phase of its periodic work (:func:`next_slot`), from its name.
         self.spread = zlib.crc32(self.name.encode())
@@ -276,10 +291,14 @@ class Session:
 
     def steps_missed_before(self, k: int) -> int:
         """Due steps (multiples of ``publish_every``) after the last published step and
-        before step ``k`` that got no prediction: ``floor((k-1)/pe) - floor(last/pe)``
-        (0 before the first publication)."""
+        before step ``k`` that got no prediction: ``floor((k-1)/pe) - floor(last/pe)`` with
+        ``last`` at least ``due_from - 1`` (0 before the first publication, and while the
+        session is idle: its skipped steps were not due)."""
         last = self.last_pub_step
-        if last is None or k <= last + 1:
+        if last is None or self.idle:
+            return 0
+        last = max(last, self.due_from - 1)
+        if k <= last + 1:
             return 0
         pe = self.publish_every
         return (k - 1) // pe - last // pe

@@ -87,6 +87,10 @@ class SpecStore:
         """The session's checkpoint bytes, or None if there is none."""
         return self.states.get(session)
 
+    def states_damaged(self) -> str | None:
+        """What was wrong with the checkpoint log when it was read (None: nothing)."""
+        return self.states.damage()
+
     def remove_state(self, session: str) -> None:
         self.states.append([(session, None)])
 

@@ -67,6 +67,7 @@ class StatusSnapshot:
     recommended_max_delay: int | None
     recommended_lead: int | None
     late_share: float
+    readback: Literal["", "waiting", "answered", "timeout"]
 
     def status(self, instance: str, now: int) -> SessionStatus:
         """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
@@ -79,7 +80,8 @@ class StatusSnapshot:
                              clock=self.clock, delays=self.delays,
                              recommended_max_delay=self.recommended_max_delay,
                              recommended_lead=self.recommended_lead,
-                             late_share=self.late_share)
+                             late_share=self.late_share,
+                             readback=self.readback)
 
 
 def snapshot_of(sess: Session, state: SessionPhase, detail: str,
@@ -92,7 +94,8 @@ def snapshot_of(sess: Session, state: SessionPhase, detail: str,
                           sess.origin, sess.origin_step,
                           robot.clock_status(sess.last_activity_ns if now is None else now),
                           robot.delay_status(), robot.recommended_max_delay(),
-                          robot.applied.quantile_gap(), robot.late / max(robot.seen, 1))
+                          robot.applied.quantile_gap(), robot.late / max(robot.seen, 1),
+                          sess.readback)
 
 
 def session_status(sess: Session, instance: str, state: SessionPhase, detail: str,

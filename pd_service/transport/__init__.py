@@ -1,6 +1,16 @@
 """Messaging adapters: Zenoh for real use, an in-memory bus for tests (same interface)."""
 
-from .base import DEFAULT_SENDER_CACHE, Drain, Handle, Publisher, Query, Reply, Sample, Transport
+from .base import (
+    DEFAULT_SENDER_CACHE,
+    DrainGroup,
+    DrainMember,
+    Handle,
+    Publisher,
+    Query,
+    Reply,
+    Sample,
+    Transport,
+)
 from .memory import InMemoryBus, InMemoryTransport
 from .options import (
     DAEMON,
@@ -25,7 +35,8 @@ __all__ = [
     "add_zenoh_args",
     "options_from_args",
     "DEFAULT_ENDPOINT",
-    "Drain",
+    "DrainGroup",
+    "DrainMember",
     "Handle",
     "InMemoryBus",
     "InMemoryTransport",

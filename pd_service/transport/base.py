@@ -63,25 +63,33 @@ class Handle(Protocol):
     def close(self) -> None: ...
 
 
-class Drain(Protocol):
-    """A subscription whose samples wait in a queue until the owner drains them on its own
-    thread (:meth:`Transport.subscribe_drained`)."""
+class DrainMember(Protocol):
+    """One subscription of a :class:`DrainGroup`. ``callback`` may be replaced at any time:
+    the next sample taken goes to the new one."""
 
-    @property
-    def pending(self) -> bool:
-        """True while the owner takes the samples (not armed): samples may be waiting, call
-        :meth:`drain`. False once armed: the next sample is handed over by the drain's own
-        thread, which wakes the owner."""
+    callback: Callable[[Sample], None]
+
+    def close(self) -> None: ...
+
+
+class DrainGroup(Protocol):
+    """Subscriptions whose samples wait in queues until the owner drains them on its own
+    thread (:meth:`Transport.drain_group`): one watcher for all of them, however many."""
+
+    def add(self, keyexpr: str, callback: Callable[[Sample], None]) -> DrainMember:
+        """Subscribe ``keyexpr`` into the group; its samples reach ``callback``. The member's
+        ``close`` undeclares it and hands what its queue still holds to its callback."""
         ...
 
     def drain(self, limit: int) -> int:
-        """Hand up to ``limit`` waiting samples to the callback, on the calling thread;
-        returns how many (0 while armed and not yet handed over)."""
+        """On the owner's thread: take the queues back from the watcher (disarm) and hand up
+        to ``limit`` waiting samples of each subscription to its callback; returns how many."""
         ...
 
     def arm(self) -> None:
-        """The owner is going to wait idle: hand the next sample over on the drain's own
-        thread (and wake the owner); the owner's next :meth:`drain` takes the rest."""
+        """The owner is going to wait idle: the watcher hands the next sample that arrives
+        in any of the queues over on its own thread and wakes the owner; the owner's next
+        :meth:`drain` takes the rest."""
         ...
 
     def close(self) -> None: ...
@@ -113,19 +121,21 @@ class Transport(Protocol):
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle: ...
 
-    def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
-                          wake: Callable[[], None]) -> Drain:
-        """Like :meth:`subscribe`, but the samples wait in a queue and reach ``callback`` on
-        the thread that calls :meth:`Drain.drain`. ``wake`` is called (from a transport
-        thread) when a sample arrives while nobody is draining: the owner should drain
-        soon. ``Sample.recv_ns`` is then the wall clock read when the sample was taken from
-        the queue (one read per drain) and ``recv_mono_ns`` the monotonic time of the
-        previous look at the queue (so latencies include the wait in it). ``encoding`` and
-        ``attachment`` are not read (None): drained streams carry messages whose encoding
-        the protocol fixes, and reading the two costs time on every sample."""
+    def drain_group(self, wake: Callable[[], None]) -> DrainGroup:
+        """Drained subscriptions (:meth:`DrainGroup.add`): like :meth:`subscribe`, but the
+        samples wait in queues and reach their callback on the thread that calls
+        :meth:`DrainGroup.drain`, or, once armed, the first one on the group's watcher, which
+        then calls ``wake``: the owner should drain soon. ``Sample.recv_ns`` is then the wall
+        clock read when the sample was taken from the queue (one read per drain) and
+        ``recv_mono_ns`` the monotonic time of the previous look at the queues (so latencies
+        include the wait in them). ``encoding`` and ``attachment`` are not read (None):
+        drained streams carry messages whose encoding the protocol fixes, and reading the
+        two costs time on every sample."""
+        ...
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                  max_samples: int, timeout: float = 2.0) -> Handle:
+                  max_samples: int, timeout: float = 2.0,
+                  answered: Callable[[str], None] | None = None) -> Handle:
         """Read back what cached publishers (``publisher(key, cache=N)``) on keys matching
         ``keyexpr`` hold: at most ``max_samples`` of each, oldest first, as samples with
         ``recovered`` True. The caches present now are read before this returns (each
@@ -134,7 +144,10 @@ class Transport(Protocol):
         too, its samples given to ``callback`` on a transport thread. Each cache is read
         once each time it appears, also when it appears while this call runs. A recovered sample
         may repeat one received live: the receiver must tell (the daemon refuses it as a
-        duplicate, counted apart from live refusals)."""
+        duplicate, counted apart from live refusals). ``answered``, if given, is called with
+        a cache's publisher key (``keyexpr``'s match, e.g. ``pd/p3/s/sensor/cam``) once that
+        cache has answered, after its samples were given to ``callback`` (not for one whose
+        query got no reply until ``timeout``: a stalled sender)."""
         ...
 
     def queryable(self, keyexpr: str, handler: Callable[[Query], None]) -> Handle: ...
@@ -151,6 +164,14 @@ class Transport(Protocol):
 
     def get(self, selector: str, payload: bytes | None = None,
             timeout: float = 2.0) -> list[Reply]: ...
+
+    def subscribed(self, key: str, timeout: float = 1.0) -> bool:
+        """Whether another party subscribes to ``key`` (waits up to ``timeout`` seconds for
+        the subscription to become known). On Zenoh a publisher's matching status: a
+        router's access control lets every user learn of subscriptions (it reveals key
+        expressions, never data), so a client can tell "the service listens, but my put
+        is refused" from "no service"."""
+        ...
 
     def declare_token(self, key: str) -> Handle: ...
 

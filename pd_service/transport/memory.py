@@ -27,13 +27,35 @@ class _Handle:
             pass
 
 
-class _Drain:
-    """A drained subscription on the bus: delivery is synchronous, nothing ever waits."""
+class _DrainMember:
+    """One subscription of a :class:`_DrainGroup`; ``callback`` may be replaced."""
 
-    pending = False
+    def __init__(self, callback: Callable[[Sample], None]) -> None:
+        self.callback = callback
+        self.handle: _Handle | None = None
 
-    def __init__(self, handle: _Handle) -> None:
-        self._handle = handle
+    def deliver(self, s: Sample) -> None:  # encoding and attachment dropped, as on Zenoh
+        self.callback(s if s.encoding is None and s.attachment is None
+                      else s._replace(encoding=None, attachment=None))
+
+    def close(self) -> None:
+        if self.handle is not None:
+            self.handle.close()
+
+
+class _DrainGroup:
+    """Drained subscriptions on the bus: delivery is synchronous, nothing ever waits."""
+
+    def __init__(self, transport: InMemoryTransport) -> None:
+        self._t = transport
+        self._members: list[_DrainMember] = []
+
+    def add(self, keyexpr: str, callback: Callable[[Sample], None]) -> _DrainMember:
+        """Samples reach ``callback`` at once (as with :meth:`InMemoryTransport.subscribe`)."""
+        m = _DrainMember(callback)
+        m.handle = self._t.subscribe(keyexpr, m.deliver)
+        self._members.append(m)
+        return m
 
     def drain(self, limit: int) -> int:
         return 0
@@ -42,7 +64,9 @@ class _Drain:
         pass
 
     def close(self) -> None:
-        self._handle.close()
+        for m in self._members:
+            m.close()
+        self._members.clear()
 
 
 @dataclass
@@ -107,7 +131,8 @@ class InMemoryBus:
         self.live_subs: list[tuple[str, Callable[[str, bool], None]]] = []
         #: open publishers with a cache, and who reads the caches of new ones (read_back)
         self.cached: list[_Publisher] = []
-        self.recoverers: list[tuple[str, Callable[[Sample], None], int]] = []
+        self.recoverers: list[tuple[str, Callable[[Sample], None], int,
+                                    Callable[[str], None] | None]] = []
         self.transports = 0  # how many transports were made on this bus (their session ids)
 
     def transport(self) -> InMemoryTransport:
@@ -141,11 +166,14 @@ class InMemoryTransport(HandleOwner):
         pub = _Publisher(self, key, deque(maxlen=cache))
         with self.bus.lock:
             self.bus.cached.append(pub)
-            watchers = [(cb, n) for ke, cb, n in self.bus.recoverers if intersects(ke, key)]
+            watchers = [(cb, n, done) for ke, cb, n, done in self.bus.recoverers
+                        if intersects(ke, key)]
         self._handles.append(pub)
-        for cb, n in watchers:  # a new cached publisher: its (empty) cache is read
+        for cb, n, done in watchers:  # a new cached publisher: its (empty) cache is read
             for s in _recovered(pub, n):
                 cb(s)
+            if done is not None:
+                done(key)
         return pub
 
     def _deliver(self, key: str, payload: bytes, kind: Literal["put", "delete"],
@@ -157,29 +185,30 @@ class InMemoryTransport(HandleOwner):
             cb(s)
         return s
 
+    def subscribed(self, key: str, timeout: float = 1.0) -> bool:
+        with self.bus.lock:
+            return any(intersects(ke, key) for ke, _ in self.bus.subs)
+
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         return self._register(self.bus.subs, (keyexpr, callback))
 
-    def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
-                          wake: Callable[[], None]) -> _Drain:
-        """In memory, samples reach ``callback`` at once (as with :meth:`subscribe`): the
-        drain never holds anything. Encoding and attachment are dropped, as on Zenoh."""
-        def bare(s: Sample) -> None:
-            callback(s if s.encoding is None and s.attachment is None
-                     else s._replace(encoding=None, attachment=None))
-
-        return _Drain(self.subscribe(keyexpr, bare))
+    def drain_group(self, wake: Callable[[], None]) -> _DrainGroup:
+        return _DrainGroup(self)
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                  max_samples: int, timeout: float = 2.0) -> _Handle:
+                  max_samples: int, timeout: float = 2.0,
+                  answered: Callable[[str], None] | None = None) -> _Handle:
         """The caches of the open cached publishers matching ``keyexpr`` (last
         ``max_samples`` of each, oldest first), at once; later ones when declared."""
         with self.bus.lock:
-            h = self._register(self.bus.recoverers, (keyexpr, callback, max_samples))
+            h = self._register(self.bus.recoverers, (keyexpr, callback, max_samples, answered))
             pubs = [p for p in self.bus.cached if intersects(keyexpr, p.key)]
-            held = [s for p in pubs for s in _recovered(p, max_samples)]
-        for s in held:
-            callback(s)
+            held = [(p.key, _recovered(p, max_samples)) for p in pubs]
+        for key, samples in held:
+            for s in samples:
+                callback(s)
+            if answered is not None:
+                answered(key)
         return h
 
     # queries

@@ -9,7 +9,7 @@ Every executable (``pd-service``, ``pd-link`` and the client tools) takes the sa
 ``--zenoh-config F``   Zenoh JSON5 file, read first; the flags above override it
 ``--multicast``        multicast scouting on (``--no-multicast``: off)
 ``--user``             user name for Zenoh's user/password authentication
-``--password``         its password (prefer the executable's environment variable)
+``--password``         its password (default ``$PD_ZENOH_PASSWORD``: prefer it)
 =====================  ==========================================================
 
 Only the defaults differ, by role (:data:`DAEMON`, :data:`LINK`, :data:`TOOL`). Each of mode,
@@ -22,16 +22,23 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Sequence
+import os
+import re
+import threading
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING, Literal, TypeVar
 
 if TYPE_CHECKING:
     import zenoh
 
 Mode = Literal["peer", "client", "router"]
+T = TypeVar("T")
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+#: The environment variable every executable reads the Zenoh password from.
+PASSWORD_ENV = "PD_ZENOH_PASSWORD"
 
 
 @dataclass(frozen=True)
@@ -95,9 +102,10 @@ def add_zenoh_args(ap: argparse.ArgumentParser, role: Role) -> None:
                    help="Zenoh JSON5 config file, read first; the other Zenoh flags override it")
     g.add_argument("--multicast", action=argparse.BooleanOptionalAction, default=None,
                    help="multicast scouting (default off)")
-    g.add_argument("--user", help="Zenoh user name (user/password authentication)")
-    g.add_argument("--password", help="Zenoh password (visible in the process list: prefer "
-                                      "the environment variable of the executable)")
+    g.add_argument("--user", help="Zenoh user name (user/password authentication; default "
+                                  "the --zenoh-config file's, else none)")
+    g.add_argument("--password", help=f"Zenoh password (default ${PASSWORD_ENV}; the flag is "
+                                      "visible in the process list, the variable is not)")
 
 
 def options_from_args(args: argparse.Namespace) -> ZenohOptions:
@@ -105,7 +113,53 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
     return ZenohOptions(
         mode=args.mode, listen=tuple(args.listen or ()), connect=tuple(args.connect or ()),
         config_file=Path(args.zenoh_config) if args.zenoh_config else None,
-        multicast=args.multicast, user=args.user, password=args.password)
+        multicast=args.multicast, user=args.user,
+        password=args.password if args.password is not None else os.environ.get(PASSWORD_ENV))
+
+
+#: How long an executable retries a router or daemon that does not answer (``--connect-wait``,
+#: s), and the backoff between attempts: first pause, longest pause (s).
+CONNECT_WAIT_S = 10.0
+RETRY_FIRST_S, RETRY_MAX_S = 0.25, 2.0
+
+
+def add_connect_wait_arg(ap: argparse.ArgumentParser) -> None:
+    """``--connect-wait S`` (read by :func:`open_retrying`)."""
+    ap.add_argument("--connect-wait", type=float, default=CONNECT_WAIT_S, metavar="S",
+                    help="retry a router or daemon that does not answer yet for S seconds, "
+                         f"with backoff (default {CONNECT_WAIT_S:g}; 0: one attempt)")
+
+
+def open_retrying(open_once: Callable[[], T], wait_s: float, stop: threading.Event | None,
+                  retriable: Callable[[BaseException], bool],
+                  report: Callable[[BaseException, float, float], None]) -> T:
+    """``open_once()``, retried while it raises a ``retriable`` error, with backoff
+    (RETRY_FIRST_S doubling to RETRY_MAX_S), for up to ``wait_s`` seconds or until ``stop``
+    is set; ``report(error, pause, seconds left)`` before each pause. The last error is
+    raised when the time is up (or ``stop`` set)."""
+    deadline = time.monotonic() + wait_s
+    delay = RETRY_FIRST_S
+    while True:
+        try:
+            return open_once()
+        except Exception as exc:
+            remaining = deadline - time.monotonic()
+            if not retriable(exc) or remaining <= 0:
+                raise
+            pause = min(delay, remaining)
+            report(exc, pause, remaining)
+            if stop is not None:
+                if stop.wait(pause):
+                    raise
+            else:
+                time.sleep(pause)
+            delay = min(2 * delay, RETRY_MAX_S)
+
+
+def error_text(exc: BaseException) -> str:
+    """A Zenoh error as a user reads it: without the Rust source location zenoh appends
+    (`` at /root/.cargo/.../orchestrator.rs:447.``)."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(exc)).strip()
 
 
 def zenoh_config(
@@ -124,6 +178,8 @@ def zenoh_config(
     """
     import zenoh  # here, so that `import pd_client` does not load Zenoh
 
+    if file and not Path(file).is_file():  # zenoh's own error names a Rust source line
+        raise FileNotFoundError(f"Zenoh config file not found: {file}")
     conf = zenoh.Config.from_file(str(file)) if file else zenoh.Config()
     if mode is None and not file:
         mode = "peer"

@@ -6,6 +6,7 @@ logged by Zenoh, so every callback here is wrapped to log and swallow errors its
 
 from __future__ import annotations
 
+import atexit
 import logging
 import threading
 import time
@@ -21,8 +22,21 @@ from .options import zenoh_config
 log = logging.getLogger("pd_service.transport")
 _DEFAULT_ENCODING: Final = zenoh.Encoding.ZENOH_BYTES
 _DELETE: Final = zenoh.SampleKind.DELETE
-#: Samples a drained subscription holds before Zenoh waits for its owner (see _Drain).
+#: Samples a drained subscription holds before Zenoh waits for its owner (see _DrainGroup).
 DRAIN_CAPACITY = 65_536
+#: Most samples taken from one channel per look while emptying it at its close.
+_DRAIN_BATCH = 4096
+#: The armed watcher's wait between two looks at the channels (s): it doubles from the first
+#: to the most; once nothing arrived for _POLL_QUIET_S, to _POLL_QUIET_MAX_S (an idle daemon
+#: then looks 100 times a second).
+_POLL_FIRST_S = 5e-5
+_POLL_MAX_S = 1e-3
+_POLL_QUIET_S = 0.5
+_POLL_QUIET_MAX_S = 0.01
+#: A read-back query that ended after this share of its timeout without a reply timed out.
+_TIMED_OUT = 0.9
+#: What the drain watcher's look found (_DrainGroup._look).
+_EMPTY, _HANDED, _TAKEN_BACK, _CLOSED = 0, 1, 2, 3
 
 
 class _Handle:
@@ -67,110 +81,193 @@ def _convert(s: zenoh.Sample, now: int, mono: int) -> Sample:
 _new_tuple: Final = tuple.__new__
 
 
-class _Drain:
-    """A subscription into a FIFO channel that the owner drains on its own thread.
+class _DrainMember:
+    """One subscription of a :class:`_DrainGroup`: its FIFO channel and callback."""
 
-    Zenoh's threads push samples into the channel without the GIL. While the owner is
-    busy it takes them in batches (``try_recv``), so a loaded daemon pays no GIL hand-off
-    per sample. Before the owner waits idle it arms the drain: a watcher thread blocks in
-    ``recv`` (GIL released); the first sample that arrives is handed over by the watcher
-    itself, which wakes the owner and parks until the owner arms it again::
+    __slots__ = ("group", "keyexpr", "callback", "sub", "rx")
 
-        watcher:  wait(go) -> recv() -> callback(sample) -> clear(go), wake()
-        owner:    drain(), only while go is clear: try_recv ... until empty
+    def __init__(self, group: _DrainGroup, keyexpr: str, callback: Callable[[Sample], None],
+                 sub: zenoh.Subscriber) -> None:
+        self.group, self.keyexpr, self.callback, self.sub = group, keyexpr, callback, sub
+        # the receiver itself: receiving through it does not borrow the subscriber
+        self.rx = sub.handler
+
+    def close(self) -> None:
+        self.group.remove(self)
+
+
+class _DrainGroup:
+    """Subscriptions into FIFO channels that the owner drains on its own thread, with one
+    watcher thread for all of them.
+
+    Zenoh's threads push samples into each channel without the GIL. While the owner is busy
+    it takes them in batches (``try_recv``), so a loaded daemon pays no GIL hand-off per
+    sample. Before the owner waits idle it arms the group: the watcher polls every channel,
+    hands the first sample found over itself, wakes the owner and parks until armed again::
+
+        watcher:  wait(go) -> poll all: try_recv ... sleep(d), d doubling -> callback(sample)
+                  -> clear(go), wake()
+        owner:    drain(): clear(go), then try_recv each channel until empty
                   arm() before waiting idle: set(go)
 
-    Only one of the two takes samples at a time, so they reach the callback in the order
-    Zenoh delivered them. A busy owner (it comes back within its round interval) does not
-    arm: no thread switch and no GIL hand-off per round.
+    Taking is serialised by one lock, so each channel's samples reach its callback in the
+    order Zenoh delivered them. zenoh-python cannot wait on several channels at once (and
+    two subscribers cannot share one), so the armed watcher polls: the wait between two
+    looks doubles from ``_POLL_FIRST_S`` to ``_POLL_MAX_S`` (the worker's round interval: a
+    busy worker makes samples wait as long), and to ``_POLL_QUIET_MAX_S`` once nothing has
+    arrived for ``_POLL_QUIET_S``. One thread per instance, not one per subscription:
+    arming wakes one thread whatever the number of owned partitions.
 
-    The channel is bounded (``capacity`` samples); a full channel makes Zenoh wait (it
+    The channels are bounded (``capacity`` samples); a full channel makes Zenoh wait (it
     never drops silently), which happens only if the owner falls far behind.
 
     Receipt times of drained samples: ``recv_ns`` is the wall clock read by the drain (the
     sample arrived before it, so it is never judged "future" too early); ``recv_mono_ns`` is
-    the monotonic time of the previous look at the queue (the last drain, or the watcher's
-    hand-over), before which it had not arrived: latencies measured from it include the
-    time spent in the queue (an upper bound by at most one loop of the owner).
+    the monotonic time of the previous look at the queues (the last drain, or the watcher's
+    previous poll), before which it had not arrived: latencies measured from it include the
+    time spent in the queue (an upper bound by at most one loop of the owner or one poll).
     """
 
-    def __init__(self, session: zenoh.Session, keyexpr: str,
-                 callback: Callable[[Sample], None], wake: Callable[[], None],
-                 capacity: int) -> None:
-        self._cb, self._wake, self._keyexpr = callback, wake, keyexpr
-        self._sub = session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(capacity))
-        # the receiver itself: receiving through it does not borrow the subscriber, so
-        # undeclare() works while the watcher waits (and makes its recv() raise)
-        self._rx = self._sub.handler
+    def __init__(self, session: zenoh.Session, wake: Callable[[], None], capacity: int) -> None:
+        self._session, self._wake, self._capacity = session, wake, capacity
+        #: replaced, never changed in place, and read under the lock
+        self._members: list[_DrainMember] = []
+        self._lock = threading.Lock()
         # parked at first: the owner's first drain() takes what arrived since the
-        # declaration (before anything read back is handled), then hands over to the watcher
+        # declarations (before anything read back is handled), then hands over to the watcher
         self._go = threading.Event()
         self._closed = False
-        self._seen_mono = time.monotonic_ns()  # last look at the queue
-        self._watcher = threading.Thread(target=self._watch, name=f"drain {keyexpr}",
-                                        daemon=True)
+        self._seen_mono = time.monotonic_ns()  # last look at the queues
+        self._watcher = threading.Thread(target=self._watch, name="drain watcher", daemon=True)
         self._watcher.start()
 
-    @property
-    def pending(self) -> bool:
-        return not self._go.is_set()
+    def add(self, keyexpr: str, callback: Callable[[Sample], None]) -> _DrainMember:
+        sub = self._session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(self._capacity))
+        m = _DrainMember(self, keyexpr, callback, sub)
+        with self._lock:
+            self._members = [*self._members, m]
+        return m
 
-    def _watch(self) -> None:
-        rx, go = self._rx, self._go
-        while True:
-            go.wait()
-            if self._closed:
-                return
-            try:
-                s = rx.recv()
-            except Exception:  # the channel closed: the subscriber was undeclared
-                return
-            mono = time.monotonic_ns()
-            self._deliver(s, time.time_ns(), mono)
-            self._seen_mono = mono
-            go.clear()  # only now may the owner take the next ones: the order is kept
-            self._wake()
+    def remove(self, m: _DrainMember) -> None:
+        """Undeclare ``m``, then hand what its channel still holds to its callback. Zenoh
+        may still push a batch routed before the undeclaration into the channel: ``m``
+        stays in the group, drained as before, until its channel reports itself closed
+        (Zenoh dropped its end: nothing more can arrive)."""
+        try:  # outside the lock: Zenoh may wait for its own threads
+            m.sub.undeclare()
+        except Exception:  # already closed with the session
+            pass
+        with self._lock:
+            if m in self._members:
+                now, mono = time.time_ns(), self._seen_mono
+                while self._take(m, _DRAIN_BATCH, now, mono):
+                    pass
 
-    def _deliver(self, s: zenoh.Sample, now: int, mono: int) -> None:
-        try:  # encoding and attachment not read (Transport.subscribe_drained); the tuple
-            # built directly: Sample(...) would run the NamedTuple's Python-level __new__
-            self._cb(_new_tuple(Sample, (str(s.key_expr), s.payload.to_bytes(),
-                                         "delete" if s.kind == _DELETE else "put", now, mono,
-                                         None, None, False)))
-        except Exception:
-            log.exception("subscriber callback failed for %s", self._keyexpr)
+    def _gone(self, m: _DrainMember) -> None:
+        """Under the lock: ``m``'s channel is closed and empty."""
+        self._members = [x for x in self._members if x is not m]
 
-    def drain(self, limit: int) -> int:
-        if self._go.is_set():  # the watcher is receiving: it hands the next sample over
-            return 0
-        try_recv, deliver = self._rx.try_recv, self._deliver
-        now, mono = time.time_ns(), self._seen_mono
-        self._seen_mono = time.monotonic_ns()
+    def _take(self, m: _DrainMember, limit: int, now: int, mono: int) -> int:
+        try_recv, cb = m.rx.try_recv, m.callback
         n = 0
         while n < limit:
             try:
                 s = try_recv()
-            except Exception:  # closed
+            except Exception:  # closed and empty
+                self._gone(m)
                 return n
             if s is None:
                 return n
-            deliver(s, now, mono)
+            _deliver(cb, m.keyexpr, s, now, mono)
             n += 1
         return n
+
+    def drain(self, limit: int) -> int:
+        with self._lock:
+            self._go.clear()  # the owner takes the queues back (order kept by the lock)
+            now, mono = time.time_ns(), self._seen_mono
+            self._seen_mono = time.monotonic_ns()
+            n = 0
+            for m in self._members:
+                n += self._take(m, limit, now, mono)
+            return n
 
     def arm(self) -> None:
         self._go.set()
 
+    def _watch(self) -> None:
+        go = self._go
+        while True:
+            go.wait()
+            delay, cap = _POLL_FIRST_S, _POLL_MAX_S
+            quiet_at = time.monotonic() + _POLL_QUIET_S
+            while True:
+                look = self._look()
+                if look == _CLOSED:
+                    return
+                if look == _HANDED:
+                    self._wake()
+                if look != _EMPTY:
+                    break
+                time.sleep(delay)
+                if delay < cap:
+                    delay = min(delay * 2, cap)
+                elif cap < _POLL_QUIET_MAX_S and time.monotonic() >= quiet_at:
+                    cap = _POLL_QUIET_MAX_S
+
+    def _look(self) -> int:
+        """The watcher's look at the channels, under the lock: _CLOSED, _TAKEN_BACK (the
+        owner drains again), _HANDED (a sample handed over: wake the owner) or _EMPTY."""
+        with self._lock:
+            if self._closed:
+                return _CLOSED
+            if not self._go.is_set():
+                return _TAKEN_BACK
+            if not self._poll():
+                return _EMPTY
+            self._go.clear()  # only now may the owner take the next ones
+            return _HANDED
+
+    def _poll(self) -> bool:
+        """Under the lock: hand the first waiting sample of any channel over."""
+        mono = time.monotonic_ns()
+        for m in self._members:
+            try:
+                s = m.rx.try_recv()
+            except Exception:  # closed and empty
+                self._gone(m)
+                continue
+            if s is not None:
+                _deliver(m.callback, m.keyexpr, s, time.time_ns(), self._seen_mono)
+                self._seen_mono = mono
+                return True
+        self._seen_mono = mono
+        return False
+
     def close(self) -> None:
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            self._sub.undeclare()
-        except Exception:  # already closed with the session
-            pass
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            members, self._members = self._members, []
         self._go.set()
         self._watcher.join(timeout=5.0)
+        for m in members:
+            try:
+                m.sub.undeclare()
+            except Exception:  # already closed with the session
+                pass
+
+
+def _deliver(cb: Callable[[Sample], None], keyexpr: str, s: zenoh.Sample, now: int,
+             mono: int) -> None:
+    try:  # encoding and attachment not read (Transport.drain_group); the tuple built
+        # directly: Sample(...) would run the NamedTuple's Python-level __new__
+        cb(_new_tuple(Sample, (str(s.key_expr), s.payload.to_bytes(),
+                               "delete" if s.kind == _DELETE else "put", now, mono,
+                               None, None, False)))
+    except Exception:
+        log.exception("subscriber callback failed for %s", keyexpr)
 
 
 class _DeclaredKeys:
@@ -220,12 +317,38 @@ class _ZQuery:
         self._q.reply_err(payload, encoding=encoding)
 
 
+#: Transports not closed yet: closed at interpreter exit (below). Held strongly (a compiled
+#: class takes no weak reference); each leaves it when closed.
+_OPEN: set[ZenohTransport] = set()
+
+
+def _close_open_transports() -> None:
+    """Close the sessions a program left open: zenoh-python runs subscriber callbacks on a
+    thread that is not a daemon, which the interpreter waits for at exit while the session is
+    open: a snippet that subscribes and returns would never exit."""
+    for transport in list(_OPEN):
+        try:
+            transport.close()
+        except Exception:  # exiting anyway: a failed close must not mask the exit status
+            pass
+
+
+# threading's exit hook runs before the interpreter joins the threads that are not daemons
+# (atexit runs after: too late); the same hook concurrent.futures uses
+_register = getattr(threading, "_register_atexit", None)
+if _register is not None:
+    _register(_close_open_transports)
+else:  # pragma: no cover - Python without the hook
+    atexit.register(_close_open_transports)
+
+
 class ZenohTransport(HandleOwner):
     """A Zenoh session behind the :class:`~pd_service.transport.base.Transport` interface."""
 
     def __init__(self, conf: zenoh.Config | None = None) -> None:
         self.session = zenoh.open(conf if conf is not None else zenoh_config())
         super().__init__()
+        _OPEN.add(self)
         #: key -> its declared key expression (declare_keys), which put() uses
         self._declared: dict[str, zenoh.KeyExpr] = {}
 
@@ -259,6 +382,20 @@ class ZenohTransport(HandleOwner):
             sample_miss_detection=zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=None))
         return _Publisher(adv, self._keep(adv))
 
+    def subscribed(self, key: str, timeout: float = 1.0) -> bool:
+        pub = self.session.declare_publisher(key)
+        try:
+            deadline = time.monotonic() + timeout
+            # getattr: the stub says bool (compiled code would check it), 1.10 gives a
+            # MatchingStatus
+            while not getattr(pub, "matching_status").matching:  # noqa: B009
+                if time.monotonic() >= deadline:
+                    return False
+                time.sleep(0.05)
+            return True
+        finally:
+            pub.undeclare()
+
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         def on_sample(s: zenoh.Sample) -> None:
             try:
@@ -268,14 +405,14 @@ class ZenohTransport(HandleOwner):
 
         return self._keep(self.session.declare_subscriber(keyexpr, on_sample))
 
-    def subscribe_drained(self, keyexpr: str, callback: Callable[[Sample], None],
-                          wake: Callable[[], None]) -> _Drain:
-        d = _Drain(self.session, keyexpr, callback, wake, DRAIN_CAPACITY)
-        self._handles.append(d)
-        return d
+    def drain_group(self, wake: Callable[[], None]) -> _DrainGroup:
+        g = _DrainGroup(self.session, wake, DRAIN_CAPACITY)
+        self._handles.append(g)
+        return g
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
-                  max_samples: int, timeout: float = 2.0) -> _Handle:
+                  max_samples: int, timeout: float = 2.0,
+                  answered: Callable[[str], None] | None = None) -> _Handle:
         # zenoh-ext 1.10's layout: a cached publisher on K answers queries and holds its
         # liveliness token on K/@adv/pub/<zid>/<eid>/<meta> (the queryable's key too); "_max=N"
         # asks for its last N samples (tests/transport pins this against a real advanced
@@ -297,10 +434,31 @@ class ZenohTransport(HandleOwner):
             except Exception:
                 log.exception("recovery callback failed for %s", keyexpr)
 
-        def query(selector: str, handler: Callable[[zenoh.Reply], None]) -> None:
+        def query(key: str, then: Callable[[], None] | None) -> None:
+            """Query the cache whose token is ``key`` (callback form: returns at once); once
+            its replies are in, ``answered`` (the cache's publisher key), then ``then``. A
+            query that got nothing until its timeout is not an answer (a stalled sender: an
+            empty cache answers at once)."""
+            t0 = time.monotonic()
+            replied = [False]
+
+            def on_one(r: zenoh.Reply) -> None:
+                replied[0] = replied[0] or r.ok is not None
+                on_reply(r)
+
+            def on_end() -> None:
+                if answered is not None and (
+                        replied[0] or time.monotonic() - t0 < _TIMED_OUT * timeout):
+                    try:
+                        answered(key.split("/@adv/", 1)[0])
+                    except Exception:
+                        log.exception("recovery callback failed for %s", keyexpr)
+                if then is not None:
+                    then()
+
             self.session.get(
-                f"{selector}?_max={max_samples}", handler, target=zenoh.QueryTarget.ALL,
-                consolidation=zenoh.ConsolidationMode.NONE,
+                f"{key}?_max={max_samples}", zenoh.handlers.Callback(on_one, on_end),
+                target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
                 accept_replies=zenoh.ReplyKeyExpr.ANY, timeout=timeout)
 
         # each cache is read once per appearance of its token: a token seen both by the
@@ -323,7 +481,7 @@ class ZenohTransport(HandleOwner):
             if not first_read(key):
                 return
             try:
-                query(key, on_reply)  # callback form: returns at once
+                query(key, None)
             except Exception:
                 log.exception("recovery query failed for %s", key)
 
@@ -347,7 +505,7 @@ class ZenohTransport(HandleOwner):
 
         for key in present:  # all in flight at once: the wait is the slowest cache's
             try:
-                query(key, zenoh.handlers.Callback(on_reply, finished))
+                query(key, finished)
             except Exception:
                 log.exception("recovery query failed for %s", key)
                 finished()
@@ -404,4 +562,5 @@ class ZenohTransport(HandleOwner):
         return h
 
     def _close_more(self) -> None:
+        _OPEN.discard(self)
         self.session.close()

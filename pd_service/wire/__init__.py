@@ -16,6 +16,7 @@ from .arrays import MAX_DIM, PSD_RTOL, Matrix, Vector, psd_problem
 from .codec import MAX_MESSAGE_BYTES, decode, encode
 from .errors import WireError
 from .messages import (
+    CONFIG_RATE_LIMITED,
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     ClockProbe,
@@ -40,6 +41,7 @@ from .messages import (
 from .session_state import SessionState, spec_fingerprint
 
 __all__ = [
+    "CONFIG_RATE_LIMITED",
     "MAX_DIM",
     "MAX_MESSAGE_BYTES",
     "MESSAGE_TYPES",

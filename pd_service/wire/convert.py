@@ -12,7 +12,9 @@ which also gives a session's command dimension).
   Prediction's bytes, directly (the daemon's hot path: no model object; its per-message part
   in C, ``_encode.c``, where the hot path runs compiled).
 
-Time: ``step_of(t_ns) = floor((t_ns - epoch_ns) / period_ns)`` in exact integer arithmetic.
+Time: ``step_of(t_ns) = floor((t_ns - epoch_ns) / period_ns)`` in exact integer arithmetic; a
+continuous-time spec also gives the offset into the step in seconds
+(:meth:`SessionSpec.sample_at`, :meth:`SessionSpec.command_at`).
 """
 
 from __future__ import annotations
@@ -59,21 +61,34 @@ class PredictedMoments(Protocol):
     def newest_step(self) -> SupportsInt | None: ...
 
 
-def measurement_step(msg: Measurement, spec: SessionSpec) -> int:
-    """Sample step s: ``msg.step``, or ``floor((t_ns - epoch_ns) / period_ns)`` (may be < 0
-    for a time before the epoch; :func:`check_measurement` refuses that)."""
+def measurement_time(msg: Measurement, spec: SessionSpec) -> tuple[int, float]:
+    """(sample step s, offset in s into it): ``(msg.step, 0.0)``, or
+    :meth:`SessionSpec.sample_at` (t_ns) (s may be < 0 for a time before the epoch;
+    :func:`check_measurement` refuses that)."""
     if msg.step is not None:
-        return msg.step
+        return msg.step, 0.0
     assert msg.t_ns is not None  # guaranteed by Measurement's validator
-    return spec.step_of(msg.t_ns)
+    return spec.sample_at(msg.t_ns)
+
+
+def measurement_step(msg: Measurement, spec: SessionSpec) -> int:
+    """Sample step s of :func:`measurement_time`."""
+    return measurement_time(msg, spec)[0]
+
+
+def command_time(msg: Command, spec: SessionSpec) -> tuple[int, float]:
+    """(apply step j, offset in s into it): ``(msg.step, 0.0)``, or
+    :meth:`SessionSpec.command_at` (issued_ns): ``floor((issued_ns - epoch_ns) /
+    period_ns) + lead``, at the same offset for a continuous-time model."""
+    if msg.step is not None:
+        return msg.step, 0.0
+    assert msg.issued_ns is not None  # guaranteed by Command's validator
+    return spec.command_at(msg.issued_ns)
 
 
 def command_step(msg: Command, spec: SessionSpec) -> int:
-    """Apply step j: ``msg.step``, or ``floor((issued_ns - epoch_ns) / period_ns) + lead``."""
-    if msg.step is not None:
-        return msg.step
-    assert msg.issued_ns is not None  # guaranteed by Command's validator
-    return spec.step_of(msg.issued_ns) + spec.lead
+    """Apply step j of :func:`command_time`."""
+    return command_time(msg, spec)[0]
 
 
 def check_measurement(msg: Measurement, spec: SessionSpec) -> None:

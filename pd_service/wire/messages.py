@@ -188,39 +188,84 @@ class SensorSpec(WireModel):
 
 
 class LinearModelSpec(WireModel):
-    """Linear time-invariant model: x(k+1) = A x(k) + B u(k) + w(k), w ~ N(0, Q).
+    """Linear time-invariant model, discrete or continuous in time.
 
-    Rules: A is n x n; B is n x r (r >= 1); Q is n x n, symmetric PSD.
+    Discrete (A, B, Q): x(k+1) = A x(k) + B u(k) + w(k), w ~ N(0, Q), per step; samples and
+    commands act on the step grid (stamps rounded: SessionSpec.stamp_rounding).
+    Continuous (F, G, Qc; t in seconds): dx = (F x + G u) dt + dw, E[dw dw^T] = Qc dt; the
+    daemon discretises it exactly over any interval, so a sample and a command act at their
+    own time inside a step (docs/protocol.md, "When a sample and a command apply").
+
+    Rules: exactly one of the triples (A, B, Q) / (F, G, Qc), complete. A / F is n x n;
+    B / G is n x r (r >= 1); Q / Qc is n x n, symmetric PSD.
     """
 
     kind: Literal["linear"] = Field("linear", description="Model kind (discriminator).")
-    A: Matrix = Field(description="State transition, n x n (n <= 64).")
-    B: Matrix = Field(description="Input matrix, n x r (r = command dimension).")
-    Q: Matrix = Field(description="Process noise covariance, n x n, symmetric PSD.")
+    A: Matrix | None = Field(None, description="State transition per step, n x n (n <= 64). "
+                                               "Discrete models.")
+    B: Matrix | None = Field(None, description="Input matrix per step, n x r (r = command "
+                                               "dimension). Discrete models.")
+    Q: Matrix | None = Field(None, description="Process noise covariance per step, n x n, "
+                                               "symmetric PSD. Discrete models.")
+    F: Matrix | None = Field(None, description="Continuous-time state matrix, n x n, 1/s. "
+                                               "Continuous models.")
+    G: Matrix | None = Field(None, description="Continuous-time input matrix, n x r. "
+                                               "Continuous models.")
+    Qc: Matrix | None = Field(None, description="Process noise spectral density, n x n, "
+                                                "symmetric PSD, (units of x)^2 / s. "
+                                                "Continuous models.")
+
+    @property
+    def continuous(self) -> bool:
+        """Whether the model is given in continuous time (F, G, Qc)."""
+        return self.F is not None
+
+    def matrices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The given triple: (F, G, Qc) of a continuous model, else (A, B, Q)."""
+        got = (self.F, self.G, self.Qc) if self.F is not None else (self.A, self.B, self.Q)
+        assert got[0] is not None and got[1] is not None and got[2] is not None  # _check
+        return got[0], got[1], got[2]
 
     @property
     def n(self) -> int:
         """State dimension."""
-        return int(self.A.shape[0])
+        return int(self.matrices()[0].shape[0])
 
     @property
     def r(self) -> int:
         """Command (input) dimension."""
-        return int(self.B.shape[1])
+        return int(self.matrices()[1].shape[1])
 
     @model_validator(mode="after")
     def _check(self) -> LinearModelSpec:
-        n = self.A.shape[0]
-        if self.A.shape != (n, n):
-            raise invalid("A", f"must be square (n x n), got shape {list(self.A.shape)}")
-        if self.B.shape[0] != n:
-            raise invalid("B", f"must have n={n} rows (A is {n}x{n}), got shape {list(self.B.shape)}")
-        if self.Q.shape != (n, n):
-            raise invalid("Q", f"must be {n}x{n} (A is {n}x{n}), got shape {list(self.Q.shape)}")
-        problem = psd_problem(self.Q)
+        disc, cont = (self.A, self.B, self.Q), (self.F, self.G, self.Qc)
+        given = [x is not None for x in disc + cont]
+        if given != [True] * 3 + [False] * 3 and given != [False] * 3 + [True] * 3:
+            raise invalid("A", "give exactly one complete model: A, B, Q (discrete) or F, G, "
+                               "Qc (continuous)")
+        names = ("A", "B", "Q") if self.A is not None else ("F", "G", "Qc")
+        T, In, N = self.matrices()
+        n = T.shape[0]
+        if T.shape != (n, n):
+            raise invalid(names[0], f"must be square (n x n), got shape {list(T.shape)}")
+        if In.shape[0] != n:
+            raise invalid(names[1], f"must have n={n} rows ({names[0]} is {n}x{n}), got shape "
+                                    f"{list(In.shape)}")
+        if N.shape != (n, n):
+            raise invalid(names[2], f"must be {n}x{n} ({names[0]} is {n}x{n}), got shape "
+                                    f"{list(N.shape)}")
+        problem = psd_problem(N)
         if problem:
-            raise invalid("Q", problem)
+            raise invalid(names[2], problem)
         return self
+
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        out = handler(self)
+        for k in ("A", "B", "Q", "F", "G", "Qc"):  # the other triple: absent, not nil
+            if out.get(k, 0) is None:
+                out.pop(k)
+        return out
 
 
 # --- nonlinear models: registered names and their parameters ----------------------------
@@ -469,6 +514,12 @@ class SessionSpec(Message):
     publish_every: PosInt = Field(1, description="Publish a Prediction every this many steps.")
     command_hold: Literal["hold", "zero"] = Field(
         "hold", description="A step without a command: hold the last u, or use u = 0.")
+    stamp_rounding: Literal["floor", "nearest"] = Field(
+        "nearest", description="Discrete linear models only: a t_ns stamp goes to the step "
+                               "that contains it ('floor') or to the nearest step start "
+                               "('nearest'; never past the current step). Default 'nearest': "
+                               "the smaller error (docs/protocol.md). Continuous models apply "
+                               "every sample at its own time.")
     ros2: Ros2Binding | None = Field(
         None, description="ROS 2 topics of the session (served by the pd-ros2 bridge).")
     robot_clock: Literal["shared", "estimated"] = Field(
@@ -479,6 +530,10 @@ class SessionSpec(Message):
         "stamped", description="stamped: a command applies at its stamped apply step; "
         "echoed: at the time the robot's CommandEcho says it took effect (a command never "
         "echoed is never applied).")
+    expire_s: Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)] | None = Field(
+        None, description="Seconds without a measurement or command after which the service "
+                          "removes the session (state expired); 0: never; absent: the "
+                          "service's expire_s setting (120 s by default).")
 
     # name -> SensorSpec, rebuilt whenever `sensors` is not the list it was built from
     # (model_copy(update=...) copies private attributes but not their meaning).
@@ -507,6 +562,39 @@ class SessionSpec(Message):
         """Step containing time ``t_ns``: floor((t_ns - epoch_ns) / period_ns), exact."""
         return (t_ns - self.epoch_ns) // self.period_ns
 
+    @property
+    def continuous_time(self) -> bool:
+        """Whether samples and commands act at their own time inside a step: a linear
+        model given in continuous time (F, G, Qc), or a nonlinear model (its f integrates
+        over any interval)."""
+        model = self.model
+        return model.continuous if isinstance(model, LinearModelSpec) else True
+
+    def sample_at(self, t_ns: int) -> tuple[int, float]:
+        """(step, offset in s) at which a sample taken at ``t_ns`` is applied.
+
+        Continuous time: the step containing it and the exact offset into it,
+        ``(t_ns - epoch_ns - step * period_ns) / 1e9`` (0 <= offset < period). Otherwise
+        offset 0.0 and the step by :attr:`stamp_rounding`: floor((t_ns - epoch_ns) /
+        period_ns), or floor((t_ns - epoch_ns + period_ns / 2) / period_ns) ("nearest"; the
+        caller keeps it from passing the current step)."""
+        rel = t_ns - self.epoch_ns
+        if self.continuous_time:
+            step = rel // self.period_ns
+            return step, (rel - step * self.period_ns) / 1e9
+        if self.stamp_rounding == "nearest":
+            return (rel + self.period_ns // 2) // self.period_ns, 0.0
+        return rel // self.period_ns, 0.0
+
+    def command_at(self, issued_ns: int) -> tuple[int, float]:
+        """(apply step, offset in s) of a command issued at ``issued_ns``: it acts ``lead``
+        steps later, ``step_of(issued_ns) + lead``; continuous time: at exactly issued_ns +
+        lead * period_ns (the same offset into its step), otherwise at the step's start."""
+        rel = issued_ns - self.epoch_ns
+        step = rel // self.period_ns
+        off = (rel - step * self.period_ns) / 1e9 if self.continuous_time else 0.0
+        return step + self.lead, off
+
     def time_of(self, step: int) -> int:
         """Start time of ``step`` in ns: epoch_ns + step * period_ns."""
         return self.epoch_ns + step * self.period_ns
@@ -518,10 +606,10 @@ class SessionSpec(Message):
             n = model.n
             if n > MAX_DIM:  # unreachable while MAX_DIM bounds every array axis; kept explicit
                 raise invalid("model.linear.A", f"state dimension n={n} exceeds {MAX_DIM}")
+            source = f"model.{'F' if model.continuous else 'A'} is {n}x{n}"
             if self.x0.shape != (n,):
-                raise invalid("x0", f"must have n={n} values (model.A is {n}x{n}), "
+                raise invalid("x0", f"must have n={n} values ({source}), "
                                f"got {self.x0.shape[0]}")
-            source = f"model.A is {n}x{n}"
         else:
             n = self.x0.shape[0]
             source = f"x0 has {n} values"
@@ -575,6 +663,10 @@ class SessionSpec(Message):
             out.pop("robot_clock", None)
         if self.command_timing == "stamped":
             out.pop("command_timing", None)
+        if self.expire_s is None:  # the service's lifetime: the bytes stay as before
+            out.pop("expire_s", None)
+        if self.stamp_rounding == "nearest":  # the default: the bytes stay as before
+            out.pop("stamp_rounding", None)
         return out
 
     def _check_ros2(self, ros2: Ros2Binding, n: int) -> None:
@@ -606,8 +698,10 @@ class Measurement(Message):
     seq: NonNegInt = Field(description="Sender's sequence number (per sensor), for reports.")
     step: NonNegInt | None = Field(None, description="Sample step s. Exactly one of step / t_ns.")
     t_ns: Int64 | None = Field(
-        None, description="Sample time, ns on the shared clock; s = floor((t_ns - epoch_ns) / "
-                          "period_ns). Exactly one of step / t_ns.")
+        None, description="Sample time, ns on the shared clock (full resolution); s = "
+                          "floor((t_ns - epoch_ns) / period_ns), applied at exactly t_ns for a "
+                          "continuous-time model, at a step start for a discrete one "
+                          "(SessionSpec.stamp_rounding). Exactly one of step / t_ns.")
     z: Vector = Field(description="Measured values, m.")
     R: Matrix | None = Field(
         None, description="Noise covariance of this sample only, m x m, symmetric PSD; "
@@ -641,8 +735,9 @@ class Command(Message):
         None, description="Apply step: u acts from this step on. Exactly one of step / issued_ns.")
     issued_ns: Int64 | None = Field(
         None, description="Time the operator issued it, ns; apply step = "
-                          "floor((issued_ns - epoch_ns) / period_ns) + lead. Exactly one of "
-                          "step / issued_ns.")
+                          "floor((issued_ns - epoch_ns) / period_ns) + lead, acting from "
+                          "exactly issued_ns + lead * period_ns for a continuous-time model. "
+                          "Exactly one of step / issued_ns.")
     u: Vector = Field(description="Command, r values.")
 
     @model_validator(mode="after")
@@ -728,6 +823,12 @@ class Prediction(Message):
         return self
 
 
+#: How the reason of an ErrorReport that refuses a config change by the service's rate
+#: limits begins (``config_rate_limited: config change refused: ...``): the change was not
+#: judged, so a client may send it again a little later (the SDK's Admin does).
+CONFIG_RATE_LIMITED = "config_rate_limited"
+
+
 class ErrorReport(Message):
     """Why a message was refused (``pd/p<k>/<session>/error``, rate-limited by the daemon)."""
 
@@ -798,6 +899,12 @@ class SessionStatus(Message):
                           "no echo yet.")
     late_share: NonNegFloat = Field(
         0.0, description="Share of the decoded samples refused as late so far.")
+    readback: Literal["", "waiting", "answered", "timeout"] = Field(
+        "", description="A restarted or taken-over session publishes its first prediction "
+                        "only once its senders' caches were read back: waiting (not yet), "
+                        "answered (every sensor's and the command's cache answered), timeout "
+                        "(2 x recover_timeout_s passed first); empty: the session did not "
+                        "wait (started afresh).")
 
 
 class ServiceStatus(Message):

@@ -108,7 +108,9 @@ class CommandBinding(_Topic):
 class StateLayout(WireModel):
     """Where the planar quantities sit in the state vector (None: not in the state).
     ``velocity_frame``: ``body`` when (vx, vy) are along / across the heading (a unicycle's v
-    is vx), ``world`` when they are in the session frame (a constant-velocity model)."""
+    is vx), ``world`` when they are in the session frame (a constant-velocity model). World
+    velocities are published in the body frame, turned by the state's yaw; without a yaw the
+    orientation is written as identity, so they are published as they are."""
 
     x: StateIndex | None = None
     y: StateIndex | None = None

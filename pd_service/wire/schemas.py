@@ -20,6 +20,7 @@ from typing import Any
 
 from .messages import MESSAGE_TYPES, Message
 from .session_state import SessionState
+from .truth import Truth
 
 DEFAULT_DIR = Path("docs/schemas")
 DIALECT = "https://json-schema.org/draft/2020-12/schema"
@@ -28,7 +29,7 @@ DIALECT = "https://json-schema.org/draft/2020-12/schema"
 def schemas() -> dict[str, dict[str, Any]]:
     """File name -> JSON Schema, for every message type."""
     out: dict[str, dict[str, Any]] = {}
-    types: tuple[type[Message], ...] = (*MESSAGE_TYPES, SessionState)
+    types: tuple[type[Message], ...] = (*MESSAGE_TYPES, SessionState, Truth)
     for cls in types:
         schema = cls.model_json_schema(mode="validation")
         schema = {"$schema": DIALECT, "$id": f"pd-service/v1/{cls.__name__}.json", **schema}

@@ -102,19 +102,26 @@ def spec_fingerprint(spec: Message) -> str:
 
 
 class StatePacket(WireModel):
-    """A measurement inside the window: sample ``step``, ``sensor``, z (m,), R override."""
+    """A measurement inside the window: sample ``step``, ``sensor``, z (m,), R override,
+    ``offset`` (s after the step's start at which it was sampled)."""
 
     step: NonNegInt = Field(description="Sample step.")
     sensor: Name = Field(description="Sensor name (from the spec).")
     z: Vector = Field(description="Measurement, m.")
     R: Matrix | None = Field(None, description="Per-sample noise covariance override, m x m.")
+    offset: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = Field(
+        0.0, description="Seconds after the start of its step at which it was sampled "
+                         "(0: on the grid).")
 
 
 class StateCommand(WireModel):
-    """An explicit command inside the window: u applies from ``step`` on."""
+    """An explicit command inside the window: u applies from ``offset`` s after the start
+    of ``step`` on."""
 
     step: NonNegInt = Field(description="Apply step.")
     u: Tensor = Field(description="Input, nu.")
+    offset: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = Field(
+        0.0, description="Seconds after the start of its step at which it takes effect.")
 
 
 class SessionState(Message):
@@ -151,6 +158,9 @@ class SessionState(Message):
     u_origin: Tensor = Field(description="Input in effect at base_step, nu.")
     commands: list[StateCommand] = Field(default_factory=list, max_length=MAX_STATE_ITEMS,
                                          description="Explicit commands from base_step on.")
+    u_before: Tensor | None = Field(
+        None, description="Input in effect before base_step (nu), for a command taking "
+                          "effect inside the base step; nil: zeros.")
     counters: Counters = Field(default_factory=dict, description="Estimator counters.")
     extras: dict[_ArrayName, Tensor] = Field(
         default_factory=dict, description="What the estimator learnt: adapted process noise "

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pd_client import (
+    AccessDenied,
     Admin,
     PdClientError,
     ServiceUnavailable,
@@ -16,7 +17,14 @@ from pd_client import (
     SessionRefused,
     Timeout,
 )
-from pd_service.wire import ErrorReport, ServiceStatus, encode, keys
+from pd_service.wire import (
+    CONFIG_RATE_LIMITED,
+    ErrorReport,
+    ServiceStatus,
+    SessionStatus,
+    encode,
+    keys,
+)
 
 from .conftest import EPOCH_NS
 from .mini_daemon import MiniDaemon
@@ -91,6 +99,44 @@ def test_refusal_is_reported(bus, spec):
             admin.open_session(spec, timeout=1)
         assert exc.value.session == "s1"
         assert admin.get_spec("s1") is None  # a refused spec is not served
+
+
+def test_a_change_the_rate_limits_refused_is_sent_again(bus, spec):
+    """The service refuses the first two puts by its config rate (reason
+    ``config_rate_limited: ...``), then acknowledges: open_session and close_session
+    succeed, having sent each change again."""
+    svc = bus.transport()
+    seen: list[str] = []
+
+    def serve(sample):
+        s = keys.parse_key(sample.key).session
+        seen.append(sample.kind)
+        if len(seen) in (1, 2, 4):
+            svc.put(keys.error_key(s), encode(ErrorReport(
+                session=s, key=sample.key, seq=None, t_ns=0,
+                reason=f"{CONFIG_RATE_LIMITED}: config change refused: more than 20 per s")))
+            return
+        state = "active" if sample.kind == "put" else "removed"
+        svc.put(keys.status_key(s), encode(SessionStatus(
+            session=s, instance="i", state=state, now_step=0, published=0,
+            latency_p50_us=0.0, latency_p99_us=0.0)))
+
+    svc.subscribe(keys.ALL_CONFIGS, serve)
+    with Admin(bus.transport()) as admin:
+        assert admin.replace_session(spec, timeout=5).state == "active"
+        assert admin.close_session("s1", timeout=5).state == "removed"
+    assert seen == ["put", "put", "put", "delete", "delete"]
+
+
+def test_a_service_that_listens_but_never_answers_is_an_access_refusal(bus, spec):
+    """Something subscribes to the config key (a service, seen through the router) but no
+    answer comes back: what a router's access control does to a user it refuses."""
+    bus.transport().subscribe(keys.ALL_CONFIGS, lambda sample: None)
+    with Admin(bus.transport()) as admin:
+        with pytest.raises(AccessDenied, match="access control"):
+            admin.replace_session(spec, timeout=0.05)
+        with pytest.raises(AccessDenied, match="access control"):
+            admin.wait_for_service(timeout=0.05)
 
 
 def test_spec_is_served_and_discovered(bus, daemon, spec):

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.research import AugmentedStateKF
 
-from .reference import batch_predict
+from .reference import batch_predict, continuous_batch_predict, eigen_discretiser
 
 RTOL = 1e-9
 
@@ -162,3 +162,142 @@ def test_late_commands_inside_window_are_replayed() -> None:
                                            x0, P0, commands, accepted, k + lead)
             pred = op.predict(now=k)
             assert close(pred.x, want_x) and close(pred.P, want_P)
+
+
+# --- samples and commands at their own times (continuous-time models) ---------------------
+
+PERIOD = 0.05
+
+
+def random_continuous_case(seed: int):
+    """A random continuous-time system (n 1..5, nu 0..2; ||F||_1 * PERIOD below or above the
+    Taylor bound: both ways of evaluating it), sensors as in :func:`random_case`."""
+    rng = np.random.default_rng([seed, 42])
+    n = int(rng.integers(1, 6))
+    nu = int(rng.integers(0, 3))
+    F = rng.standard_normal((n, n))
+    F *= rng.choice([2.0, 30.0]) / max(float(np.abs(F).sum(axis=0).max()), 1e-9)
+    # growth at most e^{t / s}, as the discrete cases' spectral radius <= 1.05 per step
+    F -= max(0.0, float(np.linalg.eigvals(F).real.max()) - 1.0) * np.eye(n)
+    G = rng.standard_normal((n, nu))
+    Qc = spd(rng, n, 1e-3, 1.0)
+    if rng.random() < 0.2:
+        Qc[0, :] = Qc[:, 0] = 0.0
+    sensors = []
+    for i in range(int(rng.integers(1, 4))):
+        m = int(rng.integers(1, 3))
+        H = rng.standard_normal((m, n))
+        if m <= n and rng.random() < 0.3:
+            H = np.eye(n)[rng.choice(n, size=m, replace=False)]
+        sensors.append(Sensor(name=f"s{i}", H=H, R=spd(rng, m, 0.01, 1.0)))
+    model = LinearModel.continuous(F, G, Qc, PERIOD)
+    return rng, model, sensors
+
+
+def run_continuous_case(seed: int, ticks: int = 30) -> None:
+    rng, model, sensors = random_continuous_case(seed)
+    max_delay = int(rng.integers(0, 12))
+    lead = int(rng.integers(0, 5))
+    hold = bool(rng.random() < 0.8)
+    x0 = rng.standard_normal(model.n)
+    P0 = spd(rng, model.n, 0.1, 5.0)
+    op = ObserverPredictor(model, sensors, x0, P0, lead=lead, max_delay=max_delay,
+                           command_hold="hold" if hold else "zero")
+    assert model.F is not None
+    ref = eigen_discretiser(model.F, model.G, model.Qc)
+    # samples at random times: a few fixed phases per sensor (the cache), jittered ones,
+    # exact grid points; each arrives after a random delay, some twice (duplicates)
+    arrivals: dict[int, list] = {}
+    for idx, s in enumerate(sensors):
+        rate = int(rng.integers(1, 4))  # samples per step
+        phase = rng.uniform(0, PERIOD / rate)
+        for k in range(ticks):
+            for j in range(rate):
+                if rng.random() < 0.2:
+                    continue
+                off = phase + j * PERIOD / rate
+                r = rng.random()
+                if r < 0.2:
+                    off = 0.0
+                elif r < 0.5:
+                    off = float(np.clip(off + rng.normal(0, 1e-3), 0.0, PERIOD * (1 - 1e-9)))
+                if off >= PERIOD:
+                    continue
+                d = int(rng.integers(0, max_delay + 3))
+                z = rng.standard_normal(s.m)
+                R = spd(rng, s.m, 0.01, 1.0) if rng.random() < 0.1 else None
+                arrivals.setdefault(k + d, []).append((idx, k, off, z, R))
+                if rng.random() < 0.05:
+                    arrivals.setdefault(k + d + 1, []).append((idx, k, off, z, R))
+    commands: list = []
+    accepted: list = []
+    checks = set(rng.choice(ticks, size=6, replace=False).tolist()) | {ticks - 1}
+    for k in range(ticks):
+        if model.nu and rng.random() < 0.7:
+            u = rng.standard_normal(model.nu)
+            d = 0.0 if rng.random() < 0.3 else float(rng.uniform(0, PERIOD))
+            j = k + int(rng.integers(0, lead + 1))
+            if op.add_command(step=j, u=u, now=k, offset=d):
+                commands.append((j, d, u))
+        batch = arrivals.get(k, [])
+        rng.shuffle(batch)
+        for idx, stamp, off, z, R in batch:
+            if op.add_measurement(sensors[idx].name, step=stamp, z=z, now=k, R=R, offset=off):
+                accepted.append((idx, stamp * PERIOD + off, z, R))
+        if k in checks:
+            want_x, want_P = continuous_batch_predict(
+                ref, [(s.H, s.R) for s in sensors], x0, P0, commands, accepted,
+                (k + lead) * PERIOD, model.nu, PERIOD, hold=hold)
+            pred = op.predict(now=k)
+            assert pred.step == k + lead
+            assert close(pred.x, want_x), (k, pred.x, want_x)
+            assert close(pred.P, want_P), (k, pred.P, want_P)
+    c = op.counters
+    assert c["accepted"] == len(accepted)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow],
+          derandomize=True)
+@given(seed=st.integers(min_value=0, max_value=2**32 - 1))
+def test_event_times_equal_continuous_discrete_batch_refilter(seed: int) -> None:
+    run_continuous_case(seed)
+
+
+def test_grid_aligned_stamps_keep_the_discrete_numbers_bit_for_bit() -> None:
+    """A continuous model's samples at offset 0 take the grid path: the same bits as the
+    discrete model of the same A, B, Q."""
+    rng, model, sensors = random_continuous_case(7)
+    disc = LinearModel(A=model.A, B=model.B, Q=model.Q)
+    x0, P0 = rng.standard_normal(model.n), spd(rng, model.n, 0.1, 5.0)
+    a = ObserverPredictor(model, sensors, x0, P0, lead=3, max_delay=5)
+    b = ObserverPredictor(disc, sensors, x0, P0, lead=3, max_delay=5)
+    for k in range(40):
+        for s in sensors:
+            z = rng.standard_normal(s.m)
+            stamp = k - int(rng.integers(0, 4))
+            assert a.add_measurement(s.name, stamp, z, k) == b.add_measurement(s.name, stamp, z, k)
+        if model.nu:
+            u = rng.standard_normal(model.nu)
+            a.add_command(k + 3, u, k)
+            b.add_command(k + 3, u, k)
+        pa, pb = a.predict(k), b.predict(k)
+        assert np.array_equal(pa.x, pb.x) and np.array_equal(pa.P, pb.P)
+
+
+def test_offsets_are_refused_where_the_model_has_no_value_inside_a_step() -> None:
+    import pytest
+    op = ObserverPredictor(LinearModel(A=np.eye(1), B=None, Q=np.eye(1)),
+                           [Sensor("s", np.eye(1), np.eye(1))], [0.0], np.eye(1), 0, 2)
+    with pytest.raises(ValueError, match="offset"):
+        op.add_measurement("s", 0, [1.0], 0, offset=0.01)
+    cont = ObserverPredictor(LinearModel.continuous(np.zeros((1, 1)), None, np.eye(1), 0.05),
+                             [Sensor("s", np.eye(1), np.eye(1))], [0.0], np.eye(1), 0, 2)
+    for bad in (-0.001, 0.05, float("nan"), "0.01"):
+        with pytest.raises(ValueError, match="offset"):
+            cont.add_measurement("s", 0, [1.0], 0, offset=bad)
+    assert cont.counters["accepted"] == 0
+    # the same sensor twice in a step: two samples; twice at the same instant: a duplicate
+    assert cont.add_measurement("s", 0, [1.0], 0, offset=0.01)
+    assert cont.add_measurement("s", 0, [1.0], 0, offset=0.02)
+    assert not cont.add_measurement("s", 0, [2.0], 0, offset=0.01)
+    assert cont.counters["duplicate"] == 1

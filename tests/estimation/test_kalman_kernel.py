@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pd_service.estimation import LinearModel, Sensor
-from pd_service.estimation.linear import _KALMAN, Gaussian, LinearBackend, read_stages
+from pd_service.estimation.linear import _KALMAN, _SPLIT, Gaussian, LinearBackend, read_stages
 from pd_service.estimation.replay import Packet
 
 pytestmark = pytest.mark.skipif(
@@ -108,6 +108,70 @@ def test_the_kernel_gives_the_numpy_form_to_rounding(seed: int, n: int, nu: int)
             assert_same(joined, want3, b)
         prev, state = state, want
     assert prev is not None
+
+
+def continuous_backend(rng: np.random.Generator, n: int, nu: int,
+                       period: float = 0.05) -> LinearBackend:
+    """A continuous-time model (Taylor polynomials: ||F||_1 period <= 1/2) and the three
+    sensors of :func:`random_backend`."""
+    F = rng.standard_normal((n, n))
+    F *= rng.uniform(0.1, 9.0) / max(float(np.abs(F).sum(axis=0).max()), 1e-9)
+    L = rng.standard_normal((n, n)) * 0.5
+    model = LinearModel.continuous(F, rng.standard_normal((n, nu)), L @ L.T, period)
+    assert model.taylor is not None
+    tmp = random_backend(rng, n, nu)
+    return LinearBackend(model, tmp.sensors, int(rng.integers(2, 8)))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 8), nu=st.integers(0, 2))
+def test_the_kernels_split_step_gives_the_numpy_form_to_rounding(seed: int, n: int,
+                                                                 nu: int) -> None:
+    """Steps with packets at their own times and commands taking effect inside steps:
+    ``_kalman.split`` against :meth:`LinearBackend.split_step`."""
+    rng = np.random.default_rng(seed)
+    b = continuous_backend(rng, n, nu)
+    T = b._period
+    L = rng.standard_normal((n, n))
+    state = Gaussian(rng.standard_normal(n), L @ L.T + np.eye(n))
+    for _ in range(10):
+        m = int(rng.integers(0, b._M))
+        packets = []
+        for i in range(3):
+            for _ in range(int(rng.integers(0, 3))):
+                off = 0.0 if rng.random() < 0.2 else float(rng.uniform(0, T))
+                if any(p.sensor == i and p.offset == off for p in packets):
+                    continue
+                packets.append(Packet(i, rng.standard_normal(b.sensors[i].m) * 3.0, None, off))
+        packets.sort(key=lambda p: (p.offset, p.sensor))
+        end = m + 1 if packets and packets[-1].offset > 0.0 else m
+        U = rng.standard_normal((end, nu))
+        cuts = None
+        if nu and end and rng.random() < 0.6:
+            rows = sorted(set(rng.integers(0, end, size=int(rng.integers(1, 3))).tolist()))
+            cuts = [(r, float(rng.uniform(0, T)), rng.standard_normal(nu)) for r in rows]
+        if cuts is None and end == m:
+            continue  # a grid step: the other test's
+        b.use_kernel = True
+        got = b.advance(state, m, U, packets, None, cuts)
+        want = b.split_step(state, m, U, packets, cuts)
+        taken = _SPLIT(Gaussian, b._jumps, b._G, b._single, state, m, U, packets,
+                       cuts or [], b._coef, b._period, not packets)
+        assert taken is not None  # the kernel took it (no singular S here)
+        assert np.array_equal(taken.x, got.x)
+        assert close(got.x, want.x) and close(got.P, want.P)
+        assert np.array_equal(got.P, got.P.T)
+        if packets:
+            assert np.array_equal(taken.P, got.P)
+            assert got.src is None and want.src is None
+        else:  # commands inside steps alone: the grid step's covariance, the mean walked
+            assert got.src is state.P and np.array_equal(taken.P, state.P)
+            b.use_kernel = False
+            alone = b.advance(state, m, U, packets, None, cuts)
+            assert close(alone.x, got.x) and close(alone.P, got.P)
+            assert np.array_equal(alone.x, b.split_step(state, m, U, [], cuts, True).x)
+            b.use_kernel = True
+        state = want
 
 
 def test_a_singular_innovation_covariance_goes_to_the_numpy_form() -> None:

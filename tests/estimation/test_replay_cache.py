@@ -27,7 +27,7 @@ RTOL = 1e-9
 class StepwiseBackend(LinearBackend):
     """LinearBackend without its C replay loop: the replay calls advance step by step."""
 
-    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
+    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse, cut_view):  # type: ignore[no-untyped-def]
         return state, a, 0
 
 
@@ -53,8 +53,8 @@ class RunCountingBackend(LinearBackend):
 
     made = 0
 
-    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse):  # type: ignore[no-untyped-def]
-        got = super().advance_run(state, a, steps, buf, off, packets, chk, noreuse)
+    def advance_run(self, state, a, steps, buf, off, packets, chk, noreuse, cut_view):  # type: ignore[no-untyped-def]
+        got = super().advance_run(state, a, steps, buf, off, packets, chk, noreuse, cut_view)
         self.made += got[2]
         return got
 
@@ -334,3 +334,57 @@ def test_the_kernels_replay_loop_gives_the_bits_of_the_step_by_step_loop(seed: i
 def test_the_kernels_replay_loop_is_used() -> None:
     """The property above is not vacuous: the C loop makes most replayed steps."""
     assert sum(replay_pair(seed, 50) for seed in range(10)) > 100
+
+
+def event_time_pair(seed: int, ticks: int) -> int:
+    """As :func:`replay_pair` for a continuous-time model with samples at their own times
+    and commands taking effect inside steps: the C loop's split steps (``_kalman.replay``
+    calling its split walk) against the replay's loop of advance calls (``_kalman.split``
+    per step), bit for bit; returns the steps the C loop made."""
+    rng = np.random.default_rng([seed, 7])
+    n, T = 4, 0.05
+    F = np.zeros((n, n))
+    F[0, 2] = F[1, 3] = 1.0
+    F[2:, 2:] = rng.standard_normal((2, 2)) * 0.3
+    G = rng.standard_normal((n, 2))
+    model = LinearModel.continuous(F, G, np.diag([0.0, 0.0, 0.05, 0.05]), T)
+    sensors = [Sensor("pos", np.eye(n)[:2], 0.01 * np.eye(2)),
+               Sensor("vel", np.eye(n)[2:], 0.04 * np.eye(2))]
+    lead, max_delay = int(rng.integers(0, 4)), int(rng.integers(2, 8))
+    ops = []
+    for cls in (RunCountingBackend, StepwiseBackend):
+        op = ObserverPredictor(model, sensors, np.zeros(n), np.eye(n), lead=lead,
+                               max_delay=max_delay)
+        op._backend = cls(op.model, op.sensors, op._inputs.capacity)
+        ops.append(op)
+    a, b = ops
+    for k in range(ticks):
+        for _ in range(int(rng.integers(0, 4))):
+            name = sensors[int(rng.integers(0, 2))].name
+            s = k - int(rng.integers(0, max_delay + 2))
+            off = 0.0 if rng.random() < 0.2 else float(rng.uniform(0, T))
+            z = rng.standard_normal(2)
+            assert a.add_measurement(name, s, z, k, offset=off) == b.add_measurement(
+                name, s, z, k, offset=off)
+        if rng.random() < 0.7:
+            j = k + int(rng.integers(-2, lead + 2))
+            off = 0.0 if rng.random() < 0.3 else float(rng.uniform(0, T))
+            u = rng.standard_normal(2)
+            assert a.add_command(j, u, k, offset=off) == b.add_command(j, u, k, offset=off)
+        pa, pb = a.predict(k), b.predict(k)
+        assert np.array_equal(pa.x, pb.x) and np.array_equal(pa.P, pb.P), k
+    return a._backend.made  # type: ignore[attr-defined]
+
+
+@needs_kernel
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow],
+          derandomize=True)
+@given(seed=st.integers(min_value=0, max_value=2**32 - 1))
+def test_the_kernels_replay_loop_takes_steps_with_events_inside_them(seed: int) -> None:
+    event_time_pair(seed, 40)
+
+
+@needs_kernel
+def test_the_kernels_replay_loop_makes_split_steps() -> None:
+    """The property above is not vacuous: the C loop makes most of those steps."""
+    assert sum(event_time_pair(seed, 40) for seed in range(5)) > 100

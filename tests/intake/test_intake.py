@@ -1,17 +1,93 @@
-"""The intake's supersede rule (pd_service.intake, module docstring): of two commands that land
-on one open apply step the newer (later issued_ns, then higher seq) replaces the older; a repeat
-or an older one is a duplicate; a final step is never changed."""
+"""The intake (pd_service.intake): the instant each message is applied at, on both read
+paths (the C fast read where compiled, the full decode for a message with its own R); the
+supersede rule: of two commands that land on one open apply step the newer (later issued_ns,
+then higher seq) replaces the older; a repeat or an older one is a duplicate; a final step is
+never changed."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from pd_service.backends import build
+from pd_service.estimation import ObserverPredictor
 from pd_service.intake import Intake
-from pd_service.wire import keys
-from tests.service.helpers import cmd_bytes, cmd_now_bytes, paper_spec
+from pd_service.wire import encode, keys
+from tests.wire.factories import PERIOD_NS, command, measurement, paper_continuous_spec, paper_spec
+from tests.service.helpers import cmd_bytes, cmd_now_bytes, paper_spec as service_paper_spec
 
-SPEC = paper_spec("s1", epoch_ns=0)
+EPOCH = 1_700_000_000_000_000_000
+
+
+def intake_of(spec) -> tuple[Intake, ObserverPredictor]:  # type: ignore[no-untyped-def]
+    built = build(spec)
+    assert isinstance(built.est, ObserverPredictor)
+    return Intake(spec, built.est, built.nu), built.est
+
+
+def test_a_continuous_spec_applies_each_sample_at_its_own_time() -> None:
+    intake, est = intake_of(paper_continuous_spec(epoch_ns=EPOCH))
+    k = 20
+    key = "pd/p0/s1/sensor/camera"
+    for i, (extra, R) in enumerate([(12_345_678, None), (40_000_001, np.eye(2))]):
+        msg = measurement(step=None, t_ns=EPOCH + k * PERIOD_NS + extra, seq=i, R=R)
+        assert intake.measurement(key, encode(msg), k) is None
+    offsets = [p.offset for p in est._packets[k]]
+    assert offsets == [0.012345678, 0.040000001]  # full resolution, fast and full paths
+    # the same instant twice: a duplicate; a step stamp: the step's start
+    again = measurement(step=None, t_ns=EPOCH + k * PERIOD_NS + 12_345_678, seq=5)
+    refusal = intake.measurement(key, encode(again), k)
+    assert refusal is not None and refusal.reason == "duplicate"
+    assert intake.measurement(key, encode(measurement(step=k, seq=6)), k) is None
+    assert [p.offset for p in est._packets[k]] == [0.0, 0.012345678, 0.040000001]
+    # a command acts from exactly issued_ns + lead * period
+    issued = EPOCH + k * PERIOD_NS + 7_000_000
+    assert intake.command("pd/p0/s1/cmd", encode(command(step=None, issued_ns=issued)), k) is None
+    assert est._inputs.cut_offsets == {k + est.lead: 0.007}
+
+
+def test_a_discrete_spec_rounds_to_the_nearest_step_but_never_past_the_current_one() -> None:
+    intake, est = intake_of(paper_spec(epoch_ns=EPOCH))
+    k = 20
+    key = "pd/p0/s1/sensor/camera"
+    late_half = EPOCH + (k - 3) * PERIOD_NS + PERIOD_NS // 2 + 1  # nearest: step k - 2
+    now_half = EPOCH + k * PERIOD_NS + PERIOD_NS // 2 + 1  # nearest: k + 1, after now
+    for i, t in enumerate((late_half, now_half)):
+        assert intake.measurement(key, encode(measurement(step=None, t_ns=t, seq=i)), k) is None
+    assert sorted(est._packets) == [k - 2, k]
+    assert all(p.offset == 0.0 for b in est._packets.values() for p in b)
+    # a stamp after the current step is still refused as future
+    future = EPOCH + (k + 1) * PERIOD_NS + 1
+    refusal = intake.measurement(key, encode(measurement(step=None, t_ns=future, seq=9)), k)
+    assert refusal is not None and refusal.reason == "future"
+
+
+def test_a_nonlinear_model_on_its_own_period_gets_the_same_fraction_of_its_step() -> None:
+    """A session run at another pace than its model (pd-robot-sim --time-scale): an offset
+    is the same fraction of the model's step, not the same number of seconds."""
+    from pd_service.scenarios import get_scenario
+
+    scen = get_scenario("async")
+    spec = scen.spec("s1", EPOCH, time_scale=2.0)  # steps of 25 ms, the model's of 50 ms
+    built = build(spec)
+    intake = Intake(spec, built.est, built.nu)
+    model_s = built.est.period_s  # type: ignore[attr-defined]
+    assert model_s == 2 * spec.period_ns / 1e9
+    sensor = spec.sensors[0].name
+    k = 20
+    z = np.zeros(spec.sensors[0].m)
+    from pd_service.wire import Measurement
+
+    for i, frac in enumerate((0.25, 0.999999)):
+        t = EPOCH + k * spec.period_ns + round(frac * spec.period_ns)
+        msg = Measurement(session="s1", sensor=sensor, seq=i, t_ns=t, z=z)
+        key = f"pd/p0/s1/sensor/{sensor}"
+        assert intake.measurement(key, encode(msg), k) is None
+    offsets = [p.offset for p in built.est._packets[k]]  # type: ignore[attr-defined]
+    assert offsets[0] == 0.25 * model_s
+    assert 0.999 * model_s < offsets[1] < model_s
+
+
+SPEC = service_paper_spec("s1", epoch_ns=0)
 P = SPEC.period_ns
 KEY = keys.command_key("s1")
 

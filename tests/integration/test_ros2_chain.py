@@ -48,7 +48,7 @@ from pd_service.wire import (  # noqa: E402
     keys,
 )
 from pd_service.wire import decode as wire_decode  # noqa: E402
-from pd_service.wire.convert import command_step, measurement_step  # noqa: E402
+from pd_service.wire.convert import command_time, measurement_time  # noqa: E402
 from tests.service.procs import Daemon, query_session_status  # noqa: E402
 
 pytestmark = pytest.mark.integration
@@ -245,10 +245,11 @@ def offline_references(spec: SessionSpec, events: list[tuple[int, Measurement | 
             if est.now is not None:
                 now = max(now, est.now)
             if isinstance(msg, Measurement):
-                acc += est.add_measurement(msg.sensor, measurement_step(msg, spec), msg.z,
-                                           now=now, R=msg.R)
+                s, off = measurement_time(msg, spec)  # the daemon's instant: step and offset
+                acc += est.add_measurement(msg.sensor, s, msg.z, now=now, R=msg.R, offset=off)
             else:
-                cmd += est.add_command(command_step(msg, spec), msg.u, now=now)
+                j, off = command_time(msg, spec)
+                cmd += est.add_command(j, msg.u, now=now, offset=off)
             i += 1
         if (acc, cmd) != want or (est.now is not None and p_now < est.now):
             continue
@@ -258,9 +259,11 @@ def offline_references(spec: SessionSpec, events: list[tuple[int, Measurement | 
         recv_ns, msg = evs[i]
         now = max(spec.step_of(recv_ns), est.now or 0)
         if isinstance(msg, Measurement):
-            est.add_measurement(msg.sensor, measurement_step(msg, spec), msg.z, now=now, R=msg.R)
+            s, off = measurement_time(msg, spec)
+            est.add_measurement(msg.sensor, s, msg.z, now=now, R=msg.R, offset=off)
         else:
-            est.add_command(command_step(msg, spec), msg.u, now=now)
+            j, off = command_time(msg, spec)
+            est.add_command(j, msg.u, now=now, offset=off)
         i += 1
     return refs, dict(est.counters)
 

@@ -31,7 +31,7 @@ from pd_service.wire import (
     decode,
     keys,
 )
-from pd_service.wire.convert import command_step, measurement_step
+from pd_service.wire.convert import command_time, measurement_step, measurement_time
 from tests.service.procs import Daemon, query_service_status, query_session_status
 
 pytestmark = pytest.mark.integration
@@ -219,9 +219,11 @@ def test_paper_scenario_through_the_link_equals_offline(tmp_path: Path) -> None:
         for recv_ns, kind, msg in sorted(events, key=lambda e: e[0]):
             now = spec.step_of(recv_ns)
             if kind == 0:
-                assert op.add_measurement(msg.sensor, measurement_step(msg, spec), msg.z, now=now)
+                s, off = measurement_time(msg, spec)
+                assert op.add_measurement(msg.sensor, s, msg.z, now=now, offset=off)
             else:
-                op.add_command(command_step(msg, spec), msg.u, now=now)
+                j, off = command_time(msg, spec)
+                op.add_command(j, msg.u, now=now, offset=off)
         ref = op.predict(now=last.step - spec.lead)
         np.testing.assert_allclose(last.x, ref.x, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(last.P, ref.P, rtol=1e-9, atol=1e-12)

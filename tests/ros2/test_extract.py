@@ -81,6 +81,25 @@ def test_world_velocities_rotated_into_body_frame() -> None:
     assert ct[0, 0] == pytest.approx(0.05)
 
 
+def test_world_velocities_without_a_yaw_are_published_as_they_are() -> None:
+    """The constant-velocity layout (StateLayout's docstring): no yaw, so the orientation is
+    identity and the body frame is the world's; v and its covariance pass unchanged."""
+    layout = StateLayout(x=0, vx=1, y=2, vy=3, velocity_frame="world")
+    x = np.array([1.0, 0.5, 2.0, -0.25])
+    P = np.array([[1.0, 0.1, 0.0, 0.0], [0.1, 0.04, 0.0, 0.01],
+                  [0.0, 0.0, 2.0, 0.0], [0.0, 0.01, 0.0, 0.09]])
+    odom = odometry_from_state(x, P, layout, STAMP, "map")
+    assert (odom.twist.twist.linear.x, odom.twist.twist.linear.y) == (0.5, -0.25)
+    assert yaw_of(odom.pose.pose.orientation) == 0.0
+    ct = np.asarray(odom.twist.covariance).reshape(6, 6)
+    assert ct[:2, :2].tolist() == [[0.04, 0.01], [0.01, 0.09]]
+    only_vx = odometry_from_state(x[:2], P[:2, :2], StateLayout(x=0, vx=1, velocity_frame="world"),
+                                  STAMP, "map")
+    ct = np.asarray(only_vx.twist.covariance).reshape(6, 6)
+    assert only_vx.twist.twist.linear.x == 0.5 and ct[0, 0] == 0.04
+    assert ct[1, 1] == UNOBSERVED_VARIANCE  # no vy, no yaw: vy_b is unknown, not a certain 0
+
+
 def test_pose_and_tf_outputs() -> None:
     pose = pose_from_state(X, P, LAYOUT, STAMP, "map")
     assert pose.header.frame_id == "map" and pose.header.stamp == time_msg(STAMP)

@@ -7,6 +7,7 @@ Readiness and takeover are observed through liveliness tokens (events, not sleep
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -14,7 +15,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from pd_service.transport import ZenohTransport, zenoh_config
@@ -137,3 +138,17 @@ def sleep_until(t_ns: int) -> None:
     dt = (t_ns - time.time_ns()) / 1e9
     if dt > 0:
         time.sleep(dt)
+
+
+@contextlib.contextmanager
+def watched_daemon(instance: str, state_dir: Path) -> Iterator[Daemon]:
+    """A started daemon, yielded once its liveliness token is seen by a peer of this
+    process (which it connects to); stopped (SIGTERM) at the end."""
+    port = free_port()
+    with client(port) as peer:
+        d = Daemon(instance, state_dir, [endpoint(port)]).start()
+        try:
+            assert Presence(peer).wait(instance, timeout=60.0), d.log()
+            yield d
+        finally:
+            d.stop()

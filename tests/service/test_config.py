@@ -46,6 +46,10 @@ def test_bad_values_name_the_field(flags, env, match):
         load_settings(flags, environ=env)
 
 
+def test_expire_s_zero_means_never_and_is_accepted():
+    assert load_settings({}, environ={"PD_SERVICE_EXPIRE_S": "0"}).expire_s == 0.0
+
+
 def test_unknown_setting_in_file(tmp_path):
     f = tmp_path / "s.toml"
     f.write_text("expire = 3\n")

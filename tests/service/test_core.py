@@ -500,9 +500,8 @@ def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
     calls: list[int] = []  # sessions that had accepted a packet at each look
 
     class HeldQueue:
-        """A drained subscription whose second look finds two samples (the first look is
-        the pass's own, before its first round)."""
-        pending = False
+        """A drain group whose second look finds two samples (the first look is the pass's
+        own, before its first round)."""
 
         def drain(self, limit: int) -> int:
             calls.append(sum(core.session_status(s).counters["accepted"] > 0 for s in names))
@@ -516,7 +515,7 @@ def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
         def arm(self) -> None:
             pass
 
-    core._drains = [HeldQueue()]
+    core.subs.group = HeldQueue()  # type: ignore[assignment]
     clock.t = at(20.1)
     for s in names:
         cli.put(keys.sensor_key(s, "ranger"), meas_bytes(s, "ranger", 19, [1.0]))
@@ -587,6 +586,28 @@ def test_idle_session_expires(world, tmp_path):
     assert [s.state for s in col.statuses["s1"]].count("expired") == 1  # echo not re-answered
 
 
+@pytest.mark.parametrize("setting, spec_expire, expires", [
+    (5.0, None, {"s1"}),        # the setting's lifetime
+    (5.0, 0.0, set()),          # the spec's 0: never, whatever the setting
+    (0.0, None, set()),         # the setting's 0: never
+    (0.0, 3.0, {"s1"}),         # the spec's own lifetime wins over "never"
+    (1000.0, 3.0, {"s1"}),      # ... and over a longer setting
+])
+def test_a_sessions_lifetime_is_the_specs_else_the_settings(world, tmp_path, setting,
+                                                           spec_expire, expires):
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path, expire_s=setting)
+    spec = paper_spec("s1").model_copy(update={"expire_s": spec_expire})
+    cli.put(keys.config_key("s1"), encode(spec))
+    core.run_once()
+    for t in range(1, 400, 7):  # 400 s without traffic
+        clock.t = t * 1_000_000_000
+        core.run_once()
+    assert set(core.served_sessions()) == {"s1"} - expires
+    gone = [st.state for st in col.statuses["s1"]].count("expired")
+    assert gone == (1 if expires else 0)
+
+
 def test_restart_restores_sessions_and_resumes_publishing(tmp_path):
     bus = InMemoryBus()
     clock = Clock(0)
@@ -598,9 +619,9 @@ def test_restart_restores_sessions_and_resumes_publishing(tmp_path):
     core.run_once()
     core.close()
     core.t.close()
-    # a new process with the same state dir
+    # a new process with the same state dir (no sender with a cache to wait for)
     clock.t = at(100.6)
-    core2 = make_core(bus, clock, tmp_path)
+    core2 = make_core(bus, clock, tmp_path, recover_samples=0)
     assert core2.served_sessions() == ["s1", "s2"]
     core2.run_once()
     assert col.predictions["s1"][-1].step == 110
@@ -942,6 +963,31 @@ def test_steps_that_got_no_prediction_are_counted(world, tmp_path, publish_every
         core.run_once()
     assert core.session_status("s1").counters["steps_missed"] == missed
     assert col.predictions["s1"][-1].counters["steps_missed"] == missed
+
+
+def test_steps_an_idle_session_skips_are_not_missed(world, tmp_path):
+    """A session without traffic skips steps on purpose (one prediction per idle_publish_s):
+    after 22 s idle and a message that wakes it, no step counts as missed; a stall after
+    the wake still does."""
+    bus, clock, col, cli = world
+    core = make_core(bus, clock, tmp_path)
+    cli.put(keys.config_key("s1"), encode(paper_spec("s1")))
+    core.run_once()
+    for k in range(0, 440, 5):  # 22 s of 50 ms steps, the worker awake every 5 steps
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert len(col.predictions["s1"]) >= 3  # the start, then one per idle_publish_s
+    clock.t = at(440.2)
+    cli.put(keys.command_key("s1"), cmd_bytes("s1", 450, [0.0]))  # wakes it
+    core.run_once()
+    for k in (440, 441, 442):
+        clock.t = at(k + 0.6)
+        core.run_once()
+    assert "steps_missed" not in core.session_status("s1").counters
+    assert "steps_missed" not in core.service_status().counters
+    clock.t = at(446.6)  # the worker stalls for steps 443..445
+    core.run_once()
+    assert core.session_status("s1").counters["steps_missed"] == 3
 
 
 def _lock_free(lock) -> bool:

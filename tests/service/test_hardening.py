@@ -315,8 +315,8 @@ def test_a_restored_session_is_idle_until_traffic(tmp_path):
         a.run_once()
     assert a.counters["checkpoints"] >= 1
     a.t.close()  # a crash
-    clock.t = at(21.1)
-    b = make_core(bus, clock, tmp_path, idle_publish_s=1.0)
+    clock.t = at(21.1)  # no sender cache to wait for (the wait: handover/test_keeper.py)
+    b = make_core(bus, clock, tmp_path, idle_publish_s=1.0, recover_samples=0)
     st = b.session_status("s1")
     assert st.state == "restored" and st.origin == "checkpoint"
     n = len(col.predictions["s1"])

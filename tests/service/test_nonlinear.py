@@ -194,8 +194,8 @@ def at(step: float) -> int:
     return int(round(step * PERIOD_NS))
 
 
-def make_core(bus, clock, path) -> ServiceCore:
-    core = ServiceCore(bus.transport(), Settings(instance="a"),
+def make_core(bus, clock, path, **kw) -> ServiceCore:
+    core = ServiceCore(bus.transport(), Settings(instance="a", **kw),
                        store=SpecStore(path), now_ns=clock, spawn=lambda fn: fn())
     core.start()
     return core
@@ -283,7 +283,7 @@ def test_nonlinear_sessions_next_to_a_linear_one(tmp_path):
     # the specs were persisted: a restarted daemon serves the nonlinear sessions again
     bus2 = InMemoryBus()
     col2 = Collector().attach(bus2.transport())
-    core2 = make_core(bus2, clock, tmp_path / "a")
+    core2 = make_core(bus2, clock, tmp_path / "a", recover_samples=0)  # no sender caches
     assert core2.served_sessions() == ["i1", "lin", "u1"]
     assert core2._routes["i1"].sess.spec == imm_spec()
     clock.t = at(steps + 0.6)

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import socket
 import threading
 import time
+from collections.abc import Iterator
 
 import pytest
 
@@ -118,64 +120,86 @@ def test_zenoh_transport_loopback() -> None:
         assert t1._declared == {} and t2._declared == {}  # withdrawn: put() no longer uses them
 
 
-@pytest.mark.integration
-def test_zenoh_drained_subscription_keeps_order_and_closes_while_waiting() -> None:
-    """Samples reach the callback in order, whether the watcher hands one over (owner idle,
-    armed) or the owner drains them in batches; nothing is lost; an owner that does not arm
-    gets no hand-over; close() returns while the watcher is blocked in recv."""
+@contextlib.contextmanager
+def listener_and_client() -> Iterator[tuple[ZenohTransport, ZenohTransport]]:
+    """A listening transport and a client connected to it, once the client sees the
+    listener's declarations (an event, not a sleep)."""
     ep = f"tcp/127.0.0.1:{free_port()}"
     with ZenohTransport(zenoh_config(listen=[ep])) as t1, \
             ZenohTransport(zenoh_config(mode="client", connect=[ep])) as t2:
-        got: list[bytes] = []
-        woke = threading.Event()
-        d = t1.subscribe_drained("pd/*/*/sensor/*", lambda s: got.append(s.payload), woke.set)
-        assert d.pending and d.drain(10) == 0  # parked at first: the owner looks once
-        assert d.pending  # not armed: the owner keeps taking the samples itself
         t1.declare_token("pd/@service/a")
-        for _ in range(100):  # t2 sees t1's declarations (an event, not a sleep)
+        for _ in range(100):
             if t2.get_liveliness("pd/@service/*", timeout=0.2):
                 break
+        yield t1, t2
+
+
+def drain_watchers() -> int:
+    """Drain watcher threads alive in this process."""
+    return sum(th.name == "drain watcher" for th in threading.enumerate())
+
+
+@pytest.mark.integration
+def test_zenoh_drain_group_keeps_order_and_closes_while_waiting() -> None:
+    """Samples reach their callback in order, whether the watcher hands one over (owner idle,
+    armed) or the owner drains them in batches; nothing is lost; an owner that does not arm
+    gets no hand-over; a member closed hands what it holds over first; close() returns
+    while the watcher polls; one watcher thread however many members."""
+    with listener_and_client() as (t1, t2):
+        got: list[bytes] = []
+        woke = threading.Event()
+        before = drain_watchers()
+        g = t1.drain_group(woke.set)
+        m = g.add("pd/*/*/sensor/*", lambda s: got.append(s.payload))
+        others = [g.add(f"pd/p{k}/*/sensor/*", lambda s: None) for k in range(16)]
+        assert drain_watchers() == before + 1
+        assert g.drain(10) == 0  # parked at first: the owner looks once
         t2.put("pd/p2/s/sensor/-1", b"-1")
         for _ in range(500):  # not armed: nobody hands it over, it waits for the owner
-            if d.drain(10):
+            if got:
                 break
+            g.drain(10)
             assert not woke.wait(0.01)
         assert got == [b"-1"]
         got.clear()
         # the drain builds its Sample as a plain tuple: every field, defaults included
         whole: list[Sample] = []
-        d2 = t1.subscribe_drained("pd/*/*/cmd", whole.append, lambda: None)
+        m2 = g.add("pd/*/*/cmd", whole.append)
         t2.put("pd/p2/s/cmd", b"c")
         for _ in range(500):
-            if d2.drain(10):
+            if g.drain(10) and whole:
                 break
             time.sleep(0.01)
         (s,) = whole
         assert type(s) is Sample and len(s) == len(Sample._fields)
         assert s._replace(recv_ns=0, recv_mono_ns=0) == Sample("pd/p2/s/cmd", b"c", "put", 0, 0)
-        d2.close()
-        d.arm()
-        assert not d.pending  # armed: the watcher waits in recv from now on
+        seen = threading.Event()  # a plain subscriber: once it has the sample, so has m2
+        t1.subscribe("pd/*/*/cmd", lambda s: seen.set() if s.payload == b"held" else None)
+        t2.put("pd/p2/s/cmd", b"held")
+        assert seen.wait(5.0)
+        m2.close()  # closing a member hands over what its queue holds
+        assert whole[1].payload == b"held"
+        for o in others[8:]:
+            o.close()
+        g.arm()
         t2.put("pd/p2/s/sensor/x", b"0")
         assert woke.wait(5.0)  # the watcher handed the first one over
-        assert got == [b"0"] and d.pending
+        assert got == [b"0"]
         for i in range(1, 2001):
             t2.put("pd/p2/s/sensor/x", str(i).encode())
         for _ in range(10_000):  # bounded: a broken drain fails instead of hanging
             if len(got) == 2001:
                 break
-            if d.pending:
-                if not d.drain(64):  # small batches; empty: the watcher takes a turn
-                    d.arm()
-            else:
-                woke.wait(0.05)
+            if not g.drain(64):  # small batches; empty: the watcher takes a turn
                 woke.clear()
+                g.arm()
+                woke.wait(0.05)
         assert got == [str(i).encode() for i in range(2001)]
-        assert d.pending and d.drain(64) == 0
-        d.arm()
-        assert not d.pending  # armed, the queue empty: the watcher waits in recv
-        d.close()  # undeclares while the watcher waits: it must return, not hang
-        assert not d.pending or d.drain(10) == 0
+        assert g.drain(64) == 0
+        g.arm()
+        g.close()  # while the watcher polls: it must return, not hang
+        assert g.drain(10) == 0
+        assert m is not None
 
 
 # ---------------------------------------------------------------- sender caches ----------
@@ -208,7 +232,9 @@ def test_in_memory_cached_publisher_is_recovered() -> None:
 @pytest.mark.integration
 def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() -> None:
     """Pins zenoh-ext 1.10's cache layout (<key>/@adv/pub/..., '_max'): read at once from a
-    connected sender, and from one that connects only after ``read_back`` was declared."""
+    connected sender, and from one that connects only after ``read_back`` was declared; each
+    cache read is reported by ``answered``, a cache that never replies (a stalled sender) is
+    not."""
     p1, p2 = free_port(), free_port()
     a = b = c = None
     try:
@@ -217,6 +243,11 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
         pub = a.publisher("pd/p2/s/sensor/cam", cache=4)
         for i in range(6):
             pub.put(f"m{i}".encode())
+        # a stalled sender's cache: its token and queryable are there, no reply ever comes
+        stalled = f"pd/p3/q/sensor/x/@adv/pub/{a.session.info.zid()}/99/_"
+        held_queries: list = []  # kept: a query dropped would end at once
+        silent = [a.session.declare_queryable(stalled, held_queries.append),
+                  a.session.liveliness().declare_token(stalled)]
         # c: a sender whose peer (b, on p2) is not there yet; it keeps retrying
         c = ZenohTransport(zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{p2}"],
                                         multicast=False, listen=[]))
@@ -238,8 +269,16 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
         for _ in range(100):  # the routes to a's cache: wait on its token (an event)
             if b.get_liveliness("pd/p2/s/sensor/*/@adv/pub/**", timeout=0.5):
                 break
-        h = b.read_back("pd/*/*/sensor/*", on, max_samples=3)
+        answered: list[str] = []
+
+        def on_answered(key: str) -> None:
+            with cond:
+                answered.append(key)
+                cond.notify_all()
+
+        h = b.read_back("pd/*/*/sensor/*", on, max_samples=3, timeout=1.0, answered=on_answered)
         at_once = list(got)
+        assert "pd/p2/s/sensor/cam" in answered  # before read_back returned
         # a's cache was read before read_back returned: its last 3, oldest first (c's may come
         # before or after them, depending on when c reached b)
         assert [x for x in at_once if x[0] == "pd/p2/s/sensor/cam"] == \
@@ -248,6 +287,11 @@ def test_zenoh_cached_publisher_is_recovered_at_once_and_when_it_joins_late() ->
             assert cond.wait_for(lambda: len(got) >= 5, timeout=30), got
         rest = sorted(x for x in got if x[0] != "pd/p2/s/sensor/cam")
         assert rest == [("pd/p16/u/sensor/ranger", b"r0", True), ("pd/p16/u/sensor/ranger", b"r1", True)]
+        with cond:
+            assert cond.wait_for(lambda: "pd/p16/u/sensor/ranger" in answered, timeout=30)
+        assert sorted(answered) == ["pd/p16/u/sensor/ranger", "pd/p2/s/sensor/cam"]
+        assert held_queries  # the stalled cache was asked, and its query timed out
+        del silent
         print(f"\nlate sender read {'after' if len(at_once) == 3 else 'before'} read_back returned")
         h.close()
     finally:

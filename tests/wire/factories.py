@@ -42,6 +42,21 @@ def paper_spec(session: str = "s1", epoch_ns: int = 1_700_000_000_000_000_000) -
     return paper_scenario().spec(session, epoch_ns, max_delay=RANGER_DELAY)
 
 
+def paper_continuous_spec(session: str = "s1",
+                          epoch_ns: int = 1_700_000_000_000_000_000) -> SessionSpec:
+    """:func:`paper_spec` with the paper's double integrators in continuous time: F the
+    two (position, velocity) chains, G the first's acceleration input, Qc white
+    acceleration noise of the discrete model's per-step variance (0.01^2 / period)."""
+    spec = paper_spec(session, epoch_ns)
+    T = spec.period_ns / 1e9
+    F = np.zeros((4, 4))
+    F[0, 1] = F[2, 3] = 1.0
+    G = np.array([[0.0], [1.0], [0.0], [0.0]])
+    Qc = np.diag([0.0, 0.01**2 / T, 0.0, 0.01**2 / T])
+    return SessionSpec.model_validate(
+        {**spec.model_dump(), "model": {"kind": "linear", "F": F, "G": G, "Qc": Qc}})
+
+
 OMNI_Q0 = [1e-14, 1e-14, 1e-14, 4e-6, 4e-6, 2.5e-5]
 
 

@@ -5,21 +5,30 @@ from __future__ import annotations
 import msgpack
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from pd_service.backends import build
 from pd_service.estimation import LinearModel, ObserverPredictor, Sensor
 from pd_service.estimation.checks import PSD_RTOL as ESTIMATION_PSD_RTOL
-from pd_service.wire import PSD_RTOL, Prediction, WireError, decode, encode, keys
+from pd_service.wire import PSD_RTOL, Prediction, SessionSpec, WireError, decode, encode, keys
 from pd_service.wire.convert import (
     PredictionEncoder,
     check_command,
     check_key,
     check_measurement,
     command_step,
+    command_time,
     measurement_step,
+    measurement_time,
     prediction_from,
 )
-from tests.wire.factories import PERIOD_NS, command, measurement, paper_spec
+from tests.wire.factories import (
+    PERIOD_NS,
+    command,
+    measurement,
+    paper_continuous_spec,
+    paper_spec,
+)
 
 EPOCH = 1_700_000_000_000_000_000
 
@@ -53,7 +62,7 @@ def test_build_matches_direct_construction(hold):
 
 
 def test_measurement_step_from_step_or_time():
-    spec = paper_spec(epoch_ns=EPOCH)
+    spec = paper_spec(epoch_ns=EPOCH).model_copy(update={"stamp_rounding": "floor"})
     assert measurement_step(measurement(step=42), spec) == 42
     for k in [0, 1, 17, 10**9]:
         t = EPOCH + k * PERIOD_NS
@@ -61,6 +70,60 @@ def test_measurement_step_from_step_or_time():
         assert measurement_step(measurement(step=None, t_ns=t + PERIOD_NS - 1), spec) == k
         assert measurement_step(measurement(step=None, t_ns=t - 1), spec) == k - 1  # floor
     assert measurement_step(measurement(step=None, t_ns=EPOCH - PERIOD_NS), spec) == -1
+
+
+def test_a_discrete_spec_rounds_stamps_to_the_nearest_step_by_default():
+    spec = paper_spec(epoch_ns=EPOCH)
+    assert spec.stamp_rounding == "nearest" and not spec.continuous_time
+    half = PERIOD_NS // 2
+    for k in [0, 1, 17, 10**9]:
+        t = EPOCH + k * PERIOD_NS
+        assert measurement_time(measurement(step=None, t_ns=t), spec) == (k, 0.0)
+        assert measurement_time(measurement(step=None, t_ns=t + half - 1), spec) == (k, 0.0)
+        assert measurement_time(measurement(step=None, t_ns=t + half), spec) == (k + 1, 0.0)
+        assert measurement_time(measurement(step=None, t_ns=t - 1), spec) == (k, 0.0)
+    # commands stay on the grid: floor + lead
+    issued = EPOCH + 25 * PERIOD_NS + PERIOD_NS - 1
+    assert command_time(command(step=None, issued_ns=issued), spec) == (25 + spec.lead, 0.0)
+    # the default is not written: a spec's bytes (and fingerprint) stay as they were
+    assert "stamp_rounding" not in spec.model_dump()
+    assert spec.model_copy(update={"stamp_rounding": "floor"}).model_dump()[
+        "stamp_rounding"] == "floor"
+
+
+def test_a_continuous_spec_keeps_each_stamps_offset_into_its_step():
+    spec = paper_continuous_spec(epoch_ns=EPOCH)
+    assert spec.continuous_time and spec.model.continuous and spec.n == 4
+    for k in [0, 1, 17, 10**9]:
+        t = EPOCH + k * PERIOD_NS
+        assert measurement_time(measurement(step=None, t_ns=t), spec) == (k, 0.0)
+        assert measurement_time(measurement(step=None, t_ns=t + 1), spec) == (k, 1e-9)
+        s, off = measurement_time(measurement(step=None, t_ns=t + PERIOD_NS - 1), spec)
+        assert s == k and off == (PERIOD_NS - 1) / 1e9
+        s, off = measurement_time(measurement(step=None, t_ns=t - 7), spec)
+        assert s == k - 1 and off == (PERIOD_NS - 7) / 1e9
+    assert measurement_time(measurement(step=17), spec) == (17, 0.0)  # a step: its start
+    issued = EPOCH + 25 * PERIOD_NS + 123_456
+    assert command_time(command(step=None, issued_ns=issued), spec) == (25 + spec.lead,
+                                                                        123_456 / 1e9)
+    # the model is the exact discretisation of F, G, Qc; A, B, Q are not on the wire
+    est = build(spec).est
+    assert isinstance(est, ObserverPredictor) and est.model.continuous_time
+    np.testing.assert_allclose(est.model.A, paper_spec().model.A, atol=1e-15)
+    assert set(spec.model.model_dump()) == {"kind", "F", "G", "Qc"}
+
+
+@pytest.mark.parametrize("model, field", [
+    ({"kind": "linear", "A": np.eye(2), "B": np.ones((2, 1)), "Q": np.eye(2),
+      "F": np.eye(2)}, "A"),
+    ({"kind": "linear", "F": np.eye(2), "G": np.ones((2, 1))}, "A"),
+    ({"kind": "linear", "F": np.eye(2), "G": np.ones((3, 1)), "Qc": np.eye(2)}, "G"),
+    ({"kind": "linear", "F": np.eye(2), "G": np.ones((2, 1)), "Qc": -np.eye(2)}, "Qc"),
+])
+def test_a_linear_model_is_one_complete_triple(model, field):
+    with pytest.raises(ValidationError, match=rf"model\.linear\s+{field}:"):
+        SessionSpec.model_validate({**paper_spec().model_dump(), "model": model,
+                                    "x0": np.zeros(2), "P0": np.eye(2)})
 
 
 def test_step_arithmetic_is_exact_for_large_int64():

@@ -75,9 +75,10 @@ def test_ints_in_data_are_floats():
 def test_field_order_and_all_fields_on_the_wire():
     for msg_type, make in EXAMPLES.items():
         raw = msgpack.unpackb(encode(make()))
-        # SessionSpec.ros2 is left off the wire when None (a spec without ROS 2 topics), and
-        # robot_clock / command_timing at their defaults (the bytes of older specs)
-        optional = {"ros2", "robot_clock", "command_timing"} if msg_type is SessionSpec else set()
+        # SessionSpec.ros2 and .expire_s are left off the wire when None (unset), and
+        # stamp_rounding / robot_clock / command_timing at their defaults (older specs' bytes)
+        optional = ({"ros2", "expire_s", "stamp_rounding", "robot_clock", "command_timing"}
+                    if msg_type is SessionSpec else set())
         assert list(raw) == [f for f in msg_type.model_fields if f not in optional]
         assert raw["v"] == 1
 

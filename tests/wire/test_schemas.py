@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pd_service.wire import MESSAGE_TYPES, SessionState
 from pd_service.wire.schemas import export, schemas, stale
+from pd_service.wire.truth import Truth
 
 REPO = Path(__file__).resolve().parents[2]
 SCHEMA_DIR = REPO / "docs" / "schemas"
@@ -23,7 +24,7 @@ def test_committed_schemas_are_up_to_date():
 
 def test_one_schema_per_message():
     assert sorted(schemas()) == sorted(f"{t.__name__}.json"
-                                       for t in (*MESSAGE_TYPES, SessionState))
+                                       for t in (*MESSAGE_TYPES, SessionState, Truth))
     for name, schema in schemas().items():
         assert schema["additionalProperties"] is False, name
         assert schema["properties"]["v"]["const"] == 1, name

@@ -156,6 +156,10 @@ CASES = [
     (ServiceStatus, "shard", "x" * 65, "ServiceStatus.shard: String should have at most 64 characters"),
     (ErrorReport, "reason", "x" * 1025, "ErrorReport.reason: String should have at most 1024 characters"),
     (ErrorReport, "key", "k" * 513, "ErrorReport.key: String should have at most 512 characters"),
+    # -- a session's lifetime: 0 (never) .. 1e9 s, finite
+    (S, "expire_s", -1.0, "SessionSpec.expire_s: Input should be greater than or equal to 0"),
+    (S, "expire_s", float("inf"), "SessionSpec.expire_s: Input should be a finite number"),
+    (S, "expire_s", "never", "SessionSpec.expire_s: Input should be a valid number"),
 ]
 
 

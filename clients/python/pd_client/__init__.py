@@ -24,9 +24,11 @@ from ._base import connect
 from .admin import Admin
 from .display import Display, DisplayStats
 from .errors import (
+    AccessDenied,
     InvalidMessage,
     PdClientError,
     ServiceUnavailable,
+    SessionExists,
     SessionNotFound,
     SessionRefused,
     Timeout,
@@ -36,6 +38,7 @@ from .robot import CommandSchedule, Robot
 from .truth import Truth
 
 __all__ = [
+    "AccessDenied",
     "Admin",
     "Command",
     "CommandSchedule",
@@ -49,6 +52,7 @@ __all__ = [
     "Prediction",
     "Robot",
     "ServiceUnavailable",
+    "SessionExists",
     "SessionNotFound",
     "SessionRefused",
     "SessionSpec",

@@ -20,7 +20,7 @@ from pd_service.transport import (
     ZenohOptions,
     ZenohTransport,
 )
-from pd_service.transport.options import Mode
+from pd_service.transport.options import Mode, error_text
 from pd_service.wire import Message, SessionSpec, WireError, decode, keys
 from pd_service.wire.codec import validation_reason
 
@@ -73,7 +73,8 @@ def connect_options(options: ZenohOptions) -> Transport:
     except Exception as exc:  # zenoh.ZError and friends
         where = ", ".join(resolved.connect) or "(no endpoint)"
         kind = resolved.mode or "configured"
-        raise ServiceUnavailable(f"cannot open a Zenoh {kind} session to {where}: {exc}") from exc
+        raise ServiceUnavailable(f"cannot open a Zenoh {kind} session to {where}: "
+                                 f"{error_text(exc)}") from exc
 
 
 def build(msg_type: type[M], **fields: Any) -> M:

@@ -14,9 +14,11 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 from pd_service.transport import Handle, Query, Sample, Transport
 from pd_service.wire import (
+    CONFIG_RATE_LIMITED,
     ErrorReport,
     ServiceStatus,
     SessionSpec,
@@ -29,9 +31,11 @@ from pd_service.wire import (
 
 from ._base import ClientBase, session_name, try_decode
 from .errors import (
+    AccessDenied,
     InvalidMessage,
     PdClientError,
     ServiceUnavailable,
+    SessionExists,
     SessionNotFound,
     SessionRefused,
     Timeout,
@@ -40,6 +44,8 @@ from .errors import (
 log = logging.getLogger("pd_client.admin")
 
 _POLL_S = 0.25
+#: First and longest pause before a change the service's rate limits refused is sent again (s).
+_RETRY_FIRST_S, _RETRY_MAX_S = 0.05, 1.0
 
 
 def _instance_of(token_key: str) -> str:
@@ -83,6 +89,14 @@ class _Ack:
             self.refused = rep.reason
             self.event.set()
 
+    def rate_limited(self) -> bool:
+        """The service refused the change by its rate limits (not judged: send it again)."""
+        return self.refused is not None and self.refused.startswith(CONFIG_RATE_LIMITED)
+
+    def rearm(self) -> None:
+        self.refused, self.status = None, None
+        self.event.clear()
+
     def close(self) -> None:
         for h in self._handles:
             h.close()
@@ -111,7 +125,7 @@ class Admin(ClientBase):
                      exist_ok: bool = False, serve_spec: bool = True) -> SessionStatus | None:
         """Create the session ``spec.session``.
 
-        Raises PdClientError if the service already runs it (unless ``exist_ok``: then it is
+        Raises SessionExists if the service already runs it (unless ``exist_ok``: then it is
         replaced), SessionRefused if the service refuses the spec, Timeout if no
         acknowledgement arrives within ``timeout`` seconds (``wait=True``). Returns the
         acknowledging SessionStatus (None when not waiting).
@@ -124,7 +138,7 @@ class Admin(ClientBase):
             except (SessionNotFound, ServiceUnavailable):
                 st = None
             if st is not None and st.state in ("active", "restored"):
-                raise PdClientError(f"session {spec.session!r} already exists "
+                raise SessionExists(f"session {spec.session!r} already exists "
                                     f"(instance {st.instance}); use replace_session")
         return self._put(spec, wait, timeout, serve_spec, poll=not exist_ok)
 
@@ -145,23 +159,23 @@ class Admin(ClientBase):
         if serve_spec:
             self._serve(spec)
         ack = _Ack(self, spec.session, {"active", "restored"}) if wait else None
+        key = keys.config_key(spec.session)
         try:
-            self.transport.put(keys.config_key(spec.session), payload)
+            self.transport.put(key, payload)
             if ack is None:
                 return None
-            deadline = time.monotonic() + timeout
-            while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
-                if poll:  # a new session: its status appearing is an acknowledgement too
-                    st = self._get_status(spec.session, timeout=_POLL_S)
-                    if st is not None and st.state in ("active", "restored"):
-                        return st
-                if time.monotonic() >= deadline:
-                    raise Timeout(f"no acknowledgement for session {spec.session!r} within "
-                                  f"{timeout} s: is pd-service running and connected?")
+
+            def appeared() -> SessionStatus | None:  # a new session's status is an answer too
+                st = self._get_status(spec.session, timeout=_POLL_S)
+                return st if st is not None and st.state in ("active", "restored") else None
+
+            st = self._answer(ack, lambda: self.transport.put(key, payload), timeout,
+                              f"no acknowledgement for session {spec.session!r}",
+                              appeared if poll else None)
             if ack.refused is not None:
                 self._unserve(spec.session)
                 raise SessionRefused(spec.session, ack.refused)
-            return ack.status
+            return st
         finally:
             if ack is not None:
                 ack.close()
@@ -173,17 +187,57 @@ class Admin(ClientBase):
         session = self._check(session)
         self._unserve(session)
         ack = _Ack(self, session, {"removed"}) if wait else None
+        key = keys.config_key(session)
         try:
-            self.transport.delete(keys.config_key(session))
+            self.transport.delete(key)
             if ack is None:
                 return None
-            if not ack.event.wait(timeout):
-                raise Timeout(f"no acknowledgement of the removal of session {session!r} "
-                              f"within {timeout} s")
-            return ack.status
+            st = self._answer(ack, lambda: self.transport.delete(key), timeout,
+                              f"no acknowledgement of the removal of session {session!r}")
+            if ack.refused is not None:
+                raise SessionRefused(session, ack.refused)
+            return st
         finally:
             if ack is not None:
                 ack.close()
+
+    def _answer(self, ack: _Ack, send: Callable[[], None], timeout: float, what: str,
+                poll: Callable[[], SessionStatus | None] | None = None
+                ) -> SessionStatus | None:
+        """Wait up to ``timeout`` s for the service's answer to the config change ``send``
+        made (``ack``; ``poll``, if given, may find it too): the acknowledging status, or
+        None when refused (``ack.refused``). A change the config rate limits refused is
+        sent again after a growing pause. Raises AccessDenied or Timeout without answer."""
+        deadline = time.monotonic() + timeout
+        pause = _RETRY_FIRST_S
+        while True:
+            while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
+                st = poll() if poll is not None else None
+                if st is not None:
+                    return st
+                if time.monotonic() >= deadline:
+                    raise self._silent(ack.session, f"{what} within {timeout} s")
+            if not (ack.rate_limited() and time.monotonic() + pause < deadline):
+                return ack.status
+            # refused unread by the service's config rate: send it again, a bit later
+            time.sleep(pause)
+            pause = min(2 * pause, _RETRY_MAX_S)
+            ack.rearm()
+            send()
+
+    def _silent(self, session: str, what: str) -> PdClientError:
+        """The error for a config change nobody answered: AccessDenied when a service
+        subscribes to the session's config key (so the router dropped this client's change,
+        or the answer to it: its access control), else Timeout."""
+        config = keys.config_key(session)
+        if self.transport.subscribed(config, timeout=1.0):
+            return AccessDenied(f"{what}: a pd-service instance subscribes to {config} but "
+                                "nothing came back: the router's access control refuses "
+                                "this user's change of that session (only admins, or a "
+                                "robot_creates robot, may: deploy/README.md), or hides the "
+                                "service's answer from it")
+        return Timeout(f"{what}: no pd-service instance listens on {config}: is pd-service "
+                       "running and connected?")
 
     # --- status --------------------------------------------------------------------------
 
@@ -248,6 +302,14 @@ class Admin(ClientBase):
         h = self.transport.subscribe_liveliness(keys.ALL_SERVICES, on_token, history=True)
         try:
             if not event.wait(timeout):
+                probe = keys.config_key("probe")
+                if self.transport.subscribed(probe, timeout=1.0):
+                    raise AccessDenied(
+                        f"no pd-service instance is visible to this user within {timeout} s, "
+                        f"but one subscribes to session configs ({probe}): the router's "
+                        "access control hides the instances' liveliness tokens "
+                        "(pd/@service/*) from this user (only admins, operators and "
+                        "robot_creates robots may watch them: deploy/README.md)")
                 raise ServiceUnavailable(f"no pd-service instance became alive within {timeout} s")
             return sorted(alive)
         finally:

@@ -35,5 +35,15 @@ class SessionRefused(PdClientError):
         self.reason = reason
 
 
+class SessionExists(PdClientError):
+    """The session runs already (:meth:`pd_client.Admin.open_session` without exist_ok)."""
+
+
 class SessionNotFound(PdClientError):
     """The service does not know this session."""
+
+
+class AccessDenied(PdClientError):
+    """The router's access control refused this client's message (a Zenoh router drops it
+    silently): the service listens on the key, but nothing this client sent reached it, or
+    its answer could not reach this client."""

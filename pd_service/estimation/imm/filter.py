@@ -163,19 +163,32 @@ class ImmFilter:
 
     # --- the recursion --------------------------------------------------------------------
 
-    def predict(self, state: ImmState, k: int, u: np.ndarray | None = None) -> ImmState:
-        """x(k) -> x(k+1): interaction and mode-matched unscented prediction; mu := cbar."""
+    def predict(self, state: ImmState, k: int, u: np.ndarray | None = None,
+                tau: float | None = None, interact: bool = True) -> ImmState:
+        """x(k) -> x(k+1): interaction and mode-matched unscented prediction; mu := cbar.
+
+        With ``tau`` (s): only the part x(t) -> x(t + tau) of step k, through each mode's
+        ``flow`` with noise Q tau / period_s; ``interact`` False skips the interaction (a
+        later part of a step: modes switch at the steps' starts only)."""
         if u is None:
             u = np.zeros(self.nu)
-        cbar, x0, P0 = mix(state.mu, state.x, state.P, self.Pi)
+        if interact:
+            cbar, x0, P0 = mix(state.mu, state.x, state.P, self.Pi)
+        else:
+            cbar, x0, P0 = state.mu, state.x, state.P
         xs, Ps = [], []
         for j, md in enumerate(self.modes):
             vec = self._vec_modes[j]
+            if tau is None:
+                fn, Q = _rows(md.f, u, k, vec), md.Q
+            else:
+                assert md.flow is not None
+                fn, Q = _flow_rows(md.flow(tau), u, vec), md.Q * (tau / md.period_s)
             xj, Pj = unscented_propagate(
-                _rows(md.f, u, k, vec),
+                fn,
                 x0[..., j, :],
                 P0[..., j, :, :],
-                md.Q,
+                Q,
                 self.kappa,
                 md.angles,
             )
@@ -258,3 +271,9 @@ class ImmFilter:
 def _rows(f: TransitionFn, u: np.ndarray, k: int, vectorized: bool) -> Callable[[Array], Array]:
     """X (..., n) -> f(X, u, k) row-wise (see :func:`.unscented.apply_rows`)."""
     return lambda X: apply_rows(lambda R: f(R, u, k), X, vectorized)
+
+
+def _flow_rows(f: Callable[[np.ndarray, np.ndarray], np.ndarray], u: np.ndarray,
+               vectorized: bool) -> Callable[[Array], Array]:
+    """X (..., n) -> f(X, u) row-wise: a mode's flow over part of a step."""
+    return lambda X: apply_rows(lambda R: f(R, u), X, vectorized)

@@ -25,11 +25,17 @@ Coordinated turn (CT) with unknown rate omega (positive = counter-clockwise)::
 with the same G2 acceleration noise. As w -> 0 the CT map tends to the CV map (series used for
 |w| < 1e-12 rad/s).
 
+Both maps take any interval: the models' ``flow(tau)`` is the same map over tau (a sample taken
+inside a step; exact: CV and CT compose over sub-intervals), with noise Q tau / T (the
+per-step Q spread evenly over the step, an approximation of the WNA block's tau^3 shape).
+
 The transition functions accept batches: x of shape (..., 5) -> (..., 5) (flagged
 ``vectorized``). ``u`` is unused (the models have no input, nu = 0); ``k`` is the step.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -100,7 +106,11 @@ def imm_cv(
     def f(x: np.ndarray, u: object, k: int) -> np.ndarray:
         return cv_transition(x, T)
 
-    return NonlinearModel(name="imm_cv", n=N_STATE, nu=0, f=f, Q=Q, vectorized=True)
+    def flow(tau: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        return lambda x, u: cv_transition(x, tau)
+
+    return NonlinearModel(name="imm_cv", n=N_STATE, nu=0, f=f, Q=Q, vectorized=True,
+                          flow=flow, period_s=T)
 
 
 @register_model("imm_ct")
@@ -137,7 +147,11 @@ def imm_ct(
     def f(x: np.ndarray, u: object, k: int) -> np.ndarray:
         return ct_transition(x, T)
 
-    return NonlinearModel(name="imm_ct", n=N_STATE, nu=0, f=f, Q=Q, vectorized=True)
+    def flow(tau: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        return lambda x, u: ct_transition(x, tau)
+
+    return NonlinearModel(name="imm_ct", n=N_STATE, nu=0, f=f, Q=Q, vectorized=True,
+                          flow=flow, period_s=T)
 
 
 def heading(x: np.ndarray) -> np.ndarray:

@@ -24,15 +24,24 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..estimator_state import StateError, check_names, take
+from ..nonlinear.events import segments, split_packets, splits, step_inputs
+from ..nonlinear.unscented import InputsAt
 from ..replay import Packet, ReplayEstimator
 from .filter import ImmFilter, ImmState
 
 
 class ImmBackend:
-    """:class:`~pd_service.estimation.replay.Backend` over :class:`ImmState` (no batch axes)."""
+    """:class:`~pd_service.estimation.replay.Backend` over :class:`ImmState` (no batch axes).
+
+    Packets with an offset inside their step are applied at their own time when every mode
+    has a ``flow`` (:mod:`pd_service.estimation.nonlinear.events`): the modes interact at
+    the step's start, then each part of the step is a prediction without interaction, each
+    instant with samples an update, and :meth:`update` hands on x(step + 1)."""
 
     def __init__(self, filt: ImmFilter) -> None:
         self.filter = filt
+        self.splits = all(splits(md) for md in filt.modes)
+        self.inputs_at: InputsAt | None = None  # set by the estimator (see UnscentedBackend)
 
     def propagate(self, state: ImmState, step: int, m: int, U: np.ndarray) -> ImmState:
         """m IMM cycles without measurement (interaction + prediction; mu = cbar)."""
@@ -41,9 +50,29 @@ class ImmBackend:
             state = f.predict(state, step + j, U[j])
         return state
 
+    def _through_step(self, state: ImmState, k: int, inside: list[Packet]) -> ImmState:
+        """x(k) -> x(k+1) through the packets sampled inside step k (sorted by offset)."""
+        f = self.filter
+        if self.inputs_at is None:
+            raise ValueError("samples inside a step need the estimator's inputs (inputs_at)")
+        u, cut = self.inputs_at(k)
+        first = True
+        for t, tau, group in segments(inside, f.modes[0].period_s,
+                                      None if cut is None else cut[0]):
+            uk = u if cut is None or t >= cut[0] else cut[1]  # the command held at t
+            state = f.predict(state, k, uk, tau=tau, interact=first)
+            first = False
+            if group:
+                state = f.update(state, [(p.sensor, p.z, p.R) for p in group])
+        return state
+
     def update(self, state: ImmState, step: int, packets: list[Packet]) -> ImmState:
-        """Every packet stamped ``step``, fused on the step's one prior."""
-        return self.filter.update(state, [(p.sensor, p.z, p.R) for p in packets])
+        """Every packet stamped ``step`` at its start, fused on the step's one prior; with
+        packets inside the step, then through it to x(step + 1)."""
+        start, inside = split_packets(packets, self.splits)
+        if start:
+            state = self.filter.update(state, [(p.sensor, p.z, p.R) for p in start])
+        return self._through_step(state, step, inside) if inside else state
 
     def moments(self, state: ImmState) -> tuple[np.ndarray, np.ndarray]:
         return self.filter.output(state)
@@ -109,6 +138,14 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
             command_hold=command_hold,
         )
         self.filter = filt
+        backend = self._backend
+        assert isinstance(backend, ImmBackend)
+        backend.inputs_at = self._inputs_at
+        # seconds a sample may lie inside a step; 0.0: modes without flow take none
+        self.period_s = filt.modes[0].period_s if backend.splits else 0.0
+
+    def _inputs_at(self, k: int) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        return step_inputs(self._inputs, k)
 
     @property
     def n(self) -> int:
@@ -119,7 +156,8 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
         return self.filter.variant
 
     def add_measurement(
-        self, sensor: object, step: object, z: object, now: object, R: object | None = None
+        self, sensor: object, step: object, z: object, now: object, R: object | None = None,
+        offset: object = 0.0,
     ) -> bool:
         """As :meth:`ReplayEstimator.add_measurement`; a per-sample R must also be positive
         definite (the information form uses R^{-1})."""
@@ -132,12 +170,12 @@ class ImmObserverPredictor(ReplayEstimator[ImmState]):
                 ok = False
             if not ok:
                 raise ValueError("R: must be a finite, positive definite matrix")
-        return super().add_measurement(sensor, step, z, now, R)
+        return super().add_measurement(sensor, step, z, now, R, offset)
 
     def predict_modes(self, now: int) -> ImmPrediction:
         """Mode probabilities and per-mode moments of x(now + lead) (reported node)."""
         pred = self.predict(now)  # validates now, advances, replays
-        step, state = self._newest()
+        step, state, _ = self._newest(pred.step)
         if pred.step > step:
             state = self._propagate(state, step, pred.step - step)
         k = self.filter._node_index(None)

@@ -18,7 +18,8 @@ does not depend on theta, so the mass matrix is constant and there are no Coriol
 The only nonlinearity is theta in the direction of the wheel forces. One step of length dt is
 one classical Runge-Kutta (RK4) step with the torque held; :func:`omni3` also supplies the
 exact Jacobian of that RK4 map (the chain rule through its four stages), so sensitivities do
-not need finite differences.
+not need finite differences. The model's ``flow(tau)`` is one RK4 step of length tau (a
+sample taken inside a step), with noise Q tau / dt.
 
 Defaults are the issue's scenario: M = 10 kg, I = 0.25 kg m^2, Iw = 0.01 kg m^2,
 r = 0.05 m, L = 0.2 m, c = 0.02 N m s/rad, dt = 0.01 s, pose sensor ``"pose"`` measuring
@@ -26,6 +27,8 @@ r = 0.05 m, L = 0.2 m, c = 0.02 N m s/rad, dt = 0.01 s, pose sensor ``"pose"`` m
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -165,6 +168,11 @@ def omni3(
     def f(X: np.ndarray, u: np.ndarray, k: int) -> np.ndarray:
         return dyn.step(X, np.asarray(u, dtype=float))
 
+    def flow(tau: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        part = OmniDynamics(float(mass), float(inertia), float(wheel_inertia),
+                            float(wheel_radius), float(wheel_distance), float(friction), tau)
+        return batched(lambda X, u: part.step(X, np.asarray(u, dtype=float)))  # one RK4 step
+
     def F(X: np.ndarray, u: np.ndarray, k: int) -> np.ndarray:
         return dyn.step_jac(X, np.asarray(u, dtype=float))
 
@@ -179,7 +187,8 @@ def omni3(
     pose = MeasurementModel(name="pose", h=batched(h), R=Rm, angles=(2,), jac=batched(Hjac),
                             vectorized=True)
     return NonlinearModel(name="omni3", n=6, nu=3, f=batched(f), Q=Qm, sensors={"pose": pose},
-                          angles=(2,), jac=batched(F), vectorized=True)
+                          angles=(2,), jac=batched(F), vectorized=True, flow=flow,
+                          period_s=float(period_s))
 
 
 def _diag_or_matrix(value: object, field: str, n: int) -> np.ndarray:

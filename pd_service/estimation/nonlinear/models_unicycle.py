@@ -25,7 +25,8 @@ cos(yaw)) for wbar != 0, and to the straight step for wbar = 0). The yaw is exac
 command (it integrates w(t) exactly); the position is exact whenever v and w are constant over
 the step (the steady state, or a straight line at any speed profile: then d = the exact
 distance); while both speeds change it is the arc of their step means. Process noise is
-additive, Q = diag of 5 values (or a 5 x 5 matrix) per step.
+additive, Q = diag of 5 values (or a 5 x 5 matrix) per step. The model's ``flow(tau)`` is the same
+map over any tau in (0, period_s] (a sample taken inside a step), with noise Q tau / period_s.
 
 :func:`unicycle` supplies the exact Jacobian and accepts batches X (N, 5).
 
@@ -46,6 +47,8 @@ wheel odometry whose pose drifts, use ``"odom_twist"``.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 
@@ -199,9 +202,15 @@ def unicycle(
     5 diagonal values (or a 5x5 matrix) per step, default :data:`UNICYCLE_Q0` =
     diag(1e-6 m^2, 1e-6 m^2, 1e-6 rad^2, 1e-4 (m/s)^2, 4e-4 (rad/s)^2)."""
     dyn = UnicycleDynamics(period_s, tau_v, tau_w)
+
+    def flow(tau: float) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        part = UnicycleDynamics(tau, tau_v, tau_w)  # the same exact arc and lags over tau
+        return batched(lambda Xs, u: part.step(Xs, u))
+
     Qm = _diag_or_matrix(UNICYCLE_Q0 if Q is None else Q, "Q", N_STATE)
     sensors = {name: _selection_sensor(name, idx, R) for name, (idx, R) in UNICYCLE_SENSORS.items()}
     return NonlinearModel(
         name="unicycle", n=N_STATE, nu=2,
         f=batched(lambda Xs, u, k: dyn.step(Xs, u)), Q=Qm, sensors=sensors, angles=(YAW,),
-        jac=batched(lambda Xs, u, k: dyn.step_jac(Xs, u)), vectorized=True)
+        jac=batched(lambda Xs, u, k: dyn.step_jac(Xs, u)), vectorized=True,
+        flow=flow, period_s=dyn.dt)

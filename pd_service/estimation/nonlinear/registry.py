@@ -20,6 +20,9 @@ import numpy as np
 TransitionFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 #: h(x (n,)) -> z (m,)
 MeasurementFn = Callable[[np.ndarray], np.ndarray]
+#: f over part of a step: tau (s, 0 < tau <= period_s) -> the map (X (n,) or (N, n), u (nu,))
+#: -> the state tau seconds later without noise
+FlowFn = Callable[[float], Callable[[np.ndarray, np.ndarray], np.ndarray]]
 #: Jacobian of f: F(x (n,), u (nu,), k) -> (n, n)  (batched: X (N, n) -> (N, n, n))
 TransitionJacobianFn = Callable[[np.ndarray, np.ndarray, int], np.ndarray]
 #: Jacobian of h: H(x (n,)) -> (m, n)  (batched: X (N, n) -> (N, m, n))
@@ -54,7 +57,12 @@ class NonlinearModel:
     Optional (consumers must work without them):
     ``jac``: F(x, u, k) = df/dx, used for exact sensitivities (else directional finite
     differences); ``vectorized``: f (and jac) also accept a batch X (N, n) with one u and
-    return (N, n) ((N, n, n)), so a filter evaluates all sigma points in one call.
+    return (N, n) ((N, n, n)), so a filter evaluates all sigma points in one call;
+    ``flow``: the model over part of a step, ``flow(tau)(X, u)`` = x(t + tau) for
+    0 < tau <= ``period_s`` (s) with u held (same batching as f), so a sample taken inside a
+    step is applied at its own time; the noise over tau is then Q tau / period_s (Q read as
+    white noise of constant intensity over the step). Without ``flow`` (or ``period_s``)
+    the model only moves whole steps.
     """
 
     name: str
@@ -66,6 +74,8 @@ class NonlinearModel:
     angles: tuple[int, ...] = ()
     jac: TransitionJacobianFn | None = None
     vectorized: bool = False
+    flow: FlowFn | None = None
+    period_s: float = 0.0
 
 
 _REGISTRY: dict[str, Callable[..., NonlinearModel]] = {}

@@ -18,6 +18,9 @@ is replayed with the new, frozen Q. Hence ``predict(now)`` equals, to rounding, 
 run over the accepted packets in stamp order: the adaptive UKF over every packet stamped before
 ``now - max_delay``, then the plain UKF with the last q over the rest, then the prediction.
 Late packets are refused by the window, so they never enter the innovation statistics.
+Samples taken inside a step (a packet's ``offset``) are applied at their own time
+(:mod:`.events`); the adapter learns from the innovations of the samples at the steps'
+starts only.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from ..checks import as_covariance, as_vector
 from ..estimator_state import EstimatorState, StateError
 from ..replay import Packet, ReplayEstimator
 from .adaptive import Adapter
+from .events import split_packets, splits, step_inputs
 from .registry import NonlinearModel, wrap_angle
 from .sigma import SigmaWeights
 from .unscented import ModelOps, UKFState, UnscentedBackend
@@ -123,6 +127,9 @@ class UnscentedObserverPredictor(ReplayEstimator[UKFState]):
         self.model = model
         self.adapter = adapter
         self._ukf = backend  # self._backend, with its own type
+        backend.inputs_at = self._inputs_at
+        # seconds a sample may lie inside a step; 0.0: a model without flow takes none
+        self.period_s = model.period_s if splits(model) else 0.0
         self._prev_base: tuple[int, UKFState] = (self._base_step, self._base)
         self._last_update = 0  # newest committed measured step (0 before any): gaps count from it
 
@@ -141,6 +148,9 @@ class UnscentedObserverPredictor(ReplayEstimator[UKFState]):
         if self.adapter is None:
             return np.zeros(0)
         return np.diag(self._ukf.Q)[list(self.adapter.indices)].copy()
+
+    def _inputs_at(self, k: int) -> tuple[np.ndarray, tuple[float, np.ndarray] | None]:
+        return step_inputs(self._inputs, k)
 
     def set_Q(self, Q: object) -> None:
         """Replace the process noise for every step not yet committed (the open window is
@@ -205,11 +215,14 @@ class UnscentedObserverPredictor(ReplayEstimator[UKFState]):
             if s > a:
                 state = backend.propagate(state, a, s - a, self._inputs.slice(a, s - a))
             state, rec = backend.update_tracked(state, s, packets, s - self._last_update)
+            # samples inside step s: the state handed on is x(s + 1)
+            a = s + 1 if split_packets(packets, splits(self.model))[1] else s
+            if rec is None:  # only samples taken inside the step: nothing for the adapter
+                continue
             self._last_update = s
             Qn = self.adapter.observe(rec, backend.Q)
             if Qn is not None:
                 backend.Q = Qn  # used from the step after s on
-            a = s
         frozen = committed[-1][1]  # what the window computed with Q frozen
         self._base = state
         if (backend.Q is not Q_before or not np.array_equal(state.x, frozen.x)

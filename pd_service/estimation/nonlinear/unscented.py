@@ -37,8 +37,12 @@ import numpy as np
 from ..estimator_state import check_names, take
 from ..linear import block_diag
 from ..replay import Packet
+from .events import segments, split_packets, splits
 from .registry import MeasurementModel, NonlinearModel, wrap_angle
 from .sigma import SigmaWeights, cholesky_derivative, sqrt_cov
+
+#: k -> (u(k) (nu,), (offset s, input before) of a command taking effect inside step k or None)
+InputsAt = Callable[[int], tuple[np.ndarray, tuple[float, np.ndarray] | None]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,9 +106,21 @@ class ModelOps:
             raise ValueError(f"model {m.name!r}: f returned shape {Y.shape}, expected {X.shape}")
         return Y
 
-    def f_jvp(self, X: np.ndarray, dX: np.ndarray, u: np.ndarray, k: int) -> np.ndarray:
-        """dY (p, N, n) = F(X_i) dX[j, i] for each direction j."""
+    def f_over(self, X: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
+        """Y (N, n) = the model's flow over tau seconds (part of a step) of X (N, n)."""
         m = self.model
+        assert m.flow is not None
+        fn = m.flow(tau)
+        Y = fn(X, u) if m.vectorized else np.array([fn(x, u) for x in X])
+        return np.asarray(Y, dtype=float).reshape(X.shape)
+
+    def f_jvp(self, X: np.ndarray, dX: np.ndarray, u: np.ndarray, k: int,
+              tau: float | None = None) -> np.ndarray:
+        """dY (p, N, n) = F(X_i) dX[j, i] for each direction j (of the flow over ``tau``
+        seconds if given: central differences)."""
+        m = self.model
+        if tau is not None:
+            return self._fd_jvp(lambda Z: self.f_over(Z, u, tau), X, dX)
         if m.jac is not None:
             F = m.jac(X, u, k) if m.vectorized else np.array([m.jac(x, u, k) for x in X])
             return np.einsum("iab,pib->pia", F, dX)
@@ -174,13 +190,15 @@ def _sym(P: np.ndarray) -> np.ndarray:
 
 
 def time_step(ops: ModelOps, w: SigmaWeights, Q: np.ndarray, state: UKFState, u: np.ndarray,
-              k: int, dQ: np.ndarray | None = None) -> UKFState:
-    """One step x(k) -> x(k+1). Sensitivities are propagated iff ``state.tracked``;
-    ``dQ`` (p, n, n) = dQ/dq_m is then required."""
+              k: int, dQ: np.ndarray | None = None, tau: float | None = None) -> UKFState:
+    """One step x(k) -> x(k+1), or with ``tau`` (s) the part x(t) -> x(t + tau) of step k
+    through the model's flow (``Q``, ``dQ`` then the noise over tau). Sensitivities are
+    propagated iff ``state.tracked``; ``dQ`` (p, n, n) = dQ/dq_m is then required."""
     x, P = state.x, state.P
     L = sqrt_cov(P)
     X = w.points(x, L)                      # chi_i
-    Y = ops.f(X, u, k)                      # Y_i = f(chi_i, u, k)
+    # Y_i = f(chi_i, u, k)
+    Y = ops.f(X, u, k) if tau is None else ops.f_over(X, u, tau)
     xm = _mean(w.Wm, Y, ops.x_angles)       # x- = sum Wm_i Y_i
     D = _resid(Y, xm, ops.x_angles)         # Y_i - x-
     Pm = _sym(_wsum_outer(D, w.Wc, D) + Q)  # P- = sum Wc_i D_i D_i^T + Q
@@ -188,7 +206,7 @@ def time_step(ops: ModelOps, w: SigmaWeights, Q: np.ndarray, state: UKFState, u:
         return UKFState(xm, Pm)
     dL = cholesky_derivative(L, state.dP)
     dX = w.point_offsets(state.dx, dL)      # d chi_i
-    dY = ops.f_jvp(X, dX, u, k)             # dY_i = F(chi_i) d chi_i
+    dY = ops.f_jvp(X, dX, u, k, tau)        # dY_i = F(chi_i) d chi_i
     dxm = np.einsum("pia,i->pa", dY, w.Wm)  # dx- = sum Wm_i dY_i
     dD = dY - dxm[:, None, :]
     T = _dwsum_outer(dD, w.Wc, D)
@@ -266,6 +284,11 @@ class UnscentedBackend:
     known Q for each step k -> k+1. A tracked state (with sensitivities) stays tracked through
     :meth:`propagate`; :meth:`update` drops sensitivities (speculative posteriors never need
     them), :meth:`update_tracked` keeps them and returns the innovation record.
+
+    Packets with an offset inside their step are applied at their own time (:mod:`.events`):
+    :meth:`update` then hands on x(step + 1), reading u(step) through ``inputs_at`` (set by
+    the estimator: k -> (u(k), the (offset, input before) of a command taking effect inside
+    step k, or None)). A model without ``flow`` takes no offsets (the estimator refuses them).
     """
 
     def __init__(self, ops: ModelOps, weights: SigmaWeights, Q: np.ndarray,
@@ -276,6 +299,7 @@ class UnscentedBackend:
         self.Q = Q
         self.dQ = dQ
         self.Q_schedule = Q_schedule
+        self.inputs_at: InputsAt | None = None
 
     def propagate(self, state: UKFState, step: int, m: int, U: np.ndarray) -> UKFState:
         ops, w, Q, dQ = self.ops, self.weights, self.Q, self.dQ
@@ -286,14 +310,47 @@ class UnscentedBackend:
             state = time_step(ops, w, Q, state, U[j], step + j, dQ)
         return state
 
+    def _through_step(self, state: UKFState, k: int, inside: list[Packet]) -> UKFState:
+        """x(k) -> x(k+1) through the packets sampled inside step k (sorted by offset)."""
+        ops, w, dQ = self.ops, self.weights, self.dQ
+        T = ops.model.period_s
+        if self.inputs_at is None:
+            raise ValueError("samples inside a step need the estimator's inputs (inputs_at)")
+        u, cut = self.inputs_at(k)
+        Q = self.Q if self.Q_schedule is None else self.Q_schedule(k)
+        for t, tau, group in segments(inside, T, None if cut is None else cut[0]):
+            uk = u if cut is None or t >= cut[0] else cut[1]  # the command held at t
+            r = tau / T  # noise over tau: Q tau / T
+            state = time_step(ops, w, Q * r, state, uk, k, None if dQ is None else dQ * r, tau)
+            if group:
+                state = measurement_update(ops, w, state, k, group)[0]
+        return state
+
     def update(self, state: UKFState, step: int, packets: list[Packet]) -> UKFState:
+        """x(step) conditioned on ``packets``; with packets inside the step, x(step + 1)."""
+        start, inside = split_packets(packets, self._splits)
         if state.tracked:
             state = UKFState(state.x, state.P)
-        return measurement_update(self.ops, self.weights, state, step, packets)[0]
+        if start:
+            state = measurement_update(self.ops, self.weights, state, step, start)[0]
+        return self._through_step(state, step, inside) if inside else state
 
     def update_tracked(self, state: UKFState, step: int, packets: list[Packet],
-                       gap: int) -> tuple[UKFState, InnovationRecord]:
-        return measurement_update(self.ops, self.weights, state, step, packets, gap, self.Q)
+                       gap: int) -> tuple[UKFState, InnovationRecord | None]:
+        """:meth:`update` keeping sensitivities; the record is that of the packets at the
+        step's start (None if there are none): the adapter learns from those only."""
+        start, inside = split_packets(packets, self._splits)
+        rec = None
+        if start:
+            state, rec = measurement_update(self.ops, self.weights, state, step, start, gap,
+                                            self.Q)
+        if inside:
+            state = self._through_step(state, step, inside)
+        return state, rec
+
+    @property
+    def _splits(self) -> bool:
+        return splits(self.ops.model)
 
     def moments(self, state: UKFState) -> tuple[np.ndarray, np.ndarray]:
         return state.x, state.P

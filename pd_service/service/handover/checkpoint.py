@@ -1,16 +1,21 @@
 """EstimatorState <-> SessionState (the wire message), and whether a state may be resumed.
 
 A state is resumed only if it is the same version, was taken from an estimator built from
-the very same spec (fingerprint of the encoded spec), is not stale and restores cleanly;
-otherwise :func:`refusal` names the reason and the session starts from its prior:
+the very same spec (fingerprint of the encoded spec), is not from the future and restores
+cleanly; otherwise :func:`refusal` names the reason and the session starts from its prior:
 
 ============  =======================================================================
 version       ``state_version`` is not this build's
 spec          ``spec_fingerprint`` differs (the spec changed) or another session
-stale         older than the window: ``now_step - state.now_step > max_delay`` (every
-              packet it still waited for is final by now), or from the future
+future        taken at a step after the current one (+1): another clock, or a bad one
 corrupt       undecodable, or the estimator's restore_state refused it (reason given)
 ============  =======================================================================
+
+A state older than the window (``now_step - state.now_step > max_delay``: a restart or a
+takeover that took longer than the window) is resumed all the same (:func:`is_stale`): the
+estimator commits its window at the next step and propagates the committed estimate forward
+with the commands it knows (the held command past them), its covariance growing by Q per
+step, which is far nearer the truth than the prior.
 """
 
 from __future__ import annotations
@@ -34,12 +39,13 @@ from pd_service.wire.session_state import (
     pack_state_fields,
 )
 
-__all__ = ["Refused", "encode_state", "from_message", "refusal", "restore", "to_message"]
+__all__ = ["Refused", "encode_state", "from_message", "is_stale", "refusal", "restore",
+           "to_message"]
 
 
 @dataclass(frozen=True, slots=True)
 class Refused:
-    """Why a state was not resumed: ``reason`` one of version / spec / stale / corrupt."""
+    """Why a state was not resumed: ``reason`` one of version / spec / future / corrupt."""
 
     reason: str
     text: str
@@ -58,9 +64,12 @@ def to_message(st: EstimatorState, *, session: str, instance: str, fingerprint: 
         state_version=st.version, kind=st.kind, made_ns=made_ns, now_step=st.now,
         committed_step=st.committed_step, base_step=st.base_step,
         newest_committed=st.newest_committed, x=x, P=0.5 * (P + P.T), base=base,
-        packets=[StatePacket(step=s, sensor=name, z=z, R=R) for s, name, z, R in st.packets],
+        packets=[StatePacket(step=s, sensor=name, z=z, R=R, offset=off)
+                 for s, name, z, R, off in st.packets],
         u_origin=st.u_origin,
-        commands=[StateCommand(step=j, u=u) for j, u in st.commands],
+        commands=[StateCommand(step=j, u=u, offset=st.command_offsets.get(j, 0.0))
+                  for j, u in st.commands],
+        u_before=st.u_before,
         counters=dict(st.counters), extras=dict(st.extras),
         session_counters=dict(session_counters or {}), published=published, seq=seq)
 
@@ -100,11 +109,13 @@ def _fields(st: EstimatorState, tensor: Callable[[Any], Any],
         "P": tensor(0.5 * (P + P.T)),
         "base": {k: tensor(v) for k, v in base.items()},
         "packets": [{"step": int(s), "sensor": name, "z": tensor(z),
-                     "R": None if R is None else tensor(R)}
-                    for s, name, z, R in st.packets],
+                     "R": None if R is None else tensor(R), "offset": float(off)}
+                    for s, name, z, R, off in st.packets],
         "u_origin": tensor(st.u_origin),
-        "commands": [{"step": int(j), "u": u} for (j, _), u in
+        "commands": [{"step": int(j), "u": u, "offset": float(st.command_offsets.get(j, 0.0))}
+                     for (j, _), u in
                      zip(st.commands, rows([u for _, u in st.commands]), strict=True)],
+        "u_before": None if st.u_before is None else tensor(st.u_before),
         "counters": {str(k): int(v) for k, v in st.counters.items()},
         "extras": {k: tensor(v) for k, v in st.extras.items()},
         "session_counters": {str(k): int(v) for k, v in (session_counters or {}).items()},
@@ -154,10 +165,12 @@ def from_message(msg: SessionState, n: int) -> EstimatorState:
     return EstimatorState(
         kind=msg.kind, n=n, now=msg.now_step, committed_step=msg.committed_step,
         base_step=msg.base_step, newest_committed=msg.newest_committed, base=base,
-        packets=[(p.step, p.sensor, np.array(p.z), None if p.R is None else np.array(p.R))
-                 for p in msg.packets],
+        packets=[(p.step, p.sensor, np.array(p.z), None if p.R is None else np.array(p.R),
+                  p.offset) for p in msg.packets],
         inputs_origin=msg.base_step, u_origin=np.array(msg.u_origin).reshape(-1),
         commands=[(c.step, np.array(c.u).reshape(-1)) for c in msg.commands],
+        command_offsets={c.step: c.offset for c in msg.commands if c.offset > 0.0},
+        u_before=None if msg.u_before is None else np.array(msg.u_before).reshape(-1),
         counters=dict(msg.counters), extras={k: np.array(v) for k, v in msg.extras.items()},
         version=msg.state_version)
 
@@ -172,12 +185,16 @@ def refusal(msg: SessionState, spec: SessionSpec, fingerprint: str,
         return Refused("spec", "taken from another spec (fingerprint "
                        f"{msg.spec_fingerprint[:12]}, the spec's is {fingerprint[:12]})")
     taken = msg.now_step if msg.now_step is not None else 0
-    if now_step - taken > spec.max_delay:
-        return Refused("stale", f"taken at step {taken}, {now_step - taken} steps ago: more "
-                       f"than the window (max_delay {spec.max_delay})")
     if taken > now_step + 1:
-        return Refused("stale", f"taken at step {taken}, after the current step {now_step}")
+        return Refused("future", f"taken at step {taken}, after the current step {now_step}")
     return None
+
+
+def is_stale(msg: SessionState, spec: SessionSpec, now_step: int) -> bool:
+    """``msg`` was taken more than the window (``max_delay`` steps) before ``now_step``:
+    resumed, it is propagated forward (module docstring)."""
+    taken = msg.now_step if msg.now_step is not None else 0
+    return now_step - taken > spec.max_delay
 
 
 def restore(est: Estimator, data: bytes | SessionState, spec: SessionSpec, fingerprint: str,

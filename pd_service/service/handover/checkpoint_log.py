@@ -12,9 +12,11 @@ Format: the 8 bytes ``PDCKLOG1``, then records::
     (little-endian; len(data) == 0: the session's checkpoint was removed)
 
 Reading stops at the first record that is cut short or fails its CRC (a crash while
-appending, or damage): the records before it hold, the rest is dropped and logged
-(``checkpoint_log_damaged``). A file that is not a regular file or does not start with the
-magic is renamed ``*.bad`` and logged; no checkpoint is read from it.
+appending, or damage): the records before it hold, the rest is dropped. A file that is not
+a regular file or does not start with the magic is renamed ``*.bad``; no checkpoint is read
+from it. Either is logged and kept in :attr:`CheckpointLog.damaged`, which the daemon counts
+(``checkpoint_log_damaged``) and reports to each restored session left without a checkpoint
+(an ErrorReport, ``restore_refused_damaged``).
 
 Compaction: before the first append after opening, after an append that failed (it may
 have left a record cut short), and whenever the file grows beyond ``COMPACT_FACTOR`` times
@@ -136,6 +138,8 @@ class CheckpointLog:
         self._legacy: list[Path] = []  # earlier versions' files, until compacted into the log
         self._fd: int | None = None
         self._size = 0
+        #: What was wrong with the log when it was read (None: nothing), one line.
+        self.damaged: str | None = None
 
     # --- reading --------------------------------------------------------------------------
 
@@ -147,6 +151,12 @@ class CheckpointLog:
     def sessions(self) -> list[str]:
         with self._lock:
             return sorted(self._states())
+
+    def damage(self) -> str | None:
+        """:attr:`damaged`, the log read first if it was not yet."""
+        with self._lock:
+            self._states()
+            return self.damaged
 
     def _states(self) -> dict[str, bytes]:
         if self._live is None:
@@ -169,6 +179,9 @@ class CheckpointLog:
             else:
                 live, stop = parse(buf, len(MAGIC))
                 if stop < len(buf):
+                    self.damaged = (f"{self.path.name}: the record at byte {stop} is cut short "
+                                    f"or fails its CRC; the {len(buf) - stop} bytes from it "
+                                    "on were dropped")
                     event(log, "checkpoint_log_damaged", logging.WARNING, file=str(self.path),
                           offset=stop, dropped_bytes=len(buf) - stop, sessions=len(live))
         for p in sorted(self.dir.glob(f"*{LEGACY_SUFFIX}")):
@@ -185,6 +198,7 @@ class CheckpointLog:
         return live
 
     def _set_aside(self, reason: str) -> None:
+        self.damaged = f"{self.path.name}: {reason}; set aside as {self.path.name}.bad"
         event(log, "checkpoint_log_unreadable", logging.WARNING, file=str(self.path),
               reason=reason)
         try:

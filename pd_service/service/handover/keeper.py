@@ -15,9 +15,11 @@ going back to the prior.
   when it takes a session over it resumes from it. On a join, the owner that loses a
   session sends its state at once to the new owner, on that owner's replica key
   (:meth:`HandoverKeeper.hand_to`), which waits for it (``Lifecycle.adopt_handed``).
-- A state that is stale, corrupt, from another spec or of another version is refused
-  (:mod:`pd_service.service.handover.checkpoint`): the session starts from its prior, the refusal is counted
-  (``restore_refused``, ``restore_refused_<reason>``), logged and sent as an ErrorReport.
+- A state that is from the future, corrupt, from another spec or of another version is
+  refused (:mod:`pd_service.service.handover.checkpoint`): the session starts from its prior,
+  the refusal is counted (``restore_refused``, ``restore_refused_<reason>``), logged and sent
+  as an ErrorReport. A state older than the window is resumed and propagated forward
+  (``resumed_stale``).
 
 A session whose estimate is its prior alone (:meth:`Session.prior_alone`: started from
 the prior, nothing accepted) writes and sends no state: resuming from the prior gives the same.
@@ -51,7 +53,7 @@ from ..outbox import Out, Outbox
 from ..ownership import Ownership
 from ..session import Origin, Refusal, Session, next_slot
 from ..spec_store import SpecStore
-from .checkpoint import Refused, encode_state, restore
+from .checkpoint import Refused, encode_state, is_stale, restore
 from .checkpoint_writer import CheckpointWriter
 
 log = logging.getLogger(LOGGER_NAME)
@@ -69,6 +71,13 @@ MAX_REPLICAS = 100_000
 
 #: Pause (s) between two rounds of a hand-over's confirmation (put again, ask again).
 _HANDOVER_RETRY_S = 0.02
+
+
+def checkpoint_key(instance: str, session: str) -> str:
+    """``pd/@service/<instance>/checkpoint/<session>``: names ``instance``'s checkpoint of
+    ``session`` in an ErrorReport's ``key`` (a key expression; nothing is put on it)."""
+    return f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/{check_name(instance, 'instance')}" \
+           f"/checkpoint/{check_name(session, 'session')}"
 
 
 def replica_key(instance: str, session: str) -> str:
@@ -400,6 +409,12 @@ class HandoverKeeper:
         the session stays at its prior."""
         if source == "checkpoint":
             data = self.store.load_state(sess.name) if self.store is not None else None
+            if data is None and self.store is not None:
+                damaged = self.store.states_damaged()
+                if damaged is not None:  # its checkpoint may have been in the part dropped
+                    self._refused(sess, source, Refused(
+                        "damaged", f"no checkpoint in the log, which was damaged ({damaged})"),
+                        now)
         else:
             with self._lock:
                 held = self.replicas.pop(sess.name, None)
@@ -418,15 +433,21 @@ class HandoverKeeper:
         sess.published, sess.seq = msg.published, msg.seq
         sess.saved_mark = state_mark(sess)
         self.counters[f"resumed_from_{source}"] += 1
+        stale = is_stale(msg, sess.spec, now_step)
+        if stale:  # older than the window: propagated forward from its committed estimate
+            self.counters["resumed_stale"] += 1
         event(log, "session_resumed", session=sess.name, source=source,
-              step=msg.now_step if msg.now_step is not None else -1,
-              packets=len(msg.packets), writer=msg.instance)
+              step=msg.now_step if msg.now_step is not None else -1, now_step=now_step,
+              stale=stale, packets=len(msg.packets), writer=msg.instance)
 
     def _refused(self, sess: Session, source: str, why: Refused, now: int) -> None:
         self.counters[f"restore_refused_{why.reason}"] += 1
         text = f"{source} not resumed ({why.reason}): {why.text}; started from the prior"
         event(log, "restore_refused", logging.WARNING, session=sess.name, source=source,
               reason=why.reason, detail=why.text)
-        self.pub.refuse(sess, f"{source}/{sess.name}", Refusal("restore_refused", text), now,
+        own = self.settings.instance
+        key = (checkpoint_key(own, sess.name) if source == "checkpoint"
+               else replica_key(own, sess.name))
+        self.pub.refuse(sess, key, Refusal("restore_refused", text), now,
                         counted=("restore_refused",))
 

@@ -74,5 +74,5 @@ def test_no_listener_gives_service_unavailable_and_exit_1(capsys):
         endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
     with pytest.raises(ServiceUnavailable, match="cannot open a Zenoh client session"):
         connect(endpoint)
-    assert pd_robot_sim.main(["--connect", endpoint]) == 1
+    assert pd_robot_sim.main(["--connect", endpoint, "--connect-wait", "0"]) == 1
     assert "pd-robot-sim: error: cannot open" in capsys.readouterr().err

@@ -176,6 +176,65 @@ def test_ros2_outputs_are_recorded_in_the_ros2_profile(tmp_path):
     assert [r.stream for r in read_records(tmp_path / "r.mcap")] == ["config", "prediction"]
 
 
+def test_world_velocity_layout_without_yaw_is_recorded_in_the_ros2_profile(tmp_path, capsys):
+    """Issue 45: the constant-velocity layout (world velocities, no yaw) used to give no ROS 2
+    channel and no word; now converted (body = world axes), and a prediction that cannot be
+    converted is counted and said once."""
+    from mcap.reader import make_reader
+
+    from pd_client.tools.mcap_log import McapLog
+    from pd_service.ros2.messages import decode as decode_ros
+    from pd_service.scenarios import get_scenario
+    from pd_service.wire.ros2 import OutputBinding, Ros2Binding, StateLayout
+
+    spec = get_scenario("paper").spec("cv", 0).model_copy(update={"ros2": Ros2Binding(
+        outputs=OutputBinding(layout=StateLayout(x=0, vx=1, y=2, vy=3, velocity_frame="world")))})
+    x = np.array([1.0, 0.5, 2.0, -0.25])
+    log = McapLog(tmp_path / "cv.mcap")
+    log.write_sample(keys.config_key("cv"), encode(spec), 1)
+    log.write_sample(keys.prediction_key("cv"), encode(Prediction(
+        session="cv", seq=1, step=4, t_ns=spec.time_of(4), x=x, P=np.eye(4), newest_step=None,
+        made_ns=5)), 2)
+    for seq in (2, 3):  # a state of another size: not convertible with this layout
+        log.write_sample(keys.prediction_key("cv"), encode(Prediction(
+            session="cv", seq=seq, step=5, t_ns=spec.time_of(5), x=np.zeros(2), P=np.eye(2),
+            newest_step=None, made_ns=5)), 3)
+    log.close()
+    with open(tmp_path / "cv.mcap", "rb") as f:
+        got = [(ch.topic, m.data) for _, ch, m in make_reader(f).iter_messages()]
+    odom = [d for t, d in got if t.endswith("/ros2/odom")]
+    assert len(odom) == 1
+    tw = decode_ros(odom[0], "nav_msgs/msg/Odometry").twist.twist.linear
+    assert (tw.x, tw.y) == (0.5, -0.25)
+    assert log.ros2_errors == 2 and capsys.readouterr().err.count("not written as ROS 2") == 1
+
+
+def test_log_times_never_decrease_in_the_file(tmp_path):
+    """Samples written in another order than received (transport threads) and a prediction's
+    ROS 2 copies: log times nondecreasing in file order, publish times the receipt times."""
+    from mcap.reader import make_reader
+
+    from pd_client.tools.mcap_log import McapLog
+    from pd_service.scenarios import get_scenario
+
+    spec = get_scenario("diffdrive").spec("bot", 0)
+    pred = Prediction(session="bot", seq=1, step=40, t_ns=spec.time_of(40), x=np.ones(5),
+                      P=np.eye(5), newest_step=30, made_ns=5)
+    meas = Measurement(session="bot", sensor=spec.sensors[0].name, seq=1, step=30,
+                       z=np.zeros(spec.sensors[0].m))
+    log = McapLog(tmp_path / "t.mcap")
+    log.write_sample(keys.config_key("bot"), encode(spec), 1)
+    log.write_sample(keys.prediction_key("bot"), encode(pred), 50)  # + 2 ROS 2 copies
+    log.write_sample(keys.sensor_key("bot", meas.sensor), encode(meas), 40)  # received before
+    log.write_sample(keys.prediction_key("bot"), encode(pred), 45)
+    log.close()
+    with open(tmp_path / "t.mcap", "rb") as f:
+        got = [(m.log_time, m.publish_time) for _, _, m in make_reader(f).iter_messages(log_time_order=False)]
+    assert [p for _, p in got] == [1, 50, 50, 50, 40, 45, 45, 45]
+    log_times = [t for t, _ in got]
+    assert log_times == sorted(log_times) == [1, 50, 50, 50, 50, 50, 50, 50]
+
+
 def test_logs_of_key_layout_1_and_of_another_partition_count_read_back_rekeyed(tmp_path):
     """A log without the pd-keys metadata has layout-1 topics (/pd/<s>/...); one recorded with
     another PD_PARTITIONS has other partition chunks: both read back with this process's keys."""

@@ -6,6 +6,7 @@ equals the daemon's Prediction for the same step."""
 from __future__ import annotations
 
 import json
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -25,7 +26,10 @@ TOPICS = ["/s1/pose", "/s1/ellipse", "/s1/prediction", "/s1/measurement", "/s1/c
           "/s1/status", "/s1/log"]
 
 
-def test_pose_equals_the_daemons_prediction(tmp_path):
+@contextmanager
+def viz_on_paper(tmp_path):
+    """The daemon core running the paper scenario (session s1, 60 steps) on the in-memory
+    bus, pd-viz serving it, and a Foxglove client connected: (feed, collector, client)."""
     bus = InMemoryBus()
     clock = Clock(0)
     col = Collector().attach(bus.transport())
@@ -35,6 +39,15 @@ def test_pose_equals_the_daemons_prediction(tmp_path):
     server = VizServer(bus.transport(), ["s1"], port=0, xy=(0, 2), status_every=0)
     client = FoxgloveClient(server.url)
     try:
+        yield feed, col, client
+    finally:
+        client.close()
+        server.close()
+        core.close()
+
+
+def test_pose_equals_the_daemons_prediction(tmp_path):
+    with viz_on_paper(tmp_path) as (feed, col, client):
         client.wait_channels(TOPICS)
         assert client.server_info is not None
         assert client.subprotocol == "foxglove.sdk.v1"
@@ -43,10 +56,6 @@ def test_pose_equals_the_daemons_prediction(tmp_path):
         for k in range(60):
             feed.step(k)
         client.pump(1.0)
-    finally:
-        client.close()
-        server.close()
-        core.close()
     preds = {p.t_ns: p for p in col.predictions["s1"]}
     Pose = client.protobuf_class("/s1/pose")
     poses = [Pose.FromString(data) for _, data in client.messages.get("/s1/pose", [])]
@@ -85,3 +94,55 @@ def test_position_and_ellipse_helpers():
     assert np.allclose(pts, [[5.0, 2.0], [1.0, 4.0], [-3.0, 2.0], [1.0, 0.0]]) or np.allclose(
         np.sort(pts, axis=0), np.sort(np.array([[5.0, 2.0], [1.0, 4.0], [-3.0, 2.0],
                                                 [1.0, 0.0]]), axis=0))
+
+
+def plotjuggler_lists(channel: dict) -> bool:
+    """PlotJuggler 3.16+'s Foxglove client keeps a channel only if this holds
+    (plotjuggler_plugins/DataStreamFoxgloveBridge/foxglove_client.cpp, canUseChannel)."""
+    return (channel.get("encoding") == "cdr" and channel.get("schemaEncoding") == "ros2msg"
+            and bool(channel.get("schema")) and bool(channel.get("schemaName"))
+            and bool(channel.get("topic")))
+
+
+def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
+    """The ros2/* channels pass PlotJuggler's filter (the others do not: it lists nothing
+    else), and rosbags (an independent ROS 2 message and CDR implementation) reads their
+    messages, from the advertised definition alone, as the daemon's predictions."""
+    rosbags = pytest.importorskip("rosbags.typesys")
+
+    series = ["/s1/ros2/prediction", "/s1/ros2/status"]
+    with viz_on_paper(tmp_path) as (feed, col, client):
+        client.wait_channels(TOPICS)
+        assert not [t for t, ch in client.channels.items() if plotjuggler_lists(ch)]
+        pred = client.channels["/s1/prediction"]  # JSON: a real schema with a stable name
+        assert (pred["schemaName"], pred["schemaEncoding"]) == ("pd_viz.Prediction", "jsonschema")
+        assert json.loads(pred["schema"])["properties"]["step"] == {"type": "integer"}
+        for k in range(10):
+            feed.step(k)
+        client.wait_channels(series)  # advertised at the first prediction
+        listed = sorted(t for t, ch in client.channels.items() if plotjuggler_lists(ch))
+        assert listed == series
+        client.subscribe(series)
+        client.pump(0.5)
+        for k in range(10, 60):
+            feed.step(k)
+        client.pump(1.0)
+    ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
+    for t in series:
+        ch = client.channels[t]
+        own = ch["schema"].split("\n" + "=" * 80)[0]  # the message; its dependency is Jazzy's
+        ts.register(rosbags.get_types_from_msg(own, ch["schemaName"]))
+    by_step = {p.step: p for p in col.predictions["s1"]}
+    ch = client.channels["/s1/ros2/prediction"]
+    assert ch["schemaName"] == "pd_viz_msgs/msg/S1Prediction"
+    msgs = [ts.deserialize_cdr(d, ch["schemaName"]) for _, d in client.messages[series[0]]]
+    assert len(msgs) >= 40
+    for m in msgs:
+        p = by_step[m.step]
+        assert m.stamp.sec * 10**9 + m.stamp.nanosec == p.t_ns
+        assert m.newest_step == (-1 if p.newest_step is None else p.newest_step)
+        assert [m.x_x0, m.x_x1, m.x_x2, m.x_x3] == p.x.tolist()  # no truth: names x0..x3
+        assert m.sd_x2 == np.sqrt(p.P[2, 2]) and m.latency_ms >= 0
+    st = [ts.deserialize_cdr(d, client.channels[series[1]]["schemaName"])
+          for _, d in client.messages[series[1]]]
+    assert st[-1].accepted == col.predictions["s1"][-1].counters["accepted"]

@@ -5,13 +5,19 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
+import socket
+import subprocess
+import threading
 import time
+import urllib.error
 import urllib.request
 
 import numpy as np
 import pytest
 
 from pd_client.tools import pd_web
+from pd_client.tools.web_fanout import Fanout
 from pd_client.tools.web_feed import LiveFeed, ellipse_2sigma, position_layout
 from pd_client.truth import Truth
 from pd_service.scenarios import get_scenario
@@ -133,10 +139,10 @@ def test_warnings_when_predictions_stop_and_a_sensor_goes_silent(feed) -> None:
     t.put(keys.prediction_key("paper"), encode(pred("paper", 131, np.zeros(4), np.eye(4))))
     clock.mono += 0.8  # camera: 1.3 s without a sample; predictions: 0.8 s
     warn = json.loads(f.tick())["sessions"]["paper"]["warn"]
-    assert warn == ["sensor camera silent for 1.3 s"]
+    assert warn == [["sensor camera silent", pytest.approx(1.3)]]
     clock.mono += 1.0
     warn = json.loads(f.tick())["sessions"]["paper"]["warn"]
-    assert warn == ["no prediction for 1.8 s", "sensor camera silent for 2.3 s"]
+    assert warn == [["no prediction", pytest.approx(1.8)], ["sensor camera silent", pytest.approx(2.3)]]
 
 
 def _get(url: str) -> bytes:
@@ -178,6 +184,7 @@ def test_server_serves_page_events_and_state() -> None:
         assert [(e["k"], e["i"]) for e in preds] == [(7, 1), (8, 2)]
         state = json.loads(_get(server.url + "state.json"))
         assert state["sessions"] == {"s1": 2} and state["published"] >= 2
+        assert state["max_clients"] == pd_web.MAX_CLIENTS and state["refused"] == 0
         with pytest.raises(urllib.error.HTTPError):
             _get(server.url + "nothing-here")
     finally:
@@ -219,7 +226,171 @@ def test_a_robot_clock_warning_from_the_daemon_joins_the_session_warnings(feed) 
     t.queryable(keys.status_key("bot"), answer)
     f.poll_status(timeout=0.1)
     tick = json.loads(f.tick())
-    assert "clock: robot clock offset jumped" in tick["sessions"]["bot"]["warn"]
+    assert "clock: robot clock offset jumped" in [w for w, _ in tick["sessions"]["bot"]["warn"]]
     warning[0] = ""
     f.poll_status(timeout=0.1)
-    assert not any("clock" in w for w in json.loads(f.tick())["sessions"]["bot"]["warn"])
+    assert not any("clock" in w for w, _ in json.loads(f.tick())["sessions"]["bot"]["warn"])
+
+
+# --- serving many pages ----------------------------------------------------------------------
+
+_RECEIVED: dict[int, int] = {}
+
+
+def _received(sock: socket.socket) -> int:
+    return _RECEIVED.get(sock.fileno(), 0)
+
+
+def _read_events(sock: socket.socket, want: int, timeout: float = 10.0) -> list[bytes]:
+    """The ``data:`` payloads of the first ``want`` events on a Server-Sent Events socket."""
+    sock.settimeout(timeout)
+    chunks: list[bytes] = []
+    count = 0
+    while count < want:
+        chunk = sock.recv(1 << 16)
+        assert chunk, "stream closed early"
+        chunks.append(chunk)
+        count += chunk.count(b"\n\n")
+        _RECEIVED[sock.fileno()] = count
+    return [e[len(b"data: "):] for e in b"".join(chunks).split(b"\n\n")[:want]]
+
+
+def test_fanout_batches_once_and_cuts_only_the_page_that_does_not_read() -> None:
+    fan = Fanout(max_clients=3, buffer_limit=256 << 10).start()
+    pages = [socket.socketpair() for _ in range(2)]
+    try:
+        for ours, _ in pages:
+            assert fan.reserve()
+            fan.attach(ours, b"data: first\n\n")
+        reader, idle = pages[0][1], pages[1][1]
+        idle.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        n, body = 3000, b"x" * 1000
+        got: list[bytes] = []
+        t = threading.Thread(target=lambda: got.extend(_read_events(reader, n + 1)))
+        t.start()
+        for i in range(n):
+            fan.publish(b'{"i":%d,"pad":"%s"}' % (i, body))
+            if i % 100 == 99:  # the reader keeps up (its bytes stay under the limit)
+                deadline = time.monotonic() + 10
+                while fan.published - _received(reader) > 100 and time.monotonic() < deadline:
+                    time.sleep(0.005)
+        t.join(20)
+        assert got[0] == b"first"
+        assert [json.loads(e)["i"] for e in got[1:]] == list(range(n))  # all, in order
+        assert fan.published == n and fan.batches < n  # joined into batches, not one per event
+        # the idle page's unsent bytes passed the limit: closed, counted, its place given back
+        assert fan.cut == 1 and fan.listeners == 1
+        idle.settimeout(5)
+        while idle.recv(1 << 16):
+            pass  # EOF: the fan-out closed it
+        assert fan.reserve() and fan.reserve() and not fan.reserve() and fan.refused == 1
+    finally:
+        fan.close()
+        for a, b in pages:
+            a.close()
+            b.close()
+
+
+def _events_request(url: str, host: str | None = None) -> socket.socket:
+    h, port = url.split("//")[1].rstrip("/").split(":")
+    sock = socket.create_connection((h, int(port)), timeout=5)
+    sock.sendall(f"GET /events HTTP/1.1\r\nHost: {host or f'{h}:{port}'}\r\n\r\n".encode())
+    return sock
+
+
+def _status_and_body(sock: socket.socket) -> tuple[int, bytes]:
+    sock.settimeout(5)
+    buf = b""
+    while b"\r\n\r\n" not in buf:
+        chunk = sock.recv(4096)
+        if not chunk:
+            break
+        buf += chunk
+    head, _, body = buf.partition(b"\r\n\r\n")
+    length = [int(h.split(b":")[1]) for h in head.lower().split(b"\r\n") if h.startswith(b"content-length:")]
+    while length and len(body) < length[0]:
+        body += sock.recv(4096)
+    return int(head.split()[1]), body
+
+
+def test_page_cap_refuses_with_503_and_a_reason() -> None:
+    bus = InMemoryBus()
+    server = pd_web.WebServer(bus.transport(), "127.0.0.1", 0, max_clients=2).start()
+    socks = []
+    try:
+        for _ in range(2):
+            socks.append(_events_request(server.url))
+            assert _status_and_body(socks[-1])[0] == 200
+        with pytest.raises(urllib.error.HTTPError) as err:
+            _get(server.url + "events")
+        assert err.value.code == 503
+        assert b"2 pages are connected" in err.value.read()
+        assert json.loads(_get(server.url + "state.json"))["refused"] == 1
+        socks.pop().close()  # a page leaves: its place is free again
+        deadline = time.monotonic() + 10
+        while server.fanout.listeners != 1 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        socks.append(_events_request(server.url))
+        assert _status_and_body(socks[-1])[0] == 200
+    finally:
+        for s in socks:
+            s.close()
+        server.close()
+
+
+def test_host_header_is_checked_against_dns_rebinding() -> None:
+    bus = InMemoryBus()
+    server = pd_web.WebServer(bus.transport(), "127.0.0.1", 0, allow_hosts=["Display.Lab"]).start()
+    port = server.httpd.server_address[1]
+    try:
+        for host, status in ((f"evil.example:{port}", 403), ("evil.example", 403),
+                             (f"localhost:{port}", 200), (f"127.0.0.1:{port}", 200),
+                             ("[::1]:80", 200), (f"display.lab.:{port}", 200)):
+            sock = _events_request(server.url, host) if status == 403 else None
+            if sock is None:  # a page request with that Host
+                sock = socket.create_connection(("127.0.0.1", port), timeout=5)
+                sock.sendall(f"GET / HTTP/1.1\r\nHost: {host}\r\n\r\n".encode())
+            code, body = _status_and_body(sock)
+            sock.close()
+            assert code == status, (host, code)
+            if status == 403:
+                assert b"DNS rebinding" in body
+        assert server.state()["hosts_refused"] == 2 and server.fanout.listeners == 0
+    finally:
+        server.close()
+
+
+@pytest.mark.skipif(shutil.which("ss") is None, reason="needs ss (iproute2) to read the backlog")
+def test_listen_backlog_takes_a_burst() -> None:
+    bus = InMemoryBus()
+    server = pd_web.WebServer(bus.transport(), "127.0.0.1", 0)
+    try:
+        port = server.httpd.server_address[1]
+        out = subprocess.run(["ss", "-ltnH", f"sport = :{port}"], capture_output=True, text=True,
+                             check=True).stdout.split()
+        assert out[0] == "LISTEN" and int(out[2]) == pd_web.LISTEN_BACKLOG >= 128  # Send-Q
+    finally:
+        server.close()
+
+
+def test_a_client_that_leaves_early_logs_one_line(capsys) -> None:
+    bus = InMemoryBus()
+    server = pd_web.WebServer(bus.transport(), "127.0.0.1", 0)
+    server.files["app.js"] = b"//" + b"x" * (16 << 20)  # more than the sockets buffer
+    server.start()
+    try:
+        sock = socket.create_connection(("127.0.0.1", server.httpd.server_address[1]), timeout=5)
+        sock.sendall(b"GET /app.js HTTP/1.1\r\nHost: localhost\r\n\r\n")
+        assert sock.recv(16)  # the server is writing
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+        sock.close()  # a reset, mid-reply
+        deadline = time.monotonic() + 10
+        err = ""
+        while "left before" not in err and time.monotonic() < deadline:
+            time.sleep(0.05)
+            err += capsys.readouterr().err
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and "left before its reply was written" in lines[0], err
+        assert "Traceback" not in err
+    finally:
+        server.close()

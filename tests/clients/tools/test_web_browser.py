@@ -7,8 +7,11 @@ driven by Selenium) loads the page.
    test subscribes to ``pd/paper/prediction`` too), pause freezes it, and a warning appears
    when the robot simulator is stopped, and the page keeps its last state when pd-web
    stops. Screenshots: ``out/web/live.png``, ``out/web/warning.png``.
-2. Load: 10 sessions at 20 Hz each (an in-process server on the in-memory bus): every event
-   reaches the page, in order; the lag (page receipt - server send) is printed, not asserted.
+2. Names: a session named ``constructor`` is shown like any other; a name carrying markup
+   is written as text.
+3. Load: 10 pages and 200 idle connections while 10 sessions publish at 20 Hz each (an
+   in-process server on the in-memory bus): every event reaches every page, in order; the
+   lag (page receipt - server send) is printed, not asserted.
 
 ``make test`` installs chromium and chromium-driver when they are missing and it can (root,
 apt-get); otherwise this module skips and says why.
@@ -18,8 +21,9 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
-import threading
+import socket
 import time
 import urllib.request
 
@@ -30,6 +34,7 @@ from pd_client import Admin, Display
 from pd_client.tools import pd_web
 from pd_service.transport import InMemoryBus
 from pd_service.wire import Prediction, encode, keys
+from pd_service.wire.truth import Truth
 
 from .test_integration import ROOT, Procs, _open_when_listening, free_port
 
@@ -86,6 +91,13 @@ return {session: tb.dataset.session || null, k: tb.dataset.k || null, seq: tb.da
 
 def read(driver) -> dict:
     return driver.execute_script(READ_VALUES)
+
+
+def silent_age(warn: str) -> float:
+    """Seconds of "sensor camera silent for <s> s" in the banner."""
+    m = re.search(r"sensor camera silent for ([0-9.]+) s", warn)
+    assert m, warn
+    return float(m.group(1))
 
 
 @pytest.fixture
@@ -180,7 +192,8 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
         assert browser.find_element("id", "warn").is_displayed()
         browser.save_screenshot(str(OUT / "warning.png"))
 
-        # pd-web stops: the page keeps its last state and says the stream is lost.
+        # pd-web stops: the page keeps its last state and says the stream is lost; the
+        # warning's ages go on counting.
         last_k = read(browser)["k"]
         web.send_signal(signal.SIGTERM)
         assert web.wait(15) == 0, procs.log("web")
@@ -188,6 +201,9 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
                    lambda: "stream lost" in browser.find_element("id", "conn").text, timeout=15)
         v = read(browser)
         assert v["k"] is not None and int(v["k"]) >= int(last_k) and len(v["rows"]) == 2
+        silent = wait_until("a later age", lambda: (lambda a: a if a > silent_age(v["warn"]) else None)(
+            silent_age(read(browser)["warn"])), timeout=5)
+        assert silent > silent_age(v["warn"])
         print(f"\npd-web live chain: compared {checked} frames (steps {min(steps)}..{max(steps)}); "
               f"warning: {v['warn']!r}; screenshots in {OUT}")
         display.close()
@@ -195,53 +211,155 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
         transport.close()
 
 
-SESSIONS, RATE_HZ, SECONDS = 10, 20.0, 6.0
+def test_names_like_object_properties_and_markup_are_shown_as_names(browser) -> None:
+    """A session named ``constructor`` (valid per protocol.md section 2) is a session like any
+    other; a name carrying markup (the wire refuses it; the page must not rely on that) is
+    shown as text, never parsed as HTML."""
+    from selenium.webdriver.support.ui import Select
 
-
-def test_page_keeps_up_with_10_sessions_at_20_hz(browser) -> None:
     bus = InMemoryBus()
     transport = bus.transport()
     server = pd_web.WebServer(transport, "127.0.0.1", 0).start()
     try:
         browser.get(server.url)
-        wait_until("the page to listen", lambda: server.hub.listeners >= 1, timeout=15)
+        wait_until("the page to listen", lambda: server.fanout.listeners >= 1, timeout=15)
+        names = ["p1", "v1", "p2", "v2"]
+        sent = {}
+        for s, off in (("constructor", 5.0), ("paper", 1.0)):
+            transport.put(keys.truth_key(s), encode(Truth(session=s, step=12, t_ns=0, names=names,
+                                                          x=np.array([off, 0.0, off + 1, 0.0]))))
+            sent[s] = Prediction(session=s, seq=3, step=12, t_ns=0, x=np.array([off, 0.5, off + 1, 0.25]),
+                                 P=np.diag([0.04, 0.01, 0.09, 0.01]), newest_step=2,
+                                 made_ns=time.time_ns(), counters={"accepted": 3})
+            transport.put(keys.prediction_key(s), encode(sent[s]))
+        overview = ("return Array.from(document.getElementById('overview').rows)"
+                    ".map((r) => [r.dataset.session, r.cells[1].textContent])")
+        rows = wait_until("both sessions in the overview",
+                          lambda: (lambda r: r if len(r) == 2 else None)(browser.execute_script(overview)))
+        assert rows == [["constructor", "1"], ["paper", "1"]]
+        for s in ("constructor", "paper", "constructor"):
+            Select(browser.find_element("id", "session")).select_by_value(s)
+            v = read(browser)
+            assert v["session"] == s and int(v["k"]) == 12
+            assert [float(r["x"]) for r in v["rows"]] == [sent[s].x[0], sent[s].x[2]]
+            assert [float(r["truth"]) for r in v["rows"]] == [sent[s].x[0], sent[s].x[2] - 0.0]
+
+        markup = "<img src=x onerror=window.pwned=1>"
+        browser.execute_script("""onEvent({type: "pred", i: 99, s: arguments[0], ts: Date.now(),
+            k: 1, seq: 1, now: 0, lead: 1, period_ms: 50, names: [arguments[0], "v"], pos: [0],
+            layout: "axis", x: [1, 2], var: [1, 1], ell: null, meas: {}, truth: null, err: null,
+            delay_ms: {}, lat_ms: 1, c: {accepted: 1}, cmd: null});""", markup)
+        wait_until("the picker to list it", lambda: browser.execute_script(
+            "return Array.from(document.getElementById('session').options)"
+            ".some((o) => o.value === arguments[0])",
+            markup))
+        Select(browser.find_element("id", "session")).select_by_value(markup)
+        shown = browser.execute_script("""return {imgs: document.querySelectorAll('img').length,
+            pwned: window.pwned === undefined ? null : window.pwned,
+            cell: document.getElementById('values').rows[0].cells[0].textContent,
+            row: Array.from(document.getElementById('overview').rows).map((r) => r.cells[0].textContent)};""")
+        assert shown == {"imgs": 0, "pwned": None, "cell": markup,
+                         "row": sorted(["constructor", "paper", markup])}
+    finally:
+        server.close()
+
+
+PAGES, IDLE = 10, 200
+SESSIONS, RATE_HZ, SECONDS = 10, 20.0, 6.0
+
+
+def test_pages_keep_up_with_10_sessions_at_20_hz_and_200_idle_connections(browser) -> None:
+    """10 pages (tabs; half on 127.0.0.1, half on localhost: a browser opens at most 6
+    connections per host) and 200 idle Server-Sent Events connections (they never read) while
+    10 sessions publish at 20 Hz. Every event reaches every page, in order; the lag (page
+    receipt - server send) of each page is printed, not asserted."""
+    bus = InMemoryBus()
+    transport = bus.transport()
+    server = pd_web.WebServer(transport, "127.0.0.1", 0).start()
+    port = server.httpd.server_address[1]
+    idle: list[socket.socket] = []
+    tabs = [browser.current_window_handle]
+    try:
+        browser.get(server.url)
+        for j in range(1, PAGES):
+            browser.switch_to.new_window("tab")
+            browser.get(f"http://{'localhost' if j % 2 else '127.0.0.1'}:{port}/")
+            tabs.append(browser.current_window_handle)
+        browser.switch_to.window(tabs[0])
+        wait_until("the pages to listen", lambda: server.fanout.listeners >= PAGES, timeout=30)
+        for _ in range(IDLE):
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # reads nothing: small
+            sock.connect(("127.0.0.1", port))
+            sock.sendall(b"GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n")
+            idle.append(sock)
+        wait_until("the idle connections", lambda: server.fanout.listeners >= PAGES + IDLE, timeout=30)
         names = [f"s{i:02d}" for i in range(SESSIONS)]
         P = np.diag([0.04, 0.01, 0.09, 0.01])
         ticks = int(SECONDS * RATE_HZ)
         t0 = time.monotonic()
-
-        def publish() -> None:
-            for k in range(ticks):
-                now = time.time_ns()
-                for j, s in enumerate(names):
-                    x = np.array([0.1 * k, 1.0, 0.1 * k + j, 0.5])
-                    transport.put(keys.prediction_key(s), encode(Prediction(
-                        session=s, seq=k, step=k + 10, t_ns=now, x=x, P=P, newest_step=k,
-                        made_ns=now, counters={"accepted": k})))
-                delay = t0 + (k + 1) / RATE_HZ - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-
-        pub = threading.Thread(target=publish)
-        pub.start()
-        pub.join()
+        for k in range(ticks):
+            now = time.time_ns()
+            for j, s in enumerate(names):
+                x = np.array([0.1 * k, 1.0, 0.1 * k + j, 0.5])
+                transport.put(keys.prediction_key(s), encode(Prediction(
+                    session=s, seq=k, step=k + 10, t_ns=now, x=x, P=P, newest_step=k,
+                    made_ns=now, counters={"accepted": k})))
+            delay = t0 + (k + 1) / RATE_HZ - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
         sent_s = time.monotonic() - t0
         sent = SESSIONS * ticks
         assert server.feed.events == sent
-        st = wait_until("the page to receive every event",
-                        lambda: (lambda s: s if int(s["received"]) >= sent else None)(read(browser)["stats"]),
-                        timeout=30)
-        assert int(st["received"]) == sent and int(st["gaps"]) == 0  # none lost, none reordered
-        assert server.hub.dropped == 0
+        page_stats = """const l = stats.lags.slice().sort((a, b) => a - b);
+            const q = (p) => (l.length ? l[Math.min(l.length - 1, Math.floor(p * l.length))] : 0);
+            return {received: stats.received, gaps: stats.gaps, p50: q(0.5), p95: q(0.95),
+                    max: stats.maxLag};"""
+        per_page = []
+        for h in tabs:
+            browser.switch_to.window(h)
+            st = wait_until("the page to receive every event", lambda: (
+                lambda s: s if s["received"] >= sent else None)(browser.execute_script(page_stats)),
+                timeout=30)
+            assert st["received"] == sent and st["gaps"] == 0  # none lost, none reordered
+            per_page.append(st)
+        browser.switch_to.window(tabs[0])
         state = json.loads(urllib.request.urlopen(server.url + "state.json", timeout=5).read())
+        assert state["cut"] == 0 and state["listeners"] == PAGES + IDLE
         weight = pd_web.page_weight()
-        print(f"\npd-web page weight: {weight} bytes (HTML+JS+CSS); "
-              f"{SESSIONS} sessions x {RATE_HZ:g} Hz for {sent_s:.1f} s: sent {sent} "
-              f"({sent / sent_s:.0f}/s), page received {st['received']}, gaps {st['gaps']}, "
-              f"lag p50 {st['lagP50']} ms, p95 {st['lagP95']} ms, max {st['lagMax']} ms; "
-              f"listeners {state['listeners']}")
+        p95 = sorted(p["p95"] for p in per_page)
+        print(f"\npd-web page weight: {weight} bytes (HTML+JS+CSS); {SESSIONS} sessions x "
+              f"{RATE_HZ:g} Hz for {sent_s:.1f} s: sent {sent} ({sent / sent_s:.0f}/s) to {PAGES} "
+              f"pages + {IDLE} idle connections in {state['batches']} batches; every page received "
+              f"all, gaps 0; live page lag p50 {per_page[0]['p50']:.0f} ms, p95 "
+              f"{per_page[0]['p95']:.0f} ms, max {per_page[0]['max']:.0f} ms; p95 over the "
+              f"{PAGES} pages {p95[0]:.0f}..{p95[-1]:.0f} ms (shared machine)")
         OUT.mkdir(parents=True, exist_ok=True)
         browser.save_screenshot(str(OUT / "load.png"))
     finally:
+        for sock in idle:
+            sock.close()
+        for h in tabs[1:]:
+            browser.switch_to.window(h)
+            browser.close()
+        browser.switch_to.window(tabs[0])
         server.close()
 
+
+def test_a_page_over_the_cap_says_why(browser) -> None:
+    """At the page cap the stream is refused (503): the page says so, with pd-web's reason."""
+    bus = InMemoryBus()
+    server = pd_web.WebServer(bus.transport(), "127.0.0.1", 0, max_clients=1).start()
+    holder = socket.create_connection(("127.0.0.1", server.httpd.server_address[1]), timeout=5)
+    try:
+        holder.sendall(b"GET /events HTTP/1.1\r\nHost: localhost\r\n\r\n")
+        wait_until("the first connection", lambda: server.fanout.listeners == 1, timeout=10)
+        browser.get(server.url)
+        text = wait_until("the refusal on the page", lambda: (
+            lambda t: t if "pages are connected" in t else None)(
+            browser.find_element("id", "conn").text), timeout=15)
+        assert text.startswith("stream refused: pd-web: 1 pages are connected, its cap")
+        assert server.fanout.refused >= 1
+    finally:
+        holder.close()
+        server.close()

@@ -41,6 +41,9 @@ def test_a_damaged_end_drops_only_what_follows_it(tmp_path, caplog):
         again = CheckpointLog(tmp_path)
         assert again.get("a") == b"a1" and again.get("b") == b"b1"
     assert "checkpoint_log_damaged" in caplog.text
+    assert again.damaged is not None and f"byte {len(whole) - len(record('a', b'a2-newer'))}" \
+        in again.damaged
+    assert CheckpointLog(tmp_path).damage() == again.damaged  # read on the way
     # a flipped byte inside a record: its CRC fails, reading stops before it
     flipped = bytearray(whole)
     flipped[len(MAGIC) + 12] ^= 0xFF  # inside the first record's name
@@ -59,6 +62,7 @@ def test_a_file_that_is_not_a_log_is_set_aside(tmp_path):
     log = CheckpointLog(tmp_path)
     assert log.sessions() == []
     assert names(tmp_path) == [LOG_NAME + ".bad"]
+    assert log.damaged is not None and "no PDCKLOG1 magic" in log.damaged
     os.mkfifo(tmp_path / "x")
     (tmp_path / LOG_NAME).unlink(missing_ok=True)
     (tmp_path / LOG_NAME).symlink_to(tmp_path / "x")  # a symlink to a FIFO: never opened

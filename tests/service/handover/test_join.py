@@ -54,13 +54,15 @@ def pair_with_sessions(bus, clock, tmp_path, cli, n=40, **kw):
 def test_a_join_hands_the_moved_sessions_over_exactly(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
-    a, b, names, moving, s, old = pair_with_sessions(bus, clock, tmp_path, cli)
+    # no sender cache to wait for (the read-back: test_keeper)
+    a, b, names, moving, s, old = pair_with_sessions(bus, clock, tmp_path, cli,
+                                                     recover_samples=0)
     before = {n: "inst-a" if n in a.served_sessions() else "inst-b" for n in names}
     d = Driver(cli, clock, col, s)
     for k in range(30):
         d.step([a, b], k)
     sent0 = a.counters["replicas_handover_join"] + b.counters["replicas_handover_join"]
-    c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO)
+    c = make_core(bus, clock, tmp_path, "inst-c", peers=TRIO, recover_samples=0)
     assert s in c.lifecycle.awaiting and s not in c.served_sessions()  # not from the prior
     settle(a, b, c)  # a and b see c: they hand the moved sessions over, c resumes them
     assert not c.lifecycle.awaiting

@@ -1,7 +1,8 @@
 """Restart from a checkpoint and takeover from a replica, on the in-memory bus: the resumed
 session's predictions equal an offline estimator that saw what the checkpoint / replica held
-plus what the new instance accepted; stale, corrupt, other-spec and other-version states are
-refused (counted, reported) and the session starts from its prior."""
+plus what the new instance accepted (a stale one propagated forward); future, corrupt,
+other-spec and other-version states are refused (counted, reported) and the session starts
+from its prior."""
 
 from __future__ import annotations
 
@@ -14,9 +15,11 @@ import pytest
 
 from pd_service.backends import build
 from pd_service.service import ServiceCore, Settings, SpecStore
-from pd_service.service.handover.keeper import replica_key
+from pd_service.service.handover.checkpoint_log import LOG_NAME, MAGIC
+from pd_service.service.handover.keeper import checkpoint_key, replica_key
 from pd_service.service.session import READ_BACK_COPIES
 from pd_service.transport import InMemoryBus, Sample
+from pd_service.transport.keyexpr import check_keyexpr
 from pd_service.wire import SessionState, SessionStatus, decode, encode, keys
 
 from ..helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
@@ -83,7 +86,10 @@ def two_instances(bus, clock, tmp_path, cli, sessions: int = 12, peers=PAIR, **k
     settle(a, b)
     return a, b, names
 
-def test_restart_resumes_from_the_checkpoint_exactly(tmp_path):
+@pytest.mark.parametrize("gap", [3, 40])
+def test_restart_resumes_from_the_checkpoint_exactly(tmp_path, gap):
+    """Restarted ``gap`` steps after the crash: within the window (3) or long after it (40
+    steps, more than 3 windows): the stale checkpoint is propagated forward, not dropped."""
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
     a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
@@ -95,17 +101,21 @@ def test_restart_resumes_from_the_checkpoint_exactly(tmp_path):
     assert a.counters["checkpoints"] >= 5 and d.snap is not None
     a.t.close()  # a crash: nothing flushed, nothing said
     ref = d.snap  # what the newest checkpoint held; the steps after it are lost
-    b = make_core(bus, clock, tmp_path)
+    clock.t = int((40 + gap) * PERIOD_NS)  # the restart (no sender cache to wait for)
+    b = make_core(bus, clock, tmp_path, recover_samples=0)
     d.off = ref
-    for k in range(43, 70):  # restarted 3 steps later, within one window (max_delay 12)
+    for k in range(40 + gap, 70 + gap):  # max_delay is 12 steps
         d.step([b], k)
         d.check(k, ref)
     st = status(cli, "s1")
     assert st.origin == "checkpoint" and st.origin_step is not None and 30 <= st.origin_step < 40
     assert b.counters["resumed_from_checkpoint"] == 1
+    assert b.counters["resumed_stale"] == (gap > d.spec.max_delay)
+    assert b.counters["restore_refused"] == 0
     # the run from the prior would be far off: P(p2) back near the prior's 100
     fresh = build(d.spec).est
-    assert float(col.predictions["s1"][-1].P[1, 1]) < 0.1 * float(fresh.predict(43).P[1, 1])
+    assert float(col.predictions["s1"][-1].P[1, 1]) < 0.1 * float(
+        fresh.predict(40 + gap).P[1, 1])
 
 
 def _checkpointed(tmp_path, steps=20):
@@ -127,7 +137,7 @@ def _tamper(store, **update):
 
 
 @pytest.mark.parametrize("how, reason", [
-    ("stale", "stale"),
+    ("future", "future"),
     ("corrupt", "corrupt"),
     ("spec", "spec"),
     ("version", "version"),
@@ -140,8 +150,8 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     data = store.load_state("s1")
     assert data is not None
     restart_step = 19
-    if how == "stale":
-        restart_step = 19 + d.spec.max_delay + 2
+    if how == "future":
+        _tamper(store, now_step=restart_step + 5)
     elif how == "corrupt":
         store.save_state("s1", data[:-7])
     elif how == "spec":
@@ -151,14 +161,16 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     elif how == "misfit":
         _tamper(store, kind="ImmObserverPredictor")
     clock.t = int((restart_step + 0.1) * PERIOD_NS)
-    b = make_core(bus, clock, tmp_path)
+    b = make_core(bus, clock, tmp_path, recover_samples=0)
     assert b.counters["restore_refused"] == 1
     assert b.counters[f"restore_refused_{reason}"] == 1
     st = status(cli, "s1")
     assert st.origin == "prior" and st.origin_step is None
     assert st.counters.get("restore_refused") == 1
     b.run_once()  # the ErrorReport leaves with the first flush
-    assert any(f"({reason})" in e.reason for e in col.errors["s1"])
+    (rep,) = [e for e in col.errors["s1"] if f"({reason})" in e.reason]
+    assert rep.key == checkpoint_key(b.instance, "s1") == f"pd/@service/{b.instance}/checkpoint/s1"
+    check_keyexpr(rep.key)
     clock.t = int((restart_step + 0.6) * PERIOD_NS)
     b.run_once()  # the tick: a prediction from the prior
     prior = build(d.spec).est.predict(restart_step)
@@ -166,10 +178,30 @@ def test_a_bad_checkpoint_is_refused_and_the_session_starts_from_its_prior(tmp_p
     np.testing.assert_allclose(col.predictions["s1"][-1].P, prior.P, rtol=1e-9)
 
 
-def test_takeover_resumes_from_the_replica_exactly(tmp_path):
+def test_a_damaged_checkpoint_log_is_counted_and_reported(tmp_path):
+    bus, clock, col, cli, d = _checkpointed(tmp_path)
+    path = tmp_path / "a" / LOG_NAME
+    buf = bytearray(path.read_bytes())
+    buf[len(MAGIC) + 12] ^= 0xFF  # inside the first record: its CRC fails, nothing read
+    path.write_bytes(bytes(buf))
+    clock.t = int(19.1 * PERIOD_NS)
+    b = make_core(bus, clock, tmp_path, recover_samples=0)
+    assert b.counters["checkpoint_log_damaged"] == 1
+    assert b.counters["restore_refused_damaged"] == 1 and b.counters["restore_refused"] == 1
+    b.run_once()
+    (rep,) = [e for e in col.errors["s1"] if "(damaged)" in e.reason]
+    assert "fails its CRC" in rep.reason and rep.key == checkpoint_key(b.instance, "s1")
+    assert status(cli, "s1").origin == "prior"
+
+
+@pytest.mark.parametrize("gap", [1, 30])
+def test_takeover_resumes_from_the_replica_exactly(tmp_path, gap):
+    """Taken over ``gap`` steps after the owner died: a replica older than the window (30
+    steps, max_delay 12) is propagated forward, exact to its reference as well."""
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
-    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3,
+                                recover_samples=0)  # no sender cache to wait for
     owner_of = {s: ("inst-a" if s in a.served_sessions() else "inst-b") for s in names}
     s = next(n for n in names if owner_of[n] == "inst-a")  # a serves it, b is its successor
     assert a.ownership.successor(s) == "inst-b"
@@ -180,16 +212,18 @@ def test_takeover_resumes_from_the_replica_exactly(tmp_path):
     held = decode(b.keeper.replicas[s][1], SessionState)
     assert held.session == s and held.instance == "inst-a"
     a.t.close()  # a dies; b learns it through liveliness (the bus drops a's token)
+    clock.t = int((40 + gap) * PERIOD_NS)
     b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
     b.run_once()  # takes the session over (inputs sent before that reach nobody)
     ref = d.snap
     d.off = ref
-    for k in range(41, 60):
+    for k in range(40 + gap, 60 + gap):
         d.step([b], k)
         d.check(k, ref)
     st = status(cli, s)
     assert st.instance == "inst-b" and st.origin == "replica"
     assert b.counters["resumed_from_replica"] >= 1
+    assert b.counters["resumed_stale"] == (gap > d.spec.max_delay)
 
 
 def test_a_replica_for_another_spec_is_refused(tmp_path):
@@ -264,7 +298,8 @@ def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
     # replicas every 100 s: only the handover can carry the newest state
-    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=100.0)
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=100.0,
+                                recover_samples=0)  # no sender cache to wait for
     s = next(n for n in names if n in a.served_sessions())
     d = Driver(cli, clock, col, s)
     for k in range(40):
@@ -605,7 +640,7 @@ def test_takeover_reads_back_what_the_senders_kept(tmp_path):
         d.step([b], k)
         d.check(k, d.off)  # as if it never stopped
     c = b.counters
-    assert status(cli, s).origin == "replica"
+    assert status(cli, s).origin == "replica" and status(cli, s).readback == "answered"
     assert c["recovered_accepted"] > 0 and c["recovered_duplicate"] > 0
     assert c["refused"] == 0 and len(col.errors[s]) == errors_before
 
@@ -763,3 +798,35 @@ def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
     assert not sess.take_read_back_copy(b"m0", now_step)  # the oldest went first
     assert len(sess.read_back_copies) < READ_BACK_COPIES  # expired ones purged
     assert sess.take_read_back_copy(b"m%d" % (READ_BACK_COPIES + 99), now_step)
+
+
+def test_a_restored_session_waits_for_its_senders_caches_or_the_bound(tmp_path):
+    """After a restart a restored session publishes nothing until the cache of every one of
+    its data keys (each sensor's, the command's) was read back, as a sender that reconnects
+    later is; one whose senders never come publishes once 2 x recover_timeout_s passed.
+    Its status says which."""
+    bus, clock, col, cli, d = _checkpointed(tmp_path)
+    SpecStore(tmp_path / "a").save(paper_spec("s2"))  # a second session, never sent to
+    clock.t = int(30.1 * PERIOD_NS)
+    b = make_core(bus, clock, tmp_path)  # default settings: recover_timeout_s 2
+    assert sorted(b.served_sessions()) == ["s1", "s2"]
+    assert status(cli, "s1").readback == "waiting" and status(cli, "s1").origin == "checkpoint"
+    published = len(col.predictions["s1"])
+    sender = bus.transport()
+    want = [keys.sensor_key("s1", "ranger"), keys.sensor_key("s1", "camera"),
+            keys.command_key("s1")]
+    for i, key in enumerate(want):
+        clock.t = int((31 + i + 0.6) * PERIOD_NS)
+        b.run_once()  # its ticks: nothing published yet
+        assert len(col.predictions["s1"]) == published
+        sender.publisher(key, cache=16)  # a sender that (re)connects: its cache is read
+    b.run_once()
+    assert len(col.predictions["s1"]) == published + 1  # at once, the last cache read
+    st = status(cli, "s1")
+    assert st.readback == "answered" and st.origin == "checkpoint"
+    assert b.counters["readback_answered"] == 1
+    assert not col.predictions.get("s2") and status(cli, "s2").readback == "waiting"
+    clock.t = int(30.1 * PERIOD_NS) + 4_000_000_000  # 2 x recover_timeout_s after the start
+    b.run_once()
+    assert col.predictions["s2"] and status(cli, "s2").readback == "timeout"
+    assert b.counters["readback_timeout"] == 1

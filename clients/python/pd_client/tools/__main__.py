@@ -1,7 +1,8 @@
 """``python -m pd_client.tools <tool> [args]``: the command-line tools without installed scripts.
 
 Tools: ``sim`` (pd-robot-sim), ``operator`` (pd-operator), ``display`` (pd-display),
-``record`` (pd-record), ``viz`` (pd-viz), ``replay`` (pd-replay), ``web`` (pd-web).
+``record`` (pd-record), ``viz`` (pd-viz), ``replay`` (pd-replay), ``web`` (pd-web),
+``admin`` (pd-admin).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import sys
 #: sub-command -> module of pd_client.tools with its ``main(argv)``
 TOOLS = {"sim": "pd_robot_sim", "operator": "pd_operator", "display": "pd_display",
          "record": "pd_record", "viz": "pd_viz", "replay": "pd_replay",
-         "web": "pd_web"}
+         "web": "pd_web", "admin": "pd_admin"}
 
 
 def main(argv: list[str] | None = None) -> int:

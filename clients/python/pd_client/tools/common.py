@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import re
 import signal
 import sys
 import threading
@@ -15,11 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pd_service.logs import add_logging_args, setup_logging
+from pd_service.logs import add_logging_args, level_of, setup_logging
 from pd_service.transport import TOOL, Transport, add_zenoh_args, options_from_args
+from pd_service.transport.options import add_connect_wait_arg, open_retrying
 
 from .._base import connect_options
-from ..errors import PdClientError
+from ..errors import PdClientError, ServiceUnavailable
 
 #: What a tool runs once its flags are read: ``body(parser, args, stop)`` -> exit code.
 ToolBody = Callable[[argparse.ArgumentParser, argparse.Namespace, threading.Event], int]
@@ -31,7 +33,8 @@ class Tool:
     description and the rest (kept as written) as the epilog; the tool's own flags
     (``add_flags``); then the flags every tool has: ``--log-level`` / ``--log-format``
     (default WARNING), ``-v/--verbose`` (short for ``--log-level DEBUG``) and, with
-    ``zenoh``, the Zenoh group (TOOL role: client mode, connect to tcp/127.0.0.1:7447).
+    ``zenoh``, the Zenoh group (TOOL role: client mode, connect to tcp/127.0.0.1:7447) and
+    ``--connect-wait`` (see :func:`open_transport`).
     Its :meth:`main` parses them, sets up logging and returns ``body(parser, args, stop)``,
     ``stop`` set by SIGINT / SIGTERM. A tool's module ends with::
 
@@ -46,22 +49,31 @@ class Tool:
     zenoh: bool = True
 
     def build_parser(self) -> argparse.ArgumentParser:
-        ap = argparse.ArgumentParser(prog=self.name, description=self.doc.split("\n\n")[0],
+        doc = plain_text(self.doc)
+        ap = argparse.ArgumentParser(prog=self.name, description=doc.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=self.doc.split("\n\n", 1)[1])
+                                     epilog=doc.split("\n\n", 1)[1])
         self.add_flags(ap)
         add_logging_args(ap, default_level="WARNING")
-        ap.add_argument("--verbose", "-v", action="store_true", help="same as --log-level DEBUG")
         if self.zenoh:
             add_zenoh_args(ap, TOOL)
+            add_connect_wait_arg(ap)
         return ap
 
     def main(self, argv: Sequence[str] | None = None) -> int:
         with signal_stop() as stop:
             ap = self.build_parser()
             args = ap.parse_args(argv)
-            setup_logging("DEBUG" if args.verbose else args.log_level, args.log_format)
+            setup_logging(level_of(args) or "WARNING", args.log_format)
             return self.body(ap, args, stop)
+
+
+def plain_text(doc: str) -> str:
+    """A docstring as a terminal shows it: reStructuredText roles (:func:`x`), literals
+    (``x``) and literal-block markers (``::``) made plain."""
+    doc = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", doc)
+    doc = re.sub(r"``([^`]+)``", r"\1", doc)
+    return re.sub(r"::$", ":", doc, flags=re.M)
 
 
 def add_ros2_args(ap: argparse.ArgumentParser, ros2_help: str) -> None:
@@ -79,19 +91,37 @@ def add_progress_arg(ap: argparse.ArgumentParser) -> None:
                     help="seconds between progress lines on stderr (0: none)")
 
 
-def open_transport(args: argparse.Namespace) -> Transport:
-    """The Zenoh transport of a :class:`Tool`'s command line."""
-    return connect_options(options_from_args(args))
+def open_transport(args: argparse.Namespace, stop: threading.Event | None = None,
+                   tool: str = "pd-client") -> Transport:
+    """The Zenoh transport of a :class:`Tool`'s command line. A router or daemon that does not
+    answer yet (a tool started right after it) is retried with backoff for ``--connect-wait``
+    seconds, each retry said on stderr; a bad configuration (a missing --zenoh-config file)
+    is not retried. Raises :class:`ServiceUnavailable` (also when ``stop`` is set)."""
+    wait_s = getattr(args, "connect_wait", 0.0)
+
+    def report(exc: BaseException, pause: float, remaining: float) -> None:
+        progress(tool, f"no answer yet ({exc}); retrying in {pause:.1f} s, for up to "
+                       f"{remaining:.0f} s more (--connect-wait)")
+
+    try:
+        return open_retrying(lambda: connect_options(options_from_args(args)), wait_s, stop,
+                             lambda exc: not isinstance(exc.__cause__, (OSError, ValueError)),
+                             report)
+    except ServiceUnavailable as exc:
+        if wait_s > 0 and not isinstance(exc.__cause__, (OSError, ValueError)):
+            raise ServiceUnavailable(f"{exc} (retried for {wait_s:g} s)") from exc
+        raise
 
 
 def run_on_transport(tool: str, args: argparse.Namespace, body: Callable[[Transport], int],
-                     error_code: int = 1) -> int:
-    """Open the transport of the command line, return ``body(transport)`` and close it.
+                     error_code: int = 1, stop: threading.Event | None = None) -> int:
+    """Open the transport of the command line (:func:`open_transport`), return
+    ``body(transport)`` and close it.
 
     A PdClientError opening it is reported and gives exit code 1; one raised by ``body``
     gives ``error_code``."""
     try:
-        transport = open_transport(args)
+        transport = open_transport(args, stop, tool)
     except PdClientError as exc:
         return fail(tool, exc)
     try:

@@ -4,8 +4,10 @@ One MCAP channel per Zenoh key, topic ``/`` + key (``/pd/p<k>/<s>/sensor/<name>`
 ``/pd/p<k>/<s>/cmd``, ``/pd/p<k>/<s>/prediction``, ``/pd/p<k>/<s>/error``,
 ``/pd/p<k>/<s>/status``, ``/pd/p<k>/<s>/config``, ``/robot/p<k>/<s>/truth``; key layout 2,
 protocol.md §3), message encoding ``json`` with the message type's JSON Schema
-(``jsonschema`` schema encoding; the same schemas as docs/schemas, from
-:func:`pd_service.wire.schemas.schemas`, and :class:`pd_client.Truth`'s).
+(``jsonschema`` schema encoding, named for the type: docs/schemas' schemas, from
+:func:`pd_service.wire.schemas.schemas`, rewritten by :func:`.flat_schema.flat_schema` into
+the form Lichtblick's and Foxglove's parsers read: no ``$ref`` / ``anyOf``, every property
+typed; a type that cannot be said so would be written schemaless).
 
 Each message is the payload's msgpack map, unpacked (the wire form: arrays are
 ``{"shape": [...], "data": [...]}``) and written as JSON. Python writes a float with
@@ -20,8 +22,11 @@ a log without it is of key layout 1 (``/pd/<s>/...``). Reading re-keys every mes
 this process's layout and P, so an older log, or one recorded with another
 ``PD_PARTITIONS``, replays the same.
 
-Log time and publish time are the recorder's receipt time (wall clock, ns); the MCAP
-``sequence`` of each message is its arrival order at the recorder (over all channels).
+Publish time is the recorder's receipt time (wall clock, ns). Log time is the same, raised
+to the previous message's log time when a sample written later was received earlier (two
+transport threads, or the ROS 2 copies of a prediction written after it): log times never
+decrease in the file, the order MCAP readers and players expect. The MCAP ``sequence`` of
+each message is its arrival order at the recorder (over all channels).
 
 ROS 2 profile where a ROS message type exists: for a session whose spec binds ROS 2 outputs
 (``SessionSpec.ros2.outputs``), every prediction is also written as ``nav_msgs/msg/Odometry``
@@ -50,7 +55,7 @@ from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import Prediction, SessionSpec, WireError, decode, keys
 from pd_service.wire.schemas import schemas
 
-from ..truth import Truth
+from .flat_schema import Inexpressible, flat_schema
 
 #: Stream kind of a key -> message type name (its JSON Schema's title).
 TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Prediction",
@@ -59,17 +64,22 @@ TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Predic
 RAW_SCHEMA: dict[str, Any] = {
     "title": "RawSample", "type": "object",
     "description": "A sample that is not a JSON-representable msgpack map (kept for replay).",
-    "properties": {"key": {"type": "string"}, "kind": {"enum": ["put", "delete"]},
+    "properties": {"key": {"type": "string"}, "kind": {"type": "string", "enum": ["put", "delete"]},
                    "payload_b64": {"type": "string"}},
     "required": ["key", "kind", "payload_b64"],
 }
 _UNPACK: dict[str, Any] = {"raw": False, "strict_map_key": True, "use_list": True}
 
 
-def _json_schemas() -> dict[str, dict[str, Any]]:
-    out = {name.removesuffix(".json"): s for name, s in schemas().items()}
-    out["Truth"] = Truth.model_json_schema(mode="validation")
-    out["RawSample"] = RAW_SCHEMA
+def json_schemas() -> dict[str, dict[str, Any] | None]:
+    """Type name -> the schema its MCAP channels get (None: written schemaless)."""
+    out: dict[str, dict[str, Any] | None] = {}
+    for name, s in (*((n.removesuffix(".json"), s) for n, s in schemas().items()),
+                    ("RawSample", RAW_SCHEMA)):
+        try:
+            out[name] = flat_schema(s)
+        except Inexpressible:
+            out[name] = None
     return out
 
 
@@ -131,15 +141,18 @@ class McapLog:
         self._w.start(profile="", library=library)
         self._w.add_metadata(KEYS_METADATA, {"key_layout": str(keys.KEY_LAYOUT),
                                              "partitions": str(keys.partitions())})
-        self._schemas = _json_schemas()
+        self._schemas = json_schemas()
         self._schema_ids: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._lock = threading.Lock()
         self._seq = 0
+        self._last_log = 0  # ns: the log time of the newest message written
         self.messages = 0
         self._closed = False
         self._specs: dict[str, SessionSpec] = {}  # session -> newest spec seen
         self._ros2_ok: bool | None = None  # None: not tried yet
+        self.ros2_errors = 0  # predictions the ROS 2 profile could not convert
+        self._ros2_failed: set[str] = set()
 
     def _ros2_channel(self, topic: str, msg_type: str) -> int:
         cid = self._channels.get(topic)
@@ -185,36 +198,43 @@ class McapLog:
                 with self._lock:
                     if self._closed:
                         return
-                    cid = self._ros2_channel(topic, msg_type)
-                    self._w.add_message(channel_id=cid, log_time=log_ns, data=data,
-                                        publish_time=log_ns, sequence=self._seq)
-                    self._seq += 1
-                    self.messages += 1
-        except (WireError, ValueError):  # a prediction the JSON channel keeps anyway
-            return
+                    self._add(self._ros2_channel(topic, msg_type), data, log_ns)
+        except (WireError, ValueError) as exc:  # the JSON channel keeps the prediction
+            with self._lock:
+                self.ros2_errors += 1
+                first = session not in self._ros2_failed
+                self._ros2_failed.add(session)
+            if first:
+                print(f"pd-record: session {session}: a prediction not written as ROS 2 "
+                      f"messages ({exc}); the JSON prediction is recorded (counted in "
+                      "ros2_errors, said once per session)", file=sys.stderr)
 
     def _channel(self, topic: str, type_name: str) -> int:
         cid = self._channels.get(topic)
         if cid is None:
             sid = self._schema_ids.get(type_name)
             if sid is None:
-                sid = self._w.register_schema(
-                    name=type_name, encoding="jsonschema",
-                    data=json.dumps(self._schemas[type_name]).encode())
+                schema = self._schemas[type_name]
+                sid = 0 if schema is None else self._w.register_schema(  # 0: schemaless
+                    name=type_name, encoding="jsonschema", data=json.dumps(schema).encode())
                 self._schema_ids[type_name] = sid
             cid = self._w.register_channel(topic=topic, message_encoding="json", schema_id=sid)
             self._channels[topic] = cid
         return cid
 
+    def _add(self, cid: int, data: bytes, recv_ns: int) -> None:
+        """One message (lock held): log time max(receipt, previous log time), module docstring."""
+        self._last_log = max(self._last_log, recv_ns)
+        self._w.add_message(channel_id=cid, log_time=self._last_log, data=data,
+                            publish_time=recv_ns, sequence=self._seq)
+        self._seq += 1
+        self.messages += 1
+
     def write(self, topic: str, type_name: str, data: bytes, log_ns: int) -> None:
         with self._lock:
             if self._closed:
                 return
-            cid = self._channel(topic, type_name)
-            self._w.add_message(channel_id=cid, log_time=log_ns, data=data,
-                                publish_time=log_ns, sequence=self._seq)
-            self._seq += 1
-            self.messages += 1
+            self._add(self._channel(topic, type_name), data, log_ns)
 
     def write_sample(self, key: str, payload: bytes, log_ns: int, kind: str = "put") -> None:
         """One received sample: on its key's channel, or the session's raw channel."""

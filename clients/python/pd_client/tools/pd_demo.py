@@ -30,6 +30,14 @@ the daemon and publishing the predicted Odometry / pose / TF back on ROS topics,
 as above, for session ``bot``. Summary: RMS prediction error of x, y and yaw against the truth,
 the number of predictions compared, and the bridge's counters (predictions republished as ROS
 messages, refusals). See docs/ros2.md.
+
+``pd-demo --async`` runs the asynchronous-sensor robot (``pd-robot-sim --scenario async``:
+odometry 25 Hz, IMU 100 Hz and a pose fix 5 Hz 300 ms late, none on the 50 ms step grid, each
+sample stamped with the time it was taken) over pd-link's ``link-async.toml`` (sensors
+unchanged, commands 100 ms), with its operator, pd-record, pd-viz and pd-web, for session
+``async``. Summary: RMS prediction error of x, y and yaw against the truth (100 ms ahead). How
+the service applies a stamp between two steps is in docs/protocol.md; bench/stamps.py
+compares the ways in-process.
 """
 
 from __future__ import annotations
@@ -53,18 +61,23 @@ from typing import Any
 
 import numpy as np
 
+from pd_service.logs import add_logging_args, level_of, setup_logging
 from pd_service.transport import Transport
 from pd_service.wire import keys
 
 from .._base import connect
 from ..errors import ServiceUnavailable
+from .common import plain_text
 from .record_csv import read_csv
 
 TOOL = "pd-demo"
 SESSIONS = ("paper", "paper-cam")
 ROS2_SESSION = "bot"
+ASYNC_SESSION = "async"
 ROS2_STATES = "x,y,yaw"
 LEAD, RANGER_DELAY = 10, 12  # the paper's uplink and range-finder delays, steps
+#: How long one process is given to stop on each signal before the next one (s).
+STOP_TIMEOUT_S = 3.0
 
 
 def free_port() -> int:
@@ -91,7 +104,10 @@ class Proc:
         self.quiet = quiet
         self.popen = subprocess.Popen(
             [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-            text=True, bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+            text=True, bufsize=1, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+            # its own session: a Ctrl-C in the terminal reaches pd-demo alone, which then
+            # stops the processes in order (the daemon last, so the others' goodbyes land)
+            start_new_session=True)
         self.lines: list[str] = []
         self._thread = threading.Thread(target=self._relay, daemon=True)
         self._thread.start()
@@ -104,8 +120,8 @@ class Proc:
             if not self.quiet:
                 print(f"[{self.name:8}] {line}", flush=True)
 
-    def stop(self, timeout: float = 10.0) -> int | None:
-        """SIGINT, then SIGTERM, then SIGKILL; returns the exit code."""
+    def stop(self, timeout: float = STOP_TIMEOUT_S) -> int | None:
+        """SIGINT, then SIGTERM, then SIGKILL, each given ``timeout`` s; the exit code."""
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
             if self.popen.poll() is not None:
                 break
@@ -116,6 +132,13 @@ class Proc:
                 continue
         self._thread.join(2.0)
         return self.popen.returncode
+
+
+def stop_all(procs: list[Proc]) -> None:
+    """Stop ``procs`` in the reverse of their start order (the daemon, started first, last:
+    the others' last messages still reach it)."""
+    for p in reversed(procs):
+        p.stop()
 
 
 @contextlib.contextmanager
@@ -160,27 +183,40 @@ def open_probe(endpoint: str, procs: list[Proc], timeout: float = 30.0) -> Trans
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog=TOOL, description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog=TOOL, description=plain_text(__doc__).split("\n\n")[0])
     ap.add_argument("--steps", type=int, default=None,
                     help="simulated steps, 50 ms each (default 420: about 30 s with start-up); "
                          "with --ros2 20 ms each (default 1000: one 20 s drive cycle)")
     ap.add_argument("--ros2", action="store_true",
                     help="the ROS 2 variant: a differential-drive robot speaking rmw_zenoh, "
                          "pd-ros2 and a Twist operator (needs the ros2 extra)")
+    ap.add_argument("--async", dest="async_sensors", action="store_true",
+                    help="the asynchronous-sensor robot: samples off the step grid, stamped "
+                         "with their own time (default 400 steps of 50 ms)")
     ap.add_argument("--out", default="out/demo", help="output directory (default out/demo)")
     ap.add_argument("--link-config", type=Path,
                     help="link emulator rules (default: the paper's link, shipped with pd-client)")
-    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=1,
+                    help="the simulator's random seed (default 1)")
     ap.add_argument("--quiet", action="store_true", help="do not relay the processes' output")
     ap.add_argument("--viz-port", type=int, default=8765,
-                    help="pd-viz's WebSocket port (default 8765; -1: no pd-viz)")
+                    help="pd-viz's WebSocket port (default 8765; 0: any free port)")
+    ap.add_argument("--no-viz", action="store_true", help="do not start pd-viz")
     ap.add_argument("--web-port", type=int, default=8080,
-                    help="port of the live view (default 8080; a free one if taken; 0: no live view)")
+                    help="port of the live view (default 8080, a free one if taken; 0: any "
+                         "free port)")
+    ap.add_argument("--no-web", action="store_true", help="do not start the live view (pd-web)")
     ap.add_argument("--web-linger", type=float, default=10.0,
-                    help="seconds the live view keeps serving the final state after the run")
+                    help="seconds the live view keeps serving the final state after the run "
+                         "(default 10)")
+    add_logging_args(ap, default_level="WARNING")
     args = ap.parse_args(argv)
+    setup_logging(level_of(args) or "WARNING", args.log_format)
+    if args.ros2 and args.async_sensors:
+        print(f"{TOOL}: --ros2 and --async are two different demos: choose one", file=sys.stderr)
+        return 2
     if args.steps is None:
-        args.steps = 1000 if args.ros2 else 420
+        args.steps = 1000 if args.ros2 else 400 if args.async_sensors else 420
     if args.ros2 and importlib.util.find_spec("rosbags") is None:
         print(f"{TOOL}: --ros2 needs the ros2 extra: pip install 'pd-service[ros2]'",
               file=sys.stderr)
@@ -190,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     with contextlib.ExitStack() as stack:
         link_config = args.link_config or stack.enter_context(
-            packaged_link_config("link-ros2.toml" if args.ros2 else "link-paper.toml"))
+            packaged_link_config("link-ros2.toml" if args.ros2 else
+                                 "link-async.toml" if args.async_sensors else "link-paper.toml"))
         return run(args, link_config)
 
 
@@ -200,7 +237,10 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
     differential-drive robot and a Twist operator, and the report of :func:`report_ros2`
     with the bridge's counters, queried before the probe session closes)."""
     ros2 = args.ros2
-    out = Path("out/demo-ros2" if ros2 and args.out == "out/demo" else args.out)
+    asy = bool(getattr(args, "async_sensors", False))
+    robot = ros2 or asy  # one differential-drive session: x, y, yaw
+    variant = "demo-ros2" if ros2 else "demo-async" if asy else "demo"
+    out = Path(f"out/{variant}" if args.out == "out/demo" else args.out)
     if (out / "state").exists():
         shutil.rmtree(out / "state")  # a fresh daemon: no sessions restored from a past run
     out.mkdir(parents=True, exist_ok=True)
@@ -218,7 +258,8 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
     t0 = time.monotonic()
     try:
         with contextlib.ExitStack() as probe_open:
-            print(f"{TOOL}: {'ROS 2 variant; ' if ros2 else ''}daemon on {endpoint}, "
+            print(f"{TOOL}: {'ROS 2 variant; ' if ros2 else 'asynchronous sensors; ' if asy else ''}"
+                  f"daemon on {endpoint}, "
                   f"output in {out}/", flush=True)
             start("service", "-m", "pd_service", "--listen", endpoint, "--state-dir",
                   str(out / "state"), "--instance", "demo")
@@ -242,25 +283,28 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
             viz = has_viz()
             mcap = ["--mcap", str(out / "run.mcap")] if viz else []
             web_url = None
-            if args.web_port:
-                port = web_port(args.web_port)
+            if not args.no_web:
+                port = web_port(args.web_port) if args.web_port else free_port()
                 start("web", "-m", "pd_client.tools", "web", "--port", str(port), *zenoh_args)
                 web_url = f"http://127.0.0.1:{port}/"
                 print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
-            sessions = [f"--session={s}" for s in ((ROS2_SESSION,) if ros2 else SESSIONS)]
+            names = (ROS2_SESSION,) if ros2 else (ASYNC_SESSION,) if asy else SESSIONS
+            sessions = [f"--session={s}" for s in names]
             recorder = start("record", "-m", "pd_client.tools", "record", *sessions,
                              "--out", str(out), "--idle-timeout", "3",
-                             *(["--until-step", str(args.steps)] if ros2 else []),
-                             "--states", ROS2_STATES if ros2 else "p1,p2",
-                             *(["--warmup", "50"] if ros2 else []), *mcap, *zenoh_args)
+                             *(["--until-step", str(args.steps)] if robot else []),
+                             "--states", ROS2_STATES if robot else "p1,p2",
+                             *(["--warmup", "20" if asy else "50"] if robot else []), *mcap,
+                             *zenoh_args)
             # the recorder subscribed before the first message is sent: the MCAP holds every
             # input the daemon handles (pd-replay then reproduces each prediction exactly)
             wait_for("the recorder", lambda: any("recording" in line for line in recorder.lines),
                      30.0, procs)
-            if viz and args.viz_port >= 0:  # a live view; the demo goes on without it if it fails
+            if viz and not args.no_viz:  # a live view; the demo goes on without it if it fails
+                viz_port = args.viz_port or free_port()
                 start("viz", "-m", "pd_client.tools", "viz", *sessions,
-                      "--port", str(args.viz_port), *zenoh_args)
-                print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{args.viz_port}"
+                      "--port", str(viz_port), *zenoh_args)
+                print(f"{TOOL}: Foxglove live view on ws://127.0.0.1:{viz_port}"
                       + ("" if ros2 else " (open it in Foxglove: docs/visualize.md)"), flush=True)
             elif not viz and not ros2:
                 print(f"{TOOL}: no live view / MCAP: pip install 'pd-client[viz]'", flush=True)
@@ -270,6 +314,12 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                       *zenoh_args)
                 sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "diffdrive",
                             "--session", ROS2_SESSION, "--create-session", "--ros2",
+                            "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
+            elif asy:
+                start("operator", "-m", "pd_client.tools", "operator", "--scenario", "async",
+                      "--session", ASYNC_SESSION, "--steps", str(args.steps), *zenoh_args)
+                sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "async",
+                            "--session", ASYNC_SESSION, "--create-session", "--close-on-exit",
                             "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
             else:
                 start("operator", "-m", "pd_client.tools", "operator", *sessions,
@@ -304,10 +354,13 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
         print(f"{TOOL}: {exc}", file=sys.stderr, flush=True)
         interrupted = True
     finally:
-        for p in reversed(procs):
-            p.stop()
+        stop_all(procs)
     if interrupted:
         return 130
+    if asy:
+        return report_robot(out, ASYNC_SESSION, "pd-service asynchronous-sensor demo: predicted "
+                            "pose 100 ms ahead (lead 2 steps)\nof the robot whose sensors "
+                            "sample off the 50 ms grid, after 1 s of warm-up")
     return report_ros2(out, bridge) if ros2 else report(out)
 
 
@@ -332,16 +385,8 @@ def print_outputs(out: Path) -> None:
     print("=" * 68)
 
 
-def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
-    """The ROS 2 demo's summary: pd-record's accuracy of x, y, yaw and the bridge's counters."""
-    summary = read_summary(out)
-    if summary is None:
-        return 1
-    row = summary.get(ROS2_SESSION, {})
-    print()
-    print("=" * 68)
-    print("pd-service ROS 2 demo: predicted pose 100 ms ahead (lead 5 steps) of the")
-    print("differential-drive robot, over link-ros2.toml, after 1 s of warm-up")
+def print_pose_rows(row: Mapping[str, Any]) -> None:
+    """pd-record's accuracy of x, y, yaw of a differential-drive session."""
     for key, label, unit in [("rms_x", "RMS error x", "m"), ("rms_y", "RMS error y", "m"),
                              ("rms_yaw", "RMS error yaw", "rad"),
                              ("mean_var_x", "mean variance x", "m^2"),
@@ -349,6 +394,31 @@ def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
         v = row.get(key)
         print(f"{label:28}" + ("-" if v is None else f"{v:12.3g} {unit}"))
     print(f"{'predictions compared':28}{row.get('rows', 0):12d}")
+
+
+def report_robot(out: Path, session: str, title: str) -> int:
+    """A differential-drive demo's summary: ``title``, then pd-record's accuracy."""
+    summary = read_summary(out)
+    if summary is None:
+        return 1
+    print()
+    print("=" * 68)
+    print(title)
+    print_pose_rows(summary.get(session, {}))
+    print_outputs(out)
+    return 0
+
+
+def report_ros2(out: Path, bridge: Mapping[str, object] | None) -> int:
+    """The ROS 2 demo's summary: pd-record's accuracy of x, y, yaw and the bridge's counters."""
+    summary = read_summary(out)
+    if summary is None:
+        return 1
+    print()
+    print("=" * 68)
+    print("pd-service ROS 2 demo: predicted pose 100 ms ahead (lead 5 steps) of the")
+    print("differential-drive robot, over link-ros2.toml, after 1 s of warm-up")
+    print_pose_rows(summary.get(ROS2_SESSION, {}))
     sessions = bridge.get("sessions") if isinstance(bridge, dict) else None
     counters = sessions.get(ROS2_SESSION, {}).get("counters") if isinstance(sessions, dict) \
         else None

@@ -7,8 +7,9 @@
 Shows the newest prediction (target step, state, standard deviations from the covariance
 diagonal), the newest prediction that can be checked against a simulator's truth (error and
 error / sigma), latency (receipt time - made_ns), the display's counters and the service's
-counters. Exit codes: 0 done, 1 no prediction within ``--timeout`` (with --once/--count),
-2 bad command line.
+counters. Exit codes: 0 done, 1 no prediction within ``--timeout`` (with --once/--count;
+the message says why, from the session's status: not running, e.g. expired, or running
+but nothing reached this display), 2 bad command line.
 """
 
 from __future__ import annotations
@@ -23,8 +24,9 @@ import numpy as np
 
 from pd_service.transport import Transport
 
+from ..admin import Admin
 from ..display import Display
-from ..errors import PdClientError
+from ..errors import PdClientError, SessionNotFound
 from . import common
 
 TOOL = "pd-display"
@@ -87,7 +89,7 @@ def render_frame(display: Display) -> str:
 
 
 def _add_flags(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--session", default="paper")
+    ap.add_argument("--session", default="paper", help="the session to show (default paper)")
     ap.add_argument("--no-truth", action="store_true", help="do not read the truth key")
     ap.add_argument("--once", action="store_true",
                     help="print one frame after the first prediction, then exit")
@@ -104,7 +106,27 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         ap.error("--count must be >= 1")
     plain = args.plain or args.once or not sys.stdout.isatty()
     return common.run_on_transport(
-        TOOL, args, lambda transport: _show(transport, args, plain, stop), error_code=2)
+        TOOL, args, lambda transport: _show(transport, args, plain, stop), error_code=2,
+        stop=stop)
+
+
+def why_silent(transport: Transport, session: str) -> str:
+    """Why a session gave no prediction, as its status says: not running (never created,
+    removed, expired), no service, or running (then the predictions were lost on the way)."""
+    try:
+        with Admin(transport) as admin:
+            st = admin.status(session, timeout=2.0)
+    except SessionNotFound:
+        return (f"no instance runs session {session!r}: never created, deleted, or expired "
+                "without traffic (create it: pd-admin create SPEC; a spec's expire_s = 0 "
+                "never expires)")
+    except PdClientError as exc:
+        return str(exc)
+    if st.state in ("expired", "removed"):
+        return f"session {session!r} is {st.state} ({st.detail})"
+    return (f"session {session!r} runs on {st.instance} ({st.state}, {st.published} "
+            "predictions published): none reached this display (its connection, or the "
+            "router's access control)")
 
 
 def _show(transport: Transport, args: argparse.Namespace, plain: bool,
@@ -114,7 +136,7 @@ def _show(transport: Transport, args: argparse.Namespace, plain: bool,
             try:
                 display.wait(1, timeout=args.timeout)
             except PdClientError as exc:
-                return common.fail(TOOL, exc)
+                return common.fail(TOOL, f"{exc}: {why_silent(transport, args.session)}")
             print(render_frame(display), flush=True)
             return 0
         deadline = time.monotonic() + args.timeout if args.count else None
@@ -124,8 +146,10 @@ def _show(transport: Transport, args: argparse.Namespace, plain: bool,
             if args.count and display.stats().received >= args.count:
                 return 0
             if deadline is not None and time.monotonic() > deadline:
+                why = why_silent(transport, args.session) \
+                    if not display.stats().received else "some were lost"
                 return common.fail(TOOL, f"{display.stats().received} of {args.count} "
-                                       f"predictions within {args.timeout} s")
+                                       f"predictions within {args.timeout} s: {why}")
             stop.wait(args.interval)
         return 0
 

@@ -46,7 +46,8 @@ TOOL = "pd-operator"
 
 
 def _add_flags(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
+    ap.add_argument("--scenario", default="paper", choices=SCENARIOS,
+                    help="whose command profile to send (default paper)")
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help=argparse.SUPPRESS)
     ap.add_argument("--session", action="append", metavar="NAME",
@@ -75,7 +76,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     if ros2 is not None and len(names) != 1:
         ap.error("--ros2: exactly one --session")
     return common.run_on_transport(
-        TOOL, args, lambda transport: _run(transport, scenario, names, steps, args, stop, ros2))
+        TOOL, args, lambda transport: _run(transport, scenario, names, steps, args, stop, ros2),
+        stop=stop)
 
 
 class _Followed:

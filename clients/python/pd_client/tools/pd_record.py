@@ -265,7 +265,7 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         recorded.append(recorder)
         return 0
 
-    code = common.run_on_transport(TOOL, args, body)
+    code = common.run_on_transport(TOOL, args, body, stop=stop)
     if not recorded:
         return code
     recorder = recorded[0]

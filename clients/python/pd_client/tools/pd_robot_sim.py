@@ -5,6 +5,7 @@
     pd-robot-sim --scenario maneuver --session rover --time-scale 2 --steps 600
     pd-robot-sim --scenario omni --session omni --create-session   # adaptive UKF session
     pd-robot-sim --scenario diffdrive --session bot --create-session --ros2   # a ROS 2 robot
+    pd-robot-sim --scenario async --session bot --create-session   # sensors off the grid
 
 Every step k (wall time ``epoch_ns + k * period_ns``; the period is the scenario's divided by
 ``--time-scale``) it moves the true state with the command in force for step k - 1, then
@@ -16,6 +17,13 @@ protocol.md §3; the link emulator carries them to the service; ``--direct`` pub
 apply step, holding the last one; a command that arrives after its apply step applies on
 arrival. The transition k-1 -> k is computed at the start of step k, so a command has up to
 one period of slack after its apply step begins.
+
+``--scenario async``: the sensors sample off the step grid, each at its own rate, phase and
+jitter, and the truth moves in continuous time (:class:`pd_service.scenarios.AsyncSim`). At
+step k the robot moves x(k-1) -> x(k) with u(k-1) through the samples taken in between, and
+publishes each sample stamped with the time it was taken (``t_ns`` at full resolution,
+``epoch_ns`` + its model time scaled by ``--time-scale``) at the first step at or after that
+time plus the sensor's own delay (the pose fix's 300 ms); the truth x(k) as above.
 
 ``--ros2`` (one session, whose spec has ROS 2 bindings, e.g. ``--scenario diffdrive``): the
 robot is a ROS 2 node ``robot_sim`` in rmw_zenoh's format instead. Each bound sensor's sample
@@ -53,7 +61,15 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pd_service.backends import command_dim
-from pd_service.scenarios import NOISE_SETTINGS, SCENARIOS, Scenario, ScenarioSim, get_scenario
+from pd_service.scenarios import (
+    NOISE_SETTINGS,
+    SCENARIOS,
+    AsyncSim,
+    Scenario,
+    ScenarioSim,
+    TimedSample,
+    get_scenario,
+)
 from pd_service.transport import Transport
 from pd_service.wire import Command, SessionSpec, WireError
 
@@ -128,6 +144,9 @@ class RobotSim:
                                  f"in scenario {scenario.name!r}")
         self.scenario = scenario
         self.sim = ScenarioSim(scenario, seed)
+        # sensors off the grid: the continuous-time simulation, samples held until they arrive
+        self.async_sim = AsyncSim(scenario, seed) if scenario.timing is not None else None
+        self._held: list[TimedSample] = []
         self.schedule = CommandSchedule(scenario.nu)
         self.sessions: list[SimSession] = []
         try:
@@ -182,6 +201,8 @@ class RobotSim:
         """Run step k: move x(k-1) -> x(k) with u(k-1), then publish truth and samples of
         x(k). Returns x(k) (the simulated state; the published truth has the scenario's
         angles wrapped to [-pi, pi)). Steps must increase by one after the first call."""
+        if self.async_sim is not None:
+            return self._tick_async(k)
         if not self._started:
             self._started = True
             self.sim.k = k  # the first step (0, or later when joining a running session)
@@ -206,6 +227,36 @@ class RobotSim:
                 self.samples_published += 1
         return x
 
+    def _tick_async(self, k: int) -> np.ndarray:
+        """:meth:`tick` of a scenario with sensors off the grid (see the module docstring)."""
+        sim = self.async_sim
+        assert sim is not None
+        if not self._started:
+            self._started = True
+            sim.start_at(k)
+        else:
+            if k != sim.k + 1:
+                raise ValueError(f"tick: expected step {sim.k + 1}, got {k}")
+            self.last_u = self.schedule.u_at(k - 1)
+            self._held.extend(sim.step(self.last_u))
+        T = self.scenario.period_s
+        due = [d for d in self._held if d.arrival_s <= k * T + 1e-12]
+        self._held = [d for d in self._held if d.arrival_s > k * T + 1e-12]
+        truth = self.scenario.truth_view(sim.x)
+        for s in self.sessions:
+            s.robot.publish_truth(k, truth, names=self.scenario.state_names,
+                                  angles=self.scenario.angles)
+            for d in due:
+                if d.sensor not in s.sensors:
+                    continue
+                t_ns = s.spec.epoch_ns + round(d.t_s / T * s.spec.period_ns)
+                if self.ros is not None and self.ros.binds(d.sensor):
+                    self.ros.publish(d.sensor, d.z, stamp_ns=t_ns)
+                else:
+                    s.robot.publish(d.sensor, d.z, t_ns=t_ns)
+                self.samples_published += 1
+        return sim.x
+
     def close(self) -> None:
         ros = getattr(self, "ros", None)
         if ros is not None:
@@ -215,7 +266,8 @@ class RobotSim:
 
 
 def _add_flags(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--scenario", default="paper", choices=SCENARIOS)
+    ap.add_argument("--scenario", default="paper", choices=SCENARIOS,
+                    help="the simulated robot and its sensors (default paper)")
     ap.add_argument("--noise", default="journal", choices=NOISE_SETTINGS,
                     help="noise setting of the paper scenario (default: journal)")
     ap.add_argument("--session", action="append", metavar="NAME[:SENSORS]",
@@ -226,7 +278,8 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
                          "until stopped)")
     ap.add_argument("--time-scale", type=float, default=1.0,
                     help="run this many times faster than real time (default 1)")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="random seed of the simulation's noise (default 0)")
     ap.add_argument("--create-session", action="store_true",
                     help="put the SessionSpec(s) (epoch = now, once the service answers) and "
                          "serve them while running")
@@ -241,7 +294,9 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
                     help="seconds to wait for the service or for the spec (default 15)")
     ap.add_argument("--lead", type=int, help="override the scenario's lead (steps)")
     ap.add_argument("--max-delay", type=int, help="override the scenario's max_delay (steps)")
-    ap.add_argument("--publish-every", type=int, default=1)
+    ap.add_argument("--publish-every", type=int, default=1, metavar="N",
+                    help="with --create-session: the daemon publishes every N-th step's "
+                         "prediction (default 1: every step)")
     add_clock_flags(ap)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
@@ -264,7 +319,8 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
     if steps < 0:
         ap.error("--steps must be >= 0")
     return common.run_on_transport(
-        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop, ros2))
+        TOOL, args, lambda transport: _run(args, scenario, sessions, steps, transport, stop, ros2),
+        stop=stop)
 
 
 def _run(args: argparse.Namespace, scenario: Scenario,

@@ -21,7 +21,20 @@ topic                      schema                content
 /<s>/truth                 JSON                  truth per state name
 /<s>/status                JSON                  counters, latency, late / future refusals
 /<s>/log                   foxglove.Log          the service's ErrorReports
+/<s>/ros2/prediction       ros2msg (cdr)         step, newest_step, latency_ms, x_<state>,
+                                                 sd_<state>: for PlotJuggler
+/<s>/ros2/error            ros2msg (cdr)         step, err_<state>, z_<state> (error / sigma)
+/<s>/ros2/status           ros2msg (cdr)         accepted, late, future, refused, published,
+                                                 latency_ms
 =========================  ====================  ============================================
+
+The JSON channels carry a JSON Schema named ``pd_viz.<Channel>`` (typed fields, in the form
+Lichtblick's and Foxglove's parsers read; the per-state maps ``x``, ``var``, ``sd``, ``err``,
+``z`` are objects of numbers keyed by state name). The ``ros2/*`` channels
+(:mod:`.viz_series`) are the numeric series as flat ROS 2 messages, one type per session
+(``pd_viz_msgs/msg/<Session>Prediction``, ...) whose fields are named for the state names
+known when the session's first prediction arrives (the truth's, else x0, x1, ...); they are
+advertised then. ``newest_step`` is -1 before any measurement.
 
 The position states are ``--xy I,J`` or, from the truth's state names, ``x,y`` /
 ``p1,p2`` / ``px,py``, else 0 and 1; a heading named ``theta``/``yaw``/``psi``/``heading``
@@ -62,6 +75,7 @@ from ..errors import PdClientError
 from ..pairing import prediction_error
 from ..truth import Truth
 from . import common
+from .viz_series import SeriesType, field_name, type_name, unique
 
 TOOL = "pd-viz"
 FRAME = "world"
@@ -70,6 +84,35 @@ _HEADINGS = ("theta", "yaw", "psi", "heading")
 _XY_NAMES = (("x", "y"), ("p1", "p2"), ("px", "py"))
 
 log = logging.getLogger("pd_client.viz")
+
+_NUMBERS: dict[str, Any] = {"type": "object", "additionalProperties": {"type": "number"},
+                            "description": "one value per state, keyed by state name"}
+_INT: dict[str, Any] = {"type": "integer"}
+_NUM: dict[str, Any] = {"type": "number"}
+
+
+def _object(title: str, **props: dict[str, Any]) -> dict[str, Any]:
+    return {"title": title, "type": "object", "properties": props}
+
+
+#: The JSON channels' schemas (the viewers' form: pd_client.tools.flat_schema).
+JSON_SCHEMAS: dict[str, dict[str, Any]] = {
+    "prediction": _object("pd_viz.Prediction", step=_INT, seq=_INT, newest_step=_INT, t_ns=_INT,
+                          x=_NUMBERS, var=_NUMBERS, sd=_NUMBERS, latency_ms=_NUM),
+    "error": _object("pd_viz.Error", step=_INT, err=_NUMBERS, sd=_NUMBERS, z=_NUMBERS),
+    "measurement": _object("pd_viz.Measurement", sensor={"type": "string"}, seq=_INT,
+                           z={"type": "array", "items": _NUM}, step=_INT, age_steps=_INT,
+                           age_ms=_NUM),
+    "command": _object("pd_viz.Command", seq=_INT, u={"type": "array", "items": _NUM}, step=_INT),
+    "truth": _object("pd_viz.Truth", step=_INT, x=_NUMBERS),
+    "status": _object(
+        "pd_viz.Status", session={"type": "string"}, state={"type": "string"}, now_step=_INT,
+        counters={"type": "object", "additionalProperties": _INT}, late=_INT, future=_INT,
+        accepted=_INT, refused=_INT, published=_INT, latency_ms_last=_NUM, latency_ms_p50=_NUM,
+        latency_ms_max=_NUM, missed=_INT,
+        viewer={"type": "object", "additionalProperties": _INT},
+        daemon_latency_us_p50=_NUM, daemon_latency_us_p99=_NUM),
+}
 
 
 def position_indices(n: int, names: Sequence[str] | None,
@@ -135,9 +178,12 @@ class SessionView:
         self.ellipse = SceneUpdateChannel(p + "ellipse", **ctx)
         self.truth_pose = PoseInFrameChannel(p + "truth_pose", **ctx)
         self.log = LogChannel(p + "log", **ctx)
-        self.json = {name: foxglove.Channel(p + name, message_encoding="json", **ctx)
-                     for name in ("prediction", "error", "measurement", "command", "truth",
-                                  "status")}
+        self.json = {name: foxglove.Channel(p + name, schema=foxglove.Schema(
+            name=f"pd_viz.{name.capitalize()}", encoding="jsonschema",
+            data=json.dumps(schema).encode()), message_encoding="json", **ctx)
+                     for name, schema in JSON_SCHEMAS.items()}
+        self._context = context
+        self._series: dict[str, tuple[SeriesType, Any]] = {}  # kind -> (type, channel)
         self.display = Display(transport, session, truth=True, errors=False, history=256)
         self.display.on_prediction(self._on_prediction)
         self.display.on_truth(self._on_truth)
@@ -166,6 +212,34 @@ class SessionView:
                                        z=0.0),
                       orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0),
                                              w=math.cos(yaw / 2.0))))
+
+    def _series_channel(self, kind: str, n: int) -> tuple[SeriesType, Any]:
+        """The session's ``ros2/<kind>`` channel, made at its first use (module docstring)."""
+        import foxglove
+
+        with self._lock:
+            got = self._series.get(kind)
+            if got is None:
+                names = unique([field_name(s) for s in self._state_names(n)])
+                fields = {"prediction": (("step", "newest_step"), ("latency_ms",
+                                         *(f"x_{f}" for f in names), *(f"sd_{f}" for f in names))),
+                          "error": (("step",), (*(f"err_{f}" for f in names),
+                                                *(f"z_{f}" for f in names))),
+                          "status": (("accepted", "late", "future", "refused", "published"),
+                                     ("latency_ms",))}[kind]
+                st = SeriesType(type_name(self.session, kind.capitalize()), *fields)
+                ch = foxglove.Channel(f"/{self.session}/ros2/{kind}", message_encoding="cdr",
+                                      schema=foxglove.Schema(name=st.name, encoding="ros2msg",
+                                                             data=st.definition().encode()),
+                                      context=self._context)
+                got = self._series[kind] = (st, ch)
+            return got
+
+    def _log_series(self, kind: str, n: int, t_ns: int, ints: list[int], floats: list[float],
+                    now: int) -> None:
+        st, ch = self._series_channel(kind, n)
+        if t_ns >= 0 and len(floats) == len(st.floats):  # a state of another size: not this type
+            ch.log(st.encode(t_ns, ints, floats), log_time=now)
 
     def _emit(self, name: str, msg: dict[str, Any], log_ns: int | None = None) -> None:
         self.json[name].log(json.dumps(msg, allow_nan=False, default=float).encode(),
@@ -208,6 +282,13 @@ class SessionView:
             "sd": _named(np.sqrt(np.maximum(var, 0.0)), names),
             "latency_ms": (now - p.made_ns) / 1e6}, now)
         self._emit("status", self._status_msg(p, now), now)
+        sd = np.sqrt(np.maximum(var, 0.0))
+        self._log_series("prediction", n, p.t_ns,
+                         [p.step, -1 if p.newest_step is None else p.newest_step],
+                         [(now - p.made_ns) / 1e6, *p.x.tolist(), *sd.tolist()], now)
+        c = p.counters
+        self._log_series("status", n, p.t_ns, [int(c.get(k, 0)) for k in (
+            "accepted", "late", "future", "refused", "published")], [(now - p.made_ns) / 1e6], now)
         if truth is not None:
             self._emit_error(p, truth, now)
 
@@ -233,6 +314,7 @@ class SessionView:
         z = np.where(sd > 0, err / np.where(sd > 0, sd, 1.0), 0.0)
         self._emit("error", {"step": p.step, "err": _named(err, names), "sd": _named(sd, names),
                              "z": _named(z, names)}, now)
+        self._log_series("error", n, p.t_ns, [p.step], [*err.tolist(), *z.tolist()], now)
 
     def _on_truth(self, t: Truth) -> None:
         now = time.time_ns()
@@ -406,7 +488,7 @@ def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading
         import foxglove  # noqa: F401
     except ImportError:
         return common.fail(TOOL, "needs foxglove-sdk: pip install 'pd-client[viz]'", 2)
-    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop))
+    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop), stop=stop)
 
 
 def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event) -> int:

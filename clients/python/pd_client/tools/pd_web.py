@@ -14,13 +14,21 @@ series (prediction error, predicted variance, measured delay per sensor, latency
 counters and a warning when predictions stop or a sensor goes silent. A page that connects
 late or reloads gets the last events of each session (the final state after a run).
 ``/state.json``: events published, listeners and sessions (for scripts and tests).
+
+Serving many pages: each event is encoded once and written to every page in batches by one
+thread (:mod:`.web_fanout`); at most ``--max-clients`` pages (default 256) are connected, the
+next is answered ``503`` with the reason; a page too slow to read is closed (it reconnects).
+A request whose ``Host`` is a name other than localhost, the ``--host`` name, this machine's
+name or an ``--allow-host`` name is answered ``403`` (DNS rebinding: a web page elsewhere
+must not read ``/events`` through a name it controls); IP addresses are served.
 """
 
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
-import queue
+import socket
 import sys
 import threading
 import time
@@ -28,10 +36,12 @@ from collections.abc import Sequence
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
+from typing import Any
 
 from pd_service.transport import Transport
 
 from . import common
+from .web_fanout import MAX_CLIENTS, Fanout, frame
 from .web_feed import LiveFeed
 
 TOOL = "pd-web"
@@ -39,8 +49,9 @@ STATIC = {"/": ("index.html", "text/html; charset=utf-8"),
           "/index.html": ("index.html", "text/html; charset=utf-8"),
           "/app.js": ("app.js", "text/javascript; charset=utf-8"),
           "/style.css": ("style.css", "text/css; charset=utf-8")}
-#: Events queued for one page before it counts as too slow and loses the oldest.
-QUEUE_LIMIT = 4096
+#: Connections the kernel queues before pd-web accepts them (the standard library's 5 drops
+#: the SYNs of a burst's 7th and later connections: each waits 1 s for its retry).
+LISTEN_BACKLOG = 128
 
 
 def static_files() -> dict[str, bytes]:
@@ -54,51 +65,75 @@ def page_weight() -> int:
     return sum(len(b) for b in static_files().values())
 
 
-class Hub:
-    """Fan-out of event texts to the connected pages (one bounded queue each)."""
+def host_name(header: str) -> str:
+    """The host of a ``Host`` header, lower case, without port, brackets or a final dot."""
+    h = header.strip().lower()
+    if h.startswith("["):
+        return h[1:h.find("]")] if "]" in h else h
+    if h.count(":") == 1:
+        h = h.split(":", 1)[0]
+    return h.rstrip(".")
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._queues: set[queue.Queue[str]] = set()
-        self.published = 0
-        self.dropped = 0
 
-    def publish(self, text: str) -> None:
-        with self._lock:
-            self.published += 1
-            for q in self._queues:
-                try:
-                    q.put_nowait(text)
-                except queue.Full:
-                    self.dropped += 1
+def host_allowed(header: str | None, names: frozenset[str]) -> bool:
+    """Whether a request's ``Host`` header may be served (the DNS-rebinding guard).
 
-    def add(self, backlog: Sequence[str]) -> queue.Queue[str]:
-        q: queue.Queue[str] = queue.Queue(QUEUE_LIMIT)
-        for t in backlog[-QUEUE_LIMIT:]:
-            q.put_nowait(t)
-        with self._lock:
-            self._queues.add(q)
-        return q
+    An IP address is what the browser connected to, so the page's origin is this server;
+    a name must be one of ``names`` (localhost, the bound name, this machine's name,
+    ``--allow-host``): a rebinding page's origin is the attacker's name, refused here. A
+    request without ``Host`` (HTTP/1.0; browsers always send one) is served."""
+    if header is None:
+        return True
+    name = host_name(header)
+    try:
+        ipaddress.ip_address(name)
+        return True
+    except ValueError:
+        return name in names
 
-    def remove(self, q: queue.Queue[str]) -> None:
-        with self._lock:
-            self._queues.discard(q)
 
-    @property
-    def listeners(self) -> int:
-        with self._lock:
-            return len(self._queues)
+class _HTTPServer(ThreadingHTTPServer):
+    """A thread per request; an ``/events`` socket is handed over to the fan-out, not closed."""
+
+    daemon_threads = True
+    request_queue_size = LISTEN_BACKLOG
+
+    def __init__(self, address: tuple[str, int], handler: type[BaseHTTPRequestHandler]) -> None:
+        self.handed: set[socket.socket] = set()
+        self.handed_lock = threading.Lock()
+        super().__init__(address, handler)
+
+    def shutdown_request(self, request: Any) -> None:
+        with self.handed_lock:
+            if request in self.handed:
+                self.handed.discard(request)
+                return
+        super().shutdown_request(request)
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        exc = sys.exc_info()[1]
+        if isinstance(exc, ConnectionError):  # the client left: one line, not a traceback
+            print(f"{TOOL}: {client_address[0]}:{client_address[1]} left before its reply "
+                  f"was written ({type(exc).__name__})", file=sys.stderr, flush=True)
+        else:
+            super().handle_error(request, client_address)
 
 
 class WebServer:
-    """The HTTP server (a thread per request) and the feed's status/tick thread."""
+    """The HTTP server (a thread per request), the fan-out thread and the feed's
+    status/tick thread. ``max_clients`` pages at a time (503 beyond); ``allow_hosts``:
+    names besides localhost, the bound name and this machine's name that ``Host`` may be."""
 
     def __init__(self, transport: Transport, host: str = "127.0.0.1", port: int = 8080, *,
-                 stale_s: float = 1.0, tick_s: float = 0.5) -> None:
-        self.hub = Hub()
-        self.feed = LiveFeed(transport, self.hub.publish, stale_s=stale_s)
+                 stale_s: float = 1.0, tick_s: float = 0.5, max_clients: int = MAX_CLIENTS,
+                 allow_hosts: Sequence[str] = ()) -> None:
+        self.fanout = Fanout(max_clients=max_clients)
+        self.feed = LiveFeed(transport, self.fanout.publish, stale_s=stale_s)
         self.files = static_files()
         self.tick_s = tick_s
+        self.names = frozenset({"localhost", host_name(host), host_name(socket.gethostname()),
+                                *(host_name(h) for h in allow_hosts)})
+        self.hosts_refused = 0
         self._stop = threading.Event()
         server = self
 
@@ -109,27 +144,34 @@ class WebServer:
                 pass  # one line per request would flood the terminal
 
             def do_GET(self) -> None:
+                if not host_allowed(self.headers.get("Host"), server.names):
+                    server.hosts_refused += 1
+                    self._send(f"{TOOL}: Host {self.headers.get('Host')!r} is not served (a guard "
+                               "against DNS rebinding): use this machine's address or start "
+                               "pd-web with --allow-host NAME\n", HTTPStatus.FORBIDDEN)
+                    return
                 path = self.path.split("?", 1)[0]
                 if path == "/events":
                     server._serve_events(self)
                 elif path == "/state.json":
-                    self._send(json.dumps(server.state()).encode(), "application/json")
+                    self._send(json.dumps(server.state()).encode(), ctype="application/json")
                 elif path in STATIC:
                     name, ctype = STATIC[path]
-                    self._send(server.files[name], ctype)
+                    self._send(server.files[name], ctype=ctype)
                 else:
-                    self.send_error(HTTPStatus.NOT_FOUND)
+                    self._send(f"{TOOL}: nothing at {path}\n", HTTPStatus.NOT_FOUND)
 
-            def _send(self, body: bytes, ctype: str) -> None:
-                self.send_response(HTTPStatus.OK)
+            def _send(self, body: bytes | str, status: HTTPStatus = HTTPStatus.OK,
+                      ctype: str = "text/plain; charset=utf-8") -> None:
+                data = body.encode() if isinstance(body, str) else body
+                self.send_response(status)
                 self.send_header("Content-Type", ctype)
-                self.send_header("Content-Length", str(len(body)))
+                self.send_header("Content-Length", str(len(data)))
                 self.send_header("Cache-Control", "no-store")
                 self.end_headers()
-                self.wfile.write(body)
+                self.wfile.write(data)
 
-        self.httpd = ThreadingHTTPServer((host, port), Handler)
-        self.httpd.daemon_threads = True
+        self.httpd = _HTTPServer((host, port), Handler)
         self._threads = [threading.Thread(target=self.httpd.serve_forever, name="pd-web-http",
                                           daemon=True),
                          threading.Thread(target=self._status_loop, name="pd-web-status",
@@ -141,6 +183,7 @@ class WebServer:
         return f"http://{host!s}:{port}/"
 
     def start(self) -> WebServer:
+        self.fanout.start()
         for t in self._threads:
             t.start()
         return self
@@ -148,8 +191,10 @@ class WebServer:
     def state(self) -> dict[str, object]:
         with self.feed.lock:
             sessions = {s: v.predictions for s, v in self.feed.views.items()}
-        return {"published": self.hub.published, "dropped": self.hub.dropped,
-                "listeners": self.hub.listeners, "sessions": sessions,
+        f = self.fanout
+        return {"published": f.published, "batches": f.batches, "listeners": f.listeners,
+                "max_clients": f.max_clients, "refused": f.refused, "cut": f.cut,
+                "hosts_refused": self.hosts_refused, "sessions": sessions,
                 "reported": self.feed.reported, "invalid": self.feed.invalid}
 
     def _status_loop(self) -> None:
@@ -158,44 +203,45 @@ class WebServer:
             if time.monotonic() - last_poll >= 1.0:
                 last_poll = time.monotonic()
                 self.feed.poll_status()
-            self.hub.publish(self.feed.tick())
+            self.fanout.publish(self.feed.tick())
 
     def _serve_events(self, h: BaseHTTPRequestHandler) -> None:
-        h.send_response(HTTPStatus.OK)
-        h.send_header("Content-Type", "text/event-stream")
-        h.send_header("Cache-Control", "no-store")
-        h.send_header("Connection", "close")
-        h.end_headers()
-        tick = self.feed.tick()
-        with self.feed.lock:  # no event lost or repeated between the snapshot and the queue
-            q = self.hub.add([json.dumps({"type": "hello"}), tick, *self.feed.snapshot()])
+        """Headers here; the snapshot and every later event from the fan-out thread."""
+        h.close_connection = True
+        if not self.fanout.reserve():
+            text = (f"{TOOL}: {self.fanout.max_clients} pages are connected, its cap: close "
+                    "one, or start pd-web with a larger --max-clients\n").encode()
+            h.send_response(HTTPStatus.SERVICE_UNAVAILABLE)
+            h.send_header("Content-Type", "text/plain; charset=utf-8")
+            h.send_header("Content-Length", str(len(text)))
+            h.send_header("Retry-After", "10")
+            h.end_headers()
+            h.wfile.write(text)
+            return
         try:
-            while not self._stop.is_set():
-                try:
-                    first = q.get(timeout=1.0)
-                except queue.Empty:
-                    h.wfile.write(b": ping\n\n")
-                    h.wfile.flush()
-                    continue
-                batch = [first]
-                while len(batch) < 256:
-                    try:
-                        batch.append(q.get_nowait())
-                    except queue.Empty:
-                        break
-                h.wfile.write("".join(f"data: {t}\n\n" for t in batch).encode())
-                h.wfile.flush()
-        except (BrokenPipeError, ConnectionResetError, OSError):
-            pass
-        finally:
-            self.hub.remove(q)
-            h.close_connection = True
+            h.send_response(HTTPStatus.OK)
+            h.send_header("Content-Type", "text/event-stream")
+            h.send_header("Cache-Control", "no-store")
+            h.send_header("Connection", "close")
+            h.end_headers()
+        except BaseException:
+            self.fanout.release()
+            raise
+        tick = self.feed.tick()
+        sock = h.connection
+        with self.httpd.handed_lock:
+            self.httpd.handed.add(sock)
+        with self.feed.lock:  # no event lost or repeated between the snapshot and the fan-out
+            first = b"".join(frame(e) for e in (b'{"type":"hello"}', tick, *self.feed.snapshot()))
+            self.fanout.attach(sock, first)
 
     def close(self) -> None:
         self._stop.set()
-        self.httpd.shutdown()
+        if self._threads[0].is_alive():  # shutdown() waits for a serve_forever that ran
+            self.httpd.shutdown()
         self.httpd.server_close()
         self.feed.close()
+        self.fanout.close()
 
 
 # --- command line ----------------------------------------------------------------------------
@@ -203,24 +249,32 @@ class WebServer:
 def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--host", default="127.0.0.1",
                     help="interface to serve on (default 127.0.0.1: this machine only)")
-    ap.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any free)")
+    ap.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any free port)")
     ap.add_argument("--stale", type=float, default=1.0,
                     help="seconds without predictions / samples before the page warns (default 1)")
     ap.add_argument("--duration", type=float, help="stop after this many seconds")
     ap.add_argument("--linger", type=float, default=0.0,
                     help="on SIGINT/SIGTERM or --duration, keep serving the last state this many "
                          "seconds more (default 0)")
+    ap.add_argument("--max-clients", type=int, default=MAX_CLIENTS,
+                    help=f"pages connected at a time; the next gets HTTP 503 (default {MAX_CLIENTS})")
+    ap.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                    help="a name the page may be reached by besides localhost, the --host name and "
+                         "this machine's name (repeatable; IP addresses are always served)")
 
 
 def _main(ap: argparse.ArgumentParser, args: argparse.Namespace, stop: threading.Event) -> int:
     if not 0 <= args.port <= 65535:
         ap.error("--port must be 0..65535")
-    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop))
+    if args.max_clients < 1:
+        ap.error("--max-clients must be >= 1")
+    return common.run_on_transport(TOOL, args, lambda t: _serve(t, args, stop), stop=stop)
 
 
 def _serve(transport: Transport, args: argparse.Namespace, stop: threading.Event) -> int:
     try:
-        server = WebServer(transport, args.host, args.port, stale_s=args.stale)
+        server = WebServer(transport, args.host, args.port, stale_s=args.stale,
+                           max_clients=args.max_clients, allow_hosts=args.allow_host)
     except OSError as exc:
         return common.fail(TOOL, f"cannot serve on {args.host}:{args.port}: {exc}")
     server.start()

@@ -20,8 +20,9 @@ each prediction into one event for the page (:meth:`FeedSession.event`)::
      "cmd": {"k": 131, "u": [0.5]} | null}
 
 and, twice a second, a ``tick`` event with the sessions the daemons report and the warnings
-(predictions stopped, sensors silent). The 2-sigma ellipse of the planar position (x, y)
-with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's eigenvectors.
+(predictions stopped, sensors silent: ``[what, seconds since]`` pairs). The 2-sigma ellipse
+of the planar position (x, y) with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's
+eigenvectors.
 """
 
 from __future__ import annotations
@@ -46,8 +47,9 @@ from ..errors import PdClientError
 from ..pairing import TruthPairs, prediction_error
 from ..truth import Truth
 
-#: Events of one session kept for a page that connects late (or reloads after the run).
-HISTORY = 240
+#: Events of one session kept for a page that connects late (or reloads after the run): as
+#: many as the page keeps (app.js KEEP).
+HISTORY = 200
 #: Counters the page shows (from the prediction's counters).
 COUNTERS = ("accepted", "late", "future", "refused")
 _AXIS_NAME = re.compile(r"^p\d+$")
@@ -108,8 +110,9 @@ class FeedSession:
         #: The daemon's robot clock warning (SessionStatus.clock; robot_clock "estimated"
         #: sessions only, polled with the status): "" none.
         self.clock_warning = ""
+        self.clock_warning_since = 0.0  # monotonic s at which it was first reported
         self.predictions = 0
-        self.history: deque[tuple[int, str]] = deque(maxlen=HISTORY)  # (event id, text)
+        self.history: deque[tuple[int, bytes]] = deque(maxlen=HISTORY)  # (event id, JSON)
 
     # --- clock of the session ----------------------------------------------------------
 
@@ -221,16 +224,19 @@ class FeedSession:
             "cmd": self.cmd,
         }
 
-    def warnings(self, mono: float, stale_s: float) -> tuple[float | None, dict[str, float], list[str]]:
+    def warnings(self, mono: float, stale_s: float
+                 ) -> tuple[float | None, dict[str, float], list[tuple[str, float]]]:
         """(seconds since the newest prediction, seconds since each sensor's newest sample,
-        warning lines). Predictions are stopped after max(stale_s, 3 publish periods); a
-        sensor is silent after max(stale_s, 3 sample intervals)."""
-        warn: list[str] = []
+        warnings as (what, seconds since)). Predictions are stopped after max(stale_s, 3
+        publish periods); a sensor is silent after max(stale_s, 3 sample intervals). The page
+        writes "<what> for <seconds> s", adding the time since the tick: the ages go on
+        counting when the stream is lost."""
+        warn: list[tuple[str, float]] = []
         period = 0.0 if self.spec is None else self.spec.period_ns / 1e9
         pred_age = None if self.last_pred is None else mono - self.last_pred
         every = 1 if self.spec is None else self.spec.publish_every
         if pred_age is not None and pred_age > max(stale_s, 3 * every * period):
-            warn.append(f"no prediction for {pred_age:.1f} s")
+            warn.append(("no prediction", pred_age))
         sensors = {s.name: s.interval for s in self.spec.sensors} if self.spec else {}
         for s in self.sensor_seen:
             sensors.setdefault(s, 1)
@@ -241,20 +247,21 @@ class FeedSession:
                 continue  # never heard: not "silent", just not (yet) publishing
             ages[s] = mono - seen
             if ages[s] > max(stale_s, 3 * interval * period):
-                warn.append(f"sensor {s} silent for {ages[s]:.1f} s")
+                warn.append((f"sensor {s} silent", ages[s]))
         if self.clock_warning:
-            warn.append(self.clock_warning)
+            warn.append((self.clock_warning, mono - self.clock_warning_since))
         return pred_age, ages, warn
 
 
-Sink = Callable[[str], None]
+Sink = Callable[[bytes], None]
 
 
 class LiveFeed:
     """Zenoh samples of every session -> page events (JSON text) passed to ``sink``.
 
     Transport callbacks only decode and update the session's view under one lock, then pass
-    the event's text to ``sink`` (which must not block: :class:`pd_web.Hub` queues it).
+    the event's JSON (bytes) to ``sink`` (which must not block: :class:`.web_fanout.Fanout`
+    queues it).
     ``sessions()`` / ``snapshot()`` give a late page what it missed. ``poll_status()`` (call
     it every second or so, not on a transport thread) asks the daemons which sessions they
     run and fetches the specs not yet known.
@@ -310,9 +317,9 @@ class LiveFeed:
             ev = self._view(session).event(p, sample.recv_ns, self._now_ns(), self._mono())
             ev["i"] = self.events
             ev["ts"] = self._now_ns() / 1e6
-            text = json.dumps(ev, separators=(",", ":"))
-            self.views[session].history.append((self.events, text))
-            self.sink(text)
+            data = json.dumps(ev, separators=(",", ":")).encode()
+            self.views[session].history.append((self.events, data))
+            self.sink(data)
 
     def _on_config(self, sample: Sample) -> None:
         session = self._session_of(sample)  # a delete (session removed) keeps the last spec
@@ -400,10 +407,13 @@ class LiveFeed:
             if st.clock is not None and st.clock.warning:
                 text = f"clock: {st.clock.warning}"
             with self.lock:
-                self._view(s).clock_warning = text
+                v = self._view(s)
+                if text and not v.clock_warning:
+                    v.clock_warning_since = self._mono()
+                v.clock_warning = text
 
-    def tick(self) -> str:
-        """The ``tick`` event's text: sessions (reported and seen) and their warnings."""
+    def tick(self) -> bytes:
+        """The ``tick`` event's JSON: sessions (reported and seen) and their warnings."""
         mono = self._mono()
         with self.lock:
             out: Json = {}
@@ -413,9 +423,9 @@ class LiveFeed:
             names = sorted(set(self.reported) | set(self.views))
             ev = {"type": "tick", "ts": self._now_ns() / 1e6, "list": names,
                   "reported": self.reported, "sessions": out, "events": self.events}
-            return json.dumps(ev, separators=(",", ":"))
+            return json.dumps(ev, separators=(",", ":")).encode()
 
-    def snapshot(self) -> list[str]:
+    def snapshot(self) -> list[bytes]:
         """Every session's kept events, oldest first (call with ``lock`` held to pair it
         with registering a listener)."""
         return [t for _, t in sorted(e for v in self.views.values() for e in v.history)]

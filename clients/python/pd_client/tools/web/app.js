@@ -1,21 +1,25 @@
 // pd-web page: Server-Sent Events from pd-web -> per-session buffers -> canvas drawing on
 // requestAnimationFrame. Plain JS, no framework, no network access beyond this server.
+// Sessions live in a Map (a name like "constructor" is a key, not a property of Object), and
+// every name reaches the DOM as text (textContent, new Option), never as HTML.
 "use strict";
 const KEEP = 200;            // events kept per session (trail and time series)
 const TRAIL = 80;            // steps of trail in the plan view
 const STALE_MS = 1500;       // page-side: no event for this long -> warning
 const COLORS = ["#4aa3ff", "#ff7aa8", "#7be07b", "#c59bff", "#ffd24a", "#5ee0e0", "#ff9b5e", "#b0b0b0"];
 const $ = (id) => document.getElementById(id);
-const S = {};                // session -> {ev: [...], last, tick, recv}
+const S = new Map();         // session -> {ev: [...], last, tick, tickRecv, recv, lastRecv}
 let selected = null, paused = false, dirty = true, lastTick = null;
 const stats = {received: 0, lags: [], maxLag: 0, lastI: 0, ticks: 0, gaps: 0};
 
 function session(name) {
-  return S[name] || (S[name] = {ev: [], last: null, tick: null, recv: 0, lastRecv: 0});
+  let s = S.get(name);
+  if (!s) S.set(name, s = {ev: [], last: null, tick: null, tickRecv: 0, recv: 0, lastRecv: 0});
+  return s;
 }
 
 function onEvent(ev) {
-  if (ev.type === "hello") { for (const k in S) delete S[k]; stats.lastI = 0; dirty = true; return; }
+  if (ev.type === "hello") { S.clear(); stats.lastI = 0; dirty = true; return; }
   if (ev.type === "tick") { onTick(ev); return; }
   if (ev.type !== "pred") return;
   const now = Date.now();
@@ -25,17 +29,20 @@ function onEvent(ev) {
   stats.lastI = ev.i;
   stats.lags.push(lag); if (stats.lags.length > 4000) stats.lags.splice(0, 2000);
   if (lag > stats.maxLag) stats.maxLag = lag;
+  const fresh = !S.has(ev.s);
   const s = session(ev.s);
   s.ev.push(ev); if (s.ev.length > KEEP) s.ev.shift();
   s.last = ev; s.recv++; s.lastRecv = now;
   if (selected === null) { selected = ev.s; }
+  if (fresh) { syncPicker([]); dirty = true; }  // listed at once, not at the next tick
   if (ev.s === selected) dirty = true;
 }
 
 function onTick(ev) {
   lastTick = ev; stats.ticks++;
   for (const name of ev.list) session(name);
-  for (const name in ev.sessions) session(name).tick = ev.sessions[name];
+  const now = Date.now();
+  for (const [name, t] of Object.entries(ev.sessions)) { const s = session(name); s.tick = t; s.tickRecv = now; }
   if (selected === null && ev.list.length) selected = ev.list[0];
   syncPicker(ev.list);
   dirty = true;
@@ -44,10 +51,9 @@ function onTick(ev) {
 function syncPicker(list) {
   const sel = $("session");
   const have = Array.from(sel.options).map((o) => o.value);
-  const names = Array.from(new Set([...list, ...Object.keys(S)])).sort();
+  const names = Array.from(new Set([...list, ...S.keys()])).sort();
   if (have.join() !== names.join()) {
-    sel.innerHTML = "";
-    for (const n of names) sel.add(new Option(n, n));
+    sel.replaceChildren(...names.map((n) => new Option(n, n)));
   }
   if (selected !== null) sel.value = selected;
 }
@@ -146,7 +152,7 @@ function drawPlane(c, evs, last) {
   for (const e of recent) { xs.push(e.x[ix]); ys.push(e.x[iy]); }
   for (const t of truth) { xs.push(t.p[0]); ys.push(t.p[1]); }
   const nx = last.names[ix], ny = last.names[iy];
-  for (const m of meas) { if (nx in m.p) xs.push(m.p[nx]); if (ny in m.p) ys.push(m.p[ny]); }
+  for (const m of meas) { if (Object.hasOwn(m.p, nx)) xs.push(m.p[nx]); if (Object.hasOwn(m.p, ny)) ys.push(m.p[ny]); }
   if (last.ell) { xs.push(last.ell[0] - last.ell[2], last.ell[0] + last.ell[2]); ys.push(last.ell[1] - last.ell[2], last.ell[1] + last.ell[2]); }
   let [x0, x1] = range(xs), [y0, y1] = range(ys);
   const s = Math.min((W - 2 * M) / (x1 - x0), (H - 2 * M) / (y1 - y0));
@@ -157,7 +163,7 @@ function drawPlane(c, evs, last) {
   line(truth.map((t) => t.p), "#e8e8e8", 1);
   line(recent.map((e) => [e.x[ix], e.x[iy]]), "#4aa3ff", 2);
   g.fillStyle = "#ffb020";
-  for (const m of meas) if (nx in m.p && ny in m.p) { g.beginPath(); g.arc(X(m.p[nx]), Y(m.p[ny]), 3, 0, 2 * Math.PI); g.fill(); }
+  for (const m of meas) if (Object.hasOwn(m.p, nx) && Object.hasOwn(m.p, ny)) { g.beginPath(); g.arc(X(m.p[nx]), Y(m.p[ny]), 3, 0, 2 * Math.PI); g.fill(); }
   if (last.ell) {
     const [ex, ey, a, b, ang] = last.ell;
     g.fillStyle = "#4aa3ff44"; g.strokeStyle = "#4aa3ff"; g.beginPath();
@@ -197,16 +203,19 @@ function drawSeries(evs, last) {
   chart($("ts-var"), names.map((n, i) => ({name: n, color: COLORS[i % COLORS.length], pts: evs.map((e) => [e.k, e.var[i]])})), true);
   const sensors = Object.keys(last.delay_ms);
   chart($("ts-delay"), sensors.map((s, j) => ({name: s, color: COLORS[(j + 4) % COLORS.length],
-    pts: evs.filter((e) => s in e.delay_ms).map((e) => [e.k, e.delay_ms[s]])})), false);
+    pts: evs.filter((e) => Object.hasOwn(e.delay_ms, s)).map((e) => [e.k, e.delay_ms[s]])})), false);
   chart($("ts-lat"), [{name: "latency", color: COLORS[2], pts: evs.map((e) => [e.k, e.lat_ms])}], false);
 }
 
+// the server's warnings ([what, seconds since] at its tick) aged by the time since that tick:
+// they go on counting after the stream is lost
 function warnings(name) {
-  const s = S[name]; if (!s) return [];
-  const out = s.tick ? s.tick.warn.slice() : [];
-  if (s.lastRecv && Date.now() - s.lastRecv > STALE_MS && !out.some((w) => w.startsWith("no prediction")))
-    out.unshift("no prediction for " + ((Date.now() - s.lastRecv) / 1000).toFixed(1) + " s");
-  return out;
+  const s = S.get(name); if (!s) return [];
+  const now = Date.now(), since = (now - s.tickRecv) / 1000;
+  const out = s.tick ? s.tick.warn.map(([what, age]) => [what, age + since]) : [];
+  if (s.lastRecv && now - s.lastRecv > STALE_MS && !out.some(([what]) => what === "no prediction"))
+    out.unshift(["no prediction", (now - s.lastRecv) / 1000]);
+  return out.map(([what, age]) => what + " for " + age.toFixed(1) + " s");
 }
 
 function renderWarnings() {
@@ -216,8 +225,21 @@ function renderWarnings() {
   box.dataset.warn = w.join("|");
 }
 
+// a table row of text cells: [text, attributes] pairs, or texts
+function row(cells, data, cls) {
+  const tr = document.createElement("tr");
+  if (cls) tr.className = cls;
+  for (const [k, v] of Object.entries(data)) tr.dataset[k] = v;
+  for (const c of cells) {
+    const td = document.createElement("td");
+    if (Array.isArray(c)) { td.textContent = c[0]; td.className = c[1]; } else td.textContent = c;
+    tr.append(td);
+  }
+  return tr;
+}
+
 function render() {
-  const s = selected && S[selected];
+  const s = selected !== null ? S.get(selected) : undefined;
   renderOverview();
   if (!s || !s.last) return;
   const last = s.last, evs = s.ev;
@@ -229,28 +251,30 @@ function render() {
   last.pos.forEach((i, j) => {
     const n = last.names[i], sd = Math.sqrt(last.var[i]);
     let mv = null, age = null;
-    for (const sensor in last.meas) { const m = last.meas[sensor]; if (n in m.p && (mv === null || m.k > mv.k)) { mv = {v: m.p[n], k: m.k}; age = m.age_ms; } }
+    for (const sensor in last.meas) { const m = last.meas[sensor]; if (Object.hasOwn(m.p, n) && (mv === null || m.k > mv.k)) { mv = {v: m.p[n], k: m.k}; age = m.age_ms; } }
     const tv = last.truth ? last.truth.p[j] : null;
-    rows.push(`<tr data-name="${n}" data-x="${last.x[i]}" data-sd="${sd}" data-meas="${mv ? mv.v : ""}" data-age-ms="${age === null ? "" : age}" data-truth="${tv === null ? "" : tv}">` +
-      `<td>${n}</td><td>${fmt(last.x[i])}</td><td>±${fmt(2 * sd)}</td><td>${mv ? fmt(mv.v) : "–"}</td><td>${age === null ? "–" : fmt(age / 1000, 2) + " s"}</td><td>${fmt(tv)}</td></tr>`);
+    rows.push(row([n, fmt(last.x[i]), "±" + fmt(2 * sd), mv ? fmt(mv.v) : "–", age === null ? "–" : fmt(age / 1000, 2) + " s", fmt(tv)],
+      {name: n, x: last.x[i], sd: sd, meas: mv ? mv.v : "", ageMs: age === null ? "" : age, truth: tv === null ? "" : tv}));
   });
-  tb.innerHTML = rows.join("");
+  tb.replaceChildren(...rows);
   tb.dataset.session = selected; tb.dataset.k = last.k; tb.dataset.seq = last.seq;
   $("info").textContent = `target step ${last.k} · now ${last.now ?? "?"} · lead ${last.lead ?? "?"} · latency ${fmt(last.lat_ms, 1)} ms` +
     (last.err ? ` · error at ${last.err.k}: ` + last.pos.map((i) => last.names[i] + " " + fmt(last.err.e[i])).join(", ") : "") +
     (last.cmd ? ` · command u(${last.cmd.k}) = [${last.cmd.u.map((v) => fmt(v, 2)).join(", ")}]` : "");
-  $("counters").innerHTML = Object.entries(last.c).map(([k, v]) => `<div data-counter="${k}"><b>${v}</b>${k}</div>`).join("");
+  $("counters").replaceChildren(...Object.entries(last.c).map(([k, v]) => {
+    const d = document.createElement("div"), b = document.createElement("b");
+    d.dataset.counter = k; b.textContent = v; d.append(b, k); return d;
+  }));
 }
 
 function renderOverview() {
   const rows = [];
-  for (const name of Object.keys(S).sort()) {
-    const s = S[name], c = s.last ? s.last.c : {}, w = warnings(name);
-    rows.push(`<tr data-session="${name}" class="${name === selected ? "sel" : ""}"><td>${name}</td><td>${s.recv}</td>` +
-      ["accepted", "late", "future", "refused"].map((k) => `<td>${c[k] ?? "–"}</td>`).join("") +
-      `<td class="${w.length ? "bad" : ""}">${w.length ? "⚠ " + w.length : "ok"}</td></tr>`);
+  for (const name of Array.from(S.keys()).sort()) {
+    const s = S.get(name), c = s.last ? s.last.c : {}, w = warnings(name);
+    rows.push(row([name, s.recv, ...["accepted", "late", "future", "refused"].map((k) => c[k] ?? "–"),
+      [w.length ? "⚠ " + w.length : "ok", w.length ? "bad" : ""]], {session: name}, name === selected ? "sel" : ""));
   }
-  $("overview").innerHTML = rows.join("");
+  $("overview").replaceChildren(...rows);
 }
 
 function publishStats() {
@@ -268,11 +292,20 @@ function frame() {
   requestAnimationFrame(frame);
 }
 
+// EventSource retries a lost stream by itself, but not a refused one (HTTP 503 at pd-web's
+// page cap, 403 for a Host it does not serve): then the reason is fetched and shown.
 function connect() {
   const es = new EventSource("events");
   es.onopen = () => { $("conn").textContent = "live"; $("conn").className = "conn live"; };
   es.onmessage = (m) => onEvent(JSON.parse(m.data));
-  es.onerror = () => { $("conn").textContent = "stream lost: showing the last state (retrying)"; $("conn").className = "conn lost"; dirty = true; };
+  es.onerror = () => {
+    $("conn").className = "conn lost"; dirty = true;
+    if (es.readyState !== EventSource.CLOSED) { $("conn").textContent = "stream lost: showing the last state (retrying)"; return; }
+    $("conn").textContent = "stream refused: showing the last state (retrying in 10 s)";
+    fetch("events").then((r) => (r.ok ? r.body.cancel().then(() => "") : r.text())).catch(() => "")
+      .then((why) => { if (why) $("conn").textContent = "stream refused: " + why.trim() + " (retrying in 10 s)"; });
+    setTimeout(connect, 10000);
+  };
 }
 
 $("session").onchange = (e) => { selected = e.target.value; dirty = true; render(); };
