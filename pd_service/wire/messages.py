@@ -528,8 +528,9 @@ class SessionSpec(Message):
         "stamps) and maps every robot stamp to its own timeline before the window check.")
     command_timing: Literal["stamped", "echoed"] = Field(
         "stamped", description="stamped: a command applies at its stamped apply step; "
-        "echoed: at the time the robot's CommandEcho says it took effect (a command never "
-        "echoed is never applied).")
+        "echoed: it moves to the instant the robot's CommandEcho says it took effect (inside "
+        "the step for a continuous-time model); until then, or if no echo comes, it applies at "
+        "its stamped instant.")
     expire_s: Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)] | None = Field(
         None, description="Seconds without a measurement or command after which the service "
                           "removes the session (state expired); 0: never; absent: the "

@@ -269,3 +269,24 @@ def test_every_linear_estimator_checks_its_sensors(cls) -> None:
     with pytest.raises(ValueError, match="sensor 'lidar' H: expected 4 columns"):
         module = est if cls == "ObserverPredictor" else research
         getattr(module, cls)(paper_model(), arg, x0, P0, lead=1, max_delay=1)
+
+
+def test_a_command_moved_inside_its_step_or_withdrawn_at_the_origin_keeps_the_record_exact() -> None:
+    """An echo moves a command to another instant of the same step (supersede with an
+    offset) or takes it back at the window's origin: u(t) and the cuts are what a buffer
+    given only the final commands holds (u_before at the origin)."""
+    buf, ref = InputBuffer(nu=1, capacity=8, hold=True), InputBuffer(nu=1, capacity=8, hold=True)
+    buf.set(2, np.array([1.0]), 0.01)
+    buf.set(4, np.array([2.0]), 0.02)
+    buf.replace(4, np.array([2.0]), 0.035)  # moved inside its step
+    buf.replace(2, np.array([1.0]))  # moved to its step's start: no cut left
+    ref.set(2, np.array([1.0]))
+    ref.set(4, np.array([2.0]), 0.035)
+    assert buf.cut_offsets == ref.cut_offsets == {4: 0.035} and buf.cuts(0, 7) == ref.cuts(0, 7)
+    buf.advance(2)
+    ref.advance(2)
+    buf.remove(2)  # at the origin: u(2..3) falls back to u(1), the zeros before it
+    assert np.array_equal(buf.slice(2, 2), np.zeros((2, 1)))
+    buf.remove(4)
+    assert buf.cut_offsets == {} and buf.cuts(2, 9) is None
+    assert np.array_equal(buf.slice(2, 8), np.zeros((8, 1)))
