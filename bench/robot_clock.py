@@ -158,6 +158,10 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
         for j in range(int(seconds)):
             push(EPOCH + j * S + 3 * P // 10, "probe", j)
         truth: dict[int, np.ndarray] = {}
+        # the robot that applies on arrival: step -> [(offset s, u)], and the u it holds
+        arrived: dict[int, list[tuple[float, np.ndarray]]] = {}
+        u_robot = np.zeros(sc.nu)
+        flows = sc.nonlinear is not None and sc.nonlinear.flow is not None
         seq = dict.fromkeys(sc.sensor_names, 0)
         at5: dict[str, int] = {}
         offset_errs: list[float] = []
@@ -168,8 +172,15 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
             now[0] = t
             if kind == "step":
                 k = int(data)  # type: ignore[call-overload]
-                if k > 0:
+                if k > 0 and hold:
                     sim.advance(schedule.u_at(k - 1))
+                elif k > 0:  # on arrival: each command from its instant inside step k - 1
+                    cuts = sorted(arrived.pop(k - 1, []), key=lambda c: c[0])
+                    if flows:
+                        sim.advance(u_robot, cuts)
+                    u_robot = cuts[-1][1] if cuts else u_robot
+                    if not flows:  # every cut at the step's start: the last one arrived
+                        sim.advance(u_robot)
                 truth[k] = sim.x.copy()
                 for d in sim.sample():
                     dl = links.get(d.sensor, links["ranger"]).delay_ns(rng)  # others: 600 ms
@@ -195,12 +206,17 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
                 if hold:
                     schedule.add(spec.step_of(data.issued_ns or 0) + spec.lead, data.u)
                 else:
-                    schedule.add(spec.step_of(t), data.u)
+                    # applied on arrival: at that instant where the model flows over part of
+                    # a step, else at the robot's next control tick (a discrete model)
+                    j = spec.step_of(t)
+                    at = t if flows else spec.time_of(j + 1)
+                    ja = spec.step_of(at)
+                    arrived.setdefault(ja, []).append(((at - spec.time_of(ja)) / S, data.u))
                     dn = links["echo"].delay_ns(rng)
                     if dn is not None:
-                        push(t + dn, "echo", CommandEcho(session="s1", seq=data.seq,
-                                                         applied_ns=robot_clock.at(t),
-                                                         sent_ns=robot_clock.at(t)))
+                        push(at + dn, "echo", CommandEcho(session="s1", seq=data.seq,
+                                                          applied_ns=robot_clock.at(at),
+                                                          sent_ns=robot_clock.at(at)))
             elif kind == "meas":
                 assert isinstance(data, Measurement)
                 op.put(keys.sensor_key("s1", data.sensor), encode(data))

@@ -12,8 +12,9 @@ from pd_service.backends import build
 from pd_service.estimation import ObserverPredictor
 from pd_service.intake import Intake
 from pd_service.wire import encode, keys
+from tests.service.helpers import cmd_bytes, cmd_now_bytes
+from tests.service.helpers import paper_spec as service_paper_spec
 from tests.wire.factories import PERIOD_NS, command, measurement, paper_continuous_spec, paper_spec
-from tests.service.helpers import cmd_bytes, cmd_now_bytes, paper_spec as service_paper_spec
 
 EPOCH = 1_700_000_000_000_000_000
 
