@@ -428,12 +428,7 @@ class ReplayEstimator(Generic[S]):
         """:meth:`add_command` for a caller that has made its checks (the daemon's intake
         fast path): ``step`` an int, ``u`` a finite float64 (nu,) array (copied into the
         input buffer). Skips the conversion and checks of u (not those of the offset)."""
-        if offset != 0.0:
-            offset = self._check_offset(offset)
-        if now is not None:
-            t = self._check_now(now)
-            if t != self._now:
-                self._advance(t)
+        offset = self._command_offset(offset, now)
         ref = self._now if self._now is not None else 0
         if not self._inputs.admit(step, u, self._c, ref + self._cmd_ahead, self._counters,
                                   offset):
@@ -598,6 +593,17 @@ class ReplayEstimator(Generic[S]):
         """Called with (step, posterior, packets) for each measured step that became final,
         in step order. Default: nothing. Adaptive backends override it."""
 
+    def _command_offset(self, offset: float, now: object | None) -> float:
+        """A command's ``offset`` checked (:meth:`add_measurement`'s rules), after moving the
+        window to ``now`` (None: where it is)."""
+        if offset != 0.0:
+            offset = self._check_offset(offset)
+        if now is not None:
+            t = self._check_now(now)
+            if t != self._now:
+                self._advance(t)
+        return offset
+
     def supersede_command(self, step: int, u: np.ndarray, now: object | None = None,
                           offset: float = 0.0) -> bool:
         """Replace the command stored for ``step`` by ``u`` (a finite float64 (nu,) array)
@@ -607,12 +613,7 @@ class ReplayEstimator(Generic[S]):
         that ``u`` is the newer of the two (pd_service.intake: a later ``issued_ns``, then a
         higher ``seq``); the estimator only refuses a final step. ValueError for an offset
         as :meth:`add_measurement` refuses it."""
-        if offset != 0.0:
-            offset = self._check_offset(offset)
-        if now is not None:
-            t = self._check_now(now)
-            if t != self._now:
-                self._advance(t)
+        offset = self._command_offset(offset, now)
         if step < self._c or not self._inputs.has_command(step):
             return False
         self._inputs.replace(step, u, offset)
