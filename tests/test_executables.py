@@ -28,6 +28,8 @@ SCRIPTS = sorted(name for f in ("pyproject.toml", "clients/python/pyproject.toml
                  for name in tomllib.loads((ROOT / f).read_text())["project"]["scripts"])
 #: Arguments a script needs besides the flag under test.
 REQUIRED = {"pd-link": ["--config", str(ROOT / "deploy" / "link-paper.toml")]}
+#: What a tool with subcommands needs after its shared flags to reach the transport.
+AFTER = {"pd-admin": ["list"]}
 RST = ("``", ":func:", ":class:", ":meth:", ":data:", ":mod:", ":attr:")
 #: An option's first line in argparse's help: two spaces, the flag, then its text (or not).
 OPTION = re.compile(r"^  (-\S.*?)(?:\s{2,}(\S.*))?$")
@@ -116,7 +118,8 @@ def test_a_missing_zenoh_config_file_is_named(script: str, tmp_path: Path) -> No
         pytest.skip(f"{script} has no --zenoh-config")
     missing = tmp_path / "no-such-dir" / "zenoh.json5"
     extra = ["--connect-wait", "0"] if "--connect-wait" in help_text(script) else []
-    done = run(script, *REQUIRED.get(script, []), "--zenoh-config", str(missing), *extra)
+    done = run(script, *REQUIRED.get(script, []), "--zenoh-config", str(missing), *extra,
+               *AFTER.get(script, []))
     out = done.stdout + done.stderr
     assert done.returncode != 0, out
     assert str(missing) in out, out

@@ -111,6 +111,7 @@ from pd_service.wire import decode as wire_decode
 from pd_service.wire import encode as wire_encode
 from pd_service.wire.clock_probe import answer_probe
 from pd_service.wire.codec import validation_reason
+from pd_service.wire.fence import TermFence
 from pd_service.wire.ros2 import CommandBinding, OutputBinding, Ros2Binding, TopicBinding
 
 log = logging.getLogger("pd_service.ros2")
@@ -265,6 +266,8 @@ class _Session:
     prediction_handle: Handle | None = None
     probe_handle: Handle | None = None
     closed: bool = False
+    #: Newest ownership term seen (predictions of an older one: a second owner, dropped).
+    fence: TermFence = field(default_factory=TermFence)
 
 
 _Item = tuple[Literal["config", "input", "prediction"], object, Sample]
@@ -735,6 +738,9 @@ class Ros2Bridge:
             return
         if pred.session != sess.name:
             c["predictions_invalid"] += 1
+            return
+        if not sess.fence.admit(pred.session, pred.term):  # an older owner's (a partition)
+            c["predictions_stale_term"] += 1
             return
         ob = sess.binding.outputs
         assert ob is not None

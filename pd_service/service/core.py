@@ -252,8 +252,10 @@ class ServiceCore:
                   declared=declared, closed=closed)
 
     def _on_state_arrived(self, session: str) -> None:
-        """Transport thread: wake the worker if ``session`` waits for its hand-over state."""
-        if session in self.lifecycle.awaiting:
+        """Transport thread: wake the worker if ``session`` waits for its hand-over state, or
+        is served here (a state of a newer term: :meth:`Lifecycle.settle_second_owner`)."""
+        route = self.dispatch.routes.get(session)
+        if session in self.lifecycle.awaiting or (route is not None and route.sess is not None):
             self._handed_in = True
             self.wake.set()
 
@@ -289,6 +291,9 @@ class ServiceCore:
                 if self.lifecycle.awaiting:  # sessions moved here by a join
                     self._handed_in = False
                     self.lifecycle.adopt_handed(now)
+                if self.keeper.terms_in:  # states of other owners (a healed partition)
+                    self._handed_in = False
+                    self.lifecycle.settle_second_owner(now)
                 touched: list[Session] = []
                 if d.unknown:
                     handled += d.process_unknown(now, touched)
@@ -330,6 +335,8 @@ class ServiceCore:
                     self.keeper.after_round([r.sess for r in self._routes.values()
                                              if r.sess is not None], now)
                     self._next_sweep_ns = now + _SWEEP_NS
+                if self.keeper.resends:
+                    self.keeper.resend_due(now)
                 if now >= self._next_expiry_ns:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS

@@ -226,7 +226,7 @@ class Dispatch:
         saying how its wait for the senders' caches ended."""
         sess.hold_until_ns = 0
         sess.readback = how
-        self.counters[f"readback_{how}"] += 1
+        self.counters["readback_answered" if how == "answered" else "readback_timeout"] += 1
         if sess not in touched:
             touched.append(sess)
 

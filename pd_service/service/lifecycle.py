@@ -31,9 +31,9 @@ from pd_service.wire.keys import KeyError_, check_name
 from .admission import Ledger, OverBudget
 from .config import Settings
 from .dispatch import ConfigChange, Dispatch, Membership, PeerSpecs, Route
-from .handover.keeper import HandoverKeeper
+from .handover.keeper import HandoverKeeper, inputs_accepted
 from .outbox import Outbox
-from .ownership import Ownership
+from .ownership import Ownership, next_term
 from .session import ANSWERED, COMMAND, READ_BACK, SENSOR, Origin, Refusal, Session
 from .spec_store import SpecStore
 from .status import SessionPhase, phase_of
@@ -207,7 +207,7 @@ class Lifecycle:
             self.counters["control_flood"] += d.control_drops
             d.control_drops = 0
         q = d.control
-        membership_changed = False
+        membership_changed = joined = False
         before: list[str | None] | None = None  # the partition table before the changes
         # Config changes: rate-limited per session and service-wide, at most config_slice
         # per round, so that replacing specs in a loop costs its sender, not the others.
@@ -237,6 +237,7 @@ class Lifecycle:
                 changed = self.ownership.join(inst) if alive else self.ownership.leave(inst)
                 if changed:
                     membership_changed = True
+                    joined = joined or alive
                     event(log, "member_joined" if alive else "member_left", instance=inst,
                           members=len(self.ownership.members))
                     if alive and not self.closed:
@@ -245,6 +246,24 @@ class Lifecycle:
                         self._spawn(self._sync_in_background)
         if membership_changed and self.ownership.shard is None:
             self.reassign(now, before)
+            if joined:
+                self.renew_terms(now)
+
+    def renew_terms(self, now: int) -> None:
+        """An instance joined (or came back: a partition's heal): every session still served
+        here starts a new term. The joiner may have served some of them meanwhile under a
+        newer term than ours; readers then drop our output until we publish a newer one,
+        which, if its hand-over state never comes, would be never. Newer than the joiner's
+        if the hosts' clocks agree to better than the partition lasted; the state, when it
+        comes, is settled by :meth:`settle_second_owner`."""
+        me, n = self.ownership.instance, 0
+        for name, route in self.dispatch.routes.items():
+            sess = route.sess
+            if sess is not None and self.ownership.owns(name):
+                sess.term = next_term(sess.term, me, now)
+                n += 1
+        if n:
+            event(log, "terms_renewed", sessions=n, detail="an instance joined")
 
     def _config_allowed(self, sample: Sample, now: int) -> bool:
         """Take a token from the sender session's bucket and the service's; refuse
@@ -462,6 +481,9 @@ class Lifecycle:
                                         f"step {sess.origin_step}")
             if self.settings.recover_samples > 0:
                 self.hold_for_read_back(sess, now)
+        # newer than every term this instance knows for the session (ownership.next_term)
+        sess.term = next_term(max(sess.resumed_term, old.term if old is not None else 0),
+                              self.ownership.instance, now)
         if route.inbox is None:
             route.inbox = deque(maxlen=self.settings.inbox_size)
         route.sess = sess
@@ -694,6 +716,66 @@ class Lifecycle:
                 self.install(name, "active", "", now, answer=False)
             elif not owns:
                 self.awaiting.pop(name, None)
+        if taken:
+            self._spawn(lambda: self.read_back_taken(taken))
+
+    def settle_second_owner(self, now: int) -> None:
+        """Two owners (a partition healed): a state arrived from another instance for a
+        session served here. The output of the older term ends: the session goes on here
+        with a term newer than both (every reader drops the older ones). The estimate kept is
+        the one that took in more inputs (:func:`.handover.keeper.inputs_accepted`; a tie:
+        the newer term's), so that a side that did not receive the session's data during the
+        partition does not replace one that did:
+
+        - the other's (``term_yielded``, logged WARNING ``term_yielded``, said in the status
+          detail): the session restarts from that state, as at a hand-over;
+        - this instance's own (``term_kept``): the estimate stays, the term is renewed if
+          the other's is not older (at a heal :meth:`renew_terms` did so already); so for a
+          session the other held at its prior alone (a delete: no state, no term).
+
+        Either way the senders' caches are read back: what reached only the other side
+        inside the window comes back. The other owner stops serving the session when it
+        sees the membership (:meth:`reassign`)."""
+        if self.keeper is None:
+            return
+        routes = self.dispatch.routes
+        me = self.ownership.instance
+        taken: list[str] = []
+        for name, (term, writer, inputs) in self.keeper.take_terms().items():
+            route = routes.get(name)
+            sess = route.sess if route is not None else None
+            if sess is None or not self.ownership.owns(name) or writer == me:
+                continue
+            if term and writer == sess.resumed_writer and term <= sess.resumed_term:
+                continue  # (a copy of) the state it was resumed from or settled with
+            own = inputs_accepted(sess.counters)
+            if term > 0 and (inputs, term) > (own, sess.term) and self.keeper.holds(name):
+                self.counters["term_yielded"] += 1
+                event(log, "term_yielded", logging.WARNING, session=name, term=sess.term,
+                      other_term=term, other=writer, inputs=inputs, own_inputs=own)
+                self.install(name, "active", f"yielded to {writer}'s estimate (term {term}, "
+                             f"{inputs} inputs accepted; this instance's term {sess.term}, "
+                             f"{own}: two owners, e.g. a healed partition)", now,
+                             answer=True, resume="replica")
+            else:
+                if term == 0:
+                    self.keeper.drop_prior_mark(name)
+                old = sess.term
+                if term >= sess.term:
+                    sess.term = next_term(term, me, now)
+                sess.resumed_writer, sess.resumed_term = writer, term  # settled: copies too
+                self.counters["term_kept"] += 1
+                event(log, "term_kept", logging.WARNING, session=name, term=old,
+                      new_term=sess.term, other_term=term, other=writer or "?", inputs=inputs,
+                      own_inputs=own)
+                sess.detail = (f"{sess.detail}; kept its estimate over a second owner's "
+                               f"({writer or 'at its prior alone'}, term {term}, {inputs} "
+                               f"inputs accepted; this instance {own})")[-1024:]
+            route = routes.get(name)
+            if self.settings.recover_samples > 0 and not self.closed and route is not None \
+                    and route.sess is not None:
+                taken.append(name)
+                self.dispatch.park(route)
         if taken:
             self._spawn(lambda: self.read_back_taken(taken))
 

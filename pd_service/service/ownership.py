@@ -131,3 +131,38 @@ class Ownership:
         if self.shard is not None:
             return f"{self.shard[0]}/{self.shard[1]}"
         return f"rendezvous:{len(self.members)}"
+
+
+# ====================================================================== fencing ========
+#
+# An ownership *term* fences the output of two owners of one session (a partition between
+# instances: each side takes the other's sessions over). term = generation << TERM_TAG_BITS
+# | tag, with tag = the low TERM_TAG_BITS bits of stable_hash(instance) (ties between two
+# instances that start a generation at the same time broken by instance, the same way in
+# every reader) and generation = max(previous generation + 1, now in ms). The previous
+# term is the one a resumed state carries (replica, hand-over, checkpoint) or the replaced
+# session's: a taker's term is newer than the term of the owner it took from, whatever
+# the clocks; a session started from nothing (prior, a new spec) still gets a term newer
+# than any earlier incarnation's as long as the hosts' clocks agree to a millisecond.
+
+#: Bits of a term that hold the instance's tag (the rest: the generation).
+TERM_TAG_BITS = 16
+
+
+def term_tag(instance: str) -> int:
+    """The instance's tag: the low TERM_TAG_BITS bits of its stable_hash."""
+    return stable_hash(instance) & ((1 << TERM_TAG_BITS) - 1)
+
+
+def term_generation(term: int) -> int:
+    """The generation part of ``term`` (ms since the epoch when it began, or later)."""
+    return term >> TERM_TAG_BITS
+
+
+def next_term(previous: int, instance: str, now_ns: int) -> int:
+    """The term ``instance`` publishes a session with when it starts serving it at wall
+    time ``now_ns``, after ``previous`` (0: none known): generation
+    max(generation(previous) + 1, now_ns // 1e6), then the instance's tag. Always >
+    ``previous`` (int64 holds generations up to 2^47 ms, year 6429)."""
+    gen = max(term_generation(previous) + 1, now_ns // 1_000_000)
+    return (gen << TERM_TAG_BITS) | term_tag(instance)

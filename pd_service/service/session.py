@@ -174,6 +174,12 @@ class Session:
         self.hold_until_ns = 0
         self.unanswered: set[str] = set()
         self.readback: ReadBack = ""
+        #: Ownership term its predictions are published with (ownership.next_term; set at
+        #: install), and the term and writer of the state it resumed from or was last
+        #: settled with (``Lifecycle.settle_second_owner``; 0, "": none).
+        self.term = 0
+        self.resumed_term = 0
+        self.resumed_writer = ""
         self.fingerprint = spec_fingerprint(spec)
         #: The session's phase of its periodic work (:func:`next_slot`), from its name.
         self.spread = zlib.crc32(self.name.encode())
@@ -313,7 +319,7 @@ class Session:
         ``x_data``, ``P_data`` (:func:`pd_service.service.health.inspect_packed`); bumps
         seq and the published count."""
         data = self.encoder.encode_packed(pred, x_data, P_data, self.seq, made_ns,
-                                          self.counters_snapshot())
+                                          self.counters_snapshot(), self.term)
         self.seq += 1
         self.published += 1
         self.last_pub_step = now_step

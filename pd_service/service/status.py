@@ -68,6 +68,7 @@ class StatusSnapshot:
     recommended_lead: int | None
     late_share: float
     readback: Literal["", "waiting", "answered", "timeout"]
+    term: int
 
     def status(self, instance: str, now: int) -> SessionStatus:
         """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
@@ -81,7 +82,7 @@ class StatusSnapshot:
                              recommended_max_delay=self.recommended_max_delay,
                              recommended_lead=self.recommended_lead,
                              late_share=self.late_share,
-                             readback=self.readback)
+                             readback=self.readback, term=self.term)
 
 
 def snapshot_of(sess: Session, state: SessionPhase, detail: str,
@@ -95,7 +96,7 @@ def snapshot_of(sess: Session, state: SessionPhase, detail: str,
                           robot.clock_status(sess.last_activity_ns if now is None else now),
                           robot.delay_status(), robot.recommended_max_delay(),
                           robot.applied.quantile_gap(), robot.late / max(robot.seen, 1),
-                          sess.readback)
+                          sess.readback, sess.term)
 
 
 def session_status(sess: Session, instance: str, state: SessionPhase, detail: str,

@@ -2,15 +2,15 @@
    call where the Python form makes six msgpack packs, a join of fifteen parts and the
    counters' map.
 
-       prediction(parts, seq, step, t_ns, x_data, P_data, newest_step, made_ns, counters)
-           -> bytes or None
+       prediction(parts, seq, step, t_ns, x_data, P_data, newest_step, made_ns, counters,
+                  term) -> bytes or None
 
-   parts: the encoder's 8 constant pieces (bytes): the map header with v and session and the
+   parts: the encoder's 9 constant pieces (bytes): the map header with v and session and the
    key of seq, then the keys of step, t_ns, x (with x's shape), P (with P's shape),
-   newest_step, made_ns and counters. The message is
+   newest_step, made_ns, counters and term. The message is
 
        parts[0] seq parts[1] step parts[2] t_ns parts[3] x_data parts[4] P_data
-       parts[5] newest_step parts[6] made_ns parts[7] counters
+       parts[5] newest_step parts[6] made_ns parts[7] counters parts[8] term
 
    with each int packed as msgpack-python's Packer packs a Python int (the smallest form:
    positive fixint, uint 8/16/32/64 for the others >= 0; negative fixint, int 8/16/32/64
@@ -130,19 +130,19 @@ static unsigned char *put_head(unsigned char *p, Py_ssize_t n, int map) {
     return put_be(p, (uint64_t)n, 4);
 }
 
-#define NPARTS 8
+#define NPARTS 9
 #define MAXCOUNTERS 256 /* more: the Python form */
 
 static PyObject *prediction(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
     (void)self;
-    if (nargs != 9) {
-        PyErr_Format(PyExc_TypeError, "_encode.prediction: %zd arguments, expected 9", nargs);
+    if (nargs != 10) {
+        PyErr_Format(PyExc_TypeError, "_encode.prediction: %zd arguments, expected 10", nargs);
         return NULL;
     }
     PyObject *parts = args[0], *xd = args[4], *Pd = args[5], *newest = args[6];
     PyObject *counters = args[8];
     if (!PyTuple_CheckExact(parts) || PyTuple_GET_SIZE(parts) != NPARTS) {
-        PyErr_SetString(PyExc_TypeError, "_encode.prediction: parts must be a tuple of 8 bytes");
+        PyErr_SetString(PyExc_TypeError, "_encode.prediction: parts must be a tuple of 9 bytes");
         return NULL;
     }
     Py_ssize_t size = 0;
@@ -159,9 +159,9 @@ static PyObject *prediction(PyObject *self, PyObject *const *args, Py_ssize_t na
         return NULL;
     }
     size += PyBytes_GET_SIZE(xd) + PyBytes_GET_SIZE(Pd);
-    Int ints[4]; /* seq, step, t_ns, made_ns */
-    PyObject *io[4] = {args[1], args[2], args[3], args[7]};
-    for (int j = 0; j < 4; j++) {
+    Int ints[5]; /* seq, step, t_ns, made_ns, term */
+    PyObject *io[5] = {args[1], args[2], args[3], args[7], args[9]};
+    for (int j = 0; j < 5; j++) {
         if (!get_int(io[j], &ints[j])) Py_RETURN_NONE;
         size += int_len(&ints[j]);
     }
@@ -207,7 +207,6 @@ static PyObject *prediction(PyObject *self, PyObject *const *args, Py_ssize_t na
     else p = put_int(p, &nw);
     PART(6); p = put_int(p, &ints[3]);
     PART(7);
-#undef PART
     p = put_head(p, nc, 1);
     for (Py_ssize_t j = 0; j < nc; j++) {
         p = put_head(p, kl[j], 0);
@@ -215,6 +214,8 @@ static PyObject *prediction(PyObject *self, PyObject *const *args, Py_ssize_t na
         p += kl[j];
         p = put_int(p, &vs[j]);
     }
+    PART(8); p = put_int(p, &ints[4]);
+#undef PART
     if ((char *)p != PyBytes_AS_STRING(out) + size) {  /* cannot happen: sizes agree */
         Py_DECREF(out);
         PyErr_SetString(PyExc_SystemError, "_encode.prediction: size mismatch");
@@ -383,7 +384,8 @@ static PyMethodDef methods[] = {
      "pack(obj) -> msgpack bytes of a tree whose float64 arrays stand for their wire form "
      "{shape, data}, or None (the Python form then runs)"},
     {"prediction", (PyCFunction)(void (*)(void))prediction, METH_FASTCALL,
-     "prediction(parts, seq, step, t_ns, x_data, P_data, newest_step, made_ns, counters) "
+     "prediction(parts, seq, step, t_ns, x_data, P_data, newest_step, made_ns, counters, "
+     "term) "
      "-> the Prediction's msgpack bytes, or None (the Python form then runs)"},
     {NULL, NULL, 0, NULL},
 };

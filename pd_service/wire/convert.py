@@ -162,7 +162,7 @@ def _checked(pred: PredictedMoments, n: int) -> tuple[NDArray[np.float64], NDArr
 
 
 def _fields(pred: PredictedMoments, spec: SessionSpec, session: str, seq: int, made_ns: int,
-            counters: Mapping[str, int], x: object, P: object) -> dict[str, Any]:
+            counters: Mapping[str, int], x: object, P: object, term: int) -> dict[str, Any]:
     """The Prediction's fields in wire order, ``t_ns = epoch_ns + step * period_ns``."""
     step = int(pred.step)
     return {
@@ -176,6 +176,7 @@ def _fields(pred: PredictedMoments, spec: SessionSpec, session: str, seq: int, m
         "newest_step": None if pred.newest_step is None else int(pred.newest_step),
         "made_ns": int(made_ns),
         "counters": {str(k): int(v) for k, v in counters.items()},
+        "term": int(term),
     }
 
 
@@ -186,8 +187,10 @@ def prediction_from(
     seq: int,
     made_ns: int,
     counters: Mapping[str, int],
+    term: int = 0,
 ) -> Prediction:
-    """Wrap the estimator's output as a Prediction, ``t_ns = epoch_ns + step * period_ns``.
+    """Wrap the estimator's output as a Prediction, ``t_ns = epoch_ns + step * period_ns``,
+    published with ownership ``term``.
 
     With :func:`pd_service.wire.encode`, the reference of a Prediction's bytes (the
     daemon's :class:`PredictionEncoder` writes the same). Shapes and finiteness are checked
@@ -202,7 +205,8 @@ def prediction_from(
     x, P = np.array(x), np.array(P)
     x.flags.writeable = False
     P.flags.writeable = False
-    return Prediction.model_construct(**_fields(pred, spec, session, seq, made_ns, counters, x, P))
+    return Prediction.model_construct(**_fields(pred, spec, session, seq, made_ns, counters, x, P,
+                                                term))
 
 
 #: The C form of :meth:`PredictionEncoder.encode_packed`'s per-message part (None: Python).
@@ -221,7 +225,8 @@ class PredictionEncoder:
     The msgpack map is written as its parts: the constant ones (the map header, the keys,
     ``v``, ``session``, the shapes of x and P) are packed once, here; per message only seq,
     step, t_ns (``epoch_ns + step * period_ns``), the data of x (n,) and P (n, n) (row-major
-    floats, packed by the caller), newest_step, made_ns and the counters are packed. Raises
+    floats, packed by the caller), newest_step, made_ns, the counters and the term are
+    packed. Raises
     WireError for packed values of the wrong length, or when the message cannot fit in
     ``MAX_MESSAGE_BYTES`` even in the codec's compact form.
     Where the hot path runs compiled, :meth:`encode_packed` writes the message in one call
@@ -233,25 +238,27 @@ class PredictionEncoder:
         n = spec.n
         self.spec, self.session, self.n = spec, session, n
         self._epoch, self._period = spec.epoch_ns, spec.period_ns
-        # a fixmap of the 10 fields, in the order of Prediction's fields (_fields)
-        self._head = b"\x8a" + pk("v") + pk(1) + pk("session") + pk(session) + pk("seq")
+        # a fixmap of the 11 fields, in the order of Prediction's fields (_fields)
+        self._head = b"\x8b" + pk("v") + pk(1) + pk("session") + pk(session) + pk("seq")
         self._k_step, self._k_t = pk("step"), pk("t_ns")
         self._k_x = pk("x") + b"\x82" + pk("shape") + pk([n]) + pk("data")
         self._k_P = pk("P") + b"\x82" + pk("shape") + pk([n, n]) + pk("data")
         self._k_newest, self._k_made, self._k_counters = pk("newest_step"), pk("made_ns"), \
             pk("counters")
+        self._k_term = pk("term")
         #: the constant pieces around the values, in message order (the C form's ``parts``)
         self._parts = (self._head, self._k_step, self._k_t, self._k_x, self._k_P,
-                       self._k_newest, self._k_made, self._k_counters)
+                       self._k_newest, self._k_made, self._k_counters, self._k_term)
         # the lengths of x's and P's packed values: an array header, 9 bytes per float64
         self._x_len, self._P_len = len(pk([0.0] * n)), len(pk([0.0] * (n * n)))
 
     def encode_packed(self, pred: PredictedMoments, x_data: bytes, P_data: bytes, seq: int,
-                      made_ns: int, counters: Mapping[str, int]) -> bytes:
-        """The Prediction of x(pred.step) ~ (x, P), encoded: ``x_data`` and ``P_data`` the
-        msgpack arrays of x's n and P's n * n floats (row-major), as ``msgpack.packb(list)``
-        writes them, checked finite by the caller (the daemon's health check,
-        :func:`pd_service.service.health.inspect_packed`). Their lengths are checked here."""
+                      made_ns: int, counters: Mapping[str, int], term: int = 0) -> bytes:
+        """The Prediction of x(pred.step) ~ (x, P) published with ownership ``term``,
+        encoded: ``x_data`` and ``P_data`` the msgpack arrays of x's n and P's n * n floats
+        (row-major), as ``msgpack.packb(list)`` writes them, checked finite by the caller (the
+        daemon's health check, :func:`pd_service.service.health.inspect_packed`). Their
+        lengths are checked here."""
         if len(x_data) != self._x_len or len(P_data) != self._P_len:
             n = self.n
             raise WireError(f"Prediction: expected x ({n},) and P ({n}, {n}) packed in "
@@ -264,16 +271,17 @@ class PredictionEncoder:
         t_ns = self._epoch + step * self._period
         # the same bytes in one C call; None: a value it does not take (the Python form then)
         data = None if _ENCODE is None else _ENCODE.prediction(
-            self._parts, seq, step, t_ns, x_data, P_data, newest, made_ns, counters)
+            self._parts, seq, step, t_ns, x_data, P_data, newest, made_ns, counters, term)
         if data is None:
             pk = _PACK
             data = b"".join((
                 self._head, pk(int(seq)), self._k_step, pk(step), self._k_t, pk(t_ns),
                 self._k_x, x_data, self._k_P, P_data,
                 self._k_newest, pk(None if newest is None else int(newest)),
-                self._k_made, pk(int(made_ns)), self._k_counters, pk(counters)))
+                self._k_made, pk(int(made_ns)), self._k_counters, pk(counters),
+                self._k_term, pk(int(term))))
         if len(data) > MAX_MESSAGE_BYTES:  # the codec's compact form, or its refusal
             data = encode(prediction_from(pred, self.spec, self.session, seq, made_ns,
-                                          counters))
+                                          counters, term))
         return data
 

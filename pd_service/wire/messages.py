@@ -812,6 +812,10 @@ class Prediction(Message):
     made_ns: Int64 = Field(description="When the prediction was computed, ns on the shared clock.")
     counters: Counters = Field(default_factory=dict,
                                description="Session counters (accepted, refused by reason, ...).")
+    term: NonNegInt = Field(
+        0, description="Ownership term of the publisher: grows with each takeover and "
+        "hand-over of the session; a reader drops a prediction of an older term than the "
+        "newest it saw for the session (absent: 0, a publisher older than terms).")
 
     @model_validator(mode="after")
     def _check(self) -> Prediction:
@@ -906,6 +910,8 @@ class SessionStatus(Message):
                         "answered (every sensor's and the command's cache answered), timeout "
                         "(2 x recover_timeout_s passed first); empty: the session did not "
                         "wait (started afresh).")
+    term: NonNegInt = Field(
+        0, description="Ownership term the session is published with (Prediction.term).")
 
 
 class ServiceStatus(Message):

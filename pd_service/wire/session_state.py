@@ -169,6 +169,8 @@ class SessionState(Message):
                                        description="The session's counters.")
     published: NonNegInt = Field(0, description="Predictions published so far.")
     seq: NonNegInt = Field(0, description="Next Prediction seq.")
+    term: NonNegInt = Field(0, description="Ownership term of the writer (Prediction.term): "
+                            "the instance resuming from this state takes a newer one.")
 
     @model_validator(mode="after")
     def _check(self) -> SessionState:

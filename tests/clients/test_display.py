@@ -15,12 +15,12 @@ from pd_client import Display, Prediction, Timeout, Truth
 from pd_service.wire import ErrorReport, encode, keys
 
 
-def _pred(seq, step, x=None, session="s1", made_ns=None):
+def _pred(seq, step, x=None, session="s1", made_ns=None, term=0):
     x = np.full(4, float(step)) if x is None else np.asarray(x, dtype=float)
     return Prediction(session=session, seq=seq, step=step, t_ns=step * 1000, x=x,
                       P=np.diag([0.25, 0.01, 0.25, 0.01]), newest_step=max(0, step - 12),
                       made_ns=time.time_ns() if made_ns is None else made_ns,
-                      counters={"accepted": seq})
+                      counters={"accepted": seq}, term=term)
 
 
 def _truth(step, x, session="s1"):
@@ -57,6 +57,23 @@ def test_gaps_invalid_payloads_and_errors_are_counted(bus):
         st = d.stats()
         assert (st.received, st.missed, st.invalid, st.errors) == (2, 3, 1, 1)
         assert st.last_error == "pd/p9/s1/sensor/camera: late"
+
+
+def test_two_owners_interleaved_show_as_the_newest_term_only(bus):
+    """A partition between instances: the old owner (term 5) and the taker (term 9) publish
+    on the same key. The Display shows the taker's predictions only, counts the others, and
+    starts its seq and latest() over with the new owner (its seq goes on from its state)."""
+    daemon = bus.transport()
+    seen = []
+    with Display(bus.transport(), "s1") as d:
+        d.on_prediction(seen.append)
+        for seq, step, term in ((0, 10, 5), (1, 11, 5), (40, 9, 9), (2, 12, 5), (41, 10, 9),
+                                (3, 13, 5), (42, 11, 9)):
+            daemon.put(keys.prediction_key("s1"), encode(_pred(seq, step, term=term)))
+        assert [(p.seq, p.term) for p in seen] == [(0, 5), (1, 5), (40, 9), (41, 9), (42, 9)]
+        assert d.latest().term == 9 and d.latest().step == 11  # not the old owner's step 13
+        st = d.stats()
+        assert (st.received, st.missed, st.stale_term, st.term) == (5, 0, 2, 9)
 
 
 def test_latency_is_receipt_minus_made(bus):

@@ -173,8 +173,14 @@ def test_routing_tables_grow_with_partitions_not_sessions() -> None:
                 subs = routing_table(tables[name], ids[name], "subscriber")
                 assert subs == wildcards, (name, n)
             assert routing_table(tables["router-a"], ids["router-a"], "publisher") == []
-            pubs = routing_table(tables["router-b"], ids["router-b"], "publisher")
-            assert pubs == sorted(keys.sensor_key(s, "x") for s in names[:n])
+            want = sorted(keys.sensor_key(s, "x") for s in names[:n])
+
+            def declared(want: list[str] = want) -> bool:  # declarations reach the router
+                return routing_table(tables["router-b"], ids["router-b"], "publisher") == want
+            # a publisher's declaration reaches its router after the publisher has learnt of
+            # the subscribers (the other direction): wait for it, then compare exactly
+            wait_for(declared, TIMEOUT_S, "router-b to hold the publishers' declarations")
+            assert routing_table(tables["router-b"], ids["router-b"], "publisher") == want
         publishers[0].put(b"x")
         assert got.wait_count(b"x", 1, TIMEOUT_S)
         for p in publishers:

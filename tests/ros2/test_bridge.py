@@ -278,6 +278,19 @@ def test_prediction_becomes_odometry_pose_and_tf_with_attachment(rig: Rig) -> No
     assert not rig.on(rmw_key("/b/predicted/odom", ODOM))
 
 
+def test_an_older_owners_prediction_is_not_republished(rig: Rig) -> None:
+    """Two owners of one session (a partition between instances): the bridge republishes
+    the newest term's predictions only and counts the others."""
+    x = np.zeros(5)
+    for seq, term in ((1, 5), (2, 9), (3, 5), (4, 9)):
+        pred = prediction("s1", x, seq).model_copy(update={"term": term})
+        rig.t.put(keys.prediction_key("s1"), wire_encode(pred))
+    rig.pump()
+    c = rig.counters("s1")
+    assert c["predictions_republished"] == 3 and c["predictions_stale_term"] == 1
+    assert len(rig.on(rmw_key("/predicted/odom", ODOM))) == 3
+
+
 def test_keyed_attachment_layout_on_outputs() -> None:
     r = make_rig(BridgeSettings(attachment_layout="keyed"), (unicycle_spec("s1"),))
     r.t.put(keys.prediction_key("s1"), wire_encode(prediction("s1", np.zeros(5), 1)))

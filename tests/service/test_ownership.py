@@ -106,3 +106,20 @@ def test_static_shards_own_every_nth_partition():
     name = next(n for n in (f"s{i}" for i in range(100)) if keys.partition_of(n, 64) % 3 == 1)
     assert s.owner(name) is None and not s.owns(name) and s.successor(name) is None
     assert s.join("b") and s.owned_partitions() == owned[0]  # no coordination
+
+
+def test_a_term_is_newer_than_the_one_it_follows_whatever_the_clock():
+    from pd_service.service.ownership import TERM_TAG_BITS, next_term, term_generation, term_tag
+
+    now = 1_800_000_000_000_000_000  # ns
+    t0 = next_term(0, "inst-a", now)
+    assert term_generation(t0) == now // 1_000_000 and t0 & 0xFFFF == term_tag("inst-a")
+    # a taker resumes from the owner's state: newer even with its clock an hour behind
+    t1 = next_term(t0, "inst-b", now - 3_600 * 10**9)
+    assert t1 > t0 and term_generation(t1) == term_generation(t0) + 1
+    # a fresh start later (no state: the prior) is newer by the clock alone
+    assert next_term(0, "inst-a", now + 10**6) > t0
+    # the same millisecond on two instances: ordered by their tags, the same in every reader
+    a, b = next_term(t0, "inst-a", now), next_term(t0, "inst-b", now)
+    assert (a > b) == (term_tag("inst-a") > term_tag("inst-b")) and a != b
+    assert next_term(t0, "x", now) < 2**63 and TERM_TAG_BITS == 16

@@ -66,8 +66,10 @@ def exercise(t1, t2, wait) -> None:
     assert got == [("pd/p9/s1/sensor/cam", b"abc", "put")]
     replies = t2.get("pd/p9/s1/status", payload=b"q", timeout=2.0)
     assert [(r.key, r.payload, r.ok) for r in replies] == [("pd/p9/s1/status", b"status:q", True)]
+    # the token's declaration travels on its own: once t2's liveliness subscriber has seen
+    # it, a liveliness query from t2 must find it
+    assert seen.wait(5.0)
     assert t2.get_liveliness("pd/@service/*", timeout=5.0) == ["pd/@service/a"]
-    assert seen.wait(5.0)  # the subscriber's callback may come after the get's reply
     assert ("pd/@service/a", True) in live
     # declared keys: the receiver's and the sender's; puts on them arrive as any put,
     # also once the declarations are withdrawn (closing twice is harmless)

@@ -231,12 +231,16 @@ def test_one_encoder_gives_the_models_bytes_for_every_message(session):
         counters = {f"c{j}": int(rng.choice([0, 1, 200, 70_000, 2**33])) for j in range(i % 20)}
         fake = type("P", (), {"step": step, "x": x, "P": P, "newest_step": newest})()
         seq, made = int(rng.choice([0, 5, 300, 2**35])), EPOCH + int(rng.integers(0, 10**9))
+        # ownership terms: 0 (unfenced), small, and next_term's form (ms << 16 | tag)
+        term = int(rng.choice([0, 1, 200, 70_000, (1_800_000_000_000 << 16) | 0xBEEF]))
         want = encode(Prediction(session=session, seq=seq, step=step,
                                  t_ns=EPOCH + step * PERIOD_NS, x=x, P=P, newest_step=newest,
-                                 made_ns=made, counters=counters))
+                                 made_ns=made, counters=counters, term=term))
+        assert encode(prediction_from(fake, spec, session, seq, made, counters, term)) == want
         # x and P packed as msgpack arrays (the daemon's health check, service/_moments.c)
         assert enc.encode_packed(fake, msgpack.packb(x.tolist()),
-                                 msgpack.packb(P.ravel().tolist()), seq, made, counters) == want
+                                 msgpack.packb(P.ravel().tolist()), seq, made, counters,
+                                 term) == want
     with pytest.raises(WireError, match=r"expected x \(4,\) and P \(4, 4\) packed in 37 and "
                                         r"147 bytes, got 28 and 147"):
         enc.encode_packed(fake, msgpack.packb(x.tolist()[:3]), msgpack.packb(P.ravel().tolist()),

@@ -21,10 +21,10 @@ EDGES = [0, 1, 31, 32, 127, 128, 255, 256, 65_535, 65_536, 2**32 - 1, 2**32, 2**
          -(2**31) - 1, -(2**63)]
 
 
-def python_form(monkeypatch, enc, pred, xd, pd, seq, made, counters) -> bytes:
+def python_form(monkeypatch, enc, pred, xd, pd, seq, made, counters, term=0) -> bytes:
     with monkeypatch.context() as m:
         m.setattr(convert, "_ENCODE", None)
-        return enc.encode_packed(pred, xd, pd, seq, made, counters)
+        return enc.encode_packed(pred, xd, pd, seq, made, counters, term)
 
 
 def fake(step, newest):
@@ -39,18 +39,19 @@ def test_same_bytes_for_every_size_class(monkeypatch, session):
     xd = msgpack.packb(rng.normal(size=4).tolist())
     pd = msgpack.packb(rng.normal(size=16).tolist())
     # the probe must actually take the C form, else this test would compare Python with itself
-    assert _ENCODE.prediction(enc._parts, 1, 2, 3, xd, pd, None, 4, {}) is not None
+    assert _ENCODE.prediction(enc._parts, 1, 2, 3, xd, pd, None, 4, {}, 5) is not None
     for i, v in enumerate(EDGES):
         w = EDGES[(i * 7 + 3) % len(EDGES)]
         step = abs(v) % 2**30  # t_ns = step * period_ns stays below 2^63
         counters = {"accepted": v, "k" * (i * 13 % 300): w, "é" * (i % 30): 1, "published": abs(w)}
-        for seq, made, newest in ((abs(v), v, None), (abs(w), w, step), (0, 0, v)):
-            args = (fake(step, newest), xd, pd, seq, made, counters)
+        for seq, made, newest, term in ((abs(v), v, None, abs(w)), (abs(w), w, step, 0),
+                                        (0, 0, v, abs(v))):
+            args = (fake(step, newest), xd, pd, seq, made, counters, term)
             got = enc.encode_packed(*args)
             assert got == python_form(monkeypatch, enc, *args), (v, w)
             # and the C form itself wrote it (no silent fallback for these values)
             assert _ENCODE.prediction(enc._parts, seq, step, step * spec.period_ns, xd, pd,
-                                      newest, made, counters) == got
+                                      newest, made, counters, term) == got
 
 
 def test_what_it_does_not_take_goes_to_the_python_form(monkeypatch):
@@ -60,7 +61,7 @@ def test_what_it_does_not_take_goes_to_the_python_form(monkeypatch):
     P = enc._parts
     for counters in ({"a": True}, {"a": 2**64}, {"a": -(2**63) - 1}, {1: 2},
                      {"\ud800": 1}, {f"c{j}": j for j in range(300)}, {"a": np.int64(3)}):
-        assert _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0, counters) is None
+        assert _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0, counters, 0) is None
         try:
             want = python_form(monkeypatch, enc, fake(0, None), xd, pd, 0, 0, counters)
         except Exception as exc:  # the Python form refuses it: so does the whole call
@@ -69,14 +70,15 @@ def test_what_it_does_not_take_goes_to_the_python_form(monkeypatch):
         else:
             assert enc.encode_packed(fake(0, None), xd, pd, 0, 0, counters) == want
     for seq in (True, 2**64, np.int64(4), 1.0):
-        assert _ENCODE.prediction(P, seq, 0, 0, xd, pd, None, 0, {}) is None
-    assert _ENCODE.prediction(P, 0, 0, 0, xd, pd, np.int64(3), 0, {}) is None
+        assert _ENCODE.prediction(P, seq, 0, 0, xd, pd, None, 0, {}, 0) is None
+        assert _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0, {}, seq) is None  # as a term
+    assert _ENCODE.prediction(P, 0, 0, 0, xd, pd, np.int64(3), 0, {}, 0) is None
     with pytest.raises(TypeError):
-        _ENCODE.prediction(P[:7], 0, 0, 0, xd, pd, None, 0, {})
+        _ENCODE.prediction(P[:8], 0, 0, 0, xd, pd, None, 0, {}, 0)
     with pytest.raises(TypeError):
-        _ENCODE.prediction(P, 0, 0, 0, bytearray(xd), pd, None, 0, {})
+        _ENCODE.prediction(P, 0, 0, 0, bytearray(xd), pd, None, 0, {}, 0)
     with pytest.raises(TypeError):
-        _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0)
+        _ENCODE.prediction(P, 0, 0, 0, xd, pd, None, 0, {})
 
 
 # --- pack: the checkpoints' msgpack (pd_service.service.handover.checkpoint.encode_state) -------------------

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from pd_service.transport import Sample, Transport
 from pd_service.wire import ErrorReport, Prediction, keys
+from pd_service.wire.fence import TermFence
 
 from ._base import ClientBase, session_name, try_decode
 from ._queue import Inbox
@@ -40,6 +41,9 @@ class DisplayStats:
     ``missed``: predictions never received, from gaps in ``seq``; ``invalid``: payloads that
     did not decode; latencies are receipt time minus the prediction's ``made_ns``, µs
     (meaningful when the clocks are shared, e.g. one machine), over the last 256.
+    ``stale_term``: predictions dropped as published with an older ownership term than the
+    newest seen (a second owner during a partition between instances, docs/service.md);
+    ``term``: the newest term seen (0: none, or a publisher older than terms).
     """
 
     received: int
@@ -51,6 +55,8 @@ class DisplayStats:
     latency_us_last: float | None
     latency_us_p50: float | None
     latency_us_max: float | None
+    stale_term: int = 0
+    term: int = 0
 
 
 class Display(ClientBase):
@@ -76,6 +82,7 @@ class Display(ClientBase):
         self._latest_truth: Truth | None = None
         self._latencies: deque[float] = deque(maxlen=256)
         self._last_seq: int | None = None
+        self._fence = TermFence()
         self._received = self._missed = self._invalid = self._truths = self._errors = 0
         self._last_error: str | None = None
         self._subscribe(keys.prediction_key(session), self._on_prediction)
@@ -94,6 +101,11 @@ class Display(ClientBase):
             if pred is None or pred.session != self.session:
                 self._invalid += 1
                 return
+            changes = self._fence.changes
+            if not self._fence.admit(pred.session, pred.term):
+                return  # an older owner's (counted): the newest term's predictions only
+            if self._fence.changes != changes:  # a new owner: its seq and steps go on from
+                self._last_seq = self._latest = None  # the state it resumed, not from ours
             self._received += 1
             if self._last_seq is not None and pred.seq > self._last_seq + 1:
                 self._missed += pred.seq - self._last_seq - 1
@@ -217,6 +229,7 @@ class Display(ClientBase):
                 latency_us_last=lat[-1] if lat else None,
                 latency_us_p50=statistics.median(lat) if lat else None,
                 latency_us_max=max(lat) if lat else None,
+                stale_term=self._fence.dropped, term=self._fence.newest.get(self.session, 0),
             )
 
     def close(self) -> None:

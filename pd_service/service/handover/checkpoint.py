@@ -53,7 +53,7 @@ class Refused:
 
 def to_message(st: EstimatorState, *, session: str, instance: str, fingerprint: str,
                made_ns: int, session_counters: dict[str, int] | None = None,
-               published: int = 0, seq: int = 0) -> SessionState:
+               published: int = 0, seq: int = 0, term: int = 0) -> SessionState:
     """The wire form of ``st`` (see :class:`~pd_service.wire.session_state.SessionState`)."""
     base = dict(st.base)
     x, P = st.mean, st.cov
@@ -71,7 +71,8 @@ def to_message(st: EstimatorState, *, session: str, instance: str, fingerprint: 
                   for j, u in st.commands],
         u_before=st.u_before,
         counters=dict(st.counters), extras=dict(st.extras),
-        session_counters=dict(session_counters or {}), published=published, seq=seq)
+        session_counters=dict(session_counters or {}), published=published, seq=seq,
+        term=term)
 
 
 #: The checkpoints' msgpack in C (pd_service/wire/_encode.c ``pack``), None where the hot
@@ -90,7 +91,7 @@ def _as_arrays(arrays: list[Any]) -> list[np.ndarray]:
 def _fields(st: EstimatorState, tensor: Callable[[Any], Any],
             rows: Callable[[list[Any]], list[Any]], *, session: str, instance: str,
             fingerprint: str, made_ns: int, session_counters: dict[str, int] | None,
-            published: int, seq: int) -> dict[str, Any]:
+            published: int, seq: int, term: int) -> dict[str, Any]:
     """A SessionState's fields in wire order (the ``model_dump()`` form), each array given
     by ``tensor`` (and a list of arrays of one shape by ``rows``): its wire form
     (:class:`Tensors`) for msgpack, or the array itself for the C form."""
@@ -119,13 +120,13 @@ def _fields(st: EstimatorState, tensor: Callable[[Any], Any],
         "counters": {str(k): int(v) for k, v in st.counters.items()},
         "extras": {k: tensor(v) for k, v in st.extras.items()},
         "session_counters": {str(k): int(v) for k, v in (session_counters or {}).items()},
-        "published": int(published), "seq": int(seq),
+        "published": int(published), "seq": int(seq), "term": int(term),
     }
 
 
 def encode_state(st: EstimatorState, *, session: str, instance: str, fingerprint: str,
                  made_ns: int, session_counters: dict[str, int] | None = None,
-                 published: int = 0, seq: int = 0) -> bytes:
+                 published: int = 0, seq: int = 0, term: int = 0) -> bytes:
     """``encode(to_message(...))``, byte for byte, without building the models when the
     state is ordinary (finite, small enough). Where the C kernel is built, the fields go
     to it with their arrays as they are (``_encode.pack``: no dicts and lists of floats
@@ -136,7 +137,8 @@ def encode_state(st: EstimatorState, *, session: str, instance: str, fingerprint
                rows: Callable[[list[Any]], list[Any]]) -> dict[str, Any]:
         return _fields(st, tensor, rows, session=session, instance=instance,
                        fingerprint=fingerprint, made_ns=made_ns,
-                       session_counters=session_counters, published=published, seq=seq)
+                       session_counters=session_counters, published=published, seq=seq,
+                       term=term)
 
     data: bytes | None = None
     if _PACK is not None:
@@ -150,7 +152,7 @@ def encode_state(st: EstimatorState, *, session: str, instance: str, fingerprint
         try:
             msg = to_message(st, session=session, instance=instance, fingerprint=fingerprint,
                              made_ns=made_ns, session_counters=session_counters,
-                             published=published, seq=seq)
+                             published=published, seq=seq, term=term)
         except ValidationError as exc:
             raise WireError(validation_reason("SessionState", exc), error_kind(exc)) from None
         data = encode(msg)

@@ -38,7 +38,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
@@ -72,6 +72,11 @@ MAX_REPLICAS = 100_000
 #: Pause (s) between two rounds of a hand-over's confirmation (put again, ask again).
 _HANDOVER_RETRY_S = 0.02
 
+#: When (s after the first) a join's hand-over state is put again: at a partition's heal
+#: the liveliness token may reach the old owner before the new owner's subscription does,
+#: and the first put goes nowhere (seen on loopback with a 10 s partition).
+HANDOVER_RESEND_S = (0.5, 2.0)
+
 
 def checkpoint_key(instance: str, session: str) -> str:
     """``pd/@service/<instance>/checkpoint/<session>``: names ``instance``'s checkpoint of
@@ -90,6 +95,14 @@ def replicas_for(instance: str) -> str:
     """Key expression of every replica sent to ``instance``."""
     return f"{keys.OPERATOR_ROOT}/{keys.SERVICE_CHUNK}/{check_name(instance, 'instance')}" \
            "/replica/*"
+
+
+def inputs_accepted(counters: Mapping[str, object]) -> int:
+    """Measurements and commands a session accepted over its life (its ``accepted`` and
+    ``commands_accepted`` counters; a value that is not an int counts 0): of two owners'
+    estimates after a partition, the one that took in more data."""
+    return sum(v for v in (counters.get("accepted"), counters.get("commands_accepted"))
+               if type(v) is int and v > 0)
 
 
 def state_mark(sess: Session) -> tuple[int, int, int]:
@@ -125,6 +138,13 @@ class HandoverKeeper:
         #: Sessions whose previous owner handed over only their prior (a delete on the
         #: replica key, :meth:`hand_to`), until :meth:`handed` reads it.
         self.at_prior: set[str] = set()
+        #: The states received since the worker last looked (:meth:`take_terms`): session ->
+        #: (term, writer, inputs accepted: :func:`inputs_accepted`); (0, "", 0) for a
+        #: hand-over of a session at its prior alone. One for a session served here is a
+        #: second owner's (a healed partition): ``Lifecycle.settle_second_owner``.
+        self.terms_in: dict[str, tuple[int, str, int]] = {}
+        #: Join hand-over states to put again: (due ns, key, state) (:data:`HANDOVER_RESEND_S`).
+        self.resends: list[tuple[int, str, bytes]] = []
 
     # ================================================================== outgoing ======
 
@@ -206,7 +226,39 @@ class HandoverKeeper:
             return False
         self.pub.pending.append(Out(key, data))
         self.counters["replica_bytes"] += len(data)
+        if len(self.resends) < MAX_REPLICAS:
+            self.resends += [(now + int(d * 1e9), key, data) for d in HANDOVER_RESEND_S]
         return True
+
+    def resend_due(self, now: int) -> None:
+        """Put again the join hand-over states due by ``now`` (a second copy is harmless:
+        the new owner already runs the session from a state as new, see
+        ``Lifecycle.settle_second_owner``)."""
+        due = [r for r in self.resends if r[0] <= now]
+        if not due:
+            return
+        self.resends = [r for r in self.resends if r[0] > now]
+        for _, key, data in due:
+            self.pub.pending.append(Out(key, data))
+            self.counters["replicas_handover_join_resent"] += 1
+
+    def take_terms(self) -> dict[str, tuple[int, str, int]]:
+        """The states received since the last call (session -> (term, writer, inputs
+        accepted)); any thread."""
+        with self._lock:
+            got, self.terms_in = self.terms_in, {}
+        return got
+
+    def holds(self, session: str) -> bool:
+        """Whether a replica of ``session`` is held (to resume from). Any thread."""
+        with self._lock:
+            return session in self.replicas
+
+    def drop_prior_mark(self, session: str) -> None:
+        """Forget a prior-alone hand-over of ``session`` (it was served here: nothing to
+        await). Any thread."""
+        with self._lock:
+            self.at_prior.discard(session)
 
     def handed(self, session: str) -> str:
         """What came for ``session`` from its previous owner: "replica" (a state is held),
@@ -216,6 +268,7 @@ class HandoverKeeper:
                 return "replica"
             if session in self.at_prior:
                 self.at_prior.discard(session)
+                self.terms_in.pop(session, None)  # awaited: not a second owner's
                 return "prior"
         return ""
 
@@ -284,7 +337,7 @@ class HandoverKeeper:
             data = encode_state(export(), session=sess.name, instance=self.settings.instance,
                                 fingerprint=sess.fingerprint, made_ns=now,
                                 session_counters=dict(sess.counters),
-                                published=sess.published, seq=sess.seq)
+                                published=sess.published, seq=sess.seq, term=sess.term)
         except WireError as exc:
             self.counters["checkpoint_too_large"] += 1
             event(log, "checkpoint_too_large", logging.WARNING, session=sess.name,
@@ -364,6 +417,8 @@ class HandoverKeeper:
                 self.replicas.pop(session, None)
                 if len(self.at_prior) < MAX_REPLICAS:
                     self.at_prior.add(session)
+                if len(self.terms_in) < MAX_REPLICAS:  # term unknown: 0
+                    self.terms_in[session] = (0, "", 0)
             if self.arrived is not None:
                 self.arrived(session)
             return
@@ -377,7 +432,12 @@ class HandoverKeeper:
             self.counters["replica_malformed"] += 1
             return
         step = step or 0
+        term, writer = obj.get("term", 0), obj.get("instance", "")
+        counted = obj.get("session_counters")
         with self._lock:
+            if type(term) is int and term > 0 and type(writer) is str \
+                    and type(counted) is dict and len(self.terms_in) < MAX_REPLICAS:
+                self.terms_in[session] = (term, writer, inputs_accepted(counted))
             old = self.replicas.get(session)
             if old is None or step >= old[0]:
                 if old is None and len(self.replicas) >= MAX_REPLICAS:
@@ -423,6 +483,8 @@ class HandoverKeeper:
             return
         now_step = sess.step_now(now)
         msg, why = restore(sess.est, data, sess.spec, sess.fingerprint, now_step)
+        if msg is not None:  # a refused state's term still fences: the next term is newer
+            sess.resumed_term, sess.resumed_writer = msg.term, msg.instance
         if why is not None:
             self._refused(sess, source, why, now)
             return

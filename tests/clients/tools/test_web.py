@@ -35,10 +35,10 @@ class Clock:
 
 
 def pred(session: str, step: int, x: np.ndarray, P: np.ndarray, seq: int = 0,
-         made_ns: int = EPOCH) -> Prediction:
+         made_ns: int = EPOCH, term: int = 0) -> Prediction:
     return Prediction(session=session, seq=seq, step=step, t_ns=EPOCH + step * PERIOD, x=x, P=P,
                       newest_step=max(0, step - 10), made_ns=made_ns,
-                      counters={"accepted": 7, "late": 2, "refused": 3})
+                      counters={"accepted": 7, "late": 2, "refused": 3}, term=term)
 
 
 @pytest.fixture
@@ -126,6 +126,19 @@ def test_bad_payloads_are_counted_not_fatal(feed) -> None:
     other = pred("other", 1, np.zeros(4), np.eye(4))
     t.put(keys.prediction_key("paper"), encode(other))  # session in the message != key's
     assert out == [] and f.invalid == 3
+
+
+def test_an_older_owners_predictions_make_no_event(feed) -> None:
+    """Two owners of one session (a partition between instances) interleaved on its key:
+    the page gets the newest term's predictions only; the others are counted (``st``)."""
+    f, t, out, _ = feed
+    P = np.diag([0.04, 0.01, 0.09, 0.01])
+    for seq, term in ((0, 5), (1, 5), (30, 9), (2, 5), (31, 9), (3, 5)):
+        t.put(keys.prediction_key("paper"), encode(pred("paper", 130 + seq % 30, np.zeros(4),
+                                                        P, seq=seq, term=term)))
+    assert [(e["seq"], e["term"]) for e in out] == [(0, 5), (1, 5), (30, 9), (31, 9)]
+    assert out[-1]["st"] == 1 and f.views["paper"].stale_term == 2
+    assert json.loads(f.tick())["sessions"]["paper"]["st"] == 2
 
 
 def test_warnings_when_predictions_stop_and_a_sensor_goes_silent(feed) -> None:

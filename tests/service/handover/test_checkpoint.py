@@ -34,7 +34,7 @@ def _fed(name: str, steps: int = 40) -> EstimatorState:
 
 
 KW = dict(session="s1", instance="inst-a", fingerprint="ab" * 32, made_ns=123,
-          session_counters={"accepted": 7, "flood": 0}, published=9, seq=9)
+          session_counters={"accepted": 7, "flood": 0}, published=9, seq=9, term=5 << 16 | 7)
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
@@ -121,7 +121,7 @@ def test_the_c_form_writes_what_the_python_form_writes(monkeypatch, name):
         pytest.skip("the C kernel is not in use here: the Python form runs everywhere")
     st = _fed(name)
     kw = dict(KW, session_counters={"a": 2**64 - 1, "é" * 40: -(2**63), "k" * 300: 0},
-              made_ns=2**63 + 5, published=2**32, seq=65_536)
+              made_ns=2**63 + 5, published=2**32, seq=65_536, term=2**63 - 1)
     fields = checkpoint._fields(st, checkpoint._as_array, checkpoint._as_arrays,
                                 **kw)  # type: ignore[arg-type]
     c_form = checkpoint._PACK(fields)

@@ -147,3 +147,136 @@ def test_a_previous_owner_that_goes_away_during_the_wait_ends_it(tmp_path):
     c.run_once()
     assert s not in c.lifecycle.awaiting and s in c.served_sessions()
     assert "taken over" in status(cli, s).detail
+
+
+def partition(a, b, apart: bool) -> None:
+    """Two instances stop (``apart``) or start again hearing each other's liveliness: a
+    partition between them, or its heal (each side sees the other leave, then join)."""
+    a.dispatch.on_liveliness(keys.service_token_key(b.instance), not apart)
+    b.dispatch.on_liveliness(keys.service_token_key(a.instance), not apart)
+
+
+def test_a_partition_fences_the_older_owner_and_the_heal_keeps_the_newer_estimate(tmp_path):
+    """inst-a serves s, inst-b is its successor. The link between them goes down: b takes s
+    over from its replica with a newer term while a goes on serving it; both publish, a
+    Display shows b's predictions only (a's counted as of an older term). At the heal b hands
+    s back: a yields to b's newer state (a term newer still), and the estimate goes on
+    exactly as the one that never stopped (the inputs reached both sides). A session b held at
+    its prior alone is handed back as a delete: a keeps its estimate under a renewed term."""
+    from pd_client import Display
+
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
+    s = next(n for n in names if n in a.served_sessions() and a.ownership.successor(n) == b.instance)
+    idle = next(n for n in names if n in a.served_sessions() and n != s)
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    disp = Display(bus.transport(), s)
+    for k in range(30):
+        d.step([a, b], k)
+    t0 = status(cli, s).term
+    assert t0 > 0 and all(p.term == t0 for p in col.predictions[s])
+    assert s in b.keeper.replicas
+    partition(a, b, apart=True)
+    for k in range(30, 45):
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)  # either owner's: b read back what came after its replica
+    assert s in a.served_sessions() and s in b.served_sessions()  # two owners
+    during = [p.term for p in col.predictions[s][-20:]]
+    t1 = max(during)
+    assert t1 > t0 and sorted(set(during)) == [t0, t1]  # interleaved on the key ...
+    assert disp.stats().stale_term > 0 and disp.stats().term == t1  # ... not on the display
+    assert disp.latest().term == t1
+    partition(a, b, apart=False)
+    settle(a, b)
+    for k in range(45, 60):
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)  # continuous and exact: nothing regressed
+    assert s in a.served_sessions() and s not in b.served_sessions()
+    st = status(cli, s)
+    # both sides took in the same inputs: either estimate is the right one, a newer term
+    assert st.instance == a.instance and st.term > t1
+    assert "yielded to inst-b" in st.detail or "kept its estimate" in st.detail
+    assert a.counters["term_yielded"] + a.counters["term_kept"] >= 1
+    after = [p.term for p in col.predictions[s][-10:]]
+    assert after == [st.term] * 10 and disp.stats().term == st.term
+    # the idle session: b took it from the prior, a kept it; after the heal a's term is newest
+    assert idle in a.served_sessions() and idle not in b.served_sessions()
+    assert a.counters["term_kept"] >= 2 and status(cli, idle).term > t1
+    disp.close()
+
+
+class DataCut:
+    """A transport whose instance receives no session data (sensors, commands, read-backs)
+    while ``cut``: the robots reach only the other side of a partition."""
+
+    def __init__(self, t):
+        self._t = t
+        self.cut = False
+
+    def __getattr__(self, name):
+        return getattr(self._t, name)
+
+    def _data(self, callback):
+        def on(sample):
+            if not (self.cut and ("/sensor/" in sample.key or sample.key.endswith("/cmd"))):
+                callback(sample)
+        return on
+
+    def subscribe_drained(self, keyexpr, callback, wake):
+        return self._t.subscribe_drained(keyexpr, self._data(callback), wake)
+
+    def read_back(self, keyexpr, callback, **kw):
+        return self._t.read_back(keyexpr, self._data(callback), **kw)
+
+
+def test_at_the_heal_the_estimate_that_took_in_the_data_is_kept(tmp_path):
+    """The robot reaches only inst-a (the owner) during the partition: inst-b's takeover
+    predicts from its replica alone, with a newer term. At the heal b hands its state back;
+    a keeps its own estimate (more inputs accepted), renews its term above b's, and its
+    predictions never left the estimate that never stopped."""
+    from pd_service.service.config import Settings
+    from pd_service.service.core import ServiceCore
+    from pd_service.service.spec_store import SpecStore
+    from pd_service.wire import encode
+
+    from ..helpers import paper_spec
+    from ..test_core import PAIR
+
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=0.3)
+    tb = DataCut(bus.transport())
+    b = ServiceCore(tb, Settings(instance="inst-b", peers=PAIR, replica_interval_s=0.3),
+                    store=SpecStore(tmp_path / "inst-b"), now_ns=clock, run_clock_ns=lambda: 0,
+                    spawn=lambda fn: fn())
+    b.start()
+    names = [f"s{i:02d}" for i in range(12)]
+    for n in names:
+        cli.put(keys.config_key(n), encode(paper_spec(n)))
+    settle(a, b)
+    s = next(n for n in names if n in a.served_sessions() and a.ownership.successor(n) == b.instance)
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    for k in range(30):
+        d.step([a, b], k)
+    tb.cut = True
+    partition(a, b, apart=True)
+    for k in range(30, 60):  # 1.5 s: longer than the window (max_delay 16 steps)
+        d.step([a, b], k)
+        settle(a, b)
+    b_terms = {p.term for p in col.predictions[s][-30:]} - {status(cli, s).term}
+    assert s in b.served_sessions() and b_terms  # b published too, its own term
+    tb.cut = False
+    partition(a, b, apart=False)
+    settle(a, b)
+    assert s in a.served_sessions() and s not in b.served_sessions()
+    assert a.counters["term_kept"] >= 1 and "term_yielded" not in a.counters
+    st = status(cli, s)
+    assert st.term > max(b_terms) and "kept its estimate" in st.detail
+    for k in range(60, 70):
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)  # a's estimate: as if nothing happened
+    assert all(p.term == st.term for p in col.predictions[s][-10:])

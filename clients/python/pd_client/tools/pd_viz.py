@@ -109,7 +109,7 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
         "pd_viz.Status", session={"type": "string"}, state={"type": "string"}, now_step=_INT,
         counters={"type": "object", "additionalProperties": _INT}, late=_INT, future=_INT,
         accepted=_INT, refused=_INT, published=_INT, latency_ms_last=_NUM, latency_ms_p50=_NUM,
-        latency_ms_max=_NUM, missed=_INT,
+        latency_ms_max=_NUM, missed=_INT, term=_INT, stale_term=_INT,
         viewer={"type": "object", "additionalProperties": _INT},
         daemon_latency_us_p50=_NUM, daemon_latency_us_p99=_NUM),
 }
@@ -302,7 +302,8 @@ class SessionView:
                 "latency_ms_last": (st.latency_us_last or 0.0) / 1e3,
                 "latency_ms_p50": (st.latency_us_p50 or 0.0) / 1e3,
                 "latency_ms_max": (st.latency_us_max or 0.0) / 1e3,
-                "missed": st.missed, "viewer": dict(self.counts)}
+                "missed": st.missed, "term": st.term, "stale_term": st.stale_term,
+                "viewer": dict(self.counts)}
 
     def _emit_error(self, p: Prediction, t: Truth, now: int) -> None:
         err = prediction_error(p, t)

@@ -17,12 +17,17 @@ each prediction into one event for the page (:meth:`FeedSession.event`)::
      "delay_ms": {"camera": 503.2},                           # newest measured downlink delay
      "lat_ms": 1.2,                                           # receipt - made_ns
      "c": {"accepted": .., "late": .., "future": .., "refused": ..},
-     "cmd": {"k": 131, "u": [0.5]} | null}
+     "cmd": {"k": 131, "u": [0.5]} | null,
+     "term": 1830...,                                     # publisher's ownership term
+     "st": 0}                                             # older-term predictions dropped
 
 and, twice a second, a ``tick`` event with the sessions the daemons report and the warnings
-(predictions stopped, sensors silent: ``[what, seconds since]`` pairs). The 2-sigma ellipse
-of the planar position (x, y) with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's
-eigenvectors.
+(predictions stopped, sensors silent: ``[what, seconds since]`` pairs). A prediction of an
+older ownership term than the newest seen for its session (a second owner during a partition
+between instances, docs/service.md) makes no event: it is counted (``st``) and dropped
+(:class:`pd_service.wire.fence.TermFence`), so the page never shows two owners interleaved.
+The 2-sigma ellipse of the planar position (x, y) with covariance C (2 x 2): semi-axes
+2 sqrt(lambda_i) along C's eigenvectors.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ import numpy as np
 
 from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import Command, Measurement, Prediction, SessionSpec, keys
+from pd_service.wire.fence import TermFence
 
 from .._base import try_decode
 from ..admin import Admin
@@ -112,6 +118,7 @@ class FeedSession:
         self.clock_warning = ""
         self.clock_warning_since = 0.0  # monotonic s at which it was first reported
         self.predictions = 0
+        self.stale_term = 0  # predictions of an older ownership term, dropped
         self.history: deque[tuple[int, bytes]] = deque(maxlen=HISTORY)  # (event id, JSON)
 
     # --- clock of the session ----------------------------------------------------------
@@ -222,6 +229,7 @@ class FeedSession:
             "lat_ms": (recv_ns - p.made_ns) / 1e6,
             "c": {k: int(p.counters.get(k, 0)) for k in COUNTERS},
             "cmd": self.cmd,
+            "term": p.term, "st": self.stale_term,
         }
 
     def warnings(self, mono: float, stale_s: float
@@ -280,6 +288,7 @@ class LiveFeed:
         self.reported: list[str] = []  # sessions the daemons report
         self.events = 0
         self.invalid = 0
+        self.fence = TermFence()
         self.admin = Admin(transport)
         subs: list[tuple[str, Callable[[Sample], None]]] = [
             (keys.ALL_PREDICTIONS, self._on_prediction),
@@ -312,6 +321,9 @@ class LiveFeed:
         with self.lock:
             if p is None or p.session != session:
                 self.invalid += 1
+                return
+            if not self.fence.admit(session, p.term):  # an older owner's: counted, not shown
+                self._view(session).stale_term += 1
                 return
             self.events += 1
             ev = self._view(session).event(p, sample.recv_ns, self._now_ns(), self._mono())
@@ -419,7 +431,8 @@ class LiveFeed:
             out: Json = {}
             for name, v in sorted(self.views.items()):
                 pa, ages, warn = v.warnings(mono, self.stale_s)
-                out[name] = {"pa": pa, "sa": ages, "warn": warn, "n": v.predictions}
+                out[name] = {"pa": pa, "sa": ages, "warn": warn, "n": v.predictions,
+                             "st": v.stale_term}
             names = sorted(set(self.reported) | set(self.views))
             ev = {"type": "tick", "ts": self._now_ns() / 1e6, "list": names,
                   "reported": self.reported, "sessions": out, "events": self.events}

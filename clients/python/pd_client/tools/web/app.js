@@ -31,6 +31,8 @@ function onEvent(ev) {
   if (lag > stats.maxLag) stats.maxLag = lag;
   const fresh = !S.has(ev.s);
   const s = session(ev.s);
+  // an older ownership term than the newest seen (a second owner: docs/service.md): dropped
+  if (ev.term !== undefined && s.last && s.last.term !== undefined && ev.term < s.last.term) { stats.staleTerm = (stats.staleTerm || 0) + 1; return; }
   s.ev.push(ev); if (s.ev.length > KEEP) s.ev.shift();
   s.last = ev; s.recv++; s.lastRecv = now;
   if (selected === null) { selected = ev.s; }
@@ -257,8 +259,9 @@ function render() {
       {name: n, x: last.x[i], sd: sd, meas: mv ? mv.v : "", ageMs: age === null ? "" : age, truth: tv === null ? "" : tv}));
   });
   tb.replaceChildren(...rows);
-  tb.dataset.session = selected; tb.dataset.k = last.k; tb.dataset.seq = last.seq;
+  tb.dataset.session = selected; tb.dataset.k = last.k; tb.dataset.seq = last.seq; tb.dataset.term = last.term ?? "";
   $("info").textContent = `target step ${last.k} · now ${last.now ?? "?"} · lead ${last.lead ?? "?"} · latency ${fmt(last.lat_ms, 1)} ms` +
+    (last.st ? ` · ${last.st} predictions of an older owner dropped` : "") +
     (last.err ? ` · error at ${last.err.k}: ` + last.pos.map((i) => last.names[i] + " " + fmt(last.err.e[i])).join(", ") : "") +
     (last.cmd ? ` · command u(${last.cmd.k}) = [${last.cmd.u.map((v) => fmt(v, 2)).join(", ")}]` : "");
   $("counters").replaceChildren(...Object.entries(last.c).map(([k, v]) => {
