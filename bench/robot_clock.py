@@ -30,7 +30,7 @@ refuses at most 0.1 % of the run's samples as late, their ratio, and the share t
 one refuses. A final JSON line.
 
 Usage: python bench/robot_clock.py [--scenario paper] [--seconds 60] [--offset-s 10]
-       [--seed 1] [--learned-window]
+       [--seed 1]
 """
 
 from __future__ import annotations
@@ -109,8 +109,7 @@ class Result:
 
 
 def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: int,
-        clock_off: bool, hold: bool, estimated: bool, links: dict[str, Link],
-        learned: bool = False) -> Result:
+        clock_off: bool, hold: bool, estimated: bool, links: dict[str, Link]) -> Result:
     sc = get_scenario(scenario_name)
     per_s = sc.period_s
     worst = max(v.base_s + v.jitter_s for v in FIELD.values())
@@ -133,7 +132,7 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
         # diff-drive UKF needs 0.27 of a core nominally)
         core = ServiceCore(bus.transport(), Settings(instance="bench", probe_interval_s=0,
                                                      expire_s=1e6, max_session_cpu=2.0,
-                                                     cpu_budget=2.0, learned_window=learned),
+                                                     cpu_budget=2.0),
                            store=SpecStore(Path(tmp) / "a"), now_ns=lambda: now[0],
                            run_clock_ns=lambda: 0, spawn=lambda fn: fn())
         core.start()
@@ -281,22 +280,15 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--offset-s", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--learned-window", action="store_true",
-                    help="the daemon's learned_window on for the issue43 and loopback runs: "
-                         "their spec's max_delay and lead replaced by the learned ones (the "
-                         "prediction's horizon then the learned issue -> applied median)")
     args = ap.parse_args()
-    lw = args.learned_window
     common = dict(scenario_name=args.scenario, seconds=args.seconds, offset_s=args.offset_s,
                   seed=args.seed)
     runs = [
         run("reference", clock_off=False, hold=True, estimated=False, links=FIELD, **common),
         run("today", clock_off=True, hold=False, estimated=False, links=FIELD, **common),
-        run("issue43", clock_off=True, hold=False, estimated=True, links=FIELD, learned=lw,
-            **common),
+        run("issue43", clock_off=True, hold=False, estimated=True, links=FIELD, **common),
         run("ref-loop", clock_off=False, hold=True, estimated=False, links=LOOPBACK, **common),
-        run("loopback", clock_off=True, hold=False, estimated=True, links=LOOPBACK,
-            learned=lw, **common),
+        run("loopback", clock_off=True, hold=False, estimated=True, links=LOOPBACK, **common),
     ]
     refs = {"reference": runs[0], "today": runs[0], "issue43": runs[0], "ref-loop": runs[3],
             "loopback": runs[3]}
