@@ -18,9 +18,10 @@ commands_superseded        command that replaced an older one for the same apply
 echoes / echoes_unknown /  CommandEchoes used / of no command kept for one / applied
 echoes_implausible /       outside [issued, received] beyond the clock's uncertainty (or
 echoes_invalid             refused by its estimator) / not a CommandEcho of this session
-commands_moved /           (command_timing "echoed") commands moved to the step their echo
-commands_in_place /        names / already there / not moved (their step final, or a newer
-commands_echo_refused      command superseded them, or the new step refused them)
+commands_moved /           (command_timing "echoed") commands moved to the instant their
+commands_in_place /        echo names (inside its step) / already there / not moved (their
+commands_echo_refused      step final, a newer command superseded them, or the new step
+                           refused them)
 stamps_clamped             robot stamps mapped after their receipt, held at it
 probe_replies              clock probes answered (probe_<reason>: refused by the estimator)
 malformed                  bytes that are not a valid Measurement / Command (``commands_``
@@ -245,7 +246,7 @@ class Session:
 
     def on_echo(self, payload: bytes, recv_ns: int, now_step: int) -> bool:
         """A CommandEcho received at ``recv_ns``: teaches the clock and the lead; with
-        ``command_timing: echoed`` its command moves to the step it took effect in. True
+        ``command_timing: echoed`` its command moves to the instant it took effect. True
         iff the estimator's inputs changed."""
         got = self.robot.echo(payload, recv_ns)
         if got is None:
