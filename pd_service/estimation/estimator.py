@@ -62,3 +62,10 @@ class Estimator(Protocol):
     def predict(self, now: int) -> PredictedState:
         """Estimate of x(now + lead): x (n,), P (n, n)."""
         ...
+
+    def predict_path(self, now: int, stride: int = 1,
+                     max_points: int = 0) -> list[PredictedState]:
+        """Estimates from the newest posterior to x(now + lead), one every ``stride`` steps
+        (the first and the last always; the stride widened to at most ``max_points`` points
+        if > 0); the last is :meth:`predict`'s."""
+        ...

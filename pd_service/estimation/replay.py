@@ -447,25 +447,9 @@ class ReplayEstimator(Generic[S]):
             self._advance(t)
         if self._cache is not None and self._cache[0] == t:
             return self._cache[1]
-        self._replay(None)
         target = t + self.lead
-        step, state, newest = self._newest(target)
+        step, state, newest = self._start(target)
         advance = getattr(self._backend, "advance", None)
-        if self._steps and self._steps[-1] == target and target in self._offgrid:
-            # lead 0, and samples inside the target step: those at its very start count
-            head = [p for p in self._packets[target] if p[3] == 0.0]
-            if head:
-                m = target - step
-                if advance is not None:
-                    cuts = self._inputs.cuts(step, target - 1)
-                    U = self._inputs.slice(step, m)
-                    state = (advance(state, m, U, head, None) if cuts is None
-                             else advance(state, m, U, head, None, cuts))
-                else:
-                    if m:
-                        state = self._propagate(state, step, m)
-                    state = self._backend.update(state, target, head)
-                step, newest = target, target
         if advance is not None:
             m = target - step
             cuts = self._inputs.cuts(step, target - 1)
@@ -483,6 +467,60 @@ class ReplayEstimator(Generic[S]):
         pred = PredictedState(target, x, P, newest)
         self._cache = (t, pred)
         return pred
+
+    def predict_path(self, now: object, stride: int = 1,
+                     max_points: int = 0) -> list[PredictedState]:
+        """The predicted states from the newest posterior (the newest measured step, or the
+        base) to now + lead: the first point is that posterior itself, then one point every
+        ``stride`` steps and always the target. Each point k steps ahead is the same jump the
+        prediction makes, x(a + k) = A^k x(a) + [A^{k-1}B ... B] u (the backend's
+        ``propagate`` over k steps from the start a), so the last point is bit-for-bit
+        :meth:`predict`'s. Work: one k-step jump per point, O(points * n^3) for a linear
+        model: ceil((target - a) / stride) + 1 points; ``max_points`` >= 2 widens the
+        stride to stay within it (0: no bound)."""
+        if type(stride) is not int or stride < 1:
+            raise ValueError(f"stride: must be an int >= 1, got {stride!r}")
+        if type(max_points) is not int or max_points < 0 or max_points == 1:
+            raise ValueError(f"max_points: must be 0 or an int >= 2, got {max_points!r}")
+        t = self._check_now(now)
+        if t != self._now:
+            self._advance(t)
+        target = t + self.lead
+        step, state, newest = self._start(target)
+        if max_points and target > step:
+            stride = max(stride, -(-(target - step) // (max_points - 1)))
+        points: list[PredictedState] = []
+        k = step
+        while True:
+            st = state if k == step else self._propagate(state, step, k - step)
+            x, P = self._backend.moments(st)
+            points.append(PredictedState(k, x, P, newest))
+            if k == target:
+                return points
+            k = min(k + stride, target)
+
+    def _start(self, target: int) -> tuple[int, S, int | None]:
+        """Where the prediction of ``target`` starts: (step, posterior there, its newest
+        sample step), the open window replayed first."""
+        self._replay(None)
+        step, state, newest = self._newest(target)
+        if self._steps and self._steps[-1] == target and target in self._offgrid:
+            # lead 0, and samples inside the target step: those at its very start count
+            head = [p for p in self._packets[target] if p[3] == 0.0]
+            if head:
+                m = target - step
+                advance = getattr(self._backend, "advance", None)
+                if advance is not None:
+                    cuts = self._inputs.cuts(step, target - 1)
+                    U = self._inputs.slice(step, m)
+                    state = (advance(state, m, U, head, None) if cuts is None
+                             else advance(state, m, U, head, None, cuts))
+                else:
+                    if m:
+                        state = self._propagate(state, step, m)
+                    state = self._backend.update(state, target, head)
+                step, newest = target, target
+        return step, state, newest
 
     # --- export / restore of the window --------------------------------------------------
 

@@ -18,7 +18,9 @@ start, which the daemon answers with every spec it knows):
   resolution, docs/protocol.md "When a sample and a command apply");
 - **outputs**: each ``Prediction`` on ``pd/p<k>/<s>/prediction`` -> Odometry / PoseWithCovariance-
   Stamped / TFMessage (header.stamp = ``Prediction.t_ns``), CDR, with the rmw_zenoh attachment
-  (sequence number per publisher from 1, source timestamp, publisher GID);
+  (sequence number per publisher from 1, source timestamp, publisher GID); with the spec's
+  ``path``, each ``PredictedPath`` on ``pd/p<k>/<s>/path`` -> nav_msgs/Path on ``path_topic``
+  (one PoseStamped per point, stamped with its step's time; no covariance: a Path has none);
 - **graph**: rmw_zenoh liveliness tokens (one node, a subscription per bound input, a publisher
   per output) so that ``ros2 node list`` / ``ros2 topic list`` see pd-service;
 - **status**: queryable ``pd/@ros2/<instance>/status``, a JSON object of counters.
@@ -56,7 +58,7 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any, Literal, get_args
+from typing import Any, Literal, TypeVar, get_args
 
 from pydantic import ValidationError
 
@@ -74,6 +76,7 @@ from pd_service.ros2.extract import (
     extract_command,
     extract_measurement,
     odometry_from_state,
+    path_from_points,
     pose_from_state,
     tf_from_state,
 )
@@ -112,6 +115,7 @@ from pd_service.wire import encode as wire_encode
 from pd_service.wire.clock_probe import answer_probe
 from pd_service.wire.codec import validation_reason
 from pd_service.wire.fence import TermFence
+from pd_service.wire.path import PredictedPath
 from pd_service.wire.ros2 import CommandBinding, OutputBinding, Ros2Binding, TopicBinding
 
 log = logging.getLogger("pd_service.ros2")
@@ -243,7 +247,7 @@ class _Input:
 class _Output:
     """One ROS publisher of the predicted state."""
 
-    what: Literal["odom", "pose", "tf"]
+    what: Literal["odom", "pose", "tf", "path"]
     msg_type: str
     topic: str
     key: str
@@ -265,12 +269,16 @@ class _Session:
     outputs: list[_Output] = field(default_factory=list)
     prediction_handle: Handle | None = None
     probe_handle: Handle | None = None
+    path_handle: Handle | None = None
     closed: bool = False
     #: Newest ownership term seen (predictions of an older one: a second owner, dropped).
     fence: TermFence = field(default_factory=TermFence)
 
 
-_Item = tuple[Literal["config", "input", "prediction"], object, Sample]
+#: A message type of the daemon's outputs (Prediction, PredictedPath).
+M = TypeVar("M", Prediction, PredictedPath)
+
+_Item = tuple[Literal["config", "input", "prediction", "path"], object, Sample]
 
 
 class Ros2Bridge:
@@ -396,6 +404,9 @@ class Ros2Bridge:
                     elif kind == "input":
                         assert isinstance(route, _Input)
                         self._on_input(route, sample)
+                    elif kind == "path":
+                        assert isinstance(route, _Session)
+                        self._on_path(route, sample)
                     else:
                         assert isinstance(route, _Session)
                         self._on_prediction(route, sample)
@@ -423,6 +434,9 @@ class Ros2Bridge:
 
     def _on_prediction_sample(self, sess: _Session, sample: Sample) -> None:
         self._enqueue(("prediction", sess, sample))
+
+    def _on_path_sample(self, sess: _Session, sample: Sample) -> None:
+        self._enqueue(("path", sess, sample))
 
     def _on_config_item(self, sample: Sample) -> None:
         if sample.kind == "delete":
@@ -463,7 +477,7 @@ class Ros2Bridge:
                 event(log, "session_unbridged", session=name, why="no ros2 bindings")
             return
         assert spec.ros2 is not None
-        if old is not None and old.binding == spec.ros2:
+        if old is not None and old.binding == spec.ros2 and old.spec.path == spec.path:
             old.spec = spec
             return
         if old is not None:
@@ -515,6 +529,9 @@ class Ros2Bridge:
             self._declare_outputs(sess, b.outputs)
             sess.prediction_handle = self.t.subscribe(
                 keys.prediction_key(sess.name), partial(self._on_prediction_sample, sess))
+            if any(o.what == "path" for o in sess.outputs):
+                sess.path_handle = self.t.subscribe(
+                    keys.path_key(sess.name), partial(self._on_path_sample, sess))
 
     def _declare_input(self, sess: _Session, sensor: str | None,
                        binding: TopicBinding | CommandBinding, native_key: str) -> None:
@@ -566,7 +583,7 @@ class Ros2Bridge:
             log.debug("probe reply failed: %s", exc)
 
     def _declare_outputs(self, sess: _Session, ob: OutputBinding) -> None:
-        wanted: list[tuple[Literal["odom", "pose", "tf"], str, str]] = []
+        wanted: list[tuple[Literal["odom", "pose", "tf", "path"], str, str]] = []
         if ob.odom_topic is not None:
             wanted.append(("odom", "nav_msgs/msg/Odometry", self._fq(ob.odom_topic)))
         if ob.pose_topic is not None:
@@ -574,6 +591,8 @@ class Ros2Bridge:
                            self._fq(ob.pose_topic)))
         if ob.tf:
             wanted.append(("tf", "tf2_msgs/msg/TFMessage", TF_TOPIC))
+        if ob.path_topic is not None and sess.spec.path is not None:
+            wanted.append(("path", "nav_msgs/msg/Path", self._fq(ob.path_topic)))
         for what, msg_type, fq in wanted:
             endpoint = None
             if self.node is not None:
@@ -588,7 +607,8 @@ class Ros2Bridge:
 
     def _undeclare(self, sess: _Session) -> None:
         sess.closed = True
-        handles: list[Handle | None] = [sess.prediction_handle, sess.probe_handle]
+        handles: list[Handle | None] = [sess.prediction_handle, sess.probe_handle,
+                                        sess.path_handle]
         for inp in sess.inputs:
             handles += [inp.handle, inp.token, inp.publisher]
         for out in sess.outputs:
@@ -601,7 +621,7 @@ class Ros2Bridge:
                     pass
         sess.inputs.clear()
         sess.outputs.clear()
-        sess.prediction_handle = sess.probe_handle = None
+        sess.prediction_handle = sess.probe_handle = sess.path_handle = None
 
     # ======================================================================== inputs ======
 
@@ -725,31 +745,67 @@ class Ros2Bridge:
 
     # ======================================================================= outputs ======
 
-    def _on_prediction(self, sess: _Session, sample: Sample) -> None:
+    def _received(self, sess: _Session, sample: Sample, cls: type[M], what: str) -> M | None:
+        """The daemon's ``cls`` message of ``sess`` in ``sample``, or None (counted
+        ``<what>_invalid``; every put counted ``<what>_received``)."""
         if sess.closed or sample.kind != "put":
+            return None
+        c = sess.counters
+        c[f"{what}_received"] += 1
+        try:
+            msg = wire_decode(sample.payload, cls)
+        except WireError as exc:
+            c[f"{what}_invalid"] += 1
+            log.debug("invalid %s on %s: %s", cls.__name__, sample.key, exc.reason)
+            return None
+        if msg.session != sess.name:
+            c[f"{what}_invalid"] += 1
+            return None
+        return msg
+
+    def _on_prediction(self, sess: _Session, sample: Sample) -> None:
+        pred = self._received(sess, sample, Prediction, "predictions")
+        if pred is None:
             return
         c = sess.counters
-        c["predictions_received"] += 1
-        try:
-            pred = wire_decode(sample.payload, Prediction)
-        except WireError as exc:
-            c["predictions_invalid"] += 1
-            log.debug("invalid Prediction on %s: %s", sample.key, exc.reason)
-            return
-        if pred.session != sess.name:
-            c["predictions_invalid"] += 1
-            return
         if not sess.fence.admit(pred.session, pred.term):  # an older owner's (a partition)
             c["predictions_stale_term"] += 1
             return
         ob = sess.binding.outputs
         assert ob is not None
         try:
-            encoded = [(out, self._output_payload(out, ob, pred)) for out in sess.outputs]
+            encoded = [(out, self._output_payload(out, ob, pred)) for out in sess.outputs
+                       if out.what != "path"]
         except (ValueError, TypeError) as exc:
             c["output_errors"] += 1
             self._refuse_output(sess, sample.key, pred.seq, str(exc))
             return
+        self._publish(sess, encoded)
+        c["predictions_republished"] += 1
+
+    def _on_path(self, sess: _Session, sample: Sample) -> None:
+        """A PredictedPath -> nav_msgs/Path on the session's path output."""
+        path = self._received(sess, sample, PredictedPath, "paths")
+        if path is None:
+            return
+        c = sess.counters
+        ob = sess.binding.outputs
+        assert ob is not None
+        try:
+            msg = path_from_points([path.t_ns(i) for i in range(len(path.steps))], path.X,
+                                   path.indices, ob.layout, ob.frame_id)
+            encoded = [(out, encode(msg, out.msg_type)) for out in sess.outputs
+                       if out.what == "path"]
+        except (ValueError, TypeError) as exc:
+            c["output_errors"] += 1
+            self._refuse_output(sess, sample.key, path.seq, str(exc))
+            return
+        self._publish(sess, encoded)
+        c["paths_republished"] += 1
+
+    def _publish(self, sess: _Session, encoded: list[tuple[_Output, bytes]]) -> None:
+        """Put each output's payload with its rmw_zenoh attachment."""
+        c = sess.counters
         now = self.now_ns()
         for out, payload in encoded:
             out.seq += 1
@@ -759,7 +815,6 @@ class Ros2Bridge:
                                         self.settings.attachment_layout)
             out.publisher.put(payload, attachment=att)
             c["outputs_published"] += 1
-        c["predictions_republished"] += 1
 
     @staticmethod
     def _output_payload(out: _Output, ob: OutputBinding, pred: Prediction) -> bytes:

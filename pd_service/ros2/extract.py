@@ -60,6 +60,7 @@ from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.ros2.messages import (
     Imu,
     Odometry,
+    Path,
     PointStamped,
     PoseStamped,
     PoseWithCovarianceStamped,
@@ -408,3 +409,27 @@ def tf_from_state(
         ),
     )
     return TFMessage(transforms=[transform])
+
+
+def path_from_points(
+    stamps: Sequence[int], X: FloatArray, indices: Sequence[int], layout: StateLayout,
+    frame_id: str,
+) -> Path:
+    """nav_msgs/Path of a predicted path: one PoseStamped per point (k), stamped with its
+    step's time (ns), position from the layout's x, y and orientation from its yaw when the
+    path carries them (columns of X (k, d) are the state components ``indices``; an absent
+    yaw is identity). The covariances are not carried: a Path has none."""
+    idx = layout.indices()
+    col = {name: list(indices).index(i) for name, i in idx.items() if i in indices}
+    if "x" not in col or "y" not in col:
+        raise ValueError(f"the path carries components {list(indices)}, not the layout's x "
+                         f"and y ({idx.get('x')}, {idx.get('y')})")
+    if X.ndim != 2 or X.shape != (len(stamps), len(indices)) or not np.all(np.isfinite(X)):
+        raise ValueError(f"path means must be finite, {len(stamps)} x {len(indices)}")
+    poses = []
+    for t, row in zip(stamps, X, strict=True):
+        yaw = float(row[col["yaw"]]) if "yaw" in col else 0.0
+        poses.append(PoseStamped(header=header(int(t), frame_id), pose=Pose(
+            position=Point(x=float(row[col["x"]]), y=float(row[col["y"]]), z=0.0),
+            orientation=quaternion_of_yaw(yaw))))
+    return Path(header=header(int(stamps[-1]), frame_id), poses=poses)

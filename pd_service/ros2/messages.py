@@ -39,6 +39,9 @@ from rosbags.typesys.stores.ros2_jazzy import (
     nav_msgs__msg__Odometry as Odometry,
 )
 from rosbags.typesys.stores.ros2_jazzy import (
+    nav_msgs__msg__Path as Path,
+)
+from rosbags.typesys.stores.ros2_jazzy import (
     sensor_msgs__msg__Imu as Imu,
 )
 from rosbags.typesys.stores.ros2_jazzy import (
@@ -56,7 +59,8 @@ from pd_service.wire.ros2 import CommandType, MeasurementType
 
 #: Output message types pd-service publishes.
 OutputType = Literal[
-    "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseWithCovarianceStamped", "tf2_msgs/msg/TFMessage"
+    "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseWithCovarianceStamped", "tf2_msgs/msg/TFMessage",
+    "nav_msgs/msg/Path",
 ]
 MessageType = Literal[MeasurementType, CommandType, OutputType]
 
@@ -75,6 +79,7 @@ RosMessage: TypeAlias = (
     | Twist
     | TwistStamped
     | TFMessage
+    | Path
 )
 
 _CLASSES: dict[str, type] = {
@@ -87,6 +92,7 @@ _CLASSES: dict[str, type] = {
     "geometry_msgs/msg/Twist": Twist,
     "geometry_msgs/msg/TwistStamped": TwistStamped,
     "tf2_msgs/msg/TFMessage": TFMessage,
+    "nav_msgs/msg/Path": Path,
     # published by pd-ros2 itself on /diagnostics (pd_service.ros2.diagnostics)
     "diagnostic_msgs/msg/DiagnosticArray": DiagnosticArray,
 }
@@ -101,6 +107,7 @@ _ROS_MESSAGE_CLASSES = (
     Twist,
     TwistStamped,
     TFMessage,
+    Path,
 )
 
 #: CDR encapsulation headers (representation id, options): plain CDR little / big endian.

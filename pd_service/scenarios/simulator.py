@@ -16,6 +16,7 @@ import numpy as np
 
 from pd_service.estimation.nonlinear import NonlinearModel, wrap_angle
 from pd_service.wire import LinearModelSpec, SensorSpec, SessionSpec, UnscentedModelSpec
+from pd_service.wire.messages import PathSpec
 from pd_service.wire.ros2 import Ros2Binding
 
 
@@ -195,10 +196,12 @@ class Scenario:
 
     def spec(self, session: str, epoch_ns: int, *, time_scale: float = 1.0,
              sensors: Sequence[str] | None = None, lead: int | None = None,
-             max_delay: int | None = None, publish_every: int = 1) -> SessionSpec:
+             max_delay: int | None = None, publish_every: int = 1,
+             path: PathSpec | None = None) -> SessionSpec:
         """The SessionSpec of this scenario: the model in model-time steps, the clock in real
         time (``period_ns`` = period / time_scale). ``sensors``: a subset by name (default
-        all); ``lead``, ``max_delay``: override the scenario's (steps)."""
+        all); ``lead``, ``max_delay``: override the scenario's (steps); ``path``: publish the
+        predicted path too."""
         chosen = self.select(sensors)
         model: LinearModelSpec | UnscentedModelSpec
         if self.model_spec is not None:
@@ -215,6 +218,7 @@ class Scenario:
             max_delay=self.max_delay if max_delay is None else max_delay,
             publish_every=publish_every,
             ros2=self._ros2_of(chosen),
+            path=path,
         )
 
     def _ros2_of(self, chosen: Sequence[SensorDef]) -> Ros2Binding | None:

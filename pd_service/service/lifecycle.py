@@ -550,6 +550,8 @@ class Lifecycle:
         names = [keys.command_key(session), keys.prediction_key(session),
                  keys.error_key(session)]
         names += [keys.sensor_key(session, s.name) for s in spec.sensors]
+        if spec.path is not None:
+            names.append(keys.path_key(session))
         try:
             self._declared[session] = (spec, self.t.declare_keys(names))
         except Exception as exc:  # the transport is closing, say: routing still works

@@ -197,6 +197,8 @@ class Outbox:
                 self.counters["steps_missed"] += missed
             recv, sess.pending_recv = sess.pending_recv, []
             self.pending.append(Out(sess.pred_key, payload, sess, recv))
+            if sess.path_due():
+                self._publish_path(sess, k, now)
             if data and now - sess.time_of(k) >= self._tick_ns(sess):
                 sess.late_data_step = k
 
@@ -241,6 +243,16 @@ class Outbox:
         self.refuse(sess, sess.pred_key, Refusal(
             "internal_error", f"no healthy estimate, not even from the prior: {problem}"), now)
         return None
+
+    def _publish_path(self, sess: Session, k: int, now: int) -> None:
+        """Queue the PredictedPath beside the Prediction just queued (the spec asked for it);
+        a failure is counted (``path_failed``) and reported, the Prediction still goes."""
+        try:
+            self.pending.append(Out(sess.path_key, sess.pack_path(k, now)))
+        except Exception as exc:
+            self.refuse(sess, sess.path_key, Refusal(
+                "internal_error", f"path failed: {type(exc).__name__}: {exc}"), now,
+                counted=("path_failed",))
 
     def _publish_failed(self, sess: Session, exc: Exception, now: int) -> None:
         sess.pending_recv.clear()

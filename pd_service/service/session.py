@@ -68,11 +68,14 @@ from pd_service.intake import Intake, Refusal
 from pd_service.ratelimit import TokenBucket
 from pd_service.wire import (
     SessionSpec,
+    encode,
     keys,
 )
 from pd_service.wire.convert import (
     PredictionEncoder,
 )
+from pd_service.wire.messages import MAX_PATH_POINTS
+from pd_service.wire.path import PredictedPath
 from pd_service.wire.session_state import spec_fingerprint
 
 from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
@@ -162,6 +165,7 @@ class Session:
         #: session wakes); the steps an idle session skipped before it are not missed.
         self.due_from = 0
         self.pred_key = keys.prediction_key(self.name)
+        self.path_key = keys.path_key(self.name)
         self.encoder = PredictionEncoder(spec, self.name)
         self.error_key = keys.error_key(self.name)
         self.status_key = keys.status_key(self.name)
@@ -325,6 +329,31 @@ class Session:
         self.published += 1
         self.last_pub_step = now_step
         return data
+
+    def path_due(self) -> bool:
+        """Whether the Prediction just packed (seq - 1) is one the spec wants a path with."""
+        path = self.spec.path
+        return path is not None and (self.seq - 1) % path.every == 0
+
+    def pack_path(self, now_step: int, made_ns: int) -> bytes:
+        """Encoded PredictedPath ending at the Prediction just packed (seq - 1): the spec's
+        components, one point every ``path.stride`` steps, the stride widened so that at
+        most MAX_PATH_POINTS points are carried."""
+        path = self.spec.path
+        assert path is not None
+        points = self.est.predict_path(now_step, path.stride, MAX_PATH_POINTS)
+        idx = np.asarray(path.indices)
+        n = points[0].x.shape[0]
+        # the d x d blocks of every point in one gather: flat index i * n + j, i, j in idx
+        X = np.stack([p.x for p in points])[:, idx]
+        P = np.stack([p.P for p in points]).reshape(len(points), n * n)[
+            :, (idx[:, None] * n + idx).reshape(-1)]
+        msg = PredictedPath(
+            session=self.name, seq=self.seq - 1, steps=[p.step for p in points],
+            period_ns=self.period_ns, t0_ns=self.epoch_ns + points[0].step * self.period_ns,
+            indices=list(path.indices), X=X, P=P, newest_step=points[-1].newest_step,
+            made_ns=made_ns)
+        return encode(msg)
 
     def prior_alone(self) -> bool:
         """The estimate is the spec's prior propagated, nothing else: the session started

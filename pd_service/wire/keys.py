@@ -12,6 +12,7 @@ Operator side (what the daemon reads and writes)::
     pd/p<k>/<session>/sensor/<name>   Measurement, after the downlink
     pd/p<k>/<session>/cmd             Command, published by the operator
     pd/p<k>/<session>/prediction      Prediction, published by the daemon
+    pd/p<k>/<session>/path            PredictedPath, by the daemon if the spec asks (path)
     pd/p<k>/<session>/error           ErrorReport, published by the daemon
     pd/p<k>/<session>/status          queryable: SessionStatus
     pd/p<k>/<session>/echo            CommandEcho, after the downlink (robot's clock)
@@ -25,6 +26,8 @@ Robot side (what the link emulator bridges)::
     robot/p<k>/<session>/truth          ground truth (simulators only, for evaluation)
     robot/p<k>/<session>/echo           CommandEcho, as the robot publishes it
     robot/p<k>/<session>/clock          queryable: ClockProbe -> ClockProbeReply (the robot)
+    robot/p<k>/<session>/camera         CameraFrame (a robot's video; pd-link bridges it to
+                                        pd/p<k>/<session>/camera, with its own delay rule)
 
 Link emulator::
 
@@ -73,8 +76,8 @@ DEFAULT_PARTITIONS = 64
 MAX_PARTITIONS = 4096
 _PART_RE = re.compile(r"p(0|[1-9][0-9]{0,3})")
 
-StreamKind = Literal["config", "sensor", "cmd", "prediction", "error", "status", "truth",
-                     "echo", "clock"]
+StreamKind = Literal["config", "sensor", "cmd", "prediction", "path", "error", "status",
+                     "truth", "echo", "clock", "camera"]
 
 
 class KeyError_(ValueError):
@@ -180,6 +183,10 @@ def prediction_key(session: str) -> str:
     return f"{session_prefix(session)}/prediction"
 
 
+def path_key(session: str) -> str:
+    return f"{session_prefix(session)}/path"
+
+
 def error_key(session: str) -> str:
     return f"{session_prefix(session)}/error"
 
@@ -205,6 +212,8 @@ ALL_CONFIGS = f"{OPERATOR_ROOT}/*/*/config"
 ALL_SENSORS = f"{OPERATOR_ROOT}/*/*/sensor/*"
 ALL_COMMANDS = f"{OPERATOR_ROOT}/*/*/cmd"
 ALL_PREDICTIONS = f"{OPERATOR_ROOT}/*/*/prediction"
+#: Every session's predicted path (sessions whose spec asks for it).
+ALL_PATHS = f"{OPERATOR_ROOT}/*/*/path"
 ALL_ERRORS = f"{OPERATOR_ROOT}/*/*/error"
 ALL_STATUS = f"{OPERATOR_ROOT}/*/*/status"
 ALL_SERVICES = f"{OPERATOR_ROOT}/{SERVICE_CHUNK}/*"
@@ -277,10 +286,21 @@ def robot_clock_key(session: str) -> str:
     return f"{_prefix(ROBOT_ROOT, session)}/clock"
 
 
+def robot_camera_key(session: str) -> str:
+    return f"{_prefix(ROBOT_ROOT, session)}/camera"
+
+
+def camera_key(session: str) -> str:
+    """The camera frames after the downlink (pd-link bridges robot/.../camera here)."""
+    return f"{session_prefix(session)}/camera"
+
+
 ROBOT_ALL_SENSORS = f"{ROBOT_ROOT}/*/*/sensor/*"
 ROBOT_ALL_ECHOES = f"{ROBOT_ROOT}/*/*/echo"
 ROBOT_ALL_COMMANDS = f"{ROBOT_ROOT}/*/*/cmd"
 ALL_TRUTHS = f"{ROBOT_ROOT}/*/*/truth"
+ROBOT_ALL_CAMERAS = f"{ROBOT_ROOT}/*/*/camera"
+ALL_CAMERAS = f"{OPERATOR_ROOT}/*/*/camera"
 
 
 # --- link emulator ---------------------------------------------------------------------
@@ -313,8 +333,8 @@ class ParsedKey:
     partition: int = 0
 
 
-_KINDS_OPERATOR = {"config", "cmd", "prediction", "error", "status", "echo"}
-_KINDS_ROBOT = {"cmd", "truth", "echo", "clock"}
+_KINDS_OPERATOR = {"config", "cmd", "prediction", "path", "error", "status", "echo", "camera"}
+_KINDS_ROBOT = {"cmd", "truth", "echo", "clock", "camera"}
 
 
 def parse_key(key: str) -> ParsedKey:
@@ -365,6 +385,8 @@ def to_operator_side(key: str) -> str:
         return command_key(p.session)
     if p.kind == "echo":
         return echo_key(p.session)
+    if p.kind == "camera":
+        return camera_key(p.session)
     raise KeyError_(f"key {key!r} has no operator-side twin")
 
 

@@ -486,6 +486,34 @@ ModelSpec = Annotated[
 ]
 
 
+#: Most points a PredictedPath carries: the daemon widens the stride to stay within it.
+MAX_PATH_POINTS = 64
+#: Most state components a PredictedPath carries (its P blocks are d x d).
+MAX_PATH_COMPONENTS = 8
+
+
+class PathSpec(WireModel):
+    """Publish the predicted path with the predictions (``pd/p<k>/<session>/path``, a
+    PredictedPath): the predicted states from the newest measured step to now + lead, of the
+    components ``indices`` only. Off unless given: without it nothing changes."""
+
+    indices: Annotated[list[Annotated[int, Field(ge=0, le=MAX_DIM - 1)]],
+                       Field(min_length=1, max_length=MAX_PATH_COMPONENTS)] = Field(
+        description="State components carried (1..8 distinct, each < n), e.g. the positions "
+                    "[0, 2]; the path's P blocks are their covariance.")
+    every: PosInt = Field(1, description="A path with every this-many-th published Prediction "
+                                         "(rate bound: at most one per Prediction).")
+    stride: PosInt = Field(1, description="Steps between points (the first and the target "
+                                          "always included); widened by the daemon so that "
+                                          "a path has at most 64 points.")
+
+    @model_validator(mode="after")
+    def _check_path(self) -> PathSpec:
+        if len(set(self.indices)) != len(self.indices):
+            raise invalid("indices", f"{self.indices} repeats a component")
+        return self
+
+
 class SessionSpec(Message):
     """Creates or replaces a session (put on ``pd/p<k>/<session>/config``).
 
@@ -531,6 +559,8 @@ class SessionSpec(Message):
         "echoed: it moves to the instant the robot's CommandEcho says it took effect (inside "
         "the step for a continuous-time model); until then, or if no echo comes, it applies at "
         "its stamped instant.")
+    path: PathSpec | None = Field(
+        None, description="Publish the predicted path too (docs/protocol.md); absent: never.")
     expire_s: Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)] | None = Field(
         None, description="Seconds without a measurement or command after which the service "
                           "removes the session (state expired); 0: never; absent: the "
@@ -623,6 +653,8 @@ class SessionSpec(Message):
         problem = psd_problem(self.P0)
         if problem:
             raise invalid("P0", problem)
+        if self.path is not None and max(self.path.indices) >= n:
+            raise invalid("path.indices", f"{self.path.indices} must be < n={n} ({source})")
         allowed = SENSOR_KINDS[model.kind]
         seen: set[str] = set()
         for i, s in enumerate(self.sensors):
@@ -668,6 +700,8 @@ class SessionSpec(Message):
             out.pop("expire_s", None)
         if self.stamp_rounding == "nearest":  # the default: the bytes stay as before
             out.pop("stamp_rounding", None)
+        if self.path is None:  # no path (the default): the bytes stay as before
+            out.pop("path", None)
         return out
 
     def _check_ros2(self, ros2: Ros2Binding, n: int) -> None:
@@ -683,6 +717,13 @@ class SessionSpec(Message):
             for quantity, i in ros2.outputs.layout.indices().items():
                 if i >= n:
                     raise invalid(f"ros2.outputs.layout.{quantity}", f"{i} must be < n={n}")
+            lay = ros2.outputs.layout
+            if self.path is not None and ros2.outputs.path_topic is not None and (
+                    lay.x is None or lay.y is None
+                    or not {lay.x, lay.y} <= set(self.path.indices)):
+                raise invalid("path.indices", f"{self.path.indices} must hold the ROS 2 "
+                               f"layout's x ({lay.x}) and y ({lay.y}): its nav_msgs/Path "
+                               "carries them (or set ros2.outputs.path_topic to null)")
 
 
 # --- streams into the daemon ------------------------------------------------------------

@@ -10,9 +10,16 @@ Units: m, rad, m/s, rad/s. Topic names follow ROS 2: absolute ``/a/b`` or relati
 from __future__ import annotations
 
 import re
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import Field, StringConstraints, field_validator, model_validator
+from pydantic import (
+    Field,
+    SerializerFunctionWrapHandler,
+    StringConstraints,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from .base import WireModel, invalid
 
@@ -126,22 +133,38 @@ class StateLayout(WireModel):
         return {n: i for n in names if (i := getattr(self, n)) is not None}
 
 
+#: OutputBinding.path_topic's default.
+DEFAULT_PATH_TOPIC = "predicted/path"
+
+
 class OutputBinding(WireModel):
     """What pd-service publishes per prediction: nav_msgs/Odometry on ``odom_topic``,
     geometry_msgs/PoseWithCovarianceStamped on ``pose_topic`` (None: not published) and, with
     ``tf``, a tf2_msgs/TFMessage on ``/tf`` from ``frame_id`` to ``child_frame_id``; stamped
-    with the time of the predicted step."""
+    with the time of the predicted step. With the spec's ``path``, each PredictedPath as a
+    nav_msgs/Path on ``path_topic`` (its covariances are not carried: no standard message
+    holds a path's; the target's is on ``pose_topic``)."""
 
     odom_topic: Annotated[str, StringConstraints(max_length=256)] | None = Field(
         "predicted/odom", description="Odometry of the predicted state (None: off).")
     pose_topic: Annotated[str, StringConstraints(max_length=256)] | None = Field(
         "predicted/pose", description="PoseWithCovarianceStamped of the prediction (None: off).")
+    path_topic: Annotated[str, StringConstraints(max_length=256)] | None = Field(
+        DEFAULT_PATH_TOPIC, description="nav_msgs/Path of the predicted path, published when "
+                                      "the spec has ``path`` (None: off).")
     tf: bool = Field(True, description="Publish the predicted pose on /tf.")
     frame_id: Frame = Field("odom", description="The session's (world) frame.")
     child_frame_id: Frame = Field("base_link_predicted", description="The predicted body frame.")
     layout: StateLayout = Field(description="Where x, y, yaw, velocities sit in the state.")
 
-    @field_validator("odom_topic", "pose_topic")
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        out = handler(self)
+        if self.path_topic == DEFAULT_PATH_TOPIC:  # the default: the bytes stay as before
+            out.pop("path_topic", None)
+        return dict(out)
+
+    @field_validator("odom_topic", "pose_topic", "path_topic")
     @classmethod
     def _topic(cls, value: str | None) -> str | None:
         return None if value is None else check_topic_name(value)

@@ -18,7 +18,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from .camera import CameraFrame
 from .messages import MESSAGE_TYPES, Message
+from .path import PredictedPath
 from .session_state import SessionState
 from .truth import Truth
 
@@ -29,7 +31,8 @@ DIALECT = "https://json-schema.org/draft/2020-12/schema"
 def schemas() -> dict[str, dict[str, Any]]:
     """File name -> JSON Schema, for every message type."""
     out: dict[str, dict[str, Any]] = {}
-    types: tuple[type[Message], ...] = (*MESSAGE_TYPES, SessionState, Truth)
+    types: tuple[type[Message], ...] = (*MESSAGE_TYPES, PredictedPath, SessionState, Truth,
+                                           CameraFrame)
     for cls in types:
         schema = cls.model_json_schema(mode="validation")
         schema = {"$schema": DIALECT, "$id": f"pd-service/v1/{cls.__name__}.json", **schema}

@@ -542,3 +542,54 @@ def test_cli_refuses_bad_settings(argv: list[str]) -> None:
 def test_settings_are_checked() -> None:
     with pytest.raises(ConfigError):
         BridgeSettings(error_rate=0.0)
+
+
+def test_the_daemons_path_becomes_a_nav_msgs_path(tmp_path) -> None:
+    """The daemon core (in-process, same bus) serves a unicycle session whose spec asks for
+    the path; the bridge publishes each PredictedPath as nav_msgs/Path on predicted/path:
+    one pose per point, at its step's time, x, y, yaw as the daemon's (decoded with the
+    rosbags typestore)."""
+    from pd_service.wire.path import PredictedPath
+    from tests.service.helpers import Clock as CoreClock
+    from tests.service.test_core import make_core
+
+    spec = unicycle_spec("s1")
+    spec = SessionSpec.model_validate({**spec.model_dump(), "path": {"indices": [0, 1, 2]}})
+    r = make_rig(specs=(spec,))
+    paths: list[PredictedPath] = []
+    r.t.subscribe(keys.path_key("s1"), lambda s: paths.append(wire_decode(s.payload, PredictedPath)))
+    clock = CoreClock(spec.epoch_ns - 1)
+    core = make_core(r.bus, clock, tmp_path)
+    try:
+        r.t.put(keys.config_key("s1"), wire_encode(spec))
+        core.run_once()
+        for k in range(6):
+            r.t.put(keys.command_key("s1"), wire_encode(Command(
+                session="s1", seq=k, issued_ns=spec.time_of(k), u=np.array([0.5, 0.2]))))
+            clock.t = spec.time_of(k) + spec.period_ns // 2
+            core.run_once()
+        r.pump()
+    finally:
+        core.close()
+    assert len(paths) >= 5
+    got = [decode(s.payload, "nav_msgs/msg/Path") for s in r.on(rmw_key("/predicted/path",
+                                                                          "nav_msgs/msg/Path"))]
+    assert len(got) == len(paths)
+    for msg, path in zip(got, paths, strict=True):
+        assert msg.header.frame_id == "odom" and len(msg.poses) == len(path.steps)
+        for i, ps in enumerate(msg.poses):
+            assert ps.header.stamp.sec * 10**9 + ps.header.stamp.nanosec == path.t_ns(i)
+            assert (ps.pose.position.x, ps.pose.position.y) == (path.X[i, 0], path.X[i, 1])
+            assert abs(yaw_of(ps.pose.orientation) - path.X[i, 2]) < 1e-12
+    assert r.counters("s1")["paths_republished"] == len(paths)
+    # moved: the path follows the commands
+    assert paths[-1].X[-1, 0] > 0.0
+
+
+def test_a_path_without_the_layouts_x_y_is_refused_at_validation() -> None:
+    spec = unicycle_spec("s1")
+    with pytest.raises(Exception, match="path.indices"):
+        SessionSpec.model_validate({**spec.model_dump(), "path": {"indices": [0, 2]}})
+    off = spec.model_dump()
+    off["ros2"]["outputs"]["path_topic"] = None
+    assert SessionSpec.model_validate({**off, "path": {"indices": [0, 2]}}).path is not None

@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from pd_service.ros2.errors import Ros2DecodeError
-from pd_service.ros2.extract import odometry_from_state, pose_from_state, tf_from_state
+from pd_service.ros2.extract import (
+    odometry_from_state,
+    path_from_points,
+    pose_from_state,
+    tf_from_state,
+)
 from pd_service.ros2.messages import (
     MESSAGE_TYPES,
     Imu,
@@ -78,6 +83,9 @@ def samples() -> dict[str, RosMessage]:
             twist=Twist(linear=_vec(0.5, 0.0, 0.0), angular=_vec(0.0, 0.0, -0.2)),
         ),
         "tf2_msgs/msg/TFMessage": tf_from_state(x, layout, STAMP, "odom"),
+        "nav_msgs/msg/Path": path_from_points([STAMP, STAMP + 50_000_000],
+                                              np.array([[1.0, -2.0, 0.3], [1.1, -2.1, 0.35]]),
+                                              [0, 1, 2], layout, "odom"),
     }
 
 

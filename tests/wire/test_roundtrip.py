@@ -75,10 +75,10 @@ def test_ints_in_data_are_floats():
 def test_field_order_and_all_fields_on_the_wire():
     for msg_type, make in EXAMPLES.items():
         raw = msgpack.unpackb(encode(make()))
-        # SessionSpec.ros2 and .expire_s are left off the wire when None (unset), and
+        # SessionSpec.ros2, .expire_s and .path are left off the wire when None (unset), and
         # stamp_rounding / robot_clock / command_timing at their defaults (older specs' bytes)
-        optional = ({"ros2", "expire_s", "stamp_rounding", "robot_clock", "command_timing"}
-                    if msg_type is SessionSpec else set())
+        optional = ({"ros2", "expire_s", "stamp_rounding", "path", "robot_clock",
+                     "command_timing"} if msg_type is SessionSpec else set())
         assert list(raw) == [f for f in msg_type.model_fields if f not in optional]
         assert raw["v"] == 1
 
@@ -93,6 +93,7 @@ def test_spec_with_ros2_topics_round_trips():
     with_ros2 = SessionSpec.model_validate({**spec.model_dump(), "ros2": binding.model_dump()})
     raw = msgpack.unpackb(encode(with_ros2))
     assert raw["ros2"]["sensors"]["camera"]["fields"] == ["x", "y"]
+    assert "path_topic" not in raw["ros2"]["outputs"]  # the default: the bytes stay as before
     back = decode(encode(with_ros2), SessionSpec)
     assert back == with_ros2 and back.ros2 == binding
 

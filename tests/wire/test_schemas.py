@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 
 from pd_service.wire import MESSAGE_TYPES, SessionState
+from pd_service.wire.camera import CameraFrame
+from pd_service.wire.path import PredictedPath
 from pd_service.wire.schemas import export, schemas, stale
 from pd_service.wire.truth import Truth
 
@@ -24,7 +26,8 @@ def test_committed_schemas_are_up_to_date():
 
 def test_one_schema_per_message():
     assert sorted(schemas()) == sorted(f"{t.__name__}.json"
-                                       for t in (*MESSAGE_TYPES, SessionState, Truth))
+                                       for t in (*MESSAGE_TYPES, PredictedPath, SessionState, Truth,
+                                                          CameraFrame))
     for name, schema in schemas().items():
         assert schema["additionalProperties"] is False, name
         assert schema["properties"]["v"]["const"] == 1, name

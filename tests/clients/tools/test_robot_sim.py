@@ -44,6 +44,39 @@ def test_tick_publishes_truth_and_stamped_samples_per_session(bus):
     sim.close()
 
 
+def test_camera_frames_film_the_true_pose_at_their_capture_step(bus):
+    """--camera 3 on the omni robot: a frame every 3 steps on the robot side, stamped with
+    the step's time, its view centred on the true position then, the robot drawn there."""
+    import io
+
+    from PIL import Image
+
+    from pd_service.wire.camera import CameraFrame
+
+    sc = get_scenario("omni")
+    spec = sc.spec("o", EPOCH_NS)
+    sink = Collector(bus, "robot/**")
+    sim = RobotSim(bus.transport(), sc, [spec], seed=1, camera_every=3)
+    for k in range(7):
+        sim.tick(k)
+    sim.close()
+    truth = {t.step: t for t in (decode(s.payload, Truth) for s in sink.samples
+                                 if s.key == keys.truth_key("o"))}
+    frames = [decode(s.payload, CameraFrame) for s in sink.samples
+              if s.key == keys.robot_camera_key("o")]
+    assert [f.t_ns for f in frames] == [spec.time_of(k) for k in (0, 3, 6)]
+    for f, k in zip(frames, (0, 3, 6), strict=True):
+        assert (f.center_x, f.center_y) == (truth[k].x[0], truth[k].x[1])
+        img = Image.open(io.BytesIO(f.image()))
+        assert img.size == (f.width, f.height) and img.format == "JPEG"
+        # the robot's body (light) at the centre, the background (dark) in a corner
+        assert sum(img.getpixel((f.width // 2, f.height // 2))) > 500
+        assert sum(img.getpixel((2, 2))) < 200
+    with pytest.raises(ValueError, match="planar"):
+        RobotSim(bus.transport(), get_scenario("paper"), [get_scenario("paper").spec("p", 0)],
+                 camera_every=2)
+
+
 def test_sessions_must_share_a_clock_and_fit_the_scenario(bus):
     sc = get_scenario("paper")
     with pytest.raises(ValueError, match="clock"):

@@ -17,6 +17,9 @@ pytest.importorskip("google.protobuf")
 
 from pd_client.tools.pd_viz import VizServer, ellipse_points, position_indices  # noqa: E402
 from pd_service.transport import InMemoryBus  # noqa: E402
+from pd_service.wire import decode, keys  # noqa: E402
+from pd_service.wire.messages import PathSpec  # noqa: E402
+from pd_service.wire.path import PredictedPath  # noqa: E402
 from tests.service.helpers import Clock, Collector  # noqa: E402
 from tests.service.test_core import PaperFeed, make_core  # noqa: E402
 
@@ -27,14 +30,19 @@ TOPICS = ["/s1/pose", "/s1/ellipse", "/s1/prediction", "/s1/measurement", "/s1/c
 
 
 @contextmanager
-def viz_on_paper(tmp_path):
+def viz_on_paper(tmp_path, path: PathSpec | None = None, paths: list | None = None):
     """The daemon core running the paper scenario (session s1, 60 steps) on the in-memory
-    bus, pd-viz serving it, and a Foxglove client connected: (feed, collector, client)."""
+    bus, pd-viz serving it, and a Foxglove client connected: (feed, collector, client).
+    ``path``: the session's path setting; the daemon's paths are appended to ``paths``."""
     bus = InMemoryBus()
     clock = Clock(0)
     col = Collector().attach(bus.transport())
+    if paths is not None:
+        bus.transport().subscribe(keys.ALL_PATHS, lambda s: paths.append(
+            decode(bytes(s.payload), PredictedPath)))
     core = make_core(bus, clock, tmp_path)
     feed = PaperFeed(core, bus.transport(), clock, col, "s1", steps=60, check=False)
+    feed.spec = feed.spec.model_copy(update={"path": path})
     feed.configure()
     server = VizServer(bus.transport(), ["s1"], port=0, xy=(0, 2), status_every=0)
     client = FoxgloveClient(server.url)
@@ -83,6 +91,46 @@ def test_pose_equals_the_daemons_prediction(tmp_path):
     assert len(scene.entities[0].lines[0].points) == 48
     # the refused duplicates / over-late copies show up as Log messages
     assert client.messages.get("/s1/log")
+
+
+def test_path_channels_equal_the_daemons_path(tmp_path):
+    """A session whose spec asks for the path: ``/s1/path`` (JSON) carries the daemon's path
+    of the (x, y) components point for point, ``/s1/path_band`` (SceneUpdate) its means as a
+    line and a 2-sigma ellipse per point."""
+    paths: list[PredictedPath] = []
+    topics = ["/s1/path", "/s1/path_band", "/s1/pose"]
+    with viz_on_paper(tmp_path, PathSpec(indices=[0, 2], stride=2), paths) as (feed, col, client):
+        client.wait_channels(topics)
+        client.subscribe(topics)
+        client.pump(0.5)
+        for k in range(40):
+            feed.step(k)
+        client.pump(1.0)
+    by_seq = {p.seq: p for p in paths}
+    preds = {p.seq: p for p in col.predictions["s1"]}
+    js = [json.loads(d) for _, d in client.messages["/s1/path"]]
+    assert len(js) >= 30 and len(paths) >= len(js)
+    for m in js:
+        path = by_seq[m["seq"]]
+        assert m["steps"] == path.steps and m["x"] == path.X[:, 0].tolist()
+        assert m["y"] == path.X[:, 1].tolist()
+        assert m["t_ns"][-1] == preds[m["seq"]].t_ns and m["x"][-1] == preds[m["seq"]].x[0]
+        sd = np.sqrt([np.diag(path.covariance(i)) for i in range(len(path.steps))])
+        np.testing.assert_allclose(np.array([m["sd_x"], m["sd_y"]]).T, sd, rtol=1e-12)
+    Scene = client.protobuf_class("/s1/path_band")
+    scenes = [Scene.FromString(d) for _, d in client.messages["/s1/path_band"]]
+    assert len(scenes) == len(js)
+    for scene, m in zip(scenes, js, strict=True):
+        [ent] = scene.entities
+        assert ent.frame_id == "world"
+        assert ent.timestamp.seconds * 10**9 + ent.timestamp.nanos == m["t_ns"][-1]
+        mean, *loops = ent.lines
+        assert [(p.x, p.y) for p in mean.points] == list(zip(m["x"], m["y"], strict=True))
+        assert len(loops) == len(m["steps"])
+        for loop, x, y, sx, sy in zip(loops, m["x"], m["y"], m["sd_x"], m["sd_y"], strict=True):
+            pts = np.array([(p.x, p.y) for p in loop.points])
+            assert len(pts) == 24  # every point of a 2-sigma ellipse lies within its box
+            assert np.all(np.abs(pts - [x, y]) <= 2 * np.array([sx, sy]) * (1 + 1e-9) + 1e-12)
 
 
 def test_position_and_ellipse_helpers():
@@ -146,3 +194,67 @@ def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
     st = [ts.deserialize_cdr(d, client.channels[series[1]]["schemaName"])
           for _, d in client.messages[series[1]]]
     assert st[-1].accepted == col.predictions["s1"][-1].counters["accepted"]
+
+
+def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path):
+    """An omni session (the daemon core in-process, path on) and camera frames 12 steps late:
+    ``/omni/camera`` carries each frame's JPEG at its capture stamp, ``/omni/camera_info`` its
+    view as a pinhole, ``/omni/ghost`` the outline at the daemon's newest prediction (and the
+    path of the same seq) in that frame's pixels."""
+    from pd_client.tools.camera_view import outline_px
+    from pd_service.wire import Prediction, encode
+    from pd_service.wire.camera import CameraFrame
+
+    from .omni_drive import drive, omni_spec
+
+    bus = InMemoryBus()
+    t = bus.transport()
+    spec = omni_spec()
+    preds: list[Prediction] = []
+    paths: dict[int, PredictedPath] = {}
+    frames: list[tuple[CameraFrame, int]] = []  # (frame, seq of the newest prediction then)
+    t.subscribe(keys.prediction_key("omni"), lambda s: preds.append(decode(bytes(s.payload), Prediction)))
+    t.subscribe(keys.path_key("omni"), lambda s: (lambda p: paths.__setitem__(p.seq, p))(
+        decode(bytes(s.payload), PredictedPath)))
+    clock = Clock(-1)
+    core = make_core(bus, clock, tmp_path)
+    server = VizServer(bus.transport(), ["omni"], port=0, status_every=0)
+    client = FoxgloveClient(server.url)
+    topics = ["/omni/camera", "/omni/camera_info", "/omni/ghost"]
+    try:
+        t.put(keys.config_key("omni"), encode(spec))
+        core.run_once()
+        client.wait_channels(topics)
+        client.subscribe(topics)
+        client.pump(0.5)
+
+        def run(k: int) -> None:
+            clock.t = spec.time_of(k) + spec.period_ns // 2
+            core.run_once()
+
+        drive(t, spec, run, 30, 3, lambda f: frames.append((f, preds[-1].seq)))
+        client.pump(1.0)
+    finally:
+        client.close()
+        server.close()
+        core.close()
+    by_seq = {p.seq: p for p in preds}
+    Image = client.protobuf_class("/omni/camera")
+    Calib = client.protobuf_class("/omni/camera_info")
+    Ann = client.protobuf_class("/omni/ghost")
+    images = [Image.FromString(d) for _, d in client.messages["/omni/camera"]]
+    calibs = [Calib.FromString(d) for _, d in client.messages["/omni/camera_info"]]
+    anns = [Ann.FromString(d) for _, d in client.messages["/omni/ghost"]]
+    assert len(images) == len(calibs) == len(anns) == len(frames) == 6
+    for (f, seq), img, cal, ann in zip(frames, images, calibs, anns, strict=True):
+        stamp = img.timestamp.seconds * 10**9 + img.timestamp.nanos
+        assert stamp == f.t_ns and img.format == "jpeg" and img.data == f.image()
+        assert (cal.width, cal.height) == (320, 240) and list(cal.K)[2::3][:2] == [160.0, 120.0]
+        assert cal.K[0] == cal.K[4] == f.scale * 10.0
+        p = by_seq[seq]
+        ghost, ellipse, path_line = ann.points
+        np.testing.assert_allclose([(q.x, q.y) for q in ghost.points],
+                                   outline_px(f, p.x[0], p.x[1], p.x[2]), rtol=0, atol=1e-9)
+        assert len(ellipse.points) == 48
+        np.testing.assert_allclose([(q.x, q.y) for q in path_line.points],
+                                   [f.pixel(r[0], r[1]) for r in paths[seq].X], rtol=0, atol=1e-9)

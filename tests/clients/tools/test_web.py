@@ -23,6 +23,7 @@ from pd_client.truth import Truth
 from pd_service.scenarios import get_scenario
 from pd_service.transport import InMemoryBus
 from pd_service.wire import Command, Measurement, Prediction, encode, keys
+from pd_service.wire.path import PredictedPath
 
 EPOCH = 1_000_000_000_000
 PERIOD = 50_000_000  # ns
@@ -117,6 +118,81 @@ def test_planar_event_has_the_ellipse(feed) -> None:
     assert ev["layout"] == "plane" and ev["pos"] == [0, 1]
     assert ev["ell"][:4] == pytest.approx([0.0, 1.0, 4.0, 2.0])
     assert ev["now"] is None and ev["meas"] == {}  # no spec known for this session
+
+
+def _path(session: str, steps: list[int], indices: list[int], X: np.ndarray, P: np.ndarray,
+          seq: int = 5) -> bytes:
+    return encode(PredictedPath(session=session, seq=seq, steps=steps, period_ns=PERIOD,
+                                t0_ns=EPOCH + steps[0] * PERIOD, indices=indices, X=X, P=P,
+                                newest_step=steps[0], made_ns=EPOCH))
+
+
+def test_path_event_carries_the_page_positions_and_their_band(feed) -> None:
+    f, t, out, _ = feed
+    names = ["p1", "v1", "p2", "v2"]
+    t.put(keys.truth_key("paper"), encode(Truth(session="paper", step=1, t_ns=EPOCH, x=np.zeros(4),
+                                                names=names)))
+    t.put(keys.prediction_key("paper"), encode(pred("paper", 130, np.arange(4.0), np.eye(4))))
+    # components [2, 0] (the page's p1, p2 in another order) and v1
+    X = np.array([[9.0, 1.0, 0.1], [9.5, 1.2, 0.2]])
+    C = [np.diag([0.09, 0.04, 0.01]), np.diag([0.16, 0.25, 0.01])]
+    t.put(keys.path_key("paper"), _path("paper", [125, 130], [2, 0, 1], X,
+                                        np.array([c.reshape(-1) for c in C])))
+    ev = out[-1]
+    assert ev["type"] == "path" and ev["s"] == "paper" and ev["seq"] == 5 and ev["k"] == [125, 130]
+    assert ev["p"] == [[1.0, 9.0], [1.2, 9.5]]  # page order: p1, p2
+    np.testing.assert_allclose(ev["sd"], [[0.2, 0.3], [0.5, 0.4]], rtol=1e-12)
+    assert ev["ell"] is None and ev["i"] == 2
+    # a path without p2: counted, not drawn
+    t.put(keys.path_key("paper"), _path("paper", [125], [0], np.array([[1.0]]), np.array([[1.0]])))
+    assert out[-1] is ev and f.views["paper"].paths_unshown == 1
+    assert json.loads(f.tick())["sessions"]["paper"]["paths_unshown"] == 1
+
+
+def test_planar_path_event_has_an_ellipse_per_step(feed) -> None:
+    f, t, out, _ = feed
+    t.put(keys.truth_key("omni"), encode(Truth(session="omni", step=3, t_ns=EPOCH, x=np.zeros(6),
+                                               names=["x", "y", "theta", "vx", "vy", "omega"])))
+    t.put(keys.prediction_key("omni"), encode(pred("omni", 5, np.arange(6.0), np.eye(6))))
+    P = np.array([[4.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 1.0]])
+    t.put(keys.path_key("omni"), _path("omni", [3, 5], [0, 1], np.array([[0.0, 1.0], [0.5, 1.5]]), P))
+    ev = out[-1]
+    assert ev["type"] == "path" and len(ev["ell"]) == 2
+    assert ev["ell"][0][:4] == pytest.approx([0.0, 1.0, 4.0, 2.0])
+    assert ev["ell"][1][:4] == pytest.approx([0.5, 1.5, 2.0, 2.0])
+
+
+def test_frame_event_registers_the_ghost_in_the_frames_own_view(feed) -> None:
+    """The ghost is the newest prediction's pose, projected with the frame's capture-time
+    view (its centre and scale): u = w/2 + s (x - cx), v = h/2 - s (y - cy)."""
+    from pd_client.tools.camera_view import outline, render
+
+    f, t, out, clock = feed
+    f._view("omni").spec = get_scenario("omni").spec("omni", EPOCH).model_copy(
+        update={"period_ns": PERIOD})
+    names = ["x", "y", "theta", "vx", "vy", "omega"]
+    t.put(keys.truth_key("omni"), encode(Truth(session="omni", step=3, t_ns=EPOCH, x=np.zeros(6),
+                                               names=names)))
+    # a frame before any prediction: no ghost
+    t.put(keys.camera_key("omni"), encode(render("omni", 0, EPOCH, 1.0, 2.0, 0.0)))
+    assert out[-1]["type"] == "frame" and out[-1]["ghost"] is None and "i" not in out[-1]
+    x = np.array([1.5, 1.75, 0.3, 0.0, 0.0, 0.0])
+    P = np.eye(6) * 0.01
+    P[0, 0] = 0.04
+    t.put(keys.prediction_key("omni"), encode(pred("omni", 130, x, P, seq=9)))
+    t.put(keys.path_key("omni"), _path("omni", [120, 130], [0, 1], np.array([[1.0, 2.0], [1.5, 1.75]]),
+                                       np.array([[0.01, 0, 0, 0.01], [0.04, 0, 0, 0.01]])))
+    frame = render("omni", 1, EPOCH + 110 * PERIOD, 1.0, 2.0, 0.0)  # captured at step 110
+    clock.ns = EPOCH + 125 * PERIOD
+    t.put(keys.camera_key("omni"), encode(frame))
+    ev = out[-1]
+    assert ev["type"] == "frame" and ev["seq"] == 1 and ev["k"] == 110.0 and ev["img"] == frame.data
+    g = ev["ghost"]
+    assert g["seq"] == 9 and g["k"] == 130 and g["pose"] == [1.5, 1.75, 0.3]
+    want = [[160 + 40 * (u - 1.0), 120 - 40 * (v - 2.0)] for u, v in outline(1.5, 1.75, 0.3)]
+    np.testing.assert_allclose(g["px"], want, rtol=0, atol=1e-9)
+    assert g["ell"][:4] == pytest.approx([180.0, 130.0, 16.0, 8.0])
+    assert ev["path_px"] == [[160.0, 120.0], [180.0, 130.0]]
 
 
 def test_bad_payloads_are_counted_not_fatal(feed) -> None:

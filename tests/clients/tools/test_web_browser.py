@@ -33,7 +33,8 @@ import pytest
 from pd_client import Admin, Display
 from pd_client.tools import pd_web
 from pd_service.transport import InMemoryBus
-from pd_service.wire import Prediction, encode, keys
+from pd_service.wire import Prediction, decode, encode, keys
+from pd_service.wire.path import PredictedPath
 from pd_service.wire.truth import Truth
 
 from .test_integration import ROOT, Procs, _open_when_listening, free_port
@@ -122,11 +123,14 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
         by_seq: dict[int, Prediction] = {}
         display = Display(transport, "paper", truth=True)
         display.on_prediction(lambda p: by_seq.__setitem__(p.seq, p))
+        paths: dict[int, PredictedPath] = {}
+        transport.subscribe(keys.path_key("paper"), lambda s: (lambda p: paths.__setitem__(
+            p.seq, p))(decode(bytes(s.payload), PredictedPath)))
         procs.start("operator", "-m", "pd_client.tools", "operator", *zenoh, "--session", "paper",
                     "--steps", "1200")
         sim = procs.start("sim", "-m", "pd_client.tools", "sim", *zenoh, "--direct",
                           "--create-session", "--session", "paper", "--steps", "1200",
-                          "--progress", "0")
+                          "--progress", "0", "--path", "1")
         display.wait(1, timeout=30)
 
         def page_up() -> bool:
@@ -160,6 +164,27 @@ def test_live_chain_in_the_browser(browser, procs, tmp_path) -> None:
             checked += 1
             time.sleep(0.3)
         assert checked == 8 and len(steps) >= 4, steps  # compared 8 frames over >= 4 steps
+
+        # The predicted path the plan view drew is the daemon's, point for point, and ends at
+        # the prediction of the same seq.
+        def drawn_path() -> dict | None:
+            got = browser.execute_script(
+                "return Object.assign({}, document.getElementById('plan').dataset)")
+            return got if "pathSeq" in got else None
+
+        for _ in range(5):
+            # (between a prediction and its path the view has no path: a stale one is not drawn)
+            d = wait_until("a path on the plan view", drawn_path, timeout=5, every=0.02)
+            seq = int(d["pathSeq"])
+            path = wait_until(f"path seq {seq} here", lambda s=seq: paths.get(s), timeout=5)
+            pred = wait_until(f"prediction seq {seq} here", lambda s=seq: by_seq.get(s), timeout=5)
+            assert json.loads(d["pathK"]) == path.steps and path.steps[-1] == pred.step
+            assert path.indices == [0, 2] and len(path.steps) >= 2
+            assert json.loads(d["pathP"]) == path.X.tolist()
+            sd = np.sqrt([np.diag(path.covariance(i)) for i in range(len(path.steps))])
+            np.testing.assert_allclose(json.loads(d["pathSd"]), sd, rtol=1e-12)
+            assert path.X[-1].tolist() == [pred.x[0], pred.x[2]]
+            time.sleep(0.2)
 
         # Truth and a measured (delayed) position reach the page too.
         def with_truth() -> dict | None:
@@ -363,3 +388,66 @@ def test_a_page_over_the_cap_says_why(browser) -> None:
     finally:
         holder.close()
         server.close()
+
+
+def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path) -> None:
+    """The daemon core (in-process, in-memory bus) serves an omni session whose spec asks for
+    the path; camera frames captured 12 steps ago (rendered by pd-robot-sim's camera) reach
+    pd-web. On the page's video canvas the ghost is the outline at the daemon's newest
+    prediction (the step where the command sent now lands) projected with the frame's own
+    capture-time view, and the path is the daemon's path of the same seq, pixel for pixel.
+    Screenshot: ``out/web/ghost.png``."""
+    from pd_client.tools.camera_view import outline, render
+    from pd_service.wire.path import PredictedPath
+    from tests.service.helpers import Clock
+    from tests.service.test_core import make_core
+
+    from .omni_drive import drive, omni_spec, pose
+
+    bus = InMemoryBus()
+    t = bus.transport()
+    spec = omni_spec()
+    preds: dict[int, Prediction] = {}
+    paths: dict[int, PredictedPath] = {}
+    t.subscribe(keys.prediction_key("omni"), lambda s: (lambda p: preds.__setitem__(p.seq, p))(
+        decode(bytes(s.payload), Prediction)))
+    t.subscribe(keys.path_key("omni"), lambda s: (lambda p: paths.__setitem__(p.seq, p))(
+        decode(bytes(s.payload), PredictedPath)))
+    clock = Clock(-1)
+    core = make_core(bus, clock, tmp_path)
+    server = pd_web.WebServer(t, "127.0.0.1", 0).start()
+    try:
+        browser.get(server.url)
+        wait_until("the page to listen", lambda: server.fanout.listeners >= 1, timeout=15)
+        t.put(keys.config_key("omni"), encode(spec))
+        core.run_once()
+
+        def run(k: int) -> None:
+            clock.t = spec.time_of(k) + spec.period_ns // 2
+            core.run_once()
+
+        drive(t, spec, run, 40, 4)
+        wait_until("the newest frame on the page", lambda: browser.execute_script(
+            "return document.getElementById('video').dataset.frameSeq") == "36", timeout=15)
+        d = browser.execute_script("return Object.assign({}, document.getElementById('video').dataset)")
+        frame = render("omni", 36, spec.time_of(24), *pose(24))
+        assert int(d["frameTns"]) == frame.t_ns and float(d["frameK"]) == 24.0
+        p = preds[int(d["ghostSeq"])]
+        # the newest prediction when the frame arrived (at step 36): of step 36 + lead
+        assert int(d["ghostK"]) == p.step == 36 + spec.lead
+        assert json.loads(d["ghostPose"]) == [p.x[0], p.x[1], p.x[2]]
+        want = [list(frame.pixel(u, v)) for u, v in outline(p.x[0], p.x[1], p.x[2])]
+        np.testing.assert_allclose(json.loads(d["ghostPx"]), want, rtol=0, atol=1e-9)
+        path = paths[p.seq]
+        assert path.steps[-1] == p.step
+        np.testing.assert_allclose(json.loads(d["pathPx"]),
+                                   [frame.pixel(r[0], r[1]) for r in path.X], rtol=0, atol=1e-9)
+        assert browser.find_element("id", "video").is_displayed()
+        OUT.mkdir(parents=True, exist_ok=True)
+        browser.execute_script("document.getElementById('video-box').scrollIntoView()")
+        browser.save_screenshot(str(OUT / "ghost.png"))
+        print(f"\nghost: frame captured at step 24 shown with the prediction of step {p.step} "
+              f"(seq {p.seq}); path of {len(path.steps)} points; screenshot {OUT / 'ghost.png'}")
+    finally:
+        server.close()
+        core.close()

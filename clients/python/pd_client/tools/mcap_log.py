@@ -1,7 +1,7 @@
 """MCAP logs of pd-service sessions: what ``pd-record --mcap`` writes and ``pd-replay`` reads.
 
 One MCAP channel per Zenoh key, topic ``/`` + key (``/pd/p<k>/<s>/sensor/<name>``,
-``/pd/p<k>/<s>/cmd``, ``/pd/p<k>/<s>/prediction``, ``/pd/p<k>/<s>/error``,
+``/pd/p<k>/<s>/cmd``, ``/pd/p<k>/<s>/prediction``, ``/pd/p<k>/<s>/path``, ``/pd/p<k>/<s>/error``,
 ``/pd/p<k>/<s>/status``, ``/pd/p<k>/<s>/config``, ``/robot/p<k>/<s>/truth``; key layout 2,
 protocol.md §3), message encoding ``json`` with the message type's JSON Schema
 (``jsonschema`` schema encoding, named for the type: docs/schemas' schemas, from
@@ -59,8 +59,8 @@ from .flat_schema import Inexpressible, flat_schema
 
 #: Stream kind of a key -> message type name (its JSON Schema's title).
 TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Prediction",
-                "error": "ErrorReport", "status": "SessionStatus", "config": "SessionSpec",
-                "truth": "Truth"}
+                "path": "PredictedPath", "error": "ErrorReport", "status": "SessionStatus",
+                "config": "SessionSpec", "truth": "Truth"}
 RAW_SCHEMA: dict[str, Any] = {
     "title": "RawSample", "type": "object",
     "description": "A sample that is not a JSON-representable msgpack map (kept for replay).",
@@ -285,7 +285,7 @@ class McapRecorder:
         self._handles: list[Handle] = []
         for s in self.sessions:
             for kx in (keys.sensors_of(s), keys.command_key(s), keys.prediction_key(s),
-                       keys.error_key(s), keys.status_key(s), keys.config_key(s),
+                       keys.path_key(s), keys.error_key(s), keys.status_key(s), keys.config_key(s),
                        keys.truth_key(s)):
                 self._handles.append(transport.subscribe(kx, self._on_sample))
         self._stop = threading.Event()

@@ -314,7 +314,7 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                       *zenoh_args)
                 sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "diffdrive",
                             "--session", ROS2_SESSION, "--create-session", "--ros2",
-                            "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
+                            "--path", "1", "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
             elif asy:
                 start("operator", "-m", "pd_client.tools", "operator", "--scenario", "async",
                       "--session", ASYNC_SESSION, "--steps", str(args.steps), *zenoh_args)
@@ -326,7 +326,7 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                       "--steps", str(args.steps), *zenoh_args)
                 sim = start("sim", "-m", "pd_client.tools", "sim", "--session", "paper",
                             "--session", "paper-cam:camera", "--create-session",
-                            "--close-on-exit", "--steps", str(args.steps), "--seed",
+                            "--path", "1", "--close-on-exit", "--steps", str(args.steps), "--seed",
                             str(args.seed), *zenoh_args)
             sim.popen.wait()
             if sim.popen.returncode != 0:

@@ -71,13 +71,15 @@ from pd_service.scenarios import (
     get_scenario,
 )
 from pd_service.transport import Transport
-from pd_service.wire import Command, SessionSpec, WireError
+from pd_service.wire import Command, SessionSpec, WireError, encode, keys
+from pd_service.wire.messages import PathSpec
 
 from ..admin import Admin
 from ..errors import PdClientError
 from ..robot import CommandSchedule, Robot
 from . import common
 from .robot_clock import RobotClock, add_clock_flags, clock_from_args
+from .web_feed import position_layout
 
 if TYPE_CHECKING:
     from .ros2_robot import Ros2Options, Ros2RobotNode
@@ -112,10 +114,29 @@ class RobotSim:
     def __init__(self, transport: Transport, scenario: Scenario, specs: Sequence[SessionSpec],
                  *, seed: int | None = 0, direct: bool = False,
                  ros2: Ros2Options | None = None,
-                 clock: Callable[[], int] = time.time_ns,
+                 clock: Callable[[], int] = time.time_ns, camera_every: int = 0,
                  robot_clock: RobotClock | None = None, apply_on_arrival: bool = False) -> None:
         if not specs:
             raise ValueError("specs: at least one session is required")
+        names = list(scenario.state_names)
+        if camera_every and not {"x", "y"} <= set(names):
+            raise ValueError(f"--camera: scenario {scenario.name!r} has no planar x, y to "
+                             "film (use omni or diffdrive)")
+        if camera_every < 0:
+            raise ValueError(f"--camera: must be >= 0, got {camera_every}")
+        if camera_every:
+            try:
+                import PIL  # noqa: F401
+            except ImportError:
+                raise ValueError("--camera needs Pillow: pip install 'pd-client[viz]'") from None
+        #: A camera frame every this many steps (0: no camera), and its pose's state indices.
+        self.camera_every = camera_every
+        self._pose_idx = (names.index("x") if "x" in names else 0,
+                          names.index("y") if "y" in names else 0,
+                          next((names.index(h) for h in ("theta", "yaw") if h in names), None))
+        self._transport = transport
+        self._direct = direct
+        self.frames_published = 0
         if ros2 is not None:
             if len(specs) != 1:
                 raise ValueError("--ros2: the ROS 2 robot serves exactly one session")
@@ -215,6 +236,7 @@ class RobotSim:
         names = self.scenario.state_names
         truth = self.scenario.truth_view(x)
         samples = self.sim.sample()
+        self._film(k, truth)
         for s in self.sessions:
             s.robot.publish_truth(k, truth, names=names, angles=self.scenario.angles)
             for d in samples:
@@ -243,6 +265,7 @@ class RobotSim:
         due = [d for d in self._held if d.arrival_s <= k * T + 1e-12]
         self._held = [d for d in self._held if d.arrival_s > k * T + 1e-12]
         truth = self.scenario.truth_view(sim.x)
+        self._film(k, truth)
         for s in self.sessions:
             s.robot.publish_truth(k, truth, names=self.scenario.state_names,
                                   angles=self.scenario.angles)
@@ -256,6 +279,23 @@ class RobotSim:
                     s.robot.publish(d.sensor, d.z, t_ns=t_ns)
                 self.samples_published += 1
         return sim.x
+
+    def _film(self, k: int, truth: np.ndarray) -> None:
+        """Every ``camera_every``-th step: the camera frame of the true pose, captured at
+        step k's time, on each session's camera key (robot side, or the service's with
+        --direct: then without the link's delay)."""
+        if not self.camera_every or k % self.camera_every:
+            return
+        from .camera_view import render
+
+        ix, iy, ih = self._pose_idx
+        yaw = float(truth[ih]) if ih is not None else 0.0
+        for s in self.sessions:
+            frame = render(s.spec.session, self.frames_published, s.spec.time_of(k),
+                           float(truth[ix]), float(truth[iy]), yaw)
+            key = (keys.camera_key if self._direct else keys.robot_camera_key)(s.spec.session)
+            self._transport.put(key, encode(frame))
+        self.frames_published += 1
 
     def close(self) -> None:
         ros = getattr(self, "ros", None)
@@ -297,6 +337,14 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--publish-every", type=int, default=1, metavar="N",
                     help="with --create-session: the daemon publishes every N-th step's "
                          "prediction (default 1: every step)")
+    ap.add_argument("--path", type=int, default=0, metavar="N",
+                    help="with --create-session: the daemon publishes the predicted path (the "
+                         "position and heading components) with every N-th prediction "
+                         "(default 0: never)")
+    ap.add_argument("--camera", type=int, default=0, metavar="N",
+                    help="publish a camera frame (a top-down chase view, JPEG, stamped with its "
+                         "capture time) every N steps on robot/p<k>/<s>/camera (default 0: no "
+                         "camera; planar scenarios: omni, diffdrive)")
     add_clock_flags(ap)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
@@ -349,6 +397,7 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                 specs.append(admin.wait_for_spec(name, args.service_timeout))
         try:
             sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct,
+                           camera_every=args.camera,
                            ros2=ros2, robot_clock=clock_from_args(args),
                            apply_on_arrival=args.apply_on_arrival)
         except ValueError as exc:
@@ -381,9 +430,15 @@ def _run(args: argparse.Namespace, scenario: Scenario,
 def _new_specs(args: argparse.Namespace, scenario: Scenario,
                sessions: list[tuple[str, list[str] | None]], epoch: int) -> list[SessionSpec]:
     """The sessions' SessionSpecs with step 0 at ``epoch`` (ns); ValueError for bad settings."""
+    path = None
+    if args.path:  # the positions, and the heading if there is one (a nav_msgs/Path's yaw)
+        names = list(scenario.state_names)
+        heading = [names.index(h) for h in ("theta", "yaw") if h in names][:1]
+        path = PathSpec(indices=position_layout(names, len(names))[1] + heading,
+                        every=args.path)
     return [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
                           lead=args.lead, max_delay=args.max_delay,
-                          publish_every=args.publish_every)
+                          publish_every=args.publish_every, path=path)
             for name, sensors in sessions]
 
 

@@ -14,6 +14,15 @@ topic                      schema                content
 /<s>/pose                  foxglove.PoseInFrame  predicted position (x, y) at the target step
 /<s>/ellipse               foxglove.SceneUpdate  its 2-sigma ellipse, from P's (x, y) block
 /<s>/truth_pose            foxglove.PoseInFrame  the simulator's truth (when published)
+/<s>/path_band             foxglove.SceneUpdate  predicted path (spec's ``path``): its (x, y)
+                                                 means as a line, a 2-sigma ellipse per point
+/<s>/path                  JSON                  the same path: steps, t_ns, x, y, sd_x, sd_y
+/<s>/camera                foxglove.CompressedImage  the robot's camera (a CameraFrame, after the
+                                                 link's delay), stamped with its capture time
+/<s>/camera_info           foxglove.CameraCalibration  its view as a pinhole camera looking down
+/<s>/ghost                 foxglove.ImageAnnotations  on that frame: the robot's outline at the
+                                                 newest prediction's pose, its 2-sigma ellipse,
+                                                 the newest path (pixels of the frame's view)
 /<s>/prediction            JSON                  step, x / var / sd per state name, latency
 /<s>/error                 JSON                  prediction - truth per state, and / sigma
 /<s>/measurement           JSON                  each sensor packet as it arrives, its age
@@ -51,7 +60,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -67,7 +76,9 @@ from pd_service.wire import (
     decode,
     keys,
 )
+from pd_service.wire.camera import CameraFrame
 from pd_service.wire.convert import command_step, measurement_step
+from pd_service.wire.path import PredictedPath
 
 from ..admin import Admin
 from ..display import Display
@@ -77,8 +88,14 @@ from ..truth import Truth
 from . import common
 from .viz_series import SeriesType, field_name, type_name, unique
 
+#: A wire message type a channel decodes.
+W = TypeVar("W", Measurement, Command, PredictedPath, CameraFrame)
+
 TOOL = "pd-viz"
 FRAME = "world"
+#: The camera's frame id, and the height (m) of the pinhole its calibration describes.
+CAMERA_FRAME = "camera"
+CAMERA_HEIGHT_M = 10.0
 DEFAULT_PORT = 8765
 _HEADINGS = ("theta", "yaw", "psi", "heading")
 _XY_NAMES = (("x", "y"), ("p1", "p2"), ("px", "py"))
@@ -105,6 +122,9 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                            age_ms=_NUM),
     "command": _object("pd_viz.Command", seq=_INT, u={"type": "array", "items": _NUM}, step=_INT),
     "truth": _object("pd_viz.Truth", step=_INT, x=_NUMBERS),
+    "path": _object("pd_viz.Path", seq=_INT, steps={"type": "array", "items": _INT},
+                    t_ns={"type": "array", "items": _INT},
+                    **{k: {"type": "array", "items": _NUM} for k in ("x", "y", "sd_x", "sd_y")}),
     "status": _object(
         "pd_viz.Status", session={"type": "string"}, state={"type": "string"}, now_step=_INT,
         counters={"type": "object", "additionalProperties": _INT}, late=_INT, future=_INT,
@@ -163,7 +183,14 @@ class SessionView:
     def __init__(self, transport: Transport, session: str, context: Any,
                  xy: tuple[int, int] | None = None, spec: SessionSpec | None = None) -> None:
         import foxglove
-        from foxglove.channels import LogChannel, PoseInFrameChannel, SceneUpdateChannel
+        from foxglove.channels import (
+            CameraCalibrationChannel,
+            CompressedImageChannel,
+            ImageAnnotationsChannel,
+            LogChannel,
+            PoseInFrameChannel,
+            SceneUpdateChannel,
+        )
 
         self.session = session
         self.spec = spec
@@ -171,12 +198,18 @@ class SessionView:
         self.names: list[str] | None = None
         self._lock = threading.Lock()
         self.counts = {"predictions": 0, "measurements": 0, "commands": 0, "truth": 0,
-                       "errors": 0, "invalid": 0}
+                       "errors": 0, "invalid": 0, "paths": 0, "paths_unshown": 0, "frames": 0}
         p = f"/{session}/"
         ctx = {"context": context}
         self.pose = PoseInFrameChannel(p + "pose", **ctx)
         self.ellipse = SceneUpdateChannel(p + "ellipse", **ctx)
         self.truth_pose = PoseInFrameChannel(p + "truth_pose", **ctx)
+        self.path_band = SceneUpdateChannel(p + "path_band", **ctx)
+        self.camera = CompressedImageChannel(p + "camera", **ctx)
+        self.camera_info = CameraCalibrationChannel(p + "camera_info", **ctx)
+        self.ghost = ImageAnnotationsChannel(p + "ghost", **ctx)
+        self._last_pred: Prediction | None = None
+        self._last_path: PredictedPath | None = None
         self.log = LogChannel(p + "log", **ctx)
         self.json = {name: foxglove.Channel(p + name, schema=foxglove.Schema(
             name=f"pd_viz.{name.capitalize()}", encoding="jsonschema",
@@ -191,6 +224,8 @@ class SessionView:
             transport.subscribe(keys.sensors_of(session), self._on_sensor),
             transport.subscribe(keys.command_key(session), self._on_command),
             transport.subscribe(keys.error_key(session), self._on_error),
+            transport.subscribe(keys.path_key(session), self._on_path),
+            transport.subscribe(keys.camera_key(session), self._on_frame),
         ]
 
     # --- helpers -----------------------------------------------------------------------
@@ -245,6 +280,17 @@ class SessionView:
         self.json[name].log(json.dumps(msg, allow_nan=False, default=float).encode(),
                             log_time=log_ns or time.time_ns())
 
+    def _decoded(self, sample: Sample, cls: type[W]) -> W | None:
+        """The ``cls`` message a put carries, or None (a delete; bad bytes: counted
+        ``invalid``)."""
+        if sample.kind != "put":
+            return None
+        try:
+            return decode(sample.payload, cls)
+        except WireError:
+            self.counts["invalid"] += 1
+            return None
+
     # --- callbacks -----------------------------------------------------------------------
 
     def _on_prediction(self, p: Prediction) -> None:
@@ -260,6 +306,7 @@ class SessionView:
         now = time.time_ns()
         with self._lock:
             self.counts["predictions"] += 1
+            self._last_pred = p
         truth = self.display.truth_at(p.step)  # kept by the display before it calls back
         n = p.x.shape[0]
         names = self._state_names(n)
@@ -331,12 +378,8 @@ class SessionView:
             self._emit_error(p, t, now)
 
     def _on_sensor(self, sample: Sample) -> None:
-        if sample.kind != "put":
-            return
-        try:
-            m = decode(sample.payload, Measurement)
-        except WireError:
-            self.counts["invalid"] += 1
+        m = self._decoded(sample, Measurement)
+        if m is None:
             return
         self.counts["measurements"] += 1
         msg: dict[str, Any] = {"sensor": m.sensor, "seq": m.seq, "z": [float(v) for v in m.z]}
@@ -350,18 +393,123 @@ class SessionView:
         self._emit("measurement", msg, sample.recv_ns)
 
     def _on_command(self, sample: Sample) -> None:
-        if sample.kind != "put":
-            return
-        try:
-            c = decode(sample.payload, Command)
-        except WireError:
-            self.counts["invalid"] += 1
+        c = self._decoded(sample, Command)
+        if c is None:
             return
         self.counts["commands"] += 1
         msg: dict[str, Any] = {"seq": c.seq, "u": [float(v) for v in c.u]}
         if self.spec is not None:
             msg["step"] = command_step(c, self.spec)
         self._emit("command", msg, sample.recv_ns)
+
+    def _on_path(self, sample: Sample) -> None:
+        """A PredictedPath: its (x, y) means as a line and a 2-sigma ellipse per point on
+        ``path_band``, and the numbers on ``path``; a path without the (x, y) components is
+        counted (``paths_unshown``)."""
+        from foxglove.messages import (
+            Color,
+            LinePrimitive,
+            LinePrimitiveLineType,
+            Point3,
+            SceneEntity,
+            SceneUpdate,
+        )
+
+        path = self._decoded(sample, PredictedPath)
+        if path is None:
+            return
+        with self._lock:
+            self._last_path = path
+        names = self.names
+        n = len(names) if names else max(path.indices) + 1
+        i, j = position_indices(n, names, self.xy)
+        if i not in path.indices or j is None or j not in path.indices:
+            self.counts["paths_unshown"] += 1
+            return
+        self.counts["paths"] += 1
+        now = time.time_ns()
+        a, b = path.indices.index(i), path.indices.index(j)
+        xs, ys = path.X[:, a], path.X[:, b]
+        covs = [path.covariance(r)[np.ix_([a, b], [a, b])] for r in range(len(path.steps))]
+        band = Color(r=0.77, g=0.61, b=1.0, a=0.5)
+        lines = [LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=2.0,
+                               scale_invariant=True, color=Color(r=0.77, g=0.61, b=1.0, a=1.0),
+                               points=[Point3(x=float(x), y=float(y), z=0.0)
+                                       for x, y in zip(xs, ys, strict=True)])]
+        lines += [LinePrimitive(type=LinePrimitiveLineType.LineLoop, thickness=1.0,
+                                scale_invariant=True, color=band,
+                                points=[Point3(x=u, y=v, z=0.0) for u, v in ellipse_points(
+                                    (float(x), float(y)), c, segments=24)])
+                  for x, y, c in zip(xs, ys, covs, strict=True)]
+        t_end = path.t_ns(len(path.steps) - 1)
+        self.path_band.log(SceneUpdate(entities=[SceneEntity(
+            timestamp=_ts(t_end), frame_id=FRAME, id=f"{self.session}-path", lines=lines)]),
+            log_time=now)
+        self._emit("path", {
+            "seq": path.seq, "steps": list(path.steps),
+            "t_ns": [path.t_ns(r) for r in range(len(path.steps))],
+            "x": xs.tolist(), "y": ys.tolist(),
+            "sd_x": [math.sqrt(max(float(c[0, 0]), 0.0)) for c in covs],
+            "sd_y": [math.sqrt(max(float(c[1, 1]), 0.0)) for c in covs]}, now)
+
+    def _on_frame(self, sample: Sample) -> None:
+        """A camera frame: the image, its calibration, and the ghost on it (module docstring):
+        the outline at the newest prediction's (x, y, heading), in the frame's own view."""
+        from foxglove.messages import (
+            CameraCalibration,
+            Color,
+            CompressedImage,
+            ImageAnnotations,
+            Point2,
+            PointsAnnotation,
+            PointsAnnotationType,
+        )
+
+        from .camera_view import outline_px
+
+        f = self._decoded(sample, CameraFrame)
+        if f is None:
+            return
+        with self._lock:
+            self.counts["frames"] += 1
+            p, path = self._last_pred, self._last_path
+        now, stamp = time.time_ns(), _ts(f.t_ns)
+        self.camera.log(CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=f.image(),
+                                        format="jpeg"), log_time=now)
+        # a pinhole at CAMERA_HEIGHT_M looking down: f / height = the frame's px per metre
+        fl, cx, cy = f.scale * CAMERA_HEIGHT_M, f.width / 2, f.height / 2
+        self.camera_info.log(CameraCalibration(
+            timestamp=stamp, frame_id=CAMERA_FRAME, width=f.width, height=f.height,
+            distortion_model="plumb_bob", D=[0.0] * 5,
+            K=[fl, 0.0, cx, 0.0, fl, cy, 0.0, 0.0, 1.0], R=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
+            P=[fl, 0.0, cx, 0.0, 0.0, fl, cy, 0.0, 0.0, 0.0, 1.0, 0.0]), log_time=now)
+        if p is None:
+            return
+        n = p.x.shape[0]
+        i, j = position_indices(n, self.names, self.xy)
+        if j is None:
+            return
+        h = heading_index(self.names)
+        x, y = float(p.x[i]), float(p.x[j])
+        yaw = float(p.x[h]) if h is not None and h < n else 0.0
+
+        def line(kind: Any, pts: Sequence[Sequence[float]], rgba: tuple[float, ...],
+                 width: float) -> Any:
+            return PointsAnnotation(timestamp=stamp, type=kind, thickness=width,
+                                    outline_color=Color(r=rgba[0], g=rgba[1], b=rgba[2],
+                                                        a=rgba[3]),
+                                    points=[Point2(x=float(u), y=float(v)) for u, v in pts])
+
+        ell = [f.pixel(u, v) for u, v in ellipse_points((x, y), p.P[np.ix_([i, j], [i, j])])]
+        marks = [line(PointsAnnotationType.LineLoop, outline_px(f, x, y, yaw),
+                      (0.29, 0.64, 1.0, 1.0), 2.0),
+                 line(PointsAnnotationType.LineLoop, ell, (0.29, 0.64, 1.0, 0.6), 1.0)]
+        if path is not None and i in path.indices and j in path.indices:
+            a, b = path.indices.index(i), path.indices.index(j)
+            marks.append(line(PointsAnnotationType.LineStrip,
+                              [f.pixel(float(r[a]), float(r[b])) for r in path.X],
+                              (0.77, 0.61, 1.0, 1.0), 1.5))
+        self.ghost.log(ImageAnnotations(timestamp=stamp, points=marks), log_time=now)
 
     def _on_error(self, sample: Sample) -> None:
         from foxglove.messages import Log, LogLevel

@@ -21,13 +21,36 @@ each prediction into one event for the page (:meth:`FeedSession.event`)::
      "term": 1830...,                                     # publisher's ownership term
      "st": 0}                                             # older-term predictions dropped
 
-and, twice a second, a ``tick`` event with the sessions the daemons report and the warnings
+for a session whose spec asks for the predicted path (``pd/*/*/path``, a PredictedPath), one
+``path`` event after its prediction, the page's position components only::
+
+    {"type": "path", "i": 18, "s": "paper", "ts": 1.7e12, "seq": 41,   # seq of its prediction
+     "k": [120, 121, ..., 130],                               # steps, the target last
+     "p": [[..positions..], ...],                             # means, one row per step
+     "sd": [[..sigma..], ...],                                # axis: 1-sigma per position
+     "ell": [[cx, cy, a, b, angle], ...] | null}              # plane: 2-sigma ellipse per step
+
+(a path that lacks one of the page's position components is counted, ``paths_unshown``, not
+drawn); for a robot with a camera (``pd/*/*/camera``, a CameraFrame after the link's delay) a
+``frame`` event per frame, with the "ghost": the robot's outline at the newest prediction's
+pose (the target step, where the command sent now acts), projected into that frame's own view
+(its capture-time centre and scale), and the newest path in it::
+
+    {"type": "frame", "s": "omni", "seq": 12, "t_ns": ..., "k": 101.0,   # capture step
+     "age_ms": 612.0, "w": 320, "h": 240, "img": "<base64 JPEG>",
+     "ghost": {"seq": 41, "k": 121, "pose": [x, y, yaw], "px": [[u, v], ...],   # outline
+               "ell": [u, v, a, b, angle]} | null,            # 2-sigma, pixels
+     "path_px": [[u, v], ...] | null}
+
+(frames are sent live only, not kept for a late page: they are large); and, twice a second,
+a ``tick`` event with the sessions the daemons report and the warnings
 (predictions stopped, sensors silent: ``[what, seconds since]`` pairs). A prediction of an
 older ownership term than the newest seen for its session (a second owner during a partition
 between instances, docs/service.md) makes no event: it is counted (``st``) and dropped
 (:class:`pd_service.wire.fence.TermFence`), so the page never shows two owners interleaved.
-The 2-sigma ellipse of the planar position (x, y) with covariance C (2 x 2): semi-axes
-2 sqrt(lambda_i) along C's eigenvectors.
+The 2-sigma ellipse
+of the planar position (x, y) with covariance C (2 x 2): semi-axes 2 sqrt(lambda_i) along C's
+eigenvectors.
 """
 
 from __future__ import annotations
@@ -45,7 +68,9 @@ import numpy as np
 
 from pd_service.transport import Handle, Sample, Transport
 from pd_service.wire import Command, Measurement, Prediction, SessionSpec, keys
+from pd_service.wire.camera import CameraFrame
 from pd_service.wire.fence import TermFence
+from pd_service.wire.path import PredictedPath
 
 from .._base import try_decode
 from ..admin import Admin
@@ -120,6 +145,11 @@ class FeedSession:
         self.predictions = 0
         self.stale_term = 0  # predictions of an older ownership term, dropped
         self.history: deque[tuple[int, bytes]] = deque(maxlen=HISTORY)  # (event id, JSON)
+        #: The newest prediction's (layout, position indices): what a path event draws.
+        self.layout: tuple[str, list[int]] | None = None
+        self.paths_unshown = 0
+        self.last_prediction: Prediction | None = None
+        self.last_path: PredictedPath | None = None
 
     # --- clock of the session ----------------------------------------------------------
 
@@ -199,12 +229,14 @@ class FeedSession:
         """The page's event for prediction ``p`` (see the module's docstring)."""
         self.last_pred = mono
         self.predictions += 1
+        self.last_prediction = p
         t = self.pairs.add_prediction(p)
         if t is not None:
             self._pair(p, t)
         n = p.x.shape[0]
         names = self.state_names(n)
         layout, pos = position_layout(names, n)
+        self.layout = (layout, pos)
         ell = None
         if layout == "plane":
             a, b, ang = ellipse_2sigma(p.P[np.ix_(pos, pos)])
@@ -231,6 +263,59 @@ class FeedSession:
             "cmd": self.cmd,
             "term": p.term, "st": self.stale_term,
         }
+
+    def path_event(self, path: PredictedPath) -> Json | None:
+        """The page's event for ``path`` (module docstring), or None (counted) if it lacks
+        one of the page's position components or no prediction set the layout yet."""
+        self.last_path = path
+        if self.layout is None:
+            self.paths_unshown += 1
+            return None
+        layout, pos = self.layout
+        cols = [path.indices.index(i) if i in path.indices else -1 for i in pos]
+        if -1 in cols:
+            self.paths_unshown += 1
+            return None
+        k = len(path.steps)
+        covs = [path.covariance(i)[np.ix_(cols, cols)] for i in range(k)]
+        ell = None
+        if layout == "plane":
+            ell = []
+            for i in range(k):
+                a, b, ang = ellipse_2sigma(covs[i])
+                ell.append([_num(path.X[i, cols[0]]), _num(path.X[i, cols[1]]), _num(a), _num(b),
+                            _num(ang)])
+        return {"type": "path", "s": self.name, "seq": path.seq, "k": list(path.steps),
+                "p": [_vec(path.X[i, cols]) for i in range(k)],
+                "sd": [_vec(np.sqrt(np.maximum(np.diag(c), 0.0))) for c in covs], "ell": ell}
+
+    def frame_event(self, f: CameraFrame, recv_ns: int) -> Json:
+        """The page's event for camera frame ``f`` (module docstring): the ghost at the newest
+        prediction's pose in the frame's own view, u = w/2 + scale (x - cx),
+        v = h/2 - scale (y - cy); the 2-sigma ellipse scaled alike (v down: angle negated)."""
+        from .camera_view import outline_px
+
+        k = self.step_at(f.t_ns)
+        ev: Json = {"type": "frame", "s": self.name, "seq": f.seq, "t_ns": f.t_ns, "k": k,
+                    "age_ms": (recv_ns - f.t_ns) / 1e6, "w": f.width, "h": f.height,
+                    "img": f.data, "ghost": None, "path_px": None}
+        p = self.last_prediction
+        if p is None or self.layout is None or self.layout[0] != "plane":
+            return ev
+        ix, iy = self.layout[1]
+        names = self.state_names(p.x.shape[0])
+        ih = next((names.index(h) for h in ("theta", "yaw") if h in names), None)
+        x, y = float(p.x[ix]), float(p.x[iy])
+        yaw = float(p.x[ih]) if ih is not None else 0.0
+        a, b, ang = ellipse_2sigma(p.P[np.ix_([ix, iy], [ix, iy])])
+        ev["ghost"] = {"seq": p.seq, "k": p.step, "pose": [x, y, yaw],
+                       "px": outline_px(f, x, y, yaw),
+                       "ell": [*f.pixel(x, y), a * f.scale, b * f.scale, -ang]}
+        path = self.last_path
+        if path is not None and ix in path.indices and iy in path.indices:
+            cx, cy = path.indices.index(ix), path.indices.index(iy)
+            ev["path_px"] = [list(f.pixel(float(r[cx]), float(r[cy]))) for r in path.X]
+        return ev
 
     def warnings(self, mono: float, stale_s: float
                  ) -> tuple[float | None, dict[str, float], list[tuple[str, float]]]:
@@ -296,6 +381,8 @@ class LiveFeed:
             (keys.ALL_SENSORS, self._on_measurement),
             (keys.ALL_COMMANDS, self._on_command),
             (keys.ALL_TRUTHS, self._on_truth),
+            (keys.ALL_PATHS, self._on_path),
+            (keys.ALL_CAMERAS, self._on_frame),
         ]
         self._handles: list[Handle] = [transport.subscribe(k, cb) for k, cb in subs]
 
@@ -325,13 +412,44 @@ class LiveFeed:
             if not self.fence.admit(session, p.term):  # an older owner's: counted, not shown
                 self._view(session).stale_term += 1
                 return
+            self._emit(session, self._view(session).event(p, sample.recv_ns, self._now_ns(),
+                                                          self._mono()))
+
+    def _emit(self, session: str, ev: Json, keep: bool = True) -> None:
+        """Stamp and send one page event (``lock`` held); ``keep``: number it and keep it for
+        a late page (the page counts gaps in the numbers: a live-only event has none)."""
+        ev["ts"] = self._now_ns() / 1e6
+        if keep:
             self.events += 1
-            ev = self._view(session).event(p, sample.recv_ns, self._now_ns(), self._mono())
             ev["i"] = self.events
-            ev["ts"] = self._now_ns() / 1e6
-            data = json.dumps(ev, separators=(",", ":")).encode()
+        data = json.dumps(ev, separators=(",", ":")).encode()
+        if keep:
             self.views[session].history.append((self.events, data))
-            self.sink(data)
+        self.sink(data)
+
+    def _on_frame(self, sample: Sample) -> None:
+        session = self._session_of(sample)
+        if session is None:
+            return
+        f = try_decode(sample, CameraFrame)
+        with self.lock:
+            if f is None or f.session != session:
+                self.invalid += 1
+                return
+            self._emit(session, self._view(session).frame_event(f, sample.recv_ns), keep=False)
+
+    def _on_path(self, sample: Sample) -> None:
+        session = self._session_of(sample)
+        if session is None:
+            return
+        path = try_decode(sample, PredictedPath)
+        with self.lock:
+            if path is None or path.session != session:
+                self.invalid += 1
+                return
+            ev = self._view(session).path_event(path)
+            if ev is not None:
+                self._emit(session, ev)
 
     def _on_config(self, sample: Sample) -> None:
         session = self._session_of(sample)  # a delete (session removed) keeps the last spec
@@ -432,7 +550,7 @@ class LiveFeed:
             for name, v in sorted(self.views.items()):
                 pa, ages, warn = v.warnings(mono, self.stale_s)
                 out[name] = {"pa": pa, "sa": ages, "warn": warn, "n": v.predictions,
-                             "st": v.stale_term}
+                             "st": v.stale_term, "paths_unshown": v.paths_unshown}
             names = sorted(set(self.reported) | set(self.views))
             ev = {"type": "tick", "ts": self._now_ns() / 1e6, "list": names,
                   "reported": self.reported, "sessions": out, "events": self.events}

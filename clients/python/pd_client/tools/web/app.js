@@ -21,12 +21,16 @@ function session(name) {
 function onEvent(ev) {
   if (ev.type === "hello") { S.clear(); stats.lastI = 0; dirty = true; return; }
   if (ev.type === "tick") { onTick(ev); return; }
+  if (ev.i !== undefined) {  // numbered events (not the live-only frames): count the gaps
+    if (stats.lastI && ev.i !== stats.lastI + 1) stats.gaps++;
+    stats.lastI = ev.i;
+  }
+  if (ev.type === "path") { session(ev.s).path = ev; if (ev.s === selected) dirty = true; return; }
+  if (ev.type === "frame") { onFrame(ev); return; }
   if (ev.type !== "pred") return;
   const now = Date.now();
   const lag = now - ev.ts;
   stats.received++;
-  if (stats.lastI && ev.i !== stats.lastI + 1) stats.gaps++;
-  stats.lastI = ev.i;
   stats.lags.push(lag); if (stats.lags.length > 4000) stats.lags.splice(0, 2000);
   if (lag > stats.maxLag) stats.maxLag = lag;
   const fresh = !S.has(ev.s);
@@ -38,6 +42,40 @@ function onEvent(ev) {
   if (selected === null) { selected = ev.s; }
   if (fresh) { syncPicker([]); dirty = true; }  // listed at once, not at the next tick
   if (ev.s === selected) dirty = true;
+}
+
+// a camera frame: decoded off the event loop, then drawn with its ghost by render()
+function onFrame(ev) {
+  const s = session(ev.s), img = new Image();
+  img.onload = () => { s.frame = ev; s.frameImg = img; if (ev.s === selected) dirty = true; };
+  img.src = "data:image/jpeg;base64," + ev.img;
+}
+
+// the newest frame of the session, its ghost (outline at the predicted pose for the moment
+// the command now sent lands, in the frame's own view), the 2-sigma ellipse and the path
+function drawVideo(c, s) {
+  const box = $("video-box");
+  if (!s.frame) { box.hidden = true; return; }
+  box.hidden = false;
+  const f = s.frame, g = c.getContext("2d");
+  if (c.width !== f.w || c.height !== f.h) { c.width = f.w; c.height = f.h; }
+  g.drawImage(s.frameImg, 0, 0);
+  const d = c.dataset;
+  d.frameSeq = f.seq; d.frameTns = f.t_ns; d.frameK = f.k ?? ""; d.ageMs = f.age_ms;
+  $("video-title").textContent = "camera · frame captured at step " + fmt(f.k, 1) + " · " + fmt(f.age_ms / 1000, 2) + " s old" +
+    (f.ghost ? " · ghost: prediction of step " + f.ghost.k : "");
+  if (f.path_px) {
+    g.strokeStyle = "#c59bff"; g.lineWidth = 1.5; g.setLineDash([5, 3]); g.beginPath();
+    f.path_px.forEach(([u, v], n) => (n ? g.lineTo(u, v) : g.moveTo(u, v))); g.stroke(); g.setLineDash([]);
+  }
+  d.pathPx = f.path_px ? JSON.stringify(f.path_px) : "";
+  if (!f.ghost) { d.ghostSeq = ""; d.ghostPx = ""; return; }
+  const [eu, ev, a, b, ang] = f.ghost.ell;
+  g.fillStyle = "#4aa3ff33"; g.strokeStyle = "#4aa3ff"; g.lineWidth = 1; g.beginPath();
+  g.ellipse(eu, ev, Math.max(1, a), Math.max(1, b), ang, 0, 2 * Math.PI); g.fill(); g.stroke();
+  g.strokeStyle = "#4aa3ff"; g.lineWidth = 2; g.setLineDash([4, 2]); g.beginPath();
+  f.ghost.px.forEach(([u, v], n) => (n ? g.lineTo(u, v) : g.moveTo(u, v))); g.closePath(); g.stroke(); g.setLineDash([]);
+  d.ghostSeq = f.ghost.seq; d.ghostK = f.ghost.k; d.ghostPx = JSON.stringify(f.ghost.px); d.ghostPose = JSON.stringify(f.ghost.pose);
 }
 
 function onTick(ev) {
@@ -95,6 +133,19 @@ function truthPoints(evs) {
   return Array.from(seen.values());
 }
 
+// the session's newest path, if it ends at or past the newest prediction's target (an older one
+// would draw a stale future)
+function pathOf(last) {
+  const p = S.get(last.s)?.path;
+  return p && (p.ell || last.layout === "axis") && p.k[p.k.length - 1] >= last.k ? p : null;
+}
+// what the plan view drew of the path, for the browser test: data-* of the canvas
+function showPath(c, path) {
+  const d = c.dataset;
+  if (!path) { delete d.pathSeq; delete d.pathK; delete d.pathP; delete d.pathSd; return; }
+  d.pathSeq = path.seq; d.pathK = JSON.stringify(path.k); d.pathP = JSON.stringify(path.p); d.pathSd = JSON.stringify(path.sd);
+}
+
 // 1-D positions (p1, p2, ...) on one horizontal axis; vertical: steps, newest at the top.
 function drawAxis(c, evs, last) {
   const g = ctx2d(c), W = c.width, H = c.height, L = 50, R = 12, T = 18, B = 28;
@@ -106,6 +157,8 @@ function drawAxis(c, evs, last) {
   for (const e of recent) pos.forEach((i) => { vals.push(e.x[i] - 2 * Math.sqrt(e.var[i]), e.x[i] + 2 * Math.sqrt(e.var[i])); });
   for (const m of meas) for (const n in m.p) vals.push(m.p[n]);
   for (const t of truth) vals.push(...t.p);
+  const path = pathOf(last);
+  if (path) path.p.forEach((p, n) => p.forEach((v, j) => vals.push(v - 2 * path.sd[n][j], v + 2 * path.sd[n][j])));
   const [lo, hi] = range(vals);
   const X = (v) => L + (v - lo) / (hi - lo) * (W - L - R);
   const Y = (k) => T + (top - k) / (top - bot) * (H - T - B);
@@ -124,6 +177,17 @@ function drawAxis(c, evs, last) {
     g.strokeStyle = "#e8e8e8"; g.lineWidth = 1; g.beginPath();
     truth.forEach((t, n) => { const x = X(t.p[j]), y = Y(t.k); n ? g.lineTo(x, y) : g.moveTo(x, y); }); g.stroke();
   });
+  // predicted path (newest measured step -> target) with its 2-sigma band
+  if (path) pos.forEach((i, j) => {
+    const col = COLORS[j % COLORS.length];
+    g.fillStyle = col + "30"; g.beginPath();
+    path.k.forEach((k, n) => { const x = X(path.p[n][j] - 2 * path.sd[n][j]); n ? g.lineTo(x, Y(k)) : g.moveTo(x, Y(k)); });
+    for (let n = path.k.length - 1; n >= 0; n--) g.lineTo(X(path.p[n][j] + 2 * path.sd[n][j]), Y(path.k[n]));
+    g.closePath(); g.fill();
+    g.strokeStyle = col; g.lineWidth = 1.5; g.setLineDash([6, 3]); g.beginPath();
+    path.k.forEach((k, n) => { n ? g.lineTo(X(path.p[n][j]), Y(k)) : g.moveTo(X(path.p[n][j]), Y(k)); }); g.stroke(); g.setLineDash([]);
+  });
+  showPath(c, path);
   // predicted trail + 2-sigma ellipse of the newest
   pos.forEach((i, j) => {
     const col = COLORS[j % COLORS.length];
@@ -156,6 +220,8 @@ function drawPlane(c, evs, last) {
   const nx = last.names[ix], ny = last.names[iy];
   for (const m of meas) { if (Object.hasOwn(m.p, nx)) xs.push(m.p[nx]); if (Object.hasOwn(m.p, ny)) ys.push(m.p[ny]); }
   if (last.ell) { xs.push(last.ell[0] - last.ell[2], last.ell[0] + last.ell[2]); ys.push(last.ell[1] - last.ell[2], last.ell[1] + last.ell[2]); }
+  const path = pathOf(last);
+  if (path) for (const [ex, ey, a] of path.ell) { xs.push(ex - a, ex + a); ys.push(ey - a, ey + a); }
   let [x0, x1] = range(xs), [y0, y1] = range(ys);
   const s = Math.min((W - 2 * M) / (x1 - x0), (H - 2 * M) / (y1 - y0));
   const cxm = (x0 + x1) / 2, cym = (y0 + y1) / 2;
@@ -164,6 +230,13 @@ function drawPlane(c, evs, last) {
   const line = (pts, col, w) => { g.strokeStyle = col; g.lineWidth = w; g.beginPath(); pts.forEach((p, n) => n ? g.lineTo(X(p[0]), Y(p[1])) : g.moveTo(X(p[0]), Y(p[1]))); g.stroke(); };
   line(truth.map((t) => t.p), "#e8e8e8", 1);
   line(recent.map((e) => [e.x[ix], e.x[iy]]), "#4aa3ff", 2);
+  // predicted path with its 2-sigma band: the union of each step's 2-sigma ellipse
+  if (path) {
+    g.fillStyle = "#c59bff22";
+    for (const [ex, ey, a, b, ang] of path.ell) { g.beginPath(); g.ellipse(X(ex), Y(ey), Math.max(1, a * s), Math.max(1, b * s), -ang, 0, 2 * Math.PI); g.fill(); }
+    g.setLineDash([6, 3]); line(path.p, "#c59bff", 1.5); g.setLineDash([]);
+  }
+  showPath(c, path);
   g.fillStyle = "#ffb020";
   for (const m of meas) if (Object.hasOwn(m.p, nx) && Object.hasOwn(m.p, ny)) { g.beginPath(); g.arc(X(m.p[nx]), Y(m.p[ny]), 3, 0, 2 * Math.PI); g.fill(); }
   if (last.ell) {
@@ -247,6 +320,7 @@ function render() {
   const last = s.last, evs = s.ev;
   $("plan-title").textContent = "plan view · " + selected + (last.layout === "axis" ? " (positions on one axis)" : "");
   (last.layout === "plane" ? drawPlane : drawAxis)($("plan"), evs, last);
+  drawVideo($("video"), s);
   drawSeries(evs, last);
   // numeric readout (also read by the browser test through its data-* attributes)
   const tb = $("values"); const rows = [];
