@@ -242,6 +242,26 @@ def linear_model(model: LinearModelSpec, period_ns: int) -> LinearModel:
     return LinearModel(A=a, B=b, Q=c)
 
 
+#: Most steps between a spec's epoch and now that a model without a closed-form long jump
+#: (unscented, IMM) takes: its first prediction propagates the prior step by step from the
+#: epoch (a linear model jumps a span without commands in O(log m) products).
+MAX_PRIOR_STEPS = 1000
+
+
+def prior_span(spec: SessionSpec, now_ns: int) -> str | None:
+    """Why ``spec`` is refused at ``now_ns`` for an epoch too far in the past (None: it is
+    not): a model other than linear with more than :data:`MAX_PRIOR_STEPS` steps from
+    ``epoch_ns`` to now would stall the worker at its first prediction."""
+    if isinstance(spec.model, LinearModelSpec):
+        return None
+    steps = (now_ns - spec.epoch_ns) // spec.period_ns
+    if steps <= MAX_PRIOR_STEPS:
+        return None
+    return (f"SessionSpec.epoch_ns: {steps} steps before now; a {spec.model.kind} model "
+            f"propagates its prior step by step from the epoch, at most {MAX_PRIOR_STEPS} "
+            f"steps (give an epoch near the present)")
+
+
 def build(spec: SessionSpec, admit: Callable[[Cost], None] | None = None) -> Built:
     """The spec's estimator, nu and cost, by ``spec.model.kind`` (see the module docstring).
 

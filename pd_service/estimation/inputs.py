@@ -99,6 +99,15 @@ class InputBuffer:
             self.cut_offsets[step] = offset
             _insort(self._cut_steps, step)
 
+    def constant_from(self, step: int) -> bool:
+        """Whether u(t) is one value for every t >= ``step`` (no explicit command after it,
+        none inside a step from it on; "zero": none at it either)."""
+        cmds, cut = self._cmd_steps, self._cut_steps
+        last = cmds[-1] if cmds else None
+        if last is not None and (last > step or (last == step and not self.hold)):
+            return False
+        return not cut or cut[-1] < step
+
     def cuts(self, first: int, last: int) -> list[tuple[int, float, np.ndarray]] | None:
         """The commands taking effect inside steps first..last (inclusive) as
         ``(step - first, offset, u(step - 1))`` (:data:`.replay.Cut`; u a read-only view of

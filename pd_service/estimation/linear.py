@@ -579,6 +579,33 @@ class LinearBackend:
         Pp += Qs
         return xp, Pp
 
+    def propagate_constant(self, state: Gaussian, m: int, u: np.ndarray) -> Gaussian:
+        """x(a) -> x(a + m) with one input u (nu,) over all m >= 1 steps (no command inside
+        the span): O(log m) products instead of m steps (a session whose epoch lies far in
+        the past, or idle for long). Blocks of span s = 2^i, by doubling::
+
+            A_2s = A_s A_s,   Q_2s = A_s Q_s A_s^T + Q_s,   g_2s = A_s g_s + g_s
+
+        (A_s = A^s, Q_s = sum_{j<s} A^j Q A^jT, g_s = sum_{j<s} A^j B u), each applied for a
+        set bit of m: x <- A_s x + g_s, P <- A_s P A_s^T + Q_s (the blocks commute: all are
+        powers of one A under one input). Equal to m single steps up to rounding."""
+        model = self.model
+        As, Qs = model.A, model.Q
+        gs = model.B.dot(u) if self._nu else np.zeros(model.n)
+        x, P = state[0], state[1]
+        while True:
+            if m & 1:
+                x = As.dot(x) + gs
+                P = As.dot(P).dot(As.T) + Qs
+                P = 0.5 * (P + P.T)
+            m >>= 1
+            if not m:
+                return Gaussian(x, P)
+            gs = As.dot(gs) + gs
+            Qs = As.dot(Qs).dot(As.T) + Qs
+            Qs = 0.5 * (Qs + Qs.T)
+            As = As.dot(As)
+
     def _remean(self, x: np.ndarray, stages: bytes) -> np.ndarray:
         """The mean recursion of ``stages`` from the prior mean ``x`` (no covariance work)."""
         single = self._single

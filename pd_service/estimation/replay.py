@@ -298,6 +298,8 @@ class ReplayEstimator(Generic[S]):
         self._newest_committed: int | None = None
         # Only a subclass that overrides _on_commit is handed the committed steps.
         self._hooked = type(self)._on_commit is not ReplayEstimator._on_commit
+        #: Spans without commands rolled over in one closed-form jump (read by tests).
+        self.long_jumps = 0
 
     # --- public API --------------------------------------------------------------------
 
@@ -817,9 +819,18 @@ class ReplayEstimator(Generic[S]):
         if new_c - self._base_step > self._base_lag:
             # A base that fell far behind (no packets for a while) is rolled up to the window,
             # in chunks no longer than the input buffer, so tables and buffers stay bounded.
+            # A backend with a closed-form jump takes a span without commands longer than
+            # the buffer in one (a far epoch: O(log m), not m steps).
             cap = self._inputs.capacity
+            inputs = self._inputs
+            jump = getattr(self._backend, "propagate_constant", None)
             while self._base_step < new_c:
                 m = min(new_c - self._base_step, cap)
-                self._base = self._propagate(self._base, self._base_step, m)
+                if m == cap and jump is not None and inputs.constant_from(self._base_step):
+                    m = new_c - self._base_step
+                    self._base = jump(self._base, m, inputs.u_of(self._base_step))
+                    self.long_jumps += 1
+                else:
+                    self._base = self._propagate(self._base, self._base_step, m)
                 self._base_step += m
-                self._inputs.advance(self._base_step)
+                inputs.advance(self._base_step)

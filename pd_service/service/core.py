@@ -3,7 +3,8 @@
 The core composes four parts, one job each, and talks to the world only through a
 :class:`~pd_service.transport.Transport` (Zenoh in the daemon, :class:`InMemoryBus` in unit
 tests); it reads time only through injected clocks (``now_ns``: shared wall clock for
-steps; ``mono_ns``: monotonic clock for latencies; ``run_clock_ns``: the one of run_once's
+steps, by default a :class:`StepClock` on the host's clocks, re-anchored deliberately when the
+host clock steps; ``mono_ns``: monotonic clock for latencies; ``run_clock_ns``: the one of run_once's
 time budget, ``mono_ns`` by default), so tests drive it deterministically.
 
 - :mod:`.dispatch`: callbacks -> bounded inboxes -> round-robin rounds of session messages;
@@ -47,6 +48,7 @@ from .robot_time import learned_spec
 from .session import Session
 from .spec_store import SpecStore
 from .status import Queries
+from .step_clock import StepClock
 from .subscriptions import DataSubscriptions, data_keyexprs
 
 log = logging.getLogger(LOGGER_NAME)
@@ -72,7 +74,7 @@ class ServiceCore:
         settings: Settings,
         *,
         store: SpecStore | None = None,
-        now_ns: Callable[[], int] = time.time_ns,
+        now_ns: Callable[[], int] | None = None,
         mono_ns: Callable[[], int] = time.monotonic_ns,
         run_clock_ns: Callable[[], int] | None = None,
         spawn: Callable[[Callable[[], None]], None] | None = None,
@@ -81,6 +83,13 @@ class ServiceCore:
         self.settings = settings
         self.instance = settings.instance
         self.store = store
+        self.counters = Tally()
+        if now_ns is None:
+            now_ns = StepClock(time.time_ns, mono_ns)
+        #: The step clock, if ``now_ns`` is one (host clock steps counted, refusals blamed).
+        self.step_clock = now_ns if isinstance(now_ns, StepClock) else None
+        if self.step_clock is not None:
+            self.step_clock.on_step = self._on_clock_step
         self.now_ns = now_ns
         self.mono_ns = mono_ns
         #: The clock of run_once's time budget (default ``mono_ns``; a test freezes it so
@@ -90,12 +99,12 @@ class ServiceCore:
         set_tables_max_bytes(settings.tables_max_bytes)
         self.wake = threading.Event()
         self.ownership = Ownership(self.instance, settings.shard_tuple)
-        self.counters = Tally()
         self.latency = LatencyWindow(settings.latency_window)
         self.outbox = Outbox(transport, settings, self.counters, self.latency, mono_ns,
                                    now_ns())
         self.dispatch = Dispatch(settings, self.counters, self.outbox, self.ownership,
-                                 self.wake, now_ns)
+                                 self.wake, now_ns, None if self.step_clock is None
+                                 else self.step_clock.stepped_near)
         self.keeper = HandoverKeeper(settings, store, self.ownership, self.counters,
                                   self.outbox)
         self.lifecycle = Lifecycle(transport, settings, store=store, ownership=self.ownership,
@@ -106,6 +115,7 @@ class ServiceCore:
                                self.ownership, self.dispatch.routes, self.lifecycle.specs,
                                now_ns, mono_ns, refuse=self.outbox.refuse,
                                received=self._received)
+        self.queries.step_clock = self.step_clock
         #: The data subscriptions of the owned partitions; they follow the ownership.
         self.subs = DataSubscriptions(transport, self.dispatch.on_sensor_sample,
                                       self.dispatch.on_command_sample, self.wake.set,
@@ -238,6 +248,14 @@ class ServiceCore:
               published=self.counters["published"])
 
     # ================================================================== worker ========
+
+    def _on_clock_step(self, step_ns: int, now_ns: int) -> None:
+        """Any thread: the host's wall clock stepped by ``step_ns``; the step clock follows
+        it (:mod:`.step_clock`: re-anchored, or a small step back caught up at half speed)."""
+        self.counters["clock_steps"] += 1
+        event(log, "clock_step", logging.WARNING, instance=self.instance,
+              step_ms=round(step_ns / 1e6, 3), now_ns=now_ns)
+        self.wake.set()
 
     def _received(self) -> int:
         return self.dispatch.received

@@ -132,7 +132,7 @@ class Daemon:
             core.arm()
             if core.has_work():
                 continue
-            timeout = (core.next_deadline_ns() - time.time_ns()) / 1e9
+            timeout = (core.next_deadline_ns() - core.now_ns()) / 1e9
             if timeout > 0:
                 wake.wait(min(timeout, _MAX_SLEEP_S))
             wake.clear()

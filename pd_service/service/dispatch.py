@@ -54,6 +54,9 @@ READ_BACK_INBOX: Final = 64 * UNKNOWN_INBOX
 
 #: The refusals of a message the session already has.
 _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
+#: Refusals of a stamp against the current step: after a host clock step, blamed on it.
+_STAMP_REASONS: Final = frozenset({"late", "future", "before_epoch", "commands_late",
+                                   "commands_future", "commands_before_epoch"})
 
 
 #: Sessions served per round of a pass: each round's predictions are made while the sessions'
@@ -107,9 +110,12 @@ class Dispatch:
 
     def __init__(self, settings: Settings, counters: Tally, outbox: Outbox,
                  ownership: Ownership, wake: threading.Event,
-                 now_ns: Callable[[], int] = time.time_ns) -> None:
+                 now_ns: Callable[[], int] = time.time_ns,
+                 clock_stepped: Callable[[int], bool] | None = None) -> None:
         self.settings = settings
         self.now_ns = now_ns
+        #: Whether a host clock step explains a stamp refused at a time (ns); None: never.
+        self.clock_stepped = clock_stepped
         self.counters = counters
         self.pub = outbox
         self.ownership = ownership
@@ -389,6 +395,12 @@ class Dispatch:
                 for c in (sess.counters, self.counters):
                     c["live_copy_of_recovered"] += 1
                 return
+            if refusal.reason in _STAMP_REASONS and self.clock_stepped is not None \
+                    and self.clock_stepped(max(now, item[5])):
+                refusal = Refusal("commands_clock_step" if refusal.reason.startswith("commands_")
+                                  else "clock_step", refusal.text + " (the daemon's host clock "
+                                  "stepped just before: its clock and the sender's disagree)",
+                                  refusal.seq)
             self.pub.refuse(sess, item[1], refusal, now)
 
     def _handle_read_back(self, sess: Session, item: Item, now_step: int, now: int) -> None:

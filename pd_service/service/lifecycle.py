@@ -20,7 +20,7 @@ from collections import deque
 from collections.abc import Callable
 from functools import partial
 
-from pd_service.backends import Cost, build
+from pd_service.backends import Cost, build, prior_span
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.ratelimit import TokenBucket
@@ -319,6 +319,10 @@ class Lifecycle:
             if spec.period_ns < min_ns:
                 raise WireError(f"SessionSpec.period_ns: {spec.period_ns} is below this "
                                 f"service's minimum {min_ns} ns")
+            far = prior_span(spec, now)
+            if far is not None:
+                self.counters["epoch_too_old"] += 1
+                raise WireError(far)
             if session not in self.specs and len(self.specs) >= self.settings.max_sessions:
                 raise WireError(f"SessionSpec.session: this service already holds "
                                 f"{self.settings.max_sessions} sessions (max_sessions)")

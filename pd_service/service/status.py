@@ -37,6 +37,7 @@ from .config import Settings
 from .latency import LatencyWindow, percentiles
 from .ownership import Ownership
 from .session import Refusal, Session
+from .step_clock import StepClock
 
 #: ``Outbox.refuse``: the refusal funnel (counted, reported within the error limits).
 Refuse = Callable[..., "ErrorReport | None"]
@@ -153,6 +154,8 @@ class Queries:
         self.routes = routes
         self.specs = specs
         self.now_ns = now_ns
+        #: The core's step clock, if it has one (the host clock steps it re-anchored to).
+        self.step_clock: StepClock | None = None
         self.mono_ns = mono_ns
         self._started_mono = mono_ns()
         #: The refusal funnel (a layout-1 status query's refusal is rate-limited by it).
@@ -193,7 +196,8 @@ class Queries:
                              uptime_s=(self.mono_ns() - self._started_mono) / 1e9,
                              shard=self.settings.shard or "",
                              partitions=self.ownership.partitions, key_layout=keys.KEY_LAYOUT,
-                             owned_partitions=owned)
+                             owned_partitions=owned, clock_stepped_ns=(
+                                 0 if self.step_clock is None else self.step_clock.stepped_ns))
 
     def served_sessions(self) -> list[str]:
         with self.lock:

@@ -974,6 +974,9 @@ class ServiceStatus(Message):
         "1).")
     owned_partitions: NonNegInt = Field(0, description="How many of the P partitions this "
                                         "instance owns now.")
+    clock_stepped_ns: int = Field(
+        0, description="Sum of the host wall-clock steps (ns, signed) the instance's step clock "
+        "followed since it started (counted in ``clock_steps``; 0: none).")
 
 
 #: Every top-level message type, in protocol order.

@@ -317,3 +317,35 @@ def test_nonlinear_spec_replaces_a_linear_session(tmp_path):
     assert col.errors["s1"][-1].reason.startswith("Measurement.sensor: unknown sensor 'camera'")
     assert decode(encode(core._routes["s1"].sess.spec), SessionSpec) == omni_spec("s1")
     core.close()
+
+
+def test_a_nonlinear_spec_with_an_epoch_far_in_the_past_is_refused(tmp_path):
+    """An unscented model would propagate its prior step by step from the epoch: an epoch
+    more than MAX_PRIOR_STEPS steps ago is refused (counted, reported); a linear spec with
+    the same epoch is served (its first prediction is one closed-form jump)."""
+    from pd_service.backends import MAX_PRIOR_STEPS
+
+    from .helpers import paper_spec
+    bus = InMemoryBus()
+    far = (MAX_PRIOR_STEPS + 10) * PERIOD_NS  # the clock; both specs' epoch is 0
+    clock = Clock(far)
+    col = Collector().attach(bus.transport())
+    cli = bus.transport()
+    core = ServiceCore(bus.transport(), Settings(instance="a"), store=SpecStore(tmp_path / "a"),
+                       now_ns=clock, run_clock_ns=lambda: 0, spawn=lambda fn: fn())
+    core.start()
+    cli.put(keys.config_key("u1"), encode(omni_spec("u1")))
+    cli.put(keys.config_key("p1"), encode(paper_spec("p1")))
+    core.run_once()
+    assert core._routes.get("u1") is None or core._routes["u1"].sess is None
+    [err] = col.errors["u1"]
+    assert err.reason.startswith("SessionSpec.epoch_ns:") and str(MAX_PRIOR_STEPS) in err.reason
+    assert core.counters["epoch_too_old"] == 1 and core.counters["config_refused"] == 1
+    clock.t += PERIOD_NS // 2
+    core.run_once()
+    assert col.predictions["p1"] and not col.predictions["u1"]
+    assert core._routes["p1"].sess.est.long_jumps == 1
+    clock.t = MAX_PRIOR_STEPS * PERIOD_NS  # an epoch just inside the bound: served
+    cli.put(keys.config_key("u2"), encode(omni_spec("u2")))
+    core.run_once()
+    assert not col.errors["u2"] and core.counters["epoch_too_old"] == 1
