@@ -43,6 +43,9 @@ STEP_SETTLE_NS: Final = 1_000_000_000
 BACK_SLEW_MAX_NS: Final = 2_000_000_000
 #: The rate at which such a step is caught up (ns of correction per ns): half speed.
 BACK_SLEW: Final = 0.5
+#: How often (ns of monotonic time) a read compares with the wall clock; reads in between
+#: extend the mapping alone (every sample is stamped: the comparison is the costly part).
+CHECK_NS: Final = 1_000_000
 
 
 class StepClock:
@@ -51,9 +54,13 @@ class StepClock:
     def __init__(self, wall_ns: Callable[[], int] = time.time_ns,
                  mono_ns: Callable[[], int] = time.monotonic_ns,
                  bound_ns: int = STEP_BOUND_NS,
-                 on_step: Callable[[int, int], None] | None = None) -> None:
+                 on_step: Callable[[int, int], None] | None = None,
+                 check_ns: int = CHECK_NS) -> None:
+        """``check_ns``: how often (ns of monotonic time) a read compares with the wall
+        clock (0: at every read)."""
         self._wall, self._mono = wall_ns, mono_ns
         self.bound_ns = bound_ns
+        self.check_ns = check_ns
         #: Called (outside the clock's lock) with (step ns, new now ns) at each re-anchor.
         self.on_step = on_step
         self._lock = threading.Lock()
@@ -69,9 +76,25 @@ class StepClock:
         self._step_at, self._step_size = 0, -1
         #: A small backward step is being caught up at half speed.
         self._catching = False
+        #: (anchor wall, anchor mono, mono of the last comparison): one tuple, replaced
+        #: whole, so a read between comparisons needs no lock.
+        self._fast = (self._anchor_wall, self._anchor_mono, self._anchor_mono)
 
     def __call__(self) -> int:
-        mono, wall = self._mono(), self._wall()
+        mono = self._mono()
+        wall0, mono0, checked = self._fast
+        if 0 <= mono - checked < self.check_ns:
+            now = wall0 + (mono - mono0)
+            last = self._last
+            if now < last:
+                return last
+            self._last = now
+            return now
+        return self._compared(mono)
+
+    def _compared(self, mono: int) -> int:
+        """A read that compares with the wall clock (module docstring)."""
+        wall = self._wall()
         step = 0
         with self._lock:
             now = self._anchor_wall + (mono - self._anchor_mono)
@@ -105,6 +128,7 @@ class StepClock:
             if now < self._last and not (step and err == 0):  # a reader saw a later instant
                 now = self._last
             self._last, self._last_mono = now, max(mono, self._last_mono)
+            self._fast = (self._anchor_wall, self._anchor_mono, mono)
         if step and self.on_step is not None:
             self.on_step(step, now)
         return now

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pd_service.service.step_clock import (
     BACK_SLEW,
     BACK_SLEW_MAX_NS,
+    CHECK_NS,
     MAX_SLEW,
     STEP_BOUND_NS,
     STEP_SETTLE_NS,
@@ -24,7 +25,7 @@ class _Host:
 
 def test_steady_clocks_read_the_wall_clock():
     h = _Host()
-    c = StepClock(lambda: h.wall, lambda: h.mono)
+    c = StepClock(lambda: h.wall, lambda: h.mono, check_ns=0)
     for _ in range(10):
         h.tick(7_000_000)
         assert c() == h.wall
@@ -33,7 +34,7 @@ def test_steady_clocks_read_the_wall_clock():
 
 def test_drift_is_slewed_at_a_bounded_rate_and_never_backwards():
     h = _Host()
-    c = StepClock(lambda: h.wall, lambda: h.mono)
+    c = StepClock(lambda: h.wall, lambda: h.mono, check_ns=0)
     last = c()
     for _ in range(2000):
         h.tick(10_000_000, drift=-1e-3)  # the wall clock runs slow by 1000 ppm
@@ -48,7 +49,7 @@ def test_drift_is_slewed_at_a_bounded_rate_and_never_backwards():
 def test_a_step_beyond_the_bound_is_re_anchored_once_and_reported():
     h = _Host()
     seen: list[tuple[int, int]] = []
-    c = StepClock(lambda: h.wall, lambda: h.mono, on_step=lambda s, n: seen.append((s, n)))
+    c = StepClock(lambda: h.wall, lambda: h.mono, check_ns=0, on_step=lambda s, n: seen.append((s, n)))
     c()
     h.tick(1_000_000)
     h.wall -= STEP_BOUND_NS // 2  # within the bound: slewed, not a step
@@ -70,7 +71,7 @@ def test_a_small_step_back_is_caught_up_at_half_speed():
     """1 s back: counted once; the clock runs at half speed (never back, never stopped)
     until it meets the wall clock (2 s), then follows it exactly."""
     h = _Host()
-    c = StepClock(lambda: h.wall, lambda: h.mono)
+    c = StepClock(lambda: h.wall, lambda: h.mono, check_ns=0)
     c()
     h.wall -= 1_000_000_000
     start = c()
@@ -91,8 +92,22 @@ def test_a_small_step_back_is_caught_up_at_half_speed():
 
 def test_a_large_step_back_is_re_anchored():
     h = _Host()
-    c = StepClock(lambda: h.wall, lambda: h.mono)
+    c = StepClock(lambda: h.wall, lambda: h.mono, check_ns=0)
     before = c()
     h.wall -= BACK_SLEW_MAX_NS + 1
     assert c() == h.wall < before  # steps hold in the sessions (Session.step_now)
     assert c.steps == 1
+
+
+def test_reads_between_comparisons_extend_the_mapping_and_a_step_is_seen_within_check_ns():
+    """(The other tests compare at every read, ``check_ns=0``.) By default a read compares
+    with the wall clock once per CHECK_NS of monotonic time: in between it extends the
+    mapping (never backwards), and a step of the wall clock is seen at the next comparison."""
+    h = _Host()
+    c = StepClock(lambda: h.wall, lambda: h.mono)
+    start = c()
+    h.wall += 3_600_000_000_000  # +1 h, seen only at the next comparison
+    h.mono += CHECK_NS // 2
+    assert c() == start + CHECK_NS // 2 and c.steps == 0
+    h.mono += CHECK_NS
+    assert c() == h.wall and c.steps == 1
