@@ -11,7 +11,6 @@ deploy/zenoh/<role>.json5, their connect endpoint overridden.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import socket
 import time
@@ -23,6 +22,7 @@ from typing import TypeVar
 import yaml
 
 from pd_service.transport import ZenohTransport, zenoh_config
+from tests.scripts import load_script
 
 REPO = Path(__file__).resolve().parents[2]
 DEPLOY = REPO / "deploy"
@@ -109,12 +109,7 @@ def load_healthcheck() -> ModuleType:
 
 def load_deploy_script(name: str) -> ModuleType:
     """A script of deploy/ (healthcheck.py, make_acl.py) as a module."""
-    spec = importlib.util.spec_from_file_location(f"pd_deploy_{name.removesuffix('.py')}",
-                                                  DEPLOY / name)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(f"deploy/{name}", f"pd_deploy_{name.removesuffix('.py')}")
 
 
 def zenohd_args(argv: list[str]) -> argparse.Namespace:

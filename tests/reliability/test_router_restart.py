@@ -7,23 +7,15 @@ prior, no prediction twice, every declaration back."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from pd_service.scenarios.paper import paper_prior
-
-_PATH = Path(__file__).resolve().parents[2] / "bench" / "faults.py"
+from tests.scripts import load_script
 
 
 def _faults():
-    spec = importlib.util.spec_from_file_location("bench_faults", _PATH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("bench/faults.py", "bench_faults")
 
 
 @pytest.mark.parametrize("link", [False, True], ids=["direct", "through-pd-link"])

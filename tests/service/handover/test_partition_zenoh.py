@@ -14,22 +14,16 @@ Run alone with ``pytest tests/service/handover/test_partition_zenoh.py -m integr
 from __future__ import annotations
 
 import argparse
-import importlib.util
-from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.integration
+from tests.scripts import load_script
 
-BENCH = Path(__file__).resolve().parents[3] / "bench" / "partition.py"
+pytestmark = pytest.mark.integration
 
 
 def load_bench():
-    spec = importlib.util.spec_from_file_location("bench_partition", BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("bench/partition.py", "bench_partition")
 
 
 def test_a_partition_and_its_heal_show_one_owner_per_session_and_keep_the_estimate():
