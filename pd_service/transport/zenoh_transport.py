@@ -270,6 +270,21 @@ def _deliver(cb: Callable[[Sample], None], keyexpr: str, s: zenoh.Sample, now: i
         log.exception("subscriber callback failed for %s", keyexpr)
 
 
+def _collect_replies(start: Callable[[zenoh.handlers.Callback], object],
+                     timeout: float) -> list[zenoh.Reply]:
+    """The replies of one get, collected by a callback rather than Zenoh's default channel.
+
+    Zenoh answers a get from the caller's own session (its tokens, its queryables) in the
+    calling thread; with the default bounded channel more than its capacity (256) of such
+    replies block that thread on a channel only it would drain. ``timeout`` in seconds.
+    """
+    out: list[zenoh.Reply] = []
+    done = threading.Event()
+    start(zenoh.handlers.Callback(out.append, done.set))
+    done.wait(timeout + 1.0)  # Zenoh ends the get at its own timeout; the margin is slack
+    return list(out)
+
+
 class _DeclaredKeys:
     """Key expressions declared with ``Session.declare_keyexpr`` (see
     :meth:`Transport.declare_keys`); :meth:`close` undeclares them."""
@@ -493,7 +508,9 @@ class ZenohTransport(HandleOwner):
         handle = self._keep(self.session.liveliness().declare_subscriber(
             caches, on_token, history=False))
         present = [key for key in dict.fromkeys(
-            str(r.ok.key_expr) for r in self.session.liveliness().get(caches, timeout=timeout)
+            str(r.ok.key_expr) for r in _collect_replies(
+                lambda h: self.session.liveliness().get(caches, handler=h, timeout=timeout),
+                timeout)
             if r.ok is not None) if first_read(key)]
         left = [len(present)]
         done = threading.Condition()
@@ -528,7 +545,9 @@ class ZenohTransport(HandleOwner):
         kwargs: dict = {"timeout": timeout}
         if payload is not None:
             kwargs["payload"] = payload
-        for r in self.session.get(selector, **kwargs):
+        replies = _collect_replies(lambda h: self.session.get(selector, handler=h, **kwargs),
+                                   timeout)
+        for r in replies:
             if r.ok is not None:
                 out.append(Reply(str(r.ok.key_expr), r.ok.payload.to_bytes(), True))
             else:
@@ -550,8 +569,9 @@ class ZenohTransport(HandleOwner):
             self.session.liveliness().declare_subscriber(keyexpr, on_sample, history=history))
 
     def get_liveliness(self, keyexpr: str, timeout: float = 1.0) -> list[str]:
-        return [str(r.ok.key_expr) for r in self.session.liveliness().get(keyexpr, timeout=timeout)
-                if r.ok is not None]
+        replies = _collect_replies(
+            lambda h: self.session.liveliness().get(keyexpr, handler=h, timeout=timeout), timeout)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
 
     def session_id(self) -> str:
         return str(self.session.zid())

@@ -350,3 +350,30 @@ def test_zenoh_cache_appearing_while_recover_starts_is_read_once() -> None:
         watch.close()
         c.close()
         b.close()
+
+
+def test_zenoh_gets_answered_by_the_own_session_beyond_a_channel_capacity() -> None:
+    """More than 256 of a get's replies from the caller's own session (its tokens, its
+    queryables) all arrive: Zenoh answers those in the calling thread, which a bounded
+    channel would block for good."""
+    n = 600
+    result: dict[str, int] = {}
+    with ZenohTransport(zenoh_config(listen=[f"tcp/127.0.0.1:{free_port()}"])) as t:
+        for i in range(n):
+            t.declare_token(f"pd/@test/tok{i}")
+
+        def answer(q) -> None:  # one queryable, one reply per key (as a router's admin space)
+            for i in range(n):
+                q.reply(f"pd/test/q{i}", b"x")
+
+        t.queryable("pd/test/**", answer)
+
+        def run() -> None:
+            result["tokens"] = len(t.get_liveliness("pd/@test/*", timeout=2.0))
+            result["replies"] = len(t.get("pd/test/*", timeout=2.0))
+
+        worker = threading.Thread(target=run, daemon=True)
+        worker.start()
+        worker.join(30.0)  # a bound on a hang, not a timing assertion: the gets end by 2 s
+        assert not worker.is_alive(), "a get blocked on its own replies"
+    assert result == {"tokens": n, "replies": n}
