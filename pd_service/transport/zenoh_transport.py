@@ -550,7 +550,7 @@ class ZenohTransport(HandleOwner):
         for r in replies:
             if r.ok is not None:
                 out.append(Reply(str(r.ok.key_expr), r.ok.payload.to_bytes(), True))
-            else:
+            elif r.err is not None:
                 out.append(Reply(selector, r.err.payload.to_bytes(), False))
         return out
 
