@@ -220,6 +220,8 @@ class Traffic:
             if smp.arrival is not None and smp.arrival < steps:
                 self.arrivals[smp.arrival].append((smp.sensor, smp.arrival - smp.step, smp.z))
         t.subscribe(keys.ALL_PREDICTIONS, self._on)
+        from pd_client import Admin
+        self.admin = Admin(t)
         self._keys, self._encode = keys, encode
         for s in sessions:
             self.add(s, Robot, Operator)
@@ -228,7 +230,9 @@ class Traffic:
         if Robot is None:
             from pd_client import Operator, Robot
         spec = self.scenario.spec(s, self.epoch)
-        self.t.put(self._keys.config_key(s), self._encode(spec))
+        # as docs/clients.md creates a session: acknowledged, re-put while rate-limited (a
+        # burst of bare puts beyond config_burst_total is refused, config_rate_limited)
+        self.admin.open_session(spec, exist_ok=True, serve_spec=False, timeout=30.0)
         self.robots[s] = Robot(self.t, s, spec=spec, direct=self.direct)
         self.ops[s] = Operator(self.t, s, spec=spec)
 
