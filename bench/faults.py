@@ -22,7 +22,9 @@ Prediction (step, seq, trace P). Modes:
 * ``soak``: ``--sessions`` sessions at ``--rate`` Hz (each a ranger sample per step) with
   one session created and one deleted per second, for ``--minutes``; printed each
   ``--every`` s: the daemon's RSS and open file descriptors (from /proc), its p99 latency
-  (ServiceStatus), the router's declarations, predictions received.
+  (ServiceStatus), the router's declarations, predictions received, the samples accepted
+  and refused as late (a soak whose samples are refused measures nothing) and the steps
+  the feeding thread skipped because it fell behind.
 
 The last line is one JSON object. Quote ``bench/gauge.py`` beside any figure.
 
@@ -194,7 +196,7 @@ class Traffic:
     and every Prediction recorded as (receipt monotonic ns, step, seq, trace P)."""
 
     def __init__(self, t, sessions: list[str], epoch_ns: int, steps: int = 2_000,
-                 direct: bool = True) -> None:
+                 direct: bool = True, record: bool | None = True) -> None:
         from pd_client import Operator, Robot
         from pd_service.scenarios.paper import paper_command, paper_scenario
         from pd_service.wire import Prediction, decode, encode, keys
@@ -211,6 +213,8 @@ class Traffic:
         self.steps = steps
         self.direct = direct
         self.send_errors = 0
+        #: steps fed, and steps skipped because the feeding thread fell a step behind
+        self.steps_sent = self.steps_skipped = 0
         self.last_error = ""
         from pd_service.scenarios.paper import simulate_paper
         run = simulate_paper(steps, np.random.default_rng(1), loss=0.0)
@@ -219,7 +223,11 @@ class Traffic:
         for smp in run.samples:
             if smp.arrival is not None and smp.arrival < steps:
                 self.arrivals[smp.arrival].append((smp.sensor, smp.arrival - smp.step, smp.z))
-        t.subscribe(keys.ALL_PREDICTIONS, self._on)
+        #: predictions received; each decoded into ``preds`` only with ``record`` (decoding
+        #: 10,000 a second takes the GIL from the feeding thread: the soak only counts them)
+        self.received = 0
+        if record is not None:  # None: a feeder only, predictions not received at all
+            t.subscribe(keys.ALL_PREDICTIONS, self._on if record else self._count)
         from pd_client import Admin
         self.admin = Admin(t)
         self._keys, self._encode = keys, encode
@@ -241,9 +249,13 @@ class Traffic:
         self.ops.pop(s).close()  # type: ignore[attr-defined]
         self.t.delete(self._keys.config_key(s))
 
+    def _count(self, sample) -> None:
+        self.received += 1  # one subscriber callback thread: no lock needed
+
     def _on(self, sample) -> None:
         p = self._decode(sample.payload, self._Prediction)
         with self.lock:
+            self.received += 1
             self.preds[p.session].append((time.monotonic_ns(), p.step, p.seq,
                                           float(np.trace(p.P)), p.counters.get("accepted", 0)))
 
@@ -255,6 +267,12 @@ class Traffic:
         while not self.stop.is_set():
             k += 1
             due = self.epoch + k * period
+            behind = (time.time_ns() - due) // period
+            if behind > 0:  # this thread fell behind (CPU): on to the current step, counted
+                self.steps_skipped += behind
+                k += behind
+                due += behind * period
+            self.steps_sent += 1
             dt = (due - time.time_ns()) / 1e9
             if dt > 0:
                 time.sleep(dt)
@@ -296,17 +314,17 @@ def _client(endpoint: str, daemon: Daemon):
 
 @contextlib.contextmanager
 def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None,
-        link: bool = False) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
+        link: bool = False, record: bool = True) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
     """A router, the daemon behind it, this process's client and the traffic of
     ``sessions`` (fed at ``rate_hz`` on a thread; ``link``: the robots' samples through a
-    pd-link process); all stopped at the end."""
+    pd-link process; ``record``: see :class:`Traffic`); all stopped at the end."""
     tmp = Path(tempfile.mkdtemp(prefix="pd-faults-", dir=root))
     router = Router(free_port())
     router.start()
     daemon = Daemon(router.endpoint, tmp / "state")
     relay = Link(router.endpoint, tmp) if link else None
     t = _client(router.endpoint, daemon)
-    traffic = Traffic(t, sessions, time.time_ns() - 10**9, direct=not link)
+    traffic = Traffic(t, sessions, time.time_ns() - 10**9, direct=not link, record=record)
     feeder = threading.Thread(target=traffic.run, args=(rate_hz,), daemon=True)
     try:
         feeder.start()
@@ -422,36 +440,118 @@ def clock_steps(steps_ns=(1_000_000_000, -1_000_000_000, 3_600_000_000_000)) -> 
     return {"mode": "clock", "rows": rows}
 
 
-def soak(sessions: int, rate_hz: float, minutes: float, every_s: float,
+#: Sessions of the soak's churn alive at once: each lives this many seconds (one created and
+#: one deleted per second); the others are fed by feeder processes for the whole run.
+CHURN_LIVE = 20
+
+
+class Feeders:
+    """``n`` processes (``faults.py feed``), each a client of the router feeding its share of
+    the sessions ``s<first>..`` as the SDK's senders (one Python process's GIL cannot feed
+    500 sessions at 20 Hz); each writes its counters to a JSON file every 2 s."""
+
+    def __init__(self, endpoint: str, tmp: Path, epoch_ns: int, rate_hz: float, first: int,
+                 count: int, n: int) -> None:
+        self.stats = [tmp / f"feed{i}.json" for i in range(n)]
+        bounds = [first + count * i // n for i in range(n + 1)]
+        self.procs = [subprocess.Popen(
+            [sys.executable, __file__, "feed", endpoint, str(epoch_ns), str(rate_hz),
+             str(bounds[i]), str(bounds[i + 1] - bounds[i]), str(self.stats[i])],
+            stdout=subprocess.DEVNULL, stderr=open(tmp / f"feed{i}.log", "ab"))
+            for i in range(n)]
+
+    def counters(self) -> dict[str, int]:
+        out = {"steps": 0, "skipped": 0, "send_errors": 0}
+        for path in self.stats:
+            with contextlib.suppress(OSError, ValueError):
+                for k, v in json.loads(path.read_text()).items():
+                    out[k] += v
+        return out
+
+    def stop(self) -> None:
+        for p in self.procs:
+            p.send_signal(signal.SIGTERM)
+        for p in self.procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def feed(endpoint: str, epoch_ns: int, rate_hz: float, first: int, count: int,
+         stats: Path) -> None:
+    """The ``feed`` mode: one feeder process of :class:`Feeders`, until SIGTERM."""
+    from pd_service.transport import ZenohTransport, zenoh_config
+    t = ZenohTransport(zenoh_config(mode="client", connect=[endpoint], multicast=False))
+    traffic = Traffic(t, [f"s{i}" for i in range(first, first + count)], epoch_ns, record=None)
+    signal.signal(signal.SIGTERM, lambda *_: traffic.stop.set())
+
+    def report() -> None:
+        while not traffic.stop.wait(2.0):
+            tmp = stats.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"steps": traffic.steps_sent,
+                                       "skipped": traffic.steps_skipped,
+                                       "send_errors": traffic.send_errors}))
+            tmp.replace(stats)
+
+    threading.Thread(target=report, daemon=True).start()
+    try:
+        traffic.run(rate_hz)
+    finally:
+        t.close()
+
+
+def soak(sessions: int, rate_hz: float, minutes: float, every_s: float, feeders: int = 2,
          root: Path | None = None) -> dict:
     """The ``soak`` mode (module docstring); returns its samples."""
     samples = []
+    churn = min(CHURN_LIVE, sessions)
     next_id = sessions
-    with rig([f"s{i}" for i in range(sessions)], rate_hz, root) as (_, daemon, t, traffic):
-        t0 = time.monotonic()
-        next_print = t0 + every_s
-        while time.monotonic() - t0 < minutes * 60:
-            time.sleep(1.0)
-            traffic.add(f"s{next_id}")  # churn: one created, one deleted per second
-            traffic.remove(sorted(traffic.robots, key=lambda n: int(n[1:]))[0])
-            next_id += 1
-            if time.monotonic() >= next_print:
-                next_print += every_s
-                st = service_status(t, daemon.instance)
-                dec = declarations(t)
-                with traffic.lock:
-                    received = sum(len(v) for v in traffic.preds.values())
-                row = {"t_s": round(time.monotonic() - t0, 1), "rss_mb": round(daemon.rss_mb(), 1),
-                       "fds": daemon.fds(),
-                       "p99_us": None if st is None else round(st.latency_p99_us, 1),
-                       "sessions_served": None if st is None else len(st.sessions),
-                       "subscribers": len(dec["subscriber"]), "queryables": len(dec["queryable"]),
-                       "tokens": len(dec["token"]), "predictions": received,
-                       "send_errors": traffic.send_errors}
-                samples.append(row)
-                print("  ".join(f"{k}={v}" for k, v in row.items()), flush=True)
+    with rig([f"s{i}" for i in range(sessions - churn, sessions)], rate_hz, root,
+             record=False) as (router, daemon, t, traffic):
+        feed_procs = Feeders(router.endpoint, daemon.log_path.parent, traffic.epoch, rate_hz,
+                             0, sessions - churn, feeders)
+        try:
+            # the feeders open theirs at config_rate_total
+            if not _wait(lambda: len(getattr(service_status(t, daemon.instance), "sessions",
+                                              ())) >= sessions, 180.0):
+                raise RuntimeError(f"the daemon does not serve {sessions} sessions")
+            _soak_rows(daemon, t, traffic, feed_procs, minutes, every_s, samples, next_id)
+        finally:
+            feed_procs.stop()
     return {"mode": "soak", "sessions": sessions, "rate_hz": rate_hz, "minutes": minutes,
-            "summary": soak_summary(samples), "samples": samples}
+            "feeders": feeders, "summary": soak_summary(samples), "samples": samples}
+
+
+def _soak_rows(daemon, t, traffic, feed_procs: Feeders, minutes: float, every_s: float,
+               samples: list[dict], next_id: int) -> None:
+    """The soak's loop: the churn each second, a row every ``every_s`` s."""
+    t0 = time.monotonic()
+    next_print = t0 + every_s
+    while time.monotonic() - t0 < minutes * 60:
+        time.sleep(1.0)
+        traffic.add(f"s{next_id}")  # churn: one created, one deleted per second
+        traffic.remove(sorted(traffic.robots, key=lambda n: int(n[1:]))[0])  # oldest
+        next_id += 1
+        if time.monotonic() >= next_print:
+            next_print += every_s
+            st = service_status(t, daemon.instance)
+            dec = declarations(t)
+            received = traffic.received
+            fed = feed_procs.counters()
+            row = {"t_s": round(time.monotonic() - t0, 1), "rss_mb": round(daemon.rss_mb(), 1),
+                   "fds": daemon.fds(),
+                   "p99_us": None if st is None else round(st.latency_p99_us, 1),
+                   "sessions_served": None if st is None else len(st.sessions),
+                   "subscribers": len(dec["subscriber"]), "queryables": len(dec["queryable"]),
+                   "tokens": len(dec["token"]), "predictions": received,
+                   "send_errors": traffic.send_errors + fed["send_errors"],
+                   "accepted": None if st is None else st.counters.get("accepted", 0),
+                   "late_total": None if st is None else st.counters.get("late_total", 0),
+                   "feed_steps": traffic.steps_sent + fed["steps"],
+                   "feed_skipped": traffic.steps_skipped + fed["skipped"]}
+            samples.append(row)
+            print("  ".join(f"{k}={v}" for k, v in row.items()), flush=True)
 
 
 def soak_summary(samples: list[dict]) -> dict:
@@ -466,7 +566,12 @@ def soak_summary(samples: list[dict]) -> dict:
     first = [r["p99_us"] for r in samples if r["t_s"] <= span and r["p99_us"] is not None]
     last = [r["p99_us"] for r in samples if r["t_s"] >= end - span and r["p99_us"] is not None]
     ratio = (statistics.median(last) / statistics.median(first)) if first and last else None
+    last_row = samples[-1]
+    fed = (last_row["accepted"] or 0) + (last_row["late_total"] or 0)
     return {"rss_growth_mb": round(max(settled) - settled[0], 1) if settled else None,
+            "late_share": round((last_row["late_total"] or 0) / fed, 4) if fed else None,
+            "feed_skipped_share": round(last_row["feed_skipped"] / max(
+                1, last_row["feed_skipped"] + last_row["feed_steps"]), 4),
             "p99_last_over_first": None if ratio is None else round(ratio, 2),
             **{f"{k}_range": [min(r[k] for r in samples), max(r[k] for r in samples)]
                for k in ("fds", "subscribers", "queryables", "tokens")}}
@@ -488,11 +593,20 @@ def main() -> None:
     s.add_argument("--rate", type=float, default=20.0)
     s.add_argument("--minutes", type=float, default=60.0)
     s.add_argument("--every", type=float, default=60.0)
+    s.add_argument("--feeders", type=int, default=2,
+                   help="processes feeding all but the churning sessions")
+    f = sub.add_parser("feed")
+    for name, typ in (("endpoint", str), ("epoch_ns", int), ("rate", float), ("first", int),
+                      ("count", int), ("stats", Path)):
+        f.add_argument(name, type=typ)
     sr = sub.add_parser("serve-router")
     sr.add_argument("port", type=int)
     a = ap.parse_args()
     if a.mode == "serve-router":
         serve_router(a.port)
+        return
+    if a.mode == "feed":
+        feed(a.endpoint, a.epoch_ns, a.rate, a.first, a.count, a.stats)
         return
     if a.mode == "router":
         out = router_restart(a.sessions, a.down, a.before, a.after, link=a.link)
@@ -511,7 +625,7 @@ def main() -> None:
         for row in out["rows"]:
             print("  ".join(f"{k}={v}" for k, v in row.items()))
     else:
-        out = soak(a.sessions, a.rate, a.minutes, a.every)
+        out = soak(a.sessions, a.rate, a.minutes, a.every, a.feeders)
         print("summary", out["summary"])
     print(json.dumps(out))
 
