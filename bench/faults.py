@@ -22,7 +22,7 @@ Prediction (step, seq, trace P). Modes:
 * ``soak``: ``--sessions`` sessions at ``--rate`` Hz (each a ranger sample per step) with
   one session created and one deleted per second, for ``--minutes``; printed each
   ``--every`` s: the daemon's RSS and open file descriptors (from /proc), its p99 latency
-  (ServiceStatus), the router's declarations, predictions received, the samples accepted
+  (ServiceStatus), the router's declarations, predictions published, the samples accepted
   and refused as late (a soak whose samples are refused measures nothing) and the steps
   the feeding thread skipped because it fell behind.
 
@@ -314,7 +314,7 @@ def _client(endpoint: str, daemon: Daemon):
 
 @contextlib.contextmanager
 def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None,
-        link: bool = False, record: bool = True) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
+        link: bool = False, record: bool | None = True) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
     """A router, the daemon behind it, this process's client and the traffic of
     ``sessions`` (fed at ``rate_hz`` on a thread; ``link``: the robots' samples through a
     pd-link process; ``record``: see :class:`Traffic`); all stopped at the end."""
@@ -507,8 +507,10 @@ def soak(sessions: int, rate_hz: float, minutes: float, every_s: float, feeders:
     samples = []
     churn = min(CHURN_LIVE, sessions)
     next_id = sessions
+    # record=None: this process receives no prediction (the daemon counts those it published);
+    # a client slow to take 10,000 a second had its config answers dropped by the router
     with rig([f"s{i}" for i in range(sessions - churn, sessions)], rate_hz, root,
-             record=False) as (router, daemon, t, traffic):
+             record=None) as (router, daemon, t, traffic):
         feed_procs = Feeders(router.endpoint, daemon.log_path.parent, traffic.epoch, rate_hz,
                              0, sessions - churn, feeders)
         try:
@@ -537,14 +539,14 @@ def _soak_rows(daemon, t, traffic, feed_procs: Feeders, minutes: float, every_s:
             next_print += every_s
             st = service_status(t, daemon.instance)
             dec = declarations(t)
-            received = traffic.received
             fed = feed_procs.counters()
             row = {"t_s": round(time.monotonic() - t0, 1), "rss_mb": round(daemon.rss_mb(), 1),
                    "fds": daemon.fds(),
                    "p99_us": None if st is None else round(st.latency_p99_us, 1),
                    "sessions_served": None if st is None else len(st.sessions),
                    "subscribers": len(dec["subscriber"]), "queryables": len(dec["queryable"]),
-                   "tokens": len(dec["token"]), "predictions": received,
+                   "tokens": len(dec["token"]),
+                   "published": None if st is None else st.counters.get("published", 0),
                    "send_errors": traffic.send_errors + fed["send_errors"],
                    "accepted": None if st is None else st.counters.get("accepted", 0),
                    "late_total": None if st is None else st.counters.get("late_total", 0),

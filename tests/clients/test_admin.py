@@ -128,6 +128,30 @@ def test_a_change_the_rate_limits_refused_is_sent_again(bus, spec):
     assert seen == ["put", "put", "put", "delete", "delete"]
 
 
+def test_a_spec_put_whose_answer_was_lost_is_put_again(bus, spec, monkeypatch):
+    """The service's first answer never reaches the client (a router drops it toward a
+    congested client): the spec is put again after a silence and the second answer counts;
+    without it replace_session would fail though the session runs."""
+    import pd_client.admin as admin_module
+    monkeypatch.setattr(admin_module, "_RESEND_SILENT_S", 0.1, raising=False)
+    svc = bus.transport()
+    seen: list[str] = []
+
+    def serve(sample):
+        s = keys.parse_key(sample.key).session
+        seen.append(sample.kind)
+        if len(seen) == 1:
+            return  # created, but the answer is lost
+        svc.put(keys.status_key(s), encode(SessionStatus(
+            session=s, instance="i", state="active", now_step=0, published=0,
+            latency_p50_us=0.0, latency_p99_us=0.0, detail="unchanged (same spec)")))
+
+    svc.subscribe(keys.ALL_CONFIGS, serve)
+    with Admin(bus.transport()) as admin:
+        assert admin.replace_session(spec, timeout=5).state == "active"
+    assert seen == ["put", "put"]
+
+
 def test_a_service_that_listens_but_never_answers_is_an_access_refusal(bus, spec):
     """Something subscribes to the config key (a service, seen through the router) but no
     answer comes back: what a router's access control does to a user it refuses."""

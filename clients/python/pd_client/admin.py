@@ -46,6 +46,10 @@ log = logging.getLogger("pd_client.admin")
 _POLL_S = 0.25
 #: First and longest pause before a change the service's rate limits refused is sent again (s).
 _RETRY_FIRST_S, _RETRY_MAX_S = 0.05, 1.0
+#: A spec put with no answer for this long is put again (s): the answer can be lost on its
+#: way (a router drops it toward a congested client); a spec put twice is answered again
+#: ("unchanged (same spec)").
+_RESEND_SILENT_S = 2.0
 
 
 def _instance_of(token_key: str) -> str:
@@ -171,7 +175,7 @@ class Admin(ClientBase):
 
             st = self._answer(ack, lambda: self.transport.put(key, payload), timeout,
                               f"no acknowledgement for session {spec.session!r}",
-                              appeared if poll else None)
+                              appeared if poll else None, resend_silent=True)
             if ack.refused is not None:
                 self._unserve(spec.session)
                 raise SessionRefused(spec.session, ack.refused)
@@ -202,27 +206,35 @@ class Admin(ClientBase):
                 ack.close()
 
     def _answer(self, ack: _Ack, send: Callable[[], None], timeout: float, what: str,
-                poll: Callable[[], SessionStatus | None] | None = None
-                ) -> SessionStatus | None:
+                poll: Callable[[], SessionStatus | None] | None = None,
+                resend_silent: bool = False) -> SessionStatus | None:
         """Wait up to ``timeout`` s for the service's answer to the config change ``send``
         made (``ack``; ``poll``, if given, may find it too): the acknowledging status, or
         None when refused (``ack.refused``). A change the config rate limits refused is
-        sent again after a growing pause. Raises AccessDenied or Timeout without answer."""
+        sent again after a growing pause; with ``resend_silent`` (an idempotent change) also
+        one unanswered for ``_RESEND_SILENT_S``. Raises AccessDenied or Timeout without
+        answer."""
         deadline = time.monotonic() + timeout
         pause = _RETRY_FIRST_S
+        sent = time.monotonic()
         while True:
             while not ack.event.wait(min(_POLL_S, max(0.0, deadline - time.monotonic()))):
                 st = poll() if poll is not None else None
                 if st is not None:
                     return st
-                if time.monotonic() >= deadline:
+                now = time.monotonic()
+                if now >= deadline:
                     raise self._silent(ack.session, f"{what} within {timeout} s")
+                if resend_silent and now - sent >= _RESEND_SILENT_S:
+                    sent = now
+                    send()
             if not (ack.rate_limited() and time.monotonic() + pause < deadline):
                 return ack.status
             # refused unread by the service's config rate: send it again, a bit later
             time.sleep(pause)
             pause = min(2 * pause, _RETRY_MAX_S)
             ack.rearm()
+            sent = time.monotonic()
             send()
 
     def _silent(self, session: str, what: str) -> PdClientError:
