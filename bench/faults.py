@@ -196,7 +196,7 @@ class Traffic:
     and every Prediction recorded as (receipt monotonic ns, step, seq, trace P)."""
 
     def __init__(self, t, sessions: list[str], epoch_ns: int, steps: int = 2_000,
-                 direct: bool = True, record: bool | None = True) -> None:
+                 direct: bool = True, record: bool = True) -> None:
         from pd_client import Operator, Robot
         from pd_service.scenarios.paper import paper_command, paper_scenario
         from pd_service.wire import Prediction, decode, encode, keys
@@ -223,11 +223,8 @@ class Traffic:
         for smp in run.samples:
             if smp.arrival is not None and smp.arrival < steps:
                 self.arrivals[smp.arrival].append((smp.sensor, smp.arrival - smp.step, smp.z))
-        #: predictions received; each decoded into ``preds`` only with ``record`` (decoding
-        #: 10,000 a second takes the GIL from the feeding thread: the soak only counts them)
-        self.received = 0
-        if record is not None:  # None: a feeder only, predictions not received at all
-            t.subscribe(keys.ALL_PREDICTIONS, self._on if record else self._count)
+        if record:  # else a feeder only (10,000 decodes a second would take its GIL)
+            t.subscribe(keys.ALL_PREDICTIONS, self._on)
         from pd_client import Admin
         self.admin = Admin(t)
         self._keys, self._encode = keys, encode
@@ -249,13 +246,9 @@ class Traffic:
         self.ops.pop(s).close()  # type: ignore[attr-defined]
         self.t.delete(self._keys.config_key(s))
 
-    def _count(self, sample) -> None:
-        self.received += 1  # one subscriber callback thread: no lock needed
-
     def _on(self, sample) -> None:
         p = self._decode(sample.payload, self._Prediction)
         with self.lock:
-            self.received += 1
             self.preds[p.session].append((time.monotonic_ns(), p.step, p.seq,
                                           float(np.trace(p.P)), p.counters.get("accepted", 0)))
 
@@ -314,7 +307,7 @@ def _client(endpoint: str, daemon: Daemon):
 
 @contextlib.contextmanager
 def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None,
-        link: bool = False, record: bool | None = True) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
+        link: bool = False, record: bool = True) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
     """A router, the daemon behind it, this process's client and the traffic of
     ``sessions`` (fed at ``rate_hz`` on a thread; ``link``: the robots' samples through a
     pd-link process; ``record``: see :class:`Traffic`); all stopped at the end."""
@@ -483,7 +476,7 @@ def feed(endpoint: str, epoch_ns: int, rate_hz: float, first: int, count: int,
     """The ``feed`` mode: one feeder process of :class:`Feeders`, until SIGTERM."""
     from pd_service.transport import ZenohTransport, zenoh_config
     t = ZenohTransport(zenoh_config(mode="client", connect=[endpoint], multicast=False))
-    traffic = Traffic(t, [f"s{i}" for i in range(first, first + count)], epoch_ns, record=None)
+    traffic = Traffic(t, [f"s{i}" for i in range(first, first + count)], epoch_ns, record=False)
     signal.signal(signal.SIGTERM, lambda *_: traffic.stop.set())
 
     def report() -> None:
@@ -507,10 +500,10 @@ def soak(sessions: int, rate_hz: float, minutes: float, every_s: float, feeders:
     samples = []
     churn = min(CHURN_LIVE, sessions)
     next_id = sessions
-    # record=None: this process receives no prediction (the daemon counts those it published);
+    # record=False: this process receives no prediction (the daemon counts those it published);
     # a client slow to take 10,000 a second had its config answers dropped by the router
     with rig([f"s{i}" for i in range(sessions - churn, sessions)], rate_hz, root,
-             record=None) as (router, daemon, t, traffic):
+             record=False) as (router, daemon, t, traffic):
         feed_procs = Feeders(router.endpoint, daemon.log_path.parent, traffic.epoch, rate_hz,
                              0, sessions - churn, feeders)
         try:
