@@ -30,9 +30,21 @@ def outline(x: float, y: float, yaw: float) -> np.ndarray:
     return FOOTPRINT @ np.array([[c, s], [-s, c]]) + [x, y]
 
 
-def outline_px(frame: CameraFrame, x: float, y: float, yaw: float) -> list[list[float]]:
-    """The footprint at (x, y, yaw) in ``frame``'s pixels (its capture-time view): the ghost."""
-    return [list(frame.pixel(float(u), float(v))) for u, v in outline(x, y, yaw)]
+def ellipse_points(mean: tuple[float, float], cov: np.ndarray, k: float = 2.0,
+                   segments: int = 48) -> list[tuple[float, float]]:
+    """The k-sigma ellipse {m + k L (cos t, sin t)} of a 2x2 covariance (L: its Cholesky-like
+    square root from the eigendecomposition, negative eigenvalues clipped to 0)."""
+    w, v = np.linalg.eigh((cov + cov.T) / 2.0)
+    L = v @ np.diag(np.sqrt(np.maximum(w, 0.0)))
+    t = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
+    pts = np.asarray(mean)[:, None] + k * L @ np.vstack([np.cos(t), np.sin(t)])
+    return [(float(a), float(b)) for a, b in pts.T]
+
+
+def outline_px(frame: CameraFrame, x: float, y: float, yaw: float) -> list[list[float]] | None:
+    """The footprint at (x, y, yaw) in ``frame``'s pixels (its capture-time view): the ghost;
+    None when a corner has no pixel (behind a perspective camera)."""
+    return frame.project(outline(x, y, yaw))
 
 
 def render(session: str, seq: int, t_ns: int, x: float, y: float, yaw: float, *,
