@@ -257,4 +257,4 @@ def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path
                                    outline_px(f, p.x[0], p.x[1], p.x[2]), rtol=0, atol=1e-9)
         assert len(ellipse.points) == 48
         np.testing.assert_allclose([(q.x, q.y) for q in path_line.points],
-                                   [f.pixel(r[0], r[1]) for r in paths[seq].X], rtol=0, atol=1e-9)
+                                   f.project(paths[seq].X[:, :2]), rtol=0, atol=1e-9)

@@ -436,12 +436,12 @@ def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path) -> None:
         # the newest prediction when the frame arrived (at step 36): of step 36 + lead
         assert int(d["ghostK"]) == p.step == 36 + spec.lead
         assert json.loads(d["ghostPose"]) == [p.x[0], p.x[1], p.x[2]]
-        want = [list(frame.pixel(u, v)) for u, v in outline(p.x[0], p.x[1], p.x[2])]
+        want = frame.project(outline(p.x[0], p.x[1], p.x[2]))
         np.testing.assert_allclose(json.loads(d["ghostPx"]), want, rtol=0, atol=1e-9)
         path = paths[p.seq]
         assert path.steps[-1] == p.step
         np.testing.assert_allclose(json.loads(d["pathPx"]),
-                                   [frame.pixel(r[0], r[1]) for r in path.X], rtol=0, atol=1e-9)
+                                   frame.project(path.X[:, :2]), rtol=0, atol=1e-9)
         assert browser.find_element("id", "video").is_displayed()
         OUT.mkdir(parents=True, exist_ok=True)
         browser.execute_script("document.getElementById('video-box').scrollIntoView()")
