@@ -103,10 +103,10 @@ from pd_service.wire import (
 )
 from pd_service.wire import decode as wire_decode
 from pd_service.wire import encode as wire_encode
+from pd_service.wire.camera import CameraFrame
 from pd_service.wire.codec import validation_reason
 from pd_service.wire.fence import TermFence
 from pd_service.wire.path import PredictedPath
-from pd_service.wire.camera import CameraFrame
 from pd_service.wire.pinhole import PinholeView
 from pd_service.wire.ros2 import (
     CameraBinding,

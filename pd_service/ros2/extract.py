@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,7 +78,7 @@ from pd_service.ros2.messages import (
     stamp_ns,
 )
 from pd_service.wire.camera import MAX_IMAGE_BYTES
-from pd_service.wire.pinhole import DISTORTION_SIZES
+from pd_service.wire.pinhole import DISTORTION_SIZES, DistortionModel
 from pd_service.wire.ros2 import FieldName, StateLayout, TopicBinding
 
 FloatArray = NDArray[np.float64]
@@ -295,7 +295,7 @@ class Calibration:
     (``""`` when D is empty: none), ``D``, image ``width`` x ``height`` (pixels)."""
 
     K: list[float]
-    distortion_model: str
+    distortion_model: DistortionModel
     D: list[float]
     width: int
     height: int
@@ -330,7 +330,7 @@ def extract_calibration(msg: CameraInfo) -> Calibration:
     if want is None or len(D) != want:
         raise Ros2DecodeError(f"camera_info: distortion model {model[:40]!r} with {len(D)} "
                               "coefficients is not plumb_bob (5) or rational_polynomial (8)")
-    return Calibration(K, model, D, w, h)
+    return Calibration(K, cast(DistortionModel, model), D, w, h)
 
 
 def extract_image(msg: CompressedImage) -> Image:

@@ -10,8 +10,9 @@ import numpy as np
 from pd_client.tools.camera_view import render
 from pd_service.scenarios import get_scenario
 from pd_service.transport import InMemoryTransport
-from pd_service.wire import Command, Measurement, SessionSpec, encode, keys
+from pd_service.wire import Command, Measurement, Prediction, SessionSpec, decode, encode, keys
 from pd_service.wire.camera import CameraFrame
+from pd_service.wire.path import PredictedPath
 from pd_service.wire.truth import Truth
 
 #: Steps between the capture of a frame and its arrival.
@@ -51,3 +52,25 @@ def drive(t: InMemoryTransport, spec: SessionSpec, run: Callable[[int], None], s
             t.put(keys.camera_key("omni"), encode(f))
             if on_frame is not None:
                 on_frame(f)
+
+
+class OmniOutputs:
+    """The daemon's outputs for the omni session, in the order published: ``preds``, and
+    ``paths`` by their prediction's seq; ``frames`` is for the test's (frame, seq of the newest
+    prediction when the frame was put)."""
+
+    def __init__(self, t: InMemoryTransport) -> None:
+        self.preds: list[Prediction] = []
+        self.paths: dict[int, PredictedPath] = {}
+        self.frames: list[tuple[CameraFrame, int]] = []
+        t.subscribe(keys.prediction_key("omni"),
+                    lambda s: self.preds.append(decode(bytes(s.payload), Prediction)))
+        t.subscribe(keys.path_key("omni"), self._on_path)
+
+    def _on_path(self, sample: object) -> None:
+        p = decode(bytes(sample.payload), PredictedPath)  # type: ignore[attr-defined]
+        self.paths[p.seq] = p
+
+    def on_frame(self, f: CameraFrame) -> None:
+        """Keep ``f`` with the newest prediction's seq."""
+        self.frames.append((f, self.preds[-1].seq))

@@ -29,17 +29,13 @@ pytest.importorskip("foxglove")
 pytest.importorskip("google.protobuf")
 
 from pd_client.tools.camera_view import outline  # noqa: E402
-from pd_client.tools.pd_viz import VizServer  # noqa: E402
-from pd_service.transport import InMemoryBus  # noqa: E402
-from pd_service.wire import Prediction, decode, encode, keys  # noqa: E402
+from pd_service.wire import encode, keys  # noqa: E402
 from pd_service.wire.camera import CameraFrame  # noqa: E402
-from pd_service.wire.path import PredictedPath  # noqa: E402
 from pd_service.wire.pinhole import CameraMount, PinholeView  # noqa: E402
-from tests.service.helpers import Clock  # noqa: E402
-from tests.service.test_core import make_core  # noqa: E402
 
-from .omni_drive import VIDEO_DELAY, drive, omni_spec, pose  # noqa: E402
-from .test_viz import plotjuggler_lists  # noqa: E402
+from .foxglove_ws import protobuf_message_class  # noqa: E402
+from .omni_drive import VIDEO_DELAY, drive, pose  # noqa: E402
+from .test_viz import omni_viz, plotjuggler_lists  # noqa: E402
 
 VIEWERS = Path(__file__).parent / "viewers"
 CLIENT = VIEWERS / "foxglove_ws_protocol_client.js"
@@ -105,15 +101,7 @@ class NodeClient:
                 if e["op"] == "message" and e["topic"] == topic]
 
     def protobuf_class(self, topic: str) -> Any:
-        from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-
-        ch = self.channels()[topic]
-        assert ch["encoding"] == "protobuf" and ch["schemaEncoding"] == "protobuf"
-        fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"]))
-        pool = descriptor_pool.DescriptorPool()
-        for f in fds.file:
-            pool.Add(f)
-        return message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))
+        return protobuf_message_class(self.channels()[topic])
 
 
 def _pinhole_frame(k: int, t_ns: int) -> CameraFrame:
@@ -146,40 +134,24 @@ def _top_down_pixels(f: CameraFrame, xy: np.ndarray) -> np.ndarray:
 def test_foxglove_ws_protocol_client_reads_path_image_ghost_and_series(tmp_path) -> None:
     _node_client_or_skip()
     rosbags = pytest.importorskip("rosbags.typesys")
-    bus = InMemoryBus()
-    t = bus.transport()
-    spec = omni_spec()
-    preds: list[Prediction] = []
-    paths: dict[int, PredictedPath] = {}
-    frames: list[tuple[CameraFrame, int]] = []  # (frame, seq of the newest prediction then)
-    t.subscribe(keys.prediction_key("omni"),
-                lambda s: preds.append(decode(bytes(s.payload), Prediction)))
-    t.subscribe(keys.path_key("omni"), lambda s: (lambda p: paths.__setitem__(p.seq, p))(
-        decode(bytes(s.payload), PredictedPath)))
-    clock = Clock(-1)
-    core = make_core(bus, clock, tmp_path)
-    server = VizServer(bus.transport(), ["omni"], port=0, status_every=0)
-    node = NodeClient(server.url, TOPICS)
-    try:
-        t.put(keys.config_key("omni"), encode(spec))
-        core.run_once()
-        node.wait("subscribed", EAGER)
-        time.sleep(0.5)  # the server has taken the subscriptions
+    with omni_viz(tmp_path) as (t, spec, got, server, run_core):
+        node = NodeClient(server.url, TOPICS)
+        try:
+            node.wait("subscribed", EAGER)
+            time.sleep(0.5)  # the server has taken the subscriptions
 
-        def run(k: int) -> None:
-            clock.t = spec.time_of(k) + spec.period_ns // 2
-            core.run_once()
-            if k >= VIDEO_DELAY and k % 3 == 1:  # the perspective camera's frame
-                f = _pinhole_frame(k - VIDEO_DELAY, spec.time_of(k - VIDEO_DELAY))
-                t.put(keys.camera_key("omni"), encode(f))
-                frames.append((f, preds[-1].seq))
+            def run(k: int) -> None:
+                run_core(k)
+                if k >= VIDEO_DELAY and k % 3 == 1:  # the perspective camera's frame
+                    f = _pinhole_frame(k - VIDEO_DELAY, spec.time_of(k - VIDEO_DELAY))
+                    t.put(keys.camera_key("omni"), encode(f))
+                    got.on_frame(f)
 
-        drive(t, spec, run, 36, 3, lambda f: frames.append((f, preds[-1].seq)))
-        time.sleep(1.0)
-    finally:
-        node.close()
-        server.close()
-        core.close()
+            drive(t, spec, run, 36, 3, got.on_frame)
+            time.sleep(1.0)
+        finally:
+            node.close()
+    preds, paths, frames = got.preds, got.paths, got.frames
     assert not [e for e in node.events if e["op"] == "error"], node.events
     assert node.events[0] == {"op": "open", "protocol": "foxglove.sdk.v1"}, node.stderr
     by_seq = {p.seq: p for p in preds}

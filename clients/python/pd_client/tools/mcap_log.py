@@ -304,7 +304,8 @@ class McapRecorder:
     """Records every input and output of ``sessions`` to an MCAP file: the sensor packets on
     the daemon's side of the link (``pd/p<k>/<s>/sensor/*``), commands, predictions, error
     reports, configs (the SessionSpec, also fetched from the daemon at start), the truth,
-    camera frames after the link (``pd/p<k>/<s>/camera``), and the session status (queried every ``status_every`` s on a background thread)."""
+    camera frames after the link (``pd/p<k>/<s>/camera``), and the session status (queried
+    every ``status_every`` s on a background thread)."""
 
     def __init__(self, transport: Transport, sessions: Sequence[str], path: str | Path,
                  status_every: float = 1.0) -> None:
