@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from pd_client.tools.camera_view import render
+from pd_client.tools.camera_view import render_view
 from pd_service.scenarios import get_scenario
 from pd_service.transport import InMemoryTransport
 from pd_service.wire import Command, Measurement, Prediction, SessionSpec, decode, encode, keys
@@ -31,11 +31,12 @@ def pose(k: int) -> tuple[float, float, float]:
 
 
 def drive(t: InMemoryTransport, spec: SessionSpec, run: Callable[[int], None], steps: int,
-          frame_every: int, on_frame: Callable[[CameraFrame], None] | None = None) -> None:
+          frame_every: int, on_frame: Callable[[CameraFrame], None] | None = None,
+          view: str = "top") -> None:
     """Per step k: a command (so the session is live), the truth, the pose sensor's sample
     of k - 3, then ``run(k)`` (the core's clock at mid-step and its run_once); every
     ``frame_every`` steps from VIDEO_DELAY on, the frame captured VIDEO_DELAY steps ago
-    (passed to ``on_frame`` just after it is put)."""
+    (passed to ``on_frame`` just after it is put), of the camera ``view`` (camera_view.VIEWS)."""
     scn = get_scenario("omni")
     for k in range(steps):
         t.put(keys.command_key("omni"), encode(Command(
@@ -48,7 +49,7 @@ def drive(t: InMemoryTransport, spec: SessionSpec, run: Callable[[int], None], s
                 session="omni", sensor="pose", seq=k, step=k - 3, z=np.array(pose(k - 3)))))
         run(k)
         if k >= VIDEO_DELAY and k % frame_every == 0:
-            f = render("omni", k, spec.time_of(k - VIDEO_DELAY), *pose(k - VIDEO_DELAY))
+            f = render_view(view, "omni", k, spec.time_of(k - VIDEO_DELAY), *pose(k - VIDEO_DELAY))
             t.put(keys.camera_key("omni"), encode(f))
             if on_frame is not None:
                 on_frame(f)

@@ -16,7 +16,7 @@ Starts, each as its own process on a free loopback port:
    ``pd-robot-sim``   (with the ``viz`` extra: Pillow) the camera robot ``rover``: the
                       differential-drive robot of ``--async`` (x, y, yaw; its own operator)
                       with its commands 500 ms late like the paper's (lead 10 steps) and a
-                      camera: a top-down chase view every 2 steps (10 frames/s) that pd-link
+                      camera: a perspective chase view every 2 steps (10 frames/s) that pd-link
                       delays 500 ms (its ``video`` rule), on which pd-web and pd-viz draw the
                       ghost: the robot's outline where the command sent now will act, and the
                       predicted path
@@ -345,7 +345,8 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                     start("operator-rover", "-m", "pd_client.tools", "operator", *rover,
                           *zenoh_args)
                     start("sim-rover", "-m", "pd_client.tools", "sim", *rover, "--create-session",
-                          "--lead", str(CAMERA_LEAD), "--camera", str(CAMERA_EVERY), "--path", "2",
+                          "--lead", str(CAMERA_LEAD), "--camera", str(CAMERA_EVERY),
+                          "--camera-view", "chase", "--path", "2",
                           "--close-on-exit", "--seed", str(args.seed), *zenoh_args)
                 sim = start("sim", "-m", "pd_client.tools", "sim", "--session", "paper",
                             "--session", "paper-cam:camera", "--create-session",

@@ -108,7 +108,8 @@ class RobotSim:
     def __init__(self, transport: Transport, scenario: Scenario, specs: Sequence[SessionSpec],
                  *, seed: int | None = 0, direct: bool = False,
                  ros2: Ros2Options | None = None,
-                 clock: Callable[[], int] = time.time_ns, camera_every: int = 0) -> None:
+                 clock: Callable[[], int] = time.time_ns, camera_every: int = 0,
+                 camera_view: str = "top") -> None:
         if not specs:
             raise ValueError("specs: at least one session is required")
         names = list(scenario.state_names)
@@ -122,8 +123,10 @@ class RobotSim:
                 import PIL  # noqa: F401
             except ImportError:
                 raise ValueError("--camera needs Pillow: pip install 'pd-client[viz]'") from None
-        #: A camera frame every this many steps (0: no camera), and its pose's state indices.
+        #: A camera frame every this many steps (0: no camera), its view (camera_view.VIEWS)
+        #: and its pose's state indices.
         self.camera_every = camera_every
+        self.camera_view = camera_view
         self._pose_idx = (names.index("x") if "x" in names else 0,
                           names.index("y") if "y" in names else 0,
                           next((names.index(h) for h in ("theta", "yaw") if h in names), None))
@@ -275,13 +278,13 @@ class RobotSim:
         --direct: then without the link's delay)."""
         if not self.camera_every or k % self.camera_every:
             return
-        from .camera_view import render
+        from .camera_view import render_view
 
         ix, iy, ih = self._pose_idx
         yaw = float(truth[ih]) if ih is not None else 0.0
         for s in self.sessions:
-            frame = render(s.spec.session, self.frames_published, s.spec.time_of(k),
-                           float(truth[ix]), float(truth[iy]), yaw)
+            frame = render_view(self.camera_view, s.spec.session, self.frames_published,
+                                s.spec.time_of(k), float(truth[ix]), float(truth[iy]), yaw)
             key = (keys.camera_key if self._direct else keys.robot_camera_key)(s.spec.session)
             self._transport.put(key, encode(frame))
         self.frames_published += 1
@@ -331,9 +334,12 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
                          "position and heading components) with every N-th prediction "
                          "(default 0: never)")
     ap.add_argument("--camera", type=int, default=0, metavar="N",
-                    help="publish a camera frame (a top-down chase view, JPEG, stamped with its "
-                         "capture time) every N steps on robot/p<k>/<s>/camera (default 0: no "
-                         "camera; planar scenarios: omni, diffdrive)")
+                    help="publish a camera frame (JPEG, stamped with its capture time) every N "
+                         "steps on robot/p<k>/<s>/camera (default 0: no camera; planar "
+                         "scenarios: omni, diffdrive, async)")
+    ap.add_argument("--camera-view", default="top", choices=("top", "chase"),
+                    help="the camera: top (a top-down view following the robot, default) or "
+                         "chase (a perspective camera on the robot, behind and above it)")
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
@@ -385,7 +391,7 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                 specs.append(admin.wait_for_spec(name, args.service_timeout))
         try:
             sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct,
-                           camera_every=args.camera,
+                           camera_every=args.camera, camera_view=args.camera_view,
                            ros2=ros2)
         except ValueError as exc:
             return common.fail(TOOL, exc, 2)

@@ -81,6 +81,7 @@ function drawVideo(c, s) {
   g.strokeStyle = "#4aa3ff"; g.lineWidth = 2; g.setLineDash([4, 2]); g.beginPath();
   f.ghost.px.forEach(([u, v], n) => (n ? g.lineTo(u, v) : g.moveTo(u, v))); g.closePath(); g.stroke(); g.setLineDash([]);
   d.ghostSeq = f.ghost.seq; d.ghostK = f.ghost.k; d.ghostPx = JSON.stringify(f.ghost.px); d.ghostPose = JSON.stringify(f.ghost.pose);
+  d.ghostEll = JSON.stringify(f.ghost.ell_px || f.ghost.ell);
 }
 
 function onTick(ev) {
