@@ -34,7 +34,9 @@ Imu and a delayed pose fix in rmw_zenoh's format) over pd-link's ``link-ros2.tom
 ``pd_client/tools/data/``, ``deploy/link-ros2.toml`` links to it), ``pd-ros2`` bridging it to
 the daemon and publishing the predicted Odometry / pose / TF back on ROS topics, and
 ``pd-operator --ros2`` sending the Twist commands on ``cmd_vel``; pd-record, pd-viz and pd-web
-as above, for session ``bot``. Summary: RMS prediction error of x, y and yaw against the truth,
+as above, for session ``bot``, whose camera (with the ``viz`` extra; ``--camera 5``: the chase
+view as ``sensor_msgs/CompressedImage`` + ``CameraInfo``, 400 ms late) pd-ros2 turns into
+frames with the ghost. Summary: RMS prediction error of x, y and yaw against the truth,
 the number of predictions compared, and the bridge's counters (predictions republished as ROS
 messages, refusals). See docs/ros2.md.
 
@@ -217,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
                          "free port)")
     ap.add_argument("--no-web", action="store_true", help="do not start the live view (pd-web)")
     ap.add_argument("--no-camera", action="store_true",
-                    help="do not start the camera robot (session rover)")
+                    help="no camera: no camera robot (session rover); with --ros2, the robot "
+                         "without its camera")
     ap.add_argument("--web-linger", type=float, default=10.0,
                     help="seconds the live view keeps serving the final state after the run "
                          "(default 10)")
@@ -301,6 +304,7 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                 web_url = f"http://127.0.0.1:{port}/"
                 print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
             camera = viz and not robot and not getattr(args, "no_camera", False)
+            ros2_camera = viz and ros2 and not getattr(args, "no_camera", False)
             names = ((ROS2_SESSION,) if ros2 else (ASYNC_SESSION,) if asy
                      else (*SESSIONS, CAMERA_SESSION) if camera else SESSIONS)
             sessions = [f"--session={s}" for s in names]
@@ -328,6 +332,7 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                       *zenoh_args)
                 sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "diffdrive",
                             "--session", ROS2_SESSION, "--create-session", "--ros2",
+                            *(["--camera", "5"] if ros2_camera else []),
                             "--path", "1", "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
             elif asy:
                 start("operator", "-m", "pd_client.tools", "operator", "--scenario", "async",

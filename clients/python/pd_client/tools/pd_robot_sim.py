@@ -228,7 +228,6 @@ class RobotSim:
         names = self.scenario.state_names
         truth = self.scenario.truth_view(x)
         samples = self.sim.sample()
-        self._film(k, truth)
         for s in self.sessions:
             s.robot.publish_truth(k, truth, names=names, angles=self.scenario.angles)
             for d in samples:
@@ -239,6 +238,7 @@ class RobotSim:
                 else:
                     s.robot.publish(d.sensor, d.z, step=k)
                 self.samples_published += 1
+        self._film(k, truth)  # after the step's pose: what places a ROS 2 frame
         return x
 
     def _tick_async(self, k: int) -> np.ndarray:
@@ -283,6 +283,11 @@ class RobotSim:
         ix, iy, ih = self._pose_idx
         yaw = float(truth[ih]) if ih is not None else 0.0
         for s in self.sessions:
+            if self.ros is not None and self.ros.films:  # a ROS 2 camera: the chase view
+                self.ros.publish_frame(render_view("chase", s.spec.session, self.frames_published,
+                                                   s.spec.time_of(k), float(truth[ix]),
+                                                   float(truth[iy]), yaw))
+                continue
             frame = render_view(self.camera_view, s.spec.session, self.frames_published,
                                 s.spec.time_of(k), float(truth[ix]), float(truth[iy]), yaw)
             key = (keys.camera_key if self._direct else keys.robot_camera_key)(s.spec.session)
@@ -429,10 +434,30 @@ def _new_specs(args: argparse.Namespace, scenario: Scenario,
         heading = [names.index(h) for h in ("theta", "yaw") if h in names][:1]
         path = PathSpec(indices=position_layout(names, len(names))[1] + heading,
                         every=args.path)
-    return [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
-                          lead=args.lead, max_delay=args.max_delay,
-                          publish_every=args.publish_every, path=path)
-            for name, sensors in sessions]
+    specs = [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
+                           lead=args.lead, max_delay=args.max_delay,
+                           publish_every=args.publish_every, path=path)
+             for name, sensors in sessions]
+    if args.ros2 and args.camera:
+        specs = [with_ros2_camera(s) for s in specs]
+    return specs
+
+
+def with_ros2_camera(spec: SessionSpec) -> SessionSpec:
+    """``spec`` with its ROS 2 camera bound (``ros2.camera``): the chase camera's mount, the
+    robot placed by its first bound sensor with x, y and yaw; ValueError without one."""
+    from pd_service.wire.ros2 import CameraBinding
+
+    from .camera_view import CHASE_MOUNT
+
+    b = spec.ros2
+    pose = next((n for n, tb in (b.sensors.items() if b else ())
+                 if {"x", "y", "yaw"} <= set(tb.fields)), None)
+    if b is None or pose is None:
+        raise ValueError("--ros2 --camera: the spec binds no sensor with x, y and yaw to place "
+                         "the camera")
+    return spec.model_copy(update={"ros2": b.model_copy(update={
+        "camera": CameraBinding(pose_sensor=pose, mount=CHASE_MOUNT)})})
 
 
 def _create(admin: Admin, specs: list[SessionSpec], args: argparse.Namespace) -> None:
