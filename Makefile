@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: venv test demo demo-ros2 demo-async bench lint schemas clean browser native compiler
+.PHONY: venv test demo demo-ros2 demo-async bench lint schemas clean browser native compiler node-deps
 
 $(STAMP): pyproject.toml clients/python/pyproject.toml setup.py mypyc.ini | compiler
 	$(PYTHON) -m venv $(VENV)
@@ -56,7 +56,7 @@ demo-async: $(STAMP) native
 PURE_TESTS := tests/estimation tests/intake tests/wire/test_convert.py tests/service/test_core.py \
 	tests/service/test_health.py tests/test_native.py
 
-test: $(STAMP) native browser
+test: $(STAMP) native browser node-deps
 	$(PY) -m pytest -q
 	PD_SERVICE_PURE=1 $(PY) -m pytest -q $(PURE_TESTS) --ignore=tests/estimation/test_kalman_kernel.py --ignore=tests/intake/test_fastread_kernel.py \
 		--deselect tests/service/test_health.py::test_packed_check_kernel_refuses_what_it_does_not_take
@@ -73,6 +73,20 @@ browser:
 	  echo "make: installing chromium and chromium-driver (apt-get) for the browser test"; \
 	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null) \
 	    || echo "make: apt-get could not install chromium: the browser test will skip"; \
+	fi
+
+# pd-viz's test with Foxglove's own protocol client (@foxglove/ws-protocol, run in node; the
+# version pinned by package-lock.json) installs it here from the npm registry when node and
+# npm are there; otherwise that test skips and says why.
+VIEWERS := tests/clients/tools/viewers
+node-deps:
+	@if [ -d $(VIEWERS)/node_modules/@foxglove/ws-protocol ]; then :; \
+	elif ! command -v npm >/dev/null; then \
+	  echo "make: no npm: the Foxglove protocol client test will skip"; \
+	else \
+	  echo "make: installing @foxglove/ws-protocol (npm ci in $(VIEWERS)) for the pd-viz client test"; \
+	  npm ci --prefix $(VIEWERS) --no-audit --no-fund --silent \
+	    || echo "make: npm could not install it: the Foxglove protocol client test will skip"; \
 	fi
 
 bench: $(STAMP) native

@@ -37,6 +37,7 @@ thread, for deterministic tests on the in-memory bus.
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import re
@@ -61,7 +62,10 @@ from pd_service.ros2.attachment import (
 )
 from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.ros2.extract import (
+    Calibration,
+    extract_calibration,
     extract_command,
+    extract_image,
     extract_measurement,
     odometry_from_state,
     path_from_points,
@@ -99,17 +103,25 @@ from pd_service.wire import (
 )
 from pd_service.wire import decode as wire_decode
 from pd_service.wire import encode as wire_encode
+from pd_service.wire.camera import CameraFrame
 from pd_service.wire.codec import validation_reason
 from pd_service.wire.fence import TermFence
 from pd_service.wire.path import PredictedPath
-from pd_service.wire.ros2 import CommandBinding, OutputBinding, Ros2Binding, TopicBinding
+from pd_service.wire.pinhole import PinholeView
+from pd_service.wire.ros2 import (
+    CameraBinding,
+    CommandBinding,
+    OutputBinding,
+    Ros2Binding,
+    TopicBinding,
+)
 
 log = logging.getLogger("pd_service.ros2")
 
 KeyFormat = Literal["rmw_zenoh", "bridge_ros2dds"]
 #: Why an input was refused; each is a per-session counter ``refused_<reason>``.
 Reason = Literal["cdr", "type", "type_hash", "attachment", "stamp", "not_finite", "covariance",
-                 "frame", "invalid"]
+                 "frame", "image", "camera_info", "pose", "invalid"]
 REFUSAL_REASONS: tuple[str, ...] = get_args(Reason)
 
 #: QoS announced in the tokens: subscriptions best effort (they match reliable and best-effort
@@ -117,8 +129,12 @@ REFUSAL_REASONS: tuple[str, ...] = get_args(Reason)
 #: keep last 42 (rmw_zenoh's default depth).
 SUBSCRIPTION_QOS = QoS(reliability="best_effort")
 PUBLISHER_QOS = QoS()
+#: Pose samples kept per session to place the camera at an image's stamp (at 100 Hz: 1.3 s).
+POSE_HISTORY = 128
 #: The TF topic (absolute: not resolved under the namespace).
 TF_TOPIC = "/tf"
+_INPUT_NAMES: dict[str, str] = {"commands": "cmd", "camera_frames": "camera",
+                                "camera_info": "camera_info"}
 _NODE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _JSON = "application/json"
 
@@ -203,13 +219,21 @@ def classify(exc: Ros2DecodeError) -> Reason:
 # ---------------------------------------------------------------------------------------------
 
 
+#: What a subscribed ROS topic feeds: a sensor, the commands, the camera's images or its
+#: calibration (the prefix of its ``<role>_received`` / ``_forwarded`` counters).
+Role = Literal["sensor", "commands", "camera_frames", "camera_info"]
+
+
 @dataclass(eq=False)
 class _Input:
-    """One subscribed ROS topic: a sensor (``sensor`` set) or the commands (``sensor`` None)."""
+    """One subscribed ROS topic of ``msg_type``: a sensor (``sensor`` set), the commands, the
+    camera's images or its CameraInfo (``role``)."""
 
     session: _Session
     sensor: str | None
-    binding: TopicBinding | CommandBinding
+    binding: TopicBinding | CommandBinding | CameraBinding
+    msg_type: str
+    role: Role
     topic: str  # fully qualified
     keyexpr: str  # what is subscribed (wildcards on type and hash for rmw_zenoh)
     native_key: str  # where the native message goes
@@ -252,6 +276,11 @@ class _Session:
     closed: bool = False
     #: Newest ownership term seen (predictions of an older one: a second owner, dropped).
     fence: TermFence = field(default_factory=TermFence)
+    #: The camera's newest CameraInfo, and the pose sensor's newest samples (stamp, x, y, yaw).
+    calibration: Calibration | None = None
+    poses: deque[tuple[int, float, float, float]] = field(
+        default_factory=lambda: deque(maxlen=POSE_HISTORY))
+    frames: int = 0
 
 
 #: A message type of the daemon's outputs (Prediction, PredictedPath).
@@ -496,9 +525,17 @@ class Ros2Bridge:
     def _declare(self, sess: _Session) -> None:
         b = sess.binding
         for sensor, tb in b.sensors.items():
-            self._declare_input(sess, sensor, tb, keys.sensor_key(sess.name, sensor))
+            self._declare_input(sess, sensor, tb, tb.topic, tb.msg_type, "sensor",
+                                keys.sensor_key(sess.name, sensor))
         if b.commands is not None:
-            self._declare_input(sess, None, b.commands, keys.command_key(sess.name))
+            self._declare_input(sess, None, b.commands, b.commands.topic, b.commands.msg_type,
+                                "commands", keys.command_key(sess.name))
+        if b.camera is not None:
+            self._declare_input(sess, None, b.camera, b.camera.image_topic,
+                                "sensor_msgs/msg/CompressedImage", "camera_frames",
+                                keys.camera_key(sess.name))
+            self._declare_input(sess, None, b.camera, b.camera.info_topic,
+                                "sensor_msgs/msg/CameraInfo", "camera_info", None)
         if b.outputs is not None:
             self._declare_outputs(sess, b.outputs)
             sess.prediction_handle = self.t.subscribe(
@@ -508,21 +545,24 @@ class Ros2Bridge:
                     keys.path_key(sess.name), partial(self._on_path_sample, sess))
 
     def _declare_input(self, sess: _Session, sensor: str | None,
-                       binding: TopicBinding | CommandBinding, native_key: str) -> None:
-        fq = self._fq(binding.topic)
+                       binding: TopicBinding | CommandBinding | CameraBinding, topic: str,
+                       msg_type: str, role: Role, native_key: str | None) -> None:
+        fq = self._fq(topic)
         if self.rmw:
             # wildcards on the type and hash chunks: another type or hash on this topic is
             # refused and counted rather than silently ignored
             keyexpr = f"{self.settings.domain_id}/{fq.strip('/')}/*/*"
-            dds, hsh = dds_type_name(binding.msg_type), type_hash(binding.msg_type)
+            dds, hsh = dds_type_name(msg_type), type_hash(msg_type)
         else:
             keyexpr, dds, hsh = bridge_keyexpr(fq), None, None
-        inp = _Input(sess, sensor, binding, fq, keyexpr, native_key, dds, hsh)
-        inp.publisher = self.t.publisher(native_key, cache=self.settings.cache)
+        inp = _Input(sess, sensor, binding, msg_type, role, fq, keyexpr, native_key or "", dds,
+                     hsh)
+        if role in ("sensor", "commands"):  # frames are for live displays: no cache
+            inp.publisher = self.t.publisher(inp.native_key, cache=self.settings.cache)
         sess.inputs.append(inp)
         if self.node is not None:
-            inp.endpoint = TopicEndpoint(self.node, self._entity(), "MS", fq, binding.msg_type,
-                                         type_hash(binding.msg_type), SUBSCRIPTION_QOS)
+            inp.endpoint = TopicEndpoint(self.node, self._entity(), "MS", fq, msg_type,
+                                         type_hash(msg_type), SUBSCRIPTION_QOS)
         inp.handle = self.t.subscribe(keyexpr, partial(self._on_input_sample, inp))
         if inp.endpoint is not None:
             inp.token = self.t.declare_token(inp.endpoint.token())
@@ -576,10 +616,10 @@ class Ros2Bridge:
         got_type, got_hash = (parts[1], parts[2]) if len(parts) == 3 else ("", "")
         if got_type != inp.dds_type:
             raise _Refusal("type", f"{inp.topic}: type {got_type!r} in the key, the binding is "
-                                   f"{inp.binding.msg_type} ({inp.dds_type})")
+                                   f"{inp.msg_type} ({inp.dds_type})")
         if got_hash != inp.type_hash:
             raise _Refusal("type_hash", f"{inp.topic}: type hash {got_hash[:80]!r} in the key is "
-                                        f"not {inp.binding.msg_type}'s {inp.type_hash} (Jazzy)")
+                                        f"not {inp.msg_type}'s {inp.type_hash} (Jazzy)")
 
     def _attachment_seq(self, inp: _Input, attachment: bytes | None) -> int:
         """The attachment's sequence number (>= 0), else the bridge's own count."""
@@ -594,7 +634,7 @@ class Ros2Bridge:
 
     def _decode(self, inp: _Input, payload: bytes) -> RosMessage:
         try:
-            return decode(payload, inp.binding.msg_type)
+            return decode(payload, inp.msg_type)
         except Ros2DecodeError as exc:
             raise _Refusal("cdr", f"{inp.topic}: {exc.reason}") from None
 
@@ -604,15 +644,20 @@ class Ros2Bridge:
             return
         c = sess.counters
         c["received"] += 1
-        c["commands_received" if inp.sensor is None else "sensor_received"] += 1
+        c[f"{inp.role}_received"] += 1
         inp.last_ns = self.now_ns()
         seq: int | None = None
         try:
             self._check_key(inp, sample.key)
             seq = self._attachment_seq(inp, sample.attachment)
             msg = self._decode(inp, sample.payload)
-            payload = (self._measurement(inp, msg, seq) if inp.sensor is not None
-                       else self._command(inp, msg, seq))
+            if inp.role == "camera_info":
+                sess.calibration = self._calibration(inp, msg)
+                c["camera_info_applied"] += 1
+                return
+            payload = (self._measurement(inp, msg, seq) if inp.role == "sensor"
+                       else self._command(inp, msg, seq) if inp.role == "commands"
+                       else self._frame(inp, msg))
         except _Refusal as r:
             self._refuse(sess, sample.key, r, seq)
             return
@@ -621,7 +666,7 @@ class Ros2Bridge:
         else:
             self.t.put(inp.native_key, payload)
         c["forwarded"] += 1
-        c["commands_forwarded" if inp.sensor is None else "sensor_forwarded"] += 1
+        c[f"{inp.role}_forwarded"] += 1
 
     def _measurement(self, inp: _Input, msg: RosMessage, seq: int) -> bytes:
         b = inp.binding
@@ -633,6 +678,12 @@ class Ros2Bridge:
         if b.frame is not None and s.frame_id != b.frame:
             raise _Refusal("frame", f"{inp.topic}: frame_id {s.frame_id[:64]!r}, the binding "
                                     f"expects {b.frame!r}")
+        cam = inp.session.binding.camera
+        if cam is not None and cam.pose_sensor == inp.sensor:  # the camera's pose at capture
+            z = s.z
+            inp.session.poses.append((s.stamp_ns, float(z[b.fields.index("x")]),
+                                      float(z[b.fields.index("y")]),
+                                      float(z[b.fields.index("yaw")])))
         try:
             m = Measurement(session=inp.session.name, sensor=inp.sensor, seq=seq,
                             t_ns=s.stamp_ns, z=s.z, R=s.R)
@@ -653,6 +704,45 @@ class Ros2Bridge:
             raise _Refusal("invalid", f"{inp.topic}: {validation_reason('Command', exc)}") \
                 from None
         return wire_encode(out)
+
+    @staticmethod
+    def _calibration(inp: _Input, msg: RosMessage) -> Calibration:
+        try:
+            return extract_calibration(msg)  # type: ignore[arg-type]
+        except Ros2DecodeError as exc:
+            raise _Refusal("camera_info", f"{inp.topic}: {exc.reason}") from None
+
+    def _frame(self, inp: _Input, msg: RosMessage) -> bytes:
+        """A CompressedImage -> CameraFrame with its pinhole view: the newest CameraInfo, the
+        mount, the pose sample stamped nearest the image (within the tolerance)."""
+        sess, cam = inp.session, inp.binding
+        assert isinstance(cam, CameraBinding)
+        try:
+            img = extract_image(msg)  # type: ignore[arg-type]
+        except Ros2DecodeError as exc:
+            reason = classify(exc)
+            raise _Refusal(reason if reason == "stamp" else "image",
+                           f"{inp.topic}: {exc.reason}") from None
+        cal = sess.calibration
+        if cal is None:
+            raise _Refusal("camera_info", f"{inp.topic}: no CameraInfo yet on the info topic")
+        tol = round(cam.pose_tolerance_ms * 1e6)
+        near = min(sess.poses, key=lambda p: abs(p[0] - img.stamp_ns), default=None)
+        if near is None or abs(near[0] - img.stamp_ns) > tol:
+            raise _Refusal("pose", f"{inp.topic}: no {cam.pose_sensor} sample within "
+                                   f"{cam.pose_tolerance_ms:g} ms of the image's stamp")
+        sess.frames += 1
+        try:
+            frame = CameraFrame(
+                session=sess.name, seq=sess.frames, t_ns=img.stamp_ns, format=img.format,
+                data=base64.b64encode(img.data).decode(), width=cal.width, height=cal.height,
+                pinhole=PinholeView(K=cal.K, distortion_model=cal.distortion_model, D=cal.D,
+                                    mount=cam.mount, body_x=near[1], body_y=near[2],
+                                    body_yaw=near[3]))
+        except ValidationError as exc:
+            raise _Refusal("invalid", f"{inp.topic}: {validation_reason('CameraFrame', exc)}") \
+                from None
+        return wire_encode(frame)
 
     def _refuse(self, sess: _Session, key: str, r: _Refusal, seq: int | None) -> None:
         c = sess.counters
@@ -793,8 +883,8 @@ class Ros2Bridge:
                 "sessions": {
                     name: {
                         "counters": {k: int(v) for k, v in sorted(sess.counters.items())},
-                        "inputs": {i.sensor or "cmd": {"topic": i.topic, "key": i.keyexpr,
-                                                       "type": i.binding.msg_type}
+                        "inputs": {i.sensor or _INPUT_NAMES[i.role]: {
+                            "topic": i.topic, "key": i.keyexpr, "type": i.msg_type}
                                    for i in sess.inputs},
                         "outputs": [{"topic": o.topic, "key": o.key, "type": o.msg_type}
                                     for o in sess.outputs],

@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,6 +59,8 @@ from rosbags.typesys.stores.ros2_jazzy import (
 
 from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.ros2.messages import (
+    CameraInfo,
+    CompressedImage,
     Imu,
     Odometry,
     Path,
@@ -74,6 +77,8 @@ from pd_service.ros2.messages import (
     header,
     stamp_ns,
 )
+from pd_service.wire.camera import MAX_IMAGE_BYTES
+from pd_service.wire.pinhole import DISTORTION_SIZES, DistortionModel
 from pd_service.wire.ros2 import FieldName, StateLayout, TopicBinding
 
 FloatArray = NDArray[np.float64]
@@ -277,6 +282,74 @@ def extract_command(msg: RosMessage) -> Command:
         raise Ros2DecodeError(f"{type(msg).__name__} is not a Twist or TwistStamped")
     u = _finite([float(twist.linear.x), float(twist.angular.z)], ("vx", "yaw_rate"), "command")
     return Command(u=u, stamp_ns=stamp)
+
+
+# ---------------------------------------------------------------------------------------------
+# camera
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A camera's calibration from its CameraInfo: ``K`` (9, row-major), ``distortion_model``
+    (``""`` when D is empty: none), ``D``, image ``width`` x ``height`` (pixels)."""
+
+    K: list[float]
+    distortion_model: DistortionModel
+    D: list[float]
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class Image:
+    """A compressed image: its bytes, ``format`` ``jpeg`` or ``png``, capture ``stamp_ns``."""
+
+    data: bytes
+    format: Literal["jpeg", "png"]
+    stamp_ns: int
+
+
+def extract_calibration(msg: CameraInfo) -> Calibration:
+    """The calibration in a CameraInfo (the unrectified image's K and D, what a raw image is
+    projected with). Raises Ros2DecodeError for a size outside 1..4096, a K that is not
+    finite or not calibrated (fx or fy <= 0: an uncalibrated driver publishes zeros), or a
+    distortion model other than plumb_bob / rational_polynomial with its 5 / 8 coefficients
+    (an empty D: no distortion)."""
+    w, h = int(msg.width), int(msg.height)
+    if not (1 <= w <= 4096 and 1 <= h <= 4096):
+        raise Ros2DecodeError(f"camera_info: size {w} x {h} is outside 1..4096")
+    K = [float(v) for v in msg.k]
+    D = [float(v) for v in msg.d]
+    if not all(math.isfinite(v) for v in K + D):
+        raise Ros2DecodeError("camera_info: K or D not finite")
+    if not (K[0] > 0 and K[4] > 0):
+        raise Ros2DecodeError(f"camera_info: uncalibrated (fx = {K[0]}, fy = {K[4]})")
+    model = str(msg.distortion_model) if D else ""
+    want = DISTORTION_SIZES.get(model)
+    if want is None or len(D) != want:
+        raise Ros2DecodeError(f"camera_info: distortion model {model[:40]!r} with {len(D)} "
+                              "coefficients is not plumb_bob (5) or rational_polynomial (8)")
+    return Calibration(K, cast(DistortionModel, model), D, w, h)
+
+
+def extract_image(msg: CompressedImage) -> Image:
+    """The image in a CompressedImage: ``format`` naming JPEG (``jpeg``, ``jpg``, image_transport's
+    ``bgr8; jpeg compressed bgr8``) or PNG. Raises Ros2DecodeError for a zero stamp, another
+    format, no data or more than :data:`~pd_service.wire.camera.MAX_IMAGE_BYTES`."""
+    stamp = _stamp(msg.header.stamp, "sensor_msgs/msg/CompressedImage")
+    fmt = str(msg.format).lower()
+    kind: Literal["jpeg", "png"]
+    if "jpeg" in fmt or "jpg" in fmt:
+        kind = "jpeg"
+    elif "png" in fmt:
+        kind = "png"
+    else:
+        raise Ros2DecodeError(f"image: format {fmt[:40]!r} is not JPEG or PNG")
+    data = bytes(msg.data)
+    if not 4 <= len(data) <= MAX_IMAGE_BYTES:
+        raise Ros2DecodeError(f"image: {len(data)} bytes, not within 4..{MAX_IMAGE_BYTES}")
+    return Image(data, kind, stamp)
 
 
 # ---------------------------------------------------------------------------------------------

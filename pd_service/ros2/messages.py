@@ -42,6 +42,12 @@ from rosbags.typesys.stores.ros2_jazzy import (
     nav_msgs__msg__Path as Path,
 )
 from rosbags.typesys.stores.ros2_jazzy import (
+    sensor_msgs__msg__CameraInfo as CameraInfo,
+)
+from rosbags.typesys.stores.ros2_jazzy import (
+    sensor_msgs__msg__CompressedImage as CompressedImage,
+)
+from rosbags.typesys.stores.ros2_jazzy import (
     sensor_msgs__msg__Imu as Imu,
 )
 from rosbags.typesys.stores.ros2_jazzy import (
@@ -62,12 +68,14 @@ OutputType = Literal[
     "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseWithCovarianceStamped", "tf2_msgs/msg/TFMessage",
     "nav_msgs/msg/Path",
 ]
-MessageType = Literal[MeasurementType, CommandType, OutputType]
+#: The camera's message types (CameraBinding): images and their calibration.
+CameraType = Literal["sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"]
+MessageType = Literal[MeasurementType, CommandType, OutputType, CameraType]
 
 #: Every message type of this module.
-MESSAGE_TYPES: tuple[str, ...] = tuple(
-    dict.fromkeys(get_args(MeasurementType) + get_args(CommandType) + get_args(OutputType))
-)
+MESSAGE_TYPES: tuple[str, ...] = tuple(dict.fromkeys(
+    get_args(MeasurementType) + get_args(CommandType) + get_args(OutputType)
+    + get_args(CameraType)))
 
 RosMessage: TypeAlias = (
     Odometry
@@ -80,6 +88,8 @@ RosMessage: TypeAlias = (
     | TwistStamped
     | TFMessage
     | Path
+    | CompressedImage
+    | CameraInfo
 )
 
 _CLASSES: dict[str, type] = {
@@ -93,6 +103,8 @@ _CLASSES: dict[str, type] = {
     "geometry_msgs/msg/TwistStamped": TwistStamped,
     "tf2_msgs/msg/TFMessage": TFMessage,
     "nav_msgs/msg/Path": Path,
+    "sensor_msgs/msg/CompressedImage": CompressedImage,
+    "sensor_msgs/msg/CameraInfo": CameraInfo,
     # published by pd-ros2 itself on /diagnostics (pd_service.ros2.diagnostics)
     "diagnostic_msgs/msg/DiagnosticArray": DiagnosticArray,
 }
@@ -108,6 +120,8 @@ _ROS_MESSAGE_CLASSES = (
     TwistStamped,
     TFMessage,
     Path,
+    CompressedImage,
+    CameraInfo,
 )
 
 #: CDR encapsulation headers (representation id, options): plain CDR little / big endian.

@@ -22,6 +22,7 @@ from pydantic import (
 )
 
 from .base import WireModel, invalid
+from .pinhole import CameraMount
 
 #: Sensor message types a measurement binding may name.
 MeasurementType = Literal[
@@ -170,11 +171,56 @@ class OutputBinding(WireModel):
         return None if value is None else check_topic_name(value)
 
 
+class CameraBinding(WireModel):
+    """The robot's camera, for the displays' ghost (the daemon never reads it): a
+    ``sensor_msgs/CompressedImage`` topic (JPEG or PNG) and the ``sensor_msgs/CameraInfo`` of
+    that camera (its K, distortion model and D). Each image becomes a CameraFrame with a
+    pinhole view (:mod:`pd_service.wire.pinhole`): the camera's ``mount`` on the robot (a
+    static extrinsic, as in the robot's URDF) and the robot's pose at the image's
+    ``header.stamp``, taken from ``pose_sensor`` (a bound sensor with fields x, y and yaw):
+    its sample stamped nearest the image, within ``pose_tolerance_ms``, else the image is
+    refused."""
+
+    image_topic: Annotated[str, StringConstraints(max_length=256)] = Field(
+        "camera/image_raw/compressed", description="sensor_msgs/CompressedImage topic.")
+    info_topic: Annotated[str, StringConstraints(max_length=256)] = Field(
+        "camera/camera_info", description="sensor_msgs/CameraInfo topic.")
+    pose_sensor: Annotated[str, StringConstraints(max_length=64)] = Field(
+        description="The bound sensor giving the robot's x, y, yaw at capture.")
+    pose_tolerance_ms: Annotated[float, Field(gt=0.0, le=10_000.0)] = Field(
+        100.0, description="Largest |pose stamp - image stamp|, ms.")
+    mount: CameraMount = Field(description="The camera's link frame in the robot's body frame.")
+
+    @field_validator("image_topic", "info_topic")
+    @classmethod
+    def _topic(cls, value: str) -> str:
+        return check_topic_name(value)
+
+
 class Ros2Binding(WireModel):
-    """A session's ROS 2 topics: ``sensors`` maps a sensor name of the spec to its topic."""
+    """A session's ROS 2 topics: ``sensors`` maps a sensor name of the spec to its topic;
+    ``camera`` (optional) the robot's camera for the displays."""
 
     sensors: Annotated[dict[Annotated[str, StringConstraints(max_length=64)], TopicBinding],
                        Field(max_length=16)] = Field(
         default_factory=dict, description="Sensor name -> topic binding.")
     commands: CommandBinding | None = Field(None, description="Velocity commands, if bound.")
     outputs: OutputBinding | None = Field(None, description="Predicted pose outputs, if any.")
+    camera: CameraBinding | None = Field(None, description="The robot's camera, if bound.")
+
+    @model_validator(mode="after")
+    def _camera_pose(self) -> Ros2Binding:
+        cam = self.camera
+        if cam is not None:
+            pose = self.sensors.get(cam.pose_sensor)
+            if pose is None or not {"x", "y", "yaw"} <= set(pose.fields):
+                raise invalid("camera.pose_sensor", f"{cam.pose_sensor!r} is not a bound sensor "
+                                                    "with fields x, y and yaw")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _serialize(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        out = handler(self)
+        if self.camera is None:  # no camera: the bytes stay as before
+            out.pop("camera", None)
+        return dict(out)

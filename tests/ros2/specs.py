@@ -3,6 +3,8 @@ an external pose fix, Twist commands) with predicted Odometry / Pose / TF output
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Point as Point
 from rosbags.typesys.stores.ros2_jazzy import geometry_msgs__msg__Pose as Pose
@@ -25,7 +27,9 @@ from pd_service.ros2.messages import (
     header,
 )
 from pd_service.wire import SensorSpec, SessionSpec, UnscentedModelSpec
+from pd_service.wire.pinhole import CameraMount
 from pd_service.wire.ros2 import (
+    CameraBinding,
     CommandBinding,
     CommandType,
     OutputBinding,
@@ -44,7 +48,8 @@ PERIOD_NS = 20_000_000
 
 def unicycle_spec(name: str = "s1", *, prefix: str = "", epoch_ns: int = 1_700_000_000_000_000_000,
                   cmd_type: CommandType = "geometry_msgs/msg/Twist", lead: int = 5,
-                  pose_frame: str | None = "map", tf: bool = True) -> SessionSpec:
+                  pose_frame: str | None = "map", tf: bool = True,
+                  camera: CameraBinding | None = None) -> SessionSpec:
     """A unicycle session (state x, y, yaw, v, w) whose sensors come from ROS topics
     ``<prefix>odom`` (Odometry), ``<prefix>imu`` (Imu) and ``/<prefix>pose_fix`` (pose fix,
     frame ``pose_frame``), commands from ``<prefix>cmd_vel``; outputs on
@@ -71,6 +76,7 @@ def unicycle_spec(name: str = "s1", *, prefix: str = "", epoch_ns: int = 1_700_0
             commands=CommandBinding(topic=f"{prefix}cmd_vel", msg_type=cmd_type),
             outputs=OutputBinding(odom_topic=f"{prefix}predicted/odom",
                                   pose_topic=f"{prefix}predicted/pose", tf=tf, layout=LAYOUT),
+            camera=camera,
         ),
     )
 
@@ -122,3 +128,45 @@ def twist(v: float, w: float) -> Twist:
 
 def twist_stamped(stamp_ns: int, v: float, w: float) -> TwistStamped:
     return TwistStamped(header=header(stamp_ns, "base_link"), twist=twist(v, w))
+
+
+#: A camera 0.2 m ahead of the body origin, 0.8 m up, pitched 0.35 rad down.
+MOUNT = CameraMount(x=0.2, z=0.8, pitch=0.35)
+#: A 320 x 240 camera's K and plumb_bob D.
+CAMERA_K = [400.0, 0.0, 161.5, 0.0, 402.0, 118.25, 0.0, 0.0, 1.0]
+CAMERA_D = [-0.2, 0.05, 1e-3, -1e-3, 0.0]
+
+
+def camera_binding(prefix: str = "", tolerance_ms: float = 100.0) -> CameraBinding:
+    """The camera on ``<prefix>camera/...``, placed by the odometry's pose."""
+    return CameraBinding(image_topic=f"{prefix}camera/image_raw/compressed",
+                         info_topic=f"{prefix}camera/camera_info", pose_sensor="odom",
+                         pose_tolerance_ms=tolerance_ms, mount=MOUNT)
+
+
+def camera_info(stamp_ns: int, K: list[float] | None = None, model: str = "plumb_bob",
+                D: list[float] | None = None, width: int = 320, height: int = 240) -> Any:
+    """sensor_msgs/CameraInfo of a monocular camera (R identity, P = [K | 0])."""
+    from rosbags.typesys.stores.ros2_jazzy import sensor_msgs__msg__CameraInfo as CameraInfo
+    from rosbags.typesys.stores.ros2_jazzy import (
+        sensor_msgs__msg__RegionOfInterest as RegionOfInterest,
+    )
+
+    K = CAMERA_K if K is None else K
+    D = CAMERA_D if D is None else D
+    return CameraInfo(header=header(stamp_ns, "camera_optical"), height=height, width=width,
+                      distortion_model=model, d=np.array(D, dtype=np.float64),
+                      k=np.array(K, dtype=np.float64), r=np.eye(3).ravel(),
+                      p=np.array([*K[:3], 0.0, *K[3:6], 0.0, *K[6:], 0.0]), binning_x=0,
+                      binning_y=0, roi=RegionOfInterest(x_offset=0, y_offset=0, height=0,
+                                                        width=0, do_rectify=False))
+
+
+def compressed_image(stamp_ns: int, data: bytes, fmt: str = "jpeg") -> Any:
+    """sensor_msgs/CompressedImage of ``data``."""
+    from rosbags.typesys.stores.ros2_jazzy import (
+        sensor_msgs__msg__CompressedImage as CompressedImage,
+    )
+
+    return CompressedImage(header=header(stamp_ns, "camera_optical"), format=fmt,
+                           data=np.frombuffer(data, dtype=np.uint8))

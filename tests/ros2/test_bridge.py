@@ -327,7 +327,10 @@ def test_bad_input_is_refused_and_other_sessions_keep_flowing(rig: Rig, reason: 
 
 
 def test_every_refusal_reason_is_exercised() -> None:
-    assert set(_bad_inputs()) | {"invalid"} == set(REFUSAL_REASONS)
+    from tests.ros2.test_bridge_camera import _bad_camera_inputs
+
+    camera = {case.strip() for case in _bad_camera_inputs()}  # tests/ros2/test_bridge_camera.py
+    assert set(_bad_inputs()) | camera | {"invalid"} == set(REFUSAL_REASONS)
 
 
 def test_invalid_commands_are_refused(rig: Rig) -> None:

@@ -29,6 +29,7 @@ from pd_service.ros2.messages import (
     typestore,
 )
 from pd_service.wire.ros2 import StateLayout
+from tests.ros2.specs import camera_info, compressed_image
 
 STAMP = 1_700_000_000_250_000_000
 
@@ -86,6 +87,8 @@ def samples() -> dict[str, RosMessage]:
         "nav_msgs/msg/Path": path_from_points([STAMP, STAMP + 50_000_000],
                                               np.array([[1.0, -2.0, 0.3], [1.1, -2.1, 0.35]]),
                                               [0, 1, 2], layout, "odom"),
+        "sensor_msgs/msg/CompressedImage": compressed_image(STAMP, b"\xff\xd8\xff\xe0 a jpeg"),
+        "sensor_msgs/msg/CameraInfo": camera_info(STAMP),
     }
 
 

@@ -70,15 +70,20 @@ class FoxgloveClient:
         self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
     def protobuf_class(self, topic: str) -> Any:
-        from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
-
-        ch = self.channels[topic]
-        assert ch["encoding"] == "protobuf" and ch["schemaEncoding"] == "protobuf"
-        fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"]))
-        pool = descriptor_pool.DescriptorPool()
-        for f in fds.file:
-            pool.Add(f)
-        return message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))
+        return protobuf_message_class(self.channels[topic])
 
     def close(self) -> None:
         self._stack.close()
+
+
+def protobuf_message_class(ch: dict[str, Any]) -> Any:
+    """The message class of an advertised protobuf channel, from its schema (a
+    FileDescriptorSet, base64) and schema name."""
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    assert ch["encoding"] == "protobuf" and ch["schemaEncoding"] == "protobuf"
+    fds = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"]))
+    pool = descriptor_pool.DescriptorPool()
+    for f in fds.file:
+        pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))

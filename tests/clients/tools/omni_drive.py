@@ -7,11 +7,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from pd_client.tools.camera_view import render
+from pd_client.tools.camera_view import render_view
 from pd_service.scenarios import get_scenario
 from pd_service.transport import InMemoryTransport
-from pd_service.wire import Command, Measurement, SessionSpec, encode, keys
+from pd_service.wire import Command, Measurement, Prediction, SessionSpec, decode, encode, keys
 from pd_service.wire.camera import CameraFrame
+from pd_service.wire.path import PredictedPath
 from pd_service.wire.truth import Truth
 
 #: Steps between the capture of a frame and its arrival.
@@ -30,11 +31,12 @@ def pose(k: int) -> tuple[float, float, float]:
 
 
 def drive(t: InMemoryTransport, spec: SessionSpec, run: Callable[[int], None], steps: int,
-          frame_every: int, on_frame: Callable[[CameraFrame], None] | None = None) -> None:
+          frame_every: int, on_frame: Callable[[CameraFrame], None] | None = None,
+          view: str = "top") -> None:
     """Per step k: a command (so the session is live), the truth, the pose sensor's sample
     of k - 3, then ``run(k)`` (the core's clock at mid-step and its run_once); every
     ``frame_every`` steps from VIDEO_DELAY on, the frame captured VIDEO_DELAY steps ago
-    (passed to ``on_frame`` just after it is put)."""
+    (passed to ``on_frame`` just after it is put), of the camera ``view`` (camera_view.VIEWS)."""
     scn = get_scenario("omni")
     for k in range(steps):
         t.put(keys.command_key("omni"), encode(Command(
@@ -47,7 +49,29 @@ def drive(t: InMemoryTransport, spec: SessionSpec, run: Callable[[int], None], s
                 session="omni", sensor="pose", seq=k, step=k - 3, z=np.array(pose(k - 3)))))
         run(k)
         if k >= VIDEO_DELAY and k % frame_every == 0:
-            f = render("omni", k, spec.time_of(k - VIDEO_DELAY), *pose(k - VIDEO_DELAY))
+            f = render_view(view, "omni", k, spec.time_of(k - VIDEO_DELAY), *pose(k - VIDEO_DELAY))
             t.put(keys.camera_key("omni"), encode(f))
             if on_frame is not None:
                 on_frame(f)
+
+
+class OmniOutputs:
+    """The daemon's outputs for the omni session, in the order published: ``preds``, and
+    ``paths`` by their prediction's seq; ``frames`` is for the test's (frame, seq of the newest
+    prediction when the frame was put)."""
+
+    def __init__(self, t: InMemoryTransport) -> None:
+        self.preds: list[Prediction] = []
+        self.paths: dict[int, PredictedPath] = {}
+        self.frames: list[tuple[CameraFrame, int]] = []
+        t.subscribe(keys.prediction_key("omni"),
+                    lambda s: self.preds.append(decode(bytes(s.payload), Prediction)))
+        t.subscribe(keys.path_key("omni"), self._on_path)
+
+    def _on_path(self, sample: object) -> None:
+        p = decode(bytes(sample.payload), PredictedPath)  # type: ignore[attr-defined]
+        self.paths[p.seq] = p
+
+    def on_frame(self, f: CameraFrame) -> None:
+        """Keep ``f`` with the newest prediction's seq."""
+        self.frames.append((f, self.preds[-1].seq))

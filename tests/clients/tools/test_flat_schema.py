@@ -32,7 +32,7 @@ def test_lichtblick_reads_every_flattened_message_schema() -> None:
     raw = {n.removesuffix(".json"): s for n, s in schemas().items()}
     before = lichtblick(raw)
     refused = sorted(n for n, r in before.items() if "error" in r)
-    assert refused == ["Command", "ErrorReport", "Measurement", "PredictedPath", "Prediction",
+    assert refused == ["CameraFrame", "Command", "ErrorReport", "Measurement", "PredictedPath", "Prediction",
                        "SessionSpec",
                        "SessionState", "SessionStatus"]  # issue 45's finding, reproduced
     after = lichtblick({n: flat_schema(s) for n, s in raw.items()})
@@ -48,6 +48,7 @@ def test_lichtblick_reads_the_schemas_in_a_recorded_mcap(tmp_path) -> None:
     from pd_client.tools.mcap_log import McapLog
     from pd_service.scenarios import get_scenario
     from pd_service.wire import Command, Prediction, encode, keys
+    from pd_service.wire.camera import CameraFrame
     from pd_service.wire.truth import Truth
 
     spec = get_scenario("paper").spec("s1", 0)
@@ -61,13 +62,20 @@ def test_lichtblick_reads_the_schemas_in_a_recorded_mcap(tmp_path) -> None:
     log.write_sample(keys.truth_key("s1"), encode(Truth(session="s1", step=3, t_ns=0,
                                                         x=np.zeros(4))), 4)
     log.write_sample(keys.sensor_key("s1", "camera"), b"\xc1", 5)  # -> the raw channel
+    frame = CameraFrame(session="s1", seq=1, t_ns=7, data="/9j/4AAA", width=4, height=4,
+                        center_x=0.0, center_y=0.0, scale=10.0)
+    log.write_sample(keys.camera_key("s1"), encode(frame), 6)  # + its foxglove image copy
     log.close()
     with open(tmp_path / "a.mcap", "rb") as f:
         summary = make_reader(f).get_summary()
     got = {summary.schemas[c.schema_id].name: json.loads(summary.schemas[c.schema_id].data)
            for c in summary.channels.values() if c.message_encoding == "json"}
-    assert sorted(got) == ["Command", "Prediction", "RawSample", "SessionSpec", "Truth"]
-    assert all("error" not in r for r in lichtblick(got).values()), lichtblick(got)
+    assert sorted(got) == ["CameraFrame", "Command", "Prediction", "RawSample", "SessionSpec",
+                           "Truth", "foxglove.CompressedImage"]
+    verdict = lichtblick(got)
+    assert all("error" not in r for r in verdict.values()), verdict
+    image = verdict["foxglove.CompressedImage"]
+    assert dict(zip(image["fields"], image["types"], strict=True))["data"] == "uint8[]"
 
 
 def test_flat_schema_rules() -> None:

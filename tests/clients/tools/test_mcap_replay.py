@@ -33,11 +33,32 @@ def recorded(tmp_path):
     path = tmp_path / "run.mcap"
     rec = McapRecorder(bus.transport(), ["s1"], path, status_every=0)
     feed.configure()
+    t = bus.transport()
     for k in range(STEPS):
         feed.step(k)
+        if k % 10 == 5:  # camera frames after the link: recorded, ignored by the replay
+            t.put(keys.camera_key("s1"), encode(_frame(k)))
     rec.close()
     core.close()
     return path, list(col.predictions["s1"]), feed
+
+
+def _frame(k: int):  # type: ignore[no-untyped-def]
+    """A camera frame of step k: top-down on even tens, perspective on odd ones."""
+    import base64
+
+    from pd_service.wire.camera import CameraFrame
+    from pd_service.wire.pinhole import CameraMount, PinholeView
+
+    img = base64.b64encode(b"\xff\xd8\xff\xe0 frame %d" % k + b"\x00" * (k % 3)).decode()
+    view: dict = ({"center_x": 0.1 * k, "center_y": 1.0, "scale": 40.0} if k // 10 % 2 == 0
+                  else {"pinhole": PinholeView(
+                      K=[400.0, 0.0, 160.0, 0.0, 400.0, 120.0, 0.0, 0.0, 1.0],
+                      distortion_model="plumb_bob", D=[-0.1, 0.01, 0.0, 0.0, 0.0],
+                      mount=CameraMount(z=0.8, pitch=0.3), body_x=0.1 * k, body_y=1.0,
+                      body_yaw=0.25)})
+    return CameraFrame(session="s1", seq=k, t_ns=k * 50_000_000, data=img, width=320,
+                       height=240, **view)
 
 
 def test_mcap_holds_every_stream_with_schemas(recorded):
@@ -64,6 +85,39 @@ def test_mcap_holds_every_stream_with_schemas(recorded):
         assert np.array_equal(a.x, b.x) and np.array_equal(a.P, b.P)
     times = [m.log_time for _, _, m in msgs]
     assert all(t > 1_000_000_000_000_000_000 for t in times)  # wall clock, ns
+
+
+def test_camera_frames_are_recorded_with_an_image_copy(recorded):
+    """Each CameraFrame after the link is on its key's channel (exactly, both views) and as a
+    foxglove.CompressedImage (JSON, data base64 per its schema) stamped with the capture time;
+    read_records gives the frames back and skips the image copies."""
+    import base64
+
+    from mcap.reader import make_reader
+
+    from pd_service.wire.camera import CameraFrame
+
+    path, _, _ = recorded
+    want = [_frame(k) for k in range(STEPS) if k % 10 == 5]
+    cam_topic = "/" + keys.camera_key("s1")
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        schema = {ch.topic: summary.schemas[ch.schema_id] for ch in summary.channels.values()}
+        msgs = [(ch.topic, json.loads(m.data)) for _, ch, m in reader.iter_messages()
+                if ch.topic.startswith(cam_topic)]
+    assert schema[cam_topic].name == "CameraFrame"
+    image_schema = schema[cam_topic + "/image"]
+    assert image_schema.name == "foxglove.CompressedImage"
+    assert json.loads(image_schema.data)["properties"]["data"]["contentEncoding"] == "base64"
+    images = [m for topic, m in msgs if topic == cam_topic + "/image"]
+    assert len(images) == len(want) == 12
+    for img, f in zip(images, want, strict=True):
+        assert img["timestamp"]["sec"] * 10**9 + img["timestamp"]["nsec"] == f.t_ns
+        assert base64.b64decode(img["data"]) == f.image() and img["format"] == "jpeg"
+    back = [decode(r.payload, CameraFrame) for r in read_records(path) if r.stream == "camera"]
+    assert back == want and sum(f.pinhole is not None for f in back) == 6
+    assert not [r for r in read_records(path) if r.key.endswith("/image")]
 
 
 def test_replay_with_recorded_spec_equals_the_daemon(recorded):

@@ -196,3 +196,48 @@ def test_bad_ros2_flags_exit_2(argv, capsys):
         main(["--scenario", "diffdrive", "--ros2", *argv])
     assert exc.value.code == 2
     assert argv[0].removeprefix("--").split("-")[0] in capsys.readouterr().err
+
+
+def test_the_ros_camera_goes_through_pd_ros2_to_frames_with_a_pinhole_view(bus):
+    """``--ros2 --camera``: the spec binds the camera (placed by the pose fix), the robot
+    publishes each chase-view frame as CompressedImage + CameraInfo, and pd-ros2 (on the same
+    bus, no link) makes CameraFrames of them: the robot's JPEG, the chase camera's K, D and
+    mount, the robot placed by the pose fix stamped nearest the image (the pose fix, 5 Hz,
+    every 10th step, frames every 5th: a fix 0 or 100 ms before each frame)."""
+    from pd_client.tools.camera_view import CHASE_D, CHASE_K, CHASE_MOUNT, render_chase
+    from pd_client.tools.pd_robot_sim import with_ros2_camera
+    from pd_service.ros2.bridge import BridgeSettings, Ros2Bridge
+    from pd_service.wire.camera import CameraFrame
+
+    sc = get_scenario("diffdrive")
+    spec = with_ros2_camera(sc.spec("bot", EPOCH_NS))
+    assert spec.ros2 is not None and spec.ros2.camera is not None
+    assert spec.ros2.camera.pose_sensor == "pose"
+    frames = Collector(bus, keys.camera_key("bot"))
+    bridge = Ros2Bridge(bus.transport(), BridgeSettings(diagnostics_interval_s=0))
+    bridge.attach()
+    bridge.apply_spec(spec)
+    sim = RobotSim(bus.transport(), sc, [spec], seed=7, camera_every=5,
+                   ros2=Ros2Options(prefix=None))
+    poses: dict[int, np.ndarray] = {}
+    truths: dict[int, np.ndarray] = {}
+    bus.transport().subscribe("0/pose_fix/**", lambda s: poses.__setitem__(
+        (m := decode_measurement(spec.ros2.sensors["pose"], s.payload)).stamp_ns, m.z))
+    for k in range(41):
+        truths[k] = sim.tick(k)
+        bridge.drain()
+    c = bridge.status()["sessions"]["bot"]["counters"]
+    bridge.close()
+    got = [decode(s.payload, CameraFrame) for s in frames.samples]
+    # a frame every 5th step, each with a pose fix at most 100 ms (5 steps) before it
+    assert [f.t_ns for f in got] == [spec.time_of(k) for k in range(0, 41, 5)]
+    assert c["camera_frames_received"] == c["camera_frames_forwarded"] == 9
+    assert c["camera_info_applied"] == 9 and c.get("refused", 0) == 0
+    for f in got:
+        k = round((f.t_ns - EPOCH_NS) / spec.period_ns)
+        x = truths[k]
+        assert f.image() == render_chase("bot", k // 5, f.t_ns, x[0], x[1], x[2]).image()
+        v = f.pinhole
+        assert v is not None and v.K == CHASE_K and v.D == CHASE_D and v.mount == CHASE_MOUNT
+        near = min(poses, key=lambda t: abs(t - f.t_ns))
+        assert [v.body_x, v.body_y, v.body_yaw] == pytest.approx(poses[near], abs=1e-12)

@@ -54,6 +54,36 @@ def viz_on_paper(tmp_path, path: PathSpec | None = None, paths: list | None = No
         core.close()
 
 
+@contextmanager
+def omni_viz(tmp_path):
+    """The daemon core serving the omni session (path on; tests/clients/tools/omni_drive.py)
+    on the in-memory bus and pd-viz serving it: (transport, spec, the daemon's outputs, the
+    server, ``run(k)``: the core's step k at mid-step)."""
+    from pd_service.wire import encode
+
+    from .omni_drive import OmniOutputs, omni_spec
+
+    bus = InMemoryBus()
+    t = bus.transport()
+    spec = omni_spec()
+    got = OmniOutputs(t)
+    clock = Clock(-1)
+    core = make_core(bus, clock, tmp_path)
+    server = VizServer(bus.transport(), ["omni"], port=0, status_every=0)
+
+    def run(k: int) -> None:
+        clock.t = spec.time_of(k) + spec.period_ns // 2
+        core.run_once()
+
+    try:
+        t.put(keys.config_key("omni"), encode(spec))
+        core.run_once()
+        yield t, spec, got, server, run
+    finally:
+        server.close()
+        core.close()
+
+
 def test_pose_equals_the_daemons_prediction(tmp_path):
     with viz_on_paper(tmp_path) as (feed, col, client):
         client.wait_channels(TOPICS)
@@ -202,42 +232,21 @@ def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path
     view as a pinhole, ``/omni/ghost`` the outline at the daemon's newest prediction (and the
     path of the same seq) in that frame's pixels."""
     from pd_client.tools.camera_view import outline_px
-    from pd_service.wire import Prediction, encode
-    from pd_service.wire.camera import CameraFrame
 
-    from .omni_drive import drive, omni_spec
+    from .omni_drive import drive
 
-    bus = InMemoryBus()
-    t = bus.transport()
-    spec = omni_spec()
-    preds: list[Prediction] = []
-    paths: dict[int, PredictedPath] = {}
-    frames: list[tuple[CameraFrame, int]] = []  # (frame, seq of the newest prediction then)
-    t.subscribe(keys.prediction_key("omni"), lambda s: preds.append(decode(bytes(s.payload), Prediction)))
-    t.subscribe(keys.path_key("omni"), lambda s: (lambda p: paths.__setitem__(p.seq, p))(
-        decode(bytes(s.payload), PredictedPath)))
-    clock = Clock(-1)
-    core = make_core(bus, clock, tmp_path)
-    server = VizServer(bus.transport(), ["omni"], port=0, status_every=0)
-    client = FoxgloveClient(server.url)
     topics = ["/omni/camera", "/omni/camera_info", "/omni/ghost"]
-    try:
-        t.put(keys.config_key("omni"), encode(spec))
-        core.run_once()
-        client.wait_channels(topics)
-        client.subscribe(topics)
-        client.pump(0.5)
-
-        def run(k: int) -> None:
-            clock.t = spec.time_of(k) + spec.period_ns // 2
-            core.run_once()
-
-        drive(t, spec, run, 30, 3, lambda f: frames.append((f, preds[-1].seq)))
-        client.pump(1.0)
-    finally:
-        client.close()
-        server.close()
-        core.close()
+    with omni_viz(tmp_path) as (t, spec, got, server, run):
+        client = FoxgloveClient(server.url)
+        try:
+            client.wait_channels(topics)
+            client.subscribe(topics)
+            client.pump(0.5)
+            drive(t, spec, run, 30, 3, got.on_frame)
+            client.pump(1.0)
+        finally:
+            client.close()
+    preds, paths, frames = got.preds, got.paths, got.frames
     by_seq = {p.seq: p for p in preds}
     Image = client.protobuf_class("/omni/camera")
     Calib = client.protobuf_class("/omni/camera_info")
@@ -257,4 +266,4 @@ def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path
                                    outline_px(f, p.x[0], p.x[1], p.x[2]), rtol=0, atol=1e-9)
         assert len(ellipse.points) == 48
         np.testing.assert_allclose([(q.x, q.y) for q in path_line.points],
-                                   [f.pixel(r[0], r[1]) for r in paths[seq].X], rtol=0, atol=1e-9)
+                                   f.project(paths[seq].X[:, :2]), rtol=0, atol=1e-9)

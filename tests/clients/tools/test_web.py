@@ -195,6 +195,46 @@ def test_frame_event_registers_the_ghost_in_the_frames_own_view(feed) -> None:
     assert ev["path_px"] == [[160.0, 120.0], [180.0, 130.0]]
 
 
+def test_frame_event_of_a_perspective_camera(feed) -> None:
+    """A frame with a pinhole view: the ghost is the outline projected by the camera at the
+    robot's capture pose (CameraFrame.project, checked against OpenCV in tests/wire), the
+    ellipse a projected polygon (``ell_px``, ``ell`` null); a predicted pose behind the camera
+    gets no ghost and is counted (``ghosts_unshown`` in the tick)."""
+    import base64
+
+    from pd_client.tools.camera_view import ellipse_points, outline
+    from pd_service.wire.camera import CameraFrame
+    from pd_service.wire.pinhole import CameraMount, PinholeView
+
+    f, t, out, clock = feed
+    f._view("omni").spec = get_scenario("omni").spec("omni", EPOCH).model_copy(
+        update={"period_ns": PERIOD})
+    t.put(keys.truth_key("omni"), encode(Truth(session="omni", step=3, t_ns=EPOCH, x=np.zeros(6),
+                                               names=["x", "y", "theta", "vx", "vy", "omega"])))
+    x = np.array([2.0, 0.5, 0.3, 0.0, 0.0, 0.0])
+    P = np.eye(6) * 0.01
+    t.put(keys.prediction_key("omni"), encode(pred("omni", 130, x, P, seq=9)))
+    view = PinholeView(K=[300.0, 0.0, 160.0, 0.0, 300.0, 120.0, 0.0, 0.0, 1.0],
+                       mount=CameraMount(z=1.0, pitch=0.4), body_x=0.0, body_y=0.0, body_yaw=0.0)
+    frame = CameraFrame(session="omni", seq=4, t_ns=EPOCH + 110 * PERIOD, format="png",
+                        data=base64.b64encode(b"\x89PNG....").decode(), width=320, height=240,
+                        pinhole=view)
+    t.put(keys.camera_key("omni"), encode(frame))
+    ev = out[-1]
+    assert ev["type"] == "frame" and ev["fmt"] == "png"
+    g = ev["ghost"]
+    assert g["ell"] is None and g["seq"] == 9
+    assert g["px"] == frame.project(outline(2.0, 0.5, 0.3))
+    assert g["ell_px"] == frame.project(np.array(ellipse_points((2.0, 0.5), P[:2, :2])))
+    u, v = g["px"][0]
+    assert 0 < u < 320 and 120 < v < 240  # ahead and below the horizon, in the image
+    # the robot predicted behind the camera: no ghost, counted
+    t.put(keys.prediction_key("omni"), encode(pred("omni", 131, -x, P, seq=10)))
+    t.put(keys.camera_key("omni"), encode(frame))
+    assert out[-1]["type"] == "frame" and out[-1]["ghost"] is None
+    assert f._view("omni").ghosts_unshown == 1
+
+
 def test_bad_payloads_are_counted_not_fatal(feed) -> None:
     f, t, out, _ = feed
     t.put(keys.prediction_key("paper"), b"\x00garbage")

@@ -390,14 +390,15 @@ def test_a_page_over_the_cap_says_why(browser) -> None:
         server.close()
 
 
-def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path) -> None:
+@pytest.mark.parametrize("view", ["top", "chase"])
+def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path, view) -> None:
     """The daemon core (in-process, in-memory bus) serves an omni session whose spec asks for
-    the path; camera frames captured 12 steps ago (rendered by pd-robot-sim's camera) reach
-    pd-web. On the page's video canvas the ghost is the outline at the daemon's newest
-    prediction (the step where the command sent now lands) projected with the frame's own
-    capture-time view, and the path is the daemon's path of the same seq, pixel for pixel.
-    Screenshot: ``out/web/ghost.png``."""
-    from pd_client.tools.camera_view import outline, render
+    the path; camera frames captured 12 steps ago (rendered by pd-robot-sim's camera, top-down
+    or the perspective chase camera) reach pd-web. On the page's video canvas the ghost is the
+    outline at the daemon's newest prediction (the step where the command sent now lands)
+    projected with the frame's own capture-time view, and the path is the daemon's path of the
+    same seq, pixel for pixel. Screenshots: ``out/web/ghost.png``, ``out/web/ghost-chase.png``."""
+    from pd_client.tools.camera_view import outline, render_view
     from pd_service.wire.path import PredictedPath
     from tests.service.helpers import Clock
     from tests.service.test_core import make_core
@@ -426,28 +427,34 @@ def test_the_ghost_and_the_path_on_the_delayed_frame(browser, tmp_path) -> None:
             clock.t = spec.time_of(k) + spec.period_ns // 2
             core.run_once()
 
-        drive(t, spec, run, 40, 4)
+        drive(t, spec, run, 40, 4, view=view)
         wait_until("the newest frame on the page", lambda: browser.execute_script(
             "return document.getElementById('video').dataset.frameSeq") == "36", timeout=15)
         d = browser.execute_script("return Object.assign({}, document.getElementById('video').dataset)")
-        frame = render("omni", 36, spec.time_of(24), *pose(24))
+        frame = render_view(view, "omni", 36, spec.time_of(24), *pose(24))
         assert int(d["frameTns"]) == frame.t_ns and float(d["frameK"]) == 24.0
         p = preds[int(d["ghostSeq"])]
         # the newest prediction when the frame arrived (at step 36): of step 36 + lead
         assert int(d["ghostK"]) == p.step == 36 + spec.lead
         assert json.loads(d["ghostPose"]) == [p.x[0], p.x[1], p.x[2]]
-        want = [list(frame.pixel(u, v)) for u, v in outline(p.x[0], p.x[1], p.x[2])]
+        want = frame.project(outline(p.x[0], p.x[1], p.x[2]))
         np.testing.assert_allclose(json.loads(d["ghostPx"]), want, rtol=0, atol=1e-9)
+        if view == "chase":  # the 2-sigma ellipse: a projected polygon
+            from pd_client.tools.camera_view import ellipse_points
+
+            ell = frame.project(np.array(ellipse_points((p.x[0], p.x[1]), p.P[:2, :2])))
+            np.testing.assert_allclose(json.loads(d["ghostEll"]), ell, rtol=0, atol=1e-9)
         path = paths[p.seq]
         assert path.steps[-1] == p.step
         np.testing.assert_allclose(json.loads(d["pathPx"]),
-                                   [frame.pixel(r[0], r[1]) for r in path.X], rtol=0, atol=1e-9)
+                                   frame.project(path.X[:, :2]), rtol=0, atol=1e-9)
         assert browser.find_element("id", "video").is_displayed()
         OUT.mkdir(parents=True, exist_ok=True)
         browser.execute_script("document.getElementById('video-box').scrollIntoView()")
-        browser.save_screenshot(str(OUT / "ghost.png"))
-        print(f"\nghost: frame captured at step 24 shown with the prediction of step {p.step} "
-              f"(seq {p.seq}); path of {len(path.steps)} points; screenshot {OUT / 'ghost.png'}")
+        shot = OUT / ("ghost.png" if view == "top" else f"ghost-{view}.png")
+        browser.save_screenshot(str(shot))
+        print(f"\nghost ({view}): frame captured at step 24 shown with the prediction of step "
+              f"{p.step} (seq {p.seq}); path of {len(path.steps)} points; screenshot {shot}")
     finally:
         server.close()
         core.close()

@@ -22,7 +22,8 @@ from typing import Any
 
 Json = dict[str, Any]
 _SCALARS = ("string", "number", "integer", "boolean")
-_KEEP = ("description", "title", "minimum", "maximum", "exclusiveMinimum", "enum", "const")
+_KEEP = ("description", "title", "minimum", "maximum", "exclusiveMinimum", "enum", "const",
+         "contentEncoding")
 
 
 class Inexpressible(ValueError):

@@ -2,7 +2,8 @@
 
 One MCAP channel per Zenoh key, topic ``/`` + key (``/pd/p<k>/<s>/sensor/<name>``,
 ``/pd/p<k>/<s>/cmd``, ``/pd/p<k>/<s>/prediction``, ``/pd/p<k>/<s>/path``, ``/pd/p<k>/<s>/error``,
-``/pd/p<k>/<s>/status``, ``/pd/p<k>/<s>/config``, ``/robot/p<k>/<s>/truth``; key layout 2,
+``/pd/p<k>/<s>/status``, ``/pd/p<k>/<s>/config``, ``/robot/p<k>/<s>/truth``,
+``/pd/p<k>/<s>/camera`` (CameraFrame, after the link); key layout 2,
 protocol.md §3), message encoding ``json`` with the message type's JSON Schema
 (``jsonschema`` schema encoding, named for the type: docs/schemas' schemas, from
 :func:`pd_service.wire.schemas.schemas`, rewritten by :func:`.flat_schema.flat_schema` into
@@ -14,7 +15,10 @@ Each message is the payload's msgpack map, unpacked (the wire form: arrays are
 ``repr``, which reads back as the same float64, and keeps ``1`` and ``1.0`` apart, so
 ``msgpack.packb(json.loads(data))`` decodes to exactly the numbers the daemon decoded: this
 is what makes an exact offline replay possible without storing the msgpack bytes twice.
-A payload that is not such a map (undecodable bytes, bin fields, NaN/inf, a delete) goes to
+A camera frame is also written as ``foxglove.CompressedImage`` JSON on
+``/pd/p<k>/<s>/camera/image`` (capture stamp, ``frame_id`` ``camera``), so the viewers' Image
+panel shows the recorded video (the ghost is the displays' drawing: not recorded; a replay
+ignores both). A payload that is not such a map (undecodable bytes, bin fields, NaN/inf, a delete) goes to
 ``/pd/p<k>/<s>/raw`` as ``{"key", "kind", "payload_b64"}`` so a replay still sees it.
 
 The metadata record ``pd-keys`` holds the key layout and partition count P of the recording;
@@ -60,7 +64,18 @@ from .flat_schema import Inexpressible, flat_schema
 #: Stream kind of a key -> message type name (its JSON Schema's title).
 TYPE_OF_KIND = {"sensor": "Measurement", "cmd": "Command", "prediction": "Prediction",
                 "path": "PredictedPath", "error": "ErrorReport", "status": "SessionStatus",
-                "config": "SessionSpec", "truth": "Truth"}
+                "config": "SessionSpec", "truth": "Truth", "camera": "CameraFrame"}
+#: The image copy of a camera frame: Foxglove's ``foxglove.CompressedImage`` as JSON (its
+#: ``data`` base64, which the viewers' parser decodes by ``contentEncoding``).
+IMAGE_TYPE = "foxglove.CompressedImage"
+IMAGE_SCHEMA: dict[str, Any] = {
+    "title": IMAGE_TYPE, "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "properties": {"sec": {"type": "integer"},
+                                                       "nsec": {"type": "integer"}}},
+        "frame_id": {"type": "string"},
+        "data": {"type": "string", "contentEncoding": "base64"},
+        "format": {"type": "string"}}}
 RAW_SCHEMA: dict[str, Any] = {
     "title": "RawSample", "type": "object",
     "description": "A sample that is not a JSON-representable msgpack map (kept for replay).",
@@ -75,7 +90,7 @@ def json_schemas() -> dict[str, dict[str, Any] | None]:
     """Type name -> the schema its MCAP channels get (None: written schemaless)."""
     out: dict[str, dict[str, Any] | None] = {}
     for name, s in (*((n.removesuffix(".json"), s) for n, s in schemas().items()),
-                    ("RawSample", RAW_SCHEMA)):
+                    ("RawSample", RAW_SCHEMA), (IMAGE_TYPE, IMAGE_SCHEMA)):
         try:
             out[name] = flat_schema(s)
         except Inexpressible:
@@ -252,10 +267,25 @@ class McapLog:
                     pass
             elif parsed.kind == "prediction":
                 self._write_ros2(parsed.session, payload, log_ns)
+            elif parsed.kind == "camera":
+                self._write_image(key, data, log_ns)
             return
         raw = {"key": key, "kind": kind, "payload_b64": base64.b64encode(payload).decode()}
         self.write(topic_of(f"{keys.session_prefix(parsed.session)}/raw"), "RawSample",
                    json.dumps(raw).encode(), log_ns)
+
+    def _write_image(self, key: str, data: bytes, log_ns: int) -> None:
+        """A camera frame's image copy on ``<topic>/image`` (module docstring), stamped with
+        its capture time; a frame that is not a valid CameraFrame gets none (its JSON is kept)."""
+        from pd_service.wire.camera import CameraFrame
+
+        try:
+            f = CameraFrame.model_validate(json.loads(data))
+        except ValueError:
+            return
+        image = {"timestamp": {"sec": f.t_ns // 1_000_000_000, "nsec": f.t_ns % 1_000_000_000},
+                 "frame_id": "camera", "data": f.data, "format": f.format}
+        self.write(topic_of(key) + "/image", IMAGE_TYPE, json.dumps(image).encode(), log_ns)
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
         with self._lock:
@@ -274,7 +304,8 @@ class McapRecorder:
     """Records every input and output of ``sessions`` to an MCAP file: the sensor packets on
     the daemon's side of the link (``pd/p<k>/<s>/sensor/*``), commands, predictions, error
     reports, configs (the SessionSpec, also fetched from the daemon at start), the truth,
-    and the session status (queried every ``status_every`` s on a background thread)."""
+    camera frames after the link (``pd/p<k>/<s>/camera``), and the session status (queried
+    every ``status_every`` s on a background thread)."""
 
     def __init__(self, transport: Transport, sessions: Sequence[str], path: str | Path,
                  status_every: float = 1.0) -> None:
@@ -286,7 +317,7 @@ class McapRecorder:
         for s in self.sessions:
             for kx in (keys.sensors_of(s), keys.command_key(s), keys.prediction_key(s),
                        keys.path_key(s), keys.error_key(s), keys.status_key(s), keys.config_key(s),
-                       keys.truth_key(s)):
+                       keys.truth_key(s), keys.camera_key(s)):
                 self._handles.append(transport.subscribe(kx, self._on_sample))
         self._stop = threading.Event()
         for s in self.sessions:

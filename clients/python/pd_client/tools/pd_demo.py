@@ -13,6 +13,13 @@ Starts, each as its own process on a free loopback port:
 4. ``pd-operator``    sends the paper's commands, stamped with their apply step
 5. ``pd-robot-sim``   the paper's vehicle chasing an object, publishing camera and range
                       finder to session ``paper`` and the camera only to ``paper-cam``
+   ``pd-robot-sim``   (with the ``viz`` extra: Pillow) the camera robot ``rover``: the
+                      differential-drive robot of ``--async`` (x, y, yaw; its own operator)
+                      with its commands 500 ms late like the paper's (lead 10 steps) and a
+                      camera: a perspective chase view every 2 steps (10 frames/s) that pd-link
+                      delays 500 ms (its ``video`` rule), on which pd-web and pd-viz draw the
+                      ghost: the robot's outline where the command sent now will act, and the
+                      predicted path
 6. ``pd-web``         the live view in the browser (http://127.0.0.1:8080/, or a free port
                       when 8080 is taken); it keeps serving the final state ``--web-linger``
                       seconds after the run (the page keeps it after that too)
@@ -27,7 +34,9 @@ Imu and a delayed pose fix in rmw_zenoh's format) over pd-link's ``link-ros2.tom
 ``pd_client/tools/data/``, ``deploy/link-ros2.toml`` links to it), ``pd-ros2`` bridging it to
 the daemon and publishing the predicted Odometry / pose / TF back on ROS topics, and
 ``pd-operator --ros2`` sending the Twist commands on ``cmd_vel``; pd-record, pd-viz and pd-web
-as above, for session ``bot``. Summary: RMS prediction error of x, y and yaw against the truth,
+as above, for session ``bot``, whose camera (with the ``viz`` extra; ``--camera 5``: the chase
+view as ``sensor_msgs/CompressedImage`` + ``CameraInfo``, 400 ms late) pd-ros2 turns into
+frames with the ghost. Summary: RMS prediction error of x, y and yaw against the truth,
 the number of predictions compared, and the bridge's counters (predictions republished as ROS
 messages, refusals). See docs/ros2.md.
 
@@ -72,6 +81,9 @@ from .record_csv import read_csv
 
 TOOL = "pd-demo"
 SESSIONS = ("paper", "paper-cam")
+#: The demo's camera robot: a differential-drive robot (the async scenario, 50 ms steps) whose
+#: video pd-web shows with the ghost; its lead is the paper's 500 ms uplink, a frame every 2 steps.
+CAMERA_SESSION, CAMERA_LEAD, CAMERA_EVERY = "rover", 10, 2
 ROS2_SESSION = "bot"
 ASYNC_SESSION = "async"
 ROS2_STATES = "x,y,yaw"
@@ -150,8 +162,8 @@ def packaged_link_config(name: str = "link-paper.toml") -> Iterator[Path]:
 
 
 def has_viz() -> bool:
-    """foxglove-sdk and mcap (the client's ``viz`` extra) are installed."""
-    return all(importlib.util.find_spec(m) is not None for m in ("foxglove", "mcap"))
+    """foxglove-sdk, mcap and Pillow (the client's ``viz`` extra) are installed."""
+    return all(importlib.util.find_spec(m) is not None for m in ("foxglove", "mcap", "PIL"))
 
 
 def wait_for(what: str, check: Callable[[], bool], timeout: float, procs: list[Proc]) -> None:
@@ -206,6 +218,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="port of the live view (default 8080, a free one if taken; 0: any "
                          "free port)")
     ap.add_argument("--no-web", action="store_true", help="do not start the live view (pd-web)")
+    ap.add_argument("--no-camera", action="store_true",
+                    help="no camera: no camera robot (session rover); with --ros2, the robot "
+                         "without its camera")
     ap.add_argument("--web-linger", type=float, default=10.0,
                     help="seconds the live view keeps serving the final state after the run "
                          "(default 10)")
@@ -288,7 +303,10 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                 start("web", "-m", "pd_client.tools", "web", "--port", str(port), *zenoh_args)
                 web_url = f"http://127.0.0.1:{port}/"
                 print(f"{TOOL}: live view at {web_url} (open it in a browser)", flush=True)
-            names = (ROS2_SESSION,) if ros2 else (ASYNC_SESSION,) if asy else SESSIONS
+            camera = viz and not robot and not getattr(args, "no_camera", False)
+            ros2_camera = viz and ros2 and not getattr(args, "no_camera", False)
+            names = ((ROS2_SESSION,) if ros2 else (ASYNC_SESSION,) if asy
+                     else (*SESSIONS, CAMERA_SESSION) if camera else SESSIONS)
             sessions = [f"--session={s}" for s in names]
             recorder = start("record", "-m", "pd_client.tools", "record", *sessions,
                              "--out", str(out), "--idle-timeout", "3",
@@ -314,6 +332,7 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                       *zenoh_args)
                 sim = start("sim", "-m", "pd_client.tools", "sim", "--scenario", "diffdrive",
                             "--session", ROS2_SESSION, "--create-session", "--ros2",
+                            *(["--camera", "5"] if ros2_camera else []),
                             "--path", "1", "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
             elif asy:
                 start("operator", "-m", "pd_client.tools", "operator", "--scenario", "async",
@@ -322,8 +341,18 @@ def run(args: argparse.Namespace, link_config: Path) -> int:
                             "--session", ASYNC_SESSION, "--create-session", "--close-on-exit",
                             "--steps", str(args.steps), "--seed", str(args.seed), *zenoh_args)
             else:
-                start("operator", "-m", "pd_client.tools", "operator", *sessions,
-                      "--steps", str(args.steps), *zenoh_args)
+                start("operator", "-m", "pd_client.tools", "operator",
+                      *(f"--session={s}" for s in SESSIONS), "--steps", str(args.steps),
+                      *zenoh_args)
+                if camera:
+                    rover = ["--scenario", "async", "--session", CAMERA_SESSION, "--steps",
+                             str(args.steps)]
+                    start("operator-rover", "-m", "pd_client.tools", "operator", *rover,
+                          *zenoh_args)
+                    start("sim-rover", "-m", "pd_client.tools", "sim", *rover, "--create-session",
+                          "--lead", str(CAMERA_LEAD), "--camera", str(CAMERA_EVERY),
+                          "--camera-view", "chase", "--path", "2",
+                          "--close-on-exit", "--seed", str(args.seed), *zenoh_args)
                 sim = start("sim", "-m", "pd_client.tools", "sim", "--session", "paper",
                             "--session", "paper-cam:camera", "--create-session",
                             "--path", "1", "--close-on-exit", "--steps", str(args.steps), "--seed",
@@ -490,6 +519,11 @@ def report(out: Path) -> int:
         print()
         print_table(f"... while the range finder reports (target steps {w['first']}-{w['last']})",
                     window)
+    if CAMERA_SESSION in summary:
+        print()
+        print(f"camera robot {CAMERA_SESSION}: predicted pose 500 ms ahead (lead {CAMERA_LEAD} "
+              "steps), its ghost drawn on video\n500 ms old in pd-web and pd-viz")
+        print_pose_rows(summary[CAMERA_SESSION])
     print_outputs(out)
     return 0
 

@@ -108,7 +108,8 @@ class RobotSim:
     def __init__(self, transport: Transport, scenario: Scenario, specs: Sequence[SessionSpec],
                  *, seed: int | None = 0, direct: bool = False,
                  ros2: Ros2Options | None = None,
-                 clock: Callable[[], int] = time.time_ns, camera_every: int = 0) -> None:
+                 clock: Callable[[], int] = time.time_ns, camera_every: int = 0,
+                 camera_view: str = "top") -> None:
         if not specs:
             raise ValueError("specs: at least one session is required")
         names = list(scenario.state_names)
@@ -122,8 +123,10 @@ class RobotSim:
                 import PIL  # noqa: F401
             except ImportError:
                 raise ValueError("--camera needs Pillow: pip install 'pd-client[viz]'") from None
-        #: A camera frame every this many steps (0: no camera), and its pose's state indices.
+        #: A camera frame every this many steps (0: no camera), its view (camera_view.VIEWS)
+        #: and its pose's state indices.
         self.camera_every = camera_every
+        self.camera_view = camera_view
         self._pose_idx = (names.index("x") if "x" in names else 0,
                           names.index("y") if "y" in names else 0,
                           next((names.index(h) for h in ("theta", "yaw") if h in names), None))
@@ -225,7 +228,6 @@ class RobotSim:
         names = self.scenario.state_names
         truth = self.scenario.truth_view(x)
         samples = self.sim.sample()
-        self._film(k, truth)
         for s in self.sessions:
             s.robot.publish_truth(k, truth, names=names, angles=self.scenario.angles)
             for d in samples:
@@ -236,6 +238,7 @@ class RobotSim:
                 else:
                     s.robot.publish(d.sensor, d.z, step=k)
                 self.samples_published += 1
+        self._film(k, truth)  # after the step's pose: what places a ROS 2 frame
         return x
 
     def _tick_async(self, k: int) -> np.ndarray:
@@ -275,13 +278,18 @@ class RobotSim:
         --direct: then without the link's delay)."""
         if not self.camera_every or k % self.camera_every:
             return
-        from .camera_view import render
+        from .camera_view import render_view
 
         ix, iy, ih = self._pose_idx
         yaw = float(truth[ih]) if ih is not None else 0.0
         for s in self.sessions:
-            frame = render(s.spec.session, self.frames_published, s.spec.time_of(k),
-                           float(truth[ix]), float(truth[iy]), yaw)
+            if self.ros is not None and self.ros.films:  # a ROS 2 camera: the chase view
+                self.ros.publish_frame(render_view("chase", s.spec.session, self.frames_published,
+                                                   s.spec.time_of(k), float(truth[ix]),
+                                                   float(truth[iy]), yaw))
+                continue
+            frame = render_view(self.camera_view, s.spec.session, self.frames_published,
+                                s.spec.time_of(k), float(truth[ix]), float(truth[iy]), yaw)
             key = (keys.camera_key if self._direct else keys.robot_camera_key)(s.spec.session)
             self._transport.put(key, encode(frame))
         self.frames_published += 1
@@ -331,9 +339,12 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
                          "position and heading components) with every N-th prediction "
                          "(default 0: never)")
     ap.add_argument("--camera", type=int, default=0, metavar="N",
-                    help="publish a camera frame (a top-down chase view, JPEG, stamped with its "
-                         "capture time) every N steps on robot/p<k>/<s>/camera (default 0: no "
-                         "camera; planar scenarios: omni, diffdrive)")
+                    help="publish a camera frame (JPEG, stamped with its capture time) every N "
+                         "steps on robot/p<k>/<s>/camera (default 0: no camera; planar "
+                         "scenarios: omni, diffdrive, async)")
+    ap.add_argument("--camera-view", default="top", choices=("top", "chase"),
+                    help="the camera: top (a top-down view following the robot, default) or "
+                         "chase (a perspective camera on the robot, behind and above it)")
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
@@ -385,7 +396,7 @@ def _run(args: argparse.Namespace, scenario: Scenario,
                 specs.append(admin.wait_for_spec(name, args.service_timeout))
         try:
             sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct,
-                           camera_every=args.camera,
+                           camera_every=args.camera, camera_view=args.camera_view,
                            ros2=ros2)
         except ValueError as exc:
             return common.fail(TOOL, exc, 2)
@@ -423,10 +434,30 @@ def _new_specs(args: argparse.Namespace, scenario: Scenario,
         heading = [names.index(h) for h in ("theta", "yaw") if h in names][:1]
         path = PathSpec(indices=position_layout(names, len(names))[1] + heading,
                         every=args.path)
-    return [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
-                          lead=args.lead, max_delay=args.max_delay,
-                          publish_every=args.publish_every, path=path)
-            for name, sensors in sessions]
+    specs = [scenario.spec(name, epoch, time_scale=args.time_scale, sensors=sensors,
+                           lead=args.lead, max_delay=args.max_delay,
+                           publish_every=args.publish_every, path=path)
+             for name, sensors in sessions]
+    if args.ros2 and args.camera:
+        specs = [with_ros2_camera(s) for s in specs]
+    return specs
+
+
+def with_ros2_camera(spec: SessionSpec) -> SessionSpec:
+    """``spec`` with its ROS 2 camera bound (``ros2.camera``): the chase camera's mount, the
+    robot placed by its first bound sensor with x, y and yaw; ValueError without one."""
+    from pd_service.wire.ros2 import CameraBinding
+
+    from .camera_view import CHASE_MOUNT
+
+    b = spec.ros2
+    pose = next((n for n, tb in (b.sensors.items() if b else ())
+                 if {"x", "y", "yaw"} <= set(tb.fields)), None)
+    if b is None or pose is None:
+        raise ValueError("--ros2 --camera: the spec binds no sensor with x, y and yaw to place "
+                         "the camera")
+    return spec.model_copy(update={"ros2": b.model_copy(update={
+        "camera": CameraBinding(pose_sensor=pose, mount=CHASE_MOUNT)})})
 
 
 def _create(admin: Admin, specs: list[SessionSpec], args: argparse.Namespace) -> None:

@@ -86,6 +86,7 @@ from ..errors import PdClientError
 from ..pairing import prediction_error
 from ..truth import Truth
 from . import common
+from .camera_view import ellipse_points
 from .viz_series import SeriesType, field_name, type_name, unique
 
 #: A wire message type a channel decodes.
@@ -154,17 +155,6 @@ def heading_index(names: Sequence[str] | None) -> int | None:
     return None
 
 
-def ellipse_points(mean: tuple[float, float], cov: np.ndarray, k: float = 2.0,
-                   segments: int = 48) -> list[tuple[float, float]]:
-    """The k-sigma ellipse {m + k L (cos t, sin t)} of a 2x2 covariance (L: its Cholesky-like
-    square root from the eigendecomposition, negative eigenvalues clipped to 0)."""
-    w, v = np.linalg.eigh((cov + cov.T) / 2.0)
-    L = v @ np.diag(np.sqrt(np.maximum(w, 0.0)))
-    t = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
-    pts = np.asarray(mean)[:, None] + k * L @ np.vstack([np.cos(t), np.sin(t)])
-    return [(float(a), float(b)) for a, b in pts.T]
-
-
 def _ts(t_ns: int) -> Any:
     """foxglove Timestamp of a time in ns (exact; None before 1970)."""
     from foxglove.messages import Timestamp
@@ -198,7 +188,8 @@ class SessionView:
         self.names: list[str] | None = None
         self._lock = threading.Lock()
         self.counts = {"predictions": 0, "measurements": 0, "commands": 0, "truth": 0,
-                       "errors": 0, "invalid": 0, "paths": 0, "paths_unshown": 0, "frames": 0}
+                       "errors": 0, "invalid": 0, "paths": 0, "paths_unshown": 0, "frames": 0,
+                       "ghosts_unshown": 0}
         p = f"/{session}/"
         ctx = {"context": context}
         self.pose = PoseInFrameChannel(p + "pose", **ctx)
@@ -475,14 +466,19 @@ class SessionView:
             p, path = self._last_pred, self._last_path
         now, stamp = time.time_ns(), _ts(f.t_ns)
         self.camera.log(CompressedImage(timestamp=stamp, frame_id=CAMERA_FRAME, data=f.image(),
-                                        format="jpeg"), log_time=now)
-        # a pinhole at CAMERA_HEIGHT_M looking down: f / height = the frame's px per metre
-        fl, cx, cy = f.scale * CAMERA_HEIGHT_M, f.width / 2, f.height / 2
+                                        format=f.format), log_time=now)
+        if f.pinhole is not None:  # the camera's own calibration (unrectified image: P = [K | 0])
+            K, model, D = list(f.pinhole.K), f.pinhole.distortion_model, list(f.pinhole.D)
+        else:  # a pinhole at CAMERA_HEIGHT_M looking down: f / height = the frame's px per metre
+            assert f.scale is not None
+            fl = f.scale * CAMERA_HEIGHT_M
+            K, model, D = [fl, 0.0, f.width / 2, 0.0, fl, f.height / 2, 0.0, 0.0, 1.0], \
+                "plumb_bob", [0.0] * 5
         self.camera_info.log(CameraCalibration(
             timestamp=stamp, frame_id=CAMERA_FRAME, width=f.width, height=f.height,
-            distortion_model="plumb_bob", D=[0.0] * 5,
-            K=[fl, 0.0, cx, 0.0, fl, cy, 0.0, 0.0, 1.0], R=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
-            P=[fl, 0.0, cx, 0.0, 0.0, fl, cy, 0.0, 0.0, 0.0, 1.0, 0.0]), log_time=now)
+            distortion_model=model or "plumb_bob", D=D or [0.0] * 5, K=K,
+            R=[1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0],
+            P=[*K[0:3], 0.0, *K[3:6], 0.0, *K[6:9], 0.0]), log_time=now)
         if p is None:
             return
         n = p.x.shape[0]
@@ -500,15 +496,20 @@ class SessionView:
                                                         a=rgba[3]),
                                     points=[Point2(x=float(u), y=float(v)) for u, v in pts])
 
-        ell = [f.pixel(u, v) for u, v in ellipse_points((x, y), p.P[np.ix_([i, j], [i, j])])]
-        marks = [line(PointsAnnotationType.LineLoop, outline_px(f, x, y, yaw),
-                      (0.29, 0.64, 1.0, 1.0), 2.0),
+        ghost = outline_px(f, x, y, yaw)
+        ell = f.project(np.array(ellipse_points((x, y), p.P[np.ix_([i, j], [i, j])])))
+        if ghost is None or ell is None:  # the predicted pose is behind the camera
+            with self._lock:
+                self.counts["ghosts_unshown"] += 1
+            return
+        marks = [line(PointsAnnotationType.LineLoop, ghost, (0.29, 0.64, 1.0, 1.0), 2.0),
                  line(PointsAnnotationType.LineLoop, ell, (0.29, 0.64, 1.0, 0.6), 1.0)]
         if path is not None and i in path.indices and j in path.indices:
             a, b = path.indices.index(i), path.indices.index(j)
-            marks.append(line(PointsAnnotationType.LineStrip,
-                              [f.pixel(float(r[a]), float(r[b])) for r in path.X],
-                              (0.77, 0.61, 1.0, 1.0), 1.5))
+            path_px = f.project(path.X[:, [a, b]])
+            if path_px is not None:
+                marks.append(line(PointsAnnotationType.LineStrip, path_px,
+                                  (0.77, 0.61, 1.0, 1.0), 1.5))
         self.ghost.log(ImageAnnotations(timestamp=stamp, points=marks), log_time=now)
 
     def _on_error(self, sample: Sample) -> None:

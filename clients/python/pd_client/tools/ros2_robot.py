@@ -29,6 +29,12 @@ clock). Message contents (units m, rad, m/s, rad/s; covariances row-major as ROS
   = 0), R on the x, y, yaw entries. frame_id ``odom``.
 
 A binding's ``frame``, when set, is the frame_id written instead.
+
+With a camera bound (``ros2.camera``), :meth:`Ros2RobotNode.publish_frame` publishes each
+frame of the simulated camera as a camera driver does: ``sensor_msgs/CompressedImage``
+(``format`` ``jpeg``, the JPEG bytes) on the image topic and its ``sensor_msgs/CameraInfo``
+(K, distortion model and D of the frame's pinhole view, R identity, P = [K | 0]) on the info
+topic, both stamped with the capture time, frame_id ``camera_optical``.
 """
 
 from __future__ import annotations
@@ -78,6 +84,7 @@ from pd_service.ros2.messages import (
 )
 from pd_service.transport import Transport
 from pd_service.transport.base import Handle, Publisher, Sample
+from pd_service.wire.camera import CameraFrame
 from pd_service.wire.ros2 import Ros2Binding, TopicBinding
 
 log = logging.getLogger(__name__)
@@ -85,6 +92,7 @@ log = logging.getLogger(__name__)
 #: Variance written for an axis the simulated sensor does not measure.
 UNKNOWN_VARIANCE = 1e6
 NODE_NAME = "robot_sim"
+IMAGE_TYPE, INFO_TYPE = "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/CameraInfo"
 DEFAULT_FRAMES: dict[str, str] = {
     "nav_msgs/msg/Odometry": "odom",
     "geometry_msgs/msg/PoseWithCovarianceStamped": "odom",
@@ -212,6 +220,8 @@ class Ros2RobotNode:
         self._publishers: dict[str, Publisher] = {}
         self._seq: dict[str, int] = {}
         self._handles: list[Handle] = []
+        #: The camera's publishers: "camera" / "camera_info" -> (endpoint, type, publisher).
+        self._camera: dict[str, tuple[TopicEndpoint, str, Publisher]] = {}
         self.published = 0
         self.commands_received = 0
         self.commands_invalid = 0
@@ -248,8 +258,64 @@ class Ros2RobotNode:
             self.command_endpoint: TopicEndpoint | None = ep
             self._handles.append(t.subscribe(self._key(ep), self._on_sample))
             self._handles.append(t.declare_token(ep.token()))
+            entity += 1
         else:
             self.command_endpoint = None
+        self._declare_camera(entity)
+
+    def _declare_camera(self, entity: int) -> None:
+        cam = self._binding.camera
+        if cam is None:
+            return
+        for name, topic, msg_type in (("camera", cam.image_topic, IMAGE_TYPE),
+                                      ("camera_info", cam.info_topic, INFO_TYPE)):
+            ep = TopicEndpoint(node=self.node, entity_id=entity, kind="MP",
+                               topic=self.node.resolve(topic), ros_type=msg_type,
+                               type_hash=type_hash(msg_type))
+            entity += 1
+            self._camera[name] = (ep, msg_type, self._transport.publisher(self._key(ep)))
+            self._handles.append(self._transport.declare_token(ep.token()))
+
+    @property
+    def films(self) -> bool:
+        """Whether a camera is bound (frames go out as CompressedImage + CameraInfo)."""
+        return bool(self._camera)
+
+    def publish_frame(self, frame: CameraFrame) -> None:
+        """Publish a perspective ``frame`` as its CompressedImage and CameraInfo (module
+        docstring)."""
+        from rosbags.typesys.stores.ros2_jazzy import (
+            sensor_msgs__msg__CameraInfo as CameraInfo,
+        )
+        from rosbags.typesys.stores.ros2_jazzy import (
+            sensor_msgs__msg__CompressedImage as CompressedImage,
+        )
+        from rosbags.typesys.stores.ros2_jazzy import (
+            sensor_msgs__msg__RegionOfInterest as RegionOfInterest,
+        )
+
+        view = frame.pinhole
+        if view is None:
+            raise ValueError("a ROS 2 camera frame needs a perspective (pinhole) view")
+        K = view.K
+        hdr = header(frame.t_ns, "camera_optical")
+        msgs: dict[str, RosMessage] = {"camera": CompressedImage(header=hdr, format="jpeg",
+                                          data=np.frombuffer(frame.image(), dtype=np.uint8)),
+                "camera_info": CameraInfo(
+                    header=hdr, height=frame.height, width=frame.width,
+                    distortion_model=view.distortion_model, d=np.array(view.D, dtype=np.float64),
+                    k=np.array(K, dtype=np.float64), r=np.eye(3).reshape(9),
+                    p=np.array([*K[:3], 0.0, *K[3:6], 0.0, *K[6:], 0.0]), binning_x=0,
+                    binning_y=0, roi=RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0,
+                                                      do_rectify=False))}
+        for name in ("camera_info", "camera"):  # the calibration first, as drivers do
+            ep, msg_type, pub = self._camera[name]
+            with self._lock:
+                self._seq[name] = self._seq.get(name, 0) + 1
+                seq = self._seq[name]
+            att = Attachment(sequence_number=seq, source_timestamp_ns=self._clock(), gid=ep.gid())
+            pub.put(encode(msgs[name], msg_type), attachment=encode_attachment(att))
+            self.published += 1
 
     def key_of(self, sensor: str) -> str:
         """The key the samples of ``sensor`` are published on."""
@@ -293,5 +359,6 @@ class Ros2RobotNode:
     def close(self) -> None:
         close_quietly(reversed(self._handles))
         self._handles.clear()
-        close_quietly(self._publishers.values())
+        close_quietly([*self._publishers.values(), *(p for _, _, p in self._camera.values())])
         self._publishers.clear()
+        self._camera.clear()

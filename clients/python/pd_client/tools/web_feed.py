@@ -34,12 +34,14 @@ for a session whose spec asks for the predicted path (``pd/*/*/path``, a Predict
 drawn); for a robot with a camera (``pd/*/*/camera``, a CameraFrame after the link's delay) a
 ``frame`` event per frame, with the "ghost": the robot's outline at the newest prediction's
 pose (the target step, where the command sent now acts), projected into that frame's own view
-(its capture-time centre and scale), and the newest path in it::
+(its capture-time centre and scale, or its pinhole camera at the robot's capture-time pose),
+and the newest path in it::
 
     {"type": "frame", "s": "omni", "seq": 12, "t_ns": ..., "k": 101.0,   # capture step
-     "age_ms": 612.0, "w": 320, "h": 240, "img": "<base64 JPEG>",
+     "age_ms": 612.0, "w": 320, "h": 240, "fmt": "jpeg", "img": "<base64 image>",
      "ghost": {"seq": 41, "k": 121, "pose": [x, y, yaw], "px": [[u, v], ...],   # outline
-               "ell": [u, v, a, b, angle]} | null,            # 2-sigma, pixels
+               "ell": [u, v, a, b, angle] | null,             # 2-sigma, top-down view
+               "ell_px": [[u, v], ...] | null} | null,        # 2-sigma, perspective view
      "path_px": [[u, v], ...] | null}
 
 (frames are sent live only, not kept for a late page: they are large); and, twice a second,
@@ -144,6 +146,7 @@ class FeedSession:
         #: The newest prediction's (layout, position indices): what a path event draws.
         self.layout: tuple[str, list[int]] | None = None
         self.paths_unshown = 0
+        self.ghosts_unshown = 0
         self.last_prediction: Prediction | None = None
         self.last_path: PredictedPath | None = None
 
@@ -287,14 +290,17 @@ class FeedSession:
 
     def frame_event(self, f: CameraFrame, recv_ns: int) -> Json:
         """The page's event for camera frame ``f`` (module docstring): the ghost at the newest
-        prediction's pose in the frame's own view, u = w/2 + scale (x - cx),
-        v = h/2 - scale (y - cy); the 2-sigma ellipse scaled alike (v down: angle negated)."""
-        from .camera_view import outline_px
+        prediction's pose projected through the frame's own view (``CameraFrame.project``);
+        the 2-sigma ellipse as (u, v, a, b, angle) in a top-down view (u = w/2 + scale (x -
+        cx), v = h/2 - scale (y - cy): an ellipse stays one, v down negates the angle), as a
+        projected polygon ``ell_px`` in a perspective one. No ghost (counted
+        ``ghosts_unshown``) when the pose is behind a perspective camera."""
+        from .camera_view import ellipse_points, outline_px
 
         k = self.step_at(f.t_ns)
         ev: Json = {"type": "frame", "s": self.name, "seq": f.seq, "t_ns": f.t_ns, "k": k,
                     "age_ms": (recv_ns - f.t_ns) / 1e6, "w": f.width, "h": f.height,
-                    "img": f.data, "ghost": None, "path_px": None}
+                    "fmt": f.format, "img": f.data, "ghost": None, "path_px": None}
         p = self.last_prediction
         if p is None or self.layout is None or self.layout[0] != "plane":
             return ev
@@ -303,14 +309,22 @@ class FeedSession:
         ih = next((names.index(h) for h in ("theta", "yaw") if h in names), None)
         x, y = float(p.x[ix]), float(p.x[iy])
         yaw = float(p.x[ih]) if ih is not None else 0.0
-        a, b, ang = ellipse_2sigma(p.P[np.ix_([ix, iy], [ix, iy])])
-        ev["ghost"] = {"seq": p.seq, "k": p.step, "pose": [x, y, yaw],
-                       "px": outline_px(f, x, y, yaw),
-                       "ell": [*f.pixel(x, y), a * f.scale, b * f.scale, -ang]}
+        C = p.P[np.ix_([ix, iy], [ix, iy])]
+        px = outline_px(f, x, y, yaw)
+        ell_px = f.project(np.array(ellipse_points((x, y), C))) if f.pinhole else None
+        if px is None or (f.pinhole is not None and ell_px is None):
+            self.ghosts_unshown += 1
+            return ev
+        ell, centre = None, f.project(np.array([[x, y]]))
+        if f.scale is not None and centre is not None:
+            a, b, ang = ellipse_2sigma(C)
+            ell = [*centre[0], a * f.scale, b * f.scale, -ang]
+        ev["ghost"] = {"seq": p.seq, "k": p.step, "pose": [x, y, yaw], "px": px, "ell": ell,
+                       "ell_px": ell_px}
         path = self.last_path
         if path is not None and ix in path.indices and iy in path.indices:
             cx, cy = path.indices.index(ix), path.indices.index(iy)
-            ev["path_px"] = [list(f.pixel(float(r[cx]), float(r[cy]))) for r in path.X]
+            ev["path_px"] = f.project(path.X[:, [cx, cy]])
         return ev
 
     def warnings(self, mono: float, stale_s: float
@@ -526,7 +540,8 @@ class LiveFeed:
             for name, v in sorted(self.views.items()):
                 pa, ages, warn = v.warnings(mono, self.stale_s)
                 out[name] = {"pa": pa, "sa": ages, "warn": warn, "n": v.predictions,
-                             "st": v.stale_term, "paths_unshown": v.paths_unshown}
+                             "st": v.stale_term, "paths_unshown": v.paths_unshown,
+                             "ghosts_unshown": v.ghosts_unshown}
             names = sorted(set(self.reported) | set(self.views))
             ev = {"type": "tick", "ts": self._now_ns() / 1e6, "list": names,
                   "reported": self.reported, "sessions": out, "events": self.events}

@@ -198,14 +198,17 @@ function parseJsonSchema(rootJsonSchema, rootTypeName) {
 }
 
 // Test driver (not Lichtblick's): stdin is a JSON list of {name, schema}; stdout a JSON list of
-// {name, error | fields}: the error Lichtblick would show, or the root type's field names.
+// {name, error | fields, types}: the error Lichtblick would show, or the root type's field
+// names and their types ("uint8[]" for a base64 string it decodes to bytes).
 let input = "";
 process.stdin.on("data", (d) => (input += d));
 process.stdin.on("end", () => {
   const out = JSON.parse(input).map(({ name, schema }) => {
     try {
       const { datatypes } = parseJsonSchema(schema, name);
-      return { name, fields: datatypes.get(name).definitions.map((f) => f.name) };
+      const defs = datatypes.get(name).definitions;
+      return { name, fields: defs.map((f) => f.name),
+               types: defs.map((f) => f.type + (f.isArray ? "[]" : "")) };
     } catch (e) {
       return { name, error: String(e.message) };
     }

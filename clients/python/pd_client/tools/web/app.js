@@ -48,7 +48,7 @@ function onEvent(ev) {
 function onFrame(ev) {
   const s = session(ev.s), img = new Image();
   img.onload = () => { s.frame = ev; s.frameImg = img; if (ev.s === selected) dirty = true; };
-  img.src = "data:image/jpeg;base64," + ev.img;
+  img.src = "data:image/" + (ev.fmt === "png" ? "png" : "jpeg") + ";base64," + ev.img;
 }
 
 // the newest frame of the session, its ghost (outline at the predicted pose for the moment
@@ -70,12 +70,18 @@ function drawVideo(c, s) {
   }
   d.pathPx = f.path_px ? JSON.stringify(f.path_px) : "";
   if (!f.ghost) { d.ghostSeq = ""; d.ghostPx = ""; return; }
-  const [eu, ev, a, b, ang] = f.ghost.ell;
   g.fillStyle = "#4aa3ff33"; g.strokeStyle = "#4aa3ff"; g.lineWidth = 1; g.beginPath();
-  g.ellipse(eu, ev, Math.max(1, a), Math.max(1, b), ang, 0, 2 * Math.PI); g.fill(); g.stroke();
+  if (f.ghost.ell) {  // top-down view: an ellipse; perspective view: its projected polygon
+    const [eu, ev, a, b, ang] = f.ghost.ell;
+    g.ellipse(eu, ev, Math.max(1, a), Math.max(1, b), ang, 0, 2 * Math.PI);
+  } else {
+    f.ghost.ell_px.forEach(([u, v], n) => (n ? g.lineTo(u, v) : g.moveTo(u, v))); g.closePath();
+  }
+  g.fill(); g.stroke();
   g.strokeStyle = "#4aa3ff"; g.lineWidth = 2; g.setLineDash([4, 2]); g.beginPath();
   f.ghost.px.forEach(([u, v], n) => (n ? g.lineTo(u, v) : g.moveTo(u, v))); g.closePath(); g.stroke(); g.setLineDash([]);
   d.ghostSeq = f.ghost.seq; d.ghostK = f.ghost.k; d.ghostPx = JSON.stringify(f.ghost.px); d.ghostPose = JSON.stringify(f.ghost.pose);
+  d.ghostEll = JSON.stringify(f.ghost.ell_px || f.ghost.ell);
 }
 
 function onTick(ev) {
