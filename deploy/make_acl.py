@@ -38,9 +38,10 @@ The input (TOML; every list of users may name several users, a user may have sev
 
     [[session]]
     name = "paper"
-    robot = "robot"           # puts robot/paper/sensor/*, robot/paper/truth; gets robot/paper/cmd
-    operator = "operator"     # puts pd/paper/cmd; reads pd/paper/{prediction,error,status,config}
-    direct = true             # optional: the robot also puts pd/paper/sensor/* and gets
+    robot = "robot"           # puts robot/paper/{sensor/*,truth,camera}; gets robot/paper/cmd
+    operator = "operator"     # puts pd/paper/cmd; reads pd/paper/{prediction,path,error,status,
+                              # config,camera}
+    direct = true             # optional: the robot also puts pd/paper/{sensor/*,camera}, gets
                               # pd/paper/cmd (no link emulator in between)
     robot_creates = true      # optional: the robot may create/replace/delete THIS session's
                               # spec (pd-robot-sim --create-session); default: admins only
@@ -89,7 +90,7 @@ _TOP = {*_ROLE_LISTS, "users_file", "listen", "mesh", "session", "tls"}
 _SESSION = {"name", "robot", "operator", "direct", "robot_creates"}
 _MESH = {"zids", "user", "password"}
 _TLS = {"ca", "certificate", "private_key"}
-RESULTS = ("prediction", "error", "status")
+RESULTS = ("prediction", "path", "error", "status")
 #: every session of every partition (key layout 2): pd/p<k>/<s>, robot/p<k>/<s>
 PD = "pd/*/*"
 ROBOT = "robot/*/*"
@@ -301,9 +302,12 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
     "service-recover-get": (("egress",), ("liveliness_token",),
                             (_cache(f"{PD}/sensor/*"), _cache(f"{PD}/cmd"))),
     # the link emulator: every session
-    "link-ask": (("ingress",), ("declare_subscriber",), (f"{ROBOT}/sensor/*", f"{PD}/cmd")),
-    "link-get": (("egress",), ("put", "delete"), (f"{ROBOT}/sensor/*", f"{PD}/cmd")),
-    "link-write": (("ingress",), ("put", "delete"), (f"{PD}/sensor/*", f"{ROBOT}/cmd")),
+    "link-ask": (("ingress",), ("declare_subscriber",),
+                 (f"{ROBOT}/sensor/*", f"{ROBOT}/camera", f"{PD}/cmd")),
+    "link-get": (("egress",), ("put", "delete"),
+                 (f"{ROBOT}/sensor/*", f"{ROBOT}/camera", f"{PD}/cmd")),
+    "link-write": (("ingress",), ("put", "delete"),
+                   (f"{PD}/sensor/*", f"{PD}/camera", f"{ROBOT}/cmd")),
     "link-serve-in": (("ingress",), ("declare_queryable", "reply"),
                       ("pd/@link/*/rules", "pd/@link/*/stats")),
     "link-serve-out": (("egress",), ("query",), ("pd/@link/*/rules", "pd/@link/*/stats")),
@@ -315,9 +319,11 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
                        (_cache(f"{PD}/sensor/*"), _cache(f"{PD}/cmd"))),
     # displays: read-only, every session
     "display-ask": (("ingress",), ("declare_subscriber", "query"),
-                    (*(f"{PD}/{r}" for r in RESULTS), f"{PD}/config", f"{ROBOT}/truth")),
+                    (*(f"{PD}/{r}" for r in RESULTS), f"{PD}/config", f"{PD}/camera",
+                     f"{ROBOT}/truth")),
     "display-get": (("egress",), ("put", "delete", "reply"),
-                    (*(f"{PD}/{r}" for r in RESULTS), f"{PD}/config", f"{ROBOT}/truth")),
+                    (*(f"{PD}/{r}" for r in RESULTS), f"{PD}/config", f"{PD}/camera",
+                     f"{ROBOT}/truth")),
     # routers of a mesh ([mesh]) relay to each other every message, both ways, on every key
     # some rule above grants a client: each router enforces its own clients' rules, the mesh
     # carries what one router let in to where another may let it out.  "**" never matches a
@@ -357,8 +363,8 @@ def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[
         creates = [s["name"] for s in robot_of if s["robot_creates"]]
         rules += [
             _rule(f"robot-{user}-write", ["ingress"], ["put", "delete"],
-                  [*(f"robot/{s}/sensor/*" for s in names), *(f"robot/{s}/truth" for s in names),
-                   *(f"pd/{s}/sensor/*" for s in direct)]),
+                  [*(f"robot/{s}/{k}" for s in names for k in ("sensor/*", "truth", "camera")),
+                   *(f"pd/{s}/{k}" for s in direct for k in ("sensor/*", "camera"))]),
             _rule(f"robot-{user}-ask", ["ingress"], ["declare_subscriber", "query"],
                   [*(f"robot/{s}/cmd" for s in names), *(f"pd/{s}/cmd" for s in direct),
                    *(f"pd/{s}/config" for s in names)]),
@@ -386,7 +392,7 @@ def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[
     if operator_of:
         plain = [s["name"] for s in operator_of]
         names = [session_path(s, partitions) for s in plain]
-        readable = [*(f"pd/{s}/{r}" for s in names for r in (*RESULTS, "config")),
+        readable = [*(f"pd/{s}/{r}" for s in names for r in (*RESULTS, "config", "camera")),
                     *(f"pd/{s}/{r}" for s in plain for r in ("error", "status"))]
         rules += [
             _rule(f"operator-{user}-write", ["ingress"], ["put", "delete"],

@@ -121,6 +121,10 @@ CASES = {
     "truth": ("display", keys.ALL_TRUTHS, keys.truth_key("paper"), "robot", "link"),
     "predictions": ("display", keys.ALL_PREDICTIONS, keys.prediction_key("paper"), "service",
                     "operator"),
+    "paths": ("display", keys.ALL_PATHS, keys.path_key("paper"), "service", "operator"),
+    "robot-camera": ("link", keys.ROBOT_ALL_CAMERAS, keys.robot_camera_key("paper"), "robot",
+                     "operator"),
+    "camera": ("display", keys.ALL_CAMERAS, keys.camera_key("paper"), "link", "operator"),
 }
 
 
