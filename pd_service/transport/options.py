@@ -71,10 +71,14 @@ class ZenohOptions:
     password: str | None = field(default=None, repr=False)
 
     def resolved(self, role: Role) -> ZenohOptions:
-        """The options with the role's defaults filled in (none when a file is given)."""
+        """The options with the role's defaults filled in (none when a file is given). A
+        client listens on nothing unless told: the role's listen default is a peer's (a
+        daemon made a client of a router still bound 7447, and a second on the host failed)."""
         if self.config_file is not None:
             return self
-        return ZenohOptions(self.mode or role.mode, self.listen or role.listen,
+        mode = self.mode or role.mode
+        listen = self.listen or (() if mode == "client" else role.listen)
+        return ZenohOptions(mode, listen,
                             self.connect or role.connect, None,
                             False if self.multicast is None else self.multicast,
                             self.user, self.password)

@@ -26,6 +26,16 @@ def test_layers_flags_over_env_over_file(tmp_path):
     assert s.zenoh.resolved(DAEMON).listen == (DEFAULT_ENDPOINT,)
 
 
+def test_a_client_daemon_listens_on_nothing_unless_told():
+    """The daemon's listen default is a peer's: made a client of a router it binds no port
+    (two such instances on one host would both take 7447), unless given endpoints."""
+    assert load_settings({"mode": "client"}, environ={}).zenoh.resolved(DAEMON).listen == ()
+    assert load_settings({"mode": "client", "listen": ["tcp/127.0.0.1:7500"]},
+                         environ={}).zenoh.resolved(DAEMON).listen == ("tcp/127.0.0.1:7500",)
+    assert load_settings({"mode": "peer"}, environ={}).zenoh.resolved(DAEMON).listen == \
+        (DEFAULT_ENDPOINT,)
+
+
 def test_json_file_and_config_env_var(tmp_path):
     f = tmp_path / "s.json"
     f.write_text(json.dumps({"shard": "1/3", "zenoh_config": "/etc/z.json5"}))
@@ -81,7 +91,7 @@ def test_print_config_shows_the_zenoh_values_in_force(monkeypatch, capsys, tmp_p
                  "--password", "secret"]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert (shown["mode"], shown["listen"], shown["connect"], shown["password"]) == \
-        ("client", [DEFAULT_ENDPOINT], ["tcp/127.0.0.1:9"], "***")
+        ("client", [], ["tcp/127.0.0.1:9"], "***")  # a client listens on nothing
     # with a zenoh config file, the file decides what the flags do not say
     f = tmp_path / "z.json5"
     f.write_text('{mode: "client"}')
