@@ -817,6 +817,8 @@ class Lifecycle:
         sess.unanswered = want
         sess.hold_until_ns = self.holding[name] = now + int(2e9 * self.settings.recover_timeout_s)
         sess.readback = "waiting"
+        # its inputs meanwhile are taken in at their stamps when the wait ends (catch_up)
+        self.dispatch.held_inputs[name] = []
 
     def release_holds(self, now: int, touched: list[Session]) -> None:
         """Worker: the sessions whose wait for their senders' caches ended (answered, or
@@ -829,8 +831,9 @@ class Lifecycle:
             if sess is not None and sess.hold_until_ns:
                 if now < until or name in self.dispatch.parked:
                     continue
-                self.dispatch.release_hold(sess, "timeout", touched)
+                self.dispatch.release_hold(sess, "timeout", now, touched)
             del self.holding[name]
+            self.dispatch.held_inputs.pop(name, None)  # a session gone meanwhile
             with self._read_backs_lock:
                 handles = self._read_backs.pop(name, [])
             for h in handles:
