@@ -506,8 +506,10 @@ def resumed_row(traffic: Traffic, s: str, t_fault: int, status, newer_than: int 
             "recovered_late": end.counters.get("recovered_late", 0),
             "gap_s": round((at0 - last_at) / 1e9, 3),
             "first_after_fault_s": round((at0 - t_fault) / 1e9, 3),
-            "reset_to_prior": (status is not None and status.origin == "prior")
-            or first.counters.get("accepted", 0) < acc_before,
+            # restarted from the prior: no state resumed (counters from a checkpoint older
+            # than the last prediction before the fault may be lower: not a reset)
+            "reset_to_prior": status is not None and status.origin == "prior",
+            "accepted_before": acc_before,
             "exact_end": r_end is not None and bool(
                 np.allclose(end.x, r_end[0], rtol=1e-9, atol=1e-9)
                 and np.allclose(np.diag(end.P), r_end[1], rtol=1e-9, atol=1e-9))}

@@ -291,10 +291,13 @@ class Dispatch:
         for stamp, i in order:
             recovered, item = held[i]
             k = max(k, min(now_step, stamp))
+            # judged at k, not at its arrival (_offer's rule for one that came after the
+            # loop read its clock would take it to the current step, past later stamps)
+            at = max(now, item[5])
             if recovered:
-                self._handle_read_back(sess, item, k, now)
+                self._handle_read_back(sess, item, k, at)
             else:
-                self.handle(sess, item, k, now)
+                self.handle(sess, item, k, at)
 
     def post_released(self, sessions: list[str], items: list[tuple[int, Sample]]) -> None:
         """Any thread: the read-back of parked ``sessions`` is done (``items``: what it

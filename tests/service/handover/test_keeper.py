@@ -657,6 +657,36 @@ def test_a_restart_longer_than_the_window_takes_in_what_the_senders_kept(tmp_pat
     assert c["refused"] == 0
 
 
+def test_inputs_kept_during_the_wait_are_judged_at_their_stamps_not_at_their_arrival(
+        tmp_path):
+    """The catch-up judges each kept input at its own stamp's step, also one that arrived
+    after the worker's loop read its clock (its arrival time is later than the loop's):
+    judged at that arrival, it would take the estimator to the current step and every
+    older stamp after it would be refused (late, or "now went backwards")."""
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
+    d = Driver(cli, clock, col)
+    cli.put(keys.config_key("s1"), encode(d.spec))
+    a.run_once()
+    for k in range(40):
+        d.step([a], k, lambda: a.counters["checkpoints"])
+    a.t.close()
+    clock.t = int(70.05 * PERIOD_NS)
+    b = make_core(bus, clock, tmp_path)  # no sender cache: it waits 2 x recover_timeout_s
+    sess = b.dispatch.routes["s1"].sess
+    assert sess.readback == "waiting" and sess.origin_step is not None
+    # samples of the steps after the checkpoint, arriving after the wait's end ...
+    clock.t = sess.hold_until_ns + 5 * PERIOD_NS
+    for j in range(sess.origin_step + 1, sess.origin_step + 6):
+        cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", j, [5.0]))
+    clock.t = sess.hold_until_ns + PERIOD_NS // 2  # ... read by a loop that began before
+    accepted = sess.counters["accepted"]
+    b.run_once()
+    assert sess.readback == "timeout"
+    assert sess.counters["accepted"] == accepted + 5 and b.counters["refused"] == 0
+
+
 def test_takeover_reads_back_what_the_senders_kept(tmp_path):
     """The owner dies; what it accepted after its last replica and what was sent until the
     survivor took over come back from the senders' caches: the survivor continues exactly
