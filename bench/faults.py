@@ -494,7 +494,8 @@ def resumed_row(traffic: Traffic, s: str, t_fault: int, status, newer_than: int 
     last_at = max((at for at, p in got if at < t_fault), default=t_fault)
     r0 = ratios(first)
     later = [r for r in (ratios(p) for _, p in after) if r is not None]
-    end = after[-1][1]
+    # the last one of a step the mirror has (after the feed stopped the daemon goes on)
+    end = next((p for _, p in reversed(after) if p.step - spec.lead in ref), first)
     r_end = ref.get(end.step - spec.lead)
     acc_before = before[-1].counters.get("accepted", 0) if before else 0
     return {**row,
