@@ -809,7 +809,9 @@ class Lifecycle:
         """A restarted or taken-over ``sess`` publishes nothing until the cache of each of
         its data keys (every sensor's, and the command's if it takes commands) has been read
         back (:meth:`Dispatch.cache_answered`), or ``2 x recover_timeout_s`` passed
-        (:meth:`release_holds`): its first prediction then has what the senders kept."""
+        (:meth:`release_holds`): its first prediction then has what the senders kept. Its
+        inputs meanwhile, live and read back, are kept and taken in at their own steps when
+        the wait ends (:meth:`Dispatch.catch_up`)."""
         name = sess.name
         want = {keys.sensor_key(name, x.name) for x in sess.spec.sensors}
         if sess.intake.r:

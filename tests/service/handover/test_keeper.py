@@ -571,15 +571,10 @@ class CachedSender:
         self.pubs[key].put(payload)
 
 
-@pytest.mark.parametrize("cache", [64, 2])
-def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
-    """Kill (no flush), 3 steps with no daemon, restart: the restarted daemon reads back the
-    senders' caches. cache=64 reaches past the checkpoint and past the window: every packet
-    since the checkpoint comes back (all still inside the window), so it continues *exactly*
-    as the run that never stopped, from its first prediction on; the repeats of checkpointed
-    packets and the samples older than the window are refused quietly (counted as
-    recovered_*, no ErrorReport). cache=2 keeps only the last 2 steps of the outage: the
-    steps before them are lost (as without caches)."""
+def _crashed_with_caches(tmp_path, cache: int, back: int):
+    """One daemon fed 40 steps through senders keeping ``cache`` samples per key, killed
+    (nothing flushed), the feed going on until step ``back`` with no daemon (only the
+    caches keep it); the clock at the restart's moment. Returns (bus, clock, col, d)."""
     bus, clock = InMemoryBus(), Clock(0)
     col = Collector().attach(bus.transport())
     snd = CachedSender(bus.transport(), cache)
@@ -590,9 +585,22 @@ def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
     for k in range(40):
         d.step([a], k, lambda: a.counters["checkpoints"])
     a.t.close()  # a crash: nothing flushed, nothing said
-    for k in range(40, 43):  # sent while no daemon runs: only the senders' caches keep them
+    for k in range(40, back):  # sent while no daemon runs: only the senders' caches keep them
         d.step([], k)
-    clock.t = int(43.05 * PERIOD_NS)
+    clock.t = int((back + 0.05) * PERIOD_NS)
+    return bus, clock, col, d
+
+
+@pytest.mark.parametrize("cache", [64, 2])
+def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
+    """Kill (no flush), 3 steps with no daemon, restart: the restarted daemon reads back the
+    senders' caches. cache=64 reaches past the checkpoint and past the window: every packet
+    since the checkpoint comes back (all still inside the window), so it continues *exactly*
+    as the run that never stopped, from its first prediction on; the repeats of checkpointed
+    packets and the samples older than the window are refused quietly (counted as
+    recovered_*, no ErrorReport). cache=2 keeps only the last 2 steps of the outage: the
+    steps before them are lost (as without caches)."""
+    bus, clock, col, d = _crashed_with_caches(tmp_path, cache, 43)
     errors_before = len(col.errors["s1"])
     n0 = len(col.predictions["s1"])
     b = make_core(bus, clock, tmp_path)
@@ -628,19 +636,7 @@ def test_a_restart_longer_than_the_window_takes_in_what_the_senders_kept(tmp_pat
     restarted session takes them in at their own stamps' steps, from the checkpoint's step
     on (``Dispatch.catch_up``), before its first prediction: it continues *exactly* as the
     run that never stopped, instead of propagating the checkpoint over the gap."""
-    bus, clock = InMemoryBus(), Clock(0)
-    col = Collector().attach(bus.transport())
-    snd = CachedSender(bus.transport(), 64)
-    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
-    d = Driver(snd, clock, col)
-    bus.transport().put(keys.config_key("s1"), encode(d.spec))
-    a.run_once()
-    for k in range(40):
-        d.step([a], k, lambda: a.counters["checkpoints"])
-    a.t.close()  # a crash: nothing flushed, nothing said
-    for k in range(40, 70):  # sent while no daemon runs: only the senders' caches keep them
-        d.step([], k)
-    clock.t = int(70.05 * PERIOD_NS)
+    bus, clock, col, d = _crashed_with_caches(tmp_path, 64, 70)
     n0 = len(col.predictions["s1"])
     b = make_core(bus, clock, tmp_path)
     d.check(70, d.off)  # the first prediction, made by the start (before step 70's inputs)
@@ -663,15 +659,7 @@ def test_inputs_kept_during_the_wait_are_judged_at_their_stamps_not_at_their_arr
     after the worker's loop read its clock (its arrival time is later than the loop's):
     judged at that arrival, it would take the estimator to the current step and every
     older stamp after it would be refused (late, or "now went backwards")."""
-    bus, clock = InMemoryBus(), Clock(0)
-    col, cli = Collector().attach(bus.transport()), bus.transport()
-    a = make_core(bus, clock, tmp_path, checkpoint_interval_s=0.3)
-    d = Driver(cli, clock, col)
-    cli.put(keys.config_key("s1"), encode(d.spec))
-    a.run_once()
-    for k in range(40):
-        d.step([a], k, lambda: a.counters["checkpoints"])
-    a.t.close()
+    bus, clock, col, cli, d = _checkpointed(tmp_path, 40)
     clock.t = int(70.05 * PERIOD_NS)
     b = make_core(bus, clock, tmp_path)  # no sender cache: it waits 2 x recover_timeout_s
     sess = b.dispatch.routes["s1"].sess
