@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Faults of a deployment, tried from outside: router restart, host clock step, soak.
+"""Faults of a deployment, tried from outside: router restart, daemon restart, takeover,
+host clock step, soak.
 
 One daemon (``python -m pd_service``, default settings, ``--mode client``) behind a Python
 Zenoh router on loopback (a separate process, so that it can be killed). This process is the
@@ -15,6 +16,22 @@ Prediction (step, seq, trace P). Modes:
   tokens) before the kill and after the return. What the senders published while the
   router was down reaches the daemon only through their caches (read back when their
   tokens reappear).
+* ``restart``: the documented set-up from outside: the daemon as it runs with no options
+  (a peer listening, here on a free port), default settings; this process the SDK's side,
+  ``pd_client.connect`` to it, per session a cached direct ``Robot`` (with the spec) and an
+  ``Operator`` feeding the paper run at 100 ms steps (``--max-delay``: the window in steps;
+  12, the paper's 1.2 s, is shorter than every outage). After ``--before`` s the daemon is
+  killed (SIGKILL) and started again on the same state directory ``--down`` s later (a list,
+  cycled over ``--repeat`` runs). Printed per session: where it resumed from and how its
+  wait for the senders' caches ended (SessionStatus), the first prediction's diag P over
+  a mirror estimator's (every input the SDK took, each at the step it was sent: the run
+  that never stopped) at the same step, largest and smallest entry, and the largest over
+  the predictions after; the inputs sent (20 ms before it was made) that the first and
+  the last prediction lack; the gap; a restart from the prior; the last prediction exact
+  to 1e-9. Then the median and spread over all runs.
+* ``takeover``: the same with two trusted instances (``--peer``), clients of a Python
+  router as the SDK is; the owner of the most sessions killed (SIGKILL); the rows are
+  its sessions, their first prediction the survivor's (a newer term).
 * ``clock``: the host clock step, faked through the injected clocks (the OS clock cannot be
   stepped here): the in-memory core with a :class:`StepClock` on a wall clock stepped by
   ±1 s and +1 h; printed: the re-anchors, the refusals counted as ``clock_step``, the
@@ -27,6 +44,8 @@ Prediction (step, seq, trace P). Modes:
 The last line is one JSON object. Quote ``bench/gauge.py`` beside any figure.
 
     .venv/bin/python bench/faults.py router --sessions 20 --down 5
+    .venv/bin/python bench/faults.py restart --sessions 4 --repeat 8 --max-delay 12
+    .venv/bin/python bench/faults.py takeover --sessions 8 --repeat 8 --max-delay 12
     .venv/bin/python bench/faults.py clock
     .venv/bin/python bench/faults.py soak --sessions 500 --rate 20 --minutes 60 --every 60
 """
