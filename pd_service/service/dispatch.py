@@ -261,10 +261,10 @@ class Dispatch:
         """Worker: ``sess`` takes in what it got meanwhile (:meth:`catch_up`) and publishes
         again (its first prediction in this pass), its status saying how its wait for the
         senders' caches ended."""
+        self.catch_up(sess, now)
         sess.hold_until_ns = 0
         sess.readback = how
         self.counters["readback_answered" if how == "answered" else "readback_timeout"] += 1
-        self.catch_up(sess, now)
         if sess not in touched:
             touched.append(sess)
 
@@ -273,12 +273,14 @@ class Dispatch:
         read back, :attr:`held_inputs`), in the order of their stamps (a measurement's
         sample step; a command's apply step - lead, the step it was sent at), each judged
         at its own stamp's step: from the step of the state the session resumed from
-        (``origin_step``) up to now. So a state older than the window (a restart that took
-        longer) takes in every sample the caches kept since it, as a daemon that never
-        stopped would have, instead of refusing those older than the window as late; none
-        is applied at a step after its stamp's, nor after now::
+        (``origin_step``; a session left at its prior: the step its wait began) up to
+        now. Called while it still waits (``hold_until_ns`` set). So a state older than
+        the window (a restart that took longer) takes in every sample the caches kept
+        since it, as a daemon that never stopped would have, instead of refusing those
+        older than the window as late; none is applied at a step after its stamp's, nor
+        after now::
 
-            k_i = max(k_{i-1}, min(now_step, stamp_i)),   k_0 = origin_step
+            k_i = max(k_{i-1}, min(now_step, stamp_i)),   k_0 = origin_step (or the wait's start)
         """
         held = self.held_inputs.pop(sess.name, None)
         if not held:
@@ -287,7 +289,8 @@ class Dispatch:
         now_step = sess.step_now(now)
         order = sorted(((stamp_step(spec, item, now_step), i) for i, (_, item) in
                         enumerate(held)))
-        k = sess.origin_step if sess.origin_step is not None else now_step
+        k = sess.origin_step if sess.origin_step is not None else min(now_step, spec.step_of(
+            sess.hold_until_ns - int(2e9 * self.settings.recover_timeout_s)))
         for stamp, i in order:
             recovered, item = held[i]
             k = max(k, min(now_step, stamp))

@@ -675,6 +675,31 @@ def test_inputs_kept_during_the_wait_are_judged_at_their_stamps_not_at_their_arr
     assert sess.counters["accepted"] == accepted + 5 and b.counters["refused"] == 0
 
 
+def test_a_command_to_a_session_taken_over_at_its_prior_is_taken_in_after_the_wait(tmp_path):
+    """A session nobody sent to is taken over at its prior (no replica) and waits for its
+    senders' caches like any other; a command it gets meanwhile is judged at its own step
+    from the wait's start when the wait ends, not at the end of the wait (where its apply
+    step would be long final)."""
+    from ..helpers import cmd_now_bytes
+
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a, b, names = two_instances(bus, clock, tmp_path, cli)
+    s = next(n for n in names if n in a.served_sessions())
+    a.t.close()
+    clock.t = 5 * PERIOD_NS
+    b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
+    b.run_once()
+    sess = b.dispatch.routes[s].sess
+    assert sess.origin == "prior" and sess.readback == "waiting"
+    cli.put(keys.command_key(s), cmd_now_bytes(s, clock.t))
+    b.run_once()
+    clock.t = sess.hold_until_ns + PERIOD_NS  # no cache answers: the bound (4 s, 80 steps)
+    b.run_once()
+    assert sess.readback == "timeout"
+    assert sess.counters["commands_accepted"] == 1 and b.counters["refused"] == 0
+
+
 def test_takeover_reads_back_what_the_senders_kept(tmp_path):
     """The owner dies; what it accepted after its last replica and what was sent until the
     survivor took over come back from the senders' caches: the survivor continues exactly
