@@ -535,11 +535,14 @@ def resumed_row(traffic: Traffic, s: str, t_fault: int, status, newer_than: int 
                 and np.allclose(np.diag(end.P), r_end[1], rtol=1e-9, atol=1e-9))}
 
 
-def session_status(t, s: str):
+def session_status(t, s: str, tries: int = 6):
+    """Session ``s``'s SessionStatus (None if no answer in ``tries`` queries of 5 s: a
+    loaded machine may let one go unanswered)."""
     from pd_service.wire import SessionStatus, decode, keys
-    for r in t.get(keys.status_key(s), timeout=5.0):
-        if r.ok:
-            return decode(r.payload, SessionStatus)
+    for _ in range(tries):
+        for r in t.get(keys.status_key(s), timeout=5.0):
+            if r.ok:
+                return decode(r.payload, SessionStatus)
     return None
 
 
