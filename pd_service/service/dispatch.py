@@ -301,6 +301,8 @@ class Dispatch:
                 self._handle_read_back(sess, item, k, at)
             else:
                 self.handle(sess, item, k, at)
+        if sess.idle and sess.heard:  # its ticks went idle while nothing was taken in
+            self.pub.wake(sess, now)
 
     def post_released(self, sessions: list[str], items: list[tuple[int, Sample]]) -> None:
         """Any thread: the read-back of parked ``sessions`` is done (``items``: what it

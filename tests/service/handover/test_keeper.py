@@ -698,6 +698,13 @@ def test_a_command_to_a_session_taken_over_at_its_prior_is_taken_in_after_the_wa
     b.run_once()
     assert sess.readback == "timeout"
     assert sess.counters["commands_accepted"] == 1 and b.counters["refused"] == 0
+    # and it is awake: a prediction every step from then on (not one per idle_publish_s)
+    published = sess.published
+    k0 = sess.step_now(clock.t)
+    for k in range(k0 + 1, k0 + 6):
+        clock.t = int((k + 0.6) * PERIOD_NS)
+        b.run_once()
+    assert sess.published >= published + 5
 
 
 def test_takeover_reads_back_what_the_senders_kept(tmp_path):
