@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Faults of a deployment, tried from outside: router restart, host clock step, soak.
+"""Faults of a deployment, tried from outside: router restart, daemon restart, takeover,
+host clock step, soak.
 
 One daemon (``python -m pd_service``, default settings, ``--mode client``) behind a Python
 Zenoh router on loopback (a separate process, so that it can be killed). This process is the
@@ -15,6 +16,22 @@ Prediction (step, seq, trace P). Modes:
   tokens) before the kill and after the return. What the senders published while the
   router was down reaches the daemon only through their caches (read back when their
   tokens reappear).
+* ``restart``: the documented set-up from outside: the daemon as it runs with no options
+  (a peer listening, here on a free port), default settings; this process the SDK's side,
+  ``pd_client.connect`` to it, per session a cached direct ``Robot`` (with the spec) and an
+  ``Operator`` feeding the paper run at 100 ms steps (``--max-delay``: the window in steps;
+  12, the paper's 1.2 s, is shorter than every outage). After ``--before`` s the daemon is
+  killed (SIGKILL) and started again on the same state directory ``--down`` s later (a list,
+  cycled over ``--repeat`` runs). Printed per session: where it resumed from and how its
+  wait for the senders' caches ended (SessionStatus), the first prediction's diag P over
+  a mirror estimator's (every input the SDK took, each at the step it was sent: the run
+  that never stopped) at the same step, largest and smallest entry, and the largest over
+  the predictions after; the inputs sent (20 ms before it was made) that the first and
+  the last prediction lack; the gap; a restart from the prior; the last prediction exact
+  to 1e-9. Then the median and spread over all runs.
+* ``takeover``: the same with two trusted instances (``--peer``), clients of a Python
+  router as the SDK is; the owner of the most sessions killed (SIGKILL); the rows are
+  its sessions, their first prediction the survivor's (a newer term).
 * ``clock``: the host clock step, faked through the injected clocks (the OS clock cannot be
   stepped here): the in-memory core with a :class:`StepClock` on a wall clock stepped by
   ±1 s and +1 h; printed: the re-anchors, the refusals counted as ``clock_step``, the
@@ -29,6 +46,8 @@ Prediction (step, seq, trace P). Modes:
 The last line is one JSON object. Quote ``bench/gauge.py`` beside any figure.
 
     .venv/bin/python bench/faults.py router --sessions 20 --down 5
+    .venv/bin/python bench/faults.py restart --sessions 4 --repeat 8 --max-delay 12
+    .venv/bin/python bench/faults.py takeover --sessions 8 --repeat 8 --max-delay 12
     .venv/bin/python bench/faults.py clock
     .venv/bin/python bench/faults.py soak --sessions 500 --rate 20 --minutes 60 --every 60
 """
@@ -54,10 +73,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from pd_service.scenarios.paper import paper_prior  # noqa: E402
+from pd_service.scenarios.paper import UPLINK_DELAY, paper_prior  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-STEP_NS = 50_000_000
 
 
 def free_port() -> int:
@@ -152,13 +170,23 @@ class Process:
 
 
 class Daemon(Process):
-    """``python -m pd_service`` as a client of the router, default settings."""
+    """``python -m pd_service``, default settings: a client of the router at ``endpoint``,
+    or (``listen``) a peer listening there, as it runs with no options (the SDK's clients
+    connect to it); ``peers``: the other instances it shares sessions with."""
 
-    def __init__(self, endpoint: str, state_dir: Path, instance: str = "inst-f") -> None:
+    def __init__(self, endpoint: str, state_dir: Path, instance: str = "inst-f",
+                 listen: bool = False, peers: tuple[str, ...] = ()) -> None:
         self.instance = instance
+        net = ["--listen", endpoint] if listen else ["--mode", "client", "--connect", endpoint]
         super().__init__(["-m", "pd_service", "--instance", instance, "--state-dir",
-                          str(state_dir), "--mode", "client", "--connect", endpoint],
+                          str(state_dir), *net, *(a for p in peers for a in ("--peer", p))],
                          state_dir.parent / f"{instance}.log")
+
+    def kill9(self) -> None:
+        """SIGKILL: no hand-over, no flush; the kernel closes its sockets."""
+        self.proc.kill()
+        self.proc.wait()
+        self._log.close()
 
     def rss_mb(self) -> float:
         for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
@@ -193,10 +221,16 @@ class Link(Process):
 
 class Traffic:
     """The SDK's side: per session a cached Robot and an Operator feeding the paper run,
-    and every Prediction recorded as (receipt monotonic ns, step, seq, trace P)."""
+    and every Prediction recorded as (receipt monotonic ns, step, seq, trace P).
+    ``time_scale``, ``max_delay``: the spec's (``Scenario.spec``; 0.5: 100 ms steps);
+    ``listen``: receive the predictions at all (a feeder does not);
+    ``record``: also keep every Prediction received (:attr:`full`) and every input sent
+    (:attr:`sent`, for a mirror estimator); ``ahead``: a command is sent for the step this
+    many steps ahead (default 2; the spec's ``lead`` as docs/clients.md does it)."""
 
     def __init__(self, t, sessions: list[str], epoch_ns: int, steps: int = 2_000,
-                 direct: bool = True, record: bool = True) -> None:
+                 direct: bool = True, time_scale: float = 1.0, max_delay: int | None = None,
+                 record: bool = False, ahead: int = 2, listen: bool = True) -> None:
         from pd_client import Operator, Robot
         from pd_service.scenarios.paper import paper_command, paper_scenario
         from pd_service.wire import Prediction, decode, encode, keys
@@ -208,6 +242,13 @@ class Traffic:
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.scenario = paper_scenario()
+        self.time_scale, self.max_delay, self.ahead = time_scale, max_delay, ahead
+        self.record = record
+        #: per session, with ``record``: (receipt monotonic ns, Prediction) of every one
+        self.full: dict[str, list[tuple[int, object]]] = defaultdict(list)
+        #: per session, with ``record``: (wall ns sent, step k, sensor or "" for the
+        #: command, sample / apply step, z or u) of every input the SDK took
+        self.sent: dict[str, list[tuple[int, int, str, int, np.ndarray]]] = defaultdict(list)
         self.robots: dict[str, object] = {}
         self.ops: dict[str, object] = {}
         self.steps = steps
@@ -223,7 +264,7 @@ class Traffic:
         for smp in run.samples:
             if smp.arrival is not None and smp.arrival < steps:
                 self.arrivals[smp.arrival].append((smp.sensor, smp.arrival - smp.step, smp.z))
-        if record:  # else a feeder only (10,000 decodes a second would take its GIL)
+        if listen:  # else a feeder only (10,000 decodes a second would take its GIL)
             t.subscribe(keys.ALL_PREDICTIONS, self._on)
         from pd_client import Admin
         self.admin = Admin(t)
@@ -234,12 +275,17 @@ class Traffic:
     def add(self, s: str, Robot=None, Operator=None) -> None:
         if Robot is None:
             from pd_client import Operator, Robot
-        spec = self.scenario.spec(s, self.epoch)
+        spec = self.spec(s)
         # as docs/clients.md creates a session: acknowledged, re-put while rate-limited (a
         # burst of bare puts beyond config_burst_total is refused, config_rate_limited)
         self.admin.open_session(spec, exist_ok=True, serve_spec=False, timeout=30.0)
         self.robots[s] = Robot(self.t, s, spec=spec, direct=self.direct)
         self.ops[s] = Operator(self.t, s, spec=spec)
+
+    def spec(self, s: str):
+        """Session ``s``'s SessionSpec."""
+        return self.scenario.spec(s, self.epoch, time_scale=self.time_scale,
+                                  max_delay=self.max_delay)
 
     def remove(self, s: str) -> None:
         self.robots.pop(s).close()  # type: ignore[attr-defined]
@@ -251,12 +297,14 @@ class Traffic:
         with self.lock:
             self.preds[p.session].append((time.monotonic_ns(), p.step, p.seq,
                                           float(np.trace(p.P)), p.counters.get("accepted", 0)))
+            if self.record:
+                self.full[p.session].append((time.monotonic_ns(), p))
 
     def run(self, rate_hz: float = 20.0) -> None:
         """Each step: the ranger's reading of the step (stamped by step) and the operator's
         command for step + lead, for every session; paced on the shared clock."""
         period = int(1e9 / rate_hz)
-        k = (time.time_ns() - self.epoch) // STEP_NS
+        k = (time.time_ns() - self.epoch) // period
         while not self.stop.is_set():
             k += 1
             due = self.epoch + k * period
@@ -273,7 +321,12 @@ class Traffic:
                 try:
                     for sensor, delay, z in self.arrivals.get(k % self.steps, ()):
                         self.robots[s].publish(sensor, z, step=k - delay)  # type: ignore[attr-defined]
-                    self.ops[s].send(self._command(k + 2), step=k + 2)  # type: ignore[attr-defined]
+                        if self.record:
+                            self.sent[s].append((time.time_ns(), k, sensor, k - delay, z))
+                    u = np.array([self._command(k + self.ahead)])
+                    self.ops[s].send(u, step=k + self.ahead)  # type: ignore[attr-defined]
+                    if self.record:
+                        self.sent[s].append((time.time_ns(), k, "", k + self.ahead, u))
                 except KeyError:
                     pass  # removed meanwhile (soak churn)
                 except Exception as exc:  # a send failing while the router is down
@@ -307,17 +360,17 @@ def _client(endpoint: str, daemon: Daemon):
 
 @contextlib.contextmanager
 def rig(sessions: list[str], rate_hz: float = 20.0, root: Path | None = None,
-        link: bool = False, record: bool = True) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
+        link: bool = False, listen: bool = True) -> Iterator[tuple[Router, Daemon, object, Traffic]]:
     """A router, the daemon behind it, this process's client and the traffic of
     ``sessions`` (fed at ``rate_hz`` on a thread; ``link``: the robots' samples through a
-    pd-link process; ``record``: see :class:`Traffic`); all stopped at the end."""
+    pd-link process; ``listen``: see :class:`Traffic`); all stopped at the end."""
     tmp = Path(tempfile.mkdtemp(prefix="pd-faults-", dir=root))
     router = Router(free_port())
     router.start()
     daemon = Daemon(router.endpoint, tmp / "state")
     relay = Link(router.endpoint, tmp) if link else None
     t = _client(router.endpoint, daemon)
-    traffic = Traffic(t, sessions, time.time_ns() - 10**9, direct=not link, record=record)
+    traffic = Traffic(t, sessions, time.time_ns() - 10**9, direct=not link, listen=listen)
     feeder = threading.Thread(target=traffic.run, args=(rate_hz,), daemon=True)
     try:
         feeder.start()
@@ -404,6 +457,273 @@ def _wait(pred, timeout: float) -> bool:
     return pred()
 
 
+def mirror(spec, sent: list[tuple[int, int, str, int, np.ndarray]]
+           ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """The uninterrupted run: one estimator of ``spec`` fed every input in ``sent``
+    (:attr:`Traffic.sent`), in order, each at the step it was sent; per step ``now``:
+    (x, diag P) of its prediction for ``now + lead`` (what a daemon that never stopped
+    publishes at the tick of ``now``)."""
+    from pd_service.backends import build
+    est = build(spec).est
+    ref: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    k_prev = None
+    for _, k, sensor, step, v in sent:
+        if k_prev is not None and k != k_prev:
+            pr = est.predict(k_prev)
+            ref[k_prev] = (np.array(pr.x), np.diag(pr.P).copy())
+        k_prev = k
+        if sensor:
+            est.add_measurement(sensor, step, v, now=k)
+        else:
+            est.add_command(step, v, now=k)
+    if k_prev is not None:
+        pr = est.predict(k_prev)
+        ref[k_prev] = (np.array(pr.x), np.diag(pr.P).copy())
+    return ref
+
+
+#: A sample sent less than this before a prediction was made may still be on its way: not
+#: counted as one the prediction should have (ns).
+IN_FLIGHT_NS = 20_000_000
+
+
+def resumed_row(traffic: Traffic, s: str, t_fault: int, status, newer_than: int = -1) -> dict:
+    """Session ``s`` around a fault at ``t_fault`` (monotonic ns): its first prediction after
+    it (of a term above ``newer_than``: the survivor's at a takeover) against the mirror of
+    what was sent (:func:`mirror`), the inputs sent before it was made that it lacks, the
+    gap, whether it restarted from the prior; ``status``: its SessionStatus afterwards."""
+    spec = traffic.spec(s)
+    with traffic.lock:
+        got = list(traffic.full[s])
+        sent = list(traffic.sent[s])
+    ref = mirror(spec, sent)
+    before = [p for at, p in got if at < t_fault]
+    after = [(at, p) for at, p in got if at >= t_fault and p.term > newer_than]
+    row: dict = {"session": s, "origin": None if status is None else status.origin,
+                 "origin_step": None if status is None else status.origin_step,
+                 "readback": None if status is None else status.readback,
+                 "counters": {} if status is None
+                 else {k: v for k, v in status.counters.items() if v}}
+    if not after:
+        return {**row, "first_ratio": None}
+
+    def ratios(p) -> tuple[float, float] | None:
+        r = ref.get(p.step - spec.lead)
+        if r is None:
+            return None
+        q = np.diag(p.P) / r[1]
+        return float(q.max()), float(q.min())
+
+    def lacking(p) -> tuple[int, int]:
+        """(measurements, commands) sent before ``p`` was made that it has not accepted."""
+        cut = p.made_ns - IN_FLIGHT_NS
+        meas = sum(1 for x in sent if x[0] < cut and x[2])
+        cmds = sum(1 for x in sent if x[0] < cut and not x[2])
+        return (max(0, meas - p.counters.get("accepted", 0)),
+                max(0, cmds - p.counters.get("commands_accepted", 0)))
+
+    at0, first = after[0]
+    last_at = max((at for at, p in got if at < t_fault), default=t_fault)
+    r0 = ratios(first)
+    later = [r for r in (ratios(p) for _, p in after) if r is not None]
+    # the last one of a step the mirror has (after the feed stopped the daemon goes on)
+    end = next((p for _, p in reversed(after) if p.step - spec.lead in ref), first)
+    r_end = ref.get(end.step - spec.lead)
+    acc_before = before[-1].counters.get("accepted", 0) if before else 0
+    return {**row,
+            "first_ratio": None if r0 is None else round(r0[0], 4),
+            "first_ratio_min": None if r0 is None else round(r0[1], 4),
+            "max_ratio_after": round(max(r[0] for r in later), 4) if later else None,
+            "first_lacks": lacking(first), "end_lacks": lacking(end),
+            "recovered_accepted": end.counters.get("recovered_accepted", 0),
+            "recovered_late": end.counters.get("recovered_late", 0),
+            "gap_s": round((at0 - last_at) / 1e9, 3),
+            "first_after_fault_s": round((at0 - t_fault) / 1e9, 3),
+            # restarted from the prior: no state resumed (counters from a checkpoint older
+            # than the last prediction before the fault may be lower: not a reset)
+            "reset_to_prior": status is not None and status.origin == "prior",
+            "accepted_before": acc_before,
+            "exact_end": r_end is not None and bool(
+                np.allclose(end.x, r_end[0], rtol=1e-9, atol=1e-9)
+                and np.allclose(np.diag(end.P), r_end[1], rtol=1e-9, atol=1e-9))}
+
+
+def session_status(t, s: str, tries: int = 6):
+    """Session ``s``'s SessionStatus (None if no answer in ``tries`` queries of 5 s: a
+    loaded machine may let one go unanswered)."""
+    from pd_service.wire import SessionStatus, decode, keys
+    for _ in range(tries):
+        for r in t.get(keys.status_key(s), timeout=5.0):
+            if r.ok:
+                return decode(r.payload, SessionStatus)
+    return None
+
+
+def _sdk_client(endpoint: str, instances: list[str], timeout: float = 60.0):
+    """``pd_client.connect(endpoint)`` (client mode, as docs/clients.md says), retried until
+    something listens there, once the liveliness tokens of ``instances`` are seen."""
+    from pd_client import ServiceUnavailable, connect
+    from pd_service.wire import keys
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            t = connect(endpoint)
+            break
+        except ServiceUnavailable:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+    want = {keys.service_token_key(i) for i in instances}
+    if not _wait(lambda: want <= set(t.get_liveliness(keys.ALL_SERVICES)), timeout):
+        raise RuntimeError(f"not up: {sorted(want)}")
+    return t
+
+
+@contextlib.contextmanager
+def fed(t, names: list[str], max_delay: int) -> Iterator[Traffic]:
+    """The paper run at 100 ms steps (``time_scale`` 0.5) fed to ``names`` through the SDK
+    on ``t`` (cached direct Robot, Operator sending for now + lead), everything recorded."""
+    traffic = Traffic(t, names, time.time_ns() - 10**9, time_scale=0.5, max_delay=max_delay,
+                      record=True, ahead=UPLINK_DELAY)
+    feeder = threading.Thread(target=traffic.run, args=(10.0,), daemon=True)
+    feeder.start()
+    try:
+        yield traffic
+    finally:
+        traffic.stop.set()
+        feeder.join(5)
+
+
+def restart_run(sessions: int, down_s: float, max_delay: int, before_s: float = 4.0,
+                after_s: float = 3.0, root: Path | None = None) -> dict:
+    """One ``restart`` run (module docstring): the daemon killed with SIGKILL, started again
+    ``down_s`` later on the same state directory."""
+    tmp = Path(tempfile.mkdtemp(prefix="pd-restart-", dir=root))
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    daemon = Daemon(ep, tmp / "state", "inst-r", listen=True)
+    names = [f"r{i}" for i in range(sessions)]
+    t = None
+    try:
+        t = _sdk_client(ep, [daemon.instance])
+        with fed(t, names, max_delay) as traffic:
+            if not _wait(lambda: all(traffic.full[s] for s in names), 60.0):
+                raise RuntimeError(f"no predictions: {daemon.log_path}")
+            time.sleep(before_s)
+            t_kill = time.monotonic_ns()
+            daemon.kill9()
+            time.sleep(down_s)
+            daemon = Daemon(ep, tmp / "state", "inst-r", listen=True)
+            t_start = time.monotonic_ns()
+            _wait(lambda: all(traffic.after(s, t_kill) for s in names), 60.0)
+            time.sleep(after_s)
+            statuses = {s: session_status(t, s) for s in names}
+            svc = service_status(t, daemon.instance)
+        rows = [resumed_row(traffic, s, t_kill, statuses[s]) for s in names]
+    finally:
+        daemon.stop()
+        if t is not None:
+            t.close()
+    log = daemon.log_path.read_text(errors="replace")
+    ready = [ln for ln in log.splitlines() if "event=ready" in ln]
+    return {"down_s": down_s, "max_delay": max_delay, "rows": rows,
+            "service_counters": {} if svc is None else {
+                k: v for k, v in svc.counters.items() if k.startswith(SERVICE_COUNTERS)},
+            "start_to_first_s": round(min((r["first_after_fault_s"] for r in rows
+                                           if r["first_ratio"] is not None), default=-1)
+                                      - down_s, 3),
+            "ready": ready[-1].split("event=ready", 1)[1].strip() if ready else "",
+            "t_start_s": round((t_start - t_kill) / 1e9, 3)}
+
+
+def takeover_run(sessions: int, max_delay: int, before_s: float = 4.0, after_s: float = 3.0,
+                 root: Path | None = None) -> dict:
+    """One ``takeover`` run (module docstring): two trusted instances behind a router, the
+    owner of the most sessions killed with SIGKILL."""
+    tmp = Path(tempfile.mkdtemp(prefix="pd-takeover-", dir=root))
+    router = Router(free_port())
+    router.start()
+    insts = ("inst-a", "inst-b")
+    daemons = {i: Daemon(router.endpoint, tmp / i, i, peers=tuple(x for x in insts if x != i))
+               for i in insts}
+    names = [f"k{i}" for i in range(sessions)]
+    t = None
+    try:
+        t = _sdk_client(router.endpoint, list(insts))
+        with fed(t, names, max_delay) as traffic:
+            if not _wait(lambda: all(traffic.full[s] for s in names), 60.0):
+                raise RuntimeError(f"no predictions: {tmp}")
+            time.sleep(before_s)
+            owner: dict[str, str | None] = dict.fromkeys(names)
+
+            def owners_known() -> bool:
+                for s in names:
+                    owner[s] = owner[s] or getattr(session_status(t, s), "instance", None)
+                return all(owner.values())
+
+            if not _wait(owners_known, 30.0):
+                raise RuntimeError(f"sessions without an owner: {owner}")
+            victim = max(insts, key=lambda i: sum(1 for o in owner.values() if o == i))
+            moved = [s for s in names if owner[s] == victim]
+            with traffic.lock:
+                term = {s: traffic.full[s][-1][1].term for s in moved}
+            t_kill = time.monotonic_ns()
+            daemons[victim].kill9()
+
+            def survivor_predicts(s: str) -> bool:
+                with traffic.lock:
+                    return any(at >= t_kill and p.term > term[s] for at, p in traffic.full[s])
+
+            _wait(lambda: all(survivor_predicts(s) for s in moved), 60.0)
+            time.sleep(after_s)
+            statuses = {s: session_status(t, s) for s in moved}
+            survivor = next(i for i in insts if i != victim)
+            svc = service_status(t, survivor)
+        rows = [resumed_row(traffic, s, t_kill, statuses[s], term[s]) for s in moved]
+    finally:
+        for d in daemons.values():
+            d.stop()
+        if t is not None:
+            t.close()
+        router.kill()
+    return {"max_delay": max_delay, "victim": victim, "moved": len(moved),
+            "service_counters": {} if svc is None else {
+                k: v for k, v in svc.counters.items() if k.startswith(SERVICE_COUNTERS)},
+            "sessions": sessions, "rows": rows}
+
+
+#: The service counters a restart or takeover run reports (prefixes).
+SERVICE_COUNTERS = ("resumed", "readback", "restore", "recovered", "replica", "checkpoint")
+
+
+def resumed_summary(runs: list[dict]) -> dict:
+    """Over the runs' sessions: the first prediction's diag P ratio (largest entry) and its
+    median / spread, how many within 10 %, inputs lacking, resets, gaps."""
+    rows = [r for run in runs for r in run["rows"]]
+    firsts = [r["first_ratio"] for r in rows if r["first_ratio"] is not None]
+    per_run = [max((r["first_ratio"] for r in run["rows"] if r["first_ratio"] is not None),
+                   default=None) for run in runs]
+
+    def spread(v: list[float]) -> dict:
+        return {"median": round(statistics.median(v), 4), "min": round(min(v), 4),
+                "max": round(max(v), 4)} if v else {}
+
+    return {"sessions": len(rows), "no_prediction": len(rows) - len(firsts),
+            "first_ratio": spread(firsts),
+            "runs_worst_first_ratio": per_run,
+            "runs_within_10pct": sum(1 for v in per_run if v is not None and v <= 1.10),
+            "first_within_10pct": sum(1 for v in firsts if v <= 1.10),
+            "first_lacking_inputs": sum(1 for r in rows if r.get("first_lacks", (0, 0)) != (0, 0)),
+            "end_lacking_inputs": sum(1 for r in rows if r.get("end_lacks", (0, 0)) != (0, 0)),
+            "resets_to_prior": sum(1 for r in rows if r.get("reset_to_prior")),
+            "resumed_stale": sum(run["service_counters"].get("resumed_stale", 0)
+                                 for run in runs),
+            "gap_s": spread([r["gap_s"] for r in rows if r.get("gap_s") is not None]),
+            "readback": {k: sum(1 for r in rows if r["readback"] == k)
+                         for k in ("answered", "timeout", "", None)},
+            "origin": {k: sum(1 for r in rows if r["origin"] == k)
+                       for k in ("checkpoint", "replica", "prior", None)}}
+
+
 def clock_steps(steps_ns=(1_000_000_000, -1_000_000_000, 3_600_000_000_000)) -> dict:
     """The ``clock`` mode: per step, an in-memory core on a StepClock whose wall clock steps
     away from the senders' by it mid-run; what it counted and whether it kept predicting."""
@@ -476,7 +796,7 @@ def feed(endpoint: str, epoch_ns: int, rate_hz: float, first: int, count: int,
     """The ``feed`` mode: one feeder process of :class:`Feeders`, until SIGTERM."""
     from pd_service.transport import ZenohTransport, zenoh_config
     t = ZenohTransport(zenoh_config(mode="client", connect=[endpoint], multicast=False))
-    traffic = Traffic(t, [f"s{i}" for i in range(first, first + count)], epoch_ns, record=False)
+    traffic = Traffic(t, [f"s{i}" for i in range(first, first + count)], epoch_ns, listen=False)
     signal.signal(signal.SIGTERM, lambda *_: traffic.stop.set())
 
     def report() -> None:
@@ -500,10 +820,10 @@ def soak(sessions: int, rate_hz: float, minutes: float, every_s: float, feeders:
     samples = []
     churn = min(CHURN_LIVE, sessions)
     next_id = sessions
-    # record=False: this process receives no prediction (the daemon counts those it published);
+    # listen=False: this process receives no prediction (the daemon counts those it published);
     # a client slow to take 10,000 a second had its config answers dropped by the router
     with rig([f"s{i}" for i in range(sessions - churn, sessions)], rate_hz, root,
-             record=False) as (router, daemon, t, traffic):
+             listen=False) as (router, daemon, t, traffic):
         feed_procs = Feeders(router.endpoint, daemon.log_path.parent, traffic.epoch, rate_hz,
                              0, sessions - churn, feeders)
         try:
@@ -572,6 +892,40 @@ def soak_summary(samples: list[dict]) -> dict:
                for k in ("fds", "subscribers", "queryables", "tokens")}}
 
 
+def resumed_main(a: argparse.Namespace) -> dict:
+    """The ``restart`` and ``takeover`` modes: the runs, a row per session, the summary."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    from gauge import gauge_ms
+    g = gauge_ms()
+    runs = []
+    downs = [float(x) for x in a.down.split(",")] if a.mode == "restart" else [0.0]
+    print(f"{'run':>3} {'session':>7} {'down':>5} {'origin':>10} {'readback':>8} "
+          f"{'P1/ref':>7} {'min':>6} {'max aft':>8} {'lacks 1st':>9} {'lacks end':>9} "
+          f"{'gap s':>6} {'reset':>5} {'exact':>5}")
+    for i in range(a.repeat):
+        if a.mode == "restart":
+            run = restart_run(a.sessions, downs[i % len(downs)], a.max_delay, a.before,
+                              a.after)
+        else:
+            run = takeover_run(a.sessions, a.max_delay, a.before, a.after)
+        runs.append(run)
+        for r in run["rows"]:
+            if r.get("end_lacks", (0, 0)) != (0, 0):
+                print("    lacking at the end:", r["session"], r["counters"])
+            print(f"{i:>3} {r['session']:>7} {run.get('down_s', 0):>5} {r['origin']!s:>10} "
+                  f"{r['readback']!s:>8} {r['first_ratio']!s:>7} "
+                  f"{r.get('first_ratio_min')!s:>6} {r.get('max_ratio_after')!s:>8} "
+                  f"{str(r.get('first_lacks')):>9} {str(r.get('end_lacks')):>9} "
+                  f"{r.get('gap_s')!s:>6} {r.get('reset_to_prior')!s:>5} "
+                  f"{r.get('exact_end')!s:>5}", flush=True)
+    summary = resumed_summary(runs)
+    print(f"gauge {g:.2f} ms; window {a.max_delay} steps of 100 ms")
+    for k, v in summary.items():
+        print(f"  {k:24s} {v}")
+    return {"mode": a.mode, "gauge_ms": g, "max_delay": a.max_delay, "summary": summary,
+            "runs": runs}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="mode", required=True)
@@ -582,6 +936,17 @@ def main() -> None:
     r.add_argument("--after", type=float, default=4.0)
     r.add_argument("--link", action="store_true",
                    help="the robots' samples through a pd-link process")
+    for name in ("restart", "takeover"):
+        r = sub.add_parser(name)
+        r.add_argument("--sessions", type=int, default=4 if name == "restart" else 8)
+        r.add_argument("--repeat", type=int, default=8)
+        r.add_argument("--max-delay", type=int, default=60,
+                       help="the spec's window in 100 ms steps (12: the paper's 1.2 s)")
+        r.add_argument("--before", type=float, default=4.0)
+        r.add_argument("--after", type=float, default=3.0)
+        if name == "restart":
+            r.add_argument("--down", default="2,3,4,5",
+                           help="s from the kill to the restart, cycled over the runs")
     sub.add_parser("clock")
     s = sub.add_parser("soak")
     s.add_argument("--sessions", type=int, default=500)
@@ -615,6 +980,8 @@ def main() -> None:
                   f"{row['reset_to_prior']!s:>6} {row['duplicates']:>4}")
         print("declarations before", out["declarations_before"], "after",
               out["declarations_after"], "missing", out["declarations_missing"])
+    elif a.mode in ("restart", "takeover"):
+        out = resumed_main(a)
     elif a.mode == "clock":
         out = clock_steps()
         for row in out["rows"]:

@@ -134,7 +134,7 @@ class Feed:
         from pd_service.wire import keys
 
         self.lock = threading.Lock()
-        self.preds: dict[str, list[tuple[int, int, np.ndarray, np.ndarray, float]]] = \
+        self.preds: dict[str, list[tuple[int, int, np.ndarray, np.ndarray, float, dict]]] = \
             defaultdict(list)
         self.h = t.subscribe(keys.ALL_PREDICTIONS, self._on)
 
@@ -143,7 +143,8 @@ class Feed:
 
         p = decode(sample.payload, Prediction)
         with self.lock:
-            self.preds[p.session].append((p.term, p.step, p.x, p.P, time.monotonic()))
+            self.preds[p.session].append((p.term, p.step, p.x, p.P, time.monotonic(),
+                                          p.counters))
 
 
 def interleaved(terms: list[int]) -> bool:
@@ -288,6 +289,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         time.sleep(0.5)
         # the uninterrupted reference: every sample sent, in order, to one estimator
         ratios_after, ratios_during, exact = [], [], 0
+        inexact: list[dict[str, Any]] = []  # why a session is not exact at the end
         for s in names:
             est = build(specs[s]).est
             ref: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -302,18 +304,30 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
             with feeds["a"].lock:
                 got = list(feeds["a"].preds[s])
             last = None
-            for _term, step, x, P, at in got:
+            for _term, step, x, P, at, counters in got:
                 if step not in ref:
                     continue
                 r = float(np.max(np.diag(P) / ref[step][1]))
                 if "one_owner" in marks and at > marks["one_owner"]:
                     ratios_after.append(r)
-                    last = (x, P, step)
+                    last = (x, P, step, counters)
                 elif marks["cut"] < at < marks["heal"]:
                     ratios_during.append(r)
             if last is not None and np.allclose(last[0], ref[last[2]][0], rtol=1e-9, atol=1e-9) \
                     and np.allclose(np.diag(last[1]), ref[last[2]][1], rtol=1e-9, atol=1e-9):
                 exact += 1
+            elif last is not None:
+                now = last[2] - lead
+                meas = sum((kk <= now and kk >= 12) + (kk <= now and kk >= 10)
+                           for kk, *_ in sent[s])
+                cmds = sum(1 for kk, *_ in sent[s] if kk <= now)
+                c = last[3]
+                inexact.append({"session": s, "step": last[2],
+                                "x_err": float(np.max(np.abs(last[0] - ref[last[2]][0]))),
+                                "P_ratio": float(np.max(np.diag(last[1]) / ref[last[2]][1])),
+                                "lacks": (meas - c.get("accepted", 0),
+                                          cmds - c.get("commands_accepted", 0)),
+                                "counters": {k: v for k, v in c.items() if v}})
         two_owner = sum(1 for r in feeds for s in names
                         if interleaved([p[0] for p in feeds[r].preds[s]]))
         shown_bad = sum(1 for v in shown.values() if interleaved(v))
@@ -331,7 +345,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
             round(marks["members"] - marks["heal"], 3),
             "diagP_after": round(max(ratios_after), 4) if ratios_after else None,
             "diagP_during": round(max(ratios_during), 4) if ratios_during else None,
-            "exact_after": exact,
+            "exact_after": exact, "inexact": inexact,
             "yielded": sum(lg.count("event=term_yielded") for lg in logs.values()),
             "kept": sum(lg.count("event=term_kept") for lg in logs.values()),
             "taken_over": sum(lg.count("taken over") for lg in logs.values()),

@@ -161,7 +161,8 @@ class Settings(BaseSettings):
                                "state directory (written when new steps were committed); 0: none.")
     replica_interval_s: float = Field(
         1.0, ge=0, description="Least time between two replicas of one session sent to its "
-                               "successor instance; 0: none.")
+                               "successor instance (at most half the session's window: "
+                               "max_delay steps); 0: none.")
     recover_samples: int = Field(
         256, ge=0, le=100_000, description="At start, and when a sender (re)appears, read back "
                                            "at most this many samples per cached sender key "

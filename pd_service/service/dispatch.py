@@ -30,7 +30,7 @@ from typing import Final
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Sample
-from pd_service.wire import SessionSpec, keys
+from pd_service.wire import Command, Measurement, SessionSpec, WireError, decode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
@@ -52,6 +52,10 @@ CONTROL_INBOX: Final = 4096
 #: Read-back messages waiting for the worker after the start.
 READ_BACK_INBOX: Final = 64 * UNKNOWN_INBOX
 
+#: Inputs a resumed session keeps while it waits for its senders' caches (catch_up); more
+#: (a flood meanwhile) and it takes them in at once, judged as they come from then on.
+HELD_INPUTS: Final = 4096
+
 #: The refusals of a message the session already has.
 _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 #: Refusals of a stamp against the current step: after a host clock step, blamed on it.
@@ -63,6 +67,20 @@ _STAMP_REASONS: Final = frozenset({"late", "future", "before_epoch", "commands_l
 #: arrays are still in the caches, and the queues are looked at between rounds
 #: (``ServiceCore.run_once``; the measurements behind 8: docs/performance.md).
 ROUND_SESSIONS: Final = 8
+
+
+def stamp_step(spec: SessionSpec, item: Item, default: int) -> int:
+    """The step a message's stamp puts it at (:meth:`Dispatch.catch_up`): a measurement's
+    sample step, a command's apply step - lead (the step it was sent at); ``default`` for
+    one that does not decode (judged, and refused, as it comes)."""
+    try:
+        if item[0] & ~READ_BACK == SENSOR:
+            m = decode(item[2], Measurement)
+            return m.step if m.step is not None else spec.sample_at(m.t_ns or 0)[0]
+        c = decode(item[2], Command)
+        return c.step - spec.lead if c.step is not None else spec.step_of(c.issued_ns or 0)
+    except (WireError, ValueError, TypeError):
+        return default
 
 
 @dataclass(eq=False, slots=True)
@@ -144,6 +162,10 @@ class Dispatch:
         self.released: deque[tuple[list[str], list[tuple[int, Sample]]]] = deque()
         #: sessions parked while their takeover read-back runs (:meth:`park`)
         self.parked: set[str] = set()
+        #: Sessions resumed from a state while they wait for their senders' caches: every
+        #: input they get meanwhile, live (False) or read back (True), kept for
+        #: :meth:`catch_up` (set by ``Lifecycle.hold_for_read_back``).
+        self.held_inputs: dict[str, list[tuple[bool, Item]]] = {}
         #: Data samples (sensors and commands) taken from the subscriptions: what this
         #: instance receives (``samples_received``). Written by the one thread that drains.
         self.received = 0
@@ -201,15 +223,21 @@ class Dispatch:
         sess = route.sess if route is not None else None
         if stream == ANSWERED:
             if sess is not None:
-                self.cache_answered(sess, sample.key, touched)
+                self.cache_answered(sess, sample.key, now, touched)
             return
         if sess is None or route is None or route.inbox is None:
             # unknown, or served by another instance: nothing to do with it here
             self.counters["recovered_ignored"] += 1
             return
+        item = (stream, sample.key, sample.payload, sample.recv_mono_ns, sample.kind, recv_now)
+        held = self.held_inputs.get(sess.name) if sess.hold_until_ns else None
+        if held is not None:
+            held.append((True, item))
+            if len(held) >= HELD_INPUTS:
+                self.catch_up(sess, now)
+            return
         had = bool(sess.pending_recv)
-        self._handle_read_back(sess, (stream, sample.key, sample.payload, sample.recv_mono_ns,
-                                      sample.kind, recv_now), sess.step_now(now), now)
+        self._handle_read_back(sess, item, sess.step_now(now), now)
         if sess.pending_recv and not had:
             touched.append(sess)
 
@@ -219,22 +247,62 @@ class Dispatch:
         route.ready = True  # set and not queued: the callbacks do not queue it either
         self.parked.add(route.session)
 
-    def cache_answered(self, sess: Session, key: str, touched: list[Session]) -> None:
+    def cache_answered(self, sess: Session, key: str, now: int,
+                       touched: list[Session]) -> None:
         """Worker: the cache of ``sess``'s sender on ``key`` was read (its samples handled
         before this); the last one awaited releases the session's hold."""
         if sess.hold_until_ns and key in sess.unanswered:
             sess.unanswered.discard(key)
             if not sess.unanswered:
-                self.release_hold(sess, "answered", touched)
+                self.release_hold(sess, "answered", now, touched)
 
-    def release_hold(self, sess: Session, how: ReadBack, touched: list[Session]) -> None:
-        """Worker: ``sess`` publishes again (its first prediction in this pass), its status
-        saying how its wait for the senders' caches ended."""
+    def release_hold(self, sess: Session, how: ReadBack, now: int,
+                     touched: list[Session]) -> None:
+        """Worker: ``sess`` takes in what it got meanwhile (:meth:`catch_up`) and publishes
+        again (its first prediction in this pass), its status saying how its wait for the
+        senders' caches ended."""
+        self.catch_up(sess, now)
         sess.hold_until_ns = 0
         sess.readback = how
         self.counters["readback_answered" if how == "answered" else "readback_timeout"] += 1
         if sess not in touched:
             touched.append(sess)
+
+    def catch_up(self, sess: Session, now: int) -> None:
+        """Worker: the inputs ``sess`` got while it waited for its senders' caches (live and
+        read back, :attr:`held_inputs`), in the order of their stamps (a measurement's
+        sample step; a command's apply step - lead, the step it was sent at), each judged
+        at its own stamp's step: from the step of the state the session resumed from
+        (``origin_step``; a session left at its prior: the step its wait began) up to
+        now. Called while it still waits (``hold_until_ns`` set). So a state older than
+        the window (a restart that took longer) takes in every sample the caches kept
+        since it, as a daemon that never stopped would have, instead of refusing those
+        older than the window as late; none is applied at a step after its stamp's, nor
+        after now::
+
+            k_i = max(k_{i-1}, min(now_step, stamp_i)),   k_0 = origin_step (or the wait's start)
+        """
+        held = self.held_inputs.pop(sess.name, None)
+        if not held:
+            return
+        spec = sess.spec
+        now_step = sess.step_now(now)
+        order = sorted(((stamp_step(spec, item, now_step), i) for i, (_, item) in
+                        enumerate(held)))
+        k = sess.origin_step if sess.origin_step is not None else min(now_step, spec.step_of(
+            sess.hold_until_ns - int(2e9 * self.settings.recover_timeout_s)))
+        for stamp, i in order:
+            recovered, item = held[i]
+            k = max(k, min(now_step, stamp))
+            # judged at k, not at its arrival (_offer's rule for one that came after the
+            # loop read its clock would take it to the current step, past later stamps)
+            at = max(now, item[5])
+            if recovered:
+                self._handle_read_back(sess, item, k, at)
+            else:
+                self.handle(sess, item, k, at)
+        if sess.idle and sess.heard:  # its ticks went idle while nothing was taken in
+            self.pub.wake(sess, now)
 
     def post_released(self, sessions: list[str], items: list[tuple[int, Sample]]) -> None:
         """Any thread: the read-back of parked ``sessions`` is done (``items``: what it
@@ -372,8 +440,17 @@ class Dispatch:
             self.pub.wake(sess, now)
         if route.flood != route.flood_seen:
             self._note_flood(route, sess, now)
-        now_step = sess.step_now(now)
         n = 0
+        if sess.hold_until_ns:  # resumed, waiting for its senders' caches: kept (catch_up)
+            held = self.held_inputs.get(sess.name)
+            if held is not None:
+                while n < budget and inbox:
+                    held.append((False, inbox.popleft()))
+                    n += 1
+                if len(held) >= HELD_INPUTS:
+                    self.catch_up(sess, now)
+                return n
+        now_step = sess.step_now(now)
         had_pending = bool(sess.pending_recv)
         while n < budget and inbox:
             item = inbox.popleft()

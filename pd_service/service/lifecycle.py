@@ -809,7 +809,9 @@ class Lifecycle:
         """A restarted or taken-over ``sess`` publishes nothing until the cache of each of
         its data keys (every sensor's, and the command's if it takes commands) has been read
         back (:meth:`Dispatch.cache_answered`), or ``2 x recover_timeout_s`` passed
-        (:meth:`release_holds`): its first prediction then has what the senders kept."""
+        (:meth:`release_holds`): its first prediction then has what the senders kept. Its
+        inputs meanwhile, live and read back, are kept and taken in at their own steps when
+        the wait ends (:meth:`Dispatch.catch_up`)."""
         name = sess.name
         want = {keys.sensor_key(name, x.name) for x in sess.spec.sensors}
         if sess.intake.r:
@@ -817,6 +819,8 @@ class Lifecycle:
         sess.unanswered = want
         sess.hold_until_ns = self.holding[name] = now + int(2e9 * self.settings.recover_timeout_s)
         sess.readback = "waiting"
+        # its inputs meanwhile are taken in at their stamps when the wait ends (catch_up)
+        self.dispatch.held_inputs[name] = []
 
     def release_holds(self, now: int, touched: list[Session]) -> None:
         """Worker: the sessions whose wait for their senders' caches ended (answered, or
@@ -829,8 +833,9 @@ class Lifecycle:
             if sess is not None and sess.hold_until_ns:
                 if now < until or name in self.dispatch.parked:
                     continue
-                self.dispatch.release_hold(sess, "timeout", touched)
+                self.dispatch.release_hold(sess, "timeout", now, touched)
             del self.holding[name]
+            self.dispatch.held_inputs.pop(name, None)  # a session gone meanwhile
             with self._read_backs_lock:
                 handles = self._read_backs.pop(name, [])
             for h in handles:

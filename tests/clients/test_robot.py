@@ -198,3 +198,26 @@ def test_robot_and_operator_keep_their_last_samples_for_a_restarted_service(bus)
         robot.publish("camera", [1.0, 2.0], step=1)
         bus.transport().read_back(keys.ALL_SENSORS, got.append, max_samples=100)
         assert got == []
+
+
+def test_caches_are_present_before_the_first_sample(bus):
+    """A restarted or taking-over service waits for the cache of each sensor of the spec
+    and of the commands: with the spec (direct), the Robot's caches answer, empty, before
+    a sensor sent anything (the paper's ranger is silent while out of range), and so does
+    the Operator's."""
+    from pd_client import Operator
+    from pd_service.scenarios.paper import paper_scenario
+    spec = paper_scenario().spec("s1", EPOCH_NS)
+    answered: list[str] = []
+    t = bus.transport()
+    with Robot(t, "s1", spec=spec, direct=True), Operator(t, "s1"):
+        bus.transport().read_back("pd/**", lambda s: None, max_samples=10,
+                                  answered=answered.append)
+    assert sorted(answered) == sorted([keys.command_key("s1")] + [
+        keys.sensor_key("s1", x.name) for x in spec.sensors])
+    answered.clear()
+    with Robot(t, "s2", spec=spec.model_copy(update={"session": "s2"})), \
+            Robot(t, "s3", direct=True), Operator(t, "s3", cache=0):
+        bus.transport().read_back("pd/**", lambda s: None, max_samples=10,
+                                  answered=answered.append)
+    assert answered == []  # through the link, without the spec, or without a cache: none

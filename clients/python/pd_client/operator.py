@@ -30,7 +30,8 @@ class Operator(ClientBase):
     model's input dimension before sending, and :meth:`now_step` / :meth:`send_now` work.
 
     ``cache``: the command publisher keeps its last ``cache`` commands (0: none), which a
-    restarted service reads back: commands sent while no service ran are not lost.
+    restarted service reads back: commands sent while no service ran are not lost. It is
+    declared at once (its cache answers empty until the first command).
     """
 
     def __init__(self, transport: Transport, session: str, *,
@@ -43,6 +44,8 @@ class Operator(ClientBase):
         self._nu: int | None = None
         self._key = keys.command_key(session)
         self.seq = 0
+        if cache > 0:  # its cache present from now on, as the Robot's (a service waits for it)
+            self._sender(self._key, cache)
 
     def send(self, u: Sequence[float] | np.ndarray | float, *, step: int | None = None,
              issued_ns: int | None = None) -> Command:

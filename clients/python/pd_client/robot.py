@@ -44,7 +44,9 @@ class Robot(ClientBase):
 
     ``cache``: each sensor's publisher keeps its last ``cache`` samples (0: none), which a
     restarted service reads back (direct mode; through the link emulator, pd-link's own
-    publishers keep them): samples sent while no service ran are not lost.
+    publishers keep them): samples sent while no service ran are not lost. In direct mode
+    with ``spec``, every sensor's publisher is declared at once (its cache answers empty
+    until it sends); otherwise at its first sample.
     """
 
     def __init__(self, transport: Transport, session: str, *, spec: SessionSpec | None = None,
@@ -63,6 +65,12 @@ class Robot(ClientBase):
         self.published = 0
         cmd_key = keys.command_key(session) if direct else keys.robot_command_key(session)
         self._subscribe(cmd_key, self._on_sample)
+        if direct and spec is not None and cache > 0:
+            # every sensor's cache present from now on, empty or not: a restarted or
+            # taking-over service waits for each one's answer (a sensor that has not sent
+            # yet would otherwise hold its first prediction for 2 x recover_timeout_s)
+            for sensor in spec.sensors:
+                self._sender(self.sensor_key(sensor.name), cache)
 
     # --- measurements ------------------------------------------------------------------
 

@@ -8,7 +8,8 @@ going back to the prior.
   :class:`~pd_service.wire.session_state.SessionState` to the state directory's checkpoint log
   (``checkpoints.log``, :mod:`.checkpoint_log`, by the daemon's writer thread). A restarted daemon
   resumes each restored session from it.
-- **Replica** (takeover): at the same moments, rate-bounded by ``replica_interval_s``, the
+- **Replica** (takeover): at the same moments, one per ``replica_interval_s`` or per half
+  the session's window (``max_delay`` steps) if that is shorter, the
   owner puts the same message on ``pd/@service/<successor>/replica/<session>``, the successor
   being the instance that owns the session if this one goes away (the rendezvous order
   without this instance). Every instance keeps the newest replica per session it received;
@@ -190,7 +191,11 @@ class HandoverKeeper:
                 sess.next_checkpoint_ns = next_slot(now + ck_ns // 2, ck_ns, sess.spread)
                 self._write(sess, data)
             if rep:
-                sess.next_replica_ns = next_slot(now + rep_ns // 2, rep_ns, sess.spread)
+                # at least two per window: a successor that takes over at once then holds a
+                # state inside the window, and the senders' caches give back all after it
+                spec = sess.spec
+                every = min(rep_ns, max(spec.max_delay // 2, 1) * spec.period_ns)
+                sess.next_replica_ns = next_slot(now + every // 2, every, sess.spread)
                 self._send(sess, data)
 
     def handover(self, sessions: list[Session], now: int) -> dict[str, dict[str, bytes]]:

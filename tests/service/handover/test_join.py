@@ -280,3 +280,35 @@ def test_at_the_heal_the_estimate_that_took_in_the_data_is_kept(tmp_path):
         settle(a, b)
         d.check(k, d.off)  # a's estimate: as if nothing happened
     assert all(p.term == st.term for p in col.predictions[s][-10:])
+
+
+def test_an_asymmetric_partition_settles_once_and_the_display_stays_with_one_owner(tmp_path):
+    """inst-b stops hearing inst-a while inst-a still hears inst-b (an asymmetric
+    partition): b, alone in its view, takes s over (and sends no replicas: nobody to send
+    them to); a goes on serving s and sending its replicas to b. b settles a's first state
+    it gets (a term newer than both) and no later one of the same term: over 10 replica
+    intervals the two owners do not take turns, and a Display switches owner once."""
+    from pd_client import Display
+
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=0.3)
+    s = next(n for n in names if n in a.served_sessions() and a.ownership.successor(n) == b.instance)
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    disp = Display(bus.transport(), s)
+    shown: list[int] = []
+    disp.on_prediction(lambda p: shown.append(p.term))
+    for k in range(30):
+        d.step([a, b], k)
+    b.dispatch.on_liveliness(keys.service_token_key(a.instance), False)  # b only
+    settled = []
+    for k in range(30, 90):  # 3 s: 10 of a's replica intervals
+        d.step([a, b], k)
+        settle(a, b)
+        settled.append(b.counters["term_yielded"] + b.counters["term_kept"])
+    assert s in a.served_sessions() and s in b.served_sessions()  # two owners all along
+    assert settled[-1] <= 1 and a.counters["replicas_sent"] > 0
+    switches = sum(1 for x, y in zip(shown, shown[1:], strict=False) if y != x)
+    assert switches <= 2, shown  # to b's takeover, then (at most) to b's settled term
+    assert all(p.term == shown[-1] for p in col.predictions[s][-20:] if p.term >= shown[-1])
+    disp.close()

@@ -31,9 +31,9 @@ class Driver:
     k - 5; mirrored on an offline estimator; ``snap`` holds a copy of it as of each
     checkpoint / replica the core took."""
 
-    def __init__(self, cli, clock, col, session="s1"):
+    def __init__(self, cli, clock, col, session="s1", max_delay: int = 12):
         self.cli, self.clock, self.col, self.s = cli, clock, col, session
-        self.spec = paper_spec(session)
+        self.spec = paper_spec(session, max_delay=max_delay)
         self.off = build(self.spec).est
         self.snap = None
         self.rng = np.random.default_rng(3)
@@ -75,14 +75,16 @@ def status(cli, s):
 
 
 
-def two_instances(bus, clock, tmp_path, cli, sessions: int = 12, peers=PAIR, **kw):
+def two_instances(bus, clock, tmp_path, cli, sessions: int = 12, peers=PAIR,
+                  max_delay: int = 12, **kw):
     """inst-a and inst-b (explicit ``peers``, settings ``kw``) sharing ``sessions`` paper
-    sessions s00, s01, ...; returns (a, b, names) once both have applied every config."""
+    sessions s00, s01, ... (window ``max_delay``); returns (a, b, names) once both have
+    applied every config."""
     a = make_core(bus, clock, tmp_path, "inst-a", peers=peers, **kw)
     b = make_core(bus, clock, tmp_path, "inst-b", peers=peers, **kw)
     names = [f"s{i:02d}" for i in range(sessions)]
     for s in names:
-        cli.put(keys.config_key(s), encode(paper_spec(s)))
+        cli.put(keys.config_key(s), encode(paper_spec(s, max_delay=max_delay)))
     settle(a, b)
     return a, b, names
 
@@ -297,11 +299,12 @@ def test_a_graceful_stop_hands_the_newest_state_over(tmp_path):
     successor before withdrawing its presence, so nothing it accepted is lost."""
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
-    # replicas every 100 s: only the handover can carry the newest state
+    # replicas every 100 s (and a window of 20 s, half of which would bound the interval):
+    # only the handover can carry the newest state
     a, b, names = two_instances(bus, clock, tmp_path, cli, replica_interval_s=100.0,
-                                recover_samples=0)  # no sender cache to wait for
+                                max_delay=400, recover_samples=0)  # no cache to wait for
     s = next(n for n in names if n in a.served_sessions())
-    d = Driver(cli, clock, col, s)
+    d = Driver(cli, clock, col, s, max_delay=400)
     for k in range(40):
         d.step([a, b], k)
     periodic = b.keeper.replicas[s][0]  # the one periodic replica, taken early on
@@ -346,11 +349,11 @@ def test_a_graceful_stop_puts_a_lost_final_state_again_until_the_successor_holds
                     store=SpecStore(tmp_path / "inst-a"), now_ns=clock, spawn=lambda fn: fn())
     a.start()
     b = make_core(bus, clock, tmp_path, "inst-b", peers=PAIR, replica_interval_s=100.0)
-    for n in ("s00", "s01", "s02", "s03"):
-        cli.put(keys.config_key(n), encode(paper_spec(n)))
+    for n in ("s00", "s01", "s02", "s03"):  # a window of 20 s: no replica within the test
+        cli.put(keys.config_key(n), encode(paper_spec(n, max_delay=400)))
     settle(a, b)
     s = a.served_sessions()[0]  # owned by the lossy one
-    d = Driver(cli, clock, col, s)
+    d = Driver(cli, clock, col, s, max_delay=400)
     for k in range(30):
         d.step([a, b], k)
     periodic = b.keeper.replicas[s][0]
@@ -568,15 +571,10 @@ class CachedSender:
         self.pubs[key].put(payload)
 
 
-@pytest.mark.parametrize("cache", [64, 2])
-def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
-    """Kill (no flush), 3 steps with no daemon, restart: the restarted daemon reads back the
-    senders' caches. cache=64 reaches past the checkpoint and past the window: every packet
-    since the checkpoint comes back (all still inside the window), so it continues *exactly*
-    as the run that never stopped, from its first prediction on; the repeats of checkpointed
-    packets and the samples older than the window are refused quietly (counted as
-    recovered_*, no ErrorReport). cache=2 keeps only the last 2 steps of the outage: the
-    steps before them are lost (as without caches)."""
+def _crashed_with_caches(tmp_path, cache: int, back: int):
+    """One daemon fed 40 steps through senders keeping ``cache`` samples per key, killed
+    (nothing flushed), the feed going on until step ``back`` with no daemon (only the
+    caches keep it); the clock at the restart's moment. Returns (bus, clock, col, d)."""
     bus, clock = InMemoryBus(), Clock(0)
     col = Collector().attach(bus.transport())
     snd = CachedSender(bus.transport(), cache)
@@ -587,9 +585,22 @@ def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
     for k in range(40):
         d.step([a], k, lambda: a.counters["checkpoints"])
     a.t.close()  # a crash: nothing flushed, nothing said
-    for k in range(40, 43):  # sent while no daemon runs: only the senders' caches keep them
+    for k in range(40, back):  # sent while no daemon runs: only the senders' caches keep them
         d.step([], k)
-    clock.t = int(43.05 * PERIOD_NS)
+    clock.t = int((back + 0.05) * PERIOD_NS)
+    return bus, clock, col, d
+
+
+@pytest.mark.parametrize("cache", [64, 2])
+def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
+    """Kill (no flush), 3 steps with no daemon, restart: the restarted daemon reads back the
+    senders' caches. cache=64 reaches past the checkpoint and past the window: every packet
+    since the checkpoint comes back (all still inside the window), so it continues *exactly*
+    as the run that never stopped, from its first prediction on; the repeats of checkpointed
+    packets and the samples older than the window are refused quietly (counted as
+    recovered_*, no ErrorReport). cache=2 keeps only the last 2 steps of the outage: the
+    steps before them are lost (as without caches)."""
+    bus, clock, col, d = _crashed_with_caches(tmp_path, cache, 43)
     errors_before = len(col.errors["s1"])
     n0 = len(col.predictions["s1"])
     b = make_core(bus, clock, tmp_path)
@@ -617,6 +628,83 @@ def test_restart_recovers_what_the_senders_kept(tmp_path, cache):
         # estimate is less certain than the uninterrupted run's
         assert c["recovered_accepted"] + c["recovered_duplicate"] == 4
         assert float(np.trace(got.P)) > float(np.trace(want.P)) * (1 + 1e-6)
+
+
+def test_a_restart_longer_than_the_window_takes_in_what_the_senders_kept(tmp_path):
+    """An outage of 30 steps against a window of 12: at the restart the checkpoint is older
+    than the window, and the senders' caches (64 per key) hold every sample since it. The
+    restarted session takes them in at their own stamps' steps, from the checkpoint's step
+    on (``Dispatch.catch_up``), before its first prediction: it continues *exactly* as the
+    run that never stopped, instead of propagating the checkpoint over the gap."""
+    bus, clock, col, d = _crashed_with_caches(tmp_path, 64, 70)
+    n0 = len(col.predictions["s1"])
+    b = make_core(bus, clock, tmp_path)
+    d.check(70, d.off)  # the first prediction, made by the start (before step 70's inputs)
+    assert len(col.predictions["s1"]) == n0 + 1
+    for k in range(70, 90):
+        d.step([b], k)
+        d.check(k, d.off)
+    c, st = b.counters, status(bus.transport(), "s1")
+    assert st.origin == "checkpoint" and st.origin_step is not None \
+        and st.origin_step < 70 - d.spec.max_delay
+    assert c["resumed_stale"] == 1 and st.readback == "answered"
+    # the outage's 30 steps at least: 2 samples and a command each
+    assert c["recovered_accepted"] >= 2 * 30 and c["recovered_commands_accepted"] >= 30
+    assert c["refused"] == 0
+
+
+def test_inputs_kept_during_the_wait_are_judged_at_their_stamps_not_at_their_arrival(
+        tmp_path):
+    """The catch-up judges each kept input at its own stamp's step, also one that arrived
+    after the worker's loop read its clock (its arrival time is later than the loop's):
+    judged at that arrival, it would take the estimator to the current step and every
+    older stamp after it would be refused (late, or "now went backwards")."""
+    bus, clock, col, cli, d = _checkpointed(tmp_path, 40)
+    clock.t = int(70.05 * PERIOD_NS)
+    b = make_core(bus, clock, tmp_path)  # no sender cache: it waits 2 x recover_timeout_s
+    sess = b.dispatch.routes["s1"].sess
+    assert sess.readback == "waiting" and sess.origin_step is not None
+    # samples of the steps after the checkpoint, arriving after the wait's end ...
+    clock.t = sess.hold_until_ns + 5 * PERIOD_NS
+    for j in range(sess.origin_step + 1, sess.origin_step + 6):
+        cli.put(keys.sensor_key("s1", "ranger"), meas_bytes("s1", "ranger", j, [5.0]))
+    clock.t = sess.hold_until_ns + PERIOD_NS // 2  # ... read by a loop that began before
+    accepted = sess.counters["accepted"]
+    b.run_once()
+    assert sess.readback == "timeout"
+    assert sess.counters["accepted"] == accepted + 5 and b.counters["refused"] == 0
+
+
+def test_a_command_to_a_session_taken_over_at_its_prior_is_taken_in_after_the_wait(tmp_path):
+    """A session nobody sent to is taken over at its prior (no replica) and waits for its
+    senders' caches like any other; a command it gets meanwhile is judged at its own step
+    from the wait's start when the wait ends, not at the end of the wait (where its apply
+    step would be long final)."""
+    from ..helpers import cmd_now_bytes
+
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a, b, names = two_instances(bus, clock, tmp_path, cli)
+    s = next(n for n in names if n in a.served_sessions())
+    a.t.close()
+    clock.t = 5 * PERIOD_NS
+    b.dispatch.on_liveliness(keys.service_token_key("inst-a"), False)
+    b.run_once()
+    sess = b.dispatch.routes[s].sess
+    assert sess.origin == "prior" and sess.readback == "waiting"
+    cli.put(keys.command_key(s), cmd_now_bytes(s, clock.t))
+    b.run_once()
+    clock.t = sess.hold_until_ns + PERIOD_NS  # no cache answers: the bound (4 s, 80 steps)
+    b.run_once()
+    assert sess.readback == "timeout"
+    assert sess.counters["commands_accepted"] == 1 and b.counters["refused"] == 0
+    # and it is awake: a prediction every step from then on (not one per idle_publish_s)
+    published = sess.published
+    k0 = sess.step_now(clock.t)
+    for k in range(k0 + 1, k0 + 6):
+        clock.t = int((k + 0.6) * PERIOD_NS)
+        b.run_once()
+    assert sess.published >= published + 5
 
 
 def test_takeover_reads_back_what_the_senders_kept(tmp_path):
@@ -731,19 +819,22 @@ def test_a_slow_read_back_holds_only_its_own_session(tmp_path):
     for n in taken:
         cli.put(keys.command_key(n), cmd_bytes(n, 3, [1.0]))
 
-    def accepted(n):
-        return b.dispatch.routes[n].sess.counters["commands_accepted"]
+    def taken_in(n):
+        """Its message served from its inbox: accepted, or kept for the session's catch-up
+        (no sender cache here answers: each waits for its bound before it takes them in)."""
+        return b.dispatch.routes[n].sess.counters["commands_accepted"] + \
+            len(b.dispatch.held_inputs.get(n, ()))
 
     deadline = time.monotonic() + 10
-    while not all(accepted(n) for n in taken[1:]) and time.monotonic() < deadline:
+    while not all(taken_in(n) for n in taken[1:]) and time.monotonic() < deadline:
         b.run_once()
         time.sleep(0.001)
-    assert all(accepted(n) == 1 for n in taken[1:])
-    assert accepted(taken[0]) == 0  # still held: its read-back has not ended
+    assert all(taken_in(n) == 1 for n in taken[1:])
+    assert taken_in(taken[0]) == 0  # still parked: its read-back has not ended
     slow.gate.set()
     reader.join(10)
     b.run_once()
-    assert accepted(taken[0]) == 1
+    assert taken_in(taken[0]) == 1
 
 
 def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
