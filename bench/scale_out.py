@@ -62,8 +62,7 @@ import time
 from pathlib import Path
 
 from gauge import gauge_ms
-from service import (BENCH_ENV, PERIOD_NS, cpu_seconds, free_port, query_status, session_name,
-                     thread_cpu)
+from service import BENCH_ENV, PERIOD_NS, cpu_seconds, free_port, query_status, session_name, thread_cpu
 
 ROOT = Path(__file__).resolve().parents[1]
 

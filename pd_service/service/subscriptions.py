@@ -6,9 +6,9 @@ instance only its partitions' samples. An instance that owns every partition (al
 the only live one) subscribes to the two wildcards ``pd/*/*/sensor/*`` and ``pd/*/*/cmd``
 instead: two subscriptions, not 2 x P. All of them are members of one drain group
 (:meth:`Transport.drain_group`): the worker takes their samples in batches, and looks at
-their queues itself while idle (``service.daemon``). On a membership change :meth:`DataSubscriptions.follow` declares the
-subscriptions of the gained partitions and closes those of the lost ones; the partitions
-kept keep theirs (their sessions see no gap).
+their queues itself while idle (``service.daemon``). On a membership change
+:meth:`DataSubscriptions.follow` declares the subscriptions of the gained partitions and
+closes those of the lost ones; the partitions kept keep theirs (their sessions see no gap).
 """
 
 from __future__ import annotations
