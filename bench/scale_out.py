@@ -219,7 +219,7 @@ def by_thread(t0: dict[str, dict[str, float]], t1: dict[str, dict[str, float]],
             name, tid = key.rsplit("/", 1)
             kind = "main" if int(tid) == pids[inst] else re.sub(r"[-_ ]?[0-9]+$", "", name)
             out[kind] = out.get(kind, 0.0) + 1e6 * (sec - before.get(key, 0.0)) / steps
-    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+    return dict(sorted(((k, v) for k, v in out.items() if v >= 0.005), key=lambda kv: -kv[1]))
 
 
 def owners(c: Cluster) -> dict[str, str]:
