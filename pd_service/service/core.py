@@ -115,7 +115,7 @@ class ServiceCore:
         self.queries.step_clock = self.step_clock
         #: The data subscriptions of the owned partitions; they follow the ownership.
         self.subs = DataSubscriptions(transport, self.dispatch.on_sensor_sample,
-                                      self.dispatch.on_command_sample,
+                                      self.dispatch.on_command_sample, self.wake.set,
                                       self.ownership.partitions)
         self.lifecycle.follow = self._follow_ownership
         #: A state some awaited session waits for arrived (set on a transport thread).
@@ -146,8 +146,7 @@ class ServiceCore:
         self._handles.append(t.subscribe(keys.ALL_CONFIGS, d.on_config_sample))
         # an old client's (key layout 1) spec puts: refused (Lifecycle.apply_config)
         self._handles.append(t.subscribe(keys.LEGACY_CONFIGS, d.on_config_sample))
-        # replicas are drained with the data (no GIL hand-off to a callback thread each)
-        self.subs.group.add(replicas_for(self.instance), self.keeper.on_replica)
+        self._handles.append(t.subscribe(replicas_for(self.instance), self.keeper.on_replica))
         self._handles.append(t.queryable(replicas_for(self.instance),
                                          self.keeper.on_replica_query))
         peers = [k.rsplit("/", 1)[-1] for k in t.get_liveliness(keys.ALL_SERVICES,
@@ -274,10 +273,11 @@ class ServiceCore:
         the drains' queues: :meth:`run_once` takes those first)."""
         return self.dispatch.has_work() or self._handed_in
 
-    def look(self) -> bool:
-        """Worker, idle: take what waits in the drains' queues into the inboxes; whether
-        anything did (then :meth:`run_once` has work)."""
-        return self._drain() > 0
+    def arm(self) -> None:
+        """Before the worker waits idle: the drain group's watcher hands the next sample
+        over itself (and wakes it). A busy worker does not arm it: it drains at its next
+        round."""
+        self.subs.group.arm()
 
     def _drain(self) -> int:
         """The samples waiting in the subscriptions' queues, into the inboxes (the

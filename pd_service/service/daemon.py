@@ -3,9 +3,8 @@
 Threads:
 
 - Zenoh's own threads run the callbacks (they only append to inboxes) and the queryables;
-- one worker thread runs :meth:`ServiceCore.run_once` whenever samples wait in the drained
-  queues (it looks at them itself), a callback woke it, or the next tick / expiry check is
-  due;
+- one worker thread runs :meth:`ServiceCore.run_once` whenever woken by a callback or when
+  the next tick / expiry check is due;
 - the main thread waits for SIGTERM / SIGINT, then stops the worker, withdraws the liveliness
   token (peers take over at once), undeclares everything and closes the session.
 
@@ -36,12 +35,6 @@ log = logging.getLogger(LOGGER_NAME)
 
 #: Longest the worker sleeps without a wake-up (s): bounds the reaction to a stop request.
 _MAX_SLEEP_S = 0.5
-#: The idle worker's waits between two looks at the drained queues (s): doubling from the
-#: first to the round interval; once nothing arrived for _POLL_QUIET_S, to _POLL_QUIET_MAX_S
-#: (an idle daemon then looks 100 times a second).
-_POLL_FIRST_S = 5e-5
-_POLL_QUIET_S = 0.5
-_POLL_QUIET_MAX_S = 0.01
 
 
 def make_transport(settings: Settings) -> Transport:
@@ -113,7 +106,7 @@ class Daemon:
     def _loop(self) -> None:
         core = self.core
         assert core is not None
-        stop = self._stop
+        wake, stop = core.wake, self._stop
         interval = self.settings.round_interval_us * 1e-6  # s
         while not stop.is_set():
             t0 = time.monotonic()
@@ -129,45 +122,20 @@ class Daemon:
                 # so that what arrives meanwhile is handled together (one prediction per
                 # session touched); a loop that took longer goes on at once. The messages
                 # just handled were not delayed; the next ones wait at most the interval.
-                # What arrives meanwhile waits in the drains' queues; the next loop takes it.
+                # What arrives meanwhile waits in the drains' queues (not armed: no thread
+                # switch per round); the next loop takes it.
                 rest = interval - (time.monotonic() - t0)
                 if rest > 0:
                     time.sleep(rest)
                 continue
-            if not core.has_work():
-                self._idle(core, interval)
-
-    def _idle(self, core: ServiceCore, interval: float) -> None:
-        """Wait until samples are in the drained queues (taken into the inboxes), a callback
-        woke the worker (``core.wake``), the next timed work is due, or a stop. Nothing
-        wakes the worker when a sample arrives (zenoh-python cannot wait on several
-        channels): it looks at the queues after waits doubling from ``_POLL_FIRST_S`` to the
-        round ``interval`` (s; what a busy worker makes samples wait too), and to
-        ``_POLL_QUIET_MAX_S`` once nothing arrived for ``_POLL_QUIET_S``. Short waits are
-        plain sleeps with the wake flag read after them (a callback's wake-up waits at most
-        one of them); the quiet ones wait on the flag."""
-        wake, stop, mono, sleep = core.wake, self._stop, time.monotonic, time.sleep
-        t = mono()
-        until = t + min(max(0.0, (core.next_deadline_ns() - core.now_ns()) / 1e9),
-                        _MAX_SLEEP_S)
-        quiet_at = t + _POLL_QUIET_S
-        delay = _POLL_FIRST_S
-        cap = max(_POLL_FIRST_S, interval)
-        while not (stop.is_set() or wake.is_set()):
-            left = until - mono()
-            if left <= 0:
-                break
-            if cap < _POLL_QUIET_MAX_S:
-                sleep(min(delay, left))
-            else:
-                wake.wait(min(delay, left))
-            if core.look():
-                break
-            if delay < cap:
-                delay = min(delay * 2, cap)
-            elif cap < _POLL_QUIET_MAX_S and mono() >= quiet_at:
-                cap = delay = _POLL_QUIET_MAX_S
-        wake.clear()
+            # idle: the drains hand the next sample over themselves and wake the worker
+            core.arm()
+            if core.has_work():
+                continue
+            timeout = (core.next_deadline_ns() - core.now_ns()) / 1e9
+            if timeout > 0:
+                wake.wait(min(timeout, _MAX_SLEEP_S))
+            wake.clear()
 
     def stop(self) -> None:
         """Stop the worker, withdraw presence, undeclare everything, close the transport."""

@@ -5,10 +5,11 @@ Per owned partition k, two subscriptions: ``pd/p<k>/*/sensor/*`` and ``pd/p<k>/*
 instance only its partitions' samples. An instance that owns every partition (alone, or
 the only live one) subscribes to the two wildcards ``pd/*/*/sensor/*`` and ``pd/*/*/cmd``
 instead: two subscriptions, not 2 x P. All of them are members of one drain group
-(:meth:`Transport.drain_group`): the worker takes their samples in batches, and looks at
-their queues itself while idle (``service.daemon``). On a membership change
-:meth:`DataSubscriptions.follow` declares the subscriptions of the gained partitions and
-closes those of the lost ones; the partitions kept keep theirs (their sessions see no gap).
+(:meth:`Transport.drain_group`): the worker takes their samples in batches, and one watcher
+thread per instance hands the first one over while the worker is idle, however many
+partitions it owns. On a membership change :meth:`DataSubscriptions.follow` declares the
+subscriptions of the gained partitions and closes those of the lost ones; the partitions
+kept keep theirs (their sessions see no gap).
 """
 
 from __future__ import annotations
@@ -89,11 +90,12 @@ class DataSubscriptions:
     """The drained sensor and command subscriptions of the owned partitions."""
 
     def __init__(self, transport: Transport, on_sensor: Callable[[Sample], None],
-                 on_command: Callable[[Sample], None], partitions: int) -> None:
+                 on_command: Callable[[Sample], None], wake: Callable[[], None],
+                 partitions: int) -> None:
         self._on_sensor, self._on_command = on_sensor, on_command
         self.partitions = partitions
-        #: the instance's one drain group: the worker drains it
-        self.group: DrainGroup = transport.drain_group()
+        #: the instance's one drain group: the worker drains and arms it
+        self.group: DrainGroup = transport.drain_group(wake)
         #: partition (or ALL) -> its (sensors, commands) members
         self.by_partition: dict[int, tuple[DrainMember, DrainMember]] = {}
         #: the last switch's overlap (tests read it)

@@ -74,8 +74,7 @@ class DrainMember(Protocol):
 
 class DrainGroup(Protocol):
     """Subscriptions whose samples wait in queues until the owner drains them on its own
-    thread (:meth:`Transport.drain_group`); an idle owner looks at the queues on a schedule
-    of its own (nothing wakes it when a sample arrives)."""
+    thread (:meth:`Transport.drain_group`): one watcher for all of them, however many."""
 
     def add(self, keyexpr: str, callback: Callable[[Sample], None]) -> DrainMember:
         """Subscribe ``keyexpr`` into the group; its samples reach ``callback``. The member's
@@ -83,8 +82,14 @@ class DrainGroup(Protocol):
         ...
 
     def drain(self, limit: int) -> int:
-        """On the owner's thread: hand up to ``limit`` waiting samples of each subscription
-        to its callback; returns how many."""
+        """On the owner's thread: take the queues back from the watcher (disarm) and hand up
+        to ``limit`` waiting samples of each subscription to its callback; returns how many."""
+        ...
+
+    def arm(self) -> None:
+        """The owner is going to wait idle: the watcher hands the next sample that arrives
+        in any of the queues over on its own thread and wakes the owner; the owner's next
+        :meth:`drain` takes the rest."""
         ...
 
     def close(self) -> None: ...
@@ -116,11 +121,11 @@ class Transport(Protocol):
 
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> Handle: ...
 
-    def drain_group(self) -> DrainGroup:
+    def drain_group(self, wake: Callable[[], None]) -> DrainGroup:
         """Drained subscriptions (:meth:`DrainGroup.add`): like :meth:`subscribe`, but the
         samples wait in queues and reach their callback on the thread that calls
-        :meth:`DrainGroup.drain` (a transport may instead call it at once on its own
-        thread, as the in-memory bus does). ``Sample.recv_ns`` is then the wall
+        :meth:`DrainGroup.drain`, or, once armed, the first one on the group's watcher, which
+        then calls ``wake``: the owner should drain soon. ``Sample.recv_ns`` is then the wall
         clock read when the sample was taken from the queue (one read per drain) and
         ``recv_mono_ns`` the monotonic time of the previous look at the queues (so latencies
         include the wait in them). ``encoding`` and ``attachment`` are not read (None):

@@ -60,6 +60,9 @@ class _DrainGroup:
     def drain(self, limit: int) -> int:
         return 0
 
+    def arm(self) -> None:
+        pass
+
     def close(self) -> None:
         for m in self._members:
             m.close()
@@ -189,7 +192,7 @@ class InMemoryTransport(HandleOwner):
     def subscribe(self, keyexpr: str, callback: Callable[[Sample], None]) -> _Handle:
         return self._register(self.bus.subs, (keyexpr, callback))
 
-    def drain_group(self) -> _DrainGroup:
+    def drain_group(self, wake: Callable[[], None]) -> _DrainGroup:
         return _DrainGroup(self)
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,

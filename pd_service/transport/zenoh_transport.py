@@ -26,8 +26,17 @@ _DELETE: Final = zenoh.SampleKind.DELETE
 DRAIN_CAPACITY = 65_536
 #: Most samples taken from one channel per look while emptying it at its close.
 _DRAIN_BATCH = 4096
+#: The armed watcher's wait between two looks at the channels (s): it doubles from the first
+#: to the most; once nothing arrived for _POLL_QUIET_S, to _POLL_QUIET_MAX_S (an idle daemon
+#: then looks 100 times a second).
+_POLL_FIRST_S = 5e-5
+_POLL_MAX_S = 1e-3
+_POLL_QUIET_S = 0.5
+_POLL_QUIET_MAX_S = 0.01
 #: A read-back query that ended after this share of its timeout without a reply timed out.
 _TIMED_OUT = 0.9
+#: What the drain watcher's look found (_DrainGroup._look).
+_EMPTY, _HANDED, _TAKEN_BACK, _CLOSED = 0, 1, 2, 3
 
 
 class _Handle:
@@ -88,34 +97,49 @@ class _DrainMember:
 
 
 class _DrainGroup:
-    """Subscriptions into FIFO channels that the owner drains on its own thread.
+    """Subscriptions into FIFO channels that the owner drains on its own thread, with one
+    watcher thread for all of them.
 
-    Zenoh's threads push samples into each channel without the GIL; the owner takes them in
-    batches (``try_recv``), so it pays no GIL hand-off and no thread switch per sample.
-    zenoh-python cannot wait on several channels at once (and two subscribers cannot share
-    one), so an idle owner looks at them on a schedule of its own (the daemon's worker:
-    ``service.daemon``); a look costs ~0.3 µs per channel. No thread of the group's own:
-    a watcher that polled for the idle owner and handed the first sample over cost a thread
-    switch and a GIL hand-off per idle spell, in every instance (docs/performance.md).
+    Zenoh's threads push samples into each channel without the GIL. While the owner is busy
+    it takes them in batches (``try_recv``), so a loaded daemon pays no GIL hand-off per
+    sample. Before the owner waits idle it arms the group: the watcher polls every channel,
+    hands the first sample found over itself, wakes the owner and parks until armed again::
+
+        watcher:  wait(go) -> poll all: try_recv ... sleep(d), d doubling -> callback(sample)
+                  -> clear(go), wake()
+        owner:    drain(): clear(go), then try_recv each channel until empty
+                  arm() before waiting idle: set(go)
 
     Taking is serialised by one lock, so each channel's samples reach its callback in the
-    order Zenoh delivered them. The channels are bounded (``capacity`` samples); a full
-    channel makes Zenoh wait (it never drops silently), which happens only if the owner
-    falls far behind.
+    order Zenoh delivered them. zenoh-python cannot wait on several channels at once (and
+    two subscribers cannot share one), so the armed watcher polls: the wait between two
+    looks doubles from ``_POLL_FIRST_S`` to ``_POLL_MAX_S`` (the worker's round interval: a
+    busy worker makes samples wait as long), and to ``_POLL_QUIET_MAX_S`` once nothing has
+    arrived for ``_POLL_QUIET_S``. One thread per instance, not one per subscription:
+    arming wakes one thread whatever the number of owned partitions.
+
+    The channels are bounded (``capacity`` samples); a full channel makes Zenoh wait (it
+    never drops silently), which happens only if the owner falls far behind.
 
     Receipt times of drained samples: ``recv_ns`` is the wall clock read by the drain (the
     sample arrived before it, so it is never judged "future" too early); ``recv_mono_ns`` is
-    the monotonic time of the previous look at the queues (the previous drain), before which
-    it had not arrived: latencies measured from it include the time spent in the queue (an
-    upper bound by at most one of the owner's loops or idle waits).
+    the monotonic time of the previous look at the queues (the last drain, or the watcher's
+    previous poll), before which it had not arrived: latencies measured from it include the
+    time spent in the queue (an upper bound by at most one loop of the owner or one poll).
     """
 
-    def __init__(self, session: zenoh.Session, capacity: int) -> None:
-        self._session, self._capacity = session, capacity
+    def __init__(self, session: zenoh.Session, wake: Callable[[], None], capacity: int) -> None:
+        self._session, self._wake, self._capacity = session, wake, capacity
         #: replaced, never changed in place, and read under the lock
         self._members: list[_DrainMember] = []
         self._lock = threading.Lock()
+        # parked at first: the owner's first drain() takes what arrived since the
+        # declarations (before anything read back is handled), then hands over to the watcher
+        self._go = threading.Event()
+        self._closed = False
         self._seen_mono = time.monotonic_ns()  # last look at the queues
+        self._watcher = threading.Thread(target=self._watch, name="drain watcher", daemon=True)
+        self._watcher.start()
 
     def add(self, keyexpr: str, callback: Callable[[Sample], None]) -> _DrainMember:
         sub = self._session.declare_subscriber(keyexpr, zenoh.handlers.FifoChannel(self._capacity))
@@ -160,6 +184,7 @@ class _DrainGroup:
 
     def drain(self, limit: int) -> int:
         with self._lock:
+            self._go.clear()  # the owner takes the queues back (order kept by the lock)
             now, mono = time.time_ns(), self._seen_mono
             self._seen_mono = time.monotonic_ns()
             n = 0
@@ -167,9 +192,66 @@ class _DrainGroup:
                 n += self._take(m, limit, now, mono)
             return n
 
+    def arm(self) -> None:
+        self._go.set()
+
+    def _watch(self) -> None:
+        go = self._go
+        while True:
+            go.wait()
+            delay, cap = _POLL_FIRST_S, _POLL_MAX_S
+            quiet_at = time.monotonic() + _POLL_QUIET_S
+            while True:
+                look = self._look()
+                if look == _CLOSED:
+                    return
+                if look == _HANDED:
+                    self._wake()
+                if look != _EMPTY:
+                    break
+                time.sleep(delay)
+                if delay < cap:
+                    delay = min(delay * 2, cap)
+                elif cap < _POLL_QUIET_MAX_S and time.monotonic() >= quiet_at:
+                    cap = _POLL_QUIET_MAX_S
+
+    def _look(self) -> int:
+        """The watcher's look at the channels, under the lock: _CLOSED, _TAKEN_BACK (the
+        owner drains again), _HANDED (a sample handed over: wake the owner) or _EMPTY."""
+        with self._lock:
+            if self._closed:
+                return _CLOSED
+            if not self._go.is_set():
+                return _TAKEN_BACK
+            if not self._poll():
+                return _EMPTY
+            self._go.clear()  # only now may the owner take the next ones
+            return _HANDED
+
+    def _poll(self) -> bool:
+        """Under the lock: hand the first waiting sample of any channel over."""
+        mono = time.monotonic_ns()
+        for m in self._members:
+            try:
+                s = m.rx.try_recv()
+            except Exception:  # closed and empty
+                self._gone(m)
+                continue
+            if s is not None:
+                _deliver(m.callback, m.keyexpr, s, time.time_ns(), self._seen_mono)
+                self._seen_mono = mono
+                return True
+        self._seen_mono = mono
+        return False
+
     def close(self) -> None:
         with self._lock:
+            if self._closed:
+                return
+            self._closed = True
             members, self._members = self._members, []
+        self._go.set()
+        self._watcher.join(timeout=5.0)
         for m in members:
             try:
                 m.sub.undeclare()
@@ -323,8 +405,8 @@ class ZenohTransport(HandleOwner):
 
         return self._keep(self.session.declare_subscriber(keyexpr, on_sample))
 
-    def drain_group(self) -> _DrainGroup:
-        g = _DrainGroup(self.session, DRAIN_CAPACITY)
+    def drain_group(self, wake: Callable[[], None]) -> _DrainGroup:
+        g = _DrainGroup(self.session, wake, DRAIN_CAPACITY)
         self._handles.append(g)
         return g
 

@@ -11,7 +11,7 @@ import pytest
 from pd_service.service.subscriptions import ALL, DataSubscriptions, SwitchOverlap
 from pd_service.transport import InMemoryBus, Sample
 from pd_service.wire import keys
-from tests.transport.test_transport import listener_and_client, transport_threads
+from tests.transport.test_transport import drain_watchers, listener_and_client
 
 P = 8
 
@@ -39,7 +39,7 @@ def test_follow_in_memory_switches_and_keeps_kept_partitions() -> None:
     bus = InMemoryBus()
     got: list[bytes] = []
     subs = DataSubscriptions(bus.transport(), lambda s: got.append(s.payload),
-                             lambda s: got.append(b"cmd " + s.payload), P)
+                             lambda s: got.append(b"cmd " + s.payload), lambda: None, P)
     assert subs.follow(range(P)) == (1, 0) and list(subs.by_partition) == [ALL]
     assert subs.follow([1, 2, 5]) == (3, 1)
     kept = subs.by_partition[2]
@@ -59,12 +59,14 @@ def test_follow_in_memory_switches_and_keeps_kept_partitions() -> None:
 def test_switching_over_zenoh_loses_nothing_and_delivers_nothing_twice() -> None:
     """While a sender puts numbered samples, the instance switches from the wildcard pair to
     per-partition pairs, then between partition sets again and again; every sample reaches
-    the callback once, in order; no thread per partition. (The way back
+    the callback once, in order; one watcher thread however many partitions. (The way back
     to the wildcards loses what is sent in between: SwitchOverlap's docstring.)"""
     with listener_and_client() as (t1, t2):
         got: list[int] = []
+        woke = threading.Event()
+        threads = drain_watchers()
         subs = DataSubscriptions(t1, lambda s: got.append(int(s.payload)),
-                                 lambda s: got.append(-int(s.payload)), P)
+                                 lambda s: got.append(-int(s.payload)), woke.set, P)
         name = next(f"s{i}" for i in range(100) if keys.partition_of(f"s{i}") == 3)
         subs.follow(range(P))
         n = 10_000
@@ -82,14 +84,13 @@ def test_switching_over_zenoh_loses_nothing_and_delivers_nothing_twice() -> None
 
         th = threading.Thread(target=send)
         th.start()
-        threads = transport_threads()
         sets = [[3], [1, 3, 5, 7], [3, 4], [0, 3]]
         i = 0
         try:
             while th.is_alive():
                 subs.follow(sets[i % len(sets)])
                 i += 1
-                assert transport_threads() == threads
+                assert drain_watchers() == threads + 1
                 subs.group.drain(64)
                 time.sleep(0.0005)
         finally:

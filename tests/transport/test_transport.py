@@ -136,34 +136,32 @@ def listener_and_client() -> Iterator[tuple[ZenohTransport, ZenohTransport]]:
         yield t1, t2
 
 
-def transport_threads() -> int:
-    """Threads alive in this process."""
-    return threading.active_count()
+def drain_watchers() -> int:
+    """Drain watcher threads alive in this process."""
+    return sum(th.name == "drain watcher" for th in threading.enumerate())
 
 
 @pytest.mark.integration
-def test_zenoh_drain_group_keeps_order_and_closes() -> None:
-    """Samples wait in their queues until the owner drains them (nothing hands one over,
-    no thread of the group's own); they reach their callback in order, in batches, nothing
-    lost; a member closed hands what it holds over first; a closed group holds nothing."""
+def test_zenoh_drain_group_keeps_order_and_closes_while_waiting() -> None:
+    """Samples reach their callback in order, whether the watcher hands one over (owner idle,
+    armed) or the owner drains them in batches; nothing is lost; an owner that does not arm
+    gets no hand-over; a member closed hands what it holds over first; close() returns
+    while the watcher polls; one watcher thread however many members."""
     with listener_and_client() as (t1, t2):
         got: list[bytes] = []
-        before = transport_threads()
-        g = t1.drain_group()
+        woke = threading.Event()
+        before = drain_watchers()
+        g = t1.drain_group(woke.set)
         m = g.add("pd/*/*/sensor/*", lambda s: got.append(s.payload))
         others = [g.add(f"pd/p{k}/*/sensor/*", lambda s: None) for k in range(16)]
-        assert transport_threads() == before  # no watcher thread
-        assert g.drain(10) == 0
-        seen = threading.Event()  # a plain subscriber: once it has a sample, so has the group
-        t1.subscribe("pd/*/*/sensor/*", lambda s: seen.set() if s.payload == b"-1" else None)
+        assert drain_watchers() == before + 1
+        assert g.drain(10) == 0  # parked at first: the owner looks once
         t2.put("pd/p2/s/sensor/-1", b"-1")
-        assert seen.wait(5.0)
-        time.sleep(0.05)
-        assert got == []  # not drained: it waits for the owner
-        for _ in range(500):
-            if g.drain(10):
+        for _ in range(500):  # not armed: nobody hands it over, it waits for the owner
+            if got:
                 break
-            time.sleep(0.01)
+            g.drain(10)
+            assert not woke.wait(0.01)
         assert got == [b"-1"]
         got.clear()
         # the drain builds its Sample as a plain tuple: every field, defaults included
@@ -177,7 +175,7 @@ def test_zenoh_drain_group_keeps_order_and_closes() -> None:
         (s,) = whole
         assert type(s) is Sample and len(s) == len(Sample._fields)
         assert s._replace(recv_ns=0, recv_mono_ns=0) == Sample("pd/p2/s/cmd", b"c", "put", 0, 0)
-        seen = threading.Event()
+        seen = threading.Event()  # a plain subscriber: once it has the sample, so has m2
         t1.subscribe("pd/*/*/cmd", lambda s: seen.set() if s.payload == b"held" else None)
         t2.put("pd/p2/s/cmd", b"held")
         assert seen.wait(5.0)
@@ -185,16 +183,23 @@ def test_zenoh_drain_group_keeps_order_and_closes() -> None:
         assert whole[1].payload == b"held"
         for o in others[8:]:
             o.close()
-        for i in range(2001):
+        g.arm()
+        t2.put("pd/p2/s/sensor/x", b"0")
+        assert woke.wait(5.0)  # the watcher handed the first one over
+        assert got == [b"0"]
+        for i in range(1, 2001):
             t2.put("pd/p2/s/sensor/x", str(i).encode())
         for _ in range(10_000):  # bounded: a broken drain fails instead of hanging
             if len(got) == 2001:
                 break
-            if not g.drain(64):  # small batches
-                time.sleep(0.005)
+            if not g.drain(64):  # small batches; empty: the watcher takes a turn
+                woke.clear()
+                g.arm()
+                woke.wait(0.05)
         assert got == [str(i).encode() for i in range(2001)]
         assert g.drain(64) == 0
-        g.close()
+        g.arm()
+        g.close()  # while the watcher polls: it must return, not hang
         assert g.drain(10) == 0
         assert m is not None
 

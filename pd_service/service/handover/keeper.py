@@ -28,9 +28,8 @@ An encoded state larger than a message may be (64 KiB) is neither written nor se
 newest state to its successor and waits until the successor says it holds them
 (:meth:`HandoverKeeper.handover`, :meth:`HandoverKeeper.confirm_handover`; bounded) before it
 withdraws its presence, so a planned handover loses nothing that was accepted.
-Worker thread only, except :meth:`HandoverKeeper.on_replica` (the daemon's worker drains it
-with the data; any thread) and :meth:`HandoverKeeper.on_replica_query` (transport threads:
-they only store or read the bytes)
+Worker thread only, except :meth:`HandoverKeeper.on_replica` and
+:meth:`HandoverKeeper.on_replica_query` (transport threads: they only store or read the bytes)
 and :meth:`HandoverKeeper.confirm_handover` (the stopping thread, the worker stopped).
 """
 
@@ -405,8 +404,7 @@ class HandoverKeeper:
     # ================================================================== incoming ======
 
     def on_replica(self, sample: Sample) -> None:
-        """The worker's drain (or a transport thread): keep the newest replica per session
-        (by its now_step).
+        """Transport thread: keep the newest replica per session (by its now_step).
 
         Only unpacked here, and its session and now_step read: the whole SessionState is
         validated when a takeover resumes from it (:func:`.checkpoint.restore`, a bad one
