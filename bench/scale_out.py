@@ -50,6 +50,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import signal
 import statistics
@@ -61,7 +62,7 @@ import time
 from pathlib import Path
 
 from gauge import gauge_ms
-from service import BENCH_ENV, PERIOD_NS, cpu_seconds, free_port, query_status, session_name
+from service import BENCH_ENV, PERIOD_NS, cpu_seconds, free_port, query_status, session_name, thread_cpu
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -127,6 +128,9 @@ class Cluster:
     def cpu(self) -> dict[str, float]:
         return {name: cpu_seconds(d.pid) for name, d in self.daemons.items() if d.poll() is None}
 
+    def threads(self) -> dict[str, dict[str, float]]:
+        return {name: thread_cpu(d.pid) for name, d in self.daemons.items() if d.poll() is None}
+
     def stop(self, name: str, sig: int) -> None:
         d = self.daemons.pop(name)
         d.send_signal(sig)
@@ -176,11 +180,11 @@ def measure(c: Cluster, n: int, args: argparse.Namespace, churn: bool) -> dict:
     while time.time_ns() < measure_start:
         time.sleep(0.05)
     s0, c0, w0 = c.statuses(), c.cpu(), time.monotonic()
-    r0 = cpu_seconds(c.router.pid)
+    r0, t0 = cpu_seconds(c.router.pid), c.threads()
     while time.time_ns() < steady_end:
         time.sleep(0.05)
     s1, c1, wall = c.statuses(), c.cpu(), time.monotonic() - w0
-    r1 = cpu_seconds(c.router.pid)
+    r1, t1 = cpu_seconds(c.router.pid), c.threads()
     steps = n * wall / (PERIOD_NS / 1e9)
     per = {name: received(s1[name]) - received(s0[name]) for name in s1}
     total = sum(per.values())
@@ -196,10 +200,26 @@ def measure(c: Cluster, n: int, args: argparse.Namespace, churn: bool) -> dict:
            "us_per_session_step": 1e6 * sum(c1[k] - c0[k] for k in c1) / steps,
            "late": sum(s1[k].counters.get("late_total", 0) - s0[k].counters.get("late_total", 0)
                        for k in s1)}
+    res["threads"] = by_thread(t0, t1, {k: c.daemons[k].pid for k in t1}, steps)
     if churn:
         res["churn"] = churn_events(c, args)
     gen.wait(max(30.0, (end - time.time_ns()) / 1e9 + 30))
     return res
+
+
+def by_thread(t0: dict[str, dict[str, float]], t1: dict[str, dict[str, float]],
+              pids: dict[str, int], steps: float) -> dict[str, float]:
+    """The instances' CPU over the interval by kind of thread, summed over the instances, µs
+    per session-step: a thread's kind is its name without a trailing number (Zenoh's
+    ``rx-0``, ``rx-1``: ``rx``); an instance's main thread is ``main``."""
+    out: dict[str, float] = {}
+    for inst, after in t1.items():
+        before = t0.get(inst, {})
+        for key, sec in after.items():
+            name, tid = key.rsplit("/", 1)
+            kind = "main" if int(tid) == pids[inst] else re.sub(r"[-_ ]?[0-9]+$", "", name)
+            out[kind] = out.get(kind, 0.0) + 1e6 * (sec - before.get(key, 0.0)) / steps
+    return dict(sorted(((k, v) for k, v in out.items() if v >= 0.005), key=lambda kv: -kv[1]))
 
 
 def owners(c: Cluster) -> dict[str, str]:
@@ -409,6 +429,9 @@ def main() -> None:
               f"{many['us_per_session_step']:.1f} µs CPU per session-step summed "
               f"({res['cpu_ratio']:.2f}x one), late {many['late']}; router "
               f"{many['router_us_per_message']:.2f} µs CPU per message")
+        for label, ph in (("1", one), (str(many["instances"]), many)):
+            print(f"  {label} by thread (µs per session-step, summed): " + ", ".join(
+                f"{k} {v:.1f}" for k, v in ph["threads"].items() if v >= 0.05))
         for ev in many.get("churn", []):
             print(f"  {ev['event']:<16} {ev['instance']}: partitions moved "
                   f"{ev['partitions_moved']}/{ev['partitions']}, sessions moved "
@@ -441,6 +464,8 @@ def main() -> None:
         "max_share": med(lambda r: r["many"]["max_share"]),
         "max_share_runs": [round(r["many"]["max_share"], 3) for r in reps],
         "router_us_per_message": med(lambda r: r["many"]["router_us_per_message"]),
+        "threads": {ph: {k: med(lambda r, ph=ph, k=k: r[ph]["threads"].get(k, 0.0))
+                         for k in reps[0][ph]["threads"]} for ph in ("one", "many")},
         "churn": [r["many"].get("churn", []) for r in reps]}))
 
 
