@@ -56,10 +56,10 @@ class DelayStats:
         self.period_ns = period_ns
         self.epoch_ns = epoch_ns
         self.capacity = capacity
-        # plain lists: a sample costs two list writes (the daemon adds one per measurement);
-        # numpy arrays are made only when the stats are read
-        self._ns: list[int] = [0] * capacity
-        self._gap: list[int] = [0] * capacity
+        # int64 rings: a sample costs two element writes, and a read (a status query of
+        # every session reads them all) sorts a view instead of converting a list
+        self._ns = np.zeros(capacity, dtype=np.int64)
+        self._gap = np.zeros(capacity, dtype=np.int64)
         self._n = 0  # kept
         self._next = 0  # ring position
         self.seen = 0
@@ -82,10 +82,10 @@ class DelayStats:
         return self._n
 
     @staticmethod
-    def _oldest_first(ring: list[int], n: int, nxt: int, capacity: int) -> np.ndarray:
+    def _oldest_first(ring: np.ndarray, n: int, nxt: int, capacity: int) -> np.ndarray:
         if n < capacity:
-            return np.array(ring[:n], dtype=np.int64)
-        return np.array(ring[nxt:] + ring[:nxt], dtype=np.int64)
+            return ring[:n].copy()
+        return np.concatenate((ring[nxt:], ring[:nxt]))
 
     def gaps(self) -> np.ndarray:
         """The kept step gaps (n,), oldest first."""
@@ -100,18 +100,19 @@ class DelayStats:
         observed value)."""
         if not self._n:
             return DelaySummary(self.seen, 0, None, None, None, None, None)
-        d = np.array(self._ns[: self._n], dtype=np.int64)
-        q = np.quantile(d, [0.5, 0.9, 0.99], method="higher")
-        return DelaySummary(self.seen, self._n, int(q[0]), int(q[1]), int(q[2]), int(d.max()),
-                            max(self._gap[: self._n]))
+        n = self._n
+        d = np.sort(self._ns[:n])
+        # numpy's quantile with method "higher": the sorted value at ceil(q (n - 1))
+        q = [int(d[math.ceil(f * (n - 1))]) for f in (0.5, 0.9, 0.99)]
+        return DelaySummary(self.seen, n, q[0], q[1], q[2], int(d[-1]),
+                            int(self._gap[:n].max()))
 
     def share_above(self, window: int) -> float:
         """The share of kept gaps above ``window`` steps (those a window of that size would
         have refused as late); 0.0 when none is kept."""
         if not self._n:
             return 0.0
-        g = np.array(self._gap[: self._n], dtype=np.int64)
-        return float(np.count_nonzero(g > window)) / self._n
+        return float(np.count_nonzero(self._gap[: self._n] > window)) / self._n
 
     def smallest_window(self, share: float = LATE_SHARE) -> int | None:
         """``W* = min { W >= 0 : #{g_i > W} <= share n }`` (steps); None when none is kept."""
@@ -121,7 +122,7 @@ class DelayStats:
         if not 0.0 <= share < 1.0:
             raise ValueError(f"share: must be in [0, 1), got {share!r}")
         allowed = math.floor(share * n + 1e-9)  # gaps that may stay above the window
-        g = np.sort(np.array(self._gap[:n], dtype=np.int64))
+        g = np.sort(self._gap[:n])
         return max(0, int(g[n - 1 - allowed]))
 
     def recommended_window(self, share: float = LATE_SHARE, margin: float = 0.1) -> int | None:
@@ -138,5 +139,5 @@ class DelayStats:
             return None
         if not 0.0 <= q <= 1.0:
             raise ValueError(f"q: must be in [0, 1], got {q!r}")
-        return int(np.quantile(np.array(self._gap[: self._n], dtype=np.int64), q,
-                               method="higher"))
+        n = self._n
+        return int(np.sort(self._gap[:n])[math.ceil(q * (n - 1))])  # numpy's "higher"
