@@ -18,7 +18,10 @@ Runs (each the same truth, noise and delays; ``--scenario`` paper by default):
 - ``issue43``: the same robot, the spec with ``robot_clock: estimated`` and ``command_timing:
   echoed`` (probes once a second, echoes of every command);
 - ``ref-loop``, ``loopback``: ``reference`` and ``issue43`` over a link of 100 +- 30 µs each
-  way (the offset error figure).
+  way (the offset error figure);
+- ``perfect``: ``issue43``'s robot and link with a shared clock (``robot_clock: shared``,
+  ``command_timing: echoed``): what the uplink's jitter and the on-arrival robot cost when the
+  clock is known exactly (the bound of ``issue43``'s RMS ratio: no clock estimate does better).
 
 Printed per run: samples refused as future / late after the first 5 s; the offset error
 after 10 s (max and median |estimate - truth| at the once-a-second probes, leaving out the 5 s
@@ -109,7 +112,11 @@ class Result:
 
 
 def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: int,
-        clock_off: bool, hold: bool, estimated: bool, links: dict[str, Link]) -> Result:
+        clock_off: bool, hold: bool, estimated: bool, links: dict[str, Link],
+        echoed: bool | None = None) -> Result:
+    """One run (module docstring); ``echoed``: the spec's command_timing "echoed" (default:
+    with an estimated clock)."""
+    echoed = estimated if echoed is None else echoed
     sc = get_scenario(scenario_name)
     per_s = sc.period_s
     worst = max(v.base_s + v.jitter_s for v in FIELD.values())
@@ -118,7 +125,7 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
                     max_delay=int(np.ceil(worst / per_s)) + 2)
     spec = SessionSpec.model_validate({**spec0.model_dump(),
                                        "robot_clock": "estimated" if estimated else "shared",
-                                       "command_timing": "echoed" if estimated else "stamped"})
+                                       "command_timing": "echoed" if echoed else "stamped"})
     P = spec.period_ns
     steps = int(seconds * S // P)
     robot_clock = (RobotClock(offset_s, 100.0, [(seconds / 2, 0.2)], base=lambda: 0, t0_ns=EPOCH)
@@ -289,9 +296,11 @@ def main() -> int:
         run("issue43", clock_off=True, hold=False, estimated=True, links=FIELD, **common),
         run("ref-loop", clock_off=False, hold=True, estimated=False, links=LOOPBACK, **common),
         run("loopback", clock_off=True, hold=False, estimated=True, links=LOOPBACK, **common),
+        run("perfect", clock_off=False, hold=False, estimated=False, echoed=True, links=FIELD,
+            **common),
     ]
     refs = {"reference": runs[0], "today": runs[0], "issue43": runs[0], "ref-loop": runs[3],
-            "loopback": runs[3]}
+            "loopback": runs[3], "perfect": runs[0]}
     print(f"scenario {args.scenario}, {args.seconds:g} s, robot clock {args.offset_s:+g} s, "
           f"100 ppm, +200 ms step at {args.seconds / 2:g} s; commands on arrival (reference: "
           f"held to their step, shared clock); "

@@ -57,9 +57,10 @@ class DelayStats:
         self.epoch_ns = epoch_ns
         self.capacity = capacity
         # int64 rings: a sample costs two element writes, and a read (a status query of
-        # every session reads them all) sorts a view instead of converting a list
-        self._ns = np.zeros(capacity, dtype=np.int64)
-        self._gap = np.zeros(capacity, dtype=np.int64)
+        # every session reads them all) sorts a view instead of converting a list; grown by
+        # doubling while they fill, so a stream that never sends costs no memory
+        self._ns = np.zeros(0, dtype=np.int64)
+        self._gap = np.zeros(0, dtype=np.int64)
         self._n = 0  # kept
         self._next = 0  # ring position
         self.seen = 0
@@ -70,6 +71,8 @@ class DelayStats:
         clock-offset estimate off by more than the delay shows up in them)."""
         p, e = self.period_ns, self.epoch_ns
         i = self._next
+        if i == self._ns.shape[0]:  # filling: full rings wrap before this
+            self._grow()
         self._ns[i] = later_ns - earlier_ns
         self._gap[i] = (later_ns - e) // p - (earlier_ns - e) // p
         i += 1
@@ -77,6 +80,22 @@ class DelayStats:
         if self._n < self.capacity:
             self._n += 1
         self.seen += 1
+
+    def _grow(self) -> None:
+        """Double the rings (16 at first; at most ``capacity``), keeping what they hold."""
+        n = self._ns.shape[0]
+        size = min(self.capacity, max(16, 2 * n))
+        ns, gap = np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
+        ns[:n], gap[:n] = self._ns, self._gap
+        self._ns, self._gap = ns, gap
+
+    def copy(self) -> DelayStats:
+        """An independent copy of what is kept (the same statistics; later adds reach only
+        one of them): taken under a lock, read after it is released."""
+        out = DelayStats(self.period_ns, self.epoch_ns, self.capacity)
+        out._ns, out._gap = self._ns.copy(), self._gap.copy()
+        out._n, out._next, out.seen = self._n, self._next, self.seen
+        return out
 
     def __len__(self) -> int:
         return self._n

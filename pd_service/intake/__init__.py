@@ -107,6 +107,8 @@ def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
 #: Apply steps whose command order :class:`Intake` remembers at most (beyond the open window
 #: the oldest are forgotten; a command for a forgotten step is then a duplicate).
 _ORDERS_KEPT: Final = 4096
+#: Orders kept before the first pruning of final steps (then twice what the last one left).
+_ORDERS_PRUNE_FIRST: Final = 64
 
 
 class Intake:
@@ -145,6 +147,9 @@ class Intake:
         #: apply step -> (issued_ns or -1, seq) of the command stored for it: which of two
         #: commands for one step is the newer (the supersede rule, module docstring).
         self.command_order: dict[int, tuple[int, int]] = {}
+        #: command_order's size at which its final steps are next forgotten: twice what
+        #: the last pruning left (the open window), so a command costs O(1) amortised.
+        self._orders_prune_at = _ORDERS_PRUNE_FIRST
         #: The estimator's seconds per session second for an offset inside a step: 1.0 where
         #: its period is the session's (a continuous linear model); the model's own step
         #: over the session's where a nonlinear model runs on its own period (a fraction of
@@ -337,15 +342,17 @@ class Intake:
 
     def _remember_order(self, step: int, order: tuple[int, int]) -> None:
         """Keep ``order`` for the command stored at ``step``; forget final steps once the
-        map outgrows the estimator's open window (bounded memory)."""
+        map holds twice what the last pruning left (bounded memory: about the estimator's
+        open window, at most :data:`_ORDERS_KEPT`)."""
         orders = self.command_order
         orders[step] = order
-        if len(orders) > _ORDERS_KEPT:
+        if len(orders) > self._orders_prune_at:
             first = self.est.committed_step
             for k in [k for k in orders if k < first]:
                 del orders[k]
             while len(orders) > _ORDERS_KEPT:  # a window wider than the bound: oldest go
                 del orders[min(orders)]
+            self._orders_prune_at = max(_ORDERS_PRUNE_FIRST, 2 * len(orders))
 
     def _supersede(self, step: int, u: np.ndarray, order: tuple[int, int],
                    now_step: int, offset: float = 0.0) -> bool:

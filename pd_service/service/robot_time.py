@@ -14,7 +14,10 @@ only caller, no locks, no clock reads: every time is passed in):
   that would have refused at most :data:`LATE_SHARE` of the samples as late, + 10 %); per
   echoed command the gap issue -> applied and the recommended ``lead`` (the median).
 - **echoes**: every accepted command is remembered (seq -> issued, u, the step it entered at)
-  until the robot's :class:`CommandEcho` says when it took effect: the echo bounds the offset
+  until the robot's :class:`CommandEcho` says when it took effect (a session with
+  ``robot_clock: shared`` and ``command_timing: stamped`` only from the first echo of its
+  robot on, counting the echoes before it ``echoes_unknown``: a robot that never echoes
+  costs nothing per command): the echo bounds the offset
   and teaches the lead (issue -> applied); with spec ``command_timing: echoed`` the command
   then moves to that instant, inside its step (:func:`feed_applied_command`, the one seam
   to the issue-42 estimator API). Until its echo a command acts at its stamped apply step (the prediction
@@ -29,6 +32,7 @@ this session; ``commands_kept_dropped``: kept commands pushed out unechoed), nev
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
@@ -40,8 +44,9 @@ from pd_service.estimation.tally import Tally
 from pd_service.intake import Intake
 from pd_service.wire import ClockStatus, CommandEcho, DelayStatus, SessionSpec, WireError, decode
 
-#: Commands kept for their echo per session (oldest pushed out, counted).
-COMMANDS_KEPT: Final = 4096
+#: Commands kept for their echo per session (oldest pushed out, counted): those in flight
+#: over one round trip (100 Hz over 2.5 s; an echo usually takes its command out first).
+COMMANDS_KEPT: Final = 256
 #: An offset estimate that moved by more than this since the last status, or whose bound is
 #: wider, gets a status warning (ns).
 CLOCK_WARN_NS: Final = 50_000_000
@@ -93,6 +98,9 @@ class RobotTime:
         self.spec = spec
         self.estimated = spec.robot_clock == "estimated"
         self.echoed = spec.command_timing == "echoed"
+        #: Whether accepted commands are kept for their echo (:meth:`keep_command`): from the
+        #: start when the spec uses echoes, else from the first echo of this session.
+        self.listening = self.estimated or self.echoed
         self.clock = ClockOffsetEstimator()
         self.counters = Tally()
         self.samples = DelayStats(spec.period_ns, spec.epoch_ns)
@@ -165,6 +173,7 @@ class RobotTime:
         if msg.session != self.spec.session:
             c["echoes_invalid"] += 1
             return None
+        self.listening = True
         entry = self.kept.get(msg.seq)
         if entry is None:
             c["echoes_unknown"] += 1
@@ -205,6 +214,14 @@ class RobotTime:
         """The window the samples seen recommend (steps), None before any."""
         return self.samples.recommended_window(LATE_SHARE)
 
+    def view(self, now_ns: int) -> RobotView:
+        """Copies of what a status reports (under the core's lock; the statistics are
+        computed from them after it: :class:`RobotView`). The clock's status is taken here:
+        it remembers the last one (its jump warning)."""
+        return RobotView(self.clock_status(now_ns), self.samples.copy(),
+                         {k: v.copy() for k, v in self.by_sensor.items()},
+                         self.applied.copy(), self.late / max(self.seen, 1))
+
     def clock_status(self, now_ns: int) -> ClockStatus | None:
         """The offset estimate now (None for a shared clock), with a warning when it is
         unknown, unbounded, stale or just jumped."""
@@ -231,15 +248,44 @@ class RobotTime:
 
     def delay_status(self) -> dict[str, DelayStatus]:
         """Per sensor, and ``cmd`` for issue -> applied, the delays kept (ms)."""
-        out: dict[str, DelayStatus] = {}
-        streams = [*sorted(self.by_sensor.items()), ("cmd", self.applied)]
-        for name, stats in streams:
-            s = stats.summary()
-            if s.count and s.p50_ns is not None and s.p99_ns is not None \
-                    and s.max_ns is not None:
-                out[name] = DelayStatus(count=s.count, p50_ms=s.p50_ns / 1e6,
-                                        p99_ms=s.p99_ns / 1e6, max_ms=s.max_ns / 1e6)
-        return out
+        return delay_statuses(self.by_sensor, self.applied)
+
+
+def delay_statuses(by_sensor: dict[str, DelayStats], applied: DelayStats) \
+        -> dict[str, DelayStatus]:
+    """Per sensor, and ``cmd`` for issue -> applied, the delays kept (ms)."""
+    out: dict[str, DelayStatus] = {}
+    for name, stats in [*sorted(by_sensor.items()), ("cmd", applied)]:
+        s = stats.summary()
+        if s.count and s.p50_ns is not None and s.p99_ns is not None and s.max_ns is not None:
+            out[name] = DelayStatus(count=s.count, p50_ms=s.p50_ns / 1e6,
+                                    p99_ms=s.p99_ns / 1e6, max_ms=s.max_ns / 1e6)
+    return out
+
+
+@dataclass(frozen=True)
+class RobotView:
+    """A session's robot time as its status reports it: the clock's status and copies of
+    the delay statistics (:meth:`RobotTime.view`, under the core's lock); the sorts behind
+    the statistics run when read, after the lock is released."""
+
+    clock: ClockStatus | None
+    samples: DelayStats
+    by_sensor: dict[str, DelayStats]
+    applied: DelayStats
+    late_share: float
+
+    def delay_status(self) -> dict[str, DelayStatus]:
+        """Per sensor, and ``cmd``, the delays kept (ms)."""
+        return delay_statuses(self.by_sensor, self.applied)
+
+    def recommended_max_delay(self) -> int | None:
+        """:meth:`RobotTime.recommended_max_delay` of the copy."""
+        return self.samples.recommended_window(LATE_SHARE)
+
+    def recommended_lead(self) -> int | None:
+        """The median issue -> applied gap of the echoed commands (steps), None before any."""
+        return self.applied.quantile_gap()
 
 
 def learned_spec(spec: SessionSpec, robot: RobotTime) -> SessionSpec | None:

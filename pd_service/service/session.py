@@ -135,6 +135,9 @@ class Session:
         self.robot = RobotTime(spec)
         if self.robot.estimated:
             self.intake.stamp_map = self.robot.to_daemon
+        #: Whether accepted commands go to :meth:`.robot_time.RobotTime.keep_command` (a
+        #: native copy of its ``listening``, read per command).
+        self.keeps_commands: bool = self.robot.listening
         self.state = state
         self.detail = detail
         self.counters = Tally()
@@ -244,7 +247,7 @@ class Session:
         if intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
-            if refusal is None and intake.last_command is not None:
+            if refusal is None and self.keeps_commands and intake.last_command is not None:
                 self.robot.keep_command(*intake.last_command)
         return refusal
 
@@ -253,6 +256,7 @@ class Session:
         ``command_timing: echoed`` its command moves to the instant it took effect. True
         iff the estimator's inputs changed."""
         got = self.robot.echo(payload, recv_ns)
+        self.keeps_commands = self.robot.listening
         if got is None:
             return False
         try:

@@ -21,21 +21,13 @@ from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Query
 from pd_service.transport.keyexpr import intersects
-from pd_service.wire import (
-    ClockStatus,
-    DelayStatus,
-    ErrorReport,
-    ServiceStatus,
-    SessionSpec,
-    SessionStatus,
-    encode,
-    keys,
-)
+from pd_service.wire import ErrorReport, ServiceStatus, SessionSpec, SessionStatus, encode, keys
 from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
 from .latency import LatencyWindow, percentiles
 from .ownership import Ownership
+from .robot_time import RobotView
 from .session import Refusal, Session
 from .step_clock import StepClock
 
@@ -62,27 +54,23 @@ class StatusSnapshot:
     latency_us: np.ndarray  # a copy of the session's LatencyWindow
     origin: Literal["prior", "checkpoint", "replica"]
     origin_step: int | None
-    # the robot's time (pd_service.service.robot_time)
-    clock: ClockStatus | None
-    delays: dict[str, DelayStatus]
-    recommended_max_delay: int | None
-    recommended_lead: int | None
-    late_share: float
+    robot: RobotView  # the robot's time: copies, read after the lock (robot_time)
     readback: Literal["", "waiting", "answered", "timeout"]
     term: int
 
     def status(self, instance: str, now: int) -> SessionStatus:
         """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
         p50, p99 = percentiles(self.latency_us)
+        robot = self.robot
         return SessionStatus(session=self.name, instance=instance, state=self.state,
                              now_step=self.spec.step_of(now), counters=self.counters,
                              published=self.published, latency_p50_us=p50,
                              latency_p99_us=p99, detail=self.detail[:1024],
                              origin=self.origin, origin_step=self.origin_step,
-                             clock=self.clock, delays=self.delays,
-                             recommended_max_delay=self.recommended_max_delay,
-                             recommended_lead=self.recommended_lead,
-                             late_share=self.late_share,
+                             clock=robot.clock, delays=robot.delay_status(),
+                             recommended_max_delay=robot.recommended_max_delay(),
+                             recommended_lead=robot.recommended_lead(),
+                             late_share=robot.late_share,
                              readback=self.readback, term=self.term)
 
 
@@ -90,13 +78,10 @@ def snapshot_of(sess: Session, state: SessionPhase, detail: str,
                 now: int | None = None) -> StatusSnapshot:
     """Copy of what ``sess``'s status needs (hold the lock while calling this); ``now``
     (ns): the time of the clock estimate (default: the session's last activity)."""
-    robot = sess.robot
     return StatusSnapshot(sess.name, sess.status_key, state, detail, sess.spec,
                           sess.counters_snapshot(), sess.published, sess.latency.values(),
                           sess.origin, sess.origin_step,
-                          robot.clock_status(sess.last_activity_ns if now is None else now),
-                          robot.delay_status(), robot.recommended_max_delay(),
-                          robot.applied.quantile_gap(), robot.late / max(robot.seen, 1),
+                          sess.robot.view(sess.last_activity_ns if now is None else now),
                           sess.readback, sess.term)
 
 

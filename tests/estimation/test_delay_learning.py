@@ -67,6 +67,20 @@ def test_lead_is_the_median_gap_and_memory_is_bounded() -> None:
     assert stats.delays_ns()[-2:].tolist() == [7 * P + 1, 5 * P + 1]  # k = 998, 999: newest last
 
 
+def test_rings_grow_as_they_fill_and_a_copy_is_independent() -> None:
+    stats = DelayStats(P, 0, capacity=100)
+    ref = []
+    for k in range(250):  # past the capacity: the ring wraps after growing 16, 32, 64, 100
+        stats.add(k * P, k * P + (k % 7) * P)
+        ref.append((k % 7) * P)
+        assert stats.delays_ns().tolist() == ref[-100:]
+    copy = stats.copy()
+    stats.add(0, 50 * P)
+    assert copy.summary().max_gap == 6 and stats.summary().max_gap == 50
+    assert copy.gaps().tolist() == [d // P for d in ref[-100:]]
+    assert DelayStats(P, 0).copy().summary().count == 0
+
+
 def test_gaps_count_step_boundaries_not_durations() -> None:
     stats = DelayStats(P, 5, capacity=10)
     stats.add(5 + P - 1, 5 + P + 1)  # 2 ns across a step boundary: gap 1

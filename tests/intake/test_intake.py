@@ -133,4 +133,5 @@ def test_the_order_memory_is_bounded() -> None:
     it = make()
     for k in range(0, 20_000, 1):
         it.command(KEY, cmd_bytes("s1", k + 1, (0.0,), seq=k), k)
-    assert len(it.command_order) <= 4096
+        assert len(it.command_order) <= max(64, 2 * (k - it.est.committed_step + 2))
+    assert min(it.command_order) >= it.est.committed_step - 64  # final steps are forgotten

@@ -57,6 +57,35 @@ def test_kept_commands_are_bounded_and_unknown_echoes_counted() -> None:
     assert r.counters["echoes_unknown"] == 1
 
 
+def test_a_spec_without_echoes_keeps_commands_only_from_its_robots_first_echo() -> None:
+    r = robot("shared", "stamped")
+    assert not r.listening  # a robot that never echoes costs nothing per command
+    r.echo(encode(CommandEcho(session="s1", seq=3, applied_ns=110 * S)), 111 * S)
+    assert r.listening and r.counters["echoes_unknown"] == 1
+    r.keep_command(4, 112 * S, np.zeros(1), 50, (112 * S, 4))
+    r.echo(encode(CommandEcho(session="s1", seq=4, applied_ns=112 * S + 5)), 113 * S)
+    assert r.counters["echoes"] == 1 and r.applied.seen == 1
+    r2 = robot("shared", "stamped")
+    r2.echo(encode(CommandEcho(session="s2", seq=3, applied_ns=110 * S)), 111 * S)
+    assert not r2.listening  # another session's echo does not start it
+    assert robot("estimated").listening and robot("shared", "echoed").listening
+
+
+def test_the_status_view_is_a_copy_read_after_the_lock() -> None:
+    r = robot("shared")
+    for i in range(50):
+        r.sample("ranger", 100 * S + i * PERIOD_NS, 100 * S + i * PERIOD_NS + 300_000_000,
+                 late=i % 10 == 0)
+    v = r.view(200 * S)
+    assert v.clock is None and v.late_share == 0.1
+    before = (v.delay_status(), v.recommended_max_delay())
+    for _ in range(50):  # later samples, far slower: the view does not see them
+        r.sample("ranger", 200 * S, 209 * S, late=True)
+    assert (v.delay_status(), v.recommended_max_delay()) == before
+    assert before[1] == 6 and before[0]["ranger"].p50_ms == 300.0  # 300 ms: 6 steps of 50 ms
+    assert r.delay_status() != before[0] and r.recommended_max_delay() != before[1]
+
+
 def test_the_clock_status_warns_when_unknown_one_sided_or_jumping() -> None:
     r = robot()
     st = r.clock_status(S)
