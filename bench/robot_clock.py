@@ -21,7 +21,9 @@ Runs (each the same truth, noise and delays; ``--scenario`` paper by default):
   way (the offset error figure);
 - ``perfect``: ``issue43``'s robot and link with a shared clock (``robot_clock: shared``,
   ``command_timing: echoed``): what the uplink's jitter and the on-arrival robot cost when the
-  clock is known exactly (the bound of ``issue43``'s RMS ratio: no clock estimate does better).
+  clock is known exactly (the bound of ``issue43``'s RMS ratio: no clock estimate does better);
+- ``asym``: ``issue43`` with the spec's ``clock_asymmetry_ns`` set to the link's nominal
+  asymmetry (the fastest way up minus the fastest way down), which no timestamp shows.
 
 Printed per run: samples refused as future / late after the first 5 s; the offset error
 after 10 s (max and median |estimate - truth| at the once-a-second probes, leaving out the 5 s
@@ -93,6 +95,15 @@ FIELD = {"up": Link(0.5, 0.05), "echo": Link(0.6, 0.05, 0.02), "probe_down": Lin
 LOOPBACK = {k: Link(100e-6, 30e-6, v.loss) for k, v in FIELD.items()}
 
 
+def nominal_asymmetry_ns(links: dict[str, Link], sensors: list[str]) -> int:
+    """The link's fastest way up minus its fastest way down (the robot's stamps: its
+    ``sensors``, echoes, probe answers), from the nominal delays less their jitter (ns)."""
+    names = [*sensors, "echo", "probe_down"]
+    down = min(links.get(n, links["ranger"]).base_s - links.get(n, links["ranger"]).jitter_s
+               for n in names)
+    return round((links["up"].base_s - links["up"].jitter_s - down) * S)
+
+
 @dataclass
 class Result:
     name: str
@@ -113,9 +124,10 @@ class Result:
 
 def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: int,
         clock_off: bool, hold: bool, estimated: bool, links: dict[str, Link],
-        echoed: bool | None = None) -> Result:
+        echoed: bool | None = None, asymmetry: bool = False) -> Result:
     """One run (module docstring); ``echoed``: the spec's command_timing "echoed" (default:
-    with an estimated clock)."""
+    with an estimated clock); ``asymmetry``: the spec's clock_asymmetry_ns set to the link's
+    nominal one (the fastest way up minus the fastest way down)."""
     echoed = estimated if echoed is None else echoed
     sc = get_scenario(scenario_name)
     per_s = sc.period_s
@@ -125,7 +137,9 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
                     max_delay=int(np.ceil(worst / per_s)) + 2)
     spec = SessionSpec.model_validate({**spec0.model_dump(),
                                        "robot_clock": "estimated" if estimated else "shared",
-                                       "command_timing": "echoed" if echoed else "stamped"})
+                                       "command_timing": "echoed" if echoed else "stamped",
+                                       "clock_asymmetry_ns": nominal_asymmetry_ns(links, sc.sensor_names)
+                                       if asymmetry else 0})
     P = spec.period_ns
     steps = int(seconds * S // P)
     robot_clock = (RobotClock(offset_s, 100.0, [(seconds / 2, 0.2)], base=lambda: 0, t0_ns=EPOCH)
@@ -298,9 +312,11 @@ def main() -> int:
         run("loopback", clock_off=True, hold=False, estimated=True, links=LOOPBACK, **common),
         run("perfect", clock_off=False, hold=False, estimated=False, echoed=True, links=FIELD,
             **common),
+        run("asym", clock_off=True, hold=False, estimated=True, links=FIELD, asymmetry=True,
+            **common),
     ]
     refs = {"reference": runs[0], "today": runs[0], "issue43": runs[0], "ref-loop": runs[3],
-            "loopback": runs[3], "perfect": runs[0]}
+            "loopback": runs[3], "perfect": runs[0], "asym": runs[0]}
     print(f"scenario {args.scenario}, {args.seconds:g} s, robot clock {args.offset_s:+g} s, "
           f"100 ppm, +200 ms step at {args.seconds / 2:g} s; commands on arrival (reference: "
           f"held to their step, shared clock); "

@@ -101,7 +101,7 @@ class RobotTime:
         #: Whether accepted commands are kept for their echo (:meth:`keep_command`): from the
         #: start when the spec uses echoes, else from the first echo of this session.
         self.listening = self.estimated or self.echoed
-        self.clock = ClockOffsetEstimator()
+        self.clock = ClockOffsetEstimator(asymmetry_s=spec.clock_asymmetry_ns * 1e-9)
         self.counters = Tally()
         self.samples = DelayStats(spec.period_ns, spec.epoch_ns)
         self.by_sensor: dict[str, DelayStats] = {}

@@ -559,6 +559,11 @@ class SessionSpec(Message):
         "echoed: it moves to the instant the robot's CommandEcho says it took effect (inside "
         "the step for a continuous-time model); until then, or if no echo comes, it applies at "
         "its stamped instant.")
+    clock_asymmetry_ns: Annotated[int, Field(ge=-60 * 10**9, le=60 * 10**9)] = Field(
+        0, description="robot_clock 'estimated' only: the link's fastest uplink delay minus its "
+        "fastest downlink delay, ns (500 ms up, 600 ms down: -100000000), the part of the "
+        "offset no timestamp shows (the estimate is off by half of it unless given); 0: "
+        "symmetric.")
     path: PathSpec | None = Field(
         None, description="Publish the predicted path too (docs/protocol.md); absent: never.")
     expire_s: Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)] | None = Field(
@@ -696,6 +701,8 @@ class SessionSpec(Message):
             out.pop("robot_clock", None)
         if self.command_timing == "stamped":
             out.pop("command_timing", None)
+        if self.clock_asymmetry_ns == 0:
+            out.pop("clock_asymmetry_ns", None)
         if self.expire_s is None:  # the service's lifetime: the bytes stay as before
             out.pop("expire_s", None)
         if self.stamp_rounding == "nearest":  # the default: the bytes stay as before

@@ -76,9 +76,11 @@ def test_field_order_and_all_fields_on_the_wire():
     for msg_type, make in EXAMPLES.items():
         raw = msgpack.unpackb(encode(make()))
         # SessionSpec.ros2, .expire_s and .path are left off the wire when None (unset), and
-        # stamp_rounding / robot_clock / command_timing at their defaults (older specs' bytes)
+        # stamp_rounding / robot_clock / command_timing / clock_asymmetry_ns at their defaults
+        # (older specs' bytes)
         optional = ({"ros2", "expire_s", "stamp_rounding", "path", "robot_clock",
-                     "command_timing"} if msg_type is SessionSpec else set())
+                     "command_timing", "clock_asymmetry_ns"} if msg_type is SessionSpec
+                    else set())
         assert list(raw) == [f for f in msg_type.model_fields if f not in optional]
         assert raw["v"] == 1
 
@@ -100,11 +102,16 @@ def test_spec_with_ros2_topics_round_trips():
 
 def test_spec_with_an_estimated_robot_clock_and_echoed_commands_round_trips():
     spec = paper_spec().model_copy(update={"robot_clock": "estimated",
-                                           "command_timing": "echoed"})
+                                           "command_timing": "echoed",
+                                           "clock_asymmetry_ns": -100_000_000})
     raw = msgpack.unpackb(encode(spec))
-    assert (raw["robot_clock"], raw["command_timing"]) == ("estimated", "echoed")
+    assert (raw["robot_clock"], raw["command_timing"], raw["clock_asymmetry_ns"]) == \
+        ("estimated", "echoed", -100_000_000)
     assert decode(encode(spec), SessionSpec) == spec
-    assert "robot_clock" not in msgpack.unpackb(encode(paper_spec()))
+    assert not {"robot_clock", "clock_asymmetry_ns"} & set(msgpack.unpackb(encode(paper_spec())))
+    with pytest.raises(WireError):
+        decode(msgpack.packb({**spec.model_dump(), "clock_asymmetry_ns": 61 * 10**9},
+                             use_bin_type=True), SessionSpec)
 
 
 def test_encode_refuses_non_messages():
