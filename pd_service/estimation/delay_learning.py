@@ -22,6 +22,7 @@ Pure numpy; time is passed in.
 from __future__ import annotations
 
 import math
+from array import array
 from dataclasses import dataclass
 from typing import Final
 
@@ -56,11 +57,13 @@ class DelayStats:
         self.period_ns = period_ns
         self.epoch_ns = epoch_ns
         self.capacity = capacity
-        # int64 rings: a sample costs two element writes, and a read (a status query of
-        # every session reads them all) sorts a view instead of converting a list; grown by
-        # doubling while they fill, so a stream that never sends costs no memory
-        self._ns = np.zeros(0, dtype=np.int64)
-        self._gap = np.zeros(0, dtype=np.int64)
+        # int64 rings (array.array): a sample costs two element writes of plain ints (a
+        # numpy element write converts a scalar: several times dearer), a read views them as
+        # numpy arrays without a copy; grown by doubling while they fill, so a stream that
+        # never sends costs no memory
+        self._ns = array("q")
+        self._gap = array("q")
+        self._size = 0  # allocated
         self._n = 0  # kept
         self._next = 0  # ring position
         self.seen = 0
@@ -71,7 +74,7 @@ class DelayStats:
         clock-offset estimate off by more than the delay shows up in them)."""
         p, e = self.period_ns, self.epoch_ns
         i = self._next
-        if i == self._ns.shape[0]:  # filling: full rings wrap before this
+        if i == self._size:  # filling: full rings wrap before this
             self._grow()
         self._ns[i] = later_ns - earlier_ns
         self._gap[i] = (later_ns - e) // p - (earlier_ns - e) // p
@@ -83,36 +86,39 @@ class DelayStats:
 
     def _grow(self) -> None:
         """Double the rings (16 at first; at most ``capacity``), keeping what they hold."""
-        n = self._ns.shape[0]
-        size = min(self.capacity, max(16, 2 * n))
-        ns, gap = np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
-        ns[:n], gap[:n] = self._ns, self._gap
-        self._ns, self._gap = ns, gap
+        size = min(self.capacity, max(16, 2 * self._size))
+        more = array("q", bytes(8 * (size - self._size)))
+        self._ns, self._gap = self._ns + more, self._gap + more
+        self._size = size
 
     def copy(self) -> DelayStats:
         """An independent copy of what is kept (the same statistics; later adds reach only
         one of them): taken under a lock, read after it is released."""
         out = DelayStats(self.period_ns, self.epoch_ns, self.capacity)
-        out._ns, out._gap = self._ns.copy(), self._gap.copy()
-        out._n, out._next, out.seen = self._n, self._next, self.seen
+        out._ns, out._gap = array("q", self._ns), array("q", self._gap)
+        out._size, out._n, out._next, out.seen = self._size, self._n, self._next, self.seen
         return out
+
+    def _kept(self, ring: array[int]) -> np.ndarray:
+        """The kept values of ``ring`` (n,), in ring order: a view, no copy."""
+        return np.frombuffer(ring, dtype=np.int64, count=self._n)
 
     def __len__(self) -> int:
         return self._n
 
-    @staticmethod
-    def _oldest_first(ring: np.ndarray, n: int, nxt: int, capacity: int) -> np.ndarray:
-        if n < capacity:
-            return ring[:n].copy()
-        return np.concatenate((ring[nxt:], ring[:nxt]))
+    def _oldest_first(self, ring: array[int]) -> np.ndarray:
+        kept = self._kept(ring)
+        if self._n < self.capacity:
+            return kept.copy()
+        return np.concatenate((kept[self._next:], kept[: self._next]))
 
     def gaps(self) -> np.ndarray:
         """The kept step gaps (n,), oldest first."""
-        return self._oldest_first(self._gap, self._n, self._next, self.capacity)
+        return self._oldest_first(self._gap)
 
     def delays_ns(self) -> np.ndarray:
         """The kept delays (n,), ns, oldest first."""
-        return self._oldest_first(self._ns, self._n, self._next, self.capacity)
+        return self._oldest_first(self._ns)
 
     def summary(self) -> DelaySummary:
         """p50 / p90 / p99 / max of the kept delays (the higher order statistic: an
@@ -120,18 +126,18 @@ class DelayStats:
         if not self._n:
             return DelaySummary(self.seen, 0, None, None, None, None, None)
         n = self._n
-        d = np.sort(self._ns[:n])
+        d = np.sort(self._kept(self._ns))
         # numpy's quantile with method "higher": the sorted value at ceil(q (n - 1))
         q = [int(d[math.ceil(f * (n - 1))]) for f in (0.5, 0.9, 0.99)]
         return DelaySummary(self.seen, n, q[0], q[1], q[2], int(d[-1]),
-                            int(self._gap[:n].max()))
+                            int(self._kept(self._gap).max()))
 
     def share_above(self, window: int) -> float:
         """The share of kept gaps above ``window`` steps (those a window of that size would
         have refused as late); 0.0 when none is kept."""
         if not self._n:
             return 0.0
-        return float(np.count_nonzero(self._gap[: self._n] > window)) / self._n
+        return float(np.count_nonzero(self._kept(self._gap) > window)) / self._n
 
     def smallest_window(self, share: float = LATE_SHARE) -> int | None:
         """``W* = min { W >= 0 : #{g_i > W} <= share n }`` (steps); None when none is kept."""
@@ -141,7 +147,7 @@ class DelayStats:
         if not 0.0 <= share < 1.0:
             raise ValueError(f"share: must be in [0, 1), got {share!r}")
         allowed = math.floor(share * n + 1e-9)  # gaps that may stay above the window
-        g = np.sort(self._gap[:n])
+        g = np.sort(self._kept(self._gap))
         return max(0, int(g[n - 1 - allowed]))
 
     def recommended_window(self, share: float = LATE_SHARE, margin: float = 0.1) -> int | None:
@@ -159,4 +165,4 @@ class DelayStats:
         if not 0.0 <= q <= 1.0:
             raise ValueError(f"q: must be in [0, 1], got {q!r}")
         n = self._n
-        return int(np.sort(self._gap[:n])[math.ceil(q * (n - 1))])  # numpy's "higher"
+        return int(np.sort(self._kept(self._gap))[math.ceil(q * (n - 1))])  # numpy's "higher"

@@ -142,8 +142,10 @@ class Intake:
         #: Robot stamps -> the daemon's timeline (pd_service.service.robot_time), applied to
         #: a Measurement's t_ns before anything else; None: stamps are used as they are.
         self.stamp_map: Callable[[int], int] | None = None
-        #: The (mapped) t_ns of the last measurement read, None if it had a step (or none).
+        #: The (mapped) t_ns of the last measurement read, None if it had a step (or none),
+        #: and the sensor its key named.
         self.last_t_ns: int | None = None
+        self.last_sensor = ""
         #: apply step -> (issued_ns or -1, seq) of the command stored for it: which of two
         #: commands for one step is the newer (the supersede rule, module docstring).
         self.command_order: dict[int, tuple[int, int]] = {}
@@ -171,7 +173,7 @@ class Intake:
     def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Measurement received on ``key``; None if accepted."""
         self.decoded = False
-        sensor = key.rsplit("/", 1)[-1]
+        self.last_sensor = sensor = key.rsplit("/", 1)[-1]
         m = self.dims.get(sensor)
         read = _READ_MEASUREMENT
         fast: _Fields | None = None if read is None or m is None else read(

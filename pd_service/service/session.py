@@ -235,7 +235,7 @@ class Session:
             self.heard = True
             t = intake.last_t_ns
             if t is not None:
-                robot.sample(key.rsplit("/", 1)[-1], t, recv,
+                robot.sample(intake.last_sensor, t, recv,
                              refusal is not None and refusal.reason == "late")
         return refusal
 
