@@ -19,8 +19,18 @@ from pd_service.scenarios.paper import (
     simulate_paper,
 )
 from pd_service.service import ServiceCore, Settings, SpecStore
+from pd_service.service.clock_probes import ECHO_INBOX
 from pd_service.transport import InMemoryBus, Query
-from pd_service.wire import ClockProbe, ClockProbeReply, Command, CommandEcho, decode, encode, keys
+from pd_service.wire import (
+    ClockProbe,
+    ClockProbeReply,
+    Command,
+    CommandEcho,
+    Measurement,
+    decode,
+    encode,
+    keys,
+)
 
 from .helpers import PERIOD_NS, Clock, Collector, paper_spec
 
@@ -204,7 +214,7 @@ def test_bad_echoes_silent_robots_and_flooding_probe_answers_are_counted(tmp_pat
 
 
 def test_the_learned_window_goes_through_the_normal_config_path(tmp_path) -> None:
-    from pd_service.wire import Measurement, SessionSpec
+    from pd_service.wire import SessionSpec
     from pd_service.wire import decode as wire_decode
 
     bus, clock = InMemoryBus(), Clock(at(0) - 1)
@@ -230,3 +240,49 @@ def test_the_learned_window_goes_through_the_normal_config_path(tmp_path) -> Non
     assert core.known_specs()["s1"].max_delay == 15  # installed, as any spec put
     assert core.service_status().counters["learned_windows_put"] == 1
     core.close()
+
+
+def _paper_run_beside(tmp_path, name: str, flood: bool) -> tuple[list[bytes], dict, dict]:
+    """Session s2 (shared clock, stamped) fed the paper run while, with ``flood``, session s1's
+    robot floods the echo queue and echoes arrive for a session served nowhere. Returns s2's
+    prediction bytes, s1's counters and the service's."""
+    bus, clock = InMemoryBus(), Clock(at(0) - 1)
+    col = Collector().attach(bus.transport())
+    core = make_core(bus, clock, tmp_path / name)
+    op = bus.transport()
+    op.put(keys.config_key("s1"), encode(spec("s1", timing="echoed")))
+    op.put(keys.config_key("s2"), encode(paper_spec("s2")))
+    core.run_once()
+    run = simulate_paper(60, np.random.default_rng(5))
+    echo = op.publisher(keys.echo_key("s1"))
+    stray = op.publisher(keys.echo_key("nobody"))
+    for k in range(60):
+        clock.t = at(k + 0.1)
+        for s in ("s1", "s2"):
+            op.put(keys.command_key(s), encode(Command(session=s, seq=k, issued_ns=clock.t,
+                                                       u=np.array([paper_command(k + 10)]))))
+        for smp in run.samples:
+            if smp.arrival == k:
+                op.put(keys.sensor_key("s2", smp.sensor),
+                       encode(Measurement(session="s2", sensor=smp.sensor, seq=k, step=smp.step,
+                                          z=smp.z)))
+        if flood and k % 20 == 5:  # more echoes than the queue holds, before the worker runs
+            for i in range(ECHO_INBOX + 100):
+                echo.put(encode(CommandEcho(session="s1", seq=10_000 + i, applied_ns=clock.t)))
+            stray.put(encode(CommandEcho(session="nobody", seq=1, applied_ns=clock.t)))
+        core.run_once()
+    s1 = core.session_status("s1")
+    assert s1 is not None
+    out = list(col.raw["s2/prediction"]), dict(s1.counters), dict(core.service_status().counters)
+    core.close()
+    return out
+
+
+def test_an_echo_flood_is_bounded_and_counted_and_another_session_unaffected(tmp_path) -> None:
+    quiet, _, _ = _paper_run_beside(tmp_path, "quiet", flood=False)
+    loud, s1, service = _paper_run_beside(tmp_path, "loud", flood=True)
+    assert len(quiet) > 50 and loud == quiet  # s2's predictions byte for byte
+    # per flood the oldest 100 beyond the queue, and one more pushed out by the stray echo
+    assert service["echoes_flood"] == 3 * 101
+    assert s1["echoes_unknown"] == 3 * (ECHO_INBOX - 1)  # no command of theirs was kept
+    assert service["echoes_unrouted"] == 3
