@@ -54,7 +54,7 @@ demo-async: $(STAMP) native
 # own tests again on their .py files (PD_SERVICE_PURE=1: the pure-Python reference; the C
 # kernels' own tests need the kernels, so they run in the first pass).
 PURE_TESTS := tests/estimation tests/intake tests/wire/test_convert.py tests/service/test_core.py \
-	tests/service/test_health.py tests/test_native.py
+	tests/service/test_health.py tests/service/test_robot_time.py tests/test_native.py
 
 test: $(STAMP) native browser node-deps
 	$(PY) -m pytest -q

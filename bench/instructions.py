@@ -23,7 +23,7 @@ compiled build (``make venv``): the count is taken in the compiled ``run_once``.
 
 Usage: python bench/instructions.py [--sessions 100] [--steps 10,30] [--compare DIR] [--top 30]
                                    [--keep DIR] [--epochs shared|distinct] [--checkpoints]
-                                   [--every 20]
+                                   [--every 20] [--stamps step|t_ns]
   --checkpoints   the sessions are checkpointed as in the daemon (bench/worker.py
                   --checkpoints: every simulated second); counted are the worker's export and
                   encoding, not the writer thread's file writes
@@ -132,8 +132,11 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=20,
                     help="bench/worker.py --every: the worker runs after every this many "
                          "sessions' messages (smaller: more rounds, each with fewer sessions)")
+    ap.add_argument("--stamps", choices=("step", "t_ns"), default="step",
+                    help="bench/worker.py --stamps: measurements stamped with a step or in ns")
     args = ap.parse_args()
-    extra = (["--checkpoints"] if args.checkpoints else []) + ["--every", str(args.every)]
+    extra = ((["--checkpoints"] if args.checkpoints else []) + ["--every", str(args.every)]
+             + ["--stamps", args.stamps])
     if shutil.which("valgrind") is None or shutil.which("callgrind_annotate") is None:
         sys.exit("valgrind is not installed (Debian: apt-get install valgrind)")
     steps_a, steps_b = (int(v) for v in args.steps.split(","))
@@ -152,7 +155,7 @@ def main() -> None:
 
     print(f"\nworker instructions per session-step ({args.sessions} sessions, {args.epochs} "
           f"epochs, {'checkpoints every second, ' if args.checkpoints else ''}"
-          f"a round every {args.every} sessions, "
+          f"a round every {args.every} sessions, {args.stamps} stamps, "
           f"steps {steps_b} minus {steps_a}; inside ServiceCore.run_once)")
     head = "| function | " + " | ".join(str(r[0]) for r in results)
     print(head + (" | ratio |" if len(results) == 2 else " |"))
@@ -172,6 +175,7 @@ def main() -> None:
         row(label, [r[3].get(k, 0.0) for r in results])
     print(json.dumps({"bench": "instructions", "sessions": args.sessions, "epochs": args.epochs,
                       "checkpoints": args.checkpoints, "every": args.every,
+                      "stamps": args.stamps,
                       "steps": [steps_a, steps_b],
                       "builds": [{"root": str(r[0]), "status": r[1],
                                   "instructions_per_session_step": round(r[2])}

@@ -15,8 +15,12 @@ With --epochs distinct every session has an epoch of its own (session i's is i n
 than session 0's: the same steps, but no two sessions share a tick deadline, as in a fleet
 whose robots were configured at different times); by default they share one.
 
+With --stamps t_ns the measurements carry their sample time (``t_ns``, the step's start)
+instead of a step number: the path of a robot that stamps in ns (the learned delays of
+pd_service.service.robot_time are fed only by such stamps).
+
 Usage: python bench/worker.py [--sessions 200] [--steps 100] [--checkpoints] [--profile]
-                              [--epochs shared|distinct]
+                              [--epochs shared|distinct] [--stamps step|t_ns]
 """
 
 from __future__ import annotations
@@ -57,6 +61,8 @@ def main() -> None:
                     help="checkpoint every simulated second, as the daemon does")
     ap.add_argument("--epochs", choices=("shared", "distinct"), default="shared",
                     help="one epoch for all sessions, or one each (i ns apart)")
+    ap.add_argument("--stamps", choices=("step", "t_ns"), default="step",
+                    help="measurements stamped with a step number or a time in ns")
     ap.add_argument("--no-gauge", dest="gauge", action="store_false",
                     help="skip the machine gauge (bench/instructions.py runs this under "
                          "valgrind, where it costs a minute and means nothing)")
@@ -99,6 +105,10 @@ def main() -> None:
     x = run.truth
     pack = msgpack.Packer(use_bin_type=True).pack
 
+    def stamp(j: int) -> tuple[str, int]:
+        """A measurement's stamp for step ``j``: the step or its start in ns."""
+        return ("step", j) if args.stamps == "step" else ("t_ns", epoch + j * PERIOD_NS)
+
     def step(k: int) -> None:
         """Session i sends at phase 0.9 i / n of step k; the worker runs every --every
         sessions."""
@@ -111,12 +121,12 @@ def main() -> None:
             d.on_command_sample(sample(keys.command_key(s), pack(
                 {"v": 1, "session": s, "seq": k, "step": k + 10, "u": {"shape": [1], "data": u}})))
             d.on_sensor_sample(sample(keys.sensor_key(s, "ranger"), pack(
-                {"v": 1, "session": s, "sensor": "ranger", "seq": k, "step": k - 12,
-                 "z": {"shape": [1], "data": z_r}})))
+                {"v": 1, "session": s, "sensor": "ranger", "seq": k, stamp(k - 12)[0]:
+                 stamp(k - 12)[1], "z": {"shape": [1], "data": z_r}})))
             if z_c is not None:
                 d.on_sensor_sample(sample(keys.sensor_key(s, "camera"), pack(
-                    {"v": 1, "session": s, "sensor": "camera", "seq": k, "step": k - 10,
-                     "z": {"shape": [2], "data": z_c}})))
+                    {"v": 1, "session": s, "sensor": "camera", "seq": k, stamp(k - 10)[0]:
+                     stamp(k - 10)[1], "z": {"shape": [2], "data": z_c}})))
             if i % every == every - 1:
                 core.run_once()
         clock[0] = epoch + k * PERIOD_NS + PERIOD_NS * 96 // 100

@@ -38,7 +38,8 @@ The input (TOML; every list of users may name several users, a user may have sev
 
     [[session]]
     name = "paper"
-    robot = "robot"           # puts robot/paper/{sensor/*,truth,camera}; gets robot/paper/cmd
+    robot = "robot"           # puts robot/paper/{sensor/*,truth,camera,echo}; gets robot/paper/cmd;
+                              # answers probes on robot/paper/clock
     operator = "operator"     # puts pd/paper/cmd; reads pd/paper/{prediction,path,error,status,
                               # config,camera}
     direct = true             # optional: the robot also puts pd/paper/{sensor/*,camera}, gets
@@ -282,10 +283,10 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
     "service-retire-specs": (("ingress",), ("delete",), (f"{PD}/config",)),
     "service-ask": (("ingress",), ("declare_subscriber", "query", "declare_queryable", "reply"),
                     (f"{PD}/config", f"{PD}/sensor/*", f"{PD}/cmd", f"{PD}/status",
-                     f"{LEGACY}/config", f"{LEGACY}/status")),
+                     f"{PD}/echo", f"{ROBOT}/clock", f"{LEGACY}/config", f"{LEGACY}/status")),
     "service-get": (("egress",), ("put", "delete", "reply", "query"),
                     (f"{PD}/config", f"{PD}/sensor/*", f"{PD}/cmd", f"{PD}/status",
-                     f"{LEGACY}/config", f"{LEGACY}/status")),
+                     f"{PD}/echo", f"{ROBOT}/clock", f"{LEGACY}/config", f"{LEGACY}/status")),
     # daemon instances among themselves: liveliness tokens (session membership), status,
     # peer queries, replicated state.  ONLY services: a token here takes sessions over.
     "service-coordination": (("ingress", "egress"), (
@@ -303,11 +304,11 @@ _FIXED: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
                             (_cache(f"{PD}/sensor/*"), _cache(f"{PD}/cmd"))),
     # the link emulator: every session
     "link-ask": (("ingress",), ("declare_subscriber",),
-                 (f"{ROBOT}/sensor/*", f"{ROBOT}/camera", f"{PD}/cmd")),
+                 (f"{ROBOT}/sensor/*", f"{ROBOT}/camera", f"{ROBOT}/echo", f"{PD}/cmd")),
     "link-get": (("egress",), ("put", "delete"),
-                 (f"{ROBOT}/sensor/*", f"{ROBOT}/camera", f"{PD}/cmd")),
+                 (f"{ROBOT}/sensor/*", f"{ROBOT}/camera", f"{ROBOT}/echo", f"{PD}/cmd")),
     "link-write": (("ingress",), ("put", "delete"),
-                   (f"{PD}/sensor/*", f"{PD}/camera", f"{ROBOT}/cmd")),
+                   (f"{PD}/sensor/*", f"{PD}/camera", f"{PD}/echo", f"{ROBOT}/cmd")),
     "link-serve-in": (("ingress",), ("declare_queryable", "reply"),
                       ("pd/@link/*/rules", "pd/@link/*/stats")),
     "link-serve-out": (("egress",), ("query",), ("pd/@link/*/rules", "pd/@link/*/stats")),
@@ -363,8 +364,14 @@ def _session_rules(user: str, robot_of: list[dict[str, Any]], operator_of: list[
         creates = [s["name"] for s in robot_of if s["robot_creates"]]
         rules += [
             _rule(f"robot-{user}-write", ["ingress"], ["put", "delete"],
-                  [*(f"robot/{s}/{k}" for s in names for k in ("sensor/*", "truth", "camera")),
-                   *(f"pd/{s}/{k}" for s in direct for k in ("sensor/*", "camera"))]),
+                  [*(f"robot/{s}/{k}" for s in names
+                     for k in ("sensor/*", "truth", "camera", "echo")),
+                   *(f"pd/{s}/{k}" for s in direct for k in ("sensor/*", "camera", "echo"))]),
+            # its clock, probed by the daemon (issue 43's field clocks)
+            _rule(f"robot-{user}-clock-in", ["ingress"], ["declare_queryable", "reply"],
+                  [f"robot/{s}/clock" for s in names]),
+            _rule(f"robot-{user}-clock-out", ["egress"], ["query"],
+                  [f"robot/{s}/clock" for s in names]),
             _rule(f"robot-{user}-ask", ["ingress"], ["declare_subscriber", "query"],
                   [*(f"robot/{s}/cmd" for s in names), *(f"pd/{s}/cmd" for s in direct),
                    *(f"pd/{s}/config" for s in names)]),

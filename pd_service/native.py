@@ -35,6 +35,7 @@ from typing import Any, cast
 #: publishing. (Module names; setup.py compiles their files.)
 HOT_MODULES = (
     "pd_service.estimation.checks",
+    "pd_service.estimation.delay_learning",
     "pd_service.estimation.inputs",
     "pd_service.estimation.linear",
     "pd_service.estimation.observer",
@@ -47,6 +48,7 @@ HOT_MODULES = (
     "pd_service.service.health",
     "pd_service.service.latency",
     "pd_service.service.outbox",
+    "pd_service.service.robot_time",
     "pd_service.service.session",
     "pd_service.transport.zenoh_transport",
     "pd_service.wire.convert",

@@ -221,3 +221,39 @@ class InputBuffer:
         cmds = self._cmd_steps
         if cmds and cmds[0] < origin:
             del cmds[: _bisect_left(cmds, origin)]
+
+    def replace(self, step: int, u: np.ndarray, offset: float = 0.0) -> None:
+        """Replace the command stored for ``step`` by ``u`` taking effect ``offset`` seconds
+        after the step's start (a newer command for the same step, or the same one moved to
+        the instant the robot echoed: :meth:`.replay.ReplayEstimator.supersede_command`):
+        u(t) is refilled up to the next command exactly as :meth:`set` fills it. KeyError if
+        no command is stored for it."""
+        if not self.has_command(step):
+            raise KeyError(f"no command stored for step {step}")
+        self._cmd_steps.remove(step)
+        self._forget_cut(step)
+        self.set(step, u, offset)
+
+    def remove(self, step: int) -> None:
+        """Forget the command stored for ``step`` (origin <= step < origin + capacity): u(t)
+        from ``step`` up to the next command becomes what it was before it (the previous
+        step's u, :attr:`u_before` at the origin, "hold"; zero, "zero"). KeyError if none is
+        stored for it."""
+        if not self.has_command(step):
+            raise KeyError(f"no command stored for step {step}")
+        i = step - self.origin
+        k = _bisect_left(self._cmd_steps, step)
+        del self._cmd_steps[k]
+        self._forget_cut(step)
+        start = self._off + i
+        if self.hold:
+            nxt = self._cmd_steps[k] if k < len(self._cmd_steps) else None
+            end = self._off + nxt - self.origin if nxt is not None else self._buf.shape[0]
+            self._buf[start:end] = self._buf[start - 1] if i > 0 else self.u_before
+        else:
+            self._buf[start] = 0.0
+
+    def _forget_cut(self, step: int) -> None:
+        """Drop ``step``'s offset (its command is replaced or removed)."""
+        if self.cut_offsets.pop(step, None) is not None:
+            del self._cut_steps[_bisect_left(self._cut_steps, step)]

@@ -92,6 +92,8 @@ COUNTER_NAMES = (
     "commands_late",
     "commands_future",
     "commands_duplicate",
+    "commands_superseded",
+    "commands_withdrawn",
 )
 
 
@@ -428,12 +430,7 @@ class ReplayEstimator(Generic[S]):
         """:meth:`add_command` for a caller that has made its checks (the daemon's intake
         fast path): ``step`` an int, ``u`` a finite float64 (nu,) array (copied into the
         input buffer). Skips the conversion and checks of u (not those of the offset)."""
-        if offset != 0.0:
-            offset = self._check_offset(offset)
-        if now is not None:
-            t = self._check_now(now)
-            if t != self._now:
-                self._advance(t)
+        offset = self._command_offset(offset, now)
         ref = self._now if self._now is not None else 0
         if not self._inputs.admit(step, u, self._c, ref + self._cmd_ahead, self._counters,
                                   offset):
@@ -635,6 +632,50 @@ class ReplayEstimator(Generic[S]):
     def _on_commit(self, committed: list[tuple[int, S, list[Packet]]]) -> None:
         """Called with (step, posterior, packets) for each measured step that became final,
         in step order. Default: nothing. Adaptive backends override it."""
+
+    def _command_offset(self, offset: float, now: object | None) -> float:
+        """A command's ``offset`` checked (:meth:`add_measurement`'s rules), after moving the
+        window to ``now`` (None: where it is)."""
+        if offset != 0.0:
+            offset = self._check_offset(offset)
+        if now is not None:
+            t = self._check_now(now)
+            if t != self._now:
+                self._advance(t)
+        return offset
+
+    def supersede_command(self, step: int, u: np.ndarray, now: object | None = None,
+                          offset: float = 0.0) -> bool:
+        """Replace the command stored for ``step`` by ``u`` (a finite float64 (nu,) array)
+        taking effect ``offset`` seconds after the step's start; True iff replaced and
+        counted ("commands_superseded"). False, counting nothing, when no command is stored
+        for ``step`` or ``step`` is already final (< committed_step). The caller decides
+        that ``u`` is the newer of the two (pd_service.intake: a later ``issued_ns``, then a
+        higher ``seq``); the estimator only refuses a final step. ValueError for an offset
+        as :meth:`add_measurement` refuses it."""
+        offset = self._command_offset(offset, now)
+        if step < self._c or not self._inputs.has_command(step):
+            return False
+        self._inputs.replace(step, u, offset)
+        self._counters["commands_superseded"] += 1
+        self._invalidate(step if step in self._offgrid else step + 1)
+        return True
+
+    def withdraw_command(self, step: int, now: object | None = None) -> bool:
+        """Forget the command stored for ``step`` (it did not take effect there: the robot
+        echoed another time, pd_service.service.robot_time); True iff withdrawn. False,
+        changing nothing, when none is stored for ``step`` or ``step`` is final."""
+        if now is not None:
+            t = self._check_now(now)
+            if t != self._now:
+                self._advance(t)
+        inputs = self._inputs
+        if step < self._c or not inputs.has_command(step):
+            return False
+        inputs.remove(step)
+        self._counters["commands_withdrawn"] += 1
+        self._invalidate(step if step in self._offgrid else step + 1)
+        return True
 
     def invalidate_from(self, step: int) -> None:
         """Mark every open-window posterior from ``step`` on as stale (e.g. after adaptation:

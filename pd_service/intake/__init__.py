@@ -16,11 +16,20 @@ offline replay of a recording (``pd-replay``), so both accept and refuse exactly
 No clock reads: the caller passes the session's current step ``now_step``. Nothing raises for
 bad input: every refusal is a :class:`Refusal` (counter name, one readable line, the
 sender's seq when it could be read).
+
+The supersede rule: when two commands land on one apply step, the newer replaces the older
+if that step is not final yet (teleoperation: the freshest command is the one that counts;
+refusing it was issue 43's "the freshest command is the one dropped"). Newer means a later
+``issued_ns``, then (same stamp, or commands with an explicit ``step``) a higher ``seq``. A
+repeat (same stamp and seq) or an older command stays ``commands_duplicate``; a replacement
+is counted ``commands_superseded``. A command whose stored rival is not known here (accepted
+before a restart or hand-over, or forgotten past ``_ORDERS_KEPT`` steps) is a duplicate.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -95,6 +104,13 @@ def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
     return Refusal(_CHECK_REASONS.get(head, default), exc.reason, seq)
 
 
+#: Apply steps whose command order :class:`Intake` remembers at most (beyond the open window
+#: the oldest are forgotten; a command for a forgotten step is then a duplicate).
+_ORDERS_KEPT: Final = 4096
+#: Orders kept before the first pruning of final steps (then twice what the last one left).
+_ORDERS_PRUNE_FIRST: Final = 64
+
+
 class Intake:
     """A session's estimator behind the per-message rules. ``decoded`` tells whether the last
     message offered could be read as a message of this session (activity, for idle
@@ -115,6 +131,27 @@ class Intake:
         self.dims = {sp.name: sp.m for sp in spec.sensors}  # m = rows of R, every kind
         self.r = nu
         self.decoded = False
+        #: Whether the last command accepted replaced an older one for its step
+        #: (:meth:`command`: counted as ``commands_superseded``, not ``commands_accepted``).
+        self.superseded = False
+        #: (seq, issued_ns or None, u, apply step, order, offset (session seconds)) of
+        #: the last command read (None: it did not decode): what an echo later moves
+        #: (pd_service.service.robot_time).
+        self.last_command: tuple[int, int | None, np.ndarray, int, tuple[int, int],
+                                 float] | None = None
+        #: Robot stamps -> the daemon's timeline (pd_service.service.robot_time), applied to
+        #: a Measurement's t_ns before anything else; None: stamps are used as they are.
+        self.stamp_map: Callable[[int], int] | None = None
+        #: The (mapped) t_ns of the last measurement read, None if it had a step (or none),
+        #: and the sensor its key named.
+        self.last_t_ns: int | None = None
+        self.last_sensor = ""
+        #: apply step -> (issued_ns or -1, seq) of the command stored for it: which of two
+        #: commands for one step is the newer (the supersede rule, module docstring).
+        self.command_order: dict[int, tuple[int, int]] = {}
+        #: command_order's size at which its final steps are next forgotten: twice what
+        #: the last pruning left (the open window), so a command costs O(1) amortised.
+        self._orders_prune_at = _ORDERS_PRUNE_FIRST
         #: The estimator's seconds per session second for an offset inside a step: 1.0 where
         #: its period is the session's (a continuous linear model); the model's own step
         #: over the session's where a nonlinear model runs on its own period (a fraction of
@@ -136,17 +173,22 @@ class Intake:
     def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Measurement received on ``key``; None if accepted."""
         self.decoded = False
-        sensor = key.rsplit("/", 1)[-1]
+        self.last_sensor = sensor = key.rsplit("/", 1)[-1]
         m = self.dims.get(sensor)
         read = _READ_MEASUREMENT
         fast: _Fields | None = None if read is None or m is None else read(
             payload, self.name, sensor, m, self.max_abs, _MAX_BYTES)
+        stamp_map = self.stamp_map
+        if fast is not None and stamp_map is not None and fast[2] is not None:
+            fast = (fast[0], fast[1], stamp_map(fast[2]), fast[3])
+        self.last_t_ns = None
         off = 0.0
         if fast is not None and (fast[2] is None or fast[2] >= self.spec.epoch_ns):
             seq, s, t_in, z = fast  # |z_i| <= max_abs checked on the way
             stamp = "step" if s is not None else "t_ns"
             if s is None:
                 s, off = self.spec.sample_at(t_in)  # type: ignore[arg-type]
+                self.last_t_ns = t_in
             R = None
             checked = True  # z: a fresh finite (m,) array
         else:  # full decode and checks: exact refusal reasons
@@ -160,6 +202,10 @@ class Intake:
                 return Refusal("key_mismatch", f"Measurement.{field}: session/sensor "
                                f"{msg.session!r}/{msg.sensor!r} does not match the key {key!r}",
                                msg.seq)
+            if msg.t_ns is not None and stamp_map is not None:  # once per message
+                t = fast[2] if fast is not None and fast[2] is not None else stamp_map(msg.t_ns)
+                msg = msg.model_copy(update={"t_ns": t})
+            self.last_t_ns = msg.t_ns
             try:
                 check_measurement(msg, self.spec)
             except WireError as exc:
@@ -207,6 +253,7 @@ class Intake:
     def command(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
         """Offer one Command; None if accepted."""
         self.decoded = False
+        self.last_command = None
         spec = self.spec
         read = _READ_COMMAND
         fast: _Fields | None = None if read is None else read(
@@ -230,6 +277,7 @@ class Intake:
             except WireError as exc:
                 return _check_reason(exc, msg.seq, "commands_invalid")
             (j, off), seq, u = command_time(msg, spec), msg.seq, msg.u
+            issued = msg.issued_ns
             stamp = "step" if msg.step is not None else "issued_ns"
             checked = False
             if u.size and _max_abs(u) > self.max_abs:
@@ -237,8 +285,13 @@ class Intake:
                 return Refusal("commands_out_of_range", f"Command.u: a value exceeds "
                                f"{self.max_abs:g} in magnitude (max_abs_input)", seq)
         self.decoded = True
+        self.superseded = False
+        order = (-1 if issued is None else issued, seq) if stamp == "issued_ns" else (-1, seq)
+        self.last_command = (seq, issued if stamp == "issued_ns" else None, u, j, order, off)
         if off != 0.0 and self.off_scale != 1.0:
             off = self._scaled(off)
+        if self._supersede(j, u, order, now_step, off):
+            return None
         est = self.est
         try:
             if checked and isinstance(est, ReplayEstimator):
@@ -249,6 +302,7 @@ class Intake:
         except (ValueError, IndexError) as exc:
             return Refusal("commands_invalid", f"Command.u: {exc}", seq)
         if ok:
+            self._remember_order(j, order)
             return None
         ref = est.now if est.now is not None else 0
         if j < est.committed_step:
@@ -259,3 +313,61 @@ class Intake:
                            f"max_delay + 1 steps past the predicted step {ref + est.lead}", seq)
         return Refusal("commands_duplicate", f"Command.{stamp}: a command for step {j} is "
                        "already stored", seq)
+
+    def place(self, step: int, u: np.ndarray, order: tuple[int, int], now_step: int,
+              offset: float = 0.0) -> bool:
+        """Store a command for ``step`` from ``offset`` seconds after its start (session
+        seconds, scaled here as a message's offset is) outside the message path (an echoed
+        command moved to the instant it took effect: pd_service.service.robot_time), with
+        the supersede rule against a command already there; True iff stored."""
+        if step < 0:
+            return False
+        if offset != 0.0 and self.off_scale != 1.0:
+            offset = self._scaled(offset)
+        if self._supersede(step, u, order, now_step, offset):
+            return True
+        if self.est.add_command(step, u, now_step if now_step >= 0 else None, offset):
+            self._remember_order(step, order)
+            return True
+        return False
+
+    def withdraw(self, step: int, order: tuple[int, int], now_step: int) -> bool:
+        """Take back the command of ``order`` stored for ``step`` (not one that superseded
+        it); True iff withdrawn."""
+        est = self.est
+        if self.command_order.get(step) != order or not isinstance(est, ReplayEstimator):
+            return False
+        if not est.withdraw_command(step, now_step if now_step >= 0 else None):
+            return False
+        del self.command_order[step]
+        return True
+
+    def _remember_order(self, step: int, order: tuple[int, int]) -> None:
+        """Keep ``order`` for the command stored at ``step``; forget final steps once the
+        map holds twice what the last pruning left (bounded memory: about the estimator's
+        open window, at most :data:`_ORDERS_KEPT`)."""
+        orders = self.command_order
+        orders[step] = order
+        if len(orders) > self._orders_prune_at:
+            first = self.est.committed_step
+            for k in [k for k in orders if k < first]:
+                del orders[k]
+            while len(orders) > _ORDERS_KEPT:  # a window wider than the bound: oldest go
+                del orders[min(orders)]
+            self._orders_prune_at = max(_ORDERS_PRUNE_FIRST, 2 * len(orders))
+
+    def _supersede(self, step: int, u: np.ndarray, order: tuple[int, int],
+                   now_step: int, offset: float = 0.0) -> bool:
+        """The supersede rule (module docstring): replace the command stored for ``step`` by
+        this newer one; True iff replaced (``superseded`` set). Tried before the estimator's
+        own admission, so a replacement is not also counted as a duplicate."""
+        stored = self.command_order.get(step)
+        est = self.est
+        if stored is None or order <= stored or not isinstance(est, ReplayEstimator):
+            return False
+        uv = np.array(u, dtype=np.float64)  # a copy: the slow path's u belongs to its message
+        if not est.supersede_command(step, uv, now_step if now_step >= 0 else None, offset):
+            return False
+        self.command_order[step] = order
+        self.superseded = True
+        return True

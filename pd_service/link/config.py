@@ -253,6 +253,7 @@ class KeyMapping(_Doc):
 
 DEFAULT_MAPPINGS: tuple[KeyMapping, ...] = (
     KeyMapping(direction="downlink", subscribe=keys.ROBOT_ALL_SENSORS, publish="operator"),
+    KeyMapping(direction="downlink", subscribe=keys.ROBOT_ALL_ECHOES, publish="operator"),
     KeyMapping(direction="downlink", subscribe=keys.ROBOT_ALL_CAMERAS, publish="operator"),
     KeyMapping(direction="uplink", subscribe=keys.ALL_COMMANDS, publish="robot"),
 )

@@ -66,6 +66,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "spec has ros2 bindings)")
     p.add_argument("--instance", default="default",
                    help="instance name for pd/@ros2/<instance>/status (default 'default')")
+    p.add_argument("--role", choices=("operator", "robot"), default="operator",
+                   help="operator (default): bridge ROS topics and native keys; robot: run "
+                        "beside the robot, echo each command as applied on arrival and answer "
+                        "clock probes, on the robot's clock (docs/ros2.md)")
+    p.add_argument("--echo-via-link", dest="echo_via_link", action="store_true",
+                   help="robot role: echo on robot/p<k>/<s>/echo for pd-link to carry down")
     add_metrics_arg(p)
     add_zenoh_args(p, TOOL)
     add_connect_wait_arg(p)
@@ -81,7 +87,8 @@ def settings_from_args(args: argparse.Namespace) -> BridgeSettings:
     return BridgeSettings(domain_id=domain_id(args.domain_id), namespace=args.namespace,
                           key_format=args.key_format, node_name=args.node_name,
                           sessions=frozenset(args.session) if args.session else None,
-                          instance=args.instance, attachment_layout=args.attachment_layout)
+                          instance=args.instance, attachment_layout=args.attachment_layout,
+                          role=args.role, echo_via_link=args.echo_via_link)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

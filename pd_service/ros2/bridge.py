@@ -9,7 +9,9 @@ start, which the daemon answers with every spec it knows):
 - **sensors**: each bound topic's key -> CDR decode of the bound type -> (z, R, header.stamp)
   -> a native ``Measurement`` (``t_ns`` = header.stamp, ``seq`` = the rmw_zenoh attachment's
   sequence number, else the bridge's own counter per sensor) put on ``pd/p<k>/<s>/sensor/<name>``;
-- **commands**: Twist -> ``Command(issued_ns = arrival on the bridge's clock)``, TwistStamped ->
+- **commands**: Twist -> ``Command(issued_ns = receipt on the bridge's clock)`` (read in the
+  transport's callback, not when the worker gets to it: the worker's lag would move the command
+  to a later apply step), TwistStamped ->
   ``Command(issued_ns = header.stamp)``, u = (linear.x, angular.z), put on ``pd/p<k>/<s>/cmd``; the
   daemon applies it at step ``floor((issued_ns - epoch_ns) / period_ns) + lead`` (for a
   continuous-time model from exactly ``issued_ns + lead * period_ns``; stamps pass at full
@@ -22,6 +24,16 @@ start, which the daemon answers with every spec it knows):
 - **graph**: rmw_zenoh liveliness tokens (one node, a subscription per bound input, a publisher
   per output) so that ``ros2 node list`` / ``ros2 topic list`` see pd-service;
 - **status**: queryable ``pd/@ros2/<instance>/status``, a JSON object of counters.
+
+**Robot role** (``BridgeSettings.role = "robot"``, ``pd-ros2 --role robot``): run beside the
+robot, on its clock, for sessions whose spec estimates the robot clock (issue 43). Per session
+with a command binding it subscribes to the command topic as it reaches the robot and echoes
+each Twist as applied on arrival (a ROS base controller acts on arrival): a ``CommandEcho``
+(``seq`` = the rmw_zenoh attachment's sequence number, the one the operator-side bridge gave
+its Command; ``applied_ns`` = receipt on this clock) on ``pd/p<k>/<s>/echo``
+(``robot/p<k>/<s>/echo`` with ``echo_via_link``, for pd-link to carry down); and it answers
+clock probes on ``robot/p<k>/<s>/clock``. It bridges no sensor, command or output: the
+operator-side bridge does.
 
 Bad input (not CDR of the bound type, a wrong type or type hash in the key, a bad attachment,
 stamp 0, NaN, a covariance that is not PSD, a wrong frame_id) is refused: counted per session
@@ -93,6 +105,7 @@ from pd_service.transport.base import (
 )
 from pd_service.wire import (
     Command,
+    CommandEcho,
     ErrorReport,
     Measurement,
     Prediction,
@@ -104,6 +117,7 @@ from pd_service.wire import (
 from pd_service.wire import decode as wire_decode
 from pd_service.wire import encode as wire_encode
 from pd_service.wire.camera import CameraFrame
+from pd_service.wire.clock_probe import answer_probe
 from pd_service.wire.codec import validation_reason
 from pd_service.wire.fence import TermFence
 from pd_service.wire.path import PredictedPath
@@ -163,6 +177,10 @@ class BridgeSettings:
     #: Samples each native publisher (``pd/p<k>/<s>/sensor/<name>``, ``pd/p<k>/<s>/cmd``) keeps for a
     #: restarted service to read back (``Transport.publisher(key, cache=...)``); 0: none.
     cache: int = DEFAULT_SENDER_CACHE
+    #: "operator": the bridge (the default); "robot": echoes and clock probes (module docstring).
+    role: Literal["operator", "robot"] = "operator"
+    #: Robot role: echo on the robot-side key (``robot/p<k>/<s>/echo``) for pd-link to carry.
+    echo_via_link: bool = False
     #: Seconds between two DiagnosticArrays on /diagnostics (0: none); a bound sensor topic
     #: silent for ``silent_s`` is reported (pd_service.ros2.diagnostics).
     diagnostics_interval_s: float = 1.0
@@ -188,6 +206,8 @@ class BridgeSettings:
                 keys.check_name(s, "session")
         except keys.KeyError_ as exc:
             raise ConfigError(str(exc)) from None
+        if self.role not in ("operator", "robot"):
+            raise ConfigError(f"role {self.role!r} is not 'operator' or 'robot'")
         if not (self.diagnostics_interval_s >= 0 and self.silent_s > 0):
             raise ConfigError("diagnostics_interval_s must be >= 0, silent_s > 0")
         if not (self.error_rate > 0 and self.error_burst >= 1 and self.inbox_size >= 1):
@@ -272,6 +292,7 @@ class _Session:
     inputs: list[_Input] = field(default_factory=list)
     outputs: list[_Output] = field(default_factory=list)
     prediction_handle: Handle | None = None
+    probe_handle: Handle | None = None
     path_handle: Handle | None = None
     closed: bool = False
     #: Newest ownership term seen (predictions of an older one: a second owner, dropped).
@@ -292,7 +313,8 @@ _Item = tuple[Literal["config", "input", "prediction", "path"], object, Sample]
 class Ros2Bridge:
     """ROS 2 <-> pd-service bridge over ``transport`` (see the module docstring).
 
-    ``now_ns``: the shared wall clock (ns since the epoch) for a Twist's arrival, the
+    ``now_ns``: the shared wall clock (ns since the epoch) for a Twist's receipt (read in the
+    transport callback), the
     attachment's source timestamp and ErrorReport times. Thread model: transport callbacks
     from any thread (append only); the worker (or :meth:`drain`) processes under ``lock``;
     the status queryable takes ``lock`` to read the counters.
@@ -436,7 +458,8 @@ class Ros2Bridge:
         self._enqueue(("config", None, sample))
 
     def _on_input_sample(self, inp: _Input, sample: Sample) -> None:
-        self._enqueue(("input", inp, sample))
+        # recv_ns re-read on the bridge's clock, here: a Twist's issued_ns is its receipt
+        self._enqueue(("input", inp, sample._replace(recv_ns=self.now_ns())))
 
     def _on_prediction_sample(self, sess: _Session, sample: Sample) -> None:
         self._enqueue(("prediction", sess, sample))
@@ -524,6 +547,9 @@ class Ros2Bridge:
 
     def _declare(self, sess: _Session) -> None:
         b = sess.binding
+        if self.settings.role == "robot":
+            self._declare_robot_side(sess)
+            return
         for sensor, tb in b.sensors.items():
             self._declare_input(sess, sensor, tb, tb.topic, tb.msg_type, "sensor",
                                 keys.sensor_key(sess.name, sensor))
@@ -567,6 +593,36 @@ class Ros2Bridge:
         if inp.endpoint is not None:
             inp.token = self.t.declare_token(inp.endpoint.token())
 
+    def _declare_robot_side(self, sess: _Session) -> None:
+        """Robot role: the command topic, echoed; the clock probe queryable."""
+        b = sess.binding
+        if b.commands is not None:
+            key = (keys.robot_echo_key if self.settings.echo_via_link else keys.echo_key)(
+                sess.name)
+            self._declare_input(sess, None, b.commands, b.commands.topic, b.commands.msg_type,
+                                "commands", key)
+        sess.probe_handle = self.t.queryable(keys.robot_clock_key(sess.name),
+                                             partial(self._on_probe, sess))
+
+    def _on_probe(self, sess: _Session, query: Query) -> None:
+        """Robot role, transport thread: answer a ClockProbe with this clock's t2 / t3
+        (bad probes refused with an error reply, counted)."""
+        t2 = self.now_ns()
+        try:
+            reply = answer_probe(query.payload, sess.name, t2, self.now_ns())
+        except WireError as exc:
+            sess.counters["probes_invalid"] += 1  # racy by a few: a counter
+            try:
+                query.reply_err(f"not a ClockProbe of {sess.name}: {exc.reason}"[:512].encode())
+            except Exception:  # the query may be gone
+                pass
+            return
+        try:
+            query.reply(keys.robot_clock_key(sess.name), wire_encode(reply))
+            sess.counters["probes_answered"] += 1
+        except Exception as exc:  # the query may be gone
+            log.debug("probe reply failed: %s", exc)
+
     def _declare_outputs(self, sess: _Session, ob: OutputBinding) -> None:
         wanted: list[tuple[Literal["odom", "pose", "tf", "path"], str, str]] = []
         if ob.odom_topic is not None:
@@ -592,7 +648,8 @@ class Ros2Bridge:
 
     def _undeclare(self, sess: _Session) -> None:
         sess.closed = True
-        handles: list[Handle | None] = [sess.prediction_handle, sess.path_handle]
+        handles: list[Handle | None] = [sess.prediction_handle, sess.probe_handle,
+                                        sess.path_handle]
         for inp in sess.inputs:
             handles += [inp.handle, inp.token, inp.publisher]
         for out in sess.outputs:
@@ -605,7 +662,7 @@ class Ros2Bridge:
                     pass
         sess.inputs.clear()
         sess.outputs.clear()
-        sess.prediction_handle = sess.path_handle = None
+        sess.prediction_handle = sess.probe_handle = sess.path_handle = None
 
     # ======================================================================== inputs ======
 
@@ -655,9 +712,14 @@ class Ros2Bridge:
                 sess.calibration = self._calibration(inp, msg)
                 c["camera_info_applied"] += 1
                 return
-            payload = (self._measurement(inp, msg, seq) if inp.role == "sensor"
-                       else self._command(inp, msg, seq) if inp.role == "commands"
-                       else self._frame(inp, msg))
+            if inp.role == "sensor":
+                payload = self._measurement(inp, msg, seq)
+            elif inp.role == "commands":
+                payload = (self._echo(inp, msg, seq, sample.recv_ns)
+                           if self.settings.role == "robot"
+                           else self._command(inp, msg, seq, sample.recv_ns))
+            else:
+                payload = self._frame(inp, msg)
         except _Refusal as r:
             self._refuse(sess, sample.key, r, seq)
             return
@@ -692,12 +754,14 @@ class Ros2Bridge:
                 from None
         return wire_encode(m)
 
-    def _command(self, inp: _Input, msg: RosMessage, seq: int) -> bytes:
+    def _command(self, inp: _Input, msg: RosMessage, seq: int, recv_ns: int) -> bytes:
+        """A native Command of ``msg``: a TwistStamped's header.stamp, else ``recv_ns`` (its
+        receipt on the bridge's clock) as ``issued_ns``."""
         try:
             cmd = extract_command(msg)
         except Ros2DecodeError as exc:
             raise _Refusal(classify(exc), f"{inp.topic}: {exc.reason}") from None
-        issued = cmd.stamp_ns if cmd.stamp_ns is not None else self.now_ns()
+        issued = cmd.stamp_ns if cmd.stamp_ns is not None else recv_ns
         try:
             out = Command(session=inp.session.name, seq=seq, issued_ns=issued, u=cmd.u)
         except ValidationError as exc:
@@ -743,6 +807,17 @@ class Ros2Bridge:
             raise _Refusal("invalid", f"{inp.topic}: {validation_reason('CameraFrame', exc)}") \
                 from None
         return wire_encode(frame)
+
+    def _echo(self, inp: _Input, msg: RosMessage, seq: int, recv_ns: int) -> bytes:
+        """Robot role: the CommandEcho of a Twist applied on arrival (``recv_ns``, this
+        clock); a Twist that would not become a Command is refused as the bridge does."""
+        try:
+            extract_command(msg)
+        except Ros2DecodeError as exc:
+            raise _Refusal(classify(exc), f"{inp.topic}: {exc.reason}") from None
+        inp.session.counters["echoes_sent"] += 1
+        return wire_encode(CommandEcho(session=inp.session.name, seq=seq, applied_ns=recv_ns,
+                                       sent_ns=self.now_ns()))
 
     def _refuse(self, sess: _Session, key: str, r: _Refusal, seq: int | None) -> None:
         c = sess.counters

@@ -297,10 +297,19 @@ class ScenarioSim:
             out.append(Detection(s.name, self.k, z, lost))
         return out
 
-    def advance(self, u: np.ndarray | Sequence[float]) -> np.ndarray:
-        """x(k+1) = A x(k) + B u(k) + w(k), or f(x(k), u(k), k) + w(k); returns x(k+1)."""
+    def advance(self, u: np.ndarray | Sequence[float],
+                cuts: Sequence[tuple[float, np.ndarray]] = ()) -> np.ndarray:
+        """x(k+1) = A x(k) + B u(k) + w(k), or f(x(k), u(k), k) + w(k); returns x(k+1).
+
+        ``cuts``: commands taking effect inside the step, (offset s, u) sorted by offset: u
+        from the step's start, each cut's u from its offset on (a robot applying commands on
+        arrival), the flow over each piece: x(k+1) = flow(T - d_m)(... flow(d_1)(x, u) ...,
+        u_m) + w(k); the same noise draw. ValueError for a model without ``flow``."""
         sc = self.scenario
         uv = np.asarray(u, dtype=np.float64).reshape(sc.nu)
+        flow = None if sc.nonlinear is None else sc.nonlinear.flow
+        if cuts and flow is None:
+            raise ValueError("cuts: this scenario's model has no flow over part of a step")
         if sc.Q_of is not None:
             # w = sqrt(q(k)) * e: the true, time-varying diagonal Q
             w = np.sqrt(np.asarray(sc.Q_of(self.k), dtype=np.float64)) * \
@@ -310,7 +319,14 @@ class ScenarioSim:
         else:
             assert sc.G is not None
             w = sc.G @ self.rng.standard_normal(sc.G.shape[1])
-        if sc.nonlinear is not None:
+        if cuts and flow is not None:
+            x, t0 = self.x, 0.0
+            for d, ui in cuts:
+                if d > t0:
+                    x = flow(d - t0)(x, uv)
+                t0, uv = d, np.asarray(ui, dtype=np.float64).reshape(sc.nu)
+            self.x = flow(sc.period_s - t0)(x, uv) + w
+        elif sc.nonlinear is not None:
             self.x = sc.nonlinear.f(self.x, uv, self.k) + w
         else:
             assert sc.A is not None and sc.B is not None

@@ -184,6 +184,22 @@ class Settings(BaseSettings):
                                  "how long a Zenoh callback may wait for the worker to yield "
                                  "the interpreter (Python's default is 5000).")
 
+    # robot clocks (issue 43; pd_service.service.robot_time, clock_probes)
+    probe_interval_s: float = Field(
+        1.0, ge=0, description="Least time between two clock probes of one session whose spec "
+                               "has robot_clock 'estimated' (a query of the robot's probe "
+                               "queryable, from a thread of their own); 0: no probes.")
+    probe_timeout_s: float = Field(
+        0.5, gt=0, description="Longest wait for one probe's answer (a robot that does not "
+                               "answer costs the probing thread this long, never the worker).")
+    learned_window: bool = Field(
+        False, description="Apply the learned window: once a session has seen enough samples "
+                           "(and then every learn_interval_s), re-install its spec with "
+                           "max_delay = the recommended one, through the normal admission "
+                           "path (budgets, refusals); off: the window is only reported.")
+    learn_interval_s: float = Field(
+        30.0, gt=0, description="Least time between two learned-window changes of a session.")
+
     # logs
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
     log_format: Literal["kv", "json"] = "kv"

@@ -12,7 +12,8 @@ time budget, ``mono_ns`` by default), so tests drive it deterministically.
   persisted and synced with the peers;
 - :mod:`.publish`: predictions (after each round, at each tick), error reports, status
   answers, the outbox;
-- :mod:`.status`: SessionStatus / ServiceStatus and the status and spec queryables.
+- :mod:`.status`: SessionStatus / ServiceStatus and the status and spec queryables;
+- :mod:`.clock_probes`: the robots' command echoes and the clock probes (their own thread).
 
 One worker thread calls :meth:`ServiceCore.run_once`; it holds ``lock`` while processing one
 round. The queries (transport threads) take it only to copy what a reply needs, so replies
@@ -33,8 +34,9 @@ from pd_service.estimation.linear import set_tables_max_bytes
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Handle, Transport
-from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, keys
+from pd_service.wire import ServiceStatus, SessionSpec, SessionStatus, encode, keys
 
+from .clock_probes import RobotTimeIO
 from .config import Settings
 from .dispatch import ROUND_SESSIONS, Dispatch, Route
 from .handover.keeper import HandoverKeeper, replicas_for
@@ -42,6 +44,7 @@ from .latency import LatencyWindow
 from .lifecycle import Lifecycle, spawn_thread
 from .outbox import Outbox
 from .ownership import Ownership
+from .robot_time import learned_spec
 from .session import Session
 from .spec_store import SpecStore
 from .status import Queries
@@ -118,6 +121,8 @@ class ServiceCore:
                                       self.dispatch.on_command_sample, self.wake.set,
                                       self.ownership.partitions)
         self.lifecycle.follow = self._follow_ownership
+        #: The robots' echoes and the clock probes (pd_service.service.clock_probes).
+        self.robot_io = RobotTimeIO(transport, settings, now_ns, self.wake, self.counters)
         #: A state some awaited session waits for arrived (set on a transport thread).
         self._handed_in = False
         self.keeper.arrived = self._on_state_arrived
@@ -125,6 +130,7 @@ class ServiceCore:
         self._routes: dict[str, Route] = self.dispatch.routes
         self._next_expiry_ns = 0
         self._next_sweep_ns = 0
+        self._next_learn_ns = 0
         self._handles: list[Handle] = []
         self._token: Handle | None = None
         self._closed = False
@@ -192,6 +198,8 @@ class ServiceCore:
                                          q.on_service_query))
         self._handles.append(t.subscribe_liveliness(keys.ALL_SERVICES, d.on_liveliness,
                                                     history=True))
+        self.robot_io.subscribe()
+        self.robot_io.start(self.clocked_sessions)
         self._token = t.declare_token(keys.service_token_key(self.instance))
         with self.lock:
             served = sum(1 for r in self._routes.values() if r.sess is not None)
@@ -222,6 +230,7 @@ class ServiceCore:
                   seconds=round(time.monotonic() - t0, 3),
                   resent=self.counters["replicas_handover_resent"] - resent, **more)
         self.keeper.close()
+        self.robot_io.close()
         if self.store is not None:
             self.store.close()
         if self._token is not None:
@@ -271,7 +280,7 @@ class ServiceCore:
     def has_work(self) -> bool:
         """Messages, control changes or hand-over states wait (not counting samples still in
         the drains' queues: :meth:`run_once` takes those first)."""
-        return self.dispatch.has_work() or self._handed_in
+        return self.dispatch.has_work() or self._handed_in or self.robot_io.pending()
 
     def arm(self) -> None:
         """Before the worker waits idle: the drain group's watcher hands the next sample
@@ -325,6 +334,8 @@ class ServiceCore:
                             touched = []
                             pub.flush()
                         got += self._drain()
+                if self.robot_io.pending():  # after the commands their echoes may name
+                    handled += self.robot_io.process(self._routes, now, touched)
                 if d.released:
                     handled += d.process_released(now, touched)
                 if d.read_back:
@@ -347,9 +358,33 @@ class ServiceCore:
                 if now >= self._next_expiry_ns:
                     self.lifecycle.expire_idle(now)
                     self._next_expiry_ns = now + _EXPIRY_CHECK_NS
+                if self.settings.learned_window and now >= self._next_learn_ns:
+                    self._learn_windows()
+                    self._next_learn_ns = now + int(self.settings.learn_interval_s * 1e9)
                 pub.flush()
             if not (got or self.has_work()) or self.run_clock_ns() >= t_end:
                 return handled
+
+    def _learn_windows(self) -> None:
+        """Worker: put the learned spec (max_delay, lead) of each served session whose
+        learned values moved (:func:`.robot_time.learned_spec`) on its config key, as an
+        operator would: the change takes the normal path (admission, replacement)."""
+        for name, r in list(self._routes.items()):
+            sess = r.sess
+            if sess is None:
+                continue
+            new = learned_spec(sess.spec, sess.robot)
+            if new is not None:
+                self.t.put(keys.config_key(name), encode(new))
+                self.counters["learned_windows_put"] += 1
+                event(log, "learned_window", session=name, max_delay=new.max_delay,
+                      lead=new.lead, was_max_delay=sess.spec.max_delay, was_lead=sess.spec.lead)
+
+    def clocked_sessions(self) -> list[str]:
+        """The served sessions whose robot clock is estimated (the probing thread's list)."""
+        with self.lock:
+            return [name for name, r in self._routes.items()
+                    if r.sess is not None and r.sess.robot.estimated]
 
     def next_deadline_ns(self) -> int:
         """Wall-clock time (ns) at which run_once has timed work (next tick or expiry check)."""

@@ -510,13 +510,13 @@ class Dispatch:
                                else "commands_malformed",
                                f"{kind} is not supported on {key!r}: publish a message with put")
             if stream & ~READ_BACK == SENSOR:
-                refusal = sess.on_measurement(key, payload, now_step, now)
+                refusal = sess.on_measurement(key, payload, now_step, now, recv_now)
                 name = "accepted"
                 if refusal is None:
                     sess.pending_recv.append(recv_mono)
             else:
                 refusal = sess.on_command(key, payload, now_step, now)
-                name = "commands_accepted"
+                name = "commands_superseded" if sess.intake.superseded else "commands_accepted"
         except Exception as exc:  # isolation: nothing one session sends escapes the worker
             log.debug("internal error in session %s", sess.name, exc_info=True)
             return Refusal("internal_error", f"internal error: {type(exc).__name__}: {exc}")

@@ -13,6 +13,17 @@ commands_accepted          command accepted
 late / future / duplicate  measurement outside ``[now - max_delay, now]`` / already stored
 commands_late / _future /  command for a final step / too far ahead / already stored
 commands_duplicate
+commands_superseded        command that replaced an older one for the same apply step (a
+                           later issued_ns, then a higher seq: pd_service.intake)
+echoes / echoes_unknown /  CommandEchoes used / of no command kept for one / applied
+echoes_implausible /       outside [issued, received] beyond the clock's uncertainty (or
+echoes_invalid             refused by its estimator) / not a CommandEcho of this session
+commands_moved /           (command_timing "echoed") commands moved to the instant their
+commands_in_place /        echo names (inside its step) / already there / not moved (their
+commands_echo_refused      step final, a newer command superseded them, or the new step
+                           refused them)
+stamps_clamped             robot stamps mapped after their receipt, held at it
+probe_replies              clock probes answered (probe_<reason>: refused by the estimator)
 malformed                  bytes that are not a valid Measurement / Command (``commands_``
                            prefix for commands)
 non_finite                 NaN or infinity in the payload
@@ -69,6 +80,7 @@ from pd_service.wire.session_state import spec_fingerprint
 
 from .health import RETRY_AFTER_S, SNAPSHOT_EVERY_S, thoroughly_healthy
 from .latency import LatencyWindow
+from .robot_time import RobotTime, feed_applied_command
 
 SENSOR: Final = 0
 COMMAND: Final = 1
@@ -119,6 +131,13 @@ class Session:
         self.cost = built.cost
         #: The per-message rules (pd_service.intake), shared with the offline replay.
         self.intake = Intake(spec, self.est, built.nu, max_abs)
+        #: The robot's clock, the learned delays, commands waiting for their echo.
+        self.robot = RobotTime(spec)
+        if self.robot.estimated:
+            self.intake.stamp_map = self.robot.to_daemon
+        #: Whether accepted commands go to :meth:`.robot_time.RobotTime.keep_command` (a
+        #: native copy of its ``listening``, read per command).
+        self.keeps_commands: bool = self.robot.listening
         self.state = state
         self.detail = detail
         self.counters = Tally()
@@ -203,21 +222,48 @@ class Session:
 
     # --- input -------------------------------------------------------------------------
 
-    def on_measurement(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
-        """Offer one Measurement received on ``key``; None if accepted."""
-        refusal = self.intake.measurement(key, payload, now_step)
-        if self.intake.decoded:
+    def on_measurement(self, key: str, payload: bytes, now_step: int, now_ns: int,
+                       recv_ns: int | None = None) -> Refusal | None:
+        """Offer one Measurement received on ``key`` at ``recv_ns`` (default ``now_ns``);
+        None if accepted. Its delay (stamp -> receipt) is learned whatever the outcome."""
+        robot, intake = self.robot, self.intake
+        recv = now_ns if recv_ns is None else recv_ns
+        robot.recv_ns = recv
+        refusal = intake.measurement(key, payload, now_step)
+        if intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
+            t = intake.last_t_ns
+            if t is not None:
+                robot.sample(intake.last_sensor, t, recv,
+                             refusal is not None and refusal.reason == "late")
         return refusal
 
     def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
-        """Offer one Command; None if accepted."""
-        refusal = self.intake.command(key, payload, now_step)
-        if self.intake.decoded:
+        """Offer one Command; None if accepted (at its stamped apply step; with
+        ``command_timing: echoed`` it moves when its echo comes, :meth:`on_echo`)."""
+        intake = self.intake
+        refusal = intake.command(key, payload, now_step)
+        if intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
+            if refusal is None and self.keeps_commands and intake.last_command is not None:
+                self.robot.keep_command(*intake.last_command)
         return refusal
+
+    def on_echo(self, payload: bytes, recv_ns: int, now_step: int) -> bool:
+        """A CommandEcho received at ``recv_ns``: teaches the clock and the lead; with
+        ``command_timing: echoed`` its command moves to the instant it took effect. True
+        iff the estimator's inputs changed."""
+        got = self.robot.echo(payload, recv_ns)
+        self.keeps_commands = self.robot.listening
+        if got is None:
+            return False
+        try:
+            return feed_applied_command(self.intake, self.robot.counters, got, now_step)
+        except (ValueError, IndexError, KeyError):  # counted; the estimator is left as it was
+            self.robot.counters["commands_echo_refused"] += 1
+            return False
 
     # --- read-back copies ----------------------------------------------------------------
 
@@ -251,6 +297,9 @@ class Session:
         out = dict(self.counters)  # one C-level copy: cheaper than a comprehension over a
         if 0 in out.values():      # dict subclass's items
             out = {k: v for k, v in out.items() if v}
+        robot = self.robot.counters
+        if robot:
+            out.update({k: v for k, v in robot.items() if v})
         out.setdefault("accepted", 0)
         out["published"] = self.published
         return out

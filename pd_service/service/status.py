@@ -27,6 +27,7 @@ from pd_service.wire.keys import KeyError_, check_name
 from .config import Settings
 from .latency import LatencyWindow, percentiles
 from .ownership import Ownership
+from .robot_time import RobotView
 from .session import Refusal, Session
 from .step_clock import StepClock
 
@@ -53,31 +54,41 @@ class StatusSnapshot:
     latency_us: np.ndarray  # a copy of the session's LatencyWindow
     origin: Literal["prior", "checkpoint", "replica"]
     origin_step: int | None
+    robot: RobotView  # the robot's time: copies, read after the lock (robot_time)
     readback: Literal["", "waiting", "answered", "timeout"]
     term: int
 
     def status(self, instance: str, now: int) -> SessionStatus:
         """The SessionStatus at wall-clock time ``now`` (ns); needs no lock."""
         p50, p99 = percentiles(self.latency_us)
+        robot = self.robot
         return SessionStatus(session=self.name, instance=instance, state=self.state,
                              now_step=self.spec.step_of(now), counters=self.counters,
                              published=self.published, latency_p50_us=p50,
                              latency_p99_us=p99, detail=self.detail[:1024],
                              origin=self.origin, origin_step=self.origin_step,
+                             clock=robot.clock, delays=robot.delay_status(),
+                             recommended_max_delay=robot.recommended_max_delay(),
+                             recommended_lead=robot.recommended_lead(),
+                             late_share=robot.late_share,
                              readback=self.readback, term=self.term)
 
 
-def snapshot_of(sess: Session, state: SessionPhase, detail: str) -> StatusSnapshot:
-    """Copy of what ``sess``'s status needs (hold the lock while calling this)."""
+def snapshot_of(sess: Session, state: SessionPhase, detail: str,
+                now: int | None = None) -> StatusSnapshot:
+    """Copy of what ``sess``'s status needs (hold the lock while calling this); ``now``
+    (ns): the time of the clock estimate (default: the session's last activity)."""
     return StatusSnapshot(sess.name, sess.status_key, state, detail, sess.spec,
-                       sess.counters_snapshot(), sess.published, sess.latency.values(),
-                       sess.origin, sess.origin_step, sess.readback, sess.term)
+                          sess.counters_snapshot(), sess.published, sess.latency.values(),
+                          sess.origin, sess.origin_step,
+                          sess.robot.view(sess.last_activity_ns if now is None else now),
+                          sess.readback, sess.term)
 
 
 def session_status(sess: Session, instance: str, state: SessionPhase, detail: str,
                    now: int) -> SessionStatus:
     """The status of a served session at wall-clock time ``now`` (ns)."""
-    return snapshot_of(sess, state, detail).status(instance, now)
+    return snapshot_of(sess, state, detail, now).status(instance, now)
 
 
 def phase_of(sess: Session) -> SessionPhase:
@@ -86,9 +97,9 @@ def phase_of(sess: Session) -> SessionPhase:
     return cast(SessionPhase, sess.state)
 
 
-def current_snapshot(sess: Session) -> StatusSnapshot:
+def current_snapshot(sess: Session, now: int | None = None) -> StatusSnapshot:
     """The view of a session in the state and detail it was last answered with."""
-    return snapshot_of(sess, phase_of(sess), sess.detail)
+    return snapshot_of(sess, phase_of(sess), sess.detail, now)
 
 
 def valid_name(name: str) -> bool:
@@ -145,8 +156,9 @@ class Queries:
             route = self.routes.get(session)
             if route is None or route.sess is None:
                 return None
-            view = current_snapshot(route.sess)
-        return view.status(self.instance, self.now_ns())
+            now = self.now_ns()
+            view = current_snapshot(route.sess, now)
+        return view.status(self.instance, now)
 
     def service_status(self) -> ServiceStatus:
         """The instance's status; holds the lock only to copy counters and latencies."""
@@ -186,15 +198,17 @@ class Queries:
         sel = q.key
         unknown = ""
         with self.lock:  # copies only: the statuses are built after it is released
+            now = self.now_ns()
             if "*" in sel:
                 sessions = [r.sess for r in self.routes.values() if r.sess is not None]
-                views = [current_snapshot(s) for s in sessions if intersects(sel, s.status_key)]
+                views = [current_snapshot(s, now) for s in sessions
+                         if intersects(sel, s.status_key)]
             else:
                 parts = sel.split("/")
                 name = parts[2] if len(parts) == 4 else ""
                 route = self.routes.get(name)
                 if route is not None and route.sess is not None:
-                    views = [current_snapshot(route.sess)]
+                    views = [current_snapshot(route.sess, now)]
                 elif route is None and valid_name(name) and self.ownership.owns(name):
                     views, unknown = [], name
                 else:

@@ -15,6 +15,7 @@ Operator side (what the daemon reads and writes)::
     pd/p<k>/<session>/path            PredictedPath, by the daemon if the spec asks (path)
     pd/p<k>/<session>/error           ErrorReport, published by the daemon
     pd/p<k>/<session>/status          queryable: SessionStatus
+    pd/p<k>/<session>/echo            CommandEcho, after the downlink (robot's clock)
     pd/@service/<instance>            liveliness token of one daemon instance
     pd/@service/<instance>/status     queryable: ServiceStatus
 
@@ -23,6 +24,8 @@ Robot side (what the link emulator bridges)::
     robot/p<k>/<session>/sensor/<name>  Measurement, as the robot publishes it
     robot/p<k>/<session>/cmd            Command, after the uplink
     robot/p<k>/<session>/truth          ground truth (simulators only, for evaluation)
+    robot/p<k>/<session>/echo           CommandEcho, as the robot publishes it
+    robot/p<k>/<session>/clock          queryable: ClockProbe -> ClockProbeReply (the robot)
     robot/p<k>/<session>/camera         CameraFrame (a robot's video; pd-link bridges it to
                                         pd/p<k>/<session>/camera, with its own delay rule)
 
@@ -74,7 +77,7 @@ MAX_PARTITIONS = 4096
 _PART_RE = re.compile(r"p(0|[1-9][0-9]{0,3})")
 
 StreamKind = Literal["config", "sensor", "cmd", "prediction", "path", "error", "status",
-                     "truth", "camera"]
+                     "truth", "echo", "clock", "camera"]
 
 
 class KeyError_(ValueError):
@@ -192,6 +195,10 @@ def status_key(session: str) -> str:
     return f"{session_prefix(session)}/status"
 
 
+def echo_key(session: str) -> str:
+    return f"{_prefix(OPERATOR_ROOT, session)}/echo"
+
+
 def service_token_key(instance: str) -> str:
     return f"{OPERATOR_ROOT}/{SERVICE_CHUNK}/{check_name(instance, 'instance')}"
 
@@ -210,6 +217,7 @@ ALL_PATHS = f"{OPERATOR_ROOT}/*/*/path"
 ALL_ERRORS = f"{OPERATOR_ROOT}/*/*/error"
 ALL_STATUS = f"{OPERATOR_ROOT}/*/*/status"
 ALL_SERVICES = f"{OPERATOR_ROOT}/{SERVICE_CHUNK}/*"
+ALL_ECHOES = f"{OPERATOR_ROOT}/*/*/echo"
 
 
 def partition_sensors(k: int) -> str:
@@ -268,6 +276,16 @@ def truth_key(session: str) -> str:
     return f"{_prefix(ROBOT_ROOT, session)}/truth"
 
 
+def robot_echo_key(session: str) -> str:
+    return f"{_prefix(ROBOT_ROOT, session)}/echo"
+
+
+def robot_clock_key(session: str) -> str:
+    """The robot's probe queryable (the daemon queries it directly: pd-link relays samples,
+    not queries)."""
+    return f"{_prefix(ROBOT_ROOT, session)}/clock"
+
+
 def robot_camera_key(session: str) -> str:
     return f"{_prefix(ROBOT_ROOT, session)}/camera"
 
@@ -278,6 +296,7 @@ def camera_key(session: str) -> str:
 
 
 ROBOT_ALL_SENSORS = f"{ROBOT_ROOT}/*/*/sensor/*"
+ROBOT_ALL_ECHOES = f"{ROBOT_ROOT}/*/*/echo"
 ROBOT_ALL_COMMANDS = f"{ROBOT_ROOT}/*/*/cmd"
 ALL_TRUTHS = f"{ROBOT_ROOT}/*/*/truth"
 ROBOT_ALL_CAMERAS = f"{ROBOT_ROOT}/*/*/camera"
@@ -314,8 +333,8 @@ class ParsedKey:
     partition: int = 0
 
 
-_KINDS_OPERATOR = {"config", "cmd", "prediction", "path", "error", "status", "camera"}
-_KINDS_ROBOT = {"cmd", "truth", "camera"}
+_KINDS_OPERATOR = {"config", "cmd", "prediction", "path", "error", "status", "echo", "camera"}
+_KINDS_ROBOT = {"cmd", "truth", "echo", "clock", "camera"}
 
 
 def parse_key(key: str) -> ParsedKey:
@@ -364,6 +383,8 @@ def to_operator_side(key: str) -> str:
         return sensor_key(p.session, p.sensor or "")
     if p.kind == "cmd":
         return command_key(p.session)
+    if p.kind == "echo":
+        return echo_key(p.session)
     if p.kind == "camera":
         return camera_key(p.session)
     raise KeyError_(f"key {key!r} has no operator-side twin")

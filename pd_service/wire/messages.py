@@ -550,6 +550,20 @@ class SessionSpec(Message):
                                "every sample at its own time.")
     ros2: Ros2Binding | None = Field(
         None, description="ROS 2 topics of the session (served by the pd-ros2 bridge).")
+    robot_clock: Literal["shared", "estimated"] = Field(
+        "shared", description="shared: robot stamps are on the daemon's clock (NTP/PTP); "
+        "estimated: the daemon estimates the robot clock's offset (probes, echoes, one-way "
+        "stamps) and maps every robot stamp to its own timeline before the window check.")
+    command_timing: Literal["stamped", "echoed"] = Field(
+        "stamped", description="stamped: a command applies at its stamped apply step; "
+        "echoed: it moves to the instant the robot's CommandEcho says it took effect (inside "
+        "the step for a continuous-time model); until then, or if no echo comes, it applies at "
+        "its stamped instant.")
+    clock_asymmetry_ns: Annotated[int, Field(ge=-60 * 10**9, le=60 * 10**9)] = Field(
+        0, description="robot_clock 'estimated' only: the link's fastest uplink delay minus its "
+        "fastest downlink delay, ns (500 ms up, 600 ms down: -100000000), the part of the "
+        "offset no timestamp shows (the estimate is off by half of it unless given); 0: "
+        "symmetric.")
     path: PathSpec | None = Field(
         None, description="Publish the predicted path too (docs/protocol.md); absent: never.")
     expire_s: Annotated[float, Field(ge=0.0, le=1e9, allow_inf_nan=False)] | None = Field(
@@ -683,6 +697,12 @@ class SessionSpec(Message):
         out = handler(self)
         if self.ros2 is None:  # a session without ROS 2 topics: the bytes stay as before
             out.pop("ros2", None)
+        if self.robot_clock == "shared":  # the defaults: the bytes (and fingerprints) as before
+            out.pop("robot_clock", None)
+        if self.command_timing == "stamped":
+            out.pop("command_timing", None)
+        if self.clock_asymmetry_ns == 0:
+            out.pop("clock_asymmetry_ns", None)
         if self.expire_s is None:  # the service's lifetime: the bytes stay as before
             out.pop("expire_s", None)
         if self.stamp_rounding == "nearest":  # the default: the bytes stay as before
@@ -777,6 +797,50 @@ class Command(Message):
         return self
 
 
+# --- the robot's side: echoes and clock probes (issue 43) ---------------------------------
+
+class CommandEcho(Message):
+    """When a command took effect on the robot (``robot/p<k>/<session>/echo``, bridged to
+    ``pd/p<k>/<session>/echo`` like a sensor), on the *robot's* clock: the daemon maps it to
+    its own timeline with the session's clock-offset estimate."""
+
+    session: Name = Field(description="Session id.")
+    seq: NonNegInt = Field(description="seq of the Command that took effect.")
+    applied_ns: Int64 = Field(description="When it took effect, ns on the robot's clock.")
+    sent_ns: Int64 | None = Field(
+        None, description="When this echo was sent, ns on the robot's clock (a one-way stamp "
+                          "for the offset estimate); nil: not given.")
+
+
+class ClockProbe(Message):
+    """A time probe: the payload of a query on the robot's ``robot/p<k>/<session>/clock``
+    queryable (the daemon asks at a bounded rate). ``t1_ns``: when it was sent, ns on the
+    sender's clock, echoed in the reply."""
+
+    session: Name = Field(description="Session id.")
+    probe: NonNegInt = Field(description="Sender's probe number, echoed in the reply.")
+    t1_ns: Int64 = Field(description="When the probe was sent, ns on the sender's clock.")
+
+
+class ClockProbeReply(Message):
+    """The robot's answer to a :class:`ClockProbe`: with the sender's receipt time t4 the four
+    timestamps of an NTP-style exchange (t1, t4 sender's clock; t2, t3 robot's clock).
+
+    Rules: t3_ns >= t2_ns."""
+
+    session: Name = Field(description="Session id.")
+    probe: NonNegInt = Field(description="The probe's number.")
+    t1_ns: Int64 = Field(description="The probe's t1_ns, echoed.")
+    t2_ns: Int64 = Field(description="When the robot received the probe, ns on its clock.")
+    t3_ns: Int64 = Field(description="When the robot answered, ns on its clock.")
+
+    @model_validator(mode="after")
+    def _check(self) -> ClockProbeReply:
+        if self.t3_ns < self.t2_ns:
+            raise invalid("t3_ns", f"must be >= t2_ns ({self.t2_ns}), got {self.t3_ns}")
+        return self
+
+
 # --- streams out of the daemon ----------------------------------------------------------
 
 class Prediction(Message):
@@ -829,6 +893,31 @@ class ErrorReport(Message):
     t_ns: Int64 = Field(description="When it was refused, ns on the shared clock.")
 
 
+class ClockStatus(WireModel):
+    """A session's robot clock as the daemon estimates it (``SessionStatus.clock``)."""
+
+    known: bool = Field(description="False: no stamp pair seen yet (offset 0 assumed).")
+    offset_ns: Int64 = Field(description="Robot clock - daemon clock now, ns.")
+    uncertainty_ns: Int64 | None = Field(
+        description="Half-width of the bound around offset_ns, ns; nil: unbounded (only "
+                    "one-way robot stamps seen).")
+    drift_ppm: float = Field(description="Drift of the robot clock, ppm (1e-6 s/s).")
+    age_s: NonNegFloat = Field(description="Seconds since the newest stamp pair (the bound grows "
+                                           "while none comes).")
+    steps: NonNegInt = Field(description="Step changes of the robot clock detected.")
+    warning: Text = Field("", description="Why the offset should not be trusted now (unknown, "
+                                          "just jumped, stale); empty: none.")
+
+
+class DelayStatus(WireModel):
+    """Observed delays of one stream on the daemon's timeline (``SessionStatus.delays``)."""
+
+    count: NonNegInt = Field(description="Delays kept (the newest; bounded).")
+    p50_ms: float = Field(description="Median delay, ms.")
+    p99_ms: float = Field(description="99th percentile delay, ms.")
+    max_ms: float = Field(description="Largest delay kept, ms.")
+
+
 class SessionStatus(Message):
     """Reply of ``pd/p<k>/<session>/status``, and the answer to every config change."""
 
@@ -848,6 +937,21 @@ class SessionStatus(Message):
                              "(restart) or a replica (takeover) of step origin_step.")
     origin_step: NonNegInt | None = Field(
         None, description="now_step of the checkpoint or replica resumed from; nil for prior.")
+    clock: ClockStatus | None = Field(
+        None, description="The robot clock's offset estimate; nil: the session does not map "
+                          "robot stamps (its spec's robot_clock is 'shared').")
+    delays: dict[Name, DelayStatus] = Field(
+        default_factory=dict, description="Learned delays per stream: each sensor by name, "
+                                          "'cmd' for issue -> applied (from echoes).")
+    recommended_max_delay: NonNegInt | None = Field(
+        None, description="Smallest window (steps) that would have refused at most the "
+                          "service's late share of the samples as late, + 10 % (<= 1.2x); "
+                          "nil: no sample yet.")
+    recommended_lead: NonNegInt | None = Field(
+        None, description="Median issue -> applied gap of the echoed commands (steps); nil: "
+                          "no echo yet.")
+    late_share: NonNegFloat = Field(
+        0.0, description="Share of the decoded samples refused as late so far.")
     readback: Literal["", "waiting", "answered", "timeout"] = Field(
         "", description="A restarted or taken-over session publishes its first prediction "
                         "only once its senders' caches were read back: waiting (not yet), "
@@ -884,5 +988,6 @@ class ServiceStatus(Message):
 
 #: Every top-level message type, in protocol order.
 MESSAGE_TYPES: tuple[type[Message], ...] = (
-    SessionSpec, Measurement, Command, Prediction, ErrorReport, SessionStatus, ServiceStatus,
+    SessionSpec, Measurement, Command, CommandEcho, ClockProbe, ClockProbeReply, Prediction,
+    ErrorReport, SessionStatus, ServiceStatus,
 )

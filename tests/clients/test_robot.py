@@ -221,3 +221,53 @@ def test_caches_are_present_before_the_first_sample(bus):
         bus.transport().read_back("pd/**", lambda s: None, max_samples=10,
                                   answered=answered.append)
     assert answered == []  # through the link, without the spec, or without a cache: none
+
+
+# --- echoes and probes -------------------------------------------------------------------
+
+class _StepClock:
+    """A robot clock 10 s ahead of the bus' time that advances 5 µs per read."""
+
+    def __init__(self) -> None:
+        self.t = 10_000_000_000 + EPOCH_NS
+
+    def __call__(self) -> int:
+        self.t += 5_000
+        return self.t
+
+
+def test_a_robot_applying_on_arrival_echoes_each_command_on_its_own_clock(bus):
+    from pd_service.wire import CommandEcho
+
+    sink = Collector(bus, keys.robot_echo_key("s1"))
+    clock = _StepClock()
+    with Robot(bus.transport(), "s1", clock=clock, apply_on_arrival=True) as robot:
+        t = bus.transport()
+        for seq in (3, 4):
+            t.put(keys.robot_command_key("s1"),
+                  encode(Command(session="s1", seq=seq, step=7, u=np.array([0.5]))))
+        assert robot.echoes == 2
+    echoes = [decode(p, CommandEcho) for p in sink.payloads()]
+    assert [e.seq for e in echoes] == [3, 4]
+    first = 10_000_000_000 + EPOCH_NS + 5_000  # the first read: the first command's arrival
+    assert echoes[0].applied_ns == first and echoes[0].sent_ns is not None
+    assert echoes[0].sent_ns > echoes[0].applied_ns and echoes[1].applied_ns > echoes[0].sent_ns
+
+
+def test_a_robot_answers_probes_with_its_clock_and_refuses_bad_ones(bus):
+    from pd_service.wire import ClockProbe, ClockProbeReply
+
+    clock = _StepClock()
+    with Robot(bus.transport(), "s1", clock=clock) as robot:
+        t = bus.transport()
+        (r,) = t.get(keys.robot_clock_key("s1"),
+                     payload=encode(ClockProbe(session="s1", probe=9, t1_ns=123)))
+        assert r.ok
+        reply = decode(r.payload, ClockProbeReply)
+        assert (reply.probe, reply.t1_ns) == (9, 123)
+        assert reply.t2_ns == 10_000_000_000 + EPOCH_NS + 5_000 and reply.t3_ns > reply.t2_ns
+        (bad,) = t.get(keys.robot_clock_key("s1"), payload=b"\x00garbage")
+        (other,) = t.get(keys.robot_clock_key("s1"),
+                         payload=encode(ClockProbe(session="s2", probe=1, t1_ns=1)))
+        assert not bad.ok and not other.ok
+        assert (robot.probes_answered, robot.probes_invalid) == (1, 2)

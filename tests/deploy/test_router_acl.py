@@ -125,6 +125,8 @@ CASES = {
     "robot-camera": ("link", keys.ROBOT_ALL_CAMERAS, keys.robot_camera_key("paper"), "robot",
                      "operator"),
     "camera": ("display", keys.ALL_CAMERAS, keys.camera_key("paper"), "link", "operator"),
+    "robot-echo": ("link", "robot/*/*/echo", keys.robot_echo_key("paper"), "robot", "operator"),
+    "echo": ("service", "pd/*/*/echo", keys.echo_key("paper"), "link", "operator"),
 }
 
 

@@ -77,6 +77,44 @@ def test_commands_for_final_steps_are_refused() -> None:
             c["commands_future"]) == (1, 1, 1, 1)
 
 
+def test_a_command_superseded_on_an_open_step_moves_the_prediction_like_the_newer_alone() -> None:
+    op, ref = make(), make()
+    op.predict(now=40)  # steps < 28 are final
+    ref.predict(now=40)
+    assert op.add_command(step=30, u=[1.0]) and op.add_command(step=33, u=[-1.0])
+    assert op.supersede_command(30, np.array([2.0]), now=41)
+    assert ref.add_command(step=30, u=[2.0]) and ref.add_command(step=33, u=[-1.0])
+    a, b = op.predict(now=41), ref.predict(now=41)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.P, b.P)
+    assert not op.supersede_command(31, np.array([5.0]))  # nothing stored for step 31
+    op.predict(now=60)  # step 30 is final now
+    assert not op.supersede_command(30, np.array([5.0]))
+    c = op.counters
+    assert (c["commands_accepted"], c["commands_superseded"]) == (2, 1)
+
+
+@pytest.mark.parametrize("hold", ["hold", "zero"])
+@pytest.mark.parametrize("withdrawn", [30, 33])
+def test_a_withdrawn_command_leaves_the_estimate_of_the_others_alone(hold: str,
+                                                                     withdrawn: int) -> None:
+    op, ref = make(hold=hold), make(hold=hold)
+    op.predict(now=40)
+    ref.predict(now=40)
+    for k, u in ((30, 1.0), (33, -1.0), (36, 0.5)):
+        assert op.add_command(step=k, u=[u])
+        if k != withdrawn:
+            assert ref.add_command(step=k, u=[u])
+    assert op.withdraw_command(withdrawn, now=41)
+    a, b = op.predict(now=41), ref.predict(now=41)
+    np.testing.assert_array_equal(a.x, b.x)
+    np.testing.assert_array_equal(a.P, b.P)
+    assert not op.withdraw_command(withdrawn)  # gone
+    op.predict(now=60)  # 36 is final now
+    assert not op.withdraw_command(36)
+    assert op.counters["commands_withdrawn"] == 1
+
+
 @pytest.mark.parametrize(
     ("call", "field"),
     [
@@ -231,3 +269,24 @@ def test_every_linear_estimator_checks_its_sensors(cls) -> None:
     with pytest.raises(ValueError, match="sensor 'lidar' H: expected 4 columns"):
         module = est if cls == "ObserverPredictor" else research
         getattr(module, cls)(paper_model(), arg, x0, P0, lead=1, max_delay=1)
+
+
+def test_a_command_moved_inside_its_step_or_withdrawn_at_the_origin_keeps_the_record_exact() -> None:
+    """An echo moves a command to another instant of the same step (supersede with an
+    offset) or takes it back at the window's origin: u(t) and the cuts are what a buffer
+    given only the final commands holds (u_before at the origin)."""
+    buf, ref = InputBuffer(nu=1, capacity=8, hold=True), InputBuffer(nu=1, capacity=8, hold=True)
+    buf.set(2, np.array([1.0]), 0.01)
+    buf.set(4, np.array([2.0]), 0.02)
+    buf.replace(4, np.array([2.0]), 0.035)  # moved inside its step
+    buf.replace(2, np.array([1.0]))  # moved to its step's start: no cut left
+    ref.set(2, np.array([1.0]))
+    ref.set(4, np.array([2.0]), 0.035)
+    assert buf.cut_offsets == ref.cut_offsets == {4: 0.035} and buf.cuts(0, 7) == ref.cuts(0, 7)
+    buf.advance(2)
+    ref.advance(2)
+    buf.remove(2)  # at the origin: u(2..3) falls back to u(1), the zeros before it
+    assert np.array_equal(buf.slice(2, 2), np.zeros((2, 1)))
+    buf.remove(4)
+    assert buf.cut_offsets == {} and buf.cuts(2, 9) is None
+    assert np.array_equal(buf.slice(2, 8), np.zeros((8, 1)))

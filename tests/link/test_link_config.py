@@ -123,9 +123,11 @@ def test_keyexpr_matching(pattern, key, expected):
 
 
 def test_default_mapping_uses_keys_module():
-    down, video, up = DEFAULT_MAPPINGS
-    assert (down.subscribe, video.subscribe, up.subscribe) == (
-        "robot/*/*/sensor/*", "robot/*/*/camera", "pd/*/*/cmd")
+    down, echo, video, up = DEFAULT_MAPPINGS
+    assert (down.subscribe, echo.subscribe, video.subscribe, up.subscribe) == (
+        "robot/*/*/sensor/*", "robot/*/*/echo", "robot/*/*/camera", "pd/*/*/cmd")
+    assert echo.direction == "downlink"
+    assert echo.map_key(keys.robot_echo_key("s1")) == keys.echo_key("s1")
     assert down.map_key(keys.robot_sensor_key("s1", "camera")) == keys.sensor_key("s1", "camera")
     assert video.map_key(keys.robot_camera_key("s1")) == keys.camera_key("s1")
     assert up.map_key(keys.command_key("s1")) == keys.robot_command_key("s1")

@@ -190,6 +190,42 @@ def test_twist_applies_at_arrival_and_twist_stamped_at_its_stamp() -> None:
     assert r.counters("s1")["commands_forwarded"] == 1 == r.counters("s2")["commands_forwarded"]
 
 
+def test_twist_is_stamped_at_receipt_not_when_the_worker_gets_to_it() -> None:
+    r = make_rig(specs=(unicycle_spec("s1"),))
+    key, tw = rmw_key("/cmd_vel", "geometry_msgs/msg/Twist"), "geometry_msgs/msg/Twist"
+    for i, lag in enumerate((2_000_000, 140_000_000)):  # the worker lags 2 ms, then 140 ms
+        r.clock.t = NOW + i * 100_000_000
+        r.t.publisher(key).put(encode(twist(0.1 * i, 0.0), tw))  # the callback: receipt
+        r.clock.t += lag
+        r.pump()
+    issued = [wire_decode(s.payload, Command).issued_ns for s in r.on(keys.command_key("s1"))]
+    assert issued == [NOW, NOW + 100_000_000]
+
+
+def test_the_robot_role_echoes_twists_on_arrival_and_answers_probes() -> None:
+    from pd_service.wire import ClockProbe, ClockProbeReply, CommandEcho
+
+    r = make_rig(BridgeSettings(role="robot"), specs=(unicycle_spec("s1"),))
+    key, tw = rmw_key("/cmd_vel", "geometry_msgs/msg/Twist"), "geometry_msgs/msg/Twist"
+    r.clock.t = NOW + 5
+    r.t.publisher(key).put(encode(twist(0.4, 0.0), tw),
+                           attachment=encode_attachment(Attachment(9, NOW, GID)))
+    r.clock.t = NOW + 2_000_000  # the worker gets to it later: the echo keeps the receipt
+    r.pump()
+    (echo,) = [wire_decode(x.payload, CommandEcho) for x in r.on(keys.echo_key("s1"))]
+    assert (echo.seq, echo.applied_ns, echo.sent_ns) == (9, NOW + 5, NOW + 2_000_000)
+    assert not r.on(keys.command_key("s1"))  # the operator-side bridge sends the Command
+    (rep,) = r.t.get(keys.robot_clock_key("s1"),
+                     payload=wire_encode(ClockProbe(session="s1", probe=2, t1_ns=7)))
+    got = wire_decode(rep.payload, ClockProbeReply)
+    assert (got.probe, got.t1_ns, got.t2_ns) == (2, 7, NOW + 2_000_000)
+    (bad,) = r.t.get(keys.robot_clock_key("s1"), payload=b"\x01")
+    assert not bad.ok
+    c = r.counters("s1")
+    assert (c["echoes_sent"], c["probes_answered"], c["probes_invalid"]) == (1, 1, 1)
+    r.bridge.close()
+
+
 # -------------------------------------------------------------------------------- outputs ---
 
 

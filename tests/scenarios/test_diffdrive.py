@@ -109,3 +109,26 @@ def test_stationary_robot_covariance_is_consistent():
     nees = np.concatenate(tails)
     assert 3.5 < nees.mean() < 7.0, nees.mean()
     assert np.quantile(nees, 0.99) < 25.0
+
+
+def test_a_command_applied_inside_a_step_flows_over_each_piece() -> None:
+    """ScenarioSim.advance(u, cuts): the robot that applies a command on arrival. A cut at
+    the step's start is the plain step under its u; a cut at d is flow(d) under u, then
+    flow(T - d) under the new one, with the same noise draw; a model without flow refuses."""
+    import pytest
+
+    sc = get_scenario("diffdrive")
+    flow, T = sc.nonlinear.flow, sc.period_s  # type: ignore[union-attr]
+    u0, u1 = np.array([0.5, 0.0]), np.array([0.4, 0.5])
+    a, b, c = ScenarioSim(sc, 3), ScenarioSim(sc, 3), ScenarioSim(sc, 3)
+    for s in (a, b, c):
+        s.x = np.array([0.1, 0.2, 0.3, 0.4, 0.1])
+    x = c.x.copy()
+    np.testing.assert_allclose(a.advance(u0, [(0.0, u1)]), b.advance(u1), rtol=0, atol=1e-12)
+    noise = a.x - flow(T)(x, u1)  # the step's noise draw, the same in every sim
+    got = c.advance(u0, [(0.007, u1)])
+    np.testing.assert_allclose(got, flow(T - 0.007)(flow(0.007)(x, u0), u1) + noise,
+                               rtol=0, atol=1e-12)
+    assert not np.allclose(got, a.x)
+    with pytest.raises(ValueError, match="cuts"):
+        ScenarioSim(get_scenario("paper"), 0).advance([0.0], [(0.01, np.zeros(1))])

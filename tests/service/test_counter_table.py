@@ -1,7 +1,8 @@
 """docs/protocol.md's counter table (section 8) names exactly the counters the daemon can emit.
 
 The set is derived from the code, not listed here: every string the daemon's modules
-(``pd_service/service/**``, ``pd_service/intake``) use as a key of a counters mapping
+(``pd_service/service/**``, ``pd_service/intake``, the replay estimator whose counters
+join the session's) use as a key of a counters mapping
 (``x.counters["name"]``, ``c["name"]`` for ``c`` bound to counters, the status' ``c``), every
 refusal reason (``Refusal("name", ...)``, whose reason is its counter), every name in a
 ``counted=(...)`` or ``counted = (...)`` tuple, the intake's outcome tuples, and the keys
@@ -20,7 +21,8 @@ from pd_service.intake import COMMAND_OUTCOMES, MEASUREMENT_OUTCOMES
 
 ROOT = Path(__file__).resolve().parents[2]
 SOURCES = sorted((ROOT / "pd_service" / "service").rglob("*.py")) + \
-    [ROOT / "pd_service" / "intake" / "__init__.py"]
+    [ROOT / "pd_service" / "intake" / "__init__.py",
+     ROOT / "pd_service" / "estimation" / "replay.py"]  # its counters join the session's
 
 #: Counter keys held in a variable: (file, the key's source text) -> the names it can hold.
 RESOLVED = {

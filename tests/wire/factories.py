@@ -9,7 +9,12 @@ from hypothesis import strategies as st
 
 from pd_service.scenarios.paper import RANGER_DELAY, paper_scenario
 from pd_service.wire import (
+    ClockProbe,
+    ClockProbeReply,
+    ClockStatus,
     Command,
+    CommandEcho,
+    DelayStatus,
     ErrorReport,
     LinearModelSpec,
     Measurement,
@@ -138,6 +143,33 @@ def session_status(**kw) -> SessionStatus:
     return SessionStatus(**base)
 
 
+def command_echo(**kw) -> CommandEcho:
+    base = dict(session="s1", seq=4, applied_ns=10_000_000_123, sent_ns=10_000_000_456)
+    base.update(kw)
+    return CommandEcho(**base)
+
+
+def clock_probe(**kw) -> ClockProbe:
+    base = dict(session="s1", probe=3, t1_ns=5_000)
+    base.update(kw)
+    return ClockProbe(**base)
+
+
+def clock_probe_reply(**kw) -> ClockProbeReply:
+    base = dict(session="s1", probe=3, t1_ns=5_000, t2_ns=10_000_005_100, t3_ns=10_000_005_120)
+    base.update(kw)
+    return ClockProbeReply(**base)
+
+
+def clocked_session_status(**kw) -> SessionStatus:
+    """A SessionStatus with the clock and delay fields of issue 43 set."""
+    return session_status(
+        clock=ClockStatus(known=True, offset_ns=10_000_000_000, uncertainty_ns=30_000,
+                          drift_ppm=100.0, age_s=0.2, steps=1, warning=""),
+        delays={"camera": DelayStatus(count=100, p50_ms=600.0, p99_ms=648.0, max_ms=650.0)},
+        recommended_max_delay=33, recommended_lead=25, late_share=0.0005, **kw)
+
+
 def service_status(**kw) -> ServiceStatus:
     base = dict(instance="pd-a", sessions=["s1", "s2"], counters={"ticks": 5},
                 latency_p50_us=30.0, latency_p99_us=99.5, uptime_s=12.25, shard="0/2")
@@ -150,6 +182,9 @@ EXAMPLES = {
     SessionSpec: paper_spec,
     Measurement: measurement,
     Command: command,
+    CommandEcho: command_echo,
+    ClockProbe: clock_probe,
+    ClockProbeReply: clock_probe_reply,
     Prediction: prediction,
     ErrorReport: error_report,
     SessionStatus: session_status,
@@ -313,21 +348,45 @@ error_reports = st.builds(
     ErrorReport, session=names, key=st.text(max_size=512), seq=st.none() | nonneg,
     reason=st.text(max_size=1024), t_ns=int64)
 
+clock_statuses = st.builds(
+    ClockStatus, known=st.booleans(), offset_ns=int64, uncertainty_ns=st.none() | int64,
+    drift_ppm=finite, age_s=st.floats(0, 1e12), steps=nonneg, warning=text)
+delay_statuses = st.builds(DelayStatus, count=nonneg, p50_ms=finite, p99_ms=finite,
+                           max_ms=finite)
+
 session_statuses = st.builds(
     SessionStatus, session=names, instance=names,
     state=st.sampled_from(["active", "restored", "expired", "removed"]), now_step=int64,
     counters=counters, published=nonneg, latency_p50_us=st.floats(0, 1e12),
-    latency_p99_us=st.floats(0, 1e12), detail=text)
+    latency_p99_us=st.floats(0, 1e12), detail=text, clock=st.none() | clock_statuses,
+    delays=st.dictionaries(names, delay_statuses, max_size=3),
+    recommended_max_delay=st.none() | nonneg, recommended_lead=st.none() | nonneg,
+    late_share=st.floats(0, 1))
 
 service_statuses = st.builds(
     ServiceStatus, instance=names, sessions=st.lists(names, max_size=20), counters=counters,
     latency_p50_us=st.floats(0, 1e12), latency_p99_us=st.floats(0, 1e12),
     uptime_s=st.floats(0, 1e12), shard=st.text(max_size=64))
 
+command_echoes = st.builds(CommandEcho, session=names, seq=nonneg, applied_ns=int64,
+                           sent_ns=st.none() | int64)
+clock_probes = st.builds(ClockProbe, session=names, probe=nonneg, t1_ns=int64)
+
+
+@st.composite
+def clock_probe_replies(draw) -> ClockProbeReply:
+    t2 = draw(int64)
+    return ClockProbeReply(session=draw(names), probe=draw(nonneg), t1_ns=draw(int64),
+                           t2_ns=t2, t3_ns=draw(st.integers(t2, INT64_MAX)))
+
+
 STRATEGIES = {
     SessionSpec: st.one_of(session_specs(), nonlinear_session_specs()),
     Measurement: measurements(),
     Command: commands(),
+    CommandEcho: command_echoes,
+    ClockProbe: clock_probes,
+    ClockProbeReply: clock_probe_replies(),
     Prediction: predictions(),
     ErrorReport: error_reports,
     SessionStatus: session_statuses,

@@ -76,8 +76,10 @@ def test_field_order_and_all_fields_on_the_wire():
     for msg_type, make in EXAMPLES.items():
         raw = msgpack.unpackb(encode(make()))
         # SessionSpec.ros2, .expire_s and .path are left off the wire when None (unset), and
-        # stamp_rounding when it is the default
-        optional = ({"ros2", "expire_s", "stamp_rounding", "path"} if msg_type is SessionSpec
+        # stamp_rounding / robot_clock / command_timing / clock_asymmetry_ns at their defaults
+        # (older specs' bytes)
+        optional = ({"ros2", "expire_s", "stamp_rounding", "path", "robot_clock",
+                     "command_timing", "clock_asymmetry_ns"} if msg_type is SessionSpec
                     else set())
         assert list(raw) == [f for f in msg_type.model_fields if f not in optional]
         assert raw["v"] == 1
@@ -96,6 +98,20 @@ def test_spec_with_ros2_topics_round_trips():
     assert "path_topic" not in raw["ros2"]["outputs"]  # the default: the bytes stay as before
     back = decode(encode(with_ros2), SessionSpec)
     assert back == with_ros2 and back.ros2 == binding
+
+
+def test_spec_with_an_estimated_robot_clock_and_echoed_commands_round_trips():
+    spec = paper_spec().model_copy(update={"robot_clock": "estimated",
+                                           "command_timing": "echoed",
+                                           "clock_asymmetry_ns": -100_000_000})
+    raw = msgpack.unpackb(encode(spec))
+    assert (raw["robot_clock"], raw["command_timing"], raw["clock_asymmetry_ns"]) == \
+        ("estimated", "echoed", -100_000_000)
+    assert decode(encode(spec), SessionSpec) == spec
+    assert not {"robot_clock", "clock_asymmetry_ns"} & set(msgpack.unpackb(encode(paper_spec())))
+    with pytest.raises(WireError):
+        decode(msgpack.packb({**spec.model_dump(), "clock_asymmetry_ns": 61 * 10**9},
+                             use_bin_type=True), SessionSpec)
 
 
 def test_encode_refuses_non_messages():

@@ -5,6 +5,12 @@ Example::
     with Robot(transport, "s1") as robot:
         robot.publish("camera", [1.2, 5.3], step=k)         # or t_ns=time.time_ns()
         robot.on_command(lambda cmd: print(cmd.step, cmd.u))  # or: for cmd in robot.commands():
+        robot.echo(cmd)              # when cmd took effect (robot clock); apply_on_arrival=True
+                                     # echoes each command as it arrives
+
+A robot answers time probes (``robot/p<k>/<session>/clock``, :class:`ClockProbe` ->
+:class:`ClockProbeReply`) on its own ``clock`` unless ``answer_probes=False``: with its echoes
+and stamps the daemon estimates the robot clock's offset (spec ``robot_clock: estimated``).
 """
 
 from __future__ import annotations
@@ -12,12 +18,22 @@ from __future__ import annotations
 import bisect
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
-from pd_service.transport import DEFAULT_SENDER_CACHE, Sample, Transport
-from pd_service.wire import Command, Measurement, SessionSpec, WireError, encode, keys
+from pd_service.transport import DEFAULT_SENDER_CACHE, Query, Sample, Transport
+from pd_service.wire import (
+    Command,
+    CommandEcho,
+    Measurement,
+    SessionSpec,
+    WireError,
+    encode,
+    keys,
+)
+from pd_service.wire.clock_probe import answer_probe
 from pd_service.wire.convert import check_measurement, command_step
 
 from ._base import ClientBase, as_array, build, session_name, try_decode
@@ -47,11 +63,19 @@ class Robot(ClientBase):
     publishers keep them): samples sent while no service ran are not lost. In direct mode
     with ``spec``, every sensor's publisher is declared at once (its cache answers empty
     until it sends); otherwise at its first sample.
+
+    ``clock``: the robot's clock (ns), for echoes and probe answers; ``apply_on_arrival``:
+    echo every command when it arrives (a robot that applies commands on arrival, as ROS
+    base controllers do); ``answer_probes``: declare the probe queryable; ``stamp_clock``
+    (emulation of an unsynchronised robot, with ``spec``): a sample published by ``step`` is
+    sent with ``t_ns = stamp_clock(spec.time_of(step))``, the robot clock's reading then.
     """
 
     def __init__(self, transport: Transport, session: str, *, spec: SessionSpec | None = None,
                  direct: bool = False, queue_size: int = 1024,
-                 cache: int = DEFAULT_SENDER_CACHE) -> None:
+                 cache: int = DEFAULT_SENDER_CACHE, clock: Callable[[], int] = time.time_ns,
+                 apply_on_arrival: bool = False, answer_probes: bool = True,
+                 stamp_clock: Callable[[int], int] | None = None) -> None:
         super().__init__(transport)
         self.cache = cache
         self.session = session_name(session, spec)
@@ -63,7 +87,16 @@ class Robot(ClientBase):
         self.commands_received = 0
         self.commands_invalid = 0
         self.published = 0
+        self.clock = clock
+        self.apply_on_arrival = apply_on_arrival
+        if stamp_clock is not None and spec is None:
+            raise InvalidMessage("stamp_clock needs the session spec (the steps' times)")
+        self.stamp_clock = stamp_clock
+        self.echoes = 0
+        self.probes_answered = 0
+        self.probes_invalid = 0
         cmd_key = keys.command_key(session) if direct else keys.robot_command_key(session)
+        self._echo_key = keys.echo_key(session) if direct else keys.robot_echo_key(session)
         self._subscribe(cmd_key, self._on_sample)
         if direct and spec is not None and cache > 0:
             # every sensor's cache present from now on, empty or not: a restarted or
@@ -71,6 +104,9 @@ class Robot(ClientBase):
             # yet would otherwise hold its first prediction for 2 x recover_timeout_s)
             for sensor in spec.sensors:
                 self._sender(self.sensor_key(sensor.name), cache)
+        if answer_probes:
+            self._handles.append(transport.queryable(keys.robot_clock_key(self.session),
+                                                     self._on_probe))
 
     # --- measurements ------------------------------------------------------------------
 
@@ -90,6 +126,10 @@ class Robot(ClientBase):
             key = self.sensor_key(sensor)
         except keys.KeyError_ as exc:
             raise InvalidMessage(str(exc)) from None
+        if self.stamp_clock is not None and step is not None and t_ns is None:
+            assert self.spec is not None
+            t_ns = self.stamp_clock(self.spec.time_of(step))
+            step = None
         fields: dict[str, object] = {"session": self.session, "sensor": sensor,
                         "seq": self._seq.get(sensor, 0), "step": step, "t_ns": t_ns,
                         "z": as_array(z, "z", 1)}
@@ -126,11 +166,14 @@ class Robot(ClientBase):
     def _on_sample(self, sample: Sample) -> None:
         if sample.kind != "put":
             return
+        arrived = self.clock()
         cmd = try_decode(sample, Command)
         if cmd is None or cmd.session != self.session:
             self.commands_invalid += 1
             return
         self.commands_received += 1
+        if self.apply_on_arrival:
+            self.echo(cmd, arrived)
         self._inbox.push(cmd)
         for cb in list(self._callbacks):
             try:
@@ -167,6 +210,32 @@ class Robot(ClientBase):
         if self.spec is None:
             raise InvalidMessage("a command stamped with issued_ns needs the session spec")
         return command_step(cmd, self.spec)
+
+    # --- echoes and probes (the daemon's view of the robot's time) ----------------------
+
+    def echo(self, cmd: Command, applied_ns: int | None = None) -> CommandEcho:
+        """Tell the daemon that ``cmd`` took effect at ``applied_ns`` (the robot's clock;
+        default: now), on ``robot/p<k>/<session>/echo``."""
+        sent = self.clock()
+        msg = build(CommandEcho, session=self.session, seq=cmd.seq,
+                    applied_ns=sent if applied_ns is None else applied_ns, sent_ns=sent)
+        self._sender(self._echo_key, 0).put(encode(msg))
+        self.echoes += 1
+        return msg
+
+    def _on_probe(self, query: Query) -> None:
+        t2 = self.clock()  # first: the probe's receipt
+        try:
+            reply = answer_probe(query.payload, self.session, t2, self.clock())
+        except WireError as exc:
+            self.probes_invalid += 1
+            query.reply_err(f"not a ClockProbe of {self.session}: {exc.reason}"[:512].encode())
+            return
+        try:
+            query.reply(keys.robot_clock_key(self.session), encode(reply))
+            self.probes_answered += 1
+        except Exception as exc:  # the query may have been dropped meanwhile
+            log.debug("probe reply failed: %s", exc)
 
     def close(self) -> None:
         self._inbox.close()

@@ -336,6 +336,31 @@ def test_spec_from_a_config_put_and_from_a_query(feed) -> None:
     assert f.invalid == 1 and f.views["man"].spec == spec
 
 
+def test_a_robot_clock_warning_from_the_daemon_joins_the_session_warnings(feed) -> None:
+    from pd_service.wire import ClockStatus, SessionStatus
+
+    f, t, out, clock = feed
+    spec = get_scenario("paper").spec("bot", EPOCH).model_copy(update={"robot_clock": "estimated"})
+    t.put(keys.config_key("bot"), encode(spec))
+    warning = ["robot clock offset jumped"]
+
+    def answer(q) -> None:
+        st = SessionStatus(session="bot", instance="a", state="active", now_step=5, published=1,
+                           latency_p50_us=1.0, latency_p99_us=2.0,
+                           clock=ClockStatus(known=True, offset_ns=10, uncertainty_ns=5,
+                                             drift_ppm=0.0, age_s=0.1, steps=1,
+                                             warning=warning[0]))
+        q.reply(keys.status_key("bot"), encode(st))
+
+    t.queryable(keys.status_key("bot"), answer)
+    f.poll_status(timeout=0.1)
+    tick = json.loads(f.tick())
+    assert "clock: robot clock offset jumped" in [w for w, _ in tick["sessions"]["bot"]["warn"]]
+    warning[0] = ""
+    f.poll_status(timeout=0.1)
+    assert not any("clock" in w for w, _ in json.loads(f.tick())["sessions"]["bot"]["warn"])
+
+
 # --- serving many pages ----------------------------------------------------------------------
 
 _RECEIVED: dict[int, int] = {}

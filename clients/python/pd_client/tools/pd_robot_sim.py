@@ -33,6 +33,11 @@ is a ROS message (CDR, rmw_zenoh attachment, header.stamp = the step's time) on
 ``--namespace``, and Twist commands on ``robot/<cmd_vel key>`` apply from the step they
 arrive in (see docs/ros2.md). The truth stays native.
 
+An unsynchronised robot (issue 43): ``--clock-offset-s``, ``--clock-drift-ppm`` and
+``--clock-step AT_S:SIZE_S`` give the robot a clock of its own (:mod:`.robot_clock`): its
+samples are stamped with ``t_ns`` on it, its echoes and probe answers read it;
+``--apply-on-arrival`` applies each command in the step it arrives in and echoes it.
+
 Several ``--session NAME[:sensor,...]`` run the same robot (same truth and samples) for
 several sessions, each with its own sensor subset. ``--create-session`` puts the sessions'
 SessionSpecs (epoch = now, once the service answers) and answers spec queries while
@@ -73,6 +78,7 @@ from ..admin import Admin
 from ..errors import PdClientError
 from ..robot import CommandSchedule, Robot
 from . import common
+from .robot_clock import RobotClock, add_clock_flags, clock_from_args
 from .web_feed import position_layout
 
 if TYPE_CHECKING:
@@ -109,7 +115,8 @@ class RobotSim:
                  *, seed: int | None = 0, direct: bool = False,
                  ros2: Ros2Options | None = None,
                  clock: Callable[[], int] = time.time_ns, camera_every: int = 0,
-                 camera_view: str = "top") -> None:
+                 camera_view: str = "top", robot_clock: RobotClock | None = None,
+                 apply_on_arrival: bool = False) -> None:
         if not specs:
             raise ValueError("specs: at least one session is required")
         names = list(scenario.state_names)
@@ -168,7 +175,9 @@ class RobotSim:
         self.sessions: list[SimSession] = []
         try:
             for spec in specs:
-                robot = Robot(transport, spec.session, spec=spec, direct=direct)
+                robot = Robot(transport, spec.session, spec=spec, direct=direct,
+                              clock=robot_clock or clock, apply_on_arrival=apply_on_arrival,
+                              stamp_clock=robot_clock.at if robot_clock else None)
                 self.sessions.append(SimSession(spec, {s.name for s in spec.sensors}, robot))
         except BaseException:
             self.close()
@@ -199,8 +208,10 @@ class RobotSim:
         return self.sessions[0].spec
 
     def _on_command(self, cmd: Command) -> None:
-        try:
-            step = self.sessions[0].robot.apply_step(cmd)
+        robot = self.sessions[0].robot
+        try:  # on arrival: in force from the step it arrives in (the session's clock)
+            step = (max(0, self.spec.step_of(self._clock())) if robot.apply_on_arrival
+                    else robot.apply_step(cmd))
             self.schedule.add(step, cmd.u)
         except (PdClientError, ValueError) as exc:
             self.commands_invalid += 1
@@ -345,6 +356,7 @@ def _add_flags(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--camera-view", default="top", choices=("top", "chase"),
                     help="the camera: top (a top-down view following the robot, default) or "
                          "chase (a perspective camera on the robot, behind and above it)")
+    add_clock_flags(ap)
     ap.add_argument("--direct", action="store_true",
                     help="publish on the service's keys (no link emulator in between)")
     common.add_ros2_args(ap, "be a ROS 2 robot in rmw_zenoh's format (needs the ros2 extra and a "
@@ -397,7 +409,8 @@ def _run(args: argparse.Namespace, scenario: Scenario,
         try:
             sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct,
                            camera_every=args.camera, camera_view=args.camera_view,
-                           ros2=ros2)
+                           ros2=ros2, robot_clock=clock_from_args(args),
+                           apply_on_arrival=args.apply_on_arrival)
         except ValueError as exc:
             return common.fail(TOOL, exc, 2)
         try:

@@ -140,6 +140,10 @@ class FeedSession:
         self.sensor_seen: dict[str, float] = {}  # monotonic s of the newest sample
         self.cmd: Json | None = None
         self.last_pred: float | None = None  # monotonic s
+        #: The daemon's robot clock warning (SessionStatus.clock; robot_clock "estimated"
+        #: sessions only, polled with the status): "" none.
+        self.clock_warning = ""
+        self.clock_warning_since = 0.0  # monotonic s at which it was first reported
         self.predictions = 0
         self.stale_term = 0  # predictions of an older ownership term, dropped
         self.history: deque[tuple[int, bytes]] = deque(maxlen=HISTORY)  # (event id, JSON)
@@ -351,6 +355,8 @@ class FeedSession:
             ages[s] = mono - seen
             if ages[s] > max(stale_s, 3 * interval * period):
                 warn.append((f"sensor {s} silent", ages[s]))
+        if self.clock_warning:
+            warn.append((self.clock_warning, mono - self.clock_warning_since))
         return pred_age, ages, warn
 
 
@@ -508,7 +514,9 @@ class LiveFeed:
     def poll_status(self, timeout: float = 0.5) -> None:
         """Sessions the daemons report (ServiceStatus), and the specs of the sessions seen
         that were not put while this feed listened (queried on ``pd/p<k>/<s>/config``: the daemon
-        answers them; at most every 10 s per session)."""
+        answers them; at most every 10 s per session); for sessions whose robot clock is
+        estimated, their SessionStatus: its clock warning (unknown, one-sided, stale, jumped)
+        joins the session's warnings."""
         try:
             reported = sorted({s for st in self.admin.service_status(timeout=timeout)
                                for s in st.sessions})
@@ -531,6 +539,22 @@ class LiveFeed:
             if spec is not None:
                 with self.lock:
                     self._view(s).spec = spec
+        with self.lock:
+            clocked = [n for n, v in self.views.items()
+                       if v.spec is not None and v.spec.robot_clock == "estimated"]
+        for s in clocked:  # the daemon's view of the robot's clock: a warning when unsure
+            try:
+                st = self.admin.status(s, timeout=timeout)
+            except PdClientError:
+                continue
+            text = ""
+            if st.clock is not None and st.clock.warning:
+                text = f"clock: {st.clock.warning}"
+            with self.lock:
+                v = self._view(s)
+                if text and not v.clock_warning:
+                    v.clock_warning_since = self._mono()
+                v.clock_warning = text
 
     def tick(self) -> bytes:
         """The ``tick`` event's JSON: sessions (reported and seen) and their warnings."""

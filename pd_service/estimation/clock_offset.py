@@ -1,0 +1,433 @@
+"""The offset and drift of a robot's clock against the daemon's, from timestamps alone.
+
+Offset ``theta(t) = robot clock - daemon clock`` at daemon time t, modelled over the current
+anchor as a line ``theta(t) = a + b t`` (b: the drift, s/s; 1e-4 = 100 ppm). Every stamp pair
+bounds it, because a message never arrives before it was sent (delays d >= 0):
+
+- a probe (NTP-style quadruple: t1 daemon sends, t2 robot receives, t3 robot answers, t4
+  daemon receives) gives ``theta <= t2 - t1`` (upper: ``t2 - t1 = theta + d_up``) and
+  ``theta >= t3 - t4`` (lower: ``t3 - t4 = theta - d_down``);
+- a one-way robot stamp s received at r (a measurement, an echo's own send) gives
+  ``theta >= s - r`` (lower);
+- a command issued at i (daemon) that the robot reports applied at a (robot clock) gives
+  ``theta <= a - i`` (upper).
+
+Estimate (the convex-hull / lower-envelope method of clock synchronisation): the drift b is
+the slope of the tightest line above the lower bounds (the upper convex hull's edge over their
+mean time, which minimises the summed gaps: the linear programme of one-way delay skew
+estimation) and of the tightest line below the upper bounds, averaged; then with
+``L = max(l_i - b t_i)`` and ``U = min(u_i - b t_i)`` the offset is
+``theta(t) = (L + U) / 2 - asymmetry / 2 + b t`` and its uncertainty the half-width
+``(U - L) / 2 + max_drift * age`` (age: seconds since the newest bound; the bound grows while
+probes stop). Bounds are kept per time bucket (the tightest of each kind per ``bucket_s``):
+bounded memory, a long span for the drift, whatever the sample rate.
+
+What is identifiable: ``U - L`` shrinks to ``d_up_min + d_down_min`` (the fastest delays seen
+each way), and the midpoint is off by ``(d_up_min - d_down_min) / 2``. A *constant* asymmetry
+of the delays cannot be seen in timestamps at all (shifting theta by c and the delays by
++c / -c gives the same stamps): it stays in the estimate unless configured (``asymmetry_s``
+= expected ``d_up - d_down``). Jitter only widens the delays' spread; the envelopes take the
+fastest, so it costs only time. With lower bounds alone (no probes, no echoes) theta is only
+bounded below: the estimate is that bound (a robot stamp mapped with it is never later than
+its receipt) and the uncertainty infinite.
+
+Step changes (an NTP correction on the robot): a bound outside the current band by more than
+the tolerance is held aside (``inconsistent``); ``confirm`` of them in a row re-anchor the
+estimate on them (``steps``). A step inside the band is seen when the newest ``recent``
+buckets' envelopes both moved the same way, by more than ``step_k`` times their own spread,
+against the (at most 16) buckets before them: the older buckets are dropped. Pure numpy, no
+clock reads: every time is passed in (ns, int).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+
+from .tally import Tally
+
+_NS: Final = 1e-9
+#: Buckets left out between the old and the recent set of the in-band step test, and the
+#: most buckets of the old set it looks at.
+_GUARD: Final = 2
+_OLD: Final = 16
+#: What :meth:`ClockOffsetEstimator.counters` may hold, by outcome.
+CLOCK_COUNTERS: Final = ("bounds", "probes", "probes_invalid", "implausible", "inconsistent",
+                         "steps")
+
+
+@dataclass(frozen=True)
+class OffsetEstimate:
+    """The robot clock's offset at daemon time ``t_ns``: ``offset_s`` (robot - daemon, s),
+    ``drift`` (s/s), ``half_width_s`` (theta lies within offset +- half_width if the delays are
+    >= 0, the asymmetry as configured and the drift within max_drift; inf: unbounded above),
+    ``lower_s`` / ``upper_s`` (the band, s), ``age_s`` (since the newest bound), ``steps``
+    (step changes detected so far), ``known`` (False: no bound yet, offset 0)."""
+
+    t_ns: int
+    offset_s: float
+    drift: float
+    half_width_s: float
+    lower_s: float
+    upper_s: float
+    age_s: float
+    steps: int
+    known: bool
+
+    def to_daemon_ns(self, robot_ns: int) -> int:
+        """A robot stamp on the daemon's timeline: ``robot_ns - theta`` (theta at
+        ``robot_ns``'s own daemon time, to first order)."""
+        t = (robot_ns - self.t_ns) * _NS - self.offset_s
+        theta = self.offset_s + self.drift * t
+        return robot_ns - round(theta * 1e9)
+
+
+@dataclass(slots=True)
+class _Bucket:
+    """The tightest bounds seen in one time bucket (s since the anchor; -inf/inf: none)."""
+
+    index: int
+    lo: float = -np.inf  # max lower bound value
+    t_lo: float = 0.0
+    hi: float = np.inf  # min upper bound value
+    t_hi: float = 0.0
+
+
+def _span(t: np.ndarray) -> float:
+    return float(t.max() - t.min()) if t.size else 0.0
+
+
+def hull_slope(t: np.ndarray, v: np.ndarray, above: bool) -> float | None:
+    """Slope of the line above (``above``) or below all points (t_i, v_i) with the least
+    summed gap: the edge of the upper (lower) convex hull over mean(t). None for fewer than
+    two distinct times. Shapes: t, v (n,)."""
+    if t.size < 2 or float(t.max() - t.min()) <= 0.0:
+        return None
+    order = np.lexsort((v if not above else -v, t))
+    ts, vs = t[order].tolist(), v[order].tolist()
+    sign = 1.0 if above else -1.0
+    hull: list[tuple[float, float]] = []
+    for p in zip(ts, vs, strict=True):
+        if hull and hull[-1][0] == p[0]:
+            continue  # same time: the first kept is the tightest (sorted so)
+        # monotone chain: pop while the turn keeps the hull convex on the wanted side
+        while len(hull) >= 2:
+            (x1, y1), (x2, y2) = hull[-2], hull[-1]
+            cross = (x2 - x1) * (p[1] - y1) - (y2 - y1) * (p[0] - x1)
+            if sign * cross >= 0.0:
+                hull.pop()
+            else:
+                break
+        hull.append(p)
+    if len(hull) < 2:
+        return None
+    mean_t = float(np.mean(t))
+    for (x1, y1), (x2, y2) in zip(hull, hull[1:], strict=False):
+        if x2 >= mean_t:
+            return (y2 - y1) / (x2 - x1)
+    (x1, y1), (x2, y2) = hull[-2], hull[-1]
+    return (y2 - y1) / (x2 - x1)
+
+
+class ClockOffsetEstimator:
+    """Offset and drift of one robot clock (see the module docstring).
+
+    Parameters: ``bucket_s`` time bucket of the bounds kept (s); ``buckets`` how many are kept
+    (memory: ``buckets`` x 4 floats); ``max_drift`` the drift bound (s/s) that clips the drift
+    estimate and grows the uncertainty while no bound comes; ``asymmetry_s`` the expected
+    ``d_up - d_down`` (s; 0: symmetric, the unidentifiable part); ``tolerance_s`` how far
+    outside the band a bound may fall before it is held aside; ``confirm`` inconsistent bounds
+    in a row that re-anchor (a step); ``recent`` / ``step_k`` the in-band step test;
+    ``max_offset_s`` an offset beyond which a bound is refused as implausible; ``max_rtt_s``
+    a probe's longest round trip accepted; ``drift_span_s`` the shortest span of bounds the
+    drift is fitted on (shorter, e.g. just after a step: the previous drift is kept, as a
+    slope over a short span would be mostly jitter, unless the band it gives is inverted);
+    ``refit_s`` the least time (s of bounds) between two fits of the drift and in-band step
+    tests (each O(``buckets``); between them each bound moves the band in O(1)).
+    """
+
+    def __init__(self, *, bucket_s: float = 0.25, buckets: int = 1200, max_drift: float = 5e-4,
+                 asymmetry_s: float = 0.0, tolerance_s: float = 1e-3, confirm: int = 4,
+                 recent: int = 6, step_k: float = 3.0, min_step_s: float = 1e-3,
+                 max_offset_s: float = 1e8, max_rtt_s: float = 30.0,
+                 drift_span_s: float = 2.0, refit_s: float = 1.0) -> None:
+        if not (bucket_s > 0 and buckets >= 2 * recent and recent >= 2 and confirm >= 1
+                and max_drift >= 0 and tolerance_s >= 0 and step_k > 0 and max_rtt_s > 0):
+            raise ValueError("clock offset estimator: bucket_s > 0, buckets >= 2 recent, "
+                             "recent >= 2, confirm >= 1, max_drift, tolerance_s >= 0, "
+                             "step_k, max_rtt_s > 0")
+        self.bucket_s = bucket_s
+        self.max_drift = max_drift
+        self.asymmetry_s = asymmetry_s
+        self.tolerance_s = tolerance_s
+        self.confirm = confirm
+        self.recent = recent
+        self.step_k = step_k
+        self.min_step_s = min_step_s
+        self.max_offset_s = max_offset_s
+        self.max_rtt_ns = int(max_rtt_s * 1e9)
+        self.drift_span_s = drift_span_s
+        self.refit_s = refit_s
+        self._refitted = -np.inf  # s since the anchor of the last full refit
+        self._buckets: deque[_Bucket] = deque(maxlen=buckets)
+        self._anchor_ns: int | None = None
+        self._drift = 0.0
+        self._drift_fitted = False  # over drift_span_s at least (else: +-max_drift unknown)
+        self._band: tuple[float, float] = (-np.inf, np.inf)  # L, U detrended (s)
+        self._newest = -np.inf  # s since the anchor of the newest bound
+        # bounds outside the band, held until confirmed (a step) or contradicted
+        self._pending_lo: list[tuple[float, float]] = []
+        self._pending_hi: list[tuple[float, float]] = []
+        self.counters = Tally({k: 0 for k in CLOCK_COUNTERS})
+        #: Size (s) of the last step change detected (robot clock moved by it), 0.0 before.
+        self.last_step_s = 0.0
+
+    # --- input ---------------------------------------------------------------------------
+
+    def add_probe(self, t1_ns: int, t2_ns: int, t3_ns: int, t4_ns: int) -> str | None:
+        """One probe's quadruple (t1, t4 daemon clock; t2, t3 robot clock; ns). None if used,
+        else the counter it was refused under ("probes_invalid": t4 < t1, t3 < t2, or a
+        round trip over max_rtt; "implausible", "inconsistent" as :meth:`add_lower`)."""
+        rtt = (t4_ns - t1_ns) - (t3_ns - t2_ns)
+        if t4_ns < t1_ns or t3_ns < t2_ns or rtt < 0 or rtt > self.max_rtt_ns:
+            self.counters["probes_invalid"] += 1
+            return "probes_invalid"
+        self.counters["probes"] += 1
+        a = self.add_upper(self._event_ns(t2_ns, t1_ns, t4_ns), t2_ns - t1_ns)
+        b = self.add_lower(self._event_ns(t3_ns, t1_ns, t4_ns), t3_ns - t4_ns)
+        return a or b
+
+    def add_one_way(self, robot_ns: int, recv_ns: int) -> str | None:
+        """A robot stamp ``robot_ns`` received at daemon time ``recv_ns``: theta >= s - r."""
+        return self.add_lower(self._event_ns(robot_ns, None, recv_ns), robot_ns - recv_ns)
+
+    def add_echo(self, issued_ns: int, applied_ns: int) -> str | None:
+        """A command issued (sent) at daemon time ``issued_ns`` and applied at robot time
+        ``applied_ns``: theta <= applied - issued."""
+        return self.add_upper(self._event_ns(applied_ns, issued_ns, None),
+                              applied_ns - issued_ns)
+
+    def add_lower(self, t_ns: int, value_ns: int) -> str | None:
+        """theta(t) >= value (ns), t the daemon time of the robot's event. None if used, else
+        "implausible" (|value| beyond max_offset_s) or "inconsistent" (above the band: held
+        aside, a step if confirmed)."""
+        return self._add(t_ns, value_ns, True)
+
+    def add_upper(self, t_ns: int, value_ns: int) -> str | None:
+        """theta(t) <= value (ns); outcomes as :meth:`add_lower`."""
+        return self._add(t_ns, value_ns, False)
+
+    def _event_ns(self, robot_ns: int, after_ns: int | None, before_ns: int | None) -> int:
+        """The daemon time of a robot event stamped ``robot_ns``, mapped with the current
+        estimate and kept within what the exchange bounds it to (sent ``after_ns``, received
+        ``before_ns``); the bounds of one robot event then share a time bucket whichever way
+        they travelled (the in-band step test compares buckets)."""
+        ref = before_ns if before_ns is not None else after_ns
+        assert ref is not None
+        theta = self.estimate_at((ref - self._anchor_ns) * _NS) if self._anchor_ns is not None \
+            else float("nan")
+        t = robot_ns - round(theta * 1e9) if np.isfinite(theta) else ref
+        if after_ns is not None:
+            t = max(t, after_ns)
+        if before_ns is not None:
+            t = min(t, before_ns)
+        return t
+
+    def _add(self, t_ns: int, value_ns: int, lower: bool) -> str | None:
+        if abs(value_ns) * _NS > self.max_offset_s:
+            self.counters["implausible"] += 1
+            return "implausible"
+        if self._anchor_ns is None:
+            self._anchor_ns = t_ns
+        t = (t_ns - self._anchor_ns) * _NS
+        v = value_ns * _NS
+        d = v - self._drift * t  # detrended
+        lo, hi = self._band
+        tol = self.tolerance_s
+        if lower and d > hi + tol:
+            return self._hold(self._pending_lo, t, v)
+        if not lower and d < lo - tol:
+            return self._hold(self._pending_hi, t, v)
+        (self._pending_lo if lower else self._pending_hi).clear()
+        opened = self._buckets[-1].index if self._buckets else None
+        if not self._store(t, v, lower):  # most bounds are not their bucket's tightest
+            return None
+        # the band follows each bound at once (O(1)); the hulls (the drift), O(buckets), are
+        # fitted when a bucket is opened and refit_s has passed, or when the band inverts
+        # (the drift is off); the step test, O(recent), at every bucket opened
+        if lower:
+            lo = max(lo, d)
+        else:
+            hi = min(hi, d)
+        self._band = (lo, hi)
+        if lo > hi + tol or (self._buckets[-1].index != opened
+                             and t - self._refitted >= self.refit_s):
+            self._refitted = t
+            self._refit()
+        if self._buckets[-1].index != opened:
+            self._step_inside_band()
+        return None
+
+    def _hold(self, pending: list[tuple[float, float]], t: float, v: float) -> str | None:
+        self.counters["inconsistent"] += 1
+        pending.append((t, v))
+        if len(pending) < self.confirm:
+            return "inconsistent"
+        # a step: keep only what came since the first held bound, then the held ones
+        first = pending[0][0]
+        lower = pending is self._pending_lo
+        held = list(pending)
+        self._pending_lo.clear()
+        self._pending_hi.clear()
+        old = self.estimate_at(first)
+        self._drop_before(first)
+        for tp, vp in held:
+            self._store(tp, vp, lower)
+        self._refit()
+        self._note_step(old)
+        return None
+
+    def _store(self, t: float, v: float, lower: bool) -> bool:
+        """Keep the bound if it is its bucket's tightest; True iff it changed a bucket."""
+        self.counters["bounds"] += 1
+        self._newest = max(self._newest, t)
+        index = math.floor(t / self.bucket_s)
+        bs = self._buckets
+        if not bs or bs[-1].index < index:
+            bs.append(_Bucket(index))
+            b = bs[-1]
+        else:  # late or same bucket: find it (rare: the newest buckets first)
+            b = next((x for x in reversed(bs) if x.index == index), None)  # type: ignore[assignment]
+            if b is None:
+                if index < bs[0].index:
+                    if len(bs) == bs.maxlen:
+                        return False  # older than everything kept, and no room
+                    b = _Bucket(index)
+                    bs.appendleft(b)
+                else:
+                    b = _Bucket(index)
+                    pos = next(i for i, x in enumerate(bs) if x.index > index)
+                    bs.insert(pos, b)
+        if lower and v > b.lo:
+            b.lo, b.t_lo = v, t
+            return True
+        if not lower and v < b.hi:
+            b.hi, b.t_hi = v, t
+            return True
+        return False
+
+    def _drop_before(self, t: float) -> None:
+        index = int(np.floor(t / self.bucket_s))
+        bs = self._buckets
+        while bs and bs[0].index < index:
+            bs.popleft()
+        if bs and bs[0].index == index:  # the step's own bucket: its bounds predate it
+            bs.popleft()
+
+    # --- the fit -------------------------------------------------------------------------
+
+    def _arrays(self, buckets: list[_Bucket] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        bs = list(self._buckets) if buckets is None else buckets
+        tl = np.array([b.t_lo for b in bs if b.lo > -np.inf])
+        vl = np.array([b.lo for b in bs if b.lo > -np.inf])
+        th = np.array([b.t_hi for b in bs if b.hi < np.inf])
+        vh = np.array([b.hi for b in bs if b.hi < np.inf])
+        return tl, vl, th, vh
+
+    def _refit(self) -> None:
+        tl, vl, th, vh = self._arrays()
+        for span in (self.drift_span_s, 0.0):  # a short span only if the band is inverted
+            slopes = [s for s in (hull_slope(tl, vl, True) if _span(tl) >= span else None,
+                                  hull_slope(th, vh, False) if _span(th) >= span else None)
+                      if s is not None]
+            if slopes:
+                self._drift = float(np.clip(np.mean(slopes), -self.max_drift, self.max_drift))
+            self._drift_fitted = bool(slopes) and span > 0.0
+            b = self._drift
+            lo = float(np.max(vl - b * tl)) if vl.size else -np.inf
+            hi = float(np.min(vh - b * th)) if vh.size else np.inf
+            self._band = (lo, hi)
+            if lo <= hi:
+                return
+
+    def _step_inside_band(self) -> None:
+        """The in-band step test (module docstring): the newest ``recent`` buckets holding
+        both kinds against the :data:`_OLD` before them (a bounded look back: the test runs
+        at every bucket opened; the step's drop of the older buckets is what a refit sees)."""
+        kept = self._buckets
+        bs = list(itertools.islice(kept, max(0, len(kept) - 2 * self.recent - _GUARD - _OLD),
+                                   None))
+        both = [i for i, b in enumerate(bs) if b.lo > -np.inf and b.hi < np.inf]
+        n = self.recent
+        if len(both) < 2 * n + _GUARD:
+            return
+        split = both[-n]
+        # a guard between the two sets: one robot event's bounds may fall a bucket or two
+        # apart (mapped with an estimate off by up to its half-width)
+        old, new = bs[:max(0, split - _GUARD)], bs[split:]
+        b = self._drift
+        tl, vl, th, vh = self._arrays(new)
+        ol, vol, oh, voh = self._arrays(old)
+        if ol.size < n or oh.size < n:
+            return
+        rl, rh = vl - b * tl, vh - b * th
+        old_l, old_h = float(np.max(vol - b * ol)), float(np.min(voh - b * oh))
+        d_lo, d_hi = float(rl.max()) - old_l, float(rh.min()) - old_h
+        spread = float(np.median(np.concatenate([rl.max() - rl, rh - rh.min()])))
+        thr = max(self.min_step_s, self.step_k * spread)
+        if d_lo * d_hi > 0 and min(abs(d_lo), abs(d_hi)) > thr:
+            before = self.estimate_at(bs[split].t_lo if bs[split].lo > -np.inf else 0.0)
+            for _ in range(len(kept) - (len(bs) - split)):
+                kept.popleft()
+            self._refit()
+            self._note_step(before)
+
+    def _note_step(self, before: float) -> None:
+        self.counters["steps"] += 1
+        after = self.estimate_at(self._newest)
+        if np.isfinite(before) and np.isfinite(after):
+            self.last_step_s = after - before
+
+    def _oldest(self) -> float:
+        b = self._buckets[0]
+        return min(x for x in (b.t_lo if b.lo > -np.inf else np.inf,
+                               b.t_hi if b.hi < np.inf else np.inf))
+
+    def estimate_at(self, t: float) -> float:
+        """The offset (s) at ``t`` s since the anchor (nan when unknown)."""
+        lo, hi = self._band
+        if hi < np.inf and lo > -np.inf:
+            mid = 0.5 * (lo + hi) - 0.5 * self.asymmetry_s
+        elif lo > -np.inf:
+            mid = lo
+        elif hi < np.inf:
+            mid = hi
+        else:
+            return float("nan")
+        return mid + self._drift * t
+
+    # --- output --------------------------------------------------------------------------
+
+    def estimate(self, now_ns: int) -> OffsetEstimate:
+        """The estimate at daemon time ``now_ns`` (ns)."""
+        steps = self.counters["steps"]
+        if self._anchor_ns is None or not self._buckets:
+            return OffsetEstimate(now_ns, 0.0, 0.0, np.inf, -np.inf, np.inf, np.inf, steps, False)
+        t = (now_ns - self._anchor_ns) * _NS
+        b = self._drift
+        lo, hi = self._band
+        age = max(0.0, t - self._newest)
+        grow = self.max_drift * age
+        offset = self.estimate_at(t)
+        lower, upper = lo + b * t - grow, hi + b * t + grow
+        if not self._drift_fitted:  # the drift is unknown to within max_drift over the data
+            grow += self.max_drift * max(0.0, t - self._oldest())
+        # an inverted band (bounds that contradict each other by x): x is the uncertainty
+        half = 0.5 * abs(hi - lo) + grow if hi < np.inf and lo > -np.inf else np.inf
+        return OffsetEstimate(now_ns, offset, b, half, lower, upper, age, steps, True)
