@@ -290,7 +290,11 @@ def allowed_users(message: str, flow: str, key: str) -> set[str]:
     ("put", "ingress", "pd/paper/error", {"service"}),
     ("put", "egress", "pd/paper/error", {"admin", "operator"}),
     ("put", "ingress", "pd/paper/cmd", set()),
-    ("put", "ingress", "pd/paper/sensor/camera", set()),
+    # the links' pd/*/*/camera (frames after the downlink) also matches a layout-1 sensor
+    # named "camera" (chunk wildcards cannot tell p<k>/<s> from <s>/sensor); no layout-2
+    # party subscribes to layout-1 sensor keys, and only links (every session's relay) may
+    ("put", "ingress", "pd/paper/sensor/camera", {"link"}),
+    ("put", "ingress", "pd/paper/sensor/gps", set()),
     ("put", "ingress", "robot/paper/sensor/camera", set()),
     ("put", "egress", "pd/paper/prediction", set()),
 ])

@@ -32,9 +32,9 @@ def test_lichtblick_reads_every_flattened_message_schema() -> None:
     raw = {n.removesuffix(".json"): s for n, s in schemas().items()}
     before = lichtblick(raw)
     refused = sorted(n for n, r in before.items() if "error" in r)
-    assert refused == ["CameraFrame", "Command", "ErrorReport", "Measurement", "PredictedPath", "Prediction",
-                       "SessionSpec",
-                       "SessionState", "SessionStatus"]  # issue 45's finding, reproduced
+    assert refused == ["CameraFrame", "Command", "CommandEcho", "ErrorReport", "Measurement",
+                       "PredictedPath", "Prediction", "SessionSpec", "SessionState",
+                       "SessionStatus"]  # issue 45's finding, reproduced
     after = lichtblick({n: flat_schema(s) for n, s in raw.items()})
     assert {n: r.get("error") for n, r in after.items()} == dict.fromkeys(raw)
     for n, s in raw.items():
