@@ -864,7 +864,9 @@ def _soak_rows(daemon, t, traffic, feed_procs: Feeders, minutes: float, every_s:
                    "accepted": None if st is None else st.counters.get("accepted", 0),
                    "late_total": None if st is None else st.counters.get("late_total", 0),
                    "feed_steps": traffic.steps_sent + fed["steps"],
-                   "feed_skipped": traffic.steps_skipped + fed["skipped"]}
+                   "feed_skipped": traffic.steps_skipped + fed["skipped"],
+                   "heap_returned_mb": None if st is None else round(
+                       st.counters.get("heap_returned_bytes", 0) / 2**20, 1)}
             samples.append(row)
             print("  ".join(f"{k}={v}" for k, v in row.items()), flush=True)
 

@@ -5,8 +5,9 @@ Threads:
 - Zenoh's own threads run the callbacks (they only append to inboxes) and the queryables;
 - one worker thread runs :meth:`ServiceCore.run_once` whenever woken by a callback or when
   the next tick / expiry check is due;
-- the main thread waits for SIGTERM / SIGINT, then stops the worker, withdraws the liveliness
-  token (peers take over at once), undeclares everything and closes the session.
+- the main thread waits for SIGTERM / SIGINT, returning the C heap's free pages once a minute
+  (:mod:`.heap`), then stops the worker, withdraws the liveliness token (peers take over at
+  once), undeclares everything and closes the session.
 
 Specs are persisted as they change, so there is nothing else to flush at shutdown.
 """
@@ -28,10 +29,14 @@ from pd_service.transport import Transport
 from .config import Settings
 from .core import ServiceCore
 from .handover.checkpoint_writer import CheckpointWriter
+from .heap import TRIM_INTERVAL_S, return_free_heap
 from .scrape import collect
 from .spec_store import SpecStore
 
 log = logging.getLogger(LOGGER_NAME)
+
+#: Free heap handed back that is worth a log line (bytes).
+_TRIM_LOGGED_BYTES = 16 << 20
 
 #: Longest the worker sleeps without a wake-up (s): bounds the reaction to a stop request.
 _MAX_SLEEP_S = 0.5
@@ -81,6 +86,8 @@ class Daemon:
         # checkpoints are written by a thread of their own: the worker never waits for fsync
         self.core.keeper.writer = CheckpointWriter(store)
         self.core.start()
+        # inserted before the worker runs: trim_heap (main thread) then adds no key under it
+        self.core.counters["heap_trims"] = self.core.counters["heap_returned_bytes"] = 0
         tune_gc()
         if self.settings.metrics:
             core = self.core
@@ -159,6 +166,21 @@ class Daemon:
             except Exception:  # pragma: no cover
                 log.exception("transport close failed")
 
+    def trim_heap(self) -> None:
+        """Return the C heap's free pages (:mod:`.heap`); counted ``heap_trims`` and
+        ``heap_returned_bytes``, logged ``event=heap_returned`` when 16 MB or more."""
+        got = return_free_heap()
+        if got is None or self.core is None:
+            return
+        before, after = got
+        freed = max(0, before - after)
+        counters = self.core.counters
+        counters["heap_trims"] += 1
+        counters["heap_returned_bytes"] += freed
+        if freed >= _TRIM_LOGGED_BYTES:
+            event(log, "heap_returned", mb=round(freed / 2**20, 1),
+                  rss_mb=round(after / 2**20, 1))
+
     def run_forever(self) -> int:
         """Start, serve until SIGTERM / SIGINT, stop cleanly. Returns the exit status."""
         got: list[int] = []
@@ -170,8 +192,11 @@ class Daemon:
         old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
         try:
             self.start()
+            next_trim = time.monotonic() + TRIM_INTERVAL_S
             while not self._stop.wait(1.0):
-                pass
+                if time.monotonic() >= next_trim:
+                    next_trim = time.monotonic() + TRIM_INTERVAL_S
+                    self.trim_heap()
         finally:
             event(log, "stopping", signal=signal.Signals(got[0]).name if got else "",
                   instance=self.settings.instance)
