@@ -211,8 +211,19 @@ class HandleOwner:
     then :meth:`_close_more` (the Zenoh session, say); a context manager closing on exit."""
 
     def __init__(self) -> None:
-        self._handles: list[Handle] = []
+        #: open handles in declaration order (a dict: a closed one forgets itself in O(1),
+        #: so a long run that declares and closes per session keeps none of them)
+        self._handles: dict[Handle, None] = {}
         self._closed = False
+
+    def _track(self, h: Handle) -> None:
+        """Keep ``h`` to close with the transport."""
+        self._handles[h] = None
+
+    def _forget(self, h: Handle) -> None:
+        """``h`` was closed by its user (not while the transport closes them all)."""
+        if not self._closed:
+            self._handles.pop(h, None)
 
     def _close_more(self) -> None:
         """Closed after the handles; nothing by default."""
@@ -221,7 +232,7 @@ class HandleOwner:
         if self._closed:
             return
         self._closed = True
-        for h in reversed(self._handles):
+        for h in reversed(list(self._handles)):
             h.close()
         self._handles.clear()
         self._close_more()

@@ -17,14 +17,15 @@ from .keyexpr import intersects
 
 
 class _Handle:
-    def __init__(self, registry: list, entry: object) -> None:
-        self._registry, self._entry = registry, entry
+    def __init__(self, registry: list, entry: object, owner: HandleOwner) -> None:
+        self._registry, self._entry, self._owner = registry, entry, owner
 
     def close(self) -> None:
         try:
             self._registry.remove(self._entry)
         except ValueError:
             pass
+        self._owner._forget(self)
 
 
 class _DrainMember:
@@ -109,6 +110,7 @@ class _Publisher:
         with bus.lock:
             if self in bus.cached:
                 bus.cached.remove(self)
+        self.transport._forget(self)
 
 
 def _recovered(pub: _Publisher, n: int) -> list[Sample]:
@@ -168,7 +170,7 @@ class InMemoryTransport(HandleOwner):
             self.bus.cached.append(pub)
             watchers = [(cb, n, done) for ke, cb, n, done in self.bus.recoverers
                         if intersects(ke, key)]
-        self._handles.append(pub)
+        self._track(pub)
         for cb, n, done in watchers:  # a new cached publisher: its (empty) cache is read
             for s in _recovered(pub, n):
                 cb(s)
@@ -234,10 +236,11 @@ class InMemoryTransport(HandleOwner):
             subs = [cb for ke, cb in self.bus.live_subs if intersects(ke, key)]
         for cb in subs:
             cb(key, True)
-        bus = self.bus
+        bus, owner = self.bus, self
 
         class _Token:
             def close(self_inner) -> None:
+                owner._forget(self_inner)
                 with bus.lock:
                     if key not in bus.tokens:
                         return
@@ -247,7 +250,7 @@ class InMemoryTransport(HandleOwner):
                     cb(key, False)
 
         tok = _Token()
-        self._handles.append(tok)
+        self._track(tok)
         return tok  # type: ignore[return-value]
 
     def subscribe_liveliness(self, keyexpr: str, callback: Callable[[str, bool], None],
@@ -268,6 +271,6 @@ class InMemoryTransport(HandleOwner):
     def _register(self, registry: list, entry: object) -> _Handle:
         with self.bus.lock:
             registry.append(entry)
-        h = _Handle(registry, entry)
-        self._handles.append(h)
+        h = _Handle(registry, entry, self)
+        self._track(h)
         return h

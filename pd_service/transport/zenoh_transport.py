@@ -40,8 +40,8 @@ _EMPTY, _HANDED, _TAKEN_BACK, _CLOSED = 0, 1, 2, 3
 
 
 class _Handle:
-    def __init__(self, obj: object) -> None:
-        self._obj = obj
+    def __init__(self, obj: object, owner: HandleOwner) -> None:
+        self._obj, self._owner = obj, owner
 
     def close(self) -> None:
         obj, self._obj = self._obj, None
@@ -50,6 +50,7 @@ class _Handle:
                 obj.undeclare()  # type: ignore[attr-defined]
             except Exception:  # already closed with the session
                 pass
+            self._owner._forget(self)
 
 
 class _Publisher:
@@ -312,9 +313,7 @@ class _DeclaredKeys:
                 self._owner.session.undeclare(ke)
             except Exception:  # already closed with the session
                 pass
-        handles = self._owner._handles
-        if not self._owner._closed and self in handles:  # (not while the owner closes all)
-            handles.remove(self)
+        self._owner._forget(self)
 
 
 class _ZQuery:
@@ -375,7 +374,7 @@ class ZenohTransport(HandleOwner):
 
     def declare_keys(self, keys: Sequence[str]) -> _DeclaredKeys:
         d = _DeclaredKeys(self, check_exact_keys(keys))
-        self._handles.append(d)
+        self._track(d)
         return d
 
     def delete(self, key: str) -> None:
@@ -422,7 +421,7 @@ class ZenohTransport(HandleOwner):
 
     def drain_group(self, wake: Callable[[], None]) -> _DrainGroup:
         g = _DrainGroup(self.session, wake, DRAIN_CAPACITY)
-        self._handles.append(g)
+        self._track(g)
         return g
 
     def read_back(self, keyexpr: str, callback: Callable[[Sample], None], *,
@@ -577,8 +576,8 @@ class ZenohTransport(HandleOwner):
         return str(self.session.zid())
 
     def _keep(self, obj: object) -> _Handle:
-        h = _Handle(obj)
-        self._handles.append(h)
+        h = _Handle(obj, self)
+        self._track(h)
         return h
 
     def _close_more(self) -> None:

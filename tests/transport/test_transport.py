@@ -377,3 +377,33 @@ def test_zenoh_gets_answered_by_the_own_session_beyond_a_channel_capacity() -> N
         worker.join(30.0)  # a bound on a hang, not a timing assertion: the gets end by 2 s
         assert not worker.is_alive(), "a get blocked on its own replies"
     assert result == {"tokens": n, "replies": n}
+
+
+def _declare_and_close_per_session(t, n: int) -> None:
+    """What the daemon declares for each session it serves, and closes when the session goes
+    (the soak's churn: one created and one deleted per second)."""
+    for i in range(n):
+        handles = [t.declare_keys([f"pd/p1/s{i}/cmd", f"pd/p1/s{i}/prediction"]),
+                   t.publisher(f"pd/p1/s{i}/prediction"),
+                   t.publisher(f"pd/p1/s{i}/path", cache=4),
+                   t.subscribe(f"pd/p1/s{i}/echo", lambda s: None),
+                   t.declare_token(f"pd/@robot/s{i}")]
+        for h in handles:
+            h.close()
+
+
+def test_in_memory_transport_keeps_no_closed_handle() -> None:
+    with InMemoryBus().transport() as t:
+        _declare_and_close_per_session(t, 3)
+        kept = len(t._handles)
+        _declare_and_close_per_session(t, 200)
+        assert len(t._handles) == kept
+
+
+@pytest.mark.integration
+def test_zenoh_transport_keeps_no_closed_handle() -> None:
+    with ZenohTransport(zenoh_config(listen=[f"tcp/127.0.0.1:{free_port()}"])) as t:
+        _declare_and_close_per_session(t, 3)
+        kept = len(t._handles)
+        _declare_and_close_per_session(t, 200)
+        assert len(t._handles) == kept
