@@ -872,9 +872,12 @@ def _soak_rows(daemon, t, traffic, feed_procs: Feeders, minutes: float, every_s:
 
 
 def soak_summary(samples: list[dict]) -> dict:
-    """The issue's soak figures: RSS growth after the first 5 min (MB), median p99 of the
-    last 10 min over the first 10 min's (with less than 20 min: of the last half over the
-    first half), and the ranges of the fds and declarations."""
+    """The issue's soak figures: RSS growth after the first 5 min (MB: the highest row after
+    5 min over the row at 5 min), median p99 of the last 10 min over the first 10 min's (with
+    less than 20 min: of the last half over the first half), and the ranges of the fds and
+    declarations. Beside them, what tells a leak from a backlog: the RSS floor (lowest row)
+    of the last 10 min over that of minutes 5-15 (a leak raises the floor; a backlog the
+    daemon catches up with and returns, heap_returned_mb, raises only peaks)."""
     if not samples:
         return {}
     end = samples[-1]["t_s"]
@@ -885,7 +888,11 @@ def soak_summary(samples: list[dict]) -> dict:
     ratio = (statistics.median(last) / statistics.median(first)) if first and last else None
     last_row = samples[-1]
     fed = (last_row["accepted"] or 0) + (last_row["late_total"] or 0)
+    early = [r["rss_mb"] for r in samples if min(300.0, end / 2) <= r["t_s"] <= 900.0]
+    late = [r["rss_mb"] for r in samples if r["t_s"] >= end - span]
     return {"rss_growth_mb": round(max(settled) - settled[0], 1) if settled else None,
+            "rss_floor_growth_mb": round(min(late) - min(early), 1) if early and late else None,
+            "rss_range_mb": [min(settled), max(settled)] if settled else None,
             "late_share": round((last_row["late_total"] or 0) / fed, 4) if fed else None,
             "feed_skipped_share": round(last_row["feed_skipped"] / max(
                 1, last_row["feed_skipped"] + last_row["feed_steps"]), 4),
