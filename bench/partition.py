@@ -52,6 +52,9 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))  # also when a test loads this file
+from children import popen, stop_children_on_exit  # noqa: E402
+
 INSTANCES = ("pd-a", "pd-b")
 
 
@@ -191,7 +194,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         env = dict(os.environ, PD_SERVICE_LOG_LEVEL="INFO")
         env.pop("PD_SERVICE_CONFIG", None)
         for inst, r, other in (("pd-a", "a", "pd-b"), ("pd-b", "b", "pd-a")):
-            procs.append(subprocess.Popen(
+            procs.append(popen(
                 [sys.executable, "-m", "pd_service", "--instance", inst, "--state-dir",
                  str(state / inst), "--zenoh-config", str(no_gossip), "--mode", "client",
                  "--connect", ep[r], "--peer", other,
@@ -372,6 +375,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
+    stop_children_on_exit()  # a SIGTERM / SIGINT or an exception stops the daemons started
     from gauge import gauge_ms
 
     g = gauge_ms()
