@@ -12,9 +12,10 @@ Data path::
 (one sensors and one commands subscription per owned partition k, :mod:`.subscriptions`)
 
 Callbacks never block and never take the core's lock: they append ``(stream, key, payload,
-recv_mono_ns, kind)`` to a bounded deque (the oldest entry is dropped when full and counted
-as ``flood``). A session's inbox is bounded, so a flooding session loses its own oldest
-messages; the round-robin budget keeps it from delaying the others by more than one budget.
+recv_mono_ns, kind, recv_now, first_now)`` (:data:`Item`) to a bounded deque (the oldest
+entry is dropped when full and counted as ``flood``). A session's inbox is bounded, so a
+flooding session loses its own oldest messages; the round-robin budget keeps it from delaying
+the others by more than one budget.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from time import monotonic_ns
 from typing import Final
 
 from pd_service.estimation.tally import Tally
@@ -41,9 +43,13 @@ from .session import ANSWERED, COMMAND, READ_BACK, SENSOR, ReadBack, Refusal, Se
 log = logging.getLogger(LOGGER_NAME)
 
 #: One received message: (stream SENSOR/COMMAND, key, payload, recv_mono_ns, kind put/delete,
-#: the core's wall clock read when it arrived (ns): a packet is judged "future" or on time
-#: against that, not against the worker's later loop time).
-Item = tuple[int, str, bytes, int, str, int]
+#: recv_now: the core's wall clock read when it was handed over (ns; a packet is judged
+#: "future" against that, not against the worker's later loop time), first_now: the earliest
+#: it may have arrived on the same clock (ns; the previous look at the subscriptions' queues,
+#: before which it was not there): a packet is judged late or on time at that
+#: (:func:`pd_service.intake.judged_step`), not at the time a busy or stalled worker took
+#: it from the queue).
+Item = tuple[int, str, bytes, int, str, int, int]
 
 #: Messages of sessions nobody configured waiting for the worker (oldest dropped beyond it).
 UNKNOWN_INBOX: Final = 1024
@@ -62,6 +68,11 @@ _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 _STAMP_REASONS: Final = frozenset({"late", "future", "before_epoch", "commands_late",
                                    "commands_future", "commands_before_epoch"})
 
+
+#: A look at the subscriptions' queues this much older (ns) than the hand-over of what it found
+#: means the worker was busy elsewhere (a stall, a long pass): the samples may have arrived as
+#: early as that look. Below it the gap is the hand-off itself (first_now = recv_now).
+LOOK_SLACK_NS: Final = 1_000_000
 
 #: Sessions served per round of a pass: each round's predictions are made while the sessions'
 #: arrays are still in the caches, and the queues are looked at between rounds
@@ -229,7 +240,8 @@ class Dispatch:
             # unknown, or served by another instance: nothing to do with it here
             self.counters["recovered_ignored"] += 1
             return
-        item = (stream, sample.key, sample.payload, sample.recv_mono_ns, sample.kind, recv_now)
+        item = (stream, sample.key, sample.payload, sample.recv_mono_ns, sample.kind, recv_now,
+                recv_now)
         held = self.held_inputs.get(sess.name) if sess.hold_until_ns else None
         if held is not None:
             held.append((True, item))
@@ -316,11 +328,15 @@ class Dispatch:
         reported), then the recovered ones, before anything is published: a
         prediction never sees a recovered packet without the live ones received before
         it, and a message both received live and read back is refused as the recovered
-        copy, quietly. Then the sessions rejoin the rounds."""
+        copy, quietly. Then the sessions rejoin the rounds. (A session read back without
+        being parked, ``Lifecycle.settle_second_owner``'s kept one, took its live messages
+        in the rounds, before.)"""
         n = 0
         while self.released:
             names, items = self.released.popleft()
             for name in names:
+                if name not in self.parked:
+                    continue
                 self.parked.discard(name)
                 route = self.routes.get(name)
                 if route is None:
@@ -354,7 +370,13 @@ class Dispatch:
         if len(parts) < 4:
             return
         route = self.routes.get(parts[2])
-        item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind, self.now_ns())
+        now = self.now_ns()
+        mono = sample.recv_mono_ns
+        # drained samples carry the time of the previous look at their queue (the transport's
+        # monotonic clock): after a stall they may have waited there since it
+        gap = monotonic_ns() - mono
+        item = (stream, key, sample.payload, mono, sample.kind, now,
+                now - gap if gap > LOOK_SLACK_NS else now)
         if route is None:
             q = self.unknown
             if len(q) == q.maxlen:
@@ -500,22 +522,25 @@ class Dispatch:
         """One message into its session (the stream's READ_BACK bit ignored); None if
         accepted (counted as ``accepted`` / ``commands_accepted``, and ``also`` + that name
         when ``also`` is set). A packet is judged at its arrival if that came after the
-        loop read its clock."""
-        stream, key, payload, recv_mono, kind, recv_now = item
+        loop read its clock, and late or on time at the earliest it may have arrived
+        (``first_now``: :func:`pd_service.intake.judged_step`), not at the time the worker got
+        to it."""
+        stream, key, payload, recv_mono, kind, recv_now, first_now = item
         if recv_now > now:
             now_step = sess.step_now(recv_now)
+        first_step = (first_now - sess.epoch_ns) // sess.period_ns
         try:
             if kind != "put":
                 return Refusal("malformed" if stream & ~READ_BACK == SENSOR
                                else "commands_malformed",
                                f"{kind} is not supported on {key!r}: publish a message with put")
             if stream & ~READ_BACK == SENSOR:
-                refusal = sess.on_measurement(key, payload, now_step, now, recv_now)
+                refusal = sess.on_measurement(key, payload, now_step, now, recv_now, first_step)
                 name = "accepted"
                 if refusal is None:
                     sess.pending_recv.append(recv_mono)
             else:
-                refusal = sess.on_command(key, payload, now_step, now)
+                refusal = sess.on_command(key, payload, now_step, now, first_step)
                 name = "commands_superseded" if sess.intake.superseded else "commands_accepted"
         except Exception as exc:  # isolation: nothing one session sends escapes the worker
             log.debug("internal error in session %s", sess.name, exc_info=True)

@@ -312,3 +312,63 @@ def test_an_asymmetric_partition_settles_once_and_the_display_stays_with_one_own
     assert switches <= 2, shown  # to b's takeover, then (at most) to b's settled term
     assert all(p.term == shown[-1] for p in col.predictions[s][-20:] if p.term >= shown[-1])
     disp.close()
+
+
+def test_a_session_kept_at_the_heal_takes_in_its_live_inputs_while_its_caches_are_read(tmp_path):
+    """As above, inst-a keeps its estimate at the heal and reads the senders' caches back;
+    that read-back runs on a thread and can take a while (here it waits until released).
+    Meanwhile a goes on taking in the live inputs and publishing: its predictions stay those
+    of the estimator that never stopped, and once the read-back ends nothing was lost. (A
+    session parked for its read-back would have ticked without them, its window moving past
+    the inputs waiting in its inbox: refused as late when released.)"""
+    from pd_service.service.config import Settings
+    from pd_service.service.core import ServiceCore
+    from pd_service.service.spec_store import SpecStore
+    from pd_service.wire import encode
+
+    from ..helpers import paper_spec
+    from ..test_core import PAIR
+
+    bus, clock = InMemoryBus(), Clock(0)
+    col, cli = Collector().attach(bus.transport()), bus.transport()
+    later: list = []  # inst-a's background work, run when the test says
+    a = ServiceCore(bus.transport(), Settings(instance="inst-a", peers=PAIR,
+                                              replica_interval_s=0.3),
+                    store=SpecStore(tmp_path / "inst-a"), now_ns=clock,
+                    run_clock_ns=lambda: 0, spawn=later.append)
+    a.start()
+    tb = DataCut(bus.transport())
+    b = ServiceCore(tb, Settings(instance="inst-b", peers=PAIR, replica_interval_s=0.3),
+                    store=SpecStore(tmp_path / "inst-b"), now_ns=clock, run_clock_ns=lambda: 0,
+                    spawn=lambda fn: fn())
+    b.start()
+    names = [f"s{i:02d}" for i in range(12)]
+    for n in names:
+        cli.put(keys.config_key(n), encode(paper_spec(n)))
+    settle(a, b)
+    s = next(n for n in names if n in a.served_sessions() and a.ownership.successor(n) == b.instance)
+    d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
+    for k in range(30):
+        d.step([a, b], k)
+    tb.cut = True
+    partition(a, b, apart=True)
+    for k in range(30, 45):
+        d.step([a, b], k)
+        settle(a, b)
+    tb.cut = False
+    later.clear()
+    partition(a, b, apart=False)
+    settle(a, b)
+    assert a.counters["term_kept"] >= 1 and later  # the read-back waits
+    for k in range(45, 60):  # 0.75 s: longer than the ranger's room in the window
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)
+    for fn in later:
+        fn()
+    for k in range(60, 65):
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)
+    assert s in a.served_sessions() and s not in b.served_sessions()
+    assert a.counters["late"] == 0
