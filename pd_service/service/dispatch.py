@@ -29,10 +29,12 @@ from dataclasses import dataclass
 from time import monotonic_ns
 from typing import Final
 
+import msgpack
+
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Sample
-from pd_service.wire import Command, Measurement, SessionSpec, WireError, decode, keys
+from pd_service.wire import SessionSpec, keys
 from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
@@ -62,6 +64,14 @@ READ_BACK_INBOX: Final = 64 * UNKNOWN_INBOX
 #: (a flood meanwhile) and it takes them in at once, judged as they come from then on.
 HELD_INPUTS: Final = 4096
 
+#: Recovered messages handled per loop of ``ServiceCore.run_once`` (a finished read-back's
+#: whole batch at least), counting the held inputs a session whose wait ends takes in
+#: (catch_up): the rest wait for the next loop, after this one's ticks. At a partition's
+#: heal or a takeover of many sessions the read-backs come in at once (up to 64 samples
+#: per sender key each); handled in one go they held the worker for 100-150 ms, its ticks
+#: overrunning.
+READ_BACK_SLICE: Final = 512
+
 #: The refusals of a message the session already has.
 _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 #: Refusals of a stamp against the current step: after a host clock step, blamed on it.
@@ -83,14 +93,23 @@ ROUND_SESSIONS: Final = 8
 def stamp_step(spec: SessionSpec, item: Item, default: int) -> int:
     """The step a message's stamp puts it at (:meth:`Dispatch.catch_up`): a measurement's
     sample step, a command's apply step - lead (the step it was sent at); ``default`` for
-    one that does not decode (judged, and refused, as it comes)."""
+    one whose stamp cannot be read (judged, and refused, as it comes). Only the stamp is
+    read (the msgpack map's ``step``, else ``t_ns`` / ``issued_ns``), not the validated
+    message: a catch-up orders hundreds of read-back messages, and the full decode of each
+    was most of its cost; a message invalid otherwise is refused when it is offered."""
     try:
+        m = msgpack.unpackb(item[2])
+        step = m.get("step")
         if item[0] & ~READ_BACK == SENSOR:
-            m = decode(item[2], Measurement)
-            return m.step if m.step is not None else spec.sample_at(m.t_ns or 0)[0]
-        c = decode(item[2], Command)
-        return c.step - spec.lead if c.step is not None else spec.step_of(c.issued_ns or 0)
-    except (WireError, ValueError, TypeError):
+            if type(step) is int:
+                return step
+            t = m.get("t_ns")
+            return spec.sample_at(t)[0] if type(t) is int else default
+        if type(step) is int:
+            return step - spec.lead
+        t = m.get("issued_ns")
+        return spec.step_of(t) if type(t) is int else default
+    except Exception:  # not msgpack, not a map, a stamp out of range: as it comes
         return default
 
 
@@ -180,6 +199,8 @@ class Dispatch:
         #: Data samples (sensors and commands) taken from the subscriptions: what this
         #: instance receives (``samples_received``). Written by the one thread that drains.
         self.received = 0
+        #: Held inputs taken in by catch-ups so far (the read-back slices count them).
+        self.caught_up = 0
 
     # ================================================================== callbacks ======
     # Transport threads. No lock, no decoding, no blocking: split the key, append, wake.
@@ -215,13 +236,16 @@ class Dispatch:
 
     def process_read_back(self, now: int, touched: list[Session]) -> int:
         """Worker: the recovered messages that arrived after the start (a sender that
-        appeared, a takeover's read-back), after the round's live messages."""
+        appeared, a takeover's read-back), after the round's live messages; at most
+        :data:`READ_BACK_SLICE` of them (with the inputs of the holds they end), the rest
+        in the next loop."""
         q = self.read_back
         if self.read_back_drops:
             self.counters["recovered_dropped"] += self.read_back_drops
             self.read_back_drops = 0
         n = 0
-        while q:
+        start = self.caught_up
+        while q and n + self.caught_up - start < READ_BACK_SLICE:
             stream, sample, recv_now = q.popleft()
             n += 1
             self._offer_read_back(stream, sample, recv_now, now, touched)
@@ -297,6 +321,7 @@ class Dispatch:
         held = self.held_inputs.pop(sess.name, None)
         if not held:
             return
+        self.caught_up += len(held)
         spec = sess.spec
         now_step = sess.step_now(now)
         order = sorted(((stamp_step(spec, item, now_step), i) for i, (_, item) in
@@ -330,9 +355,11 @@ class Dispatch:
         it, and a message both received live and read back is refused as the recovered
         copy, quietly. Then the sessions rejoin the rounds. (A session read back without
         being parked, ``Lifecycle.settle_second_owner``'s kept one, took its live messages
-        in the rounds, before.)"""
+        in the rounds, before.) At most :data:`READ_BACK_SLICE` messages (whole read-backs,
+        with the inputs of the holds they end): the others in the next loop."""
         n = 0
-        while self.released:
+        start = self.caught_up
+        while self.released and n + self.caught_up - start < READ_BACK_SLICE:
             names, items = self.released.popleft()
             for name in names:
                 if name not in self.parked:

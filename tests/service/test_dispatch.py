@@ -10,7 +10,7 @@ import numpy as np
 
 from pd_service.backends import build
 from pd_service.transport import InMemoryBus, Sample
-from pd_service.wire import encode, keys
+from pd_service.wire import Command, Measurement, encode, keys
 
 from .helpers import PERIOD_NS, Clock, Collector, cmd_bytes, meas_bytes, paper_spec
 from .test_core import make_core
@@ -124,3 +124,54 @@ def test_a_drained_sample_is_judged_at_the_previous_look_at_its_queue(tmp_path):
                               time.monotonic_ns()))
     core.run_once()
     assert c["late"] == 1
+
+
+def test_a_read_back_is_handled_in_slices(tmp_path):
+    """A read-back of many messages (a heal or a takeover of many sessions) is handled
+    READ_BACK_SLICE at a time, one slice per loop of run_once (its ticks between them), in
+    order; nothing is lost."""
+    from pd_service.service.dispatch import READ_BACK_SLICE
+
+    core, clock, col, _, ref, _ = _fed(tmp_path, 30)
+    d = core.dispatch
+    clock.t = int(30.1 * PERIOD_NS)
+    rng = np.random.default_rng(2)
+    n = READ_BACK_SLICE + 100
+    camera = keys.sensor_key("s1", "camera")
+    for i in range(n):  # sample steps 15..29 at offsets inside the step: all new
+        payload = encode(Measurement(session="s1", sensor="camera", seq=1000 + i, step=None,
+                                     t_ns=int((15 + i % 15 + (1 + i // 15) * 0.01) * PERIOD_NS),
+                                     z=rng.standard_normal(2)))
+        d.on_read_back_sensor(Sample(camera, payload, "put", clock.t, time.monotonic_ns(),
+                                     recovered=True))
+    touched: list = []
+    assert d.process_read_back(clock.t, touched) == READ_BACK_SLICE
+    assert len(d.read_back) == n - READ_BACK_SLICE and core.has_work()
+    core.run_once()
+    assert not d.read_back
+    c = core.counters
+    assert c["recovered_accepted"] + c["recovered_refused"] == n
+
+
+def test_the_stamp_of_a_held_input_is_read_without_decoding_it():
+    """stamp_step reads a message's stamp from its msgpack map: the sample step, else the
+    step of t_ns; a command's apply step - lead, else the step of issued_ns; anything
+    unreadable: the default."""
+    from pd_service.service.dispatch import stamp_step
+    from pd_service.service.session import COMMAND, READ_BACK, SENSOR
+
+    spec = paper_spec("s1", max_delay=WINDOW)
+
+    def item(stream, payload):
+        return (stream, "k", payload, 0, "put", 0, 0)
+
+    t = int(17.3 * PERIOD_NS)
+    assert stamp_step(spec, item(SENSOR, meas_bytes("s1", "ranger", 12, [1.0])), -1) == 12
+    m = encode(Measurement(session="s1", sensor="ranger", seq=0, step=None, t_ns=t,
+                           z=np.array([1.0])))
+    assert stamp_step(spec, item(SENSOR + READ_BACK, m), -1) == spec.sample_at(t)[0] == 17
+    assert stamp_step(spec, item(COMMAND, cmd_bytes("s1", 30, [0.5])), -1) == 30 - spec.lead
+    c = encode(Command(session="s1", seq=0, step=None, issued_ns=t, u=np.array([0.5])))
+    assert stamp_step(spec, item(COMMAND + READ_BACK, c), -1) == 17
+    for bad in (b"", b"\xc1", b"\x93\x01\x02\x03", meas_bytes("s1", "ranger", 12, [1.0])[:-3]):
+        assert stamp_step(spec, item(SENSOR, bad), -7) == -7
