@@ -73,6 +73,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # also when a test loads this file
+from children import popen, stop_children_on_exit  # noqa: E402
+
 from pd_service.scenarios.paper import UPLINK_DELAY, paper_prior  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -114,8 +117,8 @@ class Router:
         return f"tcp/127.0.0.1:{self.port}"
 
     def start(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, __file__, "serve-router", str(self.port)],
-                                     stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        self.proc = popen([sys.executable, __file__, "serve-router", str(self.port)],
+                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         assert self.proc.stdout is not None
         self.proc.stdout.readline()  # "router up": listening
 
@@ -155,8 +158,8 @@ class Process:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         env.pop("PD_SERVICE_CONFIG", None)
         self._log = open(log_path, "ab")
-        self.proc = subprocess.Popen([sys.executable, *args], stdout=self._log,
-                                     stderr=self._log, env=env, cwd=ROOT)
+        self.proc = popen([sys.executable, *args], stdout=self._log, stderr=self._log, env=env,
+                          cwd=ROOT)
 
     def stop(self) -> None:
         if self.proc.poll() is None:
@@ -767,7 +770,7 @@ class Feeders:
                  count: int, n: int) -> None:
         self.stats = [tmp / f"feed{i}.json" for i in range(n)]
         bounds = [first + count * i // n for i in range(n + 1)]
-        self.procs = [subprocess.Popen(
+        self.procs = [popen(
             [sys.executable, __file__, "feed", endpoint, str(epoch_ns), str(rate_hz),
              str(bounds[i]), str(bounds[i + 1] - bounds[i]), str(self.stats[i])],
             stdout=subprocess.DEVNULL, stderr=open(tmp / f"feed{i}.log", "ab"))
@@ -977,6 +980,8 @@ def main() -> None:
     if a.mode == "feed":
         feed(a.endpoint, a.epoch_ns, a.rate, a.first, a.count, a.stats)
         return
+    # a SIGTERM / SIGINT or an exception stops the routers, daemons and feeders started
+    stop_children_on_exit()
     if a.mode == "router":
         out = router_restart(a.sessions, a.down, a.before, a.after, link=a.link)
         print(f"{'session':>8} {'gap s':>7} {'silent s':>9} {'data s':>7} {'tr P first':>10} "

@@ -52,6 +52,9 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))  # also when a test loads this file
+from children import popen, stop_children_on_exit  # noqa: E402
+
 INSTANCES = ("pd-a", "pd-b")
 
 
@@ -64,13 +67,17 @@ def free_port() -> int:
 class LinkRelay:
     """A TCP relay 127.0.0.1:<port> -> 127.0.0.1:<target>: the router-to-router link.
     :meth:`cut` closes its listener and every connection (both routers see the link go
-    at once); :meth:`restore` listens again on the same port."""
+    at once); :meth:`restore` listens again on the same port. :attr:`one_way` set: the bytes
+    from the target (router-a) to the connecting side (router-b) are no longer read (they
+    wait in the sockets' buffers, as over a path that stopped delivering one way); the
+    other direction flows: an asymmetric partition, b no longer hears a."""
 
     def __init__(self, target: int) -> None:
         self.port, self.target = free_port(), target
         self._lock = threading.Lock()
         self._socks: list[socket.socket] = []
         self._listener: socket.socket | None = None
+        self.one_way = threading.Event()
 
     def restore(self) -> None:
         ls = socket.socket()
@@ -93,13 +100,21 @@ class LinkRelay:
                 continue
             with self._lock:
                 self._socks += [a, b]
-            for src, dst in ((a, b), (b, a)):
-                threading.Thread(target=self._pump, args=(src, dst), daemon=True).start()
+            for (src, dst), gate in (((a, b), None), ((b, a), self.one_way)):
+                threading.Thread(target=self._pump, args=(src, dst, gate), daemon=True).start()
 
     @staticmethod
-    def _pump(src: socket.socket, dst: socket.socket) -> None:
+    def _pump(src: socket.socket, dst: socket.socket, gate: threading.Event | None) -> None:
         try:
-            while data := src.recv(65536):
+            while True:
+                if gate is not None and gate.is_set():
+                    if src.fileno() < 0:  # closed by cut()
+                        return
+                    time.sleep(0.01)  # not read: held in the buffers
+                    continue
+                data = src.recv(65536)
+                if not data:
+                    break
                 dst.sendall(data)
         except OSError:
             pass
@@ -157,6 +172,21 @@ def interleaved(terms: list[int]) -> bool:
     return False
 
 
+def membership_events(log: str, since_wall: float) -> list[tuple[str, str, float]]:
+    """(event, instance, s after ``since_wall``) of each member_left / member_joined line."""
+    from datetime import UTC, datetime
+
+    out = []
+    for line in log.splitlines():
+        if "event=member_" not in line:
+            continue
+        f = dict(x.split("=", 1) for x in line.split() if "=" in x)
+        ts = datetime.strptime(f["ts"], "%Y-%m-%dT%H:%M:%S.%fZ").replace(
+            tzinfo=UTC).timestamp()
+        out.append((f["event"], f.get("instance", ""), round(ts - since_wall, 3)))
+    return out
+
+
 def one_run(args: argparse.Namespace) -> dict[str, Any]:
     from pd_client import Display
     from pd_service.backends import build
@@ -165,6 +195,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
     from pd_service.wire import Command, Measurement, ServiceStatus, decode, encode, keys
 
     state = Path(tempfile.mkdtemp(prefix="pd-partition-"))
+    one_way = getattr(args, "one_way", False)
     pa, pb = free_port(), free_port()
     ep = {"a": f"tcp/127.0.0.1:{pa}", "b": f"tcp/127.0.0.1:{pb}"}
     relay = LinkRelay(pa)
@@ -191,7 +222,7 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
         env = dict(os.environ, PD_SERVICE_LOG_LEVEL="INFO")
         env.pop("PD_SERVICE_CONFIG", None)
         for inst, r, other in (("pd-a", "a", "pd-b"), ("pd-b", "b", "pd-a")):
-            procs.append(subprocess.Popen(
+            procs.append(popen(
                 [sys.executable, "-m", "pd_service", "--instance", inst, "--state-dir",
                  str(state / inst), "--zenoh-config", str(no_gossip), "--mode", "client",
                  "--connect", ep[r], "--peer", other,
@@ -260,11 +291,17 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
                 time.sleep(dt)
             el = (k - k0) * period / 1e9
             if el >= args.warm and "cut" not in marks:
-                relay.cut()
-                marks["cut"] = time.monotonic()
+                if one_way:
+                    relay.one_way.set()
+                else:
+                    relay.cut()
+                marks["cut"], marks["cut_wall"] = time.monotonic(), time.time()
             if el >= args.warm + args.partition and "heal" not in marks:
                 marks["joined_before"] = joined()
-                relay.restore()
+                if one_way:
+                    relay.one_way.clear()
+                else:
+                    relay.restore()
                 marks["heal"] = time.monotonic()
             if el >= total_s:
                 break
@@ -349,6 +386,9 @@ def one_run(args: argparse.Namespace) -> dict[str, Any]:
             "yielded": sum(lg.count("event=term_yielded") for lg in logs.values()),
             "kept": sum(lg.count("event=term_kept") for lg in logs.values()),
             "taken_over": sum(lg.count("taken over") for lg in logs.values()),
+            "one_way": one_way,
+            # what each instance saw of the other, s after the cut
+            "membership": {i: membership_events(lg, marks["cut_wall"]) for i, lg in logs.items()},
         }
     finally:
         for p in procs:
@@ -371,7 +411,11 @@ def main() -> None:
     ap.add_argument("--after", type=float, default=8.0, help="s after the heal")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--one-way", action="store_true",
+                    help="an asymmetric partition: router-b no longer hears router-a (the "
+                         "relay stops reading that direction), router-a still hears router-b")
     args = ap.parse_args()
+    stop_children_on_exit()  # a SIGTERM / SIGINT or an exception stops the daemons started
     from gauge import gauge_ms
 
     g = gauge_ms()
@@ -379,8 +423,12 @@ def main() -> None:
     cols = ["two_owner_keys", "display_interleaved", "stale_dropped", "one_owner_s",
             "members_back_s", "diagP_during", "diagP_after", "exact_after", "yielded",
             "kept"]
-    print(f"partition of {args.partition:g} s, 2 instances x {args.sessions} sessions, "
-          f"{args.repeat} run(s); gauge {g:.1f} ms")
+    print(f"{'one-way ' if args.one_way else ''}partition of {args.partition:g} s, 2 instances "
+          f"x {args.sessions} sessions, {args.repeat} run(s); gauge {g:.1f} ms")
+    for i, r in enumerate(runs):
+        print(f"  run {i}: membership seen (s after the cut): " + "; ".join(
+            f"{inst}: " + ", ".join(f"{ev.removeprefix('member_')} {who} {t}" for ev, who, t in evs)
+            for inst, evs in r["membership"].items()))
     for c in cols:
         vals = [r[c] for r in runs if r[c] is not None]
         med = round(statistics.median(vals), 4) if vals else None

@@ -61,6 +61,7 @@ import threading
 import time
 from pathlib import Path
 
+from children import popen, stop_children_on_exit
 from gauge import gauge_ms
 from service import BENCH_ENV, PERIOD_NS, cpu_seconds, free_port, query_status, session_name, thread_cpu
 
@@ -92,8 +93,8 @@ class Cluster:
         self.env.pop("PD_SERVICE_CONFIG", None)
         for k, v in BENCH_ENV.items():
             self.env.setdefault(k, v)
-        self.router = subprocess.Popen([sys.executable, __file__, "--router", str(self.port)],
-                                       stdout=subprocess.PIPE, text=True, cwd=ROOT)
+        self.router = popen([sys.executable, __file__, "--router", str(self.port)],
+                            stdout=subprocess.PIPE, text=True, cwd=ROOT)
         if "ready" not in (self.router.stdout.readline() if self.router.stdout else ""):
             raise RuntimeError("the router did not start")
         self.daemons: dict[str, subprocess.Popen] = {}
@@ -106,7 +107,7 @@ class Cluster:
 
     def start(self, name: str) -> None:
         others = [x for n in self.trusted if n != name for x in ("--peer", n)]
-        self.daemons[name] = subprocess.Popen(
+        self.daemons[name] = popen(
             [sys.executable, "-m", "pd_service", "--instance", name, "--state-dir",
              f"{self.state}/{name}", "--mode", "client", "--connect", self.ep,
              # the daemon's role listens by default (7447): one free port each
@@ -157,7 +158,7 @@ def received(st) -> int:
 
 def loadgen(c: Cluster, n: int, epoch: int, measure_start: int, end: int,
             clients: str) -> subprocess.Popen:
-    gen = subprocess.Popen(
+    gen = popen(
         [sys.executable, str(ROOT / "bench" / "service.py"), "--loadgen", "--n", str(n),
          "--connect", c.ep, "--clients", clients, "--epoch", str(epoch),
          "--measure-start", str(measure_start), "--end", str(end), "--mode", "client"],
@@ -407,6 +408,8 @@ def main() -> None:
     if args.router:
         run_router(args.router)
         return
+    # a SIGTERM / SIGINT or an exception stops the router, the instances and the load started
+    stop_children_on_exit()
     from pd_service.wire import keys
 
     print(f"scale-out: {args.sessions} paper sessions at 20 Hz through one Python Zenoh router, "

@@ -13,9 +13,12 @@ counters; without the kernel (pure Python) every message takes the full path.
 
 One implementation for the daemon (:class:`pd_service.service.session.Session`) and for the
 offline replay of a recording (``pd-replay``), so both accept and refuse exactly alike.
-No clock reads: the caller passes the session's current step ``now_step``. Nothing raises for
-bad input: every refusal is a :class:`Refusal` (counter name, one readable line, the
-sender's seq when it could be read).
+No clock reads: the caller passes the session's current step ``now_step``, and, where the
+message may have arrived at an earlier step (it waited for a busy or stalled worker), that
+step ``first_step``: the message is then judged at the earliest step it may have arrived at
+that its stamp and the estimator allow (:func:`judged_step`), not at the step the worker got
+to it. Nothing raises for bad input: every refusal is a :class:`Refusal` (counter name, one
+readable line, the sender's seq when it could be read).
 
 The supersede rule: when two commands land on one apply step, the newer replaces the older
 if that step is not final yet (teleoperation: the freshest command is the one that counts;
@@ -104,6 +107,32 @@ def _check_reason(exc: WireError, seq: int, default: str) -> Refusal:
     return Refusal(_CHECK_REASONS.get(head, default), exc.reason, seq)
 
 
+#: ``first_step`` of a message that arrived at the current step (the default: judged now).
+ARRIVED_NOW: Final = 1 << 62
+
+
+def judged_step(stamp: int, first_step: int, now_step: int, est_now: int | None) -> int:
+    """The step a message stamped at step ``stamp`` (a measurement's sample step, a
+    command's send step: apply step - lead) is judged at when it arrived between the starts
+    of steps ``first_step`` and ``now_step`` (``first_step < now_step``; the worker got to
+    it late): the earliest arrival consistent with its stamp and with what the estimator has
+    seen (``est_now``, the newest step it was given; it never goes back)::
+
+        k = max(first_step, min(stamp, now_step), est_now)
+
+    So a sample inside the window when it arrived is not refused as late because its
+    worker got to it later; a stamp after ``now_step`` is still judged at ``now_step``
+    (future); and the inputs of a session, judged in the order they came, never take the
+    estimator back (an input after one stamped later is judged at that one's step at least:
+    it came after it)."""
+    k = stamp if stamp < now_step else now_step
+    if k < first_step:
+        k = first_step
+    if est_now is not None and k < est_now:
+        k = est_now
+    return k if k >= 0 or now_step < 0 else 0  # not before the epoch unless now is
+
+
 #: Apply steps whose command order :class:`Intake` remembers at most (beyond the open window
 #: the oldest are forgotten; a command for a forgotten step is then a duplicate).
 _ORDERS_KEPT: Final = 4096
@@ -170,8 +199,10 @@ class Intake:
         out = off * self.off_scale
         return math.nextafter(T, 0.0) if T and out >= T else out
 
-    def measurement(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
-        """Offer one Measurement received on ``key``; None if accepted."""
+    def measurement(self, key: str, payload: bytes, now_step: int,
+                    first_step: int = ARRIVED_NOW) -> Refusal | None:
+        """Offer one Measurement received on ``key``; None if accepted. ``first_step``: the
+        step it may have arrived at first, if before ``now_step`` (:func:`judged_step`)."""
         self.decoded = False
         self.last_sensor = sensor = key.rsplit("/", 1)[-1]
         m = self.dims.get(sensor)
@@ -227,6 +258,8 @@ class Intake:
         if off != 0.0 and self.off_scale != 1.0:
             off = self._scaled(off)
         est = self.est
+        if first_step < now_step:  # it waited for the worker: judged at its arrival
+            now_step = judged_step(s, first_step, now_step, est.now)
         try:
             if checked and isinstance(est, ReplayEstimator):
                 # a variable of the class's own type: mypyc calls the method natively (on
@@ -250,8 +283,10 @@ class Intake:
         return Refusal("duplicate", f"Measurement.{stamp}: sensor {sensor!r} already has a "
                        f"sample for step {s} at that instant (offset {off:g} s)", seq)
 
-    def command(self, key: str, payload: bytes, now_step: int) -> Refusal | None:
-        """Offer one Command; None if accepted."""
+    def command(self, key: str, payload: bytes, now_step: int,
+                first_step: int = ARRIVED_NOW) -> Refusal | None:
+        """Offer one Command; None if accepted. ``first_step``: as for :meth:`measurement`
+        (its stamp: the step it was sent at, apply step - lead)."""
         self.decoded = False
         self.last_command = None
         spec = self.spec
@@ -290,6 +325,8 @@ class Intake:
         self.last_command = (seq, issued if stamp == "issued_ns" else None, u, j, order, off)
         if off != 0.0 and self.off_scale != 1.0:
             off = self._scaled(off)
+        if first_step < now_step:  # it waited for the worker: judged at its arrival
+            now_step = judged_step(j - spec.lead, first_step, now_step, self.est.now)
         if self._supersede(j, u, order, now_step, off):
             return None
         est = self.est

@@ -12,9 +12,10 @@ Data path::
 (one sensors and one commands subscription per owned partition k, :mod:`.subscriptions`)
 
 Callbacks never block and never take the core's lock: they append ``(stream, key, payload,
-recv_mono_ns, kind)`` to a bounded deque (the oldest entry is dropped when full and counted
-as ``flood``). A session's inbox is bounded, so a flooding session loses its own oldest
-messages; the round-robin budget keeps it from delaying the others by more than one budget.
+recv_mono_ns, kind, recv_now, first_now)`` (:data:`Item`) to a bounded deque (the oldest
+entry is dropped when full and counted as ``flood``). A session's inbox is bounded, so a
+flooding session loses its own oldest messages; the round-robin budget keeps it from delaying
+the others by more than one budget.
 """
 
 from __future__ import annotations
@@ -25,12 +26,15 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from time import monotonic_ns
 from typing import Final
+
+import msgpack
 
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME
 from pd_service.transport import Sample
-from pd_service.wire import Command, Measurement, SessionSpec, WireError, decode, keys
+from pd_service.wire import SessionSpec, keys
 from pd_service.wire.keys import KeyError_, check_name
 
 from .config import Settings
@@ -41,9 +45,13 @@ from .session import ANSWERED, COMMAND, READ_BACK, SENSOR, ReadBack, Refusal, Se
 log = logging.getLogger(LOGGER_NAME)
 
 #: One received message: (stream SENSOR/COMMAND, key, payload, recv_mono_ns, kind put/delete,
-#: the core's wall clock read when it arrived (ns): a packet is judged "future" or on time
-#: against that, not against the worker's later loop time).
-Item = tuple[int, str, bytes, int, str, int]
+#: recv_now: the core's wall clock read when it was handed over (ns; a packet is judged
+#: "future" against that, not against the worker's later loop time), first_now: the earliest
+#: it may have arrived on the same clock (ns; the previous look at the subscriptions' queues,
+#: before which it was not there): a packet is judged late or on time at that
+#: (:func:`pd_service.intake.judged_step`), not at the time a busy or stalled worker took
+#: it from the queue).
+Item = tuple[int, str, bytes, int, str, int, int]
 
 #: Messages of sessions nobody configured waiting for the worker (oldest dropped beyond it).
 UNKNOWN_INBOX: Final = 1024
@@ -56,12 +64,25 @@ READ_BACK_INBOX: Final = 64 * UNKNOWN_INBOX
 #: (a flood meanwhile) and it takes them in at once, judged as they come from then on.
 HELD_INPUTS: Final = 4096
 
+#: Recovered messages handled per loop of ``ServiceCore.run_once`` (a finished read-back's
+#: whole batch at least), counting the held inputs a session whose wait ends takes in
+#: (catch_up): the rest wait for the next loop, after this one's ticks. At a partition's
+#: heal or a takeover of many sessions the read-backs come in at once (up to 64 samples
+#: per sender key each); handled in one go they held the worker for 100-150 ms, its ticks
+#: overrunning.
+READ_BACK_SLICE: Final = 512
+
 #: The refusals of a message the session already has.
 _DUPLICATE: Final = frozenset({"duplicate", "commands_duplicate"})
 #: Refusals of a stamp against the current step: after a host clock step, blamed on it.
 _STAMP_REASONS: Final = frozenset({"late", "future", "before_epoch", "commands_late",
                                    "commands_future", "commands_before_epoch"})
 
+
+#: A look at the subscriptions' queues this much older (ns) than the hand-over of what it found
+#: means the worker was busy elsewhere (a stall, a long pass): the samples may have arrived as
+#: early as that look. Below it the gap is the hand-off itself (first_now = recv_now).
+LOOK_SLACK_NS: Final = 1_000_000
 
 #: Sessions served per round of a pass: each round's predictions are made while the sessions'
 #: arrays are still in the caches, and the queues are looked at between rounds
@@ -72,14 +93,23 @@ ROUND_SESSIONS: Final = 8
 def stamp_step(spec: SessionSpec, item: Item, default: int) -> int:
     """The step a message's stamp puts it at (:meth:`Dispatch.catch_up`): a measurement's
     sample step, a command's apply step - lead (the step it was sent at); ``default`` for
-    one that does not decode (judged, and refused, as it comes)."""
+    one whose stamp cannot be read (judged, and refused, as it comes). Only the stamp is
+    read (the msgpack map's ``step``, else ``t_ns`` / ``issued_ns``), not the validated
+    message: a catch-up orders hundreds of read-back messages, and the full decode of each
+    was most of its cost; a message invalid otherwise is refused when it is offered."""
     try:
+        m = msgpack.unpackb(item[2])
+        step = m.get("step")
         if item[0] & ~READ_BACK == SENSOR:
-            m = decode(item[2], Measurement)
-            return m.step if m.step is not None else spec.sample_at(m.t_ns or 0)[0]
-        c = decode(item[2], Command)
-        return c.step - spec.lead if c.step is not None else spec.step_of(c.issued_ns or 0)
-    except (WireError, ValueError, TypeError):
+            if type(step) is int:
+                return step
+            t = m.get("t_ns")
+            return spec.sample_at(t)[0] if type(t) is int else default
+        if type(step) is int:
+            return step - spec.lead
+        t = m.get("issued_ns")
+        return spec.step_of(t) if type(t) is int else default
+    except Exception:  # not msgpack, not a map, a stamp out of range: as it comes
         return default
 
 
@@ -169,6 +199,8 @@ class Dispatch:
         #: Data samples (sensors and commands) taken from the subscriptions: what this
         #: instance receives (``samples_received``). Written by the one thread that drains.
         self.received = 0
+        #: Held inputs taken in by catch-ups so far (the read-back slices count them).
+        self.caught_up = 0
 
     # ================================================================== callbacks ======
     # Transport threads. No lock, no decoding, no blocking: split the key, append, wake.
@@ -204,13 +236,16 @@ class Dispatch:
 
     def process_read_back(self, now: int, touched: list[Session]) -> int:
         """Worker: the recovered messages that arrived after the start (a sender that
-        appeared, a takeover's read-back), after the round's live messages."""
+        appeared, a takeover's read-back), after the round's live messages; at most
+        :data:`READ_BACK_SLICE` of them (with the inputs of the holds they end), the rest
+        in the next loop."""
         q = self.read_back
         if self.read_back_drops:
             self.counters["recovered_dropped"] += self.read_back_drops
             self.read_back_drops = 0
         n = 0
-        while q:
+        start = self.caught_up
+        while q and n + self.caught_up - start < READ_BACK_SLICE:
             stream, sample, recv_now = q.popleft()
             n += 1
             self._offer_read_back(stream, sample, recv_now, now, touched)
@@ -229,7 +264,8 @@ class Dispatch:
             # unknown, or served by another instance: nothing to do with it here
             self.counters["recovered_ignored"] += 1
             return
-        item = (stream, sample.key, sample.payload, sample.recv_mono_ns, sample.kind, recv_now)
+        item = (stream, sample.key, sample.payload, sample.recv_mono_ns, sample.kind, recv_now,
+                recv_now)
         held = self.held_inputs.get(sess.name) if sess.hold_until_ns else None
         if held is not None:
             held.append((True, item))
@@ -285,6 +321,7 @@ class Dispatch:
         held = self.held_inputs.pop(sess.name, None)
         if not held:
             return
+        self.caught_up += len(held)
         spec = sess.spec
         now_step = sess.step_now(now)
         order = sorted(((stamp_step(spec, item, now_step), i) for i, (_, item) in
@@ -316,11 +353,17 @@ class Dispatch:
         reported), then the recovered ones, before anything is published: a
         prediction never sees a recovered packet without the live ones received before
         it, and a message both received live and read back is refused as the recovered
-        copy, quietly. Then the sessions rejoin the rounds."""
+        copy, quietly. Then the sessions rejoin the rounds. (A session read back without
+        being parked, ``Lifecycle.settle_second_owner``'s kept one, took its live messages
+        in the rounds, before.) At most :data:`READ_BACK_SLICE` messages (whole read-backs,
+        with the inputs of the holds they end): the others in the next loop."""
         n = 0
-        while self.released:
+        start = self.caught_up
+        while self.released and n + self.caught_up - start < READ_BACK_SLICE:
             names, items = self.released.popleft()
             for name in names:
+                if name not in self.parked:
+                    continue
                 self.parked.discard(name)
                 route = self.routes.get(name)
                 if route is None:
@@ -354,7 +397,13 @@ class Dispatch:
         if len(parts) < 4:
             return
         route = self.routes.get(parts[2])
-        item = (stream, key, sample.payload, sample.recv_mono_ns, sample.kind, self.now_ns())
+        now = self.now_ns()
+        mono = sample.recv_mono_ns
+        # drained samples carry the time of the previous look at their queue (the transport's
+        # monotonic clock): after a stall they may have waited there since it
+        gap = monotonic_ns() - mono
+        item = (stream, key, sample.payload, mono, sample.kind, now,
+                now - gap if gap > LOOK_SLACK_NS else now)
         if route is None:
             q = self.unknown
             if len(q) == q.maxlen:
@@ -500,22 +549,25 @@ class Dispatch:
         """One message into its session (the stream's READ_BACK bit ignored); None if
         accepted (counted as ``accepted`` / ``commands_accepted``, and ``also`` + that name
         when ``also`` is set). A packet is judged at its arrival if that came after the
-        loop read its clock."""
-        stream, key, payload, recv_mono, kind, recv_now = item
+        loop read its clock, and late or on time at the earliest it may have arrived
+        (``first_now``: :func:`pd_service.intake.judged_step`), not at the time the worker got
+        to it."""
+        stream, key, payload, recv_mono, kind, recv_now, first_now = item
         if recv_now > now:
             now_step = sess.step_now(recv_now)
+        first_step = (first_now - sess.epoch_ns) // sess.period_ns
         try:
             if kind != "put":
                 return Refusal("malformed" if stream & ~READ_BACK == SENSOR
                                else "commands_malformed",
                                f"{kind} is not supported on {key!r}: publish a message with put")
             if stream & ~READ_BACK == SENSOR:
-                refusal = sess.on_measurement(key, payload, now_step, now, recv_now)
+                refusal = sess.on_measurement(key, payload, now_step, now, recv_now, first_step)
                 name = "accepted"
                 if refusal is None:
                     sess.pending_recv.append(recv_mono)
             else:
-                refusal = sess.on_command(key, payload, now_step, now)
+                refusal = sess.on_command(key, payload, now_step, now, first_step)
                 name = "commands_superseded" if sess.intake.superseded else "commands_accepted"
         except Exception as exc:  # isolation: nothing one session sends escapes the worker
             log.debug("internal error in session %s", sess.name, exc_info=True)

@@ -740,8 +740,12 @@ class Lifecycle:
           session the other held at its prior alone (a delete: no state, no term).
 
         Either way the senders' caches are read back: what reached only the other side
-        inside the window comes back. The other owner stops serving the session when it
-        sees the membership (:meth:`reassign`)."""
+        inside the window comes back. A session that yields waits for them (its inputs
+        meanwhile kept and taken in at their stamps, :meth:`hold_for_read_back`); one that
+        keeps its estimate goes on taking in its live inputs and publishing meanwhile, not
+        parked: its ticks would move its window past the live inputs waiting in a parked
+        inbox, refused as late when the read-back ends. The other owner stops serving the
+        session when it sees the membership (:meth:`reassign`)."""
         if self.keeper is None:
             return
         routes = self.dispatch.routes
@@ -781,7 +785,8 @@ class Lifecycle:
             if self.settings.recover_samples > 0 and not self.closed and route is not None \
                     and route.sess is not None:
                 taken.append(name)
-                self.dispatch.park(route)
+                if route.sess.hold_until_ns:  # yielded: resumed, waits for the caches
+                    self.dispatch.park(route)
         if taken:
             self._spawn(lambda: self.read_back_taken(taken))
 

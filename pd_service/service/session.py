@@ -64,7 +64,7 @@ from pd_service.backends import Built, build
 from pd_service.estimation import Estimator, PredictedState
 from pd_service.estimation.estimator_state import untracked
 from pd_service.estimation.tally import Tally
-from pd_service.intake import Intake, Refusal
+from pd_service.intake import ARRIVED_NOW, Intake, Refusal
 from pd_service.ratelimit import TokenBucket
 from pd_service.wire import (
     SessionSpec,
@@ -223,13 +223,16 @@ class Session:
     # --- input -------------------------------------------------------------------------
 
     def on_measurement(self, key: str, payload: bytes, now_step: int, now_ns: int,
-                       recv_ns: int | None = None) -> Refusal | None:
+                       recv_ns: int | None = None,
+                       first_step: int = ARRIVED_NOW) -> Refusal | None:
         """Offer one Measurement received on ``key`` at ``recv_ns`` (default ``now_ns``);
-        None if accepted. Its delay (stamp -> receipt) is learned whatever the outcome."""
+        None if accepted. Its delay (stamp -> receipt) is learned whatever the outcome.
+        ``first_step``: the step it may have arrived at first, if before ``now_step``
+        (judged at its arrival: :func:`pd_service.intake.judged_step`)."""
         robot, intake = self.robot, self.intake
         recv = now_ns if recv_ns is None else recv_ns
         robot.recv_ns = recv
-        refusal = intake.measurement(key, payload, now_step)
+        refusal = intake.measurement(key, payload, now_step, first_step)
         if intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True
@@ -239,11 +242,13 @@ class Session:
                              refusal is not None and refusal.reason == "late")
         return refusal
 
-    def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int) -> Refusal | None:
+    def on_command(self, key: str, payload: bytes, now_step: int, now_ns: int,
+                   first_step: int = ARRIVED_NOW) -> Refusal | None:
         """Offer one Command; None if accepted (at its stamped apply step; with
-        ``command_timing: echoed`` it moves when its echo comes, :meth:`on_echo`)."""
+        ``command_timing: echoed`` it moves when its echo comes, :meth:`on_echo`).
+        ``first_step``: as for :meth:`on_measurement`."""
         intake = self.intake
-        refusal = intake.command(key, payload, now_step)
+        refusal = intake.command(key, payload, now_step, first_step)
         if intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True

@@ -135,3 +135,36 @@ def test_the_order_memory_is_bounded() -> None:
         it.command(KEY, cmd_bytes("s1", k + 1, (0.0,), seq=k), k)
         assert len(it.command_order) <= max(64, 2 * (k - it.est.committed_step + 2))
     assert min(it.command_order) >= it.est.committed_step - 64  # final steps are forgotten
+
+
+def test_a_message_that_waited_is_judged_at_the_earliest_step_it_may_have_arrived_at() -> None:
+    """``first_step`` < ``now_step``: the message arrived between them (it waited for the
+    worker). Judged at max(first, min(stamp, now), the estimator's newest step): a sample
+    inside the window at its arrival is accepted although it is outside it now; one outside
+    at its arrival is late; a stamp after now is future; a command is judged at its send
+    step (apply step - lead) alike; the estimator is never taken back."""
+    from pd_service.intake import judged_step
+
+    assert judged_step(5, 8, 12, None) == 8  # older than its arrival: judged there
+    assert judged_step(10, 8, 12, None) == 10  # stamped after it arrived: at its stamp
+    assert judged_step(15, 8, 12, None) == 12  # after now: at now (future)
+    assert judged_step(5, 8, 12, 11) == 11  # never before the estimator's newest step
+    intake, est = intake_of(paper_spec(epoch_ns=EPOCH))  # max_delay 12
+    key = "pd/p0/s1/sensor/ranger"
+    first = encode(measurement(sensor="ranger", step=5, z=np.array([1.0])))
+    assert intake.measurement(key, first, 20, 17) is None  # inside [5, 17] when it arrived
+    assert est.now == 17  # judged there: the estimator was not moved to 20
+    refusal = intake.measurement(key, encode(measurement(sensor="ranger", step=4, seq=2,
+                                                         z=np.array([1.0]))), 20, 17)
+    assert refusal is not None and refusal.reason == "late"
+    # a command sent at step 19 (apply step 19 + lead) that arrived at 18: judged at 19
+    lead = paper_spec().lead
+    cmd = encode(command(step=19 + lead, u=np.array([0.5])))
+    assert intake.command("pd/p0/s1/cmd", cmd, 22, 18) is None and est.now == 19
+    refusal = intake.measurement(key, encode(measurement(sensor="ranger", step=21, seq=3,
+                                                         z=np.array([1.0]))), 20, 17)
+    assert refusal is not None and refusal.reason == "future" and est.now == 20
+    # the estimator is at 20 now: a sample that arrived at 18 is judged there (came after)
+    refusal = intake.measurement(key, encode(measurement(sensor="ranger", step=7, seq=4,
+                                                         z=np.array([1.0]))), 22, 18)
+    assert refusal is not None and refusal.reason == "late"

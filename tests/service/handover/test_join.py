@@ -225,18 +225,26 @@ class DataCut:
                 callback(sample)
         return on
 
-    def subscribe_drained(self, keyexpr, callback, wake):
-        return self._t.subscribe_drained(keyexpr, self._data(callback), wake)
+    def drain_group(self, wake):
+        group, data = self._t.drain_group(wake), self._data
+
+        class Cut:  # the group, its members' callbacks behind the cut
+            def __getattr__(self, name):
+                return getattr(group, name)
+
+            def add(self, keyexpr, callback):
+                return group.add(keyexpr, data(callback))
+        return Cut()
 
     def read_back(self, keyexpr, callback, **kw):
         return self._t.read_back(keyexpr, self._data(callback), **kw)
 
 
-def test_at_the_heal_the_estimate_that_took_in_the_data_is_kept(tmp_path):
-    """The robot reaches only inst-a (the owner) during the partition: inst-b's takeover
-    predicts from its replica alone, with a newer term. At the heal b hands its state back;
-    a keeps its own estimate (more inputs accepted), renews its term above b's, and its
-    predictions never left the estimate that never stopped."""
+def robot_on_a_side(tmp_path, spawn_a=None):
+    """inst-a (background work run by ``spawn_a``, at once by default) and inst-b, whose
+    transport is a :class:`DataCut`, serving 12 paper sessions; s, a session inst-a owns
+    with inst-b as its successor, fed 30 steps through cached senders. Returns (a, b, tb, s,
+    the Driver, the collector, the client transport)."""
     from pd_service.service.config import Settings
     from pd_service.service.core import ServiceCore
     from pd_service.service.spec_store import SpecStore
@@ -247,12 +255,15 @@ def test_at_the_heal_the_estimate_that_took_in_the_data_is_kept(tmp_path):
 
     bus, clock = InMemoryBus(), Clock(0)
     col, cli = Collector().attach(bus.transport()), bus.transport()
-    a = make_core(bus, clock, tmp_path, "inst-a", peers=PAIR, replica_interval_s=0.3)
-    tb = DataCut(bus.transport())
-    b = ServiceCore(tb, Settings(instance="inst-b", peers=PAIR, replica_interval_s=0.3),
-                    store=SpecStore(tmp_path / "inst-b"), now_ns=clock, run_clock_ns=lambda: 0,
-                    spawn=lambda fn: fn())
-    b.start()
+    cores = []
+    for name, t, spawn in (("inst-a", bus.transport(), spawn_a or (lambda fn: fn())),
+                           ("inst-b", DataCut(bus.transport()), lambda fn: fn())):
+        core = ServiceCore(t, Settings(instance=name, peers=PAIR, replica_interval_s=0.3),
+                           store=SpecStore(tmp_path / name), now_ns=clock,
+                           run_clock_ns=lambda: 0, spawn=spawn)
+        core.start()
+        cores.append(core)
+    a, b = cores
     names = [f"s{i:02d}" for i in range(12)]
     for n in names:
         cli.put(keys.config_key(n), encode(paper_spec(n)))
@@ -261,6 +272,15 @@ def test_at_the_heal_the_estimate_that_took_in_the_data_is_kept(tmp_path):
     d = Driver(CachedSender(bus.transport(), 64), clock, col, s)
     for k in range(30):
         d.step([a, b], k)
+    return a, b, b.t, s, d, col, cli
+
+
+def test_at_the_heal_the_estimate_that_took_in_the_data_is_kept(tmp_path):
+    """The robot reaches only inst-a (the owner) during the partition: inst-b's takeover
+    predicts from its replica alone, with a newer term. At the heal b hands its state back;
+    a keeps its own estimate (more inputs accepted), renews its term above b's, and its
+    predictions never left the estimate that never stopped."""
+    a, b, tb, s, d, col, cli = robot_on_a_side(tmp_path)
     tb.cut = True
     partition(a, b, apart=True)
     for k in range(30, 60):  # 1.5 s: longer than the window (max_delay 16 steps)
@@ -312,3 +332,36 @@ def test_an_asymmetric_partition_settles_once_and_the_display_stays_with_one_own
     assert switches <= 2, shown  # to b's takeover, then (at most) to b's settled term
     assert all(p.term == shown[-1] for p in col.predictions[s][-20:] if p.term >= shown[-1])
     disp.close()
+
+
+def test_a_session_kept_at_the_heal_takes_in_its_live_inputs_while_its_caches_are_read(tmp_path):
+    """As above, inst-a keeps its estimate at the heal and reads the senders' caches back;
+    that read-back runs on a thread and can take a while (here it waits until released).
+    Meanwhile a goes on taking in the live inputs and publishing: its predictions stay those
+    of the estimator that never stopped, and once the read-back ends nothing was lost. (A
+    session parked for its read-back would have ticked without them, its window moving past
+    the inputs waiting in its inbox: refused as late when released.)"""
+    later: list = []  # inst-a's background work, run when the test says
+    a, b, tb, s, d, col, cli = robot_on_a_side(tmp_path, later.append)
+    tb.cut = True
+    partition(a, b, apart=True)
+    for k in range(30, 45):
+        d.step([a, b], k)
+        settle(a, b)
+    tb.cut = False
+    later.clear()
+    partition(a, b, apart=False)
+    settle(a, b)
+    assert a.counters["term_kept"] >= 1 and later  # the read-back waits
+    for k in range(45, 60):  # 0.75 s: longer than the ranger's room in the window
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)
+    for fn in later:
+        fn()
+    for k in range(60, 65):
+        d.step([a, b], k)
+        settle(a, b)
+        d.check(k, d.off)
+    assert s in a.served_sessions() and s not in b.served_sessions()
+    assert a.counters["late"] == 0

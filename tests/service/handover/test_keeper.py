@@ -854,7 +854,8 @@ def test_a_live_copy_after_its_read_back_is_dropped_quietly(tmp_path):
     cmd, meas = cmd_bytes("s1", 5, [0.5]), meas_bytes("s1", "ranger", 2, [1.0])
 
     def sample(key: str, payload: bytes, recovered: bool = False) -> Sample:
-        return Sample(key, payload, "put", clock.t, clock.t, recovered=recovered)
+        # recv_mono_ns on the transport's monotonic clock, as a transport sets it
+        return Sample(key, payload, "put", clock.t, time.monotonic_ns(), recovered=recovered)
 
     d.on_read_back_command(sample(keys.command_key("s1"), cmd, True))
     d.on_read_back_sensor(sample(keys.sensor_key("s1", "ranger"), meas, True))
