@@ -61,6 +61,13 @@ LOOPBACK = Link(60e-6, 60e-6, 30e-6)
 FIELD = Link(0.5, 0.6, 0.05)
 
 
+def traced(est: ClockOffsetEstimator, clock: RobotClock, recv: int
+           ) -> tuple[float, float, float]:
+    """(t s, offset error s, half-width s) of the estimate at daemon time ``recv``."""
+    e = est.estimate(recv)
+    return (recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s
+
+
 def run(est: ClockOffsetEstimator, clock: RobotClock, link: Link, seconds: float,
         probe_hz: float = 5.0, sample_hz: float = 50.0, seed: int = 1,
         start_s: float = 0.0, echo_hz: float = 0.0) -> list[tuple[float, float, float]]:
@@ -90,12 +97,10 @@ def run(est: ClockOffsetEstimator, clock: RobotClock, link: Link, seconds: float
     for recv, kind, data in sorted(events):
         if kind == 2:
             est.add_echo(*data)
-            e = est.estimate(recv)
-            out.append(((recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s))
+            out.append(traced(est, clock, recv))
         elif kind == 0:
             est.add_probe(*data)
-            e = est.estimate(recv)
-            out.append(((recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s))
+            out.append(traced(est, clock, recv))
         else:
             est.add_one_way(data[0], recv)
     return out
@@ -275,8 +280,7 @@ def paper_link_run(est: ClockOffsetEstimator, clock: RobotClock, seconds: float,
     for recv, kind, data in sorted(events):
         if kind == 0:
             est.add_probe(*data)
-            e = est.estimate(recv)
-            out.append(((recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s))
+            out.append(traced(est, clock, recv))
         elif kind == 1:
             est.add_one_way(data[0], recv)
         else:
