@@ -33,9 +33,17 @@ its receipt) and the uncertainty infinite.
 
 Step changes (an NTP correction on the robot): a bound outside the current band by more than
 the tolerance is held aside (``inconsistent``); ``confirm`` of them in a row re-anchor the
-estimate on them (``steps``). A step inside the band is seen when the newest ``recent``
-buckets' envelopes both moved the same way, by more than ``step_k`` times their own spread,
-against the (at most 16) buckets before them: the older buckets are dropped. Pure numpy, no
+estimate on them (``steps``). A step inside the band (smaller than its width: 200 ms against
+the ~0.9 s of a 500 / 600 ms link) moves every bound by the same amount d, so, per side, the
+median of the newest ``recent`` buckets' extremes (detrended) moves by d against the median
+of the (at most 16) buckets before them (:func:`step_test`): both sides must have moved the
+same way, each by more than ``step_k`` standard errors (:func:`median_shift`: from the
+buckets' own spread, at least the tolerance and the drift's uncertainty times the time
+between the two sets), by amounts that agree; the buckets before the step
+(:func:`change_point`) are then dropped. Medians of both sides, not one side's extremes: a
+bucket that holds a probe (the tightest upper bound, tens of ms under the echoes of a robot
+that applies commands at its next tick) moves an extremum of the old buckets but not their
+median, and a change of one way's delays moves one side only. Pure numpy, no
 clock reads: every time is passed in (ns, int).
 """
 
@@ -134,6 +142,76 @@ def hull_slope(t: np.ndarray, v: np.ndarray, above: bool) -> float | None:
     return (y2 - y1) / (x2 - x1)
 
 
+def median_shift(old: np.ndarray, new: np.ndarray, floor: float) -> tuple[float, float]:
+    """How far the values ``new`` sit from ``old`` (one side's per-bucket extremes,
+    detrended, s), and that figure's standard error:
+
+        shift = median(new) - median(old)
+        se = sqrt(pi / 2) * 1.4826 * MAD * sqrt(1 / n_new + 1 / n_old),  se >= floor
+
+    MAD the median absolute deviation of both sets about their own medians (1.4826 MAD:
+    the standard deviation of normal noise; sqrt(pi / 2): a median's standard error over a
+    mean's); ``floor`` stands for what the spread cannot show (a side whose extremes are
+    quantised, e.g. commands applied at a control tick, has none, and the drift's error
+    still tilts it). Medians, not extremes: one bucket with a lucky probe (a side's
+    tightest bound) moves an extreme, not a median. Shapes: old (m,), new (n,)."""
+    mo, mn = float(np.median(old)), float(np.median(new))
+    mad = float(np.median(np.abs(np.concatenate([old - mo, new - mn]))))
+    se = math.sqrt(math.pi / 2) * 1.4826 * mad * math.sqrt(1.0 / new.size + 1.0 / old.size)
+    return mn - mo, max(se, floor)
+
+
+def step_test(old_lo: np.ndarray, new_lo: np.ndarray, old_hi: np.ndarray,
+              new_hi: np.ndarray, k: float, floor_lo: float, floor_hi: float) -> float | None:
+    """The in-band step test: the step (s) the newest buckets show against the older ones,
+    None if none. A step of the robot's clock moves every bound by the same amount, so
+    both sides must have moved, the same way, each by more than ``k`` of its standard
+    error (:func:`median_shift`, at least its ``floor``), and by amounts that agree:
+
+        sign(s_lo) = sign(s_hi),  |s_lo| > k se_lo,  |s_hi| > k se_hi,
+        |s_lo - s_hi| <= k sqrt(se_lo^2 + se_hi^2)
+
+    (a change of one way's delays moves one side only; noise rarely moves both, by the same
+    amount); the step is their inverse-variance mean ``(s_lo / se_lo^2 + s_hi / se_hi^2) /
+    (1 / se_lo^2 + 1 / se_hi^2)``. Arrays: each side's per-bucket extremes, detrended (s)."""
+    s_lo, se_lo = median_shift(old_lo, new_lo, floor_lo)
+    s_hi, se_hi = median_shift(old_hi, new_hi, floor_hi)
+    if (s_lo * s_hi <= 0 or abs(s_lo) <= k * se_lo or abs(s_hi) <= k * se_hi
+            or abs(s_lo - s_hi) > k * math.hypot(se_lo, se_hi)):
+        return None
+    w_lo, w_hi = se_lo ** -2, se_hi ** -2
+    return (s_lo * w_lo + s_hi * w_hi) / (w_lo + w_hi)
+
+
+def change_point(lo: np.ndarray, hi: np.ndarray, pre_lo: float, pre_hi: float,
+                 shift: float) -> int:
+    """The first bucket after a step of ``shift`` (s) among consecutive buckets whose
+    extremes (detrended, s; +-inf: none of that kind) are ``lo``, ``hi``: before the step
+    each side sits at its level ``pre`` (the older buckets' median), after it at
+    ``pre + shift``; the least-absolute-deviation split
+
+        c = argmin_c  sum_{i < c} |x_i - pre| + sum_{i >= c} |x_i - pre - shift|
+
+    over both sides, then moved past a bucket whose *tighter* side (upper for a step
+    forward, lower for one back) is still nearer the old level: the bucket the step fell
+    into, whose bound from before would hold the new band to the old level. Never past the
+    last bucket. Shapes: lo, hi (n,)."""
+    n = lo.size
+    cost = np.zeros(n + 1)
+    for x, pre in ((lo, pre_lo), (hi, pre_hi)):
+        seen = np.isfinite(x)
+        d_pre = np.where(seen, np.abs(x - pre), 0.0)
+        d_post = np.where(seen, np.abs(x - pre - shift), 0.0)
+        cost += np.concatenate([[0.0], np.cumsum(d_pre)]) \
+            + np.concatenate([np.cumsum(d_post[::-1])[::-1], [0.0]])
+    c = int(np.argmin(cost[:n]))
+    tight, pre = (hi, pre_hi) if shift > 0 else (lo, pre_lo)
+    while c < n - 1 and np.isfinite(tight[c]) \
+            and abs(tight[c] - pre) < abs(tight[c] - pre - shift):
+        c += 1
+    return c
+
+
 class ClockOffsetEstimator:
     """Offset and drift of one robot clock (see the module docstring).
 
@@ -142,7 +220,9 @@ class ClockOffsetEstimator:
     estimate and grows the uncertainty while no bound comes; ``asymmetry_s`` the expected
     ``d_up - d_down`` (s; 0: symmetric, the unidentifiable part); ``tolerance_s`` how far
     outside the band a bound may fall before it is held aside; ``confirm`` inconsistent bounds
-    in a row that re-anchor (a step); ``recent`` / ``step_k`` the in-band step test;
+    in a row that re-anchor (a step); ``recent`` / ``step_k`` the in-band step test (the
+    buckets it compares with the older ones, and the standard errors each side must move;
+    ``min_step_s`` the least step it reports);
     ``max_offset_s`` an offset beyond which a bound is refused as implausible; ``max_rtt_s``
     a probe's longest round trip accepted; ``drift_span_s`` the shortest span of bounds the
     drift is fitted on (shorter, e.g. just after a step: the previous drift is kept, as a
@@ -153,7 +233,7 @@ class ClockOffsetEstimator:
 
     def __init__(self, *, bucket_s: float = 0.25, buckets: int = 1200, max_drift: float = 5e-4,
                  asymmetry_s: float = 0.0, tolerance_s: float = 1e-3, confirm: int = 4,
-                 recent: int = 6, step_k: float = 3.0, min_step_s: float = 1e-3,
+                 recent: int = 3, step_k: float = 3.0, min_step_s: float = 1e-3,
                  max_offset_s: float = 1e8, max_rtt_s: float = 30.0,
                  drift_span_s: float = 2.0, refit_s: float = 1.0) -> None:
         if not (bucket_s > 0 and buckets >= 2 * recent and recent >= 2 and confirm >= 1
@@ -178,6 +258,9 @@ class ClockOffsetEstimator:
         self._anchor_ns: int | None = None
         self._drift = 0.0
         self._drift_fitted = False  # over drift_span_s at least (else: +-max_drift unknown)
+        #: How far the drift may be off (s/s): half the two sides' slopes' difference, else
+        #: max_drift (one side, or a span too short)
+        self._drift_spread = max_drift
         self._band: tuple[float, float] = (-np.inf, np.inf)  # L, U detrended (s)
         self._newest = -np.inf  # s since the anchor of the newest bound
         # bounds outside the band, held until confirmed (a step) or contradicted
@@ -289,7 +372,7 @@ class ClockOffsetEstimator:
         for tp, vp in held:
             self._store(tp, vp, lower)
         self._refit()
-        self._note_step(old)
+        self._note_step(self.estimate_at(self._newest) - old)
         return None
 
     def _store(self, t: float, v: float, lower: bool) -> bool:
@@ -349,6 +432,8 @@ class ClockOffsetEstimator:
             if slopes:
                 self._drift = float(np.clip(np.mean(slopes), -self.max_drift, self.max_drift))
             self._drift_fitted = bool(slopes) and span > 0.0
+            self._drift_spread = min(self.max_drift, 0.5 * abs(slopes[0] - slopes[1])) \
+                if len(slopes) == 2 and span > 0.0 else self.max_drift
             b = self._drift
             lo = float(np.max(vl - b * tl)) if vl.size else -np.inf
             hi = float(np.min(vh - b * th)) if vh.size else np.inf
@@ -357,9 +442,12 @@ class ClockOffsetEstimator:
                 return
 
     def _step_inside_band(self) -> None:
-        """The in-band step test (module docstring): the newest ``recent`` buckets holding
-        both kinds against the :data:`_OLD` before them (a bounded look back: the test runs
-        at every bucket opened; the step's drop of the older buckets is what a refit sees)."""
+        """The in-band step test (module docstring, :func:`step_test`): the newest
+        ``recent`` buckets holding both kinds against the (at most :data:`_OLD`) before
+        them, less a guard of :data:`_GUARD` (one robot event's bounds may fall a bucket or
+        two apart, mapped with an estimate off by up to its half-width). A bounded look
+        back: the test runs at every bucket opened; the step's drop of the older buckets is
+        what a refit sees."""
         kept = self._buckets
         bs = list(itertools.islice(kept, max(0, len(kept) - 2 * self.recent - _GUARD - _OLD),
                                    None))
@@ -368,31 +456,41 @@ class ClockOffsetEstimator:
         if len(both) < 2 * n + _GUARD:
             return
         split = both[-n]
-        # a guard between the two sets: one robot event's bounds may fall a bucket or two
-        # apart (mapped with an estimate off by up to its half-width)
-        old, new = bs[:max(0, split - _GUARD)], bs[split:]
+        old, new = bs[max(0, split - _GUARD - _OLD):max(0, split - _GUARD)], bs[split:]
         b = self._drift
         tl, vl, th, vh = self._arrays(new)
         ol, vol, oh, voh = self._arrays(old)
-        if ol.size < n or oh.size < n:
+        if min(ol.size, oh.size) < _OLD // 2:  # too few to tell their spread
             return
-        rl, rh = vl - b * tl, vh - b * th
-        old_l, old_h = float(np.max(vol - b * ol)), float(np.min(voh - b * oh))
-        d_lo, d_hi = float(rl.max()) - old_l, float(rh.min()) - old_h
-        spread = float(np.median(np.concatenate([rl.max() - rl, rh - rh.min()])))
-        thr = max(self.min_step_s, self.step_k * spread)
-        if d_lo * d_hi > 0 and min(abs(d_lo), abs(d_hi)) > thr:
-            before = self.estimate_at(bs[split].t_lo if bs[split].lo > -np.inf else 0.0)
-            for _ in range(len(kept) - (len(bs) - split)):
-                kept.popleft()
-            self._refit()
-            self._note_step(before)
+        # what the spreads cannot show: the tolerance, and the drift's error over the time
+        # between the two sets
+        base = max(self.min_step_s, self.tolerance_s) / self.step_k
+        gap_l = float(np.median(tl) - np.median(ol))
+        gap_h = float(np.median(th) - np.median(oh))
+        shift = step_test(vol - b * ol, vl - b * tl, voh - b * oh, vh - b * th, self.step_k,
+                          math.hypot(base, self._drift_spread * gap_l),
+                          math.hypot(base, self._drift_spread * gap_h))
+        if shift is None or abs(shift) < self.min_step_s:
+            return
+        # where it happened: the medians put it somewhere in the newest buckets
+        seg = bs[max(0, split - _GUARD):]
+        lo = np.array([x.lo - b * x.t_lo for x in seg])
+        hi = np.array([x.hi - b * x.t_hi for x in seg])
+        pre_lo, pre_hi = float(np.median(vol - b * ol)), float(np.median(voh - b * oh))
+        c = change_point(lo, hi, pre_lo, pre_hi, shift)
+        moved = np.concatenate([lo[c:] - pre_lo, hi[c:] - pre_hi])
+        first = len(bs) - len(seg) + c
+        for _ in range(len(kept) - (len(bs) - first)):
+            kept.popleft()
+        self._refit()
+        # its size: how far the buckets after it sit from the older ones (the estimate had
+        # moved part of the way already)
+        self._note_step(float(np.median(moved[np.isfinite(moved)])))
 
-    def _note_step(self, before: float) -> None:
+    def _note_step(self, size: float) -> None:
         self.counters["steps"] += 1
-        after = self.estimate_at(self._newest)
-        if np.isfinite(before) and np.isfinite(after):
-            self.last_step_s = after - before
+        if np.isfinite(size):
+            self.last_step_s = size
 
     def _oldest(self) -> float:
         b = self._buckets[0]

@@ -146,6 +146,45 @@ def test_only_the_authorised_user_publishes(endpoint: str, case: str, acl: bool)
         assert leaked == ROUNDS
 
 
+@pytest.mark.parametrize("acl", [True, False], ids=["acl-on", "control-acl-off"])
+def test_only_the_service_probes_the_robot_clock(endpoint: str, acl: bool) -> None:
+    """Issue 43's clock probes: the robot answers on robot/<p>/<s>/clock, the daemon (service
+    user) queries it; no other role's query reaches it, and no other role's queryable on
+    that key is asked in the robot's place (control: ACL off, both happen). Each query
+    carries its sender's name; each queryable records what reached it (a get of one key
+    consolidates its replies to one, so replies alone cannot tell who was asked)."""
+    key = keys.robot_clock_key("paper")
+    others = ("operator", "link", "display")
+    with open_router(endpoint, acl=acl), contextlib.ExitStack() as stack:
+        robot = stack.enter_context(open_client("robot", endpoint))
+        service = stack.enter_context(open_client("service", endpoint))
+        c = {role: stack.enter_context(open_client(role, endpoint)) for role in others}
+        asked: list[bytes | None] = []
+        forged: list[bytes | None] = []
+        robot.queryable(key, lambda q: (asked.append(q.payload), q.reply(key, b"robot")))
+
+        def probe(t: ZenohTransport, who: bytes) -> list[bytes]:
+            return [r.payload for r in t.get(key, payload=who, timeout=1.0) if r.ok]
+        assert wait_for(lambda: probe(service, b"service"), TIMEOUT_S,
+                        "the robot's answer to the service's probe") == [b"robot"]
+        # a forged clock: the link answers on the robot's key
+        c["link"].queryable(key, lambda q: (forged.append(q.payload), q.reply(key, b"forged")))
+        if acl:
+            for _ in range(3):  # bounded negative wait: the forged queryable stays unasked
+                assert probe(service, b"service") == [b"robot"]
+            for role in others:
+                probe(c[role], role.encode())
+            assert set(asked) == {b"service"}, "another role's probe reached the robot"
+            assert b"service" not in forged, "the service's probe reached a forged clock"
+        else:
+            wait_for(lambda: probe(service, b"service") and b"service" in forged, TIMEOUT_S,
+                     "control run: the service's probe to reach the forged clock")
+            for role in others:
+                wait_for(lambda role=role: probe(c[role], role.encode())
+                         and role.encode() in asked, TIMEOUT_S,
+                         f"control run: {role}'s probe to reach the robot")
+
+
 def test_authentication_refuses_bad_credentials(endpoint: str) -> None:
     users = read_users()
     with open_router(endpoint):

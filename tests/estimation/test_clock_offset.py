@@ -11,7 +11,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from pd_service.estimation.clock_offset import ClockOffsetEstimator, hull_slope
+from pd_service.estimation.clock_offset import (
+    ClockOffsetEstimator,
+    change_point,
+    hull_slope,
+    median_shift,
+    step_test,
+)
 
 S = 1_000_000_000
 T0 = 1_700_000_000 * S  # the daemon's clock at the start of a run (ns)
@@ -55,6 +61,13 @@ LOOPBACK = Link(60e-6, 60e-6, 30e-6)
 FIELD = Link(0.5, 0.6, 0.05)
 
 
+def traced(est: ClockOffsetEstimator, clock: RobotClock, recv: int
+           ) -> tuple[float, float, float]:
+    """(t s, offset error s, half-width s) of the estimate at daemon time ``recv``."""
+    e = est.estimate(recv)
+    return (recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s
+
+
 def run(est: ClockOffsetEstimator, clock: RobotClock, link: Link, seconds: float,
         probe_hz: float = 5.0, sample_hz: float = 50.0, seed: int = 1,
         start_s: float = 0.0, echo_hz: float = 0.0) -> list[tuple[float, float, float]]:
@@ -84,12 +97,10 @@ def run(est: ClockOffsetEstimator, clock: RobotClock, link: Link, seconds: float
     for recv, kind, data in sorted(events):
         if kind == 2:
             est.add_echo(*data)
-            e = est.estimate(recv)
-            out.append(((recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s))
+            out.append(traced(est, clock, recv))
         elif kind == 0:
             est.add_probe(*data)
-            e = est.estimate(recv)
-            out.append(((recv - T0) / S, e.offset_s - clock.theta_ns(recv) / S, e.half_width_s))
+            out.append(traced(est, clock, recv))
         else:
             est.add_one_way(data[0], recv)
     return out
@@ -239,3 +250,110 @@ def test_one_probe_bounds_the_offset_on_both_sides() -> None:
     assert est.add_probe(T0, T0 + 10 * S + 1000, T0 + 10 * S + 2000, T0 + 3000) is None
     e = est.estimate(T0 + 3000)
     assert e.half_width_s < 2e-6 and abs(e.offset_s - 10.0) < 2e-6
+
+
+def paper_link_run(est: ClockOffsetEstimator, clock: RobotClock, seconds: float, seed: int
+                   ) -> tuple[list[tuple[float, float, float]], float | None]:
+    """The paper scenario's bounds on the field link (bench/robot_clock.py): probes at 1 Hz
+    (up 500, down 600 +- 50 ms), camera stamps at 10 Hz (down 500 +- 50 ms), commands at
+    20 Hz (issued 5 ms into their 50 ms step, up 500 +- 50 ms) applied at the robot's next
+    50 ms tick and echoed (down 600 +- 50 ms; the echo's own stamp a one-way bound): the
+    echoes' bounds sit at the tick, the probes' up to 50 ms under them. Returns the trace
+    (as :func:`run`, at each probe) and the daemon time (s) the first step was detected."""
+    rng = np.random.default_rng(seed)
+    tick = 50_000_000
+    events: list[tuple[int, int, tuple[int, ...]]] = []
+    for j in range(int(seconds)):
+        t1 = T0 + j * S + 15_000_000
+        ta = t1 + FIELD.up(rng)
+        t4 = ta + 20_000 + FIELD.down(rng)
+        events.append((t4, 0, (t1, clock(ta), clock(ta + 20_000), t4)))
+    for k in range(int(seconds * 10)):
+        ts = T0 + k * 100_000_000
+        events.append((ts + round((0.5 + rng.uniform(-0.05, 0.05)) * S), 1, (clock(ts),)))
+    for k in range(int(seconds * 20)):
+        ti = T0 + k * tick + 5_000_000
+        at = ((ti + FIELD.up(rng) - T0) // tick + 1) * tick + T0
+        events.append((at + FIELD.down(rng), 2, (ti, clock(at))))
+    out: list[tuple[float, float, float]] = []
+    seen = None
+    for recv, kind, data in sorted(events):
+        if kind == 0:
+            est.add_probe(*data)
+            out.append(traced(est, clock, recv))
+        elif kind == 1:
+            est.add_one_way(data[0], recv)
+        else:
+            est.add_echo(data[0], data[1])
+            est.add_one_way(data[1], recv)
+        if seen is None and est.counters["steps"]:
+            seen = (recv - T0) / S
+    return out, seen
+
+
+@pytest.mark.parametrize("seed", range(1, 6))
+def test_jittery_bounds_with_no_step_are_not_taken_for_one(seed: int) -> None:
+    # the echoes' upper bounds all sit at the tick (no spread) and a probe now and then
+    # 0-50 ms under them: the extremes of a few buckets move by tens of ms, their medians not
+    est = ClockOffsetEstimator()
+    _, seen = paper_link_run(est, RobotClock(10.0), 60.0, seed)
+    assert est.counters["steps"] == 0, f"a step seen at {seen} s"
+
+
+@pytest.mark.parametrize("step_s", [0.2, -0.2])
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_step_inside_the_band_is_found_within_two_probes(step_s: float, seed: int) -> None:
+    clock = RobotClock(10.0, step_s=step_s, step_at_s=30.0)
+    est = ClockOffsetEstimator()
+    trace, seen = paper_link_run(est, clock, 60.0, seed)
+    # its first bounds arrive 450 ms after it (the fastest way down)
+    assert est.counters["steps"] == 1 and seen is not None and 30.45 < seen <= 32.5
+    assert est.last_step_s == pytest.approx(step_s, abs=0.03)
+    # after it, as before it: the band's midpoint, off by the ticks' slack (<= 25 ms)
+    assert error_after(trace, seen + 1.0) < 0.03
+    assert error_after([x for x in trace if x[0] < 30.0], 10.0) < 0.03
+
+
+def test_the_step_test_needs_both_sides_moved_alike() -> None:
+    rng = np.random.default_rng(5)
+    old_lo, new_lo = rng.uniform(-0.05, 0.0, 16), rng.uniform(-0.05, 0.0, 3)
+    old_hi, new_hi = rng.uniform(0.0, 0.01, 16), rng.uniform(0.0, 0.01, 3)
+    floor = 1e-3 / 3
+    assert step_test(old_lo, new_lo, old_hi, new_hi, 3.0, floor, floor) is None
+    found = step_test(old_lo, new_lo + 0.2, old_hi, new_hi + 0.2, 3.0, floor, floor)
+    assert found == pytest.approx(0.2, abs=0.01)
+    assert step_test(old_lo, new_lo - 0.2, old_hi, new_hi - 0.2, 3.0, floor, floor) \
+        == pytest.approx(-0.2, abs=0.01)
+    # one side (a way's delays changed), opposite ways, or sizes that disagree: no step
+    assert step_test(old_lo, new_lo + 0.2, old_hi, new_hi, 3.0, floor, floor) is None
+    assert step_test(old_lo, new_lo + 0.2, old_hi, new_hi - 0.2, 3.0, floor, floor) is None
+    assert step_test(old_lo, new_lo + 0.2, old_hi, new_hi + 0.05, 3.0, floor, floor) is None
+
+
+def test_a_lucky_probe_among_quantised_echoes_moves_no_median() -> None:
+    # upper side: every bucket's echo at the tick (0), one old bucket with a probe 40 ms
+    # under it; lower side: jittery. The old extremes-against-spread test saw the upper
+    # envelope move up 40 ms against a spread of 0 (and the lower's 2 ms: a step)
+    rng = np.random.default_rng(2)
+    old_hi, new_hi = np.zeros(16), np.zeros(3)
+    old_hi[5] = -0.04
+    old_lo = rng.uniform(-0.1, 0.0, 16)
+    new_lo = np.array([old_lo.max() + 0.002, -0.03, -0.05])
+    shift, se = median_shift(old_hi, new_hi, 1e-3 / 3)
+    assert shift == 0.0 and se == 1e-3 / 3
+    assert step_test(old_lo, new_lo, old_hi, new_hi, 3.0, 1e-3 / 3, 1e-3 / 3) is None
+
+
+def test_the_change_point_drops_the_bucket_the_step_fell_into() -> None:
+    inf = np.inf
+    # a step of +200 ms after bucket 2; bucket 3 straddles it: its lower bound is already
+    # up, its upper (the tighter side for a step forward) still at the old level
+    lo = np.array([-0.01, -0.02, -0.01, 0.19, 0.18, 0.2])
+    hi = np.array([0.0, 0.01, 0.0, 0.005, 0.2, 0.21])
+    assert change_point(lo, hi, -0.015, 0.005, 0.2) == 4
+    # the mirror image, a step back: the lower side is the tighter one
+    assert change_point(-hi, -lo, -0.005, 0.015, -0.2) == 4
+    # a bucket without one kind counts on the other alone; never past the last bucket
+    assert change_point(np.array([0.0, 0.2, -inf]), np.array([inf, 0.2, 0.2]), 0.0, 0.0,
+                        0.2) == 1
+    assert change_point(np.array([0.0, 0.0]), np.array([0.0, 0.0]), 0.0, 0.0, 0.2) == 1

@@ -173,7 +173,7 @@ def test_bad_echoes_silent_robots_and_flooding_probe_answers_are_counted(tmp_pat
 
     robot_t.queryable(keys.robot_clock_key("s1"), flood)
     # s2: no robot answers at all; s3: a well-behaved robot 10 s ahead
-    Robot(bus.transport(), "s3", direct=True, clock=lambda: clock.t + 10 * SECOND)
+    r3 = Robot(bus.transport(), "s3", direct=True, clock=lambda: clock.t + 10 * SECOND)
     assert core.robot_io.probe_all(core.clocked_sessions()) == 2
     op.put(keys.command_key("s1"),
            encode(Command(session="s1", seq=1, issued_ns=clock.t, u=np.array([0.5]))))
@@ -204,12 +204,35 @@ def test_bad_echoes_silent_robots_and_flooding_probe_answers_are_counted(tmp_pat
     assert s1 is not None and s1.counters["echoes"] == 1
     # the robot stops answering: the last offset holds, its bound grows, a warning says so
     before = s3.clock.uncertainty_ns
+    r3.close()
     clock.t = at(5) + 60 * SECOND
+    assert core.robot_io.probe_all(["s3"]) == 0
+    core.run_once()
+    assert core.service_status().counters["probes_unanswered"] == 2
     s3 = core.session_status("s3")
     assert s3 is not None and s3.clock is not None
     assert s3.clock.uncertainty_ns is not None and before is not None
     assert s3.clock.uncertainty_ns > before and "stale" in s3.clock.warning
     assert abs(s3.clock.offset_ns - 10 * SECOND) <= 1
+    core.close()
+
+
+def test_probe_answers_beyond_the_queue_are_counted_and_the_rest_reach_their_session(
+        tmp_path) -> None:
+    bus, clock = InMemoryBus(), Clock(at(0) - 1)
+    core = make_core(bus, clock, tmp_path)
+    bus.transport().put(keys.config_key("s1"), encode(spec("s1")))
+    core.run_once()
+    robot = Robot(bus.transport(), "s1", direct=True, clock=lambda: clock.t + 10 * SECOND)
+    for i in range(ECHO_INBOX + 3):  # probes answered faster than the worker takes them
+        clock.t = at(5) + i * 1000
+        assert core.robot_io.probe(core.clocked_sessions()[0])
+    assert core.service_status().counters["probe_answers_flood"] == 3
+    core.run_once()
+    st = core.session_status("s1")
+    assert st is not None and st.counters["probe_replies"] == ECHO_INBOX
+    assert st.clock is not None and abs(st.clock.offset_ns - 10 * SECOND) <= 1
+    robot.close()
     core.close()
 
 

@@ -57,6 +57,44 @@ def test_kept_commands_are_bounded_and_unknown_echoes_counted() -> None:
     assert r.counters["echoes_unknown"] == 1
 
 
+def test_probe_answers_the_estimator_refuses_are_counted_and_change_nothing() -> None:
+    r = robot()
+    r.probe(100 * S, 110 * S + 1000, 110 * S + 2000, 100 * S + 3000)  # offset ~ +10 s
+    before = r.clock.estimate(101 * S)
+    r.probe(101 * S, 111 * S, 111 * S + 1000, 101 * S - 5)  # answered before it was asked
+    r.probe(103 * S, 10**18, 10**18, 103 * S + 3000)  # ~30 years
+    after = r.clock.estimate(101 * S)
+    assert (after.offset_s, after.half_width_s) == (before.offset_s, before.half_width_s)
+    # an hour ahead: its lower bound is held aside (a step only if confirmed), its upper one
+    # is a loose but true bound (with one earlier probe it still sets the drift: clipped)
+    r.probe(102 * S, 112 * S + 3600 * S, 112 * S + 3600 * S, 102 * S + 3000)
+    e = r.clock.estimate(102 * S)
+    assert abs(e.offset_s - 10.0) <= r.clock.max_drift * 2 + 1e-5 and e.steps == 0
+    c = r.counters
+    assert c["probe_replies"] == 4
+    assert (c["probe_probes_invalid"], c["probe_inconsistent"], c["probe_implausible"]) \
+        == (1, 1, 1)
+
+
+def test_an_echo_applied_after_it_arrived_or_before_its_command_is_implausible() -> None:
+    r = robot(timing="echoed")
+    r.probe(100 * S, 110 * S + 1000, 110 * S + 2000, 100 * S + 3000)  # offset ~ +10 s, +-2 µs
+    for seq in (1, 2, 3):
+        r.keep_command(seq, 101 * S, np.zeros(1), 30, (101 * S, seq))
+    # robot time 112 s = daemon 102 s: after the echo arrived (101.5 s)
+    assert r.echo(encode(CommandEcho(session="s1", seq=1, applied_ns=112 * S)),
+                  101 * S + S // 2) is None
+    # robot 110.5 s = daemon 100.5 s: before the command was issued (101 s)
+    assert r.echo(encode(CommandEcho(session="s1", seq=2, applied_ns=110 * S + S // 2)),
+                  101 * S + S // 2) is None
+    assert r.counters["echoes_implausible"] == 2 and r.counters.get("echoes", 0) == 0
+    assert set(r.kept) == {1, 2, 3}  # kept: a good echo may still come
+    got = r.echo(encode(CommandEcho(session="s1", seq=3, applied_ns=111 * S + S // 4)),
+                 101 * S + S // 2)
+    assert got is not None and abs(got[0] - (101 * S + S // 4)) < 5_000
+    assert r.counters["echoes"] == 1
+
+
 def test_a_spec_without_echoes_keeps_commands_only_from_its_robots_first_echo() -> None:
     r = robot("shared", "stamped")
     assert not r.listening  # a robot that never echoes costs nothing per command
