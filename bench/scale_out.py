@@ -48,6 +48,7 @@ for caches that never answer: ``--clients sdk`` runs the SDK's set-up (cached se
 
 Usage: python bench/scale_out.py [--sessions 1000] [--instances 4] [--duration 6]
        [--warmup 4] [--repeat 1] [--churn] [--settle 6] [--clients declared|sdk]
+       [--root DIR]  the instances run that checkout's pd_service (A/B against a baseline)
 """
 
 from __future__ import annotations
@@ -98,7 +99,7 @@ class Cluster:
     """The router, the instances and the probe of one phase."""
 
     def __init__(self, names: list[str], trusted: list[str], state: str,
-                 latency_window: int) -> None:
+                 latency_window: int, root: Path = ROOT) -> None:
         self.port = free_port()
         self.ep = f"tcp/127.0.0.1:{self.port}"
         self.state = state
@@ -109,6 +110,10 @@ class Cluster:
         self.env = dict(os.environ, PD_SERVICE_LATENCY_WINDOW=str(latency_window))
         self.env.setdefault("PD_SERVICE_LOG_LEVEL", "WARNING")  # INFO: the daemons' events
         self.env.pop("PD_SERVICE_CONFIG", None)
+        self.root = root
+        if root != ROOT:  # the instances import pd_service from that checkout
+            self.env["PYTHONPATH"] = os.pathsep.join(
+                [str(root)] + [p for p in [self.env.get("PYTHONPATH")] if p])
         for k, v in BENCH_ENV.items():
             self.env.setdefault(k, v)
         self.router = subprocess.Popen([sys.executable, __file__, "--router", str(self.port)],
@@ -130,9 +135,9 @@ class Cluster:
              f"{self.state}/{name}", "--mode", "client", "--connect", self.ep,
              # the daemon's role listens by default (7447): one free port each
              "--listen", f"tcp/127.0.0.1:{free_port()}", *others],
-            env=self.env, cwd=ROOT)
+            env=self.env, cwd=self.root)
 
-    def wait_members(self, n: int, timeout: float = 30.0) -> None:
+    def wait_members(self, n: int, timeout: float = 90.0) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if len(self.probe.get_liveliness("pd/@service/*", timeout=1.0)) >= n:
@@ -418,12 +423,14 @@ def one_repetition(args: argparse.Namespace) -> dict:
     out: dict = {"gauge_ms": gauge_ms()}
     state = tempfile.mkdtemp(prefix="pd-scale-")
     try:
-        c = Cluster(["inst-0"], ["inst-0"], f"{state}/one", window(args.sessions, 1, args))
+        c = Cluster(["inst-0"], ["inst-0"], f"{state}/one", window(args.sessions, 1, args),
+                    args.root)
         try:
             out["one"] = measure(c, args.sessions, args, churn=False)
         finally:
             c.close()
-        c = Cluster(names[:k], names, f"{state}/many", window(args.sessions, k, args))
+        c = Cluster(names[:k], names, f"{state}/many", window(args.sessions, k, args),
+                    args.root)
         try:
             out["many"] = measure(c, args.sessions, args, churn=args.churn)
         finally:
@@ -447,6 +454,9 @@ def main() -> None:
                     help="the load's senders: plain puts of declared keys, or what the SDK "
                          "declares (a cached publisher per key, a display per session): "
                          "the set-up in which a takeover reads back what a kill lost")
+    ap.add_argument("--root", type=Path, default=ROOT,
+                    help="run the instances on the pd_service of another checkout (a baseline "
+                         "worktree), with this benchmark's load, router and figures")
     ap.add_argument("--router", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.router:
@@ -457,7 +467,7 @@ def main() -> None:
     print(f"scale-out: {args.sessions} paper sessions at 20 Hz through one Python Zenoh router, "
           f"1 then {args.instances} instances, P = {keys.partitions()} partitions, "
           f"{os.cpu_count()} CPUs, {args.duration:g} s measured after {args.warmup:g} s warm-up, "
-          f"senders: {args.clients}")
+          f"senders: {args.clients}, instances' pd_service: {args.root}")
     reps = []
     for r in range(args.repeat):
         res = one_repetition(args)
