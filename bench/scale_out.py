@@ -11,8 +11,9 @@ second step) and a probe. Per repetition:
 1. **one**: one instance serves all N sessions. Over the measurement interval: the data
    samples it received (its ``samples_received`` counter), its CPU (utime + stime from
    /proc, all threads) per session and 50 ms step, its p50 / p99 receipt -> prediction
-   (ServiceStatus, a window of the interval's measurements) and its worker loops over
-   100 ms (``worker_slow_loops``).
+   (ServiceStatus, a window of the interval's measurements), its worker's loops a second
+   and the samples each took (``worker_loops``) and its loops over 100 ms
+   (``worker_slow_loops``).
 2. **K**: K fresh instances behind the same router. Per instance the share of the data
    samples it received against total / K (goal: max <= 1.1), and the instances' CPU summed
    per session-step against phase 1's (goal: <= 1.2x).
@@ -184,6 +185,11 @@ def slow_loops(st) -> int:
     return int(st.counters.get("worker_slow_loops", 0))
 
 
+def loops(st) -> int:
+    """The instance's worker loops so far (``worker_loops``)."""
+    return int(st.counters.get("worker_loops", 0))
+
+
 def window(n: int, k: int, args: argparse.Namespace) -> int:
     """Latency samples an instance of ``k`` keeps: its share of the measurement interval's
     but its first SETTLE_S (bench/service.py)."""
@@ -239,7 +245,12 @@ def measure(c: Cluster, n: int, args: argparse.Namespace, churn: bool) -> dict:
            # interval's measurements, see Cluster): the worst instance's p99, the mean p50
            "p99_us": max(s1[k].latency_p99_us for k in s1),
            "p50_us": statistics.mean(s1[k].latency_p50_us for k in s1),
-           "slow_loops": sum(slow_loops(s1[k]) - slow_loops(s0[k]) for k in s1)}
+           "slow_loops": sum(slow_loops(s1[k]) - slow_loops(s0[k]) for k in s1),
+           # the workers' loops a second (summed over the instances; 0: a build without
+           # the counter) and the data samples per loop
+           "loops_per_s": sum(loops(s1[k]) - loops(s0[k]) for k in s1) / wall}
+    res["samples_per_loop"] = total / (res["loops_per_s"] * wall) if res["loops_per_s"] \
+        else float("nan")
     res["threads"] = by_thread(t0, t1, {k: c.daemons[k].pid for k in t1}, steps)
     if churn:
         res["churn"] = churn_events(c, args)
@@ -476,7 +487,8 @@ def main() -> None:
         print(f"run {r + 1}: gauge {res['gauge_ms']:.1f} ms")
         print(f"  1 instance: {one['received_total']} samples received, "
               f"{one['us_per_session_step']:.1f} µs CPU per session-step, late {one['late']}, "
-              f"p50 {one['p50_us']:.0f} µs, p99 {one['p99_us']:.0f} µs, worker loops over "
+              f"p50 {one['p50_us']:.0f} µs, p99 {one['p99_us']:.0f} µs, worker loops "
+              f"{one['loops_per_s']:.0f}/s ({one['samples_per_loop']:.1f} samples each), over "
               f"100 ms {one['slow_loops']}; router {one['router_us_per_message']:.2f} µs CPU "
               f"per message")
         shares = ", ".join(f"{name} {v / (many['received_total'] / len(many['received'])):.3f}"
@@ -485,8 +497,9 @@ def main() -> None:
               f"share of total/{many['instances']}: {shares} (max {many['max_share']:.3f}); "
               f"{many['us_per_session_step']:.1f} µs CPU per session-step summed "
               f"({res['cpu_ratio']:.2f}x one), late {many['late']}, p50 {many['p50_us']:.0f} "
-              f"µs (mean), p99 {many['p99_us']:.0f} µs (worst instance), worker loops over "
-              f"100 ms {many['slow_loops']}; router {many['router_us_per_message']:.2f} µs "
+              f"µs (mean), p99 {many['p99_us']:.0f} µs (worst instance), worker loops "
+              f"{many['loops_per_s']:.0f}/s summed ({many['samples_per_loop']:.1f} samples each), "
+              f"over 100 ms {many['slow_loops']}; router {many['router_us_per_message']:.2f} µs "
               f"CPU per message")
         for label, ph in (("1", one), (str(many["instances"]), many)):
             print(f"  {label} by thread (µs per session-step, summed): " + ", ".join(
@@ -528,6 +541,9 @@ def main() -> None:
         "one_p99_us": med(lambda r: r["one"]["p99_us"]),
         "many_p99_us": med(lambda r: r["many"]["p99_us"]),
         "p99_us_runs": [[round(r[ph]["p99_us"]) for ph in ("one", "many")] for r in reps],
+        "loops_per_s": {ph: med(lambda r, ph=ph: r[ph]["loops_per_s"]) for ph in ("one", "many")},
+        "samples_per_loop": {ph: med(lambda r, ph=ph: r[ph]["samples_per_loop"])
+                             for ph in ("one", "many")},
         "threads": {ph: {k: med(lambda r, ph=ph, k=k: r[ph]["threads"].get(k, 0.0))
                          for k in reps[0][ph]["threads"]} for ph in ("one", "many")},
         "churn": [r["many"].get("churn", []) for r in reps]}))

@@ -148,6 +148,7 @@ class Daemon:
                 self._worker_error = exc
                 core.counters["internal_error"] += 1
             prev = (t0, time.monotonic() - t0, time.thread_time() - c0)
+            core.counters["worker_loops"] += 1
             if handled:
                 last_handled = t0
                 pause = round_pause(handled, interval, linger)
