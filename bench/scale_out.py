@@ -127,7 +127,11 @@ class Cluster:
         from pd_service.transport import ZenohTransport, zenoh_config
 
         self.probe = ZenohTransport(zenoh_config(mode="client", connect=[self.ep]))
-        self.wait_members(len(names))
+        try:
+            self.wait_members(len(names))
+        except BaseException:  # no process of this phase outlives the benchmark
+            self.close()
+            raise
 
     def start(self, name: str) -> None:
         others = [x for n in self.trusted if n != name for x in ("--peer", n)]
