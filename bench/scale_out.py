@@ -10,7 +10,10 @@ second step) and a probe. Per repetition:
 
 1. **one**: one instance serves all N sessions. Over the measurement interval: the data
    samples it received (its ``samples_received`` counter), its CPU (utime + stime from
-   /proc, all threads) per session and 50 ms step.
+   /proc, all threads) per session and 50 ms step, its p50 / p99 receipt -> prediction
+   (ServiceStatus, a window of the interval's measurements), its worker's loops a second
+   and the samples each took (``worker_loops``) and its loops over 100 ms
+   (``worker_slow_loops``).
 2. **K**: K fresh instances behind the same router. Per instance the share of the data
    samples it received against total / K (goal: max <= 1.1), and the instances' CPU summed
    per session-step against phase 1's (goal: <= 1.2x).
@@ -20,7 +23,10 @@ second step) and a probe. Per repetition:
    changed (from the instances' ServiceStatus.sessions before and after), for the sessions
    that did not move the longest gap between two predictions the probe received (the probe
    watches every 10th session; goal: none > 250 ms) and their predictions received against
-   those due over the settle (20 per second each: the gap accounting), and for the moved
+   those due over the settle (20 per second each: the gap accounting), the gaps by the
+   instance that served the session and each old instance's worker loops over 100 ms (its
+   ``worker_slow`` log lines say how long and how much of it was CPU; set
+   PD_SERVICE_LOG_LEVEL=INFO to see the ``reassigned`` and ``synced`` timings), and for the moved
    sessions their SessionStatus.origin (goal: "replica", never "prior").
    **Exact afterwards**: the load generator sends every session the same values at the
    same steps (one simulated paper run shared by all), so a session that never moved is a
@@ -43,6 +49,7 @@ for caches that never answer: ``--clients sdk`` runs the SDK's set-up (cached se
 
 Usage: python bench/scale_out.py [--sessions 1000] [--instances 4] [--duration 6]
        [--warmup 4] [--repeat 1] [--churn] [--settle 6] [--clients declared|sdk]
+       [--root DIR]  the instances run that checkout's pd_service (A/B against a baseline)
 """
 
 from __future__ import annotations
@@ -63,7 +70,17 @@ from pathlib import Path
 
 from children import popen, stop_children_on_exit
 from gauge import gauge_ms
-from service import BENCH_ENV, PERIOD_NS, cpu_seconds, free_port, query_status, session_name, thread_cpu
+from service import (
+    BENCH_ENV,
+    PERIOD_NS,
+    SENSOR_RATE,
+    SETTLE_S,
+    cpu_seconds,
+    free_port,
+    query_status,
+    session_name,
+    thread_cpu,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -83,14 +100,22 @@ def run_router(port: int) -> None:
 class Cluster:
     """The router, the instances and the probe of one phase."""
 
-    def __init__(self, names: list[str], trusted: list[str], state: str) -> None:
+    def __init__(self, names: list[str], trusted: list[str], state: str,
+                 latency_window: int, root: Path = ROOT) -> None:
         self.port = free_port()
         self.ep = f"tcp/127.0.0.1:{self.port}"
         self.state = state
         self.trusted = trusted
         self.epoch = 0  # the sessions' epoch (ns), set by the load's start
-        self.env = dict(os.environ, PD_SERVICE_LOG_LEVEL="WARNING")
+        # the instances' latency windows: their share of the measurement interval's
+        # measurements (bench/service.py sizes one instance's so)
+        self.env = dict(os.environ, PD_SERVICE_LATENCY_WINDOW=str(latency_window))
+        self.env.setdefault("PD_SERVICE_LOG_LEVEL", "WARNING")  # INFO: the daemons' events
         self.env.pop("PD_SERVICE_CONFIG", None)
+        self.root = root
+        if root != ROOT:  # the instances import pd_service from that checkout
+            self.env["PYTHONPATH"] = os.pathsep.join(
+                [str(root)] + [p for p in [self.env.get("PYTHONPATH")] if p])
         for k, v in BENCH_ENV.items():
             self.env.setdefault(k, v)
         self.router = popen([sys.executable, __file__, "--router", str(self.port)],
@@ -103,7 +128,11 @@ class Cluster:
         from pd_service.transport import ZenohTransport, zenoh_config
 
         self.probe = ZenohTransport(zenoh_config(mode="client", connect=[self.ep]))
-        self.wait_members(len(names))
+        try:
+            self.wait_members(len(names))
+        except BaseException:  # no process of this phase outlives the benchmark
+            self.close()
+            raise
 
     def start(self, name: str) -> None:
         others = [x for n in self.trusted if n != name for x in ("--peer", n)]
@@ -112,9 +141,9 @@ class Cluster:
              f"{self.state}/{name}", "--mode", "client", "--connect", self.ep,
              # the daemon's role listens by default (7447): one free port each
              "--listen", f"tcp/127.0.0.1:{free_port()}", *others],
-            env=self.env, cwd=ROOT)
+            env=self.env, cwd=self.root)
 
-    def wait_members(self, n: int, timeout: float = 30.0) -> None:
+    def wait_members(self, n: int, timeout: float = 90.0) -> None:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if len(self.probe.get_liveliness("pd/@service/*", timeout=1.0)) >= n:
@@ -154,6 +183,22 @@ class Cluster:
 def received(st) -> int:
     """The data samples an instance took from its subscriptions (ServiceStatus counter)."""
     return int(st.counters.get("samples_received", 0))
+
+
+def slow_loops(st) -> int:
+    """The instance's worker loops over 100 ms while busy (``worker_slow_loops``)."""
+    return int(st.counters.get("worker_slow_loops", 0))
+
+
+def loops(st) -> int:
+    """The instance's worker loops so far (``worker_loops``)."""
+    return int(st.counters.get("worker_loops", 0))
+
+
+def window(n: int, k: int, args: argparse.Namespace) -> int:
+    """Latency samples an instance of ``k`` keeps: its share of the measurement interval's
+    but its first SETTLE_S (bench/service.py)."""
+    return max(16, int(SENSOR_RATE * n / k * max(args.duration - SETTLE_S, 0.5)))
 
 
 def loadgen(c: Cluster, n: int, epoch: int, measure_start: int, end: int,
@@ -200,7 +245,17 @@ def measure(c: Cluster, n: int, args: argparse.Namespace, churn: bool) -> dict:
            "max_share": max(per.values()) / (total / len(per)) if total else float("nan"),
            "us_per_session_step": 1e6 * sum(c1[k] - c0[k] for k in c1) / steps,
            "late": sum(s1[k].counters.get("late_total", 0) - s0[k].counters.get("late_total", 0)
-                       for k in s1)}
+                       for k in s1),
+           # receipt -> prediction put inside each instance (its window: its share of the
+           # interval's measurements, see Cluster): the worst instance's p99, the mean p50
+           "p99_us": max(s1[k].latency_p99_us for k in s1),
+           "p50_us": statistics.mean(s1[k].latency_p50_us for k in s1),
+           "slow_loops": sum(slow_loops(s1[k]) - slow_loops(s0[k]) for k in s1),
+           # the workers' loops a second (summed over the instances; 0: a build without
+           # the counter) and the data samples per loop
+           "loops_per_s": sum(loops(s1[k]) - loops(s0[k]) for k in s1) / wall}
+    res["samples_per_loop"] = total / (res["loops_per_s"] * wall) if res["loops_per_s"] \
+        else float("nan")
     res["threads"] = by_thread(t0, t1, {k: c.daemons[k].pid for k in t1}, steps)
     if churn:
         res["churn"] = churn_events(c, args)
@@ -223,9 +278,9 @@ def by_thread(t0: dict[str, dict[str, float]], t1: dict[str, dict[str, float]],
     return dict(sorted(((k, v) for k, v in out.items() if v >= 0.005), key=lambda kv: -kv[1]))
 
 
-def owners(c: Cluster) -> dict[str, str]:
+def owners(statuses: dict) -> dict[str, str]:
     """Session -> the instance that serves it, from every live instance's ServiceStatus."""
-    return {s: name for name, st in c.statuses().items() for s in st.sessions}
+    return {s: name for name, st in statuses.items() for s in st.sessions}
 
 
 #: Steps after an event before the moved sessions are compared (the paper spec's lead 10 +
@@ -318,7 +373,8 @@ def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
             ("kill -9", None, signal.SIGKILL)]
     time.sleep(1.0)
     for what, name, sig in plan:
-        before = owners(c)
+        st_before = c.statuses()
+        before = owners(st_before)
         with lock:
             gaps.clear()
             count.clear()
@@ -332,7 +388,8 @@ def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
             c.stop(name, sig)
         time.sleep(args.settle)
         settled_s = (time.time_ns() - t_event) / 1e9
-        after = owners(c)
+        st_after = c.statuses()
+        after = owners(st_after)
         with lock:
             g = dict(gaps)
             n_got = dict(count)
@@ -349,6 +406,12 @@ def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
                     o = decode(r.payload, SessionStatus).origin
                     origins[o] = origins.get(o, 0) + 1
         worst = max((g.get(s, 0) for s in stayed), default=0) / 1e6
+        gapped: dict[str, int] = {}  # the stayed sessions' gaps over 250 ms by their owner
+        for s in stayed:
+            if g.get(s, 0) > 250e6:
+                gapped[before[s]] = gapped.get(before[s], 0) + 1
+        slow = {k: slow_loops(st_after[k]) - slow_loops(st_before[k])
+                for k in st_after if k in st_before}
         due = settled_s / (PERIOD_NS / 1e9)  # predictions due per session over the settle
         got = sorted(n_got.get(s, 0) / due for s in stayed)
         moved_watched = [s for s in watched if s in moved]
@@ -359,6 +422,8 @@ def churn_events(c: Cluster, args: argparse.Namespace) -> list[dict]:
                        "sessions_moved": len(moved), "unserved_after": args.sessions - len(after),
                        "stayed_watched": len(stayed), "stayed_gap_max_ms": round(worst, 1),
                        "stayed_gaps_over_250ms": sum(1 for s in stayed if g.get(s, 0) > 250e6),
+                       "stayed_gaps_by_owner": dict(sorted(gapped.items())),
+                       "worker_slow_loops": dict(sorted(slow.items())),
                        "stayed_received_of_due_min": round(got[0], 3) if got else None,
                        "stayed_received_of_due_median": round(statistics.median(got), 3)
                        if got else None,
@@ -374,12 +439,14 @@ def one_repetition(args: argparse.Namespace) -> dict:
     out: dict = {"gauge_ms": gauge_ms()}
     state = tempfile.mkdtemp(prefix="pd-scale-")
     try:
-        c = Cluster(["inst-0"], ["inst-0"], f"{state}/one")
+        c = Cluster(["inst-0"], ["inst-0"], f"{state}/one", window(args.sessions, 1, args),
+                    args.root)
         try:
             out["one"] = measure(c, args.sessions, args, churn=False)
         finally:
             c.close()
-        c = Cluster(names[:k], names, f"{state}/many")
+        c = Cluster(names[:k], names, f"{state}/many", window(args.sessions, k, args),
+                    args.root)
         try:
             out["many"] = measure(c, args.sessions, args, churn=args.churn)
         finally:
@@ -403,6 +470,9 @@ def main() -> None:
                     help="the load's senders: plain puts of declared keys, or what the SDK "
                          "declares (a cached publisher per key, a display per session): "
                          "the set-up in which a takeover reads back what a kill lost")
+    ap.add_argument("--root", type=Path, default=ROOT,
+                    help="run the instances on the pd_service of another checkout (a baseline "
+                         "worktree), with this benchmark's load, router and figures")
     ap.add_argument("--router", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.router:
@@ -415,7 +485,7 @@ def main() -> None:
     print(f"scale-out: {args.sessions} paper sessions at 20 Hz through one Python Zenoh router, "
           f"1 then {args.instances} instances, P = {keys.partitions()} partitions, "
           f"{os.cpu_count()} CPUs, {args.duration:g} s measured after {args.warmup:g} s warm-up, "
-          f"senders: {args.clients}")
+          f"senders: {args.clients}, instances' pd_service: {args.root}")
     reps = []
     for r in range(args.repeat):
         res = one_repetition(args)
@@ -423,15 +493,21 @@ def main() -> None:
         one, many = res["one"], res["many"]
         print(f"run {r + 1}: gauge {res['gauge_ms']:.1f} ms")
         print(f"  1 instance: {one['received_total']} samples received, "
-              f"{one['us_per_session_step']:.1f} µs CPU per session-step, late {one['late']}; "
-              f"router {one['router_us_per_message']:.2f} µs CPU per message")
+              f"{one['us_per_session_step']:.1f} µs CPU per session-step, late {one['late']}, "
+              f"p50 {one['p50_us']:.0f} µs, p99 {one['p99_us']:.0f} µs, worker loops "
+              f"{one['loops_per_s']:.0f}/s ({one['samples_per_loop']:.1f} samples each), over "
+              f"100 ms {one['slow_loops']}; router {one['router_us_per_message']:.2f} µs CPU "
+              f"per message")
         shares = ", ".join(f"{name} {v / (many['received_total'] / len(many['received'])):.3f}"
                            for name, v in sorted(many["received"].items()))
         print(f"  {many['instances']} instances: {many['received_total']} samples received; "
               f"share of total/{many['instances']}: {shares} (max {many['max_share']:.3f}); "
               f"{many['us_per_session_step']:.1f} µs CPU per session-step summed "
-              f"({res['cpu_ratio']:.2f}x one), late {many['late']}; router "
-              f"{many['router_us_per_message']:.2f} µs CPU per message")
+              f"({res['cpu_ratio']:.2f}x one), late {many['late']}, p50 {many['p50_us']:.0f} "
+              f"µs (mean), p99 {many['p99_us']:.0f} µs (worst instance), worker loops "
+              f"{many['loops_per_s']:.0f}/s summed ({many['samples_per_loop']:.1f} samples each), "
+              f"over 100 ms {many['slow_loops']}; router {many['router_us_per_message']:.2f} µs "
+              f"CPU per message")
         for label, ph in (("1", one), (str(many["instances"]), many)):
             print(f"  {label} by thread (µs per session-step, summed): " + ", ".join(
                 f"{k} {v:.1f}" for k, v in ph["threads"].items() if v >= 0.05))
@@ -440,8 +516,10 @@ def main() -> None:
                   f"{ev['partitions_moved']}/{ev['partitions']}, sessions moved "
                   f"{ev['sessions_moved']}, unserved {ev['unserved_after']}; sessions that "
                   f"stayed (watched {ev['stayed_watched']}): longest gap "
-                  f"{ev['stayed_gap_max_ms']} ms, {ev['stayed_gaps_over_250ms']} over 250 ms; "
-                  f"moved sessions' origin {ev['moved_origins']}", flush=True)
+                  f"{ev['stayed_gap_max_ms']} ms, {ev['stayed_gaps_over_250ms']} over 250 ms "
+                  f"(by owner {ev['stayed_gaps_by_owner']}; old instances' worker loops over "
+                  f"100 ms {ev['worker_slow_loops']}); moved sessions' origin "
+                  f"{ev['moved_origins']}", flush=True)
             ex = ev["moved_exact"]
             if ex.get("step") is not None:
                 print(f"  {'':<16} predictions of sessions that stayed: "
@@ -467,6 +545,12 @@ def main() -> None:
         "max_share": med(lambda r: r["many"]["max_share"]),
         "max_share_runs": [round(r["many"]["max_share"], 3) for r in reps],
         "router_us_per_message": med(lambda r: r["many"]["router_us_per_message"]),
+        "one_p99_us": med(lambda r: r["one"]["p99_us"]),
+        "many_p99_us": med(lambda r: r["many"]["p99_us"]),
+        "p99_us_runs": [[round(r[ph]["p99_us"]) for ph in ("one", "many")] for r in reps],
+        "loops_per_s": {ph: med(lambda r, ph=ph: r[ph]["loops_per_s"]) for ph in ("one", "many")},
+        "samples_per_loop": {ph: med(lambda r, ph=ph: r[ph]["samples_per_loop"])
+                             for ph in ("one", "many")},
         "threads": {ph: {k: med(lambda r, ph=ph, k=k: r[ph]["threads"].get(k, 0.0))
                          for k in reps[0][ph]["threads"]} for ph in ("one", "many")},
         "churn": [r["many"].get("churn", []) for r in reps]}))

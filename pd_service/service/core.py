@@ -296,12 +296,15 @@ class ServiceCore:
     def run_once(self) -> int:
         """Process what is pending: control, unknown sessions, rounds of session inboxes
         (each followed by its coalesced publications), due ticks and idle expiry, until
-        nothing is left or ~50 ms have passed. Returns the number of messages handled."""
+        nothing is left or ~50 ms have passed. One pass when it leaves nothing waiting in
+        the inboxes: samples that reach the queues meanwhile are the next loop's (the
+        daemon paces loops, :func:`.daemon.round_pause`). Returns the number of messages
+        handled."""
         d, pub = self.dispatch, self.outbox
         handled = 0
         t_end = self.run_clock_ns() + _RUN_BUDGET_NS
         while True:
-            got = self._drain()
+            self._drain()
             with self.lock:
                 now = self.now_ns()
                 if d.control or d.configs:
@@ -333,7 +336,7 @@ class ServiceCore:
                             served += touched
                             touched = []
                             pub.flush()
-                        got += self._drain()
+                        self._drain()
                 if self.robot_io.pending():  # after the commands their echoes may name
                     handled += self.robot_io.process(self._routes, now, touched)
                 if d.released:
@@ -362,7 +365,9 @@ class ServiceCore:
                     self._learn_windows()
                     self._next_learn_ns = now + int(self.settings.learn_interval_s * 1e9)
                 pub.flush()
-            if not (got or self.has_work()) or self.run_clock_ns() >= t_end:
+            # what the pass drained it handled (a session it had passed already is ready
+            # again: has_work); what arrives now waits for the next loop, not another look
+            if not self.has_work() or self.run_clock_ns() >= t_end:
                 return handled
 
     def _learn_windows(self) -> None:

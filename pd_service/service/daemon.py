@@ -40,6 +40,31 @@ _TRIM_LOGGED_BYTES = 16 << 20
 
 #: Longest the worker sleeps without a wake-up (s): bounds the reaction to a stop request.
 _MAX_SLEEP_S = 0.5
+#: Messages a worker loop aims to handle at once: a loop that handled fewer pauses longer
+#: before the next (:func:`round_pause`), up to ``round_linger_us``.
+BATCH_TARGET = 40
+#: A busy worker loop (start to the next one's start, s) longer than this is reported.
+_SLOW_LOOP_S = 0.1
+#: After a loop that handled messages, the worker keeps looking at its queues itself
+#: (every ``round_linger_us``) for this long (s) before it arms the drains' watcher.
+_BUSY_S = 0.1
+
+
+def round_pause(handled: int, interval: float, linger: float) -> float:
+    """The least time (s) from the start of a worker loop that handled ``handled`` (> 0)
+    messages to the start of the next: ``interval`` (``round_interval_us``) for a batch of
+    at least :data:`BATCH_TARGET`, longer for a smaller one, so that the next batch is about
+    that large at the same arrival rate, but never more than ``linger``
+    (``round_linger_us``)::
+
+        pause = clamp(interval * BATCH_TARGET / handled, interval, linger)
+
+    A loop's fixed costs (its wake-up, a look at every drained queue, the outbox's flush)
+    are then paid about once per BATCH_TARGET messages however thinly an instance's share
+    of the traffic arrives; a message waits at most ``linger`` more."""
+    if handled >= BATCH_TARGET:
+        return interval
+    return min(linger, interval * BATCH_TARGET / handled)
 
 
 def make_transport(settings: Settings) -> Transport:
@@ -115,8 +140,13 @@ class Daemon:
         assert core is not None
         wake, stop = core.wake, self._stop
         interval = self.settings.round_interval_us * 1e-6  # s
+        linger = max(interval, self.settings.round_linger_us * 1e-6)  # s
+        last_handled = -_BUSY_S  # monotonic time (s) of the last loop that handled messages
+        prev = None  # the previous busy loop: (its start, run_once's wall and CPU time, s)
         while not stop.is_set():
-            t0 = time.monotonic()
+            t0, c0 = time.monotonic(), time.thread_time()
+            if prev is not None and t0 - prev[0] > _SLOW_LOOP_S:
+                self._slow_loop(t0 - prev[0], prev[1], prev[2])
             handled = 0
             try:
                 handled = core.run_once()
@@ -124,25 +154,44 @@ class Daemon:
                 log.exception("worker round failed")
                 self._worker_error = exc
                 core.counters["internal_error"] += 1
+            prev = (t0, time.monotonic() - t0, time.thread_time() - c0)
+            core.counters["worker_loops"] += 1
             if handled:
-                # Batches: after a loop that handled messages, wait out the round interval,
-                # so that what arrives meanwhile is handled together (one prediction per
-                # session touched); a loop that took longer goes on at once. The messages
-                # just handled were not delayed; the next ones wait at most the interval.
-                # What arrives meanwhile waits in the drains' queues (not armed: no thread
-                # switch per round); the next loop takes it.
-                rest = interval - (time.monotonic() - t0)
-                if rest > 0:
-                    time.sleep(rest)
+                last_handled = t0
+                pause = round_pause(handled, interval, linger)
+            elif t0 - last_handled < _BUSY_S and not core.has_work():
+                # messages lately: look again after the longest pause rather than arming
+                # the watcher (its polls and the wake-up cost more than one look)
+                pause = linger
+            else:
+                # idle: the drains hand the next sample over themselves and wake the worker
+                prev = None  # (an idle wait is no slow loop)
+                core.arm()
+                if core.has_work():
+                    continue
+                timeout = (core.next_deadline_ns() - core.now_ns()) / 1e9
+                if timeout > 0:
+                    wake.wait(min(timeout, _MAX_SLEEP_S))
+                wake.clear()
                 continue
-            # idle: the drains hand the next sample over themselves and wake the worker
-            core.arm()
-            if core.has_work():
-                continue
-            timeout = (core.next_deadline_ns() - core.now_ns()) / 1e9
-            if timeout > 0:
-                wake.wait(min(timeout, _MAX_SLEEP_S))
-            wake.clear()
+            # Batches: what arrives meanwhile waits in the drains' queues (not armed: no
+            # thread switch) and is handled together by the next loop (one prediction per
+            # session touched); a loop that took longer than its pause goes on at once.
+            rest = pause - (time.monotonic() - t0)
+            if rest > 0:
+                time.sleep(rest)
+
+    def _slow_loop(self, period: float, run: float, cpu: float) -> None:
+        """A busy worker loop took ``period`` s from its start to the next one's (sessions
+        it serves saw no prediction meanwhile): counted (``worker_slow_loops``) and logged
+        with run_once's wall and CPU time (s): wall far above CPU is a worker waiting for
+        the interpreter (another thread held the GIL) or for a core; ``period`` far above
+        ``run`` is a pause that overslept (the machine did not run the worker)."""
+        core = self.core
+        assert core is not None
+        core.counters["worker_slow_loops"] += 1
+        event(log, "worker_slow", logging.WARNING, instance=self.settings.instance,
+              seconds=round(period, 3), run_s=round(run, 3), run_cpu_s=round(cpu, 3))
 
     def stop(self) -> None:
         """Stop the worker, withdraw presence, undeclare everything, close the transport."""

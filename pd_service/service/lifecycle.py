@@ -178,24 +178,38 @@ class Lifecycle:
                 else "synced from peers"
             self.install(name, origin[name], detail, now, answer=False, resume="checkpoint")
 
-    def fetch_peer_specs(self) -> dict[str, SessionSpec]:
-        """Every spec the live peers hold (the first reply wins). Blocks up to
-        ``sync_timeout_s``."""
+    def fetch_peer_specs(self, known: Callable[[str], bool] | None = None
+                         ) -> dict[str, SessionSpec]:
+        """Every spec the live peers hold (the first reply wins), but those of the sessions
+        ``known`` says are known already. Blocks up to ``sync_timeout_s``.
+
+        A reply is decoded only if the session its key names is neither known nor decoded
+        already: each peer answers with every spec it holds, so at a join every instance
+        receives all specs once per peer, and decoding them all (the models' validation,
+        with the GIL held) would hold up the workers of a whole fleet for what it knows."""
         out: dict[str, SessionSpec] = {}
+        t0 = time.perf_counter()
         try:
             replies = self.t.get(keys.ALL_CONFIGS, timeout=self.settings.sync_timeout_s)
         except Exception as exc:  # a failed sync is not fatal: disk state is used
             event(log, "sync_failed", logging.WARNING, reason=str(exc))
             return out
+        t_get = time.perf_counter() - t0
+        decoded = 0
         for r in replies:
             if not r.ok:
+                continue
+            name = keys.session_of(r.key)
+            if name is not None and (name in out or (known is not None and known(name))):
                 continue
             try:
                 spec = decode(r.payload, SessionSpec)
             except WireError:
                 continue
+            decoded += 1
             out.setdefault(spec.session, spec)
-        event(log, "synced", specs=len(out), replies=len(replies))
+        event(log, "synced", specs=len(out), replies=len(replies), decoded=decoded,
+              get_s=round(t_get, 3), seconds=round(time.perf_counter() - t0, 3))
         return out
 
     # ================================================================== control =======
@@ -377,9 +391,14 @@ class Lifecycle:
                         to=keys.error_key_beside(key))
 
     def _sync_in_background(self) -> None:
-        specs = self.fetch_peer_specs()
+        specs = self.fetch_peer_specs(self._known)
         if specs:
             self.dispatch.post_peer_specs(specs)
+
+    def _known(self, session: str) -> bool:
+        """Any thread: ``session``'s spec is held here, or it was removed lately (a sync does
+        not bring it back: :meth:`apply_sync`)."""
+        return session in self.specs or session in self.gone
 
     def apply_sync(self, specs: dict[str, SessionSpec], now: int) -> None:
         """Specs fetched from peers: add the ones we do not know (a known one is kept: a
@@ -688,9 +707,14 @@ class Lifecycle:
         table before the change) is handed over: its old owner sends its state to the new
         one before it stops serving it (:meth:`HandoverKeeper.hand_to`); the new owner
         waits for that state (:meth:`adopt_handed`). A session whose owner went away is
-        taken over at once from the replica held for it."""
+        taken over at once from the replica held for it. Logged (``reassigned``) with the
+        wall time of its parts (s): the subscriptions' changes, the states handed over, the
+        rest (installs and removals)."""
+        t0 = time.perf_counter()  # diagnostics only: how long the worker spent here
         if self.follow is not None:
             self.follow()
+        t_follow = time.perf_counter() - t0
+        t_hand, handed, started = 0.0, 0, 0
         own = self.ownership
         members = ",".join(sorted(own.members))
         routes = self.dispatch.routes
@@ -711,6 +735,7 @@ class Lifecycle:
                     continue
                 self.install(name, "active", f"taken over (members {members})", now,
                              answer=True, resume="replica")
+                started += 1
                 if self.settings.recover_samples > 0 and not self.closed:
                     taken.append(name)
                     self.dispatch.park(routes[name])
@@ -718,12 +743,20 @@ class Lifecycle:
                 assert route is not None and route.sess is not None
                 new = own.owner(name)
                 if self.keeper is not None and new is not None and not self.closed:
+                    t1 = time.perf_counter()
                     self.keeper.hand_to(route.sess, new, now)
+                    t_hand += time.perf_counter() - t1
+                handed += 1
                 self.install(name, "active", "", now, answer=False)
             elif not owns:
                 self.awaiting.pop(name, None)
         if taken:
             self._spawn(lambda: self.read_back_taken(taken))
+        total = time.perf_counter() - t0
+        event(log, "reassigned", members=members, handed_over=handed, taken_over=started,
+              awaited=len(self.awaiting), seconds=round(total, 4),
+              subscriptions_s=round(t_follow, 4), handover_s=round(t_hand, 4),
+              rest_s=round(total - t_follow - t_hand, 4))
 
     def settle_second_owner(self, now: int) -> None:
         """Two owners (a partition healed): a state arrived from another instance for a

@@ -147,6 +147,9 @@ class Queries:
         self.refuse = refuse
         #: The data samples received so far (``samples_received``; read under the lock).
         self.received = received
+        #: session -> (its spec, encoded): the spec query's replies (specs are frozen and
+        #: replaced, never changed); every peer asks for all of them at each join
+        self._spec_bytes: dict[str, tuple[SessionSpec, bytes]] = {}
 
     # --- the daemon's API (any thread) ----------------------------------------------------
 
@@ -264,6 +267,18 @@ class Queries:
                      if intersects(sel, keys.config_key(n))]
         for key, spec in specs:
             try:
-                q.reply(key, encode(spec))
+                q.reply(key, self._encoded_spec(spec))
             except Exception as exc:
                 log.debug("config reply failed: %s", exc)
+
+    def _encoded_spec(self, spec: SessionSpec) -> bytes:
+        """``spec`` encoded, once per spec (any thread: a lost race encodes it twice)."""
+        cache = self._spec_bytes
+        got = cache.get(spec.session)
+        if got is not None and got[0] is spec:
+            return got[1]
+        data = encode(spec)
+        if len(cache) > 2 * len(self.specs) + 64:  # the sessions gone meanwhile, out
+            cache.clear()
+        cache[spec.session] = (spec, data)
+        return data

@@ -522,8 +522,10 @@ def test_the_queues_are_looked_at_between_the_rounds_of_a_pass(world, tmp_path):
     start = len(col.order)
     core.run_once()
     rs = dispatch.ROUND_SESSIONS
-    # the pass's look, then one after each round but the last
-    assert calls == [0] + list(range(rs, 150, rs)) + [150]
+    # the pass's look, then one after each round but the last; no look after the pass
+    # (what it drained it handled: nothing waits, the next loop looks)
+    assert calls == [0] + list(range(rs, 150, rs))
+    assert not core.has_work()
     preds = [s for s, kind in col.order[start:] if kind == "prediction"]
     assert preds.count("q149") == 1  # its two samples, one prediction
     assert preds.count("q000") == 2  # served before the sample came: published again after
@@ -796,6 +798,51 @@ def test_instance_that_missed_peers_at_start_syncs_when_they_appear(tmp_path):
     assert sorted(b.known_specs()) == names
     sa, sb = set(a.served_sessions()), set(b.served_sessions())
     assert sa.isdisjoint(sb) and sa | sb == set(names) and sb
+
+
+def test_a_join_decodes_only_the_specs_an_instance_lacks(tmp_path, monkeypatch):
+    """Every peer answers a spec sync with all it holds: a starting instance decodes each
+    session's spec once however many peers answer, and the instances already up, which sync
+    again when it joins, decode none of the specs they hold (the models' validation would
+    hold every worker of the fleet up at each join); a spec they lack they still get."""
+    from pd_service.service import lifecycle
+
+    decoded: list[str] = []
+    real = lifecycle.decode
+
+    def counting(data, cls):
+        out = real(data, cls)
+        decoded.append(out.session)
+        return out
+
+    monkeypatch.setattr(lifecycle, "decode", counting)
+    trio = [*PAIR, "inst-c"]
+    bus, clock = InMemoryBus(), Clock(0)
+    cli = bus.transport()
+    a = make_core(bus, clock, tmp_path, "inst-a", peers=trio)
+    b = make_core(bus, clock, tmp_path, "inst-b", peers=trio)
+    settle(a, b)
+    names = [f"s{i:02d}" for i in range(12)]
+    for s in names:
+        cli.put(keys.config_key(s), encode(paper_spec(s)))
+    settle(a, b)
+    # a spec only inst-b holds (put while inst-a did not listen): inst-a lacks it
+    b.lifecycle.apply_sync({"only-b": paper_spec("only-b")}, clock())
+    decoded.clear()
+    c = make_core(bus, clock, tmp_path, "inst-c", peers=trio)
+    assert sorted(decoded) == sorted([*names, "only-b"])  # two answers each, decoded once
+    assert sorted(c.known_specs()) == sorted([*names, "only-b"])
+    decoded.clear()
+    settle(a, b, c)  # inst-a and inst-b see inst-c join and sync
+    assert decoded == ["only-b"]
+    assert "only-b" in a.known_specs()
+    # the replies are the specs' encodings, the spec replaced in between included
+    cli.put(keys.config_key("s00"), encode(paper_spec("s00", max_delay=20)))
+    settle(a, b, c)
+    replies = cli.get(keys.config_key("s00"))
+    assert len(replies) == 3
+    assert {(r.key, r.payload) for r in replies} == {
+        (keys.config_key("s00"), encode(paper_spec("s00", max_delay=20)))}
 
 
 def test_prediction_messages_decode_strictly(world, tmp_path):
