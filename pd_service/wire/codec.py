@@ -113,6 +113,50 @@ def unpack_map(data: bytes | bytearray | memoryview, name: str) -> dict[str, Any
     return obj
 
 
+def unpack_fields(data: bytes | bytearray | memoryview, name: str,
+                  wanted: frozenset[str]) -> dict[str, Any]:
+    """The fields named in ``wanted`` of the msgpack map of a message named ``name``, the
+    others skipped without building them (WireError if it is no such map): a reader that
+    needs a few small fields of a large message now (a replica's step and term) and
+    validates the whole of it later, if ever. What is read has :func:`unpack_map`'s limits;
+    what is skipped is only checked to be well-formed msgpack (its content, e.g. a bin value
+    :func:`unpack_map` refuses, is judged when the whole message is decoded)."""
+    if not isinstance(data, bytes | bytearray | memoryview):
+        raise WireError(f"{name}: expected bytes, got {type(data).__name__}")
+    size = len(data) if not isinstance(data, memoryview) else data.nbytes
+    if size > MAX_MESSAGE_BYTES:
+        raise WireError(f"{name}: message is {size} bytes, more than the "
+                        f"{MAX_MESSAGE_BYTES}-byte limit")
+    head = bytes(data[:1])
+    if not head or not (0x80 <= head[0] <= 0x8F or head[0] in (0xDE, 0xDF)):
+        raise WireError(f"{name}: expected a msgpack map"
+                        + (" (empty message)" if not head else ""))
+    u = msgpack.Unpacker(max_buffer_size=max(size, 1), **_UNPACK_LIMITS)
+    out: dict[str, Any] = {}
+    try:
+        u.feed(data)
+        n = u.read_map_header()
+        if n > _UNPACK_LIMITS["max_map_len"]:
+            raise WireError(f"{name}: map of {n} entries, more than "
+                            f"{_UNPACK_LIMITS['max_map_len']}")
+        for _ in range(n):
+            key = u.unpack()
+            if type(key) is str and key in wanted:
+                out[key] = u.unpack()
+            else:
+                u.skip()
+        trailing = u.tell() != size
+    except WireError:
+        raise
+    except msgpack.StackError:
+        raise WireError(f"{name}: msgpack nesting too deep") from None
+    except Exception as exc:  # OutOfData, FormatError, ValueError...: any unpack failure
+        raise WireError(f"{name}: not valid msgpack ({str(exc) or type(exc).__name__})") from None
+    if trailing:
+        raise WireError(f"{name}: trailing bytes after the message")
+    return out
+
+
 def validation_reason(type_name: str, exc: ValidationError) -> str:
     """First error of a pydantic ValidationError as ``"<Type>.<path>: <message>"``.
 

@@ -40,13 +40,14 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Mapping
+from typing import Final
 
 from pd_service.estimation.tally import Tally
 from pd_service.logs import LOGGER_NAME, event
 from pd_service.transport import Query, Sample
 from pd_service.transport.keyexpr import intersects
 from pd_service.wire import MAX_MESSAGE_BYTES, WireError, keys
-from pd_service.wire.codec import unpack_map
+from pd_service.wire.codec import unpack_fields
 from pd_service.wire.keys import KeyError_, check_name
 
 from ..config import Settings
@@ -69,6 +70,10 @@ FAILED_LOG_EVERY_S = 10.0
 
 #: Most replicas held (sessions); the oldest received is dropped beyond it.
 MAX_REPLICAS = 100_000
+
+#: What :meth:`HandoverKeeper.on_replica` reads of a replica (the rest is skipped unbuilt).
+_REPLICA_FIELDS: Final = frozenset({"session", "now_step", "term", "instance",
+                                    "session_counters"})
 
 #: Pause (s) between two rounds of a hand-over's confirmation (put again, ask again).
 _HANDOVER_RETRY_S = 0.02
@@ -411,10 +416,11 @@ class HandoverKeeper:
     def on_replica(self, sample: Sample) -> None:
         """Transport thread: keep the newest replica per session (by its now_step).
 
-        Only unpacked here, and its session and now_step read: the whole SessionState is
-        validated when a takeover resumes from it (:func:`.checkpoint.restore`, a bad one
-        refused there as ``restore_refused_corrupt``): a pydantic decode of every replica
-        on arrival would hold the GIL against the worker."""
+        Only the few fields read here are unpacked (the window's packets and commands are
+        skipped unbuilt): the whole SessionState is validated when a takeover resumes from
+        it (:func:`.checkpoint.restore`, a bad one refused there as
+        ``restore_refused_corrupt``): decoding every replica on arrival would hold the GIL
+        against the worker, for a state that is used only if its owner fails."""
         session = sample.key.rsplit("/", 1)[-1]
         if sample.kind == "delete" or sample.payload is None:
             # a hand-over of a session at its prior alone (hand_to): no state to resume
@@ -429,7 +435,7 @@ class HandoverKeeper:
             return
         try:
             check_name(session, "session")
-            obj = unpack_map(sample.payload, "SessionState")
+            obj = unpack_fields(sample.payload, "SessionState", _REPLICA_FIELDS)
         except (KeyError_, WireError):
             obj = {}
         step = obj.get("now_step", -1)
