@@ -202,14 +202,14 @@ def phase(k: int, args: argparse.Namespace) -> dict:
         r1, wall = cpu_seconds(router.pid), time.monotonic() - w0
         gen.wait(60)
         steps = n * wall / (PERIOD_NS / 1e9)
-        got = [b["received"] - a["received"] for a, b in zip(k0, k1)]
+        got = [b["received"] - a["received"] for a, b in zip(k0, k1, strict=True)]
         total = sum(got)
-        loops = sum(b["loops"] - a["loops"] for a, b in zip(k0, k1))
+        loops = sum(b["loops"] - a["loops"] for a, b in zip(k0, k1, strict=True))
         return {"instances": k, "wall_s": wall, "received": got, "received_total": total,
                 "reps": [r["reps"] for r in ready],
-                "published": sum(b["published"] - a["published"] for a, b in zip(k0, k1)),
+                "published": sum(b["published"] - a["published"] for a, b in zip(k0, k1, strict=True)),
                 "max_share": max(got) / (total / k) if total else float("nan"),
-                "us_per_session_step": 1e6 * sum(b - a for a, b in zip(c0, c1)) / steps,
+                "us_per_session_step": 1e6 * sum(b - a for a, b in zip(c0, c1, strict=True)) / steps,
                 "router_us_per_message": 1e6 * (r1 - r0) / max(1, total),
                 "samples_per_loop": total / max(1, loops),
                 "threads": by_thread(t0, t1, {str(j): s.pid for j, s in enumerate(stubs)},
