@@ -8,8 +8,9 @@ loopback, its own process), the same load (``bench/service.py``'s generator: N p
 at 20 Hz, key layout 2) and the same measurement (utime + stime of every thread of every
 receiver from /proc, per session and 50 ms step), but the receivers are *stubs*: a Zenoh
 client that subscribes to its partitions' sensor and command wildcards with the daemon's
-drained FIFO channels, and one worker thread that looks at the channels every millisecond,
-unpacks each message (msgpack), does a fixed work on the session's own arrays (``--work-us``
+drained FIFO channels (the two wildcards of every partition when it owns them all, as the
+daemon), and one worker thread that looks at the channels every millisecond, unpacks
+each message (msgpack), does a fixed work on the session's own arrays (``--work-us``
 µs a message, calibrated at the stub's start: numpy operations on a 4 x 4 state and its
 window of 12 covariances, so each session's memory is touched as the daemon's is), and puts
 one ~250 B reply per command (the prediction's size) on the session's prediction key through
@@ -108,11 +109,13 @@ def run_stub(index: int, k: int, endpoint: str, work_us: float) -> None:
 
     handles = [session.declare_subscriber(keys.ALL_CONFIGS, on_config)]
     channels = []
-    for p in parts:
-        for ke in (keys.partition_sensors(p), keys.partition_commands(p)):
-            sub = session.declare_subscriber(ke, zenoh.handlers.FifoChannel(65_536))
-            handles.append(sub)
-            channels.append(sub.try_recv)
+    # as the daemon: one owning every partition subscribes the two wildcards
+    exprs = [keys.ALL_SENSORS, keys.ALL_COMMANDS] if k == 1 else \
+        [ke for p in parts for ke in (keys.partition_sensors(p), keys.partition_commands(p))]
+    for ke in exprs:
+        sub = session.declare_subscriber(ke, zenoh.handlers.FifoChannel(65_536))
+        handles.append(sub)
+        channels.append(sub.try_recv)
     stop = threading.Event()
 
     def worker() -> None:
