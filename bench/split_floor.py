@@ -8,9 +8,9 @@ loopback, its own process), the same load (``bench/service.py``'s generator: N p
 at 20 Hz, key layout 2) and the same measurement (utime + stime of every thread of every
 receiver from /proc, per session and 50 ms step), but the receivers are *stubs*: a Zenoh
 client that subscribes to its partitions' sensor and command wildcards with the daemon's
-drained FIFO channels (the two wildcards of every partition when it owns them all, as the
-daemon), and one worker thread that looks at the channels every millisecond, unpacks
-each message (msgpack), does a fixed work on the session's own arrays (``--work-us``
+drained FIFO channels (one sensor and one command wildcard over all partitions when it owns
+them all, as the daemon), and one worker thread that looks at the channels every
+millisecond, unpacks each message (msgpack), does a fixed work on the session's own arrays (``--work-us``
 µs a message, calibrated at the stub's start: numpy operations on a 4 x 4 state and its
 window of 12 covariances, so each session's memory is touched as the daemon's is), and puts
 one ~250 B reply per command (the prediction's size) on the session's prediction key through
