@@ -90,16 +90,22 @@ def decode(data: bytes | bytearray | memoryview, msg_type: type[M]) -> M:
         raise WireError(f"{name}: invalid ({type(exc).__name__}: {exc})") from None
 
 
-def unpack_map(data: bytes | bytearray | memoryview, name: str) -> dict[str, Any]:
-    """The msgpack map of a message named ``name``, unpacked with the codec's limits but not
-    validated (WireError if it is no such map): :func:`decode`'s first half, for a reader
-    that needs a field or two now and validates the whole message later, if ever."""
+def _checked_size(data: object, name: str) -> int:
+    """The byte size of a message named ``name`` (WireError: not bytes, or over the limit)."""
     if not isinstance(data, bytes | bytearray | memoryview):
         raise WireError(f"{name}: expected bytes, got {type(data).__name__}")
     size = len(data) if not isinstance(data, memoryview) else data.nbytes
     if size > MAX_MESSAGE_BYTES:
         raise WireError(f"{name}: message is {size} bytes, more than the "
                         f"{MAX_MESSAGE_BYTES}-byte limit")
+    return size
+
+
+def unpack_map(data: bytes | bytearray | memoryview, name: str) -> dict[str, Any]:
+    """The msgpack map of a message named ``name``, unpacked with the codec's limits but not
+    validated (WireError if it is no such map): :func:`decode`'s first half, for a reader
+    that needs a field or two now and validates the whole message later, if ever."""
+    _checked_size(data, name)
     try:
         obj = msgpack.unpackb(data, **_UNPACK_LIMITS)
     except msgpack.ExtraData:
@@ -121,12 +127,7 @@ def unpack_fields(data: bytes | bytearray | memoryview, name: str,
     validates the whole of it later, if ever. What is read has :func:`unpack_map`'s limits;
     what is skipped is only checked to be well-formed msgpack (its content, e.g. a bin value
     :func:`unpack_map` refuses, is judged when the whole message is decoded)."""
-    if not isinstance(data, bytes | bytearray | memoryview):
-        raise WireError(f"{name}: expected bytes, got {type(data).__name__}")
-    size = len(data) if not isinstance(data, memoryview) else data.nbytes
-    if size > MAX_MESSAGE_BYTES:
-        raise WireError(f"{name}: message is {size} bytes, more than the "
-                        f"{MAX_MESSAGE_BYTES}-byte limit")
+    size = _checked_size(data, name)
     head = bytes(data[:1])
     if not head or not (0x80 <= head[0] <= 0x8F or head[0] in (0xDE, 0xDF)):
         raise WireError(f"{name}: expected a msgpack map"
