@@ -17,7 +17,7 @@ pytest.importorskip("google.protobuf")
 
 from pd_client.tools.pd_viz import VizServer, ellipse_points, position_indices  # noqa: E402
 from pd_service.transport import InMemoryBus  # noqa: E402
-from pd_service.wire import decode, keys  # noqa: E402
+from pd_service.wire import Prediction, decode, encode, keys  # noqa: E402
 from pd_service.wire.messages import PathSpec  # noqa: E402
 from pd_service.wire.path import PredictedPath  # noqa: E402
 from tests.service.helpers import Clock, Collector  # noqa: E402
@@ -247,6 +247,36 @@ def test_a_viewer_connected_before_the_first_prediction_gets_every_channel_at_on
     assert len(got) == len(steps) and len(client.messages["/s1/ros2/status"]) == len(steps)
     # the step (int64 at offset 8 after the 4-byte CDR header) of each message, in order
     assert [int.from_bytes(d[12:20], "little", signed=True) for _, d in got] == steps
+
+
+def test_a_session_unknown_at_start_gets_its_series_at_its_first_prediction():
+    """No daemon serves the session when pd-viz starts (its spec unknown): its ros2/status
+    channel exists at once, ros2/prediction and ros2/error come with its first prediction
+    (fields for that state size); a prediction of another size is counted, not sent."""
+    bus = InMemoryBus()
+    t = bus.transport()
+    server = VizServer(bus.transport(), ["late"], port=0, status_every=0)
+    client = FoxgloveClient(server.url)
+
+    def put(seq: int, n: int) -> None:
+        t.put(keys.prediction_key("late"), encode(Prediction(
+            session="late", seq=seq, step=10 + seq, t_ns=(10 + seq) * 1000,
+            x=np.arange(n, dtype=float), P=np.eye(n), made_ns=0)))
+
+    try:
+        client.wait_channels(["/late/ros2/status"])
+        assert "/late/ros2/prediction" not in client.channels
+        put(0, 3)
+        client.wait_channels(["/late/ros2/prediction", "/late/ros2/error"])
+        schema = client.channels["/late/ros2/prediction"]["schema"]
+        assert "float64 x_2\n" in schema and "x_3" not in schema
+        view = server.views["late"]
+        assert view.counts["series_unshown"] == 0
+        put(1, 5)
+        assert view.counts["predictions"] == 2 and view.counts["series_unshown"] == 1
+    finally:
+        client.close()
+        server.close()
 
 
 def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path):
