@@ -59,8 +59,6 @@ def omni_viz(tmp_path):
     """The daemon core serving the omni session (path on; tests/clients/tools/omni_drive.py)
     on the in-memory bus and pd-viz serving it: (transport, spec, the daemon's outputs, the
     server, ``run(k)``: the core's step k at mid-step)."""
-    from pd_service.wire import encode
-
     from .omni_drive import OmniOutputs, omni_spec
 
     bus = InMemoryBus()
