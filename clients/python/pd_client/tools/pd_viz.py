@@ -30,9 +30,9 @@ topic                      schema                content
 /<s>/truth                 JSON                  truth per state name
 /<s>/status                JSON                  counters, latency, late / future refusals
 /<s>/log                   foxglove.Log          the service's ErrorReports
-/<s>/ros2/prediction       ros2msg (cdr)         step, newest_step, latency_ms, x_<state>,
-                                                 sd_<state>: for PlotJuggler
-/<s>/ros2/error            ros2msg (cdr)         step, err_<state>, z_<state> (error / sigma)
+/<s>/ros2/prediction       ros2msg (cdr)         step, newest_step, latency_ms, x_<i>, sd_<i>
+                                                 (state index i): for PlotJuggler
+/<s>/ros2/error            ros2msg (cdr)         step, err_<i>, z_<i> (error / sigma)
 /<s>/ros2/status           ros2msg (cdr)         accepted, late, future, refused, published,
                                                  latency_ms
 =========================  ====================  ============================================
@@ -275,7 +275,7 @@ class SessionView:
 
     def _log_series(self, kind: str, n: int, t_ns: int, ints: list[int], floats: list[float],
                     now: int) -> None:
-        if kind != "status":  # normally made at start, from the spec (module docstring)
+        if kind not in self._series:  # normally made at start, from the spec (module docstring)
             self.add_state_series(n)
         st, ch = self._series[kind]
         if t_ns < 0 or len(floats) != len(st.floats):  # before 1970, or another state size
