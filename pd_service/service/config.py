@@ -179,17 +179,6 @@ class Settings(BaseSettings):
                                   "handled as one batch (one prediction per session it "
                                   "touched). Adds at most this much to a message's wait; 0: "
                                   "no pause.")
-    round_linger_us: float = Field(
-        1000.0, ge=0, description="Longest pause between the starts of two worker loops while "
-                                  "messages arrive thinly, µs: a loop that handled fewer than "
-                                  "40 messages waits longer than round_interval_us, so that "
-                                  "the next handles about 40, but never more than this; and "
-                                  "for 0.1 s after its last message the worker looks at its "
-                                  "queues at this pace instead of being woken per arrival. "
-                                  "Adds at most this much to a message's wait; at most "
-                                  "round_interval_us (the default): no linger (3000 raised the "
-                                  "p99 at 1,000 sessions from 3.7-4.1 to 6.3-6.9 ms and did "
-                                  "not lower the CPU of 4 instances; docs/performance.md).")
     switch_interval_us: float = Field(
         200.0, gt=0, description="Python's GIL switch interval (sys.setswitchinterval), µs: "
                                  "how long a Zenoh callback may wait for the worker to yield "

@@ -298,7 +298,7 @@ class ServiceCore:
         (each followed by its coalesced publications), due ticks and idle expiry, until
         nothing is left or ~50 ms have passed. One pass when it leaves nothing waiting in
         the inboxes: samples that reach the queues meanwhile are the next loop's (the
-        daemon paces loops, :func:`.daemon.round_pause`). Returns the number of messages
+        daemon's worker starts loops ``round_interval_us`` apart). Returns the number of messages
         handled."""
         d, pub = self.dispatch, self.outbox
         handled = 0

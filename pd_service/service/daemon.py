@@ -40,31 +40,11 @@ _TRIM_LOGGED_BYTES = 16 << 20
 
 #: Longest the worker sleeps without a wake-up (s): bounds the reaction to a stop request.
 _MAX_SLEEP_S = 0.5
-#: Messages a worker loop aims to handle at once: a loop that handled fewer pauses longer
-#: before the next (:func:`round_pause`), up to ``round_linger_us``.
-BATCH_TARGET = 40
 #: A busy worker loop (start to the next one's start, s) longer than this is reported.
 _SLOW_LOOP_S = 0.1
 #: After a loop that handled messages, the worker keeps looking at its queues itself
-#: (every ``round_linger_us``) for this long (s) before it arms the drains' watcher.
+#: (every ``round_interval_us``) for this long (s) before it arms the drains' watcher.
 _BUSY_S = 0.1
-
-
-def round_pause(handled: int, interval: float, linger: float) -> float:
-    """The least time (s) from the start of a worker loop that handled ``handled`` (> 0)
-    messages to the start of the next: ``interval`` (``round_interval_us``) for a batch of
-    at least :data:`BATCH_TARGET`, longer for a smaller one, so that the next batch is about
-    that large at the same arrival rate, but never more than ``linger``
-    (``round_linger_us``)::
-
-        pause = clamp(interval * BATCH_TARGET / handled, interval, linger)
-
-    A loop's fixed costs (its wake-up, a look at every drained queue, the outbox's flush)
-    are then paid about once per BATCH_TARGET messages however thinly an instance's share
-    of the traffic arrives; a message waits at most ``linger`` more."""
-    if handled >= BATCH_TARGET:
-        return interval
-    return min(linger, interval * BATCH_TARGET / handled)
 
 
 def make_transport(settings: Settings) -> Transport:
@@ -140,7 +120,6 @@ class Daemon:
         assert core is not None
         wake, stop = core.wake, self._stop
         interval = self.settings.round_interval_us * 1e-6  # s
-        linger = max(interval, self.settings.round_linger_us * 1e-6)  # s
         last_handled = -_BUSY_S  # monotonic time (s) of the last loop that handled messages
         prev = None  # the previous busy loop: (its start, run_once's wall and CPU time, s)
         while not stop.is_set():
@@ -158,12 +137,7 @@ class Daemon:
             core.counters["worker_loops"] += 1
             if handled:
                 last_handled = t0
-                pause = round_pause(handled, interval, linger)
-            elif t0 - last_handled < _BUSY_S and not core.has_work():
-                # messages lately: look again after the longest pause rather than arming
-                # the watcher (its polls and the wake-up cost more than one look)
-                pause = linger
-            else:
+            elif t0 - last_handled >= _BUSY_S or core.has_work():
                 # idle: the drains hand the next sample over themselves and wake the worker
                 prev = None  # (an idle wait is no slow loop)
                 core.arm()
@@ -176,8 +150,10 @@ class Daemon:
                 continue
             # Batches: what arrives meanwhile waits in the drains' queues (not armed: no
             # thread switch) and is handled together by the next loop (one prediction per
-            # session touched); a loop that took longer than its pause goes on at once.
-            rest = pause - (time.monotonic() - t0)
+            # session touched); a loop that took longer than the interval goes on at once.
+            # For _BUSY_S after messages the worker looks again itself rather than arming
+            # the watcher (its polls and the wake-up cost more than one look).
+            rest = interval - (time.monotonic() - t0)
             if rest > 0:
                 time.sleep(rest)
 

@@ -29,6 +29,8 @@ class FoxgloveClient:
             open_timeout=10))
         self.subprotocol = self.ws.subprotocol
         self.channels: dict[str, dict[str, Any]] = {}  # topic -> advertised channel
+        self.advertised: list[dict[str, Any]] = []  # every channel advertisement, in order
+        self.unadvertised: list[int] = []  # ids the server withdrew
         self.server_info: dict[str, Any] | None = None
         self._subs: dict[int, str] = {}  # subscription id -> topic
         self.messages: dict[str, list[tuple[int, bytes]]] = {}
@@ -39,8 +41,11 @@ class FoxgloveClient:
             if msg.get("op") == "serverInfo":
                 self.server_info = msg
             elif msg.get("op") == "advertise":
+                self.advertised += msg["channels"]
                 for ch in msg["channels"]:
                     self.channels[ch["topic"]] = ch
+            elif msg.get("op") == "unadvertise":
+                self.unadvertised += msg["channelIds"]
             return
         if frame[0] == 0x01:
             sub_id, log_ns = struct.unpack_from("<IQ", frame, 1)

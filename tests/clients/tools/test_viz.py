@@ -17,7 +17,7 @@ pytest.importorskip("google.protobuf")
 
 from pd_client.tools.pd_viz import VizServer, ellipse_points, position_indices  # noqa: E402
 from pd_service.transport import InMemoryBus  # noqa: E402
-from pd_service.wire import decode, keys  # noqa: E402
+from pd_service.wire import Prediction, decode, encode, keys  # noqa: E402
 from pd_service.wire.messages import PathSpec  # noqa: E402
 from pd_service.wire.path import PredictedPath  # noqa: E402
 from tests.service.helpers import Clock, Collector  # noqa: E402
@@ -59,8 +59,6 @@ def omni_viz(tmp_path):
     """The daemon core serving the omni session (path on; tests/clients/tools/omni_drive.py)
     on the in-memory bus and pd-viz serving it: (transport, spec, the daemon's outputs, the
     server, ``run(k)``: the core's step k at mid-step)."""
-    from pd_service.wire import encode
-
     from .omni_drive import OmniOutputs, omni_spec
 
     bus = InMemoryBus()
@@ -69,6 +67,8 @@ def omni_viz(tmp_path):
     got = OmniOutputs(t)
     clock = Clock(-1)
     core = make_core(bus, clock, tmp_path)
+    t.put(keys.config_key("omni"), encode(spec))
+    core.run_once()
     server = VizServer(bus.transport(), ["omni"], port=0, status_every=0)
 
     def run(k: int) -> None:
@@ -76,8 +76,6 @@ def omni_viz(tmp_path):
         core.run_once()
 
     try:
-        t.put(keys.config_key("omni"), encode(spec))
-        core.run_once()
         yield t, spec, got, server, run
     finally:
         server.close()
@@ -190,19 +188,15 @@ def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
 
     series = ["/s1/ros2/prediction", "/s1/ros2/status"]
     with viz_on_paper(tmp_path) as (feed, col, client):
-        client.wait_channels(TOPICS)
-        assert not [t for t, ch in client.channels.items() if plotjuggler_lists(ch)]
+        client.wait_channels(TOPICS + series)
         pred = client.channels["/s1/prediction"]  # JSON: a real schema with a stable name
         assert (pred["schemaName"], pred["schemaEncoding"]) == ("pd_viz.Prediction", "jsonschema")
         assert json.loads(pred["schema"])["properties"]["step"] == {"type": "integer"}
-        for k in range(10):
-            feed.step(k)
-        client.wait_channels(series)  # advertised at the first prediction
         listed = sorted(t for t, ch in client.channels.items() if plotjuggler_lists(ch))
-        assert listed == series
+        assert listed == ["/s1/ros2/error", *series]
         client.subscribe(series)
         client.pump(0.5)
-        for k in range(10, 60):
+        for k in range(60):
             feed.step(k)
         client.pump(1.0)
     ts = rosbags.get_typestore(rosbags.Stores.ROS2_JAZZY)
@@ -219,11 +213,68 @@ def test_plotjuggler_lists_the_numeric_series_and_they_decode(tmp_path):
         p = by_step[m.step]
         assert m.stamp.sec * 10**9 + m.stamp.nanosec == p.t_ns
         assert m.newest_step == (-1 if p.newest_step is None else p.newest_step)
-        assert [m.x_x0, m.x_x1, m.x_x2, m.x_x3] == p.x.tolist()  # no truth: names x0..x3
-        assert m.sd_x2 == np.sqrt(p.P[2, 2]) and m.latency_ms >= 0
+        assert [m.x_0, m.x_1, m.x_2, m.x_3] == p.x.tolist()
+        assert m.sd_2 == np.sqrt(p.P[2, 2]) and m.latency_ms >= 0
     st = [ts.deserialize_cdr(d, client.channels[series[1]]["schemaName"])
           for _, d in client.messages[series[1]]]
     assert st[-1].accepted == col.predictions["s1"][-1].counters["accepted"]
+
+
+def test_a_viewer_connected_before_the_first_prediction_gets_every_channel_at_once(tmp_path):
+    """Every channel, the ros2/* series too, is in the advertisement a viewer gets on
+    connecting, before the session's first prediction; none is advertised, replaced or
+    withdrawn later, and a subscription taken then receives the series of every prediction.
+    (foxglove-sdk 0.30 sends a channel's advertisement before it registers the channel for
+    the connected viewer's subscribe: one made while a viewer is connected can be refused
+    as "Unknown channel ID", which lost test_viz_ws_protocol its ros2/prediction series.)"""
+    series = ["/s1/ros2/prediction", "/s1/ros2/error", "/s1/ros2/status"]
+    with viz_on_paper(tmp_path) as (feed, col, client):
+        client.wait_channels(TOPICS + series, timeout=5.0)
+        client.pump(0.5)
+        at_connect = list(client.advertised)
+        client.subscribe(series)
+        client.pump(0.5)  # the server takes the subscription
+        assert not col.predictions.get("s1")  # no prediction yet
+        for k in range(60):
+            feed.step(k)
+        client.pump(1.0)
+    assert client.advertised == at_connect and not client.unadvertised
+    assert len({ch["topic"] for ch in at_connect}) == len(at_connect)
+    steps = [p.step for p in col.predictions["s1"]]
+    got = client.messages["/s1/ros2/prediction"]
+    assert len(got) == len(steps) and len(client.messages["/s1/ros2/status"]) == len(steps)
+    # the step (int64 at offset 8 after the 4-byte CDR header) of each message, in order
+    assert [int.from_bytes(d[12:20], "little", signed=True) for _, d in got] == steps
+
+
+def test_a_session_unknown_at_start_gets_its_series_at_its_first_prediction():
+    """No daemon serves the session when pd-viz starts (its spec unknown): its ros2/status
+    channel exists at once, ros2/prediction and ros2/error come with its first prediction
+    (fields for that state size); a prediction of another size is counted, not sent."""
+    bus = InMemoryBus()
+    t = bus.transport()
+    server = VizServer(bus.transport(), ["late"], port=0, status_every=0)
+    client = FoxgloveClient(server.url)
+
+    def put(seq: int, n: int) -> None:
+        t.put(keys.prediction_key("late"), encode(Prediction(
+            session="late", seq=seq, step=10 + seq, t_ns=(10 + seq) * 1000,
+            x=np.arange(n, dtype=float), P=np.eye(n), made_ns=0)))
+
+    try:
+        client.wait_channels(["/late/ros2/status"])
+        assert "/late/ros2/prediction" not in client.channels
+        put(0, 3)
+        client.wait_channels(["/late/ros2/prediction", "/late/ros2/error"])
+        schema = client.channels["/late/ros2/prediction"]["schema"]
+        assert "float64 x_2\n" in schema and "x_3" not in schema
+        view = server.views["late"]
+        assert view.counts["series_unshown"] == 0
+        put(1, 5)
+        assert view.counts["predictions"] == 2 and view.counts["series_unshown"] == 1
+    finally:
+        client.close()
+        server.close()
 
 
 def test_camera_calibration_and_ghost_channels_equal_the_daemons_output(tmp_path):

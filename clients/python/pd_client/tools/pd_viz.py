@@ -30,9 +30,9 @@ topic                      schema                content
 /<s>/truth                 JSON                  truth per state name
 /<s>/status                JSON                  counters, latency, late / future refusals
 /<s>/log                   foxglove.Log          the service's ErrorReports
-/<s>/ros2/prediction       ros2msg (cdr)         step, newest_step, latency_ms, x_<state>,
-                                                 sd_<state>: for PlotJuggler
-/<s>/ros2/error            ros2msg (cdr)         step, err_<state>, z_<state> (error / sigma)
+/<s>/ros2/prediction       ros2msg (cdr)         step, newest_step, latency_ms, x_<i>, sd_<i>
+                                                 (state index i): for PlotJuggler
+/<s>/ros2/error            ros2msg (cdr)         step, err_<i>, z_<i> (error / sigma)
 /<s>/ros2/status           ros2msg (cdr)         accepted, late, future, refused, published,
                                                  latency_ms
 =========================  ====================  ============================================
@@ -41,9 +41,15 @@ The JSON channels carry a JSON Schema named ``pd_viz.<Channel>`` (typed fields, 
 Lichtblick's and Foxglove's parsers read; the per-state maps ``x``, ``var``, ``sd``, ``err``,
 ``z`` are objects of numbers keyed by state name). The ``ros2/*`` channels
 (:mod:`.viz_series`) are the numeric series as flat ROS 2 messages, one type per session
-(``pd_viz_msgs/msg/<Session>Prediction``, ...) whose fields are named for the state names
-known when the session's first prediction arrives (the truth's, else x0, x1, ...); they are
-advertised then. ``newest_step`` is -1 before any measurement.
+(``pd_viz_msgs/msg/<Session>Prediction``, ...) whose per-state fields are numbered by state
+index (``x_0``, ``sd_0``, ...: the spec says how many states there are, not their names).
+Every channel is made before the server starts (the series from the session's spec), so a
+viewer finds them all in the advertisement it gets on connecting; a channel made while a
+viewer is connected can be refused to it ("Unknown channel ID": foxglove-sdk 0.30 sends the
+advertisement before it registers the channel for that client's subscribe). Only a session
+whose spec pd-viz could not read at start gets its series later (when the status poll reads
+the spec, else at its first prediction). A channel is never replaced: viewers hold its id.
+``newest_step`` is -1 before any measurement.
 
 The position states are ``--xy I,J`` or, from the truth's state names, ``x,y`` /
 ``p1,p2`` / ``px,py``, else 0 and 1; a heading named ``theta``/``yaw``/``psi``/``heading``
@@ -87,7 +93,7 @@ from ..pairing import prediction_error
 from ..truth import Truth
 from . import common
 from .camera_view import ellipse_points
-from .viz_series import SeriesType, field_name, type_name, unique
+from .viz_series import SeriesType, type_name
 
 #: A wire message type a channel decodes.
 W = TypeVar("W", Measurement, Command, PredictedPath, CameraFrame)
@@ -189,7 +195,7 @@ class SessionView:
         self._lock = threading.Lock()
         self.counts = {"predictions": 0, "measurements": 0, "commands": 0, "truth": 0,
                        "errors": 0, "invalid": 0, "paths": 0, "paths_unshown": 0, "frames": 0,
-                       "ghosts_unshown": 0}
+                       "ghosts_unshown": 0, "series_unshown": 0}
         p = f"/{session}/"
         ctx = {"context": context}
         self.pose = PoseInFrameChannel(p + "pose", **ctx)
@@ -208,6 +214,10 @@ class SessionView:
                      for name, schema in JSON_SCHEMAS.items()}
         self._context = context
         self._series: dict[str, tuple[SeriesType, Any]] = {}  # kind -> (type, channel)
+        self._add_series("status", (("accepted", "late", "future", "refused", "published"),
+                                    ("latency_ms",)))
+        if spec is not None:
+            self.add_state_series(spec.n)
         self.display = Display(transport, session, truth=True, errors=False, history=256)
         self.display.on_prediction(self._on_prediction)
         self.display.on_truth(self._on_truth)
@@ -239,33 +249,40 @@ class SessionView:
                       orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2.0),
                                              w=math.cos(yaw / 2.0))))
 
-    def _series_channel(self, kind: str, n: int) -> tuple[SeriesType, Any]:
-        """The session's ``ros2/<kind>`` channel, made at its first use (module docstring)."""
+    def _add_series(self, kind: str, fields: tuple[tuple[str, ...], tuple[str, ...]]) -> None:
+        """Make the session's ``ros2/<kind>`` channel (ints, floats) unless it exists: once
+        advertised, a channel is kept (a viewer holds its id)."""
         import foxglove
 
         with self._lock:
-            got = self._series.get(kind)
-            if got is None:
-                names = unique([field_name(s) for s in self._state_names(n)])
-                fields = {"prediction": (("step", "newest_step"), ("latency_ms",
-                                         *(f"x_{f}" for f in names), *(f"sd_{f}" for f in names))),
-                          "error": (("step",), (*(f"err_{f}" for f in names),
-                                                *(f"z_{f}" for f in names))),
-                          "status": (("accepted", "late", "future", "refused", "published"),
-                                     ("latency_ms",))}[kind]
-                st = SeriesType(type_name(self.session, kind.capitalize()), *fields)
-                ch = foxglove.Channel(f"/{self.session}/ros2/{kind}", message_encoding="cdr",
-                                      schema=foxglove.Schema(name=st.name, encoding="ros2msg",
-                                                             data=st.definition().encode()),
-                                      context=self._context)
-                got = self._series[kind] = (st, ch)
-            return got
+            if kind in self._series:
+                return
+            st = SeriesType(type_name(self.session, kind.capitalize()), *fields)
+            ch = foxglove.Channel(f"/{self.session}/ros2/{kind}", message_encoding="cdr",
+                                  schema=foxglove.Schema(name=st.name, encoding="ros2msg",
+                                                         data=st.definition().encode()),
+                                  context=self._context)
+            self._series[kind] = (st, ch)
+
+    def add_state_series(self, n: int) -> None:
+        """Make the ``ros2/prediction`` and ``ros2/error`` channels for a state of ``n``
+        components (fields numbered by state index; a later call keeps the first ones)."""
+        idx = range(n)
+        self._add_series("prediction", (("step", "newest_step"), (
+            "latency_ms", *(f"x_{i}" for i in idx), *(f"sd_{i}" for i in idx))))
+        self._add_series("error", (("step",), (*(f"err_{i}" for i in idx),
+                                               *(f"z_{i}" for i in idx))))
 
     def _log_series(self, kind: str, n: int, t_ns: int, ints: list[int], floats: list[float],
                     now: int) -> None:
-        st, ch = self._series_channel(kind, n)
-        if t_ns >= 0 and len(floats) == len(st.floats):  # a state of another size: not this type
-            ch.log(st.encode(t_ns, ints, floats), log_time=now)
+        if kind not in self._series:  # normally made at start, from the spec (module docstring)
+            self.add_state_series(n)
+        st, ch = self._series[kind]
+        if t_ns < 0 or len(floats) != len(st.floats):  # before 1970, or another state size
+            with self._lock:
+                self.counts["series_unshown"] += 1
+            return
+        ch.log(st.encode(t_ns, ints, floats), log_time=now)
 
     def _emit(self, name: str, msg: dict[str, Any], log_ns: int | None = None) -> None:
         self.json[name].log(json.dumps(msg, allow_nan=False, default=float).encode(),
@@ -587,6 +604,8 @@ class VizServer:
             for s, view in self.views.items():
                 if view.spec is None:
                     view.spec = self._spec(s)
+                    if view.spec is not None:
+                        view.add_state_series(view.spec.n)
                 try:
                     view.on_status(self.admin.status(s, timeout=min(every, 1.0)))
                 except PdClientError:

@@ -6,7 +6,7 @@ schema encoding ``ros2msg`` and a non-empty schema, schema name and topic
 parses each message with the definition the channel advertises, so the type need not exist
 in any ROS installation. A :class:`SeriesType` is one flat message made for a session: a
 ``builtin_interfaces/Time stamp`` (the prediction's target time), int64 fields, then float64
-fields, each named for what it holds (``x_p1``, ``sd_p1``, ``err_theta``, ...).
+fields, each named for what it holds (``x_0``, ``sd_0``, ``err_2``: per state index).
 
 CDR (XCDR1, little endian): the 4-byte encapsulation header ``00 01 00 00``, then each field
 at an offset (from the end of the header) aligned to its size: ``sec`` int32 at 0,
@@ -25,29 +25,11 @@ _SEPARATOR = "=" * 80
 _TIME = "int32 sec\nuint32 nanosec\n"
 
 
-def field_name(name: str) -> str:
-    """A ROS 2 field name for ``name``: lower case letters, digits and single underscores,
-    starting with a letter, not ending with an underscore."""
-    f = re.sub(r"_+", "_", re.sub(r"[^a-z0-9]", "_", name.lower())).strip("_")
-    return f if f[:1].isalpha() else "s_" + f if f else "s"
-
-
 def type_name(session: str, kind: str) -> str:
     """``pd_viz_msgs/msg/<Session><Kind>``: one message type per session and kind (a
-    session's fields are named for its states)."""
+    session's state size sets its fields)."""
     camel = "".join(part.capitalize() for part in re.split(r"[^A-Za-z0-9]+", session) if part)
     return f"pd_viz_msgs/msg/{camel or 'Session'}{kind}"
-
-
-def unique(names: Sequence[str]) -> list[str]:
-    """``names`` with a repeat made distinct (``x_a``, ``x_a_2``)."""
-    out: list[str] = []
-    for n in names:
-        m, i = n, 2
-        while m in out:
-            m, i = f"{n}_{i}", i + 1
-        out.append(m)
-    return out
 
 
 @dataclass(frozen=True)

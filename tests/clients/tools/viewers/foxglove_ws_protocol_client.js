@@ -9,7 +9,9 @@
 // "foxglove.websocket.v1". Subscribes to each TOPIC as soon as it is advertised. Writes one
 // JSON object per line on stdout: {"op": "open", "protocol"}, {"op": "serverInfo", ...},
 // {"op": "advertise", "channel"}, {"op": "subscribed", "topic"}, {"op": "message", "topic",
-// "log_ns" (a decimal string), "data" (base64)}, {"op": "error", "error"}, {"op": "close"}.
+// "log_ns" (a decimal string), "data" (base64)}, {"op": "status", "level", "message"} (the
+// server's status messages, e.g. a refused subscription), {"op": "error", "error"},
+// {"op": "close"}.
 // Closing stdin closes the connection; the process then exits.
 "use strict";
 const { FoxgloveClient } = require("@foxglove/ws-protocol");
@@ -38,6 +40,7 @@ client.on("message", ({ subscriptionId, timestamp, data }) => {
   emit({ op: "message", topic: topicOfSub.get(subscriptionId), log_ns: timestamp.toString(),
          data: bytes.toString("base64") });
 });
+client.on("status", ({ level, message }) => emit({ op: "status", level, message }));
 client.on("error", (e) => emit({ op: "error", error: String(e && e.message ? e.message : e) }));
 client.on("close", () => {
   emit({ op: "close" });
