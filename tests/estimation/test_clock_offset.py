@@ -14,6 +14,8 @@ import pytest
 from pd_service.estimation.clock_offset import (
     ClockOffsetEstimator,
     change_point,
+    drift_range,
+    hull,
     hull_slope,
     median_shift,
     step_test,
@@ -242,6 +244,20 @@ def test_hull_slope_solves_the_linear_programme(seed: int) -> None:
     # below: the mirror image
     below = hull_slope(t, -v, above=False)
     assert below == pytest.approx(-ours, abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_drift_range_from_the_hulls_equals_every_pair_of_bounds(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    tl, tu = rng.uniform(0, 20, 15), rng.uniform(0, 20, 12)
+    vl = 1e-4 * tl - rng.exponential(1e-3, tl.size)  # theta = 1e-4 t, delays >= 0
+    vu = 1e-4 * tu + rng.exponential(1e-3, tu.size)
+    dt = tu[None, :] - tl[:, None]
+    pairs = (vu[None, :] - vl[:, None]) / np.where(dt == 0, np.nan, dt)
+    want = (max(-1.0, float(np.max(pairs[dt < 0]))), min(1.0, float(np.min(pairs[dt > 0]))))
+    got = drift_range(hull(tl, vl, True), hull(tu, vu, False), 1.0)
+    assert got == pytest.approx(want, abs=1e-15)
+    assert got[0] <= 1e-4 <= got[1]  # the true drift is allowed
 
 
 def test_one_probe_bounds_the_offset_on_both_sides() -> None:
