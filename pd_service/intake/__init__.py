@@ -171,6 +171,13 @@ class Intake:
         #: Robot stamps -> the daemon's timeline (pd_service.service.robot_time), applied to
         #: a Measurement's t_ns before anything else; None: stamps are used as they are.
         self.stamp_map: Callable[[int], int] | None = None
+        #: How far (ns) the last stamp mapped may be off because the clock's estimate moved
+        #: while it was in flight (pd_service.service.robot_time): a sample late by less is
+        #: held at the window's oldest step; None: no such error.
+        self.stamp_slack: Callable[[], int] | None = None
+        #: The window's oldest step the last measurement was held at (stamp_slack; offset 0),
+        #: None if it was not.
+        self.held_at: int | None = None
         #: The (mapped) t_ns of the last measurement read, None if it had a step (or none),
         #: and the sensor its key named.
         self.last_t_ns: int | None = None
@@ -204,6 +211,7 @@ class Intake:
         """Offer one Measurement received on ``key``; None if accepted. ``first_step``: the
         step it may have arrived at first, if before ``now_step`` (:func:`judged_step`)."""
         self.decoded = False
+        self.held_at = None
         self.last_sensor = sensor = key.rsplit("/", 1)[-1]
         m = self.dims.get(sensor)
         read = _READ_MEASUREMENT
@@ -277,6 +285,15 @@ class Intake:
             return Refusal("future", f"Measurement.{stamp}: sample step {s} is after the current "
                            f"step {now_step}", seq)
         if s < lo or s < est.committed_step:
+            first = max(lo, est.committed_step)
+            slack = self.stamp_slack
+            if slack is not None and t_in is not None and stamp == "t_ns" \
+                    and self.spec.sample_at(t_in + slack())[0] >= first:
+                # late only under the estimate that moved while it flew: at the oldest step
+                # it may have been taken at, never as current
+                if est.add_measurement(sensor, first, z, now_step, R, 0.0):
+                    self.held_at = first
+                    return None
             return Refusal("late", f"Measurement.{stamp}: sample step {s} is older than the "
                            f"window [{max(lo, est.committed_step)}, {now_step}] "
                            f"(max_delay {est.max_delay})", seq)

@@ -168,3 +168,32 @@ def test_a_message_that_waited_is_judged_at_the_earliest_step_it_may_have_arrive
     refusal = intake.measurement(key, encode(measurement(sensor="ranger", step=7, seq=4,
                                                          z=np.array([1.0]))), 22, 18)
     assert refusal is not None and refusal.reason == "late"
+
+
+def test_a_sample_late_only_by_the_clocks_slack_is_held_at_the_windows_oldest_step() -> None:
+    intake, est = intake_of(paper_spec(epoch_ns=EPOCH))
+    slack = [0]
+    intake.stamp_map = lambda t: t  # stamps already on the daemon's timeline
+    intake.stamp_slack = lambda: slack[0]
+    k = 40
+    oldest = k - est.max_delay
+    key = "pd/p0/s1/sensor/camera"
+
+    def offer(step: int, seq: int, **kw):  # type: ignore[no-untyped-def]
+        msg = measurement(step=None, t_ns=EPOCH + step * PERIOD_NS, seq=seq, **kw)
+        return intake.measurement(f"pd/p0/s1/sensor/{msg.sensor}", encode(msg), k)
+
+    for seq, s in enumerate((0, PERIOD_NS)):  # no slack, or too little: late
+        slack[0] = s
+        refusal = offer(oldest - 2, seq)
+        assert refusal is not None and refusal.reason == "late" and intake.held_at is None
+    slack[0] = 2 * PERIOD_NS + 1  # late by 2 steps, the estimate moved by more while it flew
+    assert offer(oldest - 2, 5) is None and intake.held_at == oldest
+    assert sorted(est._packets) == [oldest]  # never as current
+    # a second one of that sensor at that instant: late; the full decode path (its own R)
+    assert offer(oldest - 1, 6) is not None and intake.held_at is None
+    assert offer(oldest - 1, 7, sensor="ranger", z=np.array([0.1]), R=np.eye(1)) is None
+    assert intake.held_at == oldest and len(est._packets[oldest]) == 2
+    # a step-stamped sample carries no clock error: late whatever the slack
+    refusal = intake.measurement(key, encode(measurement(step=oldest - 1, seq=8)), k)
+    assert refusal is not None and refusal.reason == "late"
