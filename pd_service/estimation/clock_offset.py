@@ -23,8 +23,9 @@ while probes stop). ``tilt`` is what the drift's own error can add at t: every d
 ``[b_lo, b_hi]`` (:func:`drift_range`: the slopes some line between the bounds may have) keeps
 a line through the bounds that pin L and U (at t_L, t_U), so ``theta(t) >= L + b t - (b -
 b_lo) (t - t_L)^+ - (b_hi - b) (t_L - t)^+`` and alike above; one loose bound can set a
-hull's slope (the drift), never this range, which it only widens. Bounds are kept per time bucket (the tightest of each kind per ``bucket_s``):
-bounded memory, a long span for the drift, whatever the sample rate.
+hull's slope (the drift) but not this range, which only tight bounds narrow. Bounds are kept
+per time bucket (the tightest of each kind per ``bucket_s``): bounded memory, a long span for
+the drift, whatever the sample rate.
 
 What is identifiable: ``U - L`` shrinks to ``d_up_min + d_down_min`` (the fastest delays seen
 each way), and the midpoint is off by ``(d_up_min - d_down_min) / 2``. A *constant* asymmetry

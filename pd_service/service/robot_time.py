@@ -11,8 +11,9 @@ only caller, no locks, no clock reads: every time is passed in):
   While a sample was in flight the estimate may have moved (a clock step seen on one side
   of the band moves it by half the step at once): the daemon then cannot tell which offset
   the sample's stamp was taken under, so the sample is judged late only if it is late under
-  every estimate held over the window (:attr:`RobotTime.slack_ns`; pd_service.intake keeps
-  one that is not at the window's oldest step, counted ``stamps_held_in_window``).
+  every estimate held over the window (:attr:`RobotTime.slack_ns`); pd_service.intake puts
+  one that is not in at the latest instant it may have been taken at, counted
+  ``stamps_remapped``.
   With ``robot_clock: shared`` stamps are used as they are (and no bound is fed).
 - **delays learned online** (every spec): per sensor and over all samples the gap sample
   stamp -> receipt (:class:`DelayStats`), the recommended ``max_delay`` (the smallest window
@@ -127,9 +128,10 @@ class RobotTime:
         #: in force at its start first): a new one when it moved by over CLOCK_MOVE_S
         self._held: deque[tuple[int, float, float]] = deque()
         self._window_ns = spec.max_delay * spec.period_ns
-        #: How far (ns) the last stamp mapped could be off because the estimate moved while
-        #: it may have been in flight: ``max_k |theta_now - (theta_k + b_k (now - t_k))|``
-        #: over the estimates k held over the window (0: it did not move).
+        #: How much later (ns) the last stamp mapped may have been taken, because the
+        #: estimate moved while it may have been in flight: ``max_k |theta_now - (theta_k +
+        #: b_k (now - t_k))|`` over the estimates k held over the window, never past its
+        #: receipt (0: it did not move).
         self.slack_ns = 0
 
     # --- stamps ---------------------------------------------------------------------------
@@ -144,10 +146,12 @@ class RobotTime:
         self.clock.add_one_way(t_ns, recv)
         est = self.clock.estimate(recv)
         mapped = est.to_daemon_ns(t_ns) if est.known else t_ns
-        self.slack_ns = self._moved(est) if est.known else 0
+        moved = self._moved(est) if est.known else 0
         if mapped > recv:
             self.counters["stamps_clamped"] += 1
+            self.slack_ns = 0
             return recv
+        self.slack_ns = min(moved, recv - mapped)
         return mapped
 
     def stamp_slack(self) -> int:

@@ -170,7 +170,7 @@ def test_a_message_that_waited_is_judged_at_the_earliest_step_it_may_have_arrive
     assert refusal is not None and refusal.reason == "late"
 
 
-def test_a_sample_late_only_by_the_clocks_slack_is_held_at_the_windows_oldest_step() -> None:
+def test_a_sample_late_only_by_the_clocks_slack_goes_in_at_its_latest_instant() -> None:
     intake, est = intake_of(paper_spec(epoch_ns=EPOCH))
     slack = [0]
     intake.stamp_map = lambda t: t  # stamps already on the daemon's timeline
@@ -186,14 +186,15 @@ def test_a_sample_late_only_by_the_clocks_slack_is_held_at_the_windows_oldest_st
     for seq, s in enumerate((0, PERIOD_NS)):  # no slack, or too little: late
         slack[0] = s
         refusal = offer(oldest - 2, seq)
-        assert refusal is not None and refusal.reason == "late" and intake.held_at is None
-    slack[0] = 2 * PERIOD_NS + 1  # late by 2 steps, the estimate moved by more while it flew
-    assert offer(oldest - 2, 5) is None and intake.held_at == oldest
-    assert sorted(est._packets) == [oldest]  # never as current
+        assert refusal is not None and refusal.reason == "late" and not intake.remapped
+    slack[0] = 3 * PERIOD_NS  # late by 2 steps, the estimate moved by 3 while it flew
+    assert offer(oldest - 2, 5) is None and intake.remapped
+    assert sorted(est._packets) == [oldest + 1]  # t_ns + slack: never as current
+    assert intake.last_t_ns == EPOCH + (oldest + 1) * PERIOD_NS
     # a second one of that sensor at that instant: late; the full decode path (its own R)
-    assert offer(oldest - 1, 6) is not None and intake.held_at is None
-    assert offer(oldest - 1, 7, sensor="ranger", z=np.array([0.1]), R=np.eye(1)) is None
-    assert intake.held_at == oldest and len(est._packets[oldest]) == 2
+    assert offer(oldest - 2, 6) is not None and not intake.remapped
+    assert offer(oldest - 2, 7, sensor="ranger", z=np.array([0.1]), R=np.eye(1)) is None
+    assert intake.remapped and len(est._packets[oldest + 1]) == 2
     # a step-stamped sample carries no clock error: late whatever the slack
     refusal = intake.measurement(key, encode(measurement(step=oldest - 1, seq=8)), k)
     assert refusal is not None and refusal.reason == "late"

@@ -144,8 +144,7 @@ def test_the_clock_status_warns_when_unknown_one_sided_or_jumping() -> None:
 def test_echoed_instants_and_mapped_stamps_give_the_continuous_discrete_batch_prediction() -> None:
     """Exactness (issue 43): a robot 3 s ahead applies each command on arrival (uplink 500 ms
     +- 20 ms) and echoes it; its samples carry its own stamps. Given the instants the daemon
-    mapped (each accepted sample's t_ns, or the window's oldest step where it was held there,
-    each echo's applied_ns), its predictions equal the
+    mapped (each accepted sample's t_ns, each echo's applied_ns), its predictions equal the
     continuous-discrete Kalman filter over those instants, computed with no code of the
     package (tests/estimation/reference.py), to 1e-9."""
     from pd_service.backends import build
@@ -199,8 +198,6 @@ def test_echoed_instants_and_mapped_stamps_give_the_continuous_discrete_batch_pr
             if sess.on_measurement(f"pd/p0/s1/sensor/{name}", encode(msg), now_step, recv) is None:
                 tm = sess.intake.last_t_ns  # the mapped stamp
                 assert tm is not None and tm <= recv  # (one-sided until the first echo)
-                if sess.intake.held_at is not None:  # late only by the estimate's move
-                    tm = sess.intake.held_at * P
                 accepted.append((names.index(name), tm / 1e9, z, None))
         else:
             _, seq, applied = what
@@ -231,7 +228,8 @@ def test_a_sample_in_flight_across_a_clock_step_is_late_only_beyond_the_estimate
     300 ms link leaves. The first fast stamp after it lifts the band's lower side, so the
     estimate moves by half the step at once; a sample taken just before the step and still
     in flight is then mapped 100 ms early. Inside the window (600 ms) by its true delay
-    (590 ms), it is kept at the window's oldest step, counted, not refused as late; one
+    (590 ms), it goes in at the instant the estimate before the move gives it (the latest
+    it may have been taken at: here its true instant), counted, not refused as late; one
     whose true delay (800 ms) is outside the window is refused and counted."""
     from pd_service.backends import build
     from pd_service.service.session import Session
@@ -270,11 +268,12 @@ def test_a_sample_in_flight_across_a_clock_step_is_late_only_beyond_the_estimate
         outcomes[seq] = None if got is None else got.reason  # type: ignore[index]
         if name == "ranger":
             slacks.append(getattr(sess.robot, "slack_ns", 0))
-            if got is None:  # where it went: the window's oldest step, never as current
+            if got is None:  # where it went: its true step (the old estimate's mapping)
                 at = [k for k, b in sess.est._packets.items()  # type: ignore[attr-defined]
                       if any(p.sensor == ranger for p in b)]
-                assert at == [recv // P - spec.max_delay]
+                assert at == [spec.sample_at(t)[0]] and at[0] >= recv // P - spec.max_delay
+                assert abs(sess.intake.last_t_ns - t) < 30 * ms  # type: ignore[operator]
     assert outcomes[19_940 * ms // P] is None  # inside the window by its true delay
     assert outcomes[19_800 * ms // P] == "late"  # outside it by more than the move
     assert all(90 * ms < x < 110 * ms for x in slacks)  # the estimate moved ~100 ms meanwhile
-    assert sess.robot.counters["stamps_held_in_window"] == 1
+    assert sess.robot.counters["stamps_remapped"] == 1
