@@ -27,7 +27,9 @@ Runs (each the same truth, noise and delays; ``--scenario`` paper by default):
 
 Printed per run: samples refused as future / late after the first 5 s; the offset error
 after 10 s (max and median |estimate - truth| at the once-a-second probes, leaving out the 5 s
-after the step change) with the reported uncertainty; when the step was detected (s after it;
+after the step change) with the reported uncertainty; the samples put in at the latest
+instant they may have been taken at (late only by how far the clock's estimate moved while
+they flew, ``stamps_remapped``); when the step was detected (s after it;
 the probe cadence, 1 s, bounds this reading); the prediction RMS (position, against the truth
 at each predicted step, after 10 s; also leaving out the 5 s after the step change) and its
 ratio to the reference on the same link; the learned max_delay, the smallest window W* that
@@ -119,6 +121,7 @@ class Result:
     smallest_window: int | None = None
     learned_late_share: float | None = None
     steps_detected: int = 0
+    remapped: int = 0  # samples late only by the clock estimate's move: at their latest instant
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -269,6 +272,7 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
         res = Result(name, counters=c)
         res.future = c.get("future", 0) - at5.get("future", 0)
         res.late = c.get("late", 0) - at5.get("late", 0)
+        res.remapped = c.get("stamps_remapped", 0) - at5.get("stamps_remapped", 0)
         if offset_errs:
             errs = np.abs(offset_errs)
             res.offset_err_max_ms = float(errs.max())
@@ -323,7 +327,7 @@ def main() -> int:
           f"PD_SERVICE_PURE={os.environ.get('PD_SERVICE_PURE', '')}")
     head = (f"{'run':<10} {'future':>7} {'late':>5} {'off.err max/med ms':>19} {'unc. ms':>8} "
             f"{'RMS':>8} {'/ref':>6} {'w/o step':>8} {'/ref':>6} {'learned W':>9} {'W*':>4} "
-            f"{'W/W*':>5} {'late %':>7} {'steps':>5} {'seen s':>6}")
+            f"{'W/W*':>5} {'late %':>7} {'steps':>5} {'seen s':>6} {'remap':>5}")
     print(head)
     for r in runs:
         off = (f"{r.offset_err_max_ms:8.3f}/{r.offset_err_median_ms:<8.3f}"
@@ -340,7 +344,8 @@ def main() -> int:
               f"{r.rms_outside_step / ref.rms_outside_step:6.3f} {r.learned_max_delay!s:>9} "
               f"{r.smallest_window!s:>4} "
               f"{ratio} {share} {r.steps_detected:>5} "
-              f"{'-' if r.step_seen_after_s is None else round(r.step_seen_after_s, 2)!s:>6}")
+              f"{'-' if r.step_seen_after_s is None else round(r.step_seen_after_s, 2)!s:>6} "
+              f"{r.remapped:>5}")
     print(json.dumps({"scenario": args.scenario, "seconds": args.seconds,
                       "offset_s": args.offset_s, "seed": args.seed,
                       "runs": {r.name: {k: v for k, v in r.__dict__.items() if k != "counters"}
