@@ -144,10 +144,14 @@ def hull_slope(t: np.ndarray, v: np.ndarray, above: bool) -> float | None:
     two distinct times. Shapes: t, v (n,)."""
     if t.size < 2 or float(t.max() - t.min()) <= 0.0:
         return None
-    edge = hull(t, v, above)
+    return edge_slope(hull(t, v, above), float(np.mean(t)))
+
+
+def edge_slope(edge: list[tuple[float, float]], mean_t: float) -> float | None:
+    """:func:`hull_slope` from the hull's vertices ``edge`` (:func:`hull`) and the points'
+    mean time ``mean_t``: the slope of the edge over it. None for fewer than two vertices."""
     if len(edge) < 2:
         return None
-    mean_t = float(np.mean(t))
     for (x1, y1), (x2, y2) in zip(edge, edge[1:], strict=False):
         if x2 >= mean_t:
             return (y2 - y1) / (x2 - x1)
@@ -468,10 +472,12 @@ class ClockOffsetEstimator:
 
     def _refit(self) -> None:
         tl, vl, th, vh = self._arrays()
+        lower = hull(tl, vl, True) if vl.size else []
+        upper = hull(th, vh, False) if vh.size else []
+        fits = ((edge_slope(lower, float(np.mean(tl))) if tl.size else None, _span(tl)),
+                (edge_slope(upper, float(np.mean(th))) if th.size else None, _span(th)))
         for span in (self.drift_span_s, 0.0):  # a short span only if the band is inverted
-            slopes = [s for s in (hull_slope(tl, vl, True) if _span(tl) >= span else None,
-                                  hull_slope(th, vh, False) if _span(th) >= span else None)
-                      if s is not None]
+            slopes = [s for s, sp in fits if s is not None and sp >= span]
             if slopes:
                 self._drift = float(np.clip(np.mean(slopes), -self.max_drift, self.max_drift))
             self._drift_spread = min(self.max_drift, 0.5 * abs(slopes[0] - slopes[1])) \
@@ -486,8 +492,6 @@ class ClockOffsetEstimator:
             if lo <= hi:
                 break
         # what tilt the bounds leave the line: one loose bound can set a hull's slope
-        lower = hull(tl, vl, True) if vl.size else []
-        upper = hull(th, vh, False) if vh.size else []
         b_lo, b_hi = drift_range(lower, upper, self.max_drift)
         self._drift_lo, self._drift_hi = min(b_lo, b_hi, self._drift), max(b_lo, b_hi, self._drift)
 
