@@ -290,13 +290,13 @@ class Intake:
                 # instant it may have been taken at (the estimate before the move), if that
                 # is inside the window; never as current
                 t_late = t_in + slack()
-                s, off = self.spec.sample_at(t_late)
-                if s > now_step:
-                    s, off = now_step, 0.0
-                if off != 0.0 and self.off_scale != 1.0:
-                    off = self._scaled(off)
-                if s >= max(lo, est.committed_step) \
-                        and est.add_measurement(sensor, s, z, now_step, R, off):
+                s_late, off_late = self.spec.sample_at(t_late)
+                if s_late > now_step:
+                    s_late, off_late = now_step, 0.0
+                if off_late != 0.0 and self.off_scale != 1.0:
+                    off_late = self._scaled(off_late)
+                if s_late >= max(lo, est.committed_step) \
+                        and est.add_measurement(sensor, s_late, z, now_step, R, off_late):
                     self.last_t_ns = t_late
                     self.remapped = True
                     return None

@@ -187,6 +187,7 @@ def test_a_sample_late_only_by_the_clocks_slack_goes_in_at_its_latest_instant() 
         slack[0] = s
         refusal = offer(oldest - 2, seq)
         assert refusal is not None and refusal.reason == "late" and not intake.remapped
+        assert f"sample step {oldest - 2} is older" in refusal.text  # its own step
     slack[0] = 3 * PERIOD_NS  # late by 2 steps, the estimate moved by 3 while it flew
     assert offer(oldest - 2, 5) is None and intake.remapped
     assert sorted(est._packets) == [oldest + 1]  # t_ns + slack: never as current
