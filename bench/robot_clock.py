@@ -37,7 +37,7 @@ refuses at most 0.1 % of the run's samples as late, their ratio, and the share t
 one refuses. A final JSON line.
 
 Usage: python bench/robot_clock.py [--scenario paper] [--seconds 60] [--offset-s 10]
-       [--seed 1]
+       [--seed 1] [--step-s 0.2]
 """
 
 from __future__ import annotations
@@ -127,10 +127,11 @@ class Result:
 
 def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: int,
         clock_off: bool, hold: bool, estimated: bool, links: dict[str, Link],
-        echoed: bool | None = None, asymmetry: bool = False) -> Result:
+        echoed: bool | None = None, asymmetry: bool = False, step_s: float = 0.2) -> Result:
     """One run (module docstring); ``echoed``: the spec's command_timing "echoed" (default:
     with an estimated clock); ``asymmetry``: the spec's clock_asymmetry_ns set to the link's
-    nominal one (the fastest way up minus the fastest way down)."""
+    nominal one (the fastest way up minus the fastest way down); ``step_s``: the robot
+    clock's step mid-run (s)."""
     echoed = estimated if echoed is None else echoed
     sc = get_scenario(scenario_name)
     per_s = sc.period_s
@@ -145,7 +146,7 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
                                        if asymmetry else 0})
     P = spec.period_ns
     steps = int(seconds * S // P)
-    robot_clock = (RobotClock(offset_s, 100.0, [(seconds / 2, 0.2)], base=lambda: 0, t0_ns=EPOCH)
+    robot_clock = (RobotClock(offset_s, 100.0, [(seconds / 2, step_s)], base=lambda: 0, t0_ns=EPOCH)
                    if clock_off else RobotClock(base=lambda: 0, t0_ns=EPOCH))
     rng = np.random.default_rng(seed + 1000)  # the link's draws (the same in every run)
     sim = ScenarioSim(sc, seed)
@@ -305,9 +306,10 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--offset-s", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--step-s", type=float, default=0.2, help="the robot clock's step mid-run")
     args = ap.parse_args()
     common = dict(scenario_name=args.scenario, seconds=args.seconds, offset_s=args.offset_s,
-                  seed=args.seed)
+                  seed=args.seed, step_s=args.step_s)
     runs = [
         run("reference", clock_off=False, hold=True, estimated=False, links=FIELD, **common),
         run("today", clock_off=True, hold=False, estimated=False, links=FIELD, **common),
@@ -322,7 +324,8 @@ def main() -> int:
     refs = {"reference": runs[0], "today": runs[0], "issue43": runs[0], "ref-loop": runs[3],
             "loopback": runs[3], "perfect": runs[0], "asym": runs[0]}
     print(f"scenario {args.scenario}, {args.seconds:g} s, robot clock {args.offset_s:+g} s, "
-          f"100 ppm, +200 ms step at {args.seconds / 2:g} s; commands on arrival (reference: "
+          f"100 ppm, {args.step_s * 1e3:+g} ms step at {args.seconds / 2:g} s; commands on "
+          f"arrival (reference: "
           f"held to their step, shared clock); "
           f"PD_SERVICE_PURE={os.environ.get('PD_SERVICE_PURE', '')}")
     head = (f"{'run':<10} {'future':>7} {'late':>5} {'off.err max/med ms':>19} {'unc. ms':>8} "
@@ -347,7 +350,7 @@ def main() -> int:
               f"{'-' if r.step_seen_after_s is None else round(r.step_seen_after_s, 2)!s:>6} "
               f"{r.remapped:>5}")
     print(json.dumps({"scenario": args.scenario, "seconds": args.seconds,
-                      "offset_s": args.offset_s, "seed": args.seed,
+                      "offset_s": args.offset_s, "seed": args.seed, "step_s": args.step_s,
                       "runs": {r.name: {k: v for k, v in r.__dict__.items() if k != "counters"}
                                for r in runs}}))
     return 0
