@@ -27,7 +27,9 @@ Runs (each the same truth, noise and delays; ``--scenario`` paper by default):
 
 Printed per run: samples refused as future / late after the first 5 s; the offset error
 after 10 s (max and median |estimate - truth| at the once-a-second probes, leaving out the 5 s
-after the step change) with the reported uncertainty; when the step was detected (s after it;
+after the step change) with the reported uncertainty; the samples put in at the latest
+instant they may have been taken at (late only by how far the clock's estimate moved while
+they flew, ``stamps_remapped``); when the step was detected (s after it;
 the probe cadence, 1 s, bounds this reading); the prediction RMS (position, against the truth
 at each predicted step, after 10 s; also leaving out the 5 s after the step change) and its
 ratio to the reference on the same link; the learned max_delay, the smallest window W* that
@@ -35,7 +37,7 @@ refuses at most 0.1 % of the run's samples as late, their ratio, and the share t
 one refuses. A final JSON line.
 
 Usage: python bench/robot_clock.py [--scenario paper] [--seconds 60] [--offset-s 10]
-       [--seed 1]
+       [--seed 1] [--step-s 0.2]
 """
 
 from __future__ import annotations
@@ -119,15 +121,17 @@ class Result:
     smallest_window: int | None = None
     learned_late_share: float | None = None
     steps_detected: int = 0
+    remapped: int = 0  # samples late only by the clock estimate's move: at their latest instant
     counters: dict[str, int] = field(default_factory=dict)
 
 
 def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: int,
         clock_off: bool, hold: bool, estimated: bool, links: dict[str, Link],
-        echoed: bool | None = None, asymmetry: bool = False) -> Result:
+        echoed: bool | None = None, asymmetry: bool = False, step_s: float = 0.2) -> Result:
     """One run (module docstring); ``echoed``: the spec's command_timing "echoed" (default:
     with an estimated clock); ``asymmetry``: the spec's clock_asymmetry_ns set to the link's
-    nominal one (the fastest way up minus the fastest way down)."""
+    nominal one (the fastest way up minus the fastest way down); ``step_s``: the robot
+    clock's step mid-run (s)."""
     echoed = estimated if echoed is None else echoed
     sc = get_scenario(scenario_name)
     per_s = sc.period_s
@@ -142,7 +146,7 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
                                        if asymmetry else 0})
     P = spec.period_ns
     steps = int(seconds * S // P)
-    robot_clock = (RobotClock(offset_s, 100.0, [(seconds / 2, 0.2)], base=lambda: 0, t0_ns=EPOCH)
+    robot_clock = (RobotClock(offset_s, 100.0, [(seconds / 2, step_s)], base=lambda: 0, t0_ns=EPOCH)
                    if clock_off else RobotClock(base=lambda: 0, t0_ns=EPOCH))
     rng = np.random.default_rng(seed + 1000)  # the link's draws (the same in every run)
     sim = ScenarioSim(sc, seed)
@@ -269,6 +273,7 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
         res = Result(name, counters=c)
         res.future = c.get("future", 0) - at5.get("future", 0)
         res.late = c.get("late", 0) - at5.get("late", 0)
+        res.remapped = c.get("stamps_remapped", 0) - at5.get("stamps_remapped", 0)
         if offset_errs:
             errs = np.abs(offset_errs)
             res.offset_err_max_ms = float(errs.max())
@@ -301,9 +306,10 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--offset-s", type=float, default=10.0)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--step-s", type=float, default=0.2, help="the robot clock's step mid-run")
     args = ap.parse_args()
     common = dict(scenario_name=args.scenario, seconds=args.seconds, offset_s=args.offset_s,
-                  seed=args.seed)
+                  seed=args.seed, step_s=args.step_s)
     runs = [
         run("reference", clock_off=False, hold=True, estimated=False, links=FIELD, **common),
         run("today", clock_off=True, hold=False, estimated=False, links=FIELD, **common),
@@ -318,12 +324,13 @@ def main() -> int:
     refs = {"reference": runs[0], "today": runs[0], "issue43": runs[0], "ref-loop": runs[3],
             "loopback": runs[3], "perfect": runs[0], "asym": runs[0]}
     print(f"scenario {args.scenario}, {args.seconds:g} s, robot clock {args.offset_s:+g} s, "
-          f"100 ppm, +200 ms step at {args.seconds / 2:g} s; commands on arrival (reference: "
+          f"100 ppm, {args.step_s * 1e3:+g} ms step at {args.seconds / 2:g} s; commands on "
+          f"arrival (reference: "
           f"held to their step, shared clock); "
           f"PD_SERVICE_PURE={os.environ.get('PD_SERVICE_PURE', '')}")
     head = (f"{'run':<10} {'future':>7} {'late':>5} {'off.err max/med ms':>19} {'unc. ms':>8} "
             f"{'RMS':>8} {'/ref':>6} {'w/o step':>8} {'/ref':>6} {'learned W':>9} {'W*':>4} "
-            f"{'W/W*':>5} {'late %':>7} {'steps':>5} {'seen s':>6}")
+            f"{'W/W*':>5} {'late %':>7} {'steps':>5} {'seen s':>6} {'remap':>5}")
     print(head)
     for r in runs:
         off = (f"{r.offset_err_max_ms:8.3f}/{r.offset_err_median_ms:<8.3f}"
@@ -340,9 +347,10 @@ def main() -> int:
               f"{r.rms_outside_step / ref.rms_outside_step:6.3f} {r.learned_max_delay!s:>9} "
               f"{r.smallest_window!s:>4} "
               f"{ratio} {share} {r.steps_detected:>5} "
-              f"{'-' if r.step_seen_after_s is None else round(r.step_seen_after_s, 2)!s:>6}")
+              f"{'-' if r.step_seen_after_s is None else round(r.step_seen_after_s, 2)!s:>6} "
+              f"{r.remapped:>5}")
     print(json.dumps({"scenario": args.scenario, "seconds": args.seconds,
-                      "offset_s": args.offset_s, "seed": args.seed,
+                      "offset_s": args.offset_s, "seed": args.seed, "step_s": args.step_s,
                       "runs": {r.name: {k: v for k, v in r.__dict__.items() if k != "counters"}
                                for r in runs}}))
     return 0

@@ -18,9 +18,14 @@ mean time, which minimises the summed gaps: the linear programme of one-way dela
 estimation) and of the tightest line below the upper bounds, averaged; then with
 ``L = max(l_i - b t_i)`` and ``U = min(u_i - b t_i)`` the offset is
 ``theta(t) = (L + U) / 2 - asymmetry / 2 + b t`` and its uncertainty the half-width
-``(U - L) / 2 + max_drift * age`` (age: seconds since the newest bound; the bound grows while
-probes stop). Bounds are kept per time bucket (the tightest of each kind per ``bucket_s``):
-bounded memory, a long span for the drift, whatever the sample rate.
+``(U - L) / 2 + tilt + max_drift * age`` (age: seconds since the newest bound; the bound grows
+while probes stop). ``tilt`` is what the drift's own error can add at t: every drift b' in
+``[b_lo, b_hi]`` (:func:`drift_range`: the slopes some line between the bounds may have) keeps
+a line through the bounds that pin L and U (at t_L, t_U), so ``theta(t) >= L + b t - (b -
+b_lo) (t - t_L)^+ - (b_hi - b) (t_L - t)^+`` and alike above; one loose bound can set a
+hull's slope (the drift) but not this range, which only tight bounds narrow. Bounds are kept
+per time bucket (the tightest of each kind per ``bucket_s``): bounded memory, a long span for
+the drift, whatever the sample rate.
 
 What is identifiable: ``U - L`` shrinks to ``d_up_min + d_down_min`` (the fastest delays seen
 each way), and the midpoint is off by ``(d_up_min - d_down_min) / 2``. A *constant* asymmetry
@@ -110,36 +115,73 @@ def _span(t: np.ndarray) -> float:
     return float(t.max() - t.min()) if t.size else 0.0
 
 
+def hull(t: np.ndarray, v: np.ndarray, above: bool) -> list[tuple[float, float]]:
+    """The vertices (t, v), by time, of the upper (``above``) or lower convex hull of the
+    points (t_i, v_i): the only points a line above (below) all of them can touch. At one
+    time only the tightest point counts. Shapes: t, v (n,)."""
+    order = np.lexsort((v if not above else -v, t))
+    ts, vs = t[order].tolist(), v[order].tolist()
+    sign = 1.0 if above else -1.0
+    out: list[tuple[float, float]] = []
+    for p in zip(ts, vs, strict=True):
+        if out and out[-1][0] == p[0]:
+            continue  # same time: the first kept is the tightest (sorted so)
+        # monotone chain: pop while the turn keeps the hull convex on the wanted side
+        while len(out) >= 2:
+            (x1, y1), (x2, y2) = out[-2], out[-1]
+            cross = (x2 - x1) * (p[1] - y1) - (y2 - y1) * (p[0] - x1)
+            if sign * cross >= 0.0:
+                out.pop()
+            else:
+                break
+        out.append(p)
+    return out
+
+
 def hull_slope(t: np.ndarray, v: np.ndarray, above: bool) -> float | None:
     """Slope of the line above (``above``) or below all points (t_i, v_i) with the least
     summed gap: the edge of the upper (lower) convex hull over mean(t). None for fewer than
     two distinct times. Shapes: t, v (n,)."""
     if t.size < 2 or float(t.max() - t.min()) <= 0.0:
         return None
-    order = np.lexsort((v if not above else -v, t))
-    ts, vs = t[order].tolist(), v[order].tolist()
-    sign = 1.0 if above else -1.0
-    hull: list[tuple[float, float]] = []
-    for p in zip(ts, vs, strict=True):
-        if hull and hull[-1][0] == p[0]:
-            continue  # same time: the first kept is the tightest (sorted so)
-        # monotone chain: pop while the turn keeps the hull convex on the wanted side
-        while len(hull) >= 2:
-            (x1, y1), (x2, y2) = hull[-2], hull[-1]
-            cross = (x2 - x1) * (p[1] - y1) - (y2 - y1) * (p[0] - x1)
-            if sign * cross >= 0.0:
-                hull.pop()
-            else:
-                break
-        hull.append(p)
-    if len(hull) < 2:
+    return edge_slope(hull(t, v, above), float(np.mean(t)))
+
+
+def edge_slope(edge: list[tuple[float, float]], mean_t: float) -> float | None:
+    """:func:`hull_slope` from the hull's vertices ``edge`` (:func:`hull`) and the points'
+    mean time ``mean_t``: the slope of the edge over it. None for fewer than two vertices."""
+    if len(edge) < 2:
         return None
-    mean_t = float(np.mean(t))
-    for (x1, y1), (x2, y2) in zip(hull, hull[1:], strict=False):
+    for (x1, y1), (x2, y2) in zip(edge, edge[1:], strict=False):
         if x2 >= mean_t:
             return (y2 - y1) / (x2 - x1)
-    (x1, y1), (x2, y2) = hull[-2], hull[-1]
+    (x1, y1), (x2, y2) = edge[-2], edge[-1]
     return (y2 - y1) / (x2 - x1)
+
+
+def drift_range(lower: list[tuple[float, float]], upper: list[tuple[float, float]],
+                max_drift: float) -> tuple[float, float]:
+    """The drifts b (s/s) some line ``a + b t`` allows that lies above every lower bound and
+    below every upper one, within +-max_drift: a lower bound (t_i, l_i) and an upper one
+    (t_j, u_j) need ``l_i + b (t_j - t_i) <= u_j``, so
+
+        b <= (u_j - l_i) / (t_j - t_i)  (t_j > t_i),   b >= (l_i - u_j) / (t_i - t_j)  (t_i > t_j)
+
+    over the pairs of hull vertices (``lower``: the upper hull of the lower bounds,
+    ``upper``: the lower hull of the upper ones, :func:`hull`; the extremes of ``l_i - b
+    t_i`` and ``u_j - b t_j`` lie on them for every b). Bounds that contradict every drift
+    give b_min > b_max (the caller widens to its own estimate)."""
+    if not lower or not upper:
+        return -max_drift, max_drift
+    tl, vl = np.array(lower).T
+    tu, vu = np.array(upper).T
+    dt = tu[None, :] - tl[:, None]  # (n_lower, n_upper)
+    gap = vu[None, :] - vl[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = gap / dt
+    hi = float(np.min(slope[dt > 0], initial=max_drift))
+    lo = float(np.max(slope[dt < 0], initial=-max_drift))
+    return max(lo, -max_drift), min(hi, max_drift)
 
 
 def median_shift(old: np.ndarray, new: np.ndarray, floor: float) -> tuple[float, float]:
@@ -257,11 +299,14 @@ class ClockOffsetEstimator:
         self._buckets: deque[_Bucket] = deque(maxlen=buckets)
         self._anchor_ns: int | None = None
         self._drift = 0.0
-        self._drift_fitted = False  # over drift_span_s at least (else: +-max_drift unknown)
+        #: The drifts the kept bounds allow (s/s, :func:`drift_range`): how far a line
+        #: through the band may tilt away from ``_drift``
+        self._drift_lo, self._drift_hi = -max_drift, max_drift
         #: How far the drift may be off (s/s): half the two sides' slopes' difference, else
         #: max_drift (one side, or a span too short)
         self._drift_spread = max_drift
         self._band: tuple[float, float] = (-np.inf, np.inf)  # L, U detrended (s)
+        self._pinned: tuple[float, float] = (0.0, 0.0)  # the times (s) of the bounds L, U
         self._newest = -np.inf  # s since the anchor of the newest bound
         # bounds outside the band, held until confirmed (a step) or contradicted
         self._pending_lo: list[tuple[float, float]] = []
@@ -343,11 +388,13 @@ class ClockOffsetEstimator:
         # the band follows each bound at once (O(1)); the hulls (the drift), O(buckets), are
         # fitted when a bucket is opened and refit_s has passed, or when the band inverts
         # (the drift is off); the step test, O(recent), at every bucket opened
-        if lower:
-            lo = max(lo, d)
-        else:
-            hi = min(hi, d)
+        t_lo, t_hi = self._pinned
+        if lower and d > lo:
+            lo, t_lo = d, t
+        elif not lower and d < hi:
+            hi, t_hi = d, t
         self._band = (lo, hi)
+        self._pinned = (t_lo, t_hi)
         if lo > hi + tol or (self._buckets[-1].index != opened
                              and t - self._refitted >= self.refit_s):
             self._refitted = t
@@ -425,21 +472,28 @@ class ClockOffsetEstimator:
 
     def _refit(self) -> None:
         tl, vl, th, vh = self._arrays()
+        lower = hull(tl, vl, True) if vl.size else []
+        upper = hull(th, vh, False) if vh.size else []
+        fits = ((edge_slope(lower, float(np.mean(tl))) if tl.size else None, _span(tl)),
+                (edge_slope(upper, float(np.mean(th))) if th.size else None, _span(th)))
         for span in (self.drift_span_s, 0.0):  # a short span only if the band is inverted
-            slopes = [s for s in (hull_slope(tl, vl, True) if _span(tl) >= span else None,
-                                  hull_slope(th, vh, False) if _span(th) >= span else None)
-                      if s is not None]
+            slopes = [s for s, sp in fits if s is not None and sp >= span]
             if slopes:
                 self._drift = float(np.clip(np.mean(slopes), -self.max_drift, self.max_drift))
-            self._drift_fitted = bool(slopes) and span > 0.0
             self._drift_spread = min(self.max_drift, 0.5 * abs(slopes[0] - slopes[1])) \
                 if len(slopes) == 2 and span > 0.0 else self.max_drift
             b = self._drift
-            lo = float(np.max(vl - b * tl)) if vl.size else -np.inf
-            hi = float(np.min(vh - b * th)) if vh.size else np.inf
+            il = int(np.argmax(vl - b * tl)) if vl.size else -1
+            ih = int(np.argmin(vh - b * th)) if vh.size else -1
+            lo = float(vl[il] - b * tl[il]) if vl.size else -np.inf
+            hi = float(vh[ih] - b * th[ih]) if vh.size else np.inf
             self._band = (lo, hi)
+            self._pinned = (float(tl[il]) if vl.size else 0.0, float(th[ih]) if vh.size else 0.0)
             if lo <= hi:
-                return
+                break
+        # what tilt the bounds leave the line: one loose bound can set a hull's slope
+        b_lo, b_hi = drift_range(lower, upper, self.max_drift)
+        self._drift_lo, self._drift_hi = min(b_lo, b_hi, self._drift), max(b_lo, b_hi, self._drift)
 
     def _step_inside_band(self) -> None:
         """The in-band step test (module docstring, :func:`step_test`): the newest
@@ -492,11 +546,6 @@ class ClockOffsetEstimator:
         if np.isfinite(size):
             self.last_step_s = size
 
-    def _oldest(self) -> float:
-        b = self._buckets[0]
-        return min(x for x in (b.t_lo if b.lo > -np.inf else np.inf,
-                               b.t_hi if b.hi < np.inf else np.inf))
-
     def estimate_at(self, t: float) -> float:
         """The offset (s) at ``t`` s since the anchor (nan when unknown)."""
         lo, hi = self._band
@@ -523,9 +572,14 @@ class ClockOffsetEstimator:
         age = max(0.0, t - self._newest)
         grow = self.max_drift * age
         offset = self.estimate_at(t)
-        lower, upper = lo + b * t - grow, hi + b * t + grow
-        if not self._drift_fitted:  # the drift is unknown to within max_drift over the data
-            grow += self.max_drift * max(0.0, t - self._oldest())
+        # a line with drift b' in [b_lo, b_hi] still meets each bound that pins the band:
+        # theta(t) >= L + b t - (b - b_lo) (t - t_L)^+ - (b_hi - b) (t_L - t)^+, and alike up
+        t_lo, t_hi = self._pinned
+        down_b, up_b = b - self._drift_lo, self._drift_hi - b
+        tilt_lo = down_b * max(0.0, t - t_lo) + up_b * max(0.0, t_lo - t)
+        tilt_hi = up_b * max(0.0, t - t_hi) + down_b * max(0.0, t_hi - t)
+        lower, upper = lo + b * t - grow - tilt_lo, hi + b * t + grow + tilt_hi
         # an inverted band (bounds that contradict each other by x): x is the uncertainty
-        half = 0.5 * abs(hi - lo) + grow if hi < np.inf and lo > -np.inf else np.inf
+        half = 0.5 * abs(hi - lo) + max(tilt_lo, tilt_hi) + grow \
+            if hi < np.inf and lo > -np.inf else np.inf
         return OffsetEstimate(now_ns, offset, b, half, lower, upper, age, steps, True)

@@ -171,6 +171,12 @@ class Intake:
         #: Robot stamps -> the daemon's timeline (pd_service.service.robot_time), applied to
         #: a Measurement's t_ns before anything else; None: stamps are used as they are.
         self.stamp_map: Callable[[int], int] | None = None
+        #: How much later (ns) the last stamp mapped may have been taken, because the clock's
+        #: estimate moved while it was in flight (pd_service.service.robot_time): a sample
+        #: late by less goes in at that latest instant; None: no such error.
+        self.stamp_slack: Callable[[], int] | None = None
+        #: Whether the last measurement went in at its latest instant (stamp_slack).
+        self.remapped = False
         #: The (mapped) t_ns of the last measurement read, None if it had a step (or none),
         #: and the sensor its key named.
         self.last_t_ns: int | None = None
@@ -204,6 +210,7 @@ class Intake:
         """Offer one Measurement received on ``key``; None if accepted. ``first_step``: the
         step it may have arrived at first, if before ``now_step`` (:func:`judged_step`)."""
         self.decoded = False
+        self.remapped = False
         self.last_sensor = sensor = key.rsplit("/", 1)[-1]
         m = self.dims.get(sensor)
         read = _READ_MEASUREMENT
@@ -277,6 +284,22 @@ class Intake:
             return Refusal("future", f"Measurement.{stamp}: sample step {s} is after the current "
                            f"step {now_step}", seq)
         if s < lo or s < est.committed_step:
+            slack = self.stamp_slack
+            if slack is not None and t_in is not None and stamp == "t_ns":
+                # late only under the estimate that moved while it flew: at the latest
+                # instant it may have been taken at (the estimate before the move), if that
+                # is inside the window; never as current
+                t_late = t_in + slack()
+                s_late, off_late = self.spec.sample_at(t_late)
+                if s_late > now_step:
+                    s_late, off_late = now_step, 0.0
+                if off_late != 0.0 and self.off_scale != 1.0:
+                    off_late = self._scaled(off_late)
+                if s_late >= max(lo, est.committed_step) \
+                        and est.add_measurement(sensor, s_late, z, now_step, R, off_late):
+                    self.last_t_ns = t_late
+                    self.remapped = True
+                    return None
             return Refusal("late", f"Measurement.{stamp}: sample step {s} is older than the "
                            f"window [{max(lo, est.committed_step)}, {now_step}] "
                            f"(max_delay {est.max_delay})", seq)

@@ -8,6 +8,12 @@ only caller, no locks, no clock reads: every time is passed in):
   stamp is a one-way bound on the offset (:class:`ClockOffsetEstimator`), then mapped with the
   estimate, never later than its receipt (a sample is never taken after it arrived), before
   the window check; probes (:mod:`.clock_probes`) and echoes bound it from the other side.
+  While a sample was in flight the estimate may have moved (a clock step seen on one side
+  of the band moves it by half the step at once): the daemon then cannot tell which offset
+  the sample's stamp was taken under, so the sample is judged late only if it is late under
+  every estimate held over the window (:attr:`RobotTime.slack_ns`); pd_service.intake puts
+  one that is not in at the latest instant it may have been taken at, counted
+  ``stamps_remapped``.
   With ``robot_clock: shared`` stamps are used as they are (and no bound is fed).
 - **delays learned online** (every spec): per sensor and over all samples the gap sample
   stamp -> receipt (:class:`DelayStats`), the recommended ``max_delay`` (the smallest window
@@ -31,7 +37,8 @@ this session; ``commands_kept_dropped``: kept commands pushed out unechoed), nev
 
 from __future__ import annotations
 
-from collections import OrderedDict
+import math
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import Final
 
@@ -56,6 +63,9 @@ CLOCK_STALE_S: Final = 10.0
 #: late share of 0.1 % fewer would not tell the window from noise.
 LEARN_MIN_SAMPLES: Final = 1000
 LEARN_MIN_ECHOES: Final = 100
+#: An offset estimate that moved by more than this (s) from the last one kept (carried on
+#: by its drift) is kept too, for the window's span: what :attr:`RobotTime.slack_ns` spans.
+CLOCK_MOVE_S: Final = 1e-4
 
 
 #: What an echo hands on for its command: (applied_ns on the daemon's timeline, u (nu,),
@@ -114,6 +124,15 @@ class RobotTime:
         self.seen = 0
         self.late = 0
         self._last: OffsetEstimate | None = None
+        #: (daemon ns, offset s, drift) of the estimates held over the last window (the one
+        #: in force at its start first): a new one when it moved by over CLOCK_MOVE_S
+        self._held: deque[tuple[int, float, float]] = deque()
+        self._window_ns = spec.max_delay * spec.period_ns
+        #: How much later (ns) the last stamp mapped may have been taken, because the
+        #: estimate moved while it may have been in flight: ``max_k |theta_now - (theta_k +
+        #: b_k (now - t_k))|`` over the estimates k held over the window, never past its
+        #: receipt (0: it did not move).
+        self.slack_ns = 0
 
     # --- stamps ---------------------------------------------------------------------------
 
@@ -127,10 +146,32 @@ class RobotTime:
         self.clock.add_one_way(t_ns, recv)
         est = self.clock.estimate(recv)
         mapped = est.to_daemon_ns(t_ns) if est.known else t_ns
+        moved = self._moved(est) if est.known else 0
         if mapped > recv:
             self.counters["stamps_clamped"] += 1
+            self.slack_ns = 0
             return recv
+        self.slack_ns = min(moved, recv - mapped)
         return mapped
+
+    def stamp_slack(self) -> int:
+        """:attr:`slack_ns` (pd_service.intake's ``stamp_slack``)."""
+        return self.slack_ns
+
+    def _moved(self, est: OffsetEstimate) -> int:
+        """:attr:`slack_ns` for ``est`` (the estimate at its receipt), and ``est`` kept if
+        it moved (O(1) amortised: the estimates kept over one window are few)."""
+        held, now = self._held, est.t_ns
+        while len(held) >= 2 and held[1][0] <= now - self._window_ns:
+            held.popleft()
+        worst = 0.0
+        gap = math.inf
+        for t, offset, drift in held:
+            gap = abs(est.offset_s - offset - drift * (now - t) * 1e-9)
+            worst = max(worst, gap)
+        if gap > CLOCK_MOVE_S:  # the newest kept is the last one compared
+            held.append((now, est.offset_s, est.drift))
+        return int(worst * 1e9)
 
     def sample(self, sensor: str, stamp_ns: int, recv_ns: int, late: bool) -> None:
         """A decoded sample of ``sensor`` stamped ``stamp_ns`` (daemon timeline) received at

@@ -23,6 +23,9 @@ commands_in_place /        echo names (inside its step) / already there / not mo
 commands_echo_refused      step final, a newer command superseded them, or the new step
                            refused them)
 stamps_clamped             robot stamps mapped after their receipt, held at it
+stamps_remapped            samples late only by how far the clock's estimate moved while
+                           they flew: put in at the latest instant they may have been taken
+                           at (the estimate before the move; robot_time)
 probe_replies              clock probes answered (probe_<reason>: refused by the estimator)
 malformed                  bytes that are not a valid Measurement / Command (``commands_``
                            prefix for commands)
@@ -135,6 +138,7 @@ class Session:
         self.robot = RobotTime(spec)
         if self.robot.estimated:
             self.intake.stamp_map = self.robot.to_daemon
+            self.intake.stamp_slack = self.robot.stamp_slack
         #: Whether accepted commands go to :meth:`.robot_time.RobotTime.keep_command` (a
         #: native copy of its ``listening``, read per command).
         self.keeps_commands: bool = self.robot.listening
@@ -233,6 +237,8 @@ class Session:
         recv = now_ns if recv_ns is None else recv_ns
         robot.recv_ns = recv
         refusal = intake.measurement(key, payload, now_step, first_step)
+        if intake.remapped:
+            robot.counters["stamps_remapped"] += 1
         if intake.decoded:
             self.last_activity_ns = now_ns
             self.heard = True

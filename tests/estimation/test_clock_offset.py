@@ -14,6 +14,8 @@ import pytest
 from pd_service.estimation.clock_offset import (
     ClockOffsetEstimator,
     change_point,
+    drift_range,
+    hull,
     hull_slope,
     median_shift,
     step_test,
@@ -244,12 +246,62 @@ def test_hull_slope_solves_the_linear_programme(seed: int) -> None:
     assert below == pytest.approx(-ours, abs=1e-12)
 
 
+@pytest.mark.parametrize("seed", range(10))
+def test_drift_range_from_the_hulls_equals_every_pair_of_bounds(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    tl, tu = rng.uniform(0, 20, 15), rng.uniform(0, 20, 12)
+    vl = 1e-4 * tl - rng.exponential(1e-3, tl.size)  # theta = 1e-4 t, delays >= 0
+    vu = 1e-4 * tu + rng.exponential(1e-3, tu.size)
+    dt = tu[None, :] - tl[:, None]
+    pairs = (vu[None, :] - vl[:, None]) / np.where(dt == 0, np.nan, dt)
+    want = (max(-1.0, float(np.max(pairs[dt < 0]))), min(1.0, float(np.min(pairs[dt > 0]))))
+    got = drift_range(hull(tl, vl, True), hull(tu, vu, False), 1.0)
+    assert got == pytest.approx(want, abs=1e-15)
+    assert got[0] <= 1e-4 <= got[1]  # the true drift is allowed
+
+
 def test_one_probe_bounds_the_offset_on_both_sides() -> None:
     est = ClockOffsetEstimator()
     # 1 µs each way, answered in 1 µs: the robot 10 s ahead
     assert est.add_probe(T0, T0 + 10 * S + 1000, T0 + 10 * S + 2000, T0 + 3000) is None
     e = est.estimate(T0 + 3000)
     assert e.half_width_s < 2e-6 and abs(e.offset_s - 10.0) < 2e-6
+
+
+def test_one_loose_bound_cannot_tilt_the_drift_past_the_reported_uncertainty() -> None:
+    # two probes 2 s apart, 1 µs each way, but the second one's uplink took 2 ms: its upper
+    # bound alone sets the lower envelope's slope (1000 ppm), the drift goes to +500 ppm
+    # (clipped) while both probes' bounds sit 2 µs apart at the first one's time
+    clock = RobotClock(10.0, drift=0.0)
+    est = ClockOffsetEstimator()
+
+    def probe(t_s: float, up_ns: int) -> None:
+        t1 = T0 + round(t_s * S)
+        ta = t1 + up_ns
+        assert est.add_probe(t1, clock(ta), clock(ta + 1000), ta + 2000) is None
+
+    probe(0.0, 1000)
+    probe(2.0, 2_000_000)
+    assert est.estimate(T0 + 2 * S).drift > 2e-4  # the loose bound did tilt the estimate
+    for k in range(31):  # where stamps are mapped: back to the first probe, and after
+        t = T0 + k * S // 10
+        e = est.estimate(t)
+        err = e.offset_s - clock.theta_ns(t) / S
+        assert abs(err) <= e.half_width_s, (k, err, e.half_width_s)
+        assert e.lower_s <= clock.theta_ns(t) / S <= e.upper_s
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_loose_probe_among_tight_ones_stays_inside_the_bound(seed: int) -> None:
+    clock = RobotClock(-10.0)
+    est = ClockOffsetEstimator()
+    trace = run(est, clock, LOOPBACK, 6.0, probe_hz=1.0, sample_hz=1e-9, seed=seed)
+    t1 = T0 + 6 * S + 1000
+    ta = t1 + 3_000_000  # a 3 ms uplink
+    assert est.add_probe(t1, clock(ta), clock(ta + 20_000), ta + 80_000) is None
+    trace += run(est, clock, LOOPBACK, 4.0, probe_hz=1.0, sample_hz=1e-9, seed=seed,
+                 start_s=6.5)
+    assert all(abs(e) <= h + 1e-9 for t, e, h in trace if t >= 1.0)
 
 
 def paper_link_run(est: ClockOffsetEstimator, clock: RobotClock, seconds: float, seed: int

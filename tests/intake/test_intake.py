@@ -168,3 +168,34 @@ def test_a_message_that_waited_is_judged_at_the_earliest_step_it_may_have_arrive
     refusal = intake.measurement(key, encode(measurement(sensor="ranger", step=7, seq=4,
                                                          z=np.array([1.0]))), 22, 18)
     assert refusal is not None and refusal.reason == "late"
+
+
+def test_a_sample_late_only_by_the_clocks_slack_goes_in_at_its_latest_instant() -> None:
+    intake, est = intake_of(paper_spec(epoch_ns=EPOCH))
+    slack = [0]
+    intake.stamp_map = lambda t: t  # stamps already on the daemon's timeline
+    intake.stamp_slack = lambda: slack[0]
+    k = 40
+    oldest = k - est.max_delay
+    key = "pd/p0/s1/sensor/camera"
+
+    def offer(step: int, seq: int, **kw):  # type: ignore[no-untyped-def]
+        msg = measurement(step=None, t_ns=EPOCH + step * PERIOD_NS, seq=seq, **kw)
+        return intake.measurement(f"pd/p0/s1/sensor/{msg.sensor}", encode(msg), k)
+
+    for seq, s in enumerate((0, PERIOD_NS)):  # no slack, or too little: late
+        slack[0] = s
+        refusal = offer(oldest - 2, seq)
+        assert refusal is not None and refusal.reason == "late" and not intake.remapped
+        assert f"sample step {oldest - 2} is older" in refusal.text  # its own step
+    slack[0] = 3 * PERIOD_NS  # late by 2 steps, the estimate moved by 3 while it flew
+    assert offer(oldest - 2, 5) is None and intake.remapped
+    assert sorted(est._packets) == [oldest + 1]  # t_ns + slack: never as current
+    assert intake.last_t_ns == EPOCH + (oldest + 1) * PERIOD_NS
+    # a second one of that sensor at that instant: late; the full decode path (its own R)
+    assert offer(oldest - 2, 6) is not None and not intake.remapped
+    assert offer(oldest - 2, 7, sensor="ranger", z=np.array([0.1]), R=np.eye(1)) is None
+    assert intake.remapped and len(est._packets[oldest + 1]) == 2
+    # a step-stamped sample carries no clock error: late whatever the slack
+    refusal = intake.measurement(key, encode(measurement(step=oldest - 1, seq=8)), k)
+    assert refusal is not None and refusal.reason == "late"

@@ -221,3 +221,59 @@ def test_echoed_instants_and_mapped_stamps_give_the_continuous_discrete_batch_pr
     c = sess.robot.counters
     assert c["commands_moved"] > 40 and c["commands_echo_refused"] == 0 and compared > 10
     assert len(accepted) > 100
+
+
+def test_a_sample_in_flight_across_a_clock_step_is_late_only_beyond_the_estimates_move() -> None:
+    """Issue 43: the robot's clock (+10 s) steps +200 ms at 20 s, inside the band a 250 /
+    300 ms link leaves. The first fast stamp after it lifts the band's lower side, so the
+    estimate moves by half the step at once; a sample taken just before the step and still
+    in flight is then mapped 100 ms early. Inside the window (600 ms) by its true delay
+    (590 ms), it goes in at the instant the estimate before the move gives it (the latest
+    it may have been taken at: here its true instant), counted, not refused as late; one
+    whose true delay (800 ms) is outside the window is refused and counted."""
+    from pd_service.backends import build
+    from pd_service.service.session import Session
+    from pd_service.wire import Measurement
+
+    spec = paper_spec("s1").model_copy(update={"robot_clock": "estimated"})
+    sess = Session(spec, build(spec), "active", "", 0, 10.0, 10)
+    P, ms = spec.period_ns, 1_000_000
+    ranger = [sp.name for sp in spec.sensors].index("ranger")
+
+    def robot_clock(t: int) -> int:
+        return t + 10 * S + (200 * ms if t >= 20 * S else 0)
+
+    events: list[tuple[int, tuple[object, ...]]] = []
+    for j in range(21):  # probes once a second: up 250 ms, down 300 ms
+        t1 = j * S
+        t2 = robot_clock(t1 + 250 * ms)
+        events.append((t1 + 551 * ms, ("probe", t1, t2, t2 + ms)))
+    for i in range(1, 205):  # the camera every 100 ms, 300 ms down
+        t = i * 100 * ms
+        events.append((t + 300 * ms, ("meas", "camera", t, i)))
+    for t, d in ((19_940 * ms, 590 * ms), (19_800 * ms, 800 * ms)):  # in flight at the step
+        events.append((t + d, ("meas", "ranger", t, t // P)))
+    events.sort(key=lambda e: e[0])
+    outcomes: dict[int, str | None] = {}
+    slacks: list[int] = []
+    for recv, what in events:
+        if what[0] == "probe":
+            _, t1, t2, t3 = what
+            sess.robot.probe(t1, t2, t3, recv)  # type: ignore[arg-type]
+            continue
+        _, name, t, seq = what
+        z = np.zeros(2 if name == "camera" else 1)
+        msg = Measurement(session="s1", sensor=name, seq=seq, t_ns=robot_clock(t), z=z)  # type: ignore[arg-type]
+        got = sess.on_measurement(f"pd/p0/s1/sensor/{name}", encode(msg), recv // P, recv)
+        outcomes[seq] = None if got is None else got.reason  # type: ignore[index]
+        if name == "ranger":
+            slacks.append(getattr(sess.robot, "slack_ns", 0))
+            if got is None:  # where it went: its true step (the old estimate's mapping)
+                at = [k for k, b in sess.est._packets.items()  # type: ignore[attr-defined]
+                      if any(p.sensor == ranger for p in b)]
+                assert at == [spec.sample_at(t)[0]] and at[0] >= recv // P - spec.max_delay
+                assert abs(sess.intake.last_t_ns - t) < 30 * ms  # type: ignore[operator]
+    assert outcomes[19_940 * ms // P] is None  # inside the window by its true delay
+    assert outcomes[19_800 * ms // P] == "late"  # outside it by more than the move
+    assert all(90 * ms < x < 110 * ms for x in slacks)  # the estimate moved ~100 ms meanwhile
+    assert sess.robot.counters["stamps_remapped"] == 1
