@@ -35,8 +35,10 @@ arrive in (see docs/ros2.md). The truth stays native.
 
 An unsynchronised robot (issue 43): ``--clock-offset-s``, ``--clock-drift-ppm`` and
 ``--clock-step AT_S:SIZE_S`` give the robot a clock of its own (:mod:`.robot_clock`): its
-samples are stamped with ``t_ns`` on it, its echoes and probe answers read it;
-``--apply-on-arrival`` applies each command in the step it arrives in and echoes it.
+samples are stamped with ``t_ns`` on it (with ``--ros2``: header.stamp), its echoes and probe
+answers read it; ``--apply-on-arrival`` applies each command in the step it arrives in and
+echoes it (with ``--ros2``: each Twist, by its rmw_zenoh sequence number, as ``pd-ros2 --role
+robot`` does, which then need not run: it reads the computer's clock, not the emulated one).
 
 Several ``--session NAME[:sensor,...]`` run the same robot (same truth and samples) for
 several sessions, each with its own sensor subset. ``--create-session`` puts the sessions'
