@@ -25,7 +25,9 @@ sample as the daemon receives it (its stamp mapped by the true robot clock: the 
 window W* that refuses <= 0.1 % as late), the session's status once a second (counters
 ``future`` / ``late`` after the first 5 s; the offset estimate against the true clock after
 10 s, outside the 5 s after the step, with its reported uncertainty; the learned
-``recommended_max_delay`` against W*). The true clock: the sim's flags and the t0 it prints.
+``recommended_max_delay`` against W*); and the robot's own lateness (its samples as the
+probe receives them before pd-link, against their true time: what the link did not add;
+p99.9 / max). The true clock: the sim's flags and the t0 it prints.
 Clock probes are Zenoh queries: pd-link does not carry them, so they cross loopback, not the
 emulated link (the in-process bench/robot_clock.py delays them as the link would).
 
@@ -51,7 +53,9 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -67,6 +71,7 @@ from pd_client.admin import Admin  # noqa: E402
 from pd_client.errors import PdClientError  # noqa: E402
 from pd_client.tools.robot_clock import RobotClock  # noqa: E402
 from pd_service.estimation.delay_learning import LATE_SHARE  # noqa: E402
+from pd_service.ros2.extract import decode_measurement  # noqa: E402
 from pd_service.scenarios import get_scenario  # noqa: E402
 from pd_service.transport import Sample, ZenohTransport, zenoh_config  # noqa: E402
 from pd_service.wire import Measurement, Prediction, SessionSpec, decode, keys  # noqa: E402
@@ -167,6 +172,7 @@ class Result:
     smallest_window: int | None = None
     learned_late_share: float | None = None
     samples: int = 0
+    robot_late_ms: tuple[float, float] | None = None  # p99.9, max of publication - sample time
     clock_warning: str = ""
     counters: dict[str, int] = field(default_factory=dict)
 
@@ -283,6 +289,23 @@ def run(name: str, scenario: str, seconds: float, offset_s: float, seed: int) ->
             t.subscribe(keys.truth_key(sess), on_truth)
             for sensor in spec.sensors:
                 t.subscribe(keys.sensor_key(sess, sensor.name), on_meas)
+            published: list[tuple[int, int]] = []  # the same, as the robot sends (before pd-link)
+
+            def on_robot(smp: Sample, binding: Any = None) -> None:
+                now = time.time_ns()
+                if binding is not None:
+                    published.append((now, decode_measurement(binding, smp.payload).stamp_ns))
+                    return
+                m = decode(smp.payload, Measurement)
+                published.append((now, m.t_ns if m.t_ns is not None else spec.time_of(m.step or 0)))
+
+            if ros2:
+                assert spec.ros2 is not None
+                for b in spec.ros2.sensors.values():
+                    t.subscribe(f"robot/0/{b.topic}/**", partial(on_robot, binding=b))
+            else:
+                for sensor in spec.sensors:
+                    t.subscribe(keys.robot_sensor_key(sess, sensor.name), on_robot)
             if ros2:
                 wait("pd-ros2", lambda: any(r.ok for r in t.get(keys.ros2_status_key("live"),
                                                                 timeout=0.5)), procs)
@@ -380,6 +403,11 @@ def run(name: str, scenario: str, seconds: float, offset_s: float, seed: int) ->
     if n:
         allowed = int(np.floor(LATE_SHARE * n + 1e-9))
         res.smallest_window = max(0, int(gaps[n - 1 - allowed]))
+    # the robot's own lateness (publication - true sample time): what pd-link did not add
+    late = np.sort([r - (s - clock.offset_ns(s - clock.offset_ns(s))) for r, s in published])
+    if late.size:
+        res.robot_late_ms = (float(late[min(late.size - 1, int(0.999 * late.size))]) / 1e6,
+                             float(late[-1]) / 1e6)
     res.learned_max_delay = st.recommended_max_delay
     if n and res.learned_max_delay is not None:
         res.learned_late_share = float(np.count_nonzero(gaps > res.learned_max_delay)) / n
@@ -411,7 +439,7 @@ def main() -> int:
           f"PD_SERVICE_PURE={os.environ.get('PD_SERVICE_PURE', '')}")
     print(f"{'run':<10} {'future':>6} {'late':>5} {'off.err max/med ms':>19} {'unc. ms':>8} "
           f"{'RMS':>8} {'/ref':>6} {'w/o step':>8} {'/ref':>6} {'preds':>5} {'learned W':>9} "
-          f"{'W*':>4} {'W/W*':>5} {'late %':>7} {'steps':>5}")
+          f"{'W*':>4} {'W/W*':>5} {'late %':>7} {'steps':>5} {'robot late ms':>13}")
     for r in runs.values():
         off = (f"{r.offset_err_max_ms:8.3f}/{r.offset_err_median_ms:<8.3f}"
                if r.offset_err_max_ms is not None and r.offset_err_median_ms is not None
@@ -421,12 +449,14 @@ def main() -> int:
                  if r.learned_max_delay and r.smallest_window else f"{'-':>5}")
         share = (f"{100 * r.learned_late_share:7.3f}" if r.learned_late_share is not None
                  else f"{'-':>7}")
+        rl = "-" if r.robot_late_ms is None else f"{r.robot_late_ms[0]:.0f}/{r.robot_late_ms[1]:.0f}"
         rr = ref.rms if ref else float("nan")
         ro = ref.rms_outside_step if ref else float("nan")
         print(f"{r.name:<10} {r.future:>6} {r.late:>5} {off:>19} {unc} {r.rms:8.4f} "
               f"{r.rms / rr:6.3f} {r.rms_outside_step:8.4f} {r.rms_outside_step / ro:6.3f} "
               f"{r.predictions:>5} {r.learned_max_delay!s:>9} {r.smallest_window!s:>4} {ratio} "
-              f"{share} {r.steps_detected:>5}")
+              f"{share} {r.steps_detected:>5} "
+              f"{rl:>13}")
     print(json.dumps({"scenario": args.scenario, "seconds": args.seconds,
                       "offset_s": args.offset_s, "seed": args.seed, "live": True,
                       "runs": {n: {k: v for k, v in r.__dict__.items() if k != "counters"}
