@@ -207,7 +207,8 @@ class Ros2RobotNode:
     ``on_command(u, seq)`` gets u = (linear.x, angular.z) (2,) of every valid Twist/TwistStamped
     and its rmw_zenoh attachment's sequence number (None without a readable one: what pd-ros2
     names the Command and its echo), on the transport's callback thread; an invalid one is
-    counted (``commands_invalid``) and logged. ``clock``: wall clock of the attachment's source timestamp (ns).
+    counted (``commands_invalid``) and logged. ``clock``: wall clock of the attachment's
+    source timestamp (ns).
     """
 
     def __init__(self, transport: Transport, binding: Ros2Binding,
