@@ -4,6 +4,7 @@ tests that drive what a script does without running it as a process."""
 from __future__ import annotations
 
 import importlib.util
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -15,5 +16,6 @@ def load_script(relative: str, name: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(name, ROOT / relative)
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
+    sys.modules[name] = mod  # what a dataclass of the script looks its module up by
     spec.loader.exec_module(mod)
     return mod

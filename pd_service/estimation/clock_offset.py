@@ -37,11 +37,13 @@ bounded below: the estimate is that bound (a robot stamp mapped with it is never
 its receipt) and the uncertainty infinite.
 
 Step changes (an NTP correction on the robot): a bound outside the current band by more than
-the tolerance is held aside (``inconsistent``); ``confirm`` of them in a row re-anchor the
-estimate on them (``steps``). A step inside the band (smaller than its width: 200 ms against
-the ~0.9 s of a 500 / 600 ms link) moves every bound by the same amount d, so, per side, the
-median of the newest ``recent`` buckets' extremes (detrended) moves by d against the median
-of the (at most 16) buckets before them (:func:`step_test`): both sides must have moved the
+the tolerance is held aside (``inconsistent``); ``confirm`` of them, with no bound of the
+other kind contradicting them in between (an upper bound under a held lower one, or a lower
+bound over a held upper one), re-anchor the estimate on them (``steps``). A step inside the
+band (smaller than its width: 200 ms against the ~0.9 s of a 500 / 600 ms link) moves
+every bound by the same amount d, so, per side, the median of the newest ``recent``
+buckets' extremes (detrended) moves by d against the median of the (at most 16) buckets
+before them (:func:`step_test`): both sides must have moved the
 same way, each by more than ``step_k`` standard errors (:func:`median_shift`: from the
 buckets' own spread, at least the tolerance and the drift's uncertainty times the time
 between the two sets), by amounts that agree; the buckets before the step
@@ -262,8 +264,9 @@ class ClockOffsetEstimator:
     estimate and grows the uncertainty while no bound comes; ``asymmetry_s`` the expected
     ``d_up - d_down`` (s; 0: symmetric, the unidentifiable part); ``tolerance_s`` how far
     outside the band a bound may fall before it is held aside; ``confirm`` inconsistent bounds
-    in a row that re-anchor (a step); ``recent`` / ``step_k`` the in-band step test (the
-    buckets it compares with the older ones, and the standard errors each side must move;
+    (none contradicted meanwhile) that re-anchor (a step); ``recent`` / ``step_k`` the in-band
+    step test (the buckets it compares with the older ones, and the standard errors each side
+    must move;
     ``min_step_s`` the least step it reports);
     ``max_offset_s`` an offset beyond which a bound is refused as implausible; ``max_rtt_s``
     a probe's longest round trip accepted; ``drift_span_s`` the shortest span of bounds the
@@ -381,7 +384,13 @@ class ClockOffsetEstimator:
             return self._hold(self._pending_lo, t, v)
         if not lower and d < lo - tol:
             return self._hold(self._pending_hi, t, v)
-        (self._pending_lo if lower else self._pending_hi).clear()
+        # only a bound of the other kind contradicts held ones (theta >= l > u, beyond what
+        # any drift allows between them): a looser one of their kind fits a step too (stamps
+        # 600 ms late among probes 1 ms wide)
+        held = self._pending_hi if lower else self._pending_lo
+        if held and any((v - vp if lower else vp - v) > tol + self.max_drift * abs(t - tp)
+                        for tp, vp in held):
+            held.clear()
         opened = self._buckets[-1].index if self._buckets else None
         if not self._store(t, v, lower):  # most bounds are not their bucket's tightest
             return None

@@ -78,6 +78,25 @@ def test_spec_checks_sensor_and_dimension(bus, spec):
         Robot(bus.transport(), "Not Valid")
 
 
+def test_a_stamp_before_the_epoch_is_refused_unless_the_robot_clock_is_estimated(bus, spec):
+    """A robot clock 10 s behind the daemon's stamps the session's first seconds before its
+    epoch: the daemon maps them (spec robot_clock "estimated"); with a shared clock they are
+    refused as before."""
+    from pd_service.wire import SessionSpec
+
+    sink = Collector(bus, keys.robot_sensor_key("s1", "camera"))
+    with Robot(bus.transport(), "s1", spec=spec) as robot:
+        with pytest.raises(InvalidMessage, match="before the session epoch"):
+            robot.publish("camera", [1.0, 2.0], t_ns=EPOCH_NS - 10 * 10**9)
+    own = SessionSpec.model_validate({**spec.model_dump(), "robot_clock": "estimated"})
+    with Robot(bus.transport(), "s1", spec=own) as robot:
+        robot.publish("camera", [1.0, 2.0], t_ns=EPOCH_NS - 10 * 10**9)
+        with pytest.raises(InvalidMessage, match="expected 2 values"):  # the rest still checked
+            robot.publish("camera", [1.0], t_ns=EPOCH_NS - 10 * 10**9)
+    (m,) = [decode(p, Measurement) for p in sink.payloads()]
+    assert m.t_ns == EPOCH_NS - 10 * 10**9
+
+
 def test_truth_gets_time_from_spec(bus, spec):
     sink = Collector(bus, keys.truth_key("s1"))
     with Robot(bus.transport(), "s1", spec=spec) as robot:

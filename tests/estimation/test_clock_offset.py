@@ -157,6 +157,35 @@ def test_a_step_change_mid_run_is_detected_and_reanchored(link: Link, step_s: fl
 
 
 @pytest.mark.parametrize("step_s", [0.2, -0.2])
+def test_a_step_only_tight_probes_see_is_taken_among_loose_one_way_stamps(step_s: float) -> None:
+    """Probes on a fast path (a band ~0.1 ms wide), robot stamps 600 ms late (50 a second): after
+    the step only the probes fall outside the band, one a second; the stamps between them (the
+    same kind, looser) must not clear them (the live bench: pd-link does not carry probes)."""
+    clock = RobotClock(10.0, step_s=step_s, step_at_s=30.0)
+    est = ClockOffsetEstimator()
+    rng = np.random.default_rng(3)
+    events: list[tuple[int, int, tuple[int, ...]]] = []
+    for j in range(60):
+        t1 = T0 + round((j + 0.3) * S)
+        ta = t1 + LOOPBACK.up(rng)
+        t4 = ta + 20_000 + LOOPBACK.down(rng)
+        events.append((t4, 0, (t1, clock(ta), clock(ta + 20_000), t4)))
+    for i in range(3000):
+        ts = T0 + i * 20_000_000
+        events.append((ts + FIELD.down(rng), 1, (clock(ts),)))
+    trace = []
+    for recv, kind, data in sorted(events):
+        if kind == 0:
+            est.add_probe(*data)
+            trace.append(traced(est, clock, recv))
+        else:
+            est.add_one_way(data[0], recv)
+    assert est.counters["steps"] == 1
+    assert error_after(trace, 36.0) <= 1e-3  # re-anchored on the fourth probe after it
+    assert error_after([x for x in trace if x[0] < 30.0], 10.0) <= 1e-3
+
+
+@pytest.mark.parametrize("step_s", [0.2, -0.2])
 def test_echoes_and_stamps_alone_find_a_step_on_the_field_link(step_s: float) -> None:
     clock = RobotClock(10.0, step_s=step_s, step_at_s=30.0)
     est = ClockOffsetEstimator(asymmetry_s=-0.1)

@@ -241,3 +241,46 @@ def test_the_ros_camera_goes_through_pd_ros2_to_frames_with_a_pinhole_view(bus):
         assert v is not None and v.K == CHASE_K and v.D == CHASE_D and v.mount == CHASE_MOUNT
         near = min(poses, key=lambda t: abs(t - f.t_ns))
         assert [v.body_x, v.body_y, v.body_yaw] == pytest.approx(poses[near], abs=1e-12)
+
+
+def test_an_unsynchronised_ros_robot_stamps_on_its_clock_and_echoes_each_twist(bus):
+    """--clock-offset-s with --ros2: header.stamp on the robot's clock; --apply-on-arrival
+    echoes each Twist (its attachment's sequence number, its arrival on the robot's clock),
+    not the native Command that reaches the robot by another way."""
+    from pd_client.tools.robot_clock import RobotClock
+    from pd_service.ros2.attachment import Attachment, encode_attachment
+    from pd_service.wire import Command, CommandEcho
+    from pd_service.wire import encode as wire_encode
+
+    sc = get_scenario("diffdrive")
+    spec = sc.spec("bot", EPOCH_NS)
+    now = [spec.time_of(0)]
+    robot_clock = RobotClock(10.0, 0.0, base=lambda: now[0], t0_ns=EPOCH_NS)
+    sink = Collector(bus, "robot/**")
+    echoes = Collector(bus, keys.robot_echo_key("bot"))
+    sim = RobotSim(bus.transport(), sc, [spec], seed=7, ros2=Ros2Options(),
+                   clock=lambda: now[0], robot_clock=robot_clock, apply_on_arrival=True)
+    operator = bus.transport()
+    twists = operator.publisher("robot/" + cmd_key())
+    for k in range(6):
+        now[0] = spec.time_of(k) + 3_000
+        sim.tick(k)
+        if k == 2:
+            twists.put(twist(0.5, 0.1), attachment=encode_attachment(
+                Attachment(sequence_number=41, source_timestamp_ns=1, gid=bytes(16))))
+        if k == 4:  # the bridge's Command, by another way: not what the robot applied
+            operator.put(keys.robot_command_key("bot"),
+                         wire_encode(Command(session="bot", seq=41, step=2,
+                                             u=np.array([0.5, 0.1]))))
+    assert spec.ros2 is not None
+    stamps = []
+    for name, binding in spec.ros2.sensors.items():
+        for s in sink.samples:
+            if s.key == sim.ros.key_of(name):
+                stamps.append(decode_measurement(binding, s.payload).stamp_ns)
+    assert stamps and {t - 10 * 1_000_000_000 for t in stamps} <= {spec.time_of(k)
+                                                                  for k in range(6)}
+    (echo,) = [decode(p, CommandEcho) for p in echoes.payloads()]
+    assert echo.seq == 41 and echo.applied_ns == spec.time_of(2) + 3_000 + 10 * 1_000_000_000
+    np.testing.assert_array_equal(sim.last_u, [0.5, 0.1])
+    sim.close()

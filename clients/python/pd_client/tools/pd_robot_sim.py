@@ -35,8 +35,10 @@ arrive in (see docs/ros2.md). The truth stays native.
 
 An unsynchronised robot (issue 43): ``--clock-offset-s``, ``--clock-drift-ppm`` and
 ``--clock-step AT_S:SIZE_S`` give the robot a clock of its own (:mod:`.robot_clock`): its
-samples are stamped with ``t_ns`` on it, its echoes and probe answers read it;
-``--apply-on-arrival`` applies each command in the step it arrives in and echoes it.
+samples are stamped with ``t_ns`` on it (with ``--ros2``: header.stamp), its echoes and probe
+answers read it; ``--apply-on-arrival`` applies each command in the step it arrives in and
+echoes it (with ``--ros2``: each Twist, by its rmw_zenoh sequence number, as ``pd-ros2 --role
+robot`` does, which then need not run: it reads the computer's clock, not the emulated one).
 
 Several ``--session NAME[:sensor,...]`` run the same robot (same truth and samples) for
 several sessions, each with its own sensor subset. ``--create-session`` puts the sessions'
@@ -175,14 +177,18 @@ class RobotSim:
         self.sessions: list[SimSession] = []
         try:
             for spec in specs:
+                # a ROS 2 robot applies Twists, not Commands: it echoes those (_on_ros_command)
                 robot = Robot(transport, spec.session, spec=spec, direct=direct,
-                              clock=robot_clock or clock, apply_on_arrival=apply_on_arrival,
+                              clock=robot_clock or clock,
+                              apply_on_arrival=apply_on_arrival and ros2 is None,
                               stamp_clock=robot_clock.at if robot_clock else None)
                 self.sessions.append(SimSession(spec, {s.name for s in spec.sensors}, robot))
         except BaseException:
             self.close()
             raise
         self._clock = clock
+        self._stamp = robot_clock.at if robot_clock is not None else (lambda t: t)
+        self._echo_twists = apply_on_arrival
         self.ros: Ros2RobotNode | None = None
         if ros2 is None:
             self.sessions[0].robot.on_command(self._on_command)
@@ -217,9 +223,14 @@ class RobotSim:
             self.commands_invalid += 1
             log.warning("ignoring command seq %s: %s", cmd.seq, exc)
 
-    def _on_ros_command(self, u: np.ndarray) -> None:
-        """A Twist's u = (v, yaw_rate): in force from the step it arrives in."""
+    def _on_ros_command(self, u: np.ndarray, seq: int | None) -> None:
+        """A Twist's u = (v, yaw_rate): in force from the step it arrives in; with
+        ``apply_on_arrival`` echoed (its rmw_zenoh sequence number ``seq``, as pd-ros2 --role
+        robot does) at its arrival on the robot's clock."""
         self.schedule.add(max(0, self.spec.step_of(self._clock())), u)
+        if self._echo_twists and seq is not None:
+            robot = self.sessions[0].robot
+            robot.echo(Command(session=robot.session, seq=seq, step=0, u=u), robot.clock())
 
     def tick(self, k: int) -> np.ndarray:
         """Run step k: move x(k-1) -> x(k) with u(k-1), then publish truth and samples of
@@ -245,7 +256,7 @@ class RobotSim:
                 if d.sensor not in s.sensors:
                     continue
                 if self.ros is not None and self.ros.binds(d.sensor):
-                    self.ros.publish(d.sensor, d.z, stamp_ns=s.spec.time_of(k))
+                    self.ros.publish(d.sensor, d.z, stamp_ns=self._stamp(s.spec.time_of(k)))
                 else:
                     s.robot.publish(d.sensor, d.z, step=k)
                 self.samples_published += 1
@@ -275,7 +286,7 @@ class RobotSim:
             for d in due:
                 if d.sensor not in s.sensors:
                     continue
-                t_ns = s.spec.epoch_ns + round(d.t_s / T * s.spec.period_ns)
+                t_ns = self._stamp(s.spec.epoch_ns + round(d.t_s / T * s.spec.period_ns))
                 if self.ros is not None and self.ros.binds(d.sensor):
                     self.ros.publish(d.sensor, d.z, stamp_ns=t_ns)
                 else:
@@ -406,13 +417,18 @@ def _run(args: argparse.Namespace, scenario: Scenario,
             for name, _ in sessions:
                 common.progress(TOOL, f"waiting for the spec of session {name} ...")
                 specs.append(admin.wait_for_spec(name, args.service_timeout))
+        robot_clock = clock_from_args(args)
         try:
             sim = RobotSim(transport, scenario, specs, seed=args.seed, direct=args.direct,
                            camera_every=args.camera, camera_view=args.camera_view,
-                           ros2=ros2, robot_clock=clock_from_args(args),
+                           ros2=ros2, robot_clock=robot_clock,
                            apply_on_arrival=args.apply_on_arrival)
         except ValueError as exc:
             return common.fail(TOOL, exc, 2)
+        if robot_clock is not None:  # its t0: what an outside check of the offset needs
+            common.progress(TOOL, f"robot clock {robot_clock.offset_s:+g} s, "
+                                  f"{robot_clock.drift_ppm:g} ppm, steps "
+                                  f"{list(robot_clock.steps)} from t0_ns={robot_clock.t0_ns}")
         try:
             if args.create_session:  # the robot listens for commands before they can come
                 _create(admin, specs, args)

@@ -67,7 +67,7 @@ from rosbags.typesys.stores.ros2_jazzy import (
     geometry_msgs__msg__Vector3 as Vector3,
 )
 
-from pd_service.ros2.attachment import Attachment, encode_attachment
+from pd_service.ros2.attachment import Attachment, decode_attachment, encode_attachment
 from pd_service.ros2.errors import Ros2DecodeError
 from pd_service.ros2.extract import extract_command, quaternion_of_yaw
 from pd_service.ros2.keys import NodeIdentity, TopicEndpoint
@@ -189,18 +189,31 @@ def session_id_of(transport: Transport) -> str:
     return os.urandom(16).hex().lstrip("0") or "1"
 
 
+def _attachment_seq(attachment: bytes | None) -> int | None:
+    """The rmw_zenoh attachment's sequence number; None when absent, unreadable or negative."""
+    if attachment is None:
+        return None
+    try:
+        seq = decode_attachment(attachment).sequence_number
+    except Ros2DecodeError:
+        return None
+    return seq if seq >= 0 else None
+
+
 class Ros2RobotNode:
     """The node ``robot_sim``: publishers of the bound sensors, the command subscription and
     their liveliness tokens (see the module docstring).
 
-    ``on_command(u)`` gets u = (linear.x, angular.z) (2,) of every valid Twist/TwistStamped,
-    on the transport's callback thread; an invalid one is counted (``commands_invalid``) and
-    logged. ``clock``: wall clock of the attachment's source timestamp (ns).
+    ``on_command(u, seq)`` gets u = (linear.x, angular.z) (2,) of every valid Twist/TwistStamped
+    and its rmw_zenoh attachment's sequence number (None without a readable one: what pd-ros2
+    names the Command and its echo), on the transport's callback thread; an invalid one is
+    counted (``commands_invalid``) and logged. ``clock``: wall clock of the attachment's
+    source timestamp (ns).
     """
 
     def __init__(self, transport: Transport, binding: Ros2Binding,
                  sensor_R: Mapping[str, np.ndarray], *, options: Ros2Options = Ros2Options(),
-                 on_command: Callable[[np.ndarray], None] | None = None,
+                 on_command: Callable[[np.ndarray, int | None], None] | None = None,
                  session_id: str | None = None,
                  clock: Callable[[], int] = time.time_ns) -> None:
         missing = sorted(set(binding.sensors) - set(sensor_R))
@@ -354,7 +367,7 @@ class Ros2RobotNode:
             log.warning("ignoring %s sample: %s", cmd.topic, exc.reason)
             return
         if self._on_command is not None and all(math.isfinite(v) for v in u):
-            self._on_command(u)
+            self._on_command(u, _attachment_seq(sample.attachment))
 
     def close(self) -> None:
         close_quietly(reversed(self._handles))
