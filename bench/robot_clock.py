@@ -50,6 +50,7 @@ import sys
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -300,6 +301,20 @@ def run(name: str, scenario_name: str, seconds: float, offset_s: float, seed: in
     return res
 
 
+def clock_cells(r: Any) -> tuple[str, str, str, str]:
+    """A run's table cells (this bench's and bench/robot_clock_live.py's): offset error
+    max / median (ms), reported uncertainty (ms), learned window / W*, share refused late (%)."""
+    off = (f"{r.offset_err_max_ms:8.3f}/{r.offset_err_median_ms:<8.3f}"
+           if r.offset_err_max_ms is not None and r.offset_err_median_ms is not None
+           else f"{'-':>19}")
+    unc = f"{r.uncertainty_ms:8.3f}" if r.uncertainty_ms is not None else f"{'-':>8}"
+    ratio = (f"{r.learned_max_delay / r.smallest_window:5.2f}"
+             if r.learned_max_delay and r.smallest_window else f"{'-':>5}")
+    share = (f"{100 * r.learned_late_share:7.3f}" if r.learned_late_share is not None
+             else f"{'-':>7}")
+    return off, unc, ratio, share
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenario", default="paper")
@@ -333,14 +348,7 @@ def main() -> int:
             f"{'W/W*':>5} {'late %':>7} {'steps':>5} {'seen s':>6} {'remap':>5}")
     print(head)
     for r in runs:
-        off = (f"{r.offset_err_max_ms:8.3f}/{r.offset_err_median_ms:<8.3f}"
-               if r.offset_err_max_ms is not None and r.offset_err_median_ms is not None
-               else f"{'-':>19}")
-        unc = f"{r.uncertainty_ms:8.3f}" if r.uncertainty_ms is not None else f"{'-':>8}"
-        ratio = (f"{r.learned_max_delay / r.smallest_window:5.2f}"
-                 if r.learned_max_delay and r.smallest_window else f"{'-':>5}")
-        share = (f"{100 * r.learned_late_share:7.3f}" if r.learned_late_share is not None
-                 else f"{'-':>7}")
+        off, unc, ratio, share = clock_cells(r)
         ref = refs[r.name]
         print(f"{r.name:<10} {r.future:>7} {r.late:>5} {off:>19} {unc} {r.rms:8.4f} "
               f"{r.rms / ref.rms:6.3f} {r.rms_outside_step:8.4f} "

@@ -64,7 +64,7 @@ sys.path.insert(0, str(ROOT / "clients" / "python"))
 sys.path.append(str(ROOT / "bench"))  # children, robot_clock (also when a test loads this)
 
 from children import popen, stop_all, stop_children_on_exit  # noqa: E402
-from robot_clock import FIELD, Link  # noqa: E402
+from robot_clock import FIELD, Link, clock_cells  # noqa: E402
 
 from pd_client import Truth  # noqa: E402
 from pd_client.admin import Admin  # noqa: E402
@@ -441,14 +441,7 @@ def main() -> int:
           f"{'RMS':>8} {'/ref':>6} {'w/o step':>8} {'/ref':>6} {'preds':>5} {'learned W':>9} "
           f"{'W*':>4} {'W/W*':>5} {'late %':>7} {'steps':>5} {'robot late ms':>13}")
     for r in runs.values():
-        off = (f"{r.offset_err_max_ms:8.3f}/{r.offset_err_median_ms:<8.3f}"
-               if r.offset_err_max_ms is not None and r.offset_err_median_ms is not None
-               else f"{'-':>19}")
-        unc = f"{r.uncertainty_ms:8.3f}" if r.uncertainty_ms is not None else f"{'-':>8}"
-        ratio = (f"{r.learned_max_delay / r.smallest_window:5.2f}"
-                 if r.learned_max_delay and r.smallest_window else f"{'-':>5}")
-        share = (f"{100 * r.learned_late_share:7.3f}" if r.learned_late_share is not None
-                 else f"{'-':>7}")
+        off, unc, ratio, share = clock_cells(r)
         rl = "-" if r.robot_late_ms is None else f"{r.robot_late_ms[0]:.0f}/{r.robot_late_ms[1]:.0f}"
         rr = ref.rms if ref else float("nan")
         ro = ref.rms_outside_step if ref else float("nan")
