@@ -570,6 +570,23 @@ class ClockOffsetEstimator:
 
     # --- output --------------------------------------------------------------------------
 
+    def held_outside_s(self) -> float:
+        """How far (s) the bounds held aside lie outside the band: a step the estimator
+        suspects but has not confirmed (``confirm`` bounds re-anchor it), which the
+        half-width does not include (0.0: none held). A held lower bound ``l`` at ``t``
+        says theta(t) >= l, above the band's upper side U + b t by l - b t - U; a held upper
+        bound alike below L."""
+        lo, hi = self._band
+        b = self._drift
+        out = 0.0
+        if np.isfinite(hi):
+            for tp, vp in self._pending_lo:
+                out = max(out, vp - b * tp - hi)
+        if np.isfinite(lo):
+            for tp, vp in self._pending_hi:
+                out = max(out, lo - (vp - b * tp))
+        return out
+
     def estimate(self, now_ns: int) -> OffsetEstimate:
         """The estimate at daemon time ``now_ns`` (ns)."""
         steps = self.counters["steps"]

@@ -265,7 +265,8 @@ class RobotTime:
 
     def clock_status(self, now_ns: int) -> ClockStatus | None:
         """The offset estimate now (None for a shared clock), with a warning when it is
-        unknown, unbounded, stale or just jumped."""
+        unknown, unbounded, stale, a step is suspected (its uncertainty then covers the held
+        bounds) or it just jumped."""
         if not self.estimated:
             return None
         est = self.clock.estimate(now_ns)
@@ -277,12 +278,17 @@ class RobotTime:
             warning = "robot clock offset bounded on one side only (no probe or echo yet)"
         elif est.age_s > CLOCK_STALE_S:
             warning = f"robot clock estimate stale ({est.age_s:.0f} s without a stamp)"
+        elif (held := self.clock.held_outside_s()) > 0.0:
+            warning = (f"robot clock step suspected: bounds {held * 1e3:.1f} ms outside the "
+                       f"estimate, not yet confirmed")
         elif last is not None and last.known and (
                 est.steps > last.steps
                 or abs(est.offset_s - last.offset_s - last.drift * (now_ns - last.t_ns) * 1e-9)
                 > CLOCK_WARN_NS * 1e-9):
             warning = "robot clock offset jumped"
-        unc = None if not np.isfinite(est.half_width_s) else int(min(est.half_width_s, 9e9) * 1e9)
+        # a suspected step widens what the status reports (not the mapping's own half-width)
+        half = est.half_width_s + self.clock.held_outside_s()
+        unc = None if not np.isfinite(half) else int(min(half, 9e9) * 1e9)
         return ClockStatus(known=est.known, offset_ns=round(est.offset_s * 1e9),
                            uncertainty_ns=unc, drift_ppm=est.drift * 1e6, age_s=min(est.age_s, 1e12),
                            steps=est.steps, warning=warning)

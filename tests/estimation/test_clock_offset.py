@@ -438,3 +438,26 @@ def test_the_change_point_drops_the_bucket_the_step_fell_into() -> None:
     assert change_point(np.array([0.0, 0.2, -inf]), np.array([inf, 0.2, 0.2]), 0.0, 0.0,
                         0.2) == 1
     assert change_point(np.array([0.0, 0.0]), np.array([0.0, 0.0]), 0.0, 0.0, 0.2) == 1
+
+
+def test_a_held_step_is_reported_outside_the_band_until_confirmed() -> None:
+    """A probe that puts the offset 200 ms above the band is held aside (a suspected step):
+    the half-width does not include it, :meth:`held_outside_s` does (what the status adds),
+    until ``confirm`` such probes re-anchor the estimate on the step."""
+    clock = RobotClock(10.0, drift=0.0)
+    est = ClockOffsetEstimator()
+    run(est, clock, LOOPBACK, 12.0)
+    assert est.held_outside_s() == 0.0
+    stepped = RobotClock(10.2, drift=0.0)
+    for i in range(est.confirm):
+        t1 = T0 + (12 * S) + i * S // 2
+        ta = t1 + 60_000
+        assert est.add_probe(t1, stepped(ta), stepped(ta + 20_000), ta + 80_000) == (
+            "inconsistent" if i < est.confirm - 1 else None)
+        if i < est.confirm - 1:
+            held = est.held_outside_s()
+            assert 0.199 < held < 0.2 + 1e-3, held
+            e = est.estimate(ta + 80_000)
+            assert abs(e.offset_s - 10.0) < 1e-3 and e.half_width_s < 1e-3  # not moved
+    assert est.held_outside_s() == 0.0 and est.counters["steps"] == 1
+    assert abs(est.estimate(T0 + 14 * S).offset_s - 10.2) < 1e-3

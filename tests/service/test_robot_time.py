@@ -141,6 +141,30 @@ def test_the_clock_status_warns_when_unknown_one_sided_or_jumping() -> None:
     assert abs(st.offset_ns - 15 * S) < 2_000
 
 
+def test_the_clock_status_widens_and_warns_while_a_step_is_suspected() -> None:
+    """A probe 200 ms off the estimate is held aside until confirmed (4 probes): the status
+    meanwhile warns of a suspected step and reports an uncertainty that covers it (the
+    estimate itself has not moved: its own half-width is a few µs)."""
+    r = robot()
+    for k in range(5):  # offset +10 s, 1 µs round trips
+        r.probe((3 + k) * S, (13 + k) * S, (13 + k) * S, (3 + k) * S + 1000)
+    st = r.clock_status(8 * S)
+    assert st is not None and st.warning == "" and st.uncertainty_ns is not None
+    assert st.uncertainty_ns < 1_000_000
+    r.probe(9 * S, 19 * S + 200_000_000, 19 * S + 200_000_000, 9 * S + 1000)  # +200 ms
+    st = r.clock_status(9 * S + 2000)
+    assert st is not None and "step suspected" in st.warning
+    assert st.uncertainty_ns is not None and st.uncertainty_ns >= 199_000_000
+    assert abs(st.offset_ns - 10 * S) < 1_000_000  # not moved: unconfirmed
+    for k in range(3):  # confirmed: re-anchored, no longer suspected
+        r.probe((10 + k) * S, (20 + k) * S + 200_000_000, (20 + k) * S + 200_000_000,
+                (10 + k) * S + 1000)
+    st = r.clock_status(13 * S)
+    assert st is not None and "suspected" not in st.warning
+    assert st.uncertainty_ns is not None and st.uncertainty_ns < 1_000_000
+    assert abs(st.offset_ns - round(10.2 * S)) < 1_000_000
+
+
 def test_echoed_instants_and_mapped_stamps_give_the_continuous_discrete_batch_prediction() -> None:
     """Exactness (issue 43): a robot 3 s ahead applies each command on arrival (uplink 500 ms
     +- 20 ms) and echoes it; its samples carry its own stamps. Given the instants the daemon
