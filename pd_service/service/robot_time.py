@@ -271,6 +271,7 @@ class RobotTime:
             return None
         est = self.clock.estimate(now_ns)
         last, self._last = self._last, est
+        held = self.clock.held_outside_s()
         warning = ""
         if not est.known:
             warning = "robot clock offset unknown (no stamp yet)"
@@ -278,7 +279,7 @@ class RobotTime:
             warning = "robot clock offset bounded on one side only (no probe or echo yet)"
         elif est.age_s > CLOCK_STALE_S:
             warning = f"robot clock estimate stale ({est.age_s:.0f} s without a stamp)"
-        elif (held := self.clock.held_outside_s()) > 0.0:
+        elif held > 0.0:
             warning = (f"robot clock step suspected: bounds {held * 1e3:.1f} ms outside the "
                        f"estimate, not yet confirmed")
         elif last is not None and last.known and (
@@ -287,7 +288,7 @@ class RobotTime:
                 > CLOCK_WARN_NS * 1e-9):
             warning = "robot clock offset jumped"
         # a suspected step widens what the status reports (not the mapping's own half-width)
-        half = est.half_width_s + self.clock.held_outside_s()
+        half = est.half_width_s + held
         unc = None if not np.isfinite(half) else int(min(half, 9e9) * 1e9)
         return ClockStatus(known=est.known, offset_ns=round(est.offset_s * 1e9),
                            uncertainty_ns=unc, drift_ppm=est.drift * 1e6, age_s=min(est.age_s, 1e12),
